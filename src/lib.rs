@@ -4,5 +4,7 @@
 //! nothing of files, channels or configuration; `vis` and `fits` are the file formats.
 
 pub mod error;
+pub mod fft2;
+pub mod nufft;
 
 pub use error::{Error, Result};

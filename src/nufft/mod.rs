@@ -1,0 +1,535 @@
+//! Two-dimensional non-uniform FFTs between an `nx x ny` image and points in the plane.
+//!
+//! * type 2 ("degridding", [`Nufft2d::forward`]):
+//!   `c_k = sum_{jx, jy} f[jy, jx] exp(+i (x_k jx + y_k jy))`
+//! * type 1 ("gridding", [`Nufft2d::adjoint`]), its exact adjoint:
+//!   `f[jy, jx] = sum_k c_k exp(-i (x_k jx + y_k jy))`
+//!
+//! with `jx = ix - nx/2 in [-nx/2, nx/2)` (likewise `jy`), images row-major `f[iy * nx + ix]`,
+//! and point coordinates `x_k, y_k` in radians per pixel (any real value; the transform is
+//! 2 pi periodic in them). Both directions spread with the exponential-of-semicircle kernel on
+//! an oversampled grid, FFT with rustfft, and divide out the kernel's Fourier transform.
+//! Accumulation is in f64. The w-term is not part of this transform (coplanar imaging).
+//!
+//! Points are sorted once per plan by grid tile so that gridding and degridding walk memory
+//! in order; gridding accumulates each tile in a small private buffer and adds it to the shared
+//! grid under a lock, so threads never contend per visibility.
+
+pub mod kernel;
+
+use crate::{Error, Result};
+use kernel::{KernelShape, PolynomialKernel};
+use num_complex::Complex64;
+use rayon::prelude::*;
+use rustfft::{Fft, FftDirection, FftPlanner};
+use std::sync::{Arc, Mutex};
+
+/// Call a function generic over the kernel support `W` with the runtime support.
+macro_rules! dispatch_support {
+    ($w:expr, $W:ident => $body:expr) => {
+        match $w {
+            2 => { const $W: usize = 2; $body }
+            3 => { const $W: usize = 3; $body }
+            4 => { const $W: usize = 4; $body }
+            5 => { const $W: usize = 5; $body }
+            6 => { const $W: usize = 6; $body }
+            7 => { const $W: usize = 7; $body }
+            8 => { const $W: usize = 8; $body }
+            9 => { const $W: usize = 9; $body }
+            10 => { const $W: usize = 10; $body }
+            11 => { const $W: usize = 11; $body }
+            12 => { const $W: usize = 12; $body }
+            13 => { const $W: usize = 13; $body }
+            14 => { const $W: usize = 14; $body }
+            15 => { const $W: usize = 15; $body }
+            16 => { const $W: usize = 16; $body }
+            w => unreachable!("kernel support {w} is checked against MAX_SUPPORT when planning"),
+        }
+    };
+}
+#[allow(unused_imports)]
+use dispatch_support;
+
+/// Accuracy and oversampling of a NUFFT plan.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NufftParams {
+    /// Requested relative accuracy (1e-2 .. 1e-12 supported; 1e-14 at oversampling 2).
+    pub epsilon: f64,
+    /// Grid size over image size (1.25 .. 4; 2 by default).
+    pub oversampling: f64,
+}
+
+impl Default for NufftParams {
+    fn default() -> Self {
+        NufftParams { epsilon: 1e-6, oversampling: 2.0 }
+    }
+}
+
+/// Grid tile edge in cells: tiles of 32 x 32 complex (16 KiB) plus the kernel margin stay in L1/L2.
+const TILE: usize = 32;
+
+/// Where one point falls on the padded grid, and its sub-cell kernel variables.
+#[derive(Clone, Copy, Debug, Default)]
+struct GridPosition {
+    /// First covered cell in padded coordinates (grid index + support).
+    px: u32,
+    py: u32,
+    /// Kernel variables `z in [-1, 1)` (see [`PolynomialKernel`]).
+    zx: f64,
+    zy: f64,
+}
+
+/// A contiguous run of sorted points covering whole tiles, processed by one task.
+#[derive(Clone, Debug)]
+struct Task {
+    /// Range in the sorted point order.
+    points: std::ops::Range<usize>,
+    /// The tiles in it, as (tile x, tile y, point range).
+    tiles: Vec<(usize, usize, std::ops::Range<usize>)>,
+}
+
+/// A plan: image size, kernel, and the points sorted for cache-friendly (de)gridding.
+pub struct Nufft2d {
+    nx: usize,
+    ny: usize,
+    grid_nx: usize,
+    grid_ny: usize,
+    shape: KernelShape,
+    /// Polynomial kernel, `(degree + 1) * support` coefficients, highest degree first.
+    kernel_coeffs: Vec<f64>,
+    /// `1 / psi_hat` per image column and row.
+    correction_x: Vec<f64>,
+    correction_y: Vec<f64>,
+    /// Points in tile order, with `order[k]` = caller's index of sorted point k.
+    positions: Vec<GridPosition>,
+    order: Vec<u32>,
+    tasks: Vec<Task>,
+    /// Grid rows (0 .. grid_ny) touched by any point's kernel: other rows stay zero.
+    row_used: Vec<bool>,
+    fft_x: Arc<dyn Fft<f64>>,
+    fft_y: Arc<dyn Fft<f64>>,
+    ifft_x: Arc<dyn Fft<f64>>,
+    ifft_y: Arc<dyn Fft<f64>>,
+    pool: rayon::ThreadPool,
+}
+
+/// Smallest even number >= `n` whose only prime factors are 2, 3, 5 and 7 (fast FFT sizes).
+pub fn good_fft_size(n: usize) -> usize {
+    let mut m = n.max(2);
+    loop {
+        if m % 2 == 0 {
+            let mut r = m;
+            for p in [2, 3, 5, 7] {
+                while r % p == 0 {
+                    r /= p;
+                }
+            }
+            if r == 1 {
+                return m;
+            }
+        }
+        m += 1;
+    }
+}
+
+impl Nufft2d {
+    /// Plan transforms between an `nx x ny` image and the points `(x[k], y[k])` (radians per
+    /// pixel), run on `threads` threads (0: all cores).
+    pub fn new(nx: usize, ny: usize, x: &[f64], y: &[f64], params: NufftParams, threads: usize) -> Result<Nufft2d> {
+        if x.len() != y.len() {
+            return Err(Error::parameter("points", "x and y coordinate arrays differ in length"));
+        }
+        if x.len() > u32::MAX as usize {
+            return Err(Error::parameter("points", "more than 2^32 points in one plan"));
+        }
+        if nx < 2 || ny < 2 || nx % 2 != 0 || ny % 2 != 0 {
+            return Err(Error::parameter("image size", format!("expected even sizes >= 2, got {nx} x {ny}")));
+        }
+        let shape = KernelShape::for_accuracy(params.epsilon, params.oversampling)?;
+        Self::with_kernel(nx, ny, x, y, shape, params, threads)
+    }
+
+    /// Like [`Nufft2d::new`] with an explicit kernel shape (for kernel tuning and tests).
+    pub fn with_kernel(
+        nx: usize,
+        ny: usize,
+        x: &[f64],
+        y: &[f64],
+        shape: KernelShape,
+        params: NufftParams,
+        threads: usize,
+    ) -> Result<Nufft2d> {
+        if x.len() != y.len() {
+            return Err(Error::parameter("points", "x and y coordinate arrays differ in length"));
+        }
+        let w = shape.support;
+        let grid_nx = good_fft_size(((nx as f64) * params.oversampling).ceil() as usize).max(2 * w);
+        let grid_ny = good_fft_size(((ny as f64) * params.oversampling).ceil() as usize).max(2 * w);
+        // The polynomial's error stays well below the NUFFT's.
+        let kernel_coeffs = fit_kernel(&shape, params.epsilon / 20.0);
+        let psi_x = shape.fourier_coefficients(grid_nx, nx / 2);
+        let psi_y = shape.fourier_coefficients(grid_ny, ny / 2);
+        let correction_x = (0..nx).map(|i| 1.0 / psi_x[(i as isize - nx as isize / 2).unsigned_abs()]).collect();
+        let correction_y = (0..ny).map(|i| 1.0 / psi_y[(i as isize - ny as isize / 2).unsigned_abs()]).collect();
+
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .map_err(|e| Error::parameter("threads", format!("cannot start {threads} threads: {e}")))?;
+
+        let mut planner = FftPlanner::new();
+        let mut plan = Nufft2d {
+            nx,
+            ny,
+            grid_nx,
+            grid_ny,
+            fft_x: planner.plan_fft(grid_nx, FftDirection::Forward),
+            fft_y: planner.plan_fft(grid_ny, FftDirection::Forward),
+            ifft_x: planner.plan_fft(grid_nx, FftDirection::Inverse),
+            ifft_y: planner.plan_fft(grid_ny, FftDirection::Inverse),
+            shape,
+            kernel_coeffs,
+            correction_x,
+            correction_y,
+            positions: Vec::new(),
+            order: Vec::new(),
+            tasks: Vec::new(),
+            row_used: Vec::new(),
+            pool,
+        };
+        plan.sort_points(x, y);
+        Ok(plan)
+    }
+
+    pub fn image_size(&self) -> (usize, usize) {
+        (self.nx, self.ny)
+    }
+    pub fn grid_size(&self) -> (usize, usize) {
+        (self.grid_nx, self.grid_ny)
+    }
+    pub fn kernel_shape(&self) -> &KernelShape {
+        &self.shape
+    }
+    pub fn len(&self) -> usize {
+        self.order.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.order.is_empty()
+    }
+    /// `order()[k]` is the caller's index of the k-th point in the plan's internal order.
+    pub fn order(&self) -> &[u32] {
+        &self.order
+    }
+    /// Run `f` on this plan's thread pool.
+    pub fn install<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
+        self.pool.install(f)
+    }
+
+    /// Compute each point's padded grid position and sort the points by tile (counting sort).
+    fn sort_points(&mut self, x: &[f64], y: &[f64]) {
+        let w = self.shape.support;
+        let (gx, gy) = (self.grid_nx, self.grid_ny);
+        let padded_x = gx + 2 * w;
+        let padded_y = gy + 2 * w;
+        let tiles_x = padded_x.div_ceil(TILE);
+        let tiles_y = padded_y.div_ceil(TILE);
+        let position = |t: f64, n: usize| -> (u32, f64) {
+            let n_f = n as f64;
+            let mut t = t * n_f / (2.0 * std::f64::consts::PI);
+            t -= n_f * (t / n_f).floor();
+            if t >= n_f {
+                t -= n_f;
+            }
+            let s = t - w as f64 / 2.0;
+            let i0 = s.ceil();
+            let frac = i0 - s; // in [0, 1)
+            ((i0 as i64 + w as i64) as u32, 2.0 * frac - 1.0)
+        };
+        let unsorted: Vec<GridPosition> = self.pool.install(|| {
+            x.par_iter()
+                .zip(y.par_iter())
+                .map(|(&xk, &yk)| {
+                    let (px, zx) = position(xk, gx);
+                    let (py, zy) = position(yk, gy);
+                    GridPosition { px, py, zx, zy }
+                })
+                .collect()
+        });
+        let tile_of = |p: &GridPosition| (p.py as usize / TILE) * tiles_x + p.px as usize / TILE;
+        let mut counts = vec![0usize; tiles_x * tiles_y + 1];
+        for p in &unsorted {
+            counts[tile_of(p) + 1] += 1;
+        }
+        for t in 0..tiles_x * tiles_y {
+            counts[t + 1] += counts[t];
+        }
+        let starts = counts.clone();
+        let mut order = vec![0u32; unsorted.len()];
+        let mut positions = vec![GridPosition::default(); unsorted.len()];
+        for (k, p) in unsorted.iter().enumerate() {
+            let t = tile_of(p);
+            order[counts[t]] = k as u32;
+            positions[counts[t]] = *p;
+            counts[t] += 1;
+        }
+        // Rows touched by some kernel footprint, in grid coordinates.
+        let mut row_used = vec![false; gy];
+        let mut tile_row_used = vec![false; tiles_y];
+        for ty in 0..tiles_y {
+            tile_row_used[ty] = starts[ty * tiles_x] != starts[(ty + 1) * tiles_x];
+        }
+        for (ty, used) in tile_row_used.iter().enumerate() {
+            if *used {
+                for q in ty * TILE..((ty + 1) * TILE + w).min(padded_y) {
+                    row_used[(q + gy - w) % gy] = true;
+                }
+            }
+        }
+        // Split into tasks of whole tiles, about 8 per thread for load balance.
+        let threads = self.pool.current_num_threads().max(1);
+        let target = (unsorted.len() / (8 * threads)).max(4096);
+        let mut tasks = Vec::new();
+        let mut current = Task { points: 0..0, tiles: Vec::new() };
+        for ty in 0..tiles_y {
+            for tx in 0..tiles_x {
+                let t = ty * tiles_x + tx;
+                let range = starts[t]..starts[t + 1];
+                if range.is_empty() {
+                    continue;
+                }
+                current.points.end = range.end;
+                current.tiles.push((tx, ty, range));
+                if current.points.len() >= target {
+                    let end = current.points.end;
+                    tasks.push(std::mem::replace(&mut current, Task { points: end..end, tiles: Vec::new() }));
+                }
+            }
+        }
+        if !current.tiles.is_empty() {
+            tasks.push(current);
+        }
+        self.positions = positions;
+        self.order = order;
+        self.tasks = tasks;
+        self.row_used = row_used;
+    }
+
+    /// Type 2 (image to points): `out[k] = sum_j image[j] exp(+i (x_k jx + y_k jy))`, with
+    /// points in the caller's order.
+    pub fn forward(&self, image: &[Complex64], out: &mut [Complex64]) {
+        assert_eq!(out.len(), self.len());
+        let mut sorted = vec![Complex64::default(); self.len()];
+        self.forward_sorted(image, &mut sorted);
+        self.pool.install(|| {
+            // Scatter back to the caller's order.
+            for (k, &i) in self.order.iter().enumerate() {
+                out[i as usize] = sorted[k];
+            }
+        });
+    }
+
+    /// Type 1 (points to image): `out[j] = sum_k c[k] exp(-i (x_k jx + y_k jy))`, with points
+    /// in the caller's order.
+    pub fn adjoint(&self, c: &[Complex64], out: &mut [Complex64]) {
+        assert_eq!(c.len(), self.len());
+        let sorted: Vec<Complex64> = self.pool.install(|| self.order.par_iter().map(|&i| c[i as usize]).collect());
+        self.adjoint_sorted(&sorted, out);
+    }
+
+    /// [`Nufft2d::forward`] with points in the plan's order ([`Nufft2d::order`]).
+    pub fn forward_sorted(&self, image: &[Complex64], out: &mut [Complex64]) {
+        assert_eq!(image.len(), self.nx * self.ny, "image size");
+        assert_eq!(out.len(), self.len(), "number of points");
+        self.pool.install(|| {
+            let padded = self.image_to_padded_grid(image);
+            dispatch_support!(self.shape.support, W => self.degrid::<W>(&padded, out));
+        });
+    }
+
+    /// [`Nufft2d::adjoint`] with points in the plan's order ([`Nufft2d::order`]).
+    pub fn adjoint_sorted(&self, c: &[Complex64], out: &mut [Complex64]) {
+        assert_eq!(c.len(), self.len(), "number of points");
+        assert_eq!(out.len(), self.nx * self.ny, "image size");
+        self.pool.install(|| {
+            let grid = dispatch_support!(self.shape.support, W => self.grid::<W>(c));
+            self.grid_to_image(grid, out);
+        });
+    }
+
+    fn kernel<const W: usize>(&self) -> PolynomialKernel<W> {
+        PolynomialKernel {
+            coeffs: self.kernel_coeffs.chunks_exact(W).map(|c| c.try_into().expect("chunk of W")).collect(),
+        }
+    }
+
+    /// Spread all points onto the (unpadded) oversampled grid.
+    fn grid<const W: usize>(&self, c: &[Complex64]) -> Vec<Complex64> {
+        let (gx, gy) = (self.grid_nx, self.grid_ny);
+        let grid = Mutex::new(vec![Complex64::default(); gx * gy]);
+        let kernel = self.kernel::<W>();
+        let bw = TILE + W;
+        self.tasks.par_iter().for_each_init(
+            || vec![Complex64::default(); bw * bw],
+            |buf, task| {
+                for (tx, ty, range) in &task.tiles {
+                    buf.iter_mut().for_each(|v| *v = Complex64::default());
+                    let (x0, y0) = ((tx * TILE) as u32, (ty * TILE) as u32);
+                    for (p, &v) in self.positions[range.clone()].iter().zip(&c[range.clone()]) {
+                        let kx = kernel.eval(p.zx);
+                        let ky = kernel.eval(p.zy);
+                        let lx = (p.px - x0) as usize;
+                        let ly = (p.py - y0) as usize;
+                        for (a, &kya) in ky.iter().enumerate() {
+                            let vy = v * kya;
+                            let row = &mut buf[(ly + a) * bw + lx..][..W];
+                            for (cell, &kxb) in row.iter_mut().zip(kx.iter()) {
+                                *cell += vy * kxb;
+                            }
+                        }
+                    }
+                    // Add the tile to the grid, wrapping padded coordinates periodically.
+                    let mut grid = grid.lock().expect("no task panics while holding the grid");
+                    for r in 0..bw {
+                        let gyi = ((ty * TILE + r) + gy - W) % gy;
+                        let src = &buf[r * bw..(r + 1) * bw];
+                        let dst = &mut grid[gyi * gx..(gyi + 1) * gx];
+                        let start = (tx * TILE + gx - W) % gx;
+                        if start + bw <= gx {
+                            for (d, s) in dst[start..start + bw].iter_mut().zip(src) {
+                                *d += *s;
+                            }
+                        } else {
+                            for (i, s) in src.iter().enumerate() {
+                                dst[(start + i) % gx] += *s;
+                            }
+                        }
+                    }
+                }
+            },
+        );
+        grid.into_inner().expect("no task panicked")
+    }
+
+    /// Interpolate the padded grid at every point (sorted order).
+    fn degrid<const W: usize>(&self, padded: &[Complex64], out: &mut [Complex64]) {
+        let pw = self.grid_nx + 2 * W;
+        let kernel = self.kernel::<W>();
+        // Split `out` into the tasks' disjoint ranges.
+        let mut chunks = Vec::with_capacity(self.tasks.len());
+        let mut rest = out;
+        let mut offset = 0;
+        for task in &self.tasks {
+            let (head, tail) = std::mem::take(&mut rest).split_at_mut(task.points.end - offset);
+            chunks.push((task, &mut head[task.points.start - offset..]));
+            offset = task.points.end;
+            rest = tail;
+        }
+        chunks.into_par_iter().for_each(|(task, out)| {
+            for (p, o) in self.positions[task.points.clone()].iter().zip(out.iter_mut()) {
+                let kx = kernel.eval(p.zx);
+                let ky = kernel.eval(p.zy);
+                let (px, py) = (p.px as usize, p.py as usize);
+                let mut acc = Complex64::default();
+                for (a, &kya) in ky.iter().enumerate() {
+                    let row = &padded[(py + a) * pw + px..][..W];
+                    let mut racc = Complex64::default();
+                    for (cell, &kxb) in row.iter().zip(kx.iter()) {
+                        racc += cell * kxb;
+                    }
+                    acc += racc * kya;
+                }
+                *o = acc;
+            }
+        });
+    }
+
+    /// Grid -> image: FFT rows (only those with data), FFT the columns holding image modes,
+    /// crop the modes and apply the kernel correction.
+    fn grid_to_image(&self, mut grid: Vec<Complex64>, out: &mut [Complex64]) {
+        let (gx, gy, nx, ny) = (self.grid_nx, self.grid_ny, self.nx, self.ny);
+        grid.par_chunks_mut(gx).zip(self.row_used.par_iter()).for_each_init(
+            || vec![Complex64::default(); self.fft_x.get_inplace_scratch_len()],
+            |scratch, (row, &used)| {
+                if used {
+                    self.fft_x.process_with_scratch(row, scratch)
+                }
+            },
+        );
+        // Columns holding modes jx in [-nx/2, nx/2), gathered in blocks of 8, FFT'd along y,
+        // kept in column-major order `cols[ix * ny + iy]` (only the rows holding image modes).
+        const B: usize = 8;
+        let mut cols = vec![Complex64::default(); nx * ny];
+        cols.par_chunks_mut(ny * B).enumerate().for_each_init(
+            || (vec![Complex64::default(); gy * B], vec![Complex64::default(); self.fft_y.get_inplace_scratch_len()]),
+            |(block, scratch), (bi, dst)| {
+                let ncols = dst.len() / ny;
+                let gcol = |ix: usize| (ix + gx - nx / 2) % gx;
+                for r in 0..gy {
+                    for c in 0..ncols {
+                        block[c * gy + r] = grid[r * gx + gcol(bi * B + c)];
+                    }
+                }
+                for c in 0..ncols {
+                    let col = &mut block[c * gy..(c + 1) * gy];
+                    self.fft_y.process_with_scratch(col, scratch);
+                    let corr_x = self.correction_x[bi * B + c];
+                    for iy in 0..ny {
+                        let r = (iy + gy - ny / 2) % gy;
+                        dst[c * ny + iy] = col[r] * (corr_x * self.correction_y[iy]);
+                    }
+                }
+            },
+        );
+        crate::fft2::transpose(&cols, out, nx, ny);
+    }
+
+    /// Image -> padded grid: correct, place modes, inverse FFT the image columns, then the
+    /// rows, writing each grid row into the padded layout (with periodic margins of width
+    /// `support` on every side) so degridding needs no wrap-around logic.
+    fn image_to_padded_grid(&self, image: &[Complex64]) -> Vec<Complex64> {
+        let (gx, gy, nx, ny) = (self.grid_nx, self.grid_ny, self.nx, self.ny);
+        let w = self.shape.support;
+        // Column-major corrected image columns, each inverse-FFT'd along y: cols[ix * gy + r].
+        let mut cols = vec![Complex64::default(); nx * gy];
+        cols.par_chunks_mut(gy).enumerate().for_each_init(
+            || vec![Complex64::default(); self.ifft_y.get_inplace_scratch_len()],
+            |scratch, (ix, col)| {
+                let corr_x = self.correction_x[ix];
+                for iy in 0..ny {
+                    col[(iy + gy - ny / 2) % gy] = image[iy * nx + ix] * (corr_x * self.correction_y[iy]);
+                }
+                self.ifft_y.process_with_scratch(col, scratch);
+            },
+        );
+        let (pw, ph) = (gx + 2 * w, gy + 2 * w);
+        let mut padded = vec![Complex64::default(); pw * ph];
+        padded.par_chunks_mut(pw).enumerate().for_each_init(
+            || (vec![Complex64::default(); gx], vec![Complex64::default(); self.ifft_x.get_inplace_scratch_len()]),
+            |(row, scratch), (q, dst)| {
+                let r = (q + gy - w) % gy;
+                if !self.row_used[r] {
+                    return;
+                }
+                row.iter_mut().for_each(|v| *v = Complex64::default());
+                for ix in 0..nx {
+                    row[(ix + gx - nx / 2) % gx] = cols[ix * gy + r];
+                }
+                self.ifft_x.process_with_scratch(row, scratch);
+                for (i, d) in dst.iter_mut().enumerate() {
+                    *d = row[(i + gx - w) % gx];
+                }
+            },
+        );
+        padded
+    }
+}
+
+
+fn fit_kernel(shape: &KernelShape, tolerance: f64) -> Vec<f64> {
+    dispatch_support!(shape.support, W => {
+        PolynomialKernel::<W>::fit(shape, tolerance).coeffs.iter().flatten().copied().collect()
+    })
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,182 @@
+//! NUFFT against a direct (O(N^2 M)) DFT, and adjointness.
+
+use super::*;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+fn random_points(m: usize, rng: &mut ChaCha8Rng) -> (Vec<f64>, Vec<f64>) {
+    // Cover more than one period so wrapping is exercised.
+    let x = (0..m).map(|_| rng.gen_range(-1.2 * std::f64::consts::PI..1.2 * std::f64::consts::PI)).collect();
+    let y = (0..m).map(|_| rng.gen_range(-std::f64::consts::PI..std::f64::consts::PI)).collect();
+    (x, y)
+}
+
+fn random_complex(n: usize, rng: &mut ChaCha8Rng) -> Vec<Complex64> {
+    (0..n).map(|_| Complex64::new(rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0))).collect()
+}
+
+fn direct_forward(nx: usize, ny: usize, x: &[f64], y: &[f64], f: &[Complex64]) -> Vec<Complex64> {
+    x.iter()
+        .zip(y)
+        .map(|(&xk, &yk)| {
+            let mut s = Complex64::default();
+            for iy in 0..ny {
+                for ix in 0..nx {
+                    let ph = xk * (ix as f64 - (nx / 2) as f64) + yk * (iy as f64 - (ny / 2) as f64);
+                    s += f[iy * nx + ix] * Complex64::from_polar(1.0, ph);
+                }
+            }
+            s
+        })
+        .collect()
+}
+
+fn direct_adjoint(nx: usize, ny: usize, x: &[f64], y: &[f64], c: &[Complex64]) -> Vec<Complex64> {
+    let mut out = vec![Complex64::default(); nx * ny];
+    for iy in 0..ny {
+        for ix in 0..nx {
+            let (jx, jy) = (ix as f64 - (nx / 2) as f64, iy as f64 - (ny / 2) as f64);
+            out[iy * nx + ix] =
+                x.iter().zip(y).zip(c).map(|((&xk, &yk), &ck)| ck * Complex64::from_polar(1.0, -(xk * jx + yk * jy))).sum();
+        }
+    }
+    out
+}
+
+fn relative_error(a: &[Complex64], b: &[Complex64]) -> f64 {
+    let num: f64 = a.iter().zip(b).map(|(a, b)| (a - b).norm_sqr()).sum();
+    let den: f64 = b.iter().map(|b| b.norm_sqr()).sum();
+    (num / den).sqrt()
+}
+
+fn check_against_dft(epsilon: f64, oversampling: f64, nx: usize, ny: usize, m: usize, threads: usize) {
+    let mut rng = ChaCha8Rng::seed_from_u64(42);
+    let (x, y) = random_points(m, &mut rng);
+    let plan = Nufft2d::new(nx, ny, &x, &y, NufftParams { epsilon, oversampling }, threads).unwrap();
+
+    let f = random_complex(nx * ny, &mut rng);
+    let mut fwd = vec![Complex64::default(); m];
+    plan.forward(&f, &mut fwd);
+    let err_fwd = relative_error(&fwd, &direct_forward(nx, ny, &x, &y, &f));
+
+    let c = random_complex(m, &mut rng);
+    let mut adj = vec![Complex64::default(); nx * ny];
+    plan.adjoint(&c, &mut adj);
+    let err_adj = relative_error(&adj, &direct_adjoint(nx, ny, &x, &y, &c));
+
+    eprintln!("eps {epsilon:e} sigma {oversampling} w {}: forward {err_fwd:.2e} adjoint {err_adj:.2e}", plan.kernel_shape().support);
+    assert!(err_fwd <= 2.0 * epsilon, "forward error {err_fwd:e} > 2 eps (eps {epsilon:e}, sigma {oversampling})");
+    assert!(err_adj <= 2.0 * epsilon, "adjoint error {err_adj:e} > 2 eps (eps {epsilon:e}, sigma {oversampling})");
+}
+
+#[test]
+fn matches_direct_dft_eps_1e3() {
+    check_against_dft(1e-3, 2.0, 64, 48, 3000, 2);
+}
+
+#[test]
+fn matches_direct_dft_eps_1e6() {
+    check_against_dft(1e-6, 2.0, 64, 48, 3000, 2);
+}
+
+#[test]
+fn matches_direct_dft_eps_1e10() {
+    check_against_dft(1e-10, 2.0, 64, 48, 3000, 1);
+}
+
+#[test]
+fn matches_direct_dft_low_oversampling() {
+    for eps in [1e-3, 1e-6] {
+        check_against_dft(eps, 1.25, 48, 64, 2000, 2);
+    }
+    check_against_dft(1e-10, 1.5, 48, 64, 2000, 2);
+    check_against_dft(1e-8, 1.7, 48, 64, 2000, 2);
+}
+
+#[test]
+fn matches_direct_dft_all_supports() {
+    // Every compiled kernel width gets exercised at least once.
+    for eps in [5e-2, 1e-2, 1e-3, 1e-4, 1e-5, 1e-7, 1e-8, 1e-9, 1e-11, 1e-12, 1e-13, 1e-14] {
+        check_against_dft(eps, 2.0, 32, 32, 500, 2);
+    }
+}
+
+#[test]
+fn forward_and_adjoint_are_adjoint() {
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let (nx, ny, m) = (96, 80, 20_000);
+    let (x, y) = random_points(m, &mut rng);
+    let plan = Nufft2d::new(nx, ny, &x, &y, NufftParams { epsilon: 1e-9, oversampling: 2.0 }, 2).unwrap();
+    let f = random_complex(nx * ny, &mut rng);
+    let c = random_complex(m, &mut rng);
+    let mut af = vec![Complex64::default(); m];
+    plan.forward(&f, &mut af);
+    let mut ahc = vec![Complex64::default(); nx * ny];
+    plan.adjoint(&c, &mut ahc);
+    // <A f, c> = <f, A^H c>
+    let lhs: Complex64 = af.iter().zip(&c).map(|(a, c)| a * c.conj()).sum();
+    let rhs: Complex64 = f.iter().zip(&ahc).map(|(f, a)| f * a.conj()).sum();
+    assert!((lhs - rhs).norm() <= 1e-12 * lhs.norm(), "{lhs} vs {rhs}");
+}
+
+#[test]
+fn thread_count_does_not_change_results_beyond_rounding() {
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let (x, y) = random_points(50_000, &mut rng);
+    let c = random_complex(50_000, &mut rng);
+    let mut images = Vec::new();
+    for threads in [1, 2] {
+        let plan = Nufft2d::new(64, 64, &x, &y, NufftParams::default(), threads).unwrap();
+        let mut out = vec![Complex64::default(); 64 * 64];
+        plan.adjoint(&c, &mut out);
+        images.push(out);
+    }
+    assert!(relative_error(&images[0], &images[1]) < 1e-13);
+}
+
+#[test]
+fn empty_point_set_gives_zero_image() {
+    let plan = Nufft2d::new(16, 16, &[], &[], NufftParams::default(), 1).unwrap();
+    let mut out = vec![Complex64::new(1.0, 1.0); 256];
+    plan.adjoint(&[], &mut out);
+    assert!(out.iter().all(|v| v.norm() == 0.0));
+}
+
+#[test]
+fn odd_image_size_is_rejected() {
+    let err = Nufft2d::new(15, 16, &[], &[], NufftParams::default(), 1).err().unwrap().to_string();
+    assert!(err.contains("image size"), "{err}");
+}
+
+/// Kernel tuning scan (run by hand: `cargo test --release --lib kernel_scan -- --ignored --nocapture`).
+#[test]
+#[ignore]
+fn kernel_scan() {
+    let sigma: f64 = std::env::var("SIGMA").ok().and_then(|s| s.parse().ok()).unwrap_or(2.0);
+    let mut rng = ChaCha8Rng::seed_from_u64(42);
+    let (nx, ny, m) = (64, 48, 3000);
+    let (x, y) = random_points(m, &mut rng);
+    let f = random_complex(nx * ny, &mut rng);
+    let c = random_complex(m, &mut rng);
+    let ref_fwd = direct_forward(nx, ny, &x, &y, &f);
+    let ref_adj = direct_adjoint(nx, ny, &x, &y, &c);
+    for w in 2..=16usize {
+        let mut line = format!("w {w:2}:");
+        let mut best = (f64::MAX, 0.0);
+        for i in 0..=24 {
+            let bw = std::env::var("B0").ok().and_then(|s| s.parse::<f64>().ok()).unwrap_or(1.6) + std::env::var("DB").ok().and_then(|s| s.parse::<f64>().ok()).unwrap_or(0.05) * i as f64;
+            let shape = KernelShape { support: w, beta: bw * w as f64 };
+            let plan = Nufft2d::with_kernel(nx, ny, &x, &y, shape, NufftParams { epsilon: 1e-14, oversampling: sigma }, 2).unwrap();
+            let mut fwd = vec![Complex64::default(); m];
+            plan.forward(&f, &mut fwd);
+            let mut adj = vec![Complex64::default(); nx * ny];
+            plan.adjoint(&c, &mut adj);
+            let e = relative_error(&fwd, &ref_fwd).max(relative_error(&adj, &ref_adj));
+            if e < best.0 {
+                best = (e, bw);
+            }
+        }
+        line += &format!(" best beta/w {:.2} error {:.2e}", best.1, best.0);
+        eprintln!("{line}");
+    }
+}
