@@ -129,18 +129,32 @@ pub fn parse_itrf_table(text: &str, name: &str) -> Result<Array> {
             ));
         }
         let mut vals = [0.0f64; 4];
-        for (k, (v, col)) in vals.iter_mut().zip(["X", "Y", "Z", "dish_diam"]).enumerate() {
-            *v = fields[k].parse::<f64>().ok().filter(|x| x.is_finite()).ok_or_else(|| {
-                Error::input(
-                    name,
-                    format!("line {lineno}: column {col} is not a finite number: {:?}", fields[k]),
-                )
-            })?;
+        for (k, (v, col)) in vals
+            .iter_mut()
+            .zip(["X", "Y", "Z", "dish_diam"])
+            .enumerate()
+        {
+            *v = fields[k]
+                .parse::<f64>()
+                .ok()
+                .filter(|x| x.is_finite())
+                .ok_or_else(|| {
+                    Error::input(
+                        name,
+                        format!(
+                            "line {lineno}: column {col} is not a finite number: {:?}",
+                            fields[k]
+                        ),
+                    )
+                })?;
         }
         if vals[3] <= 0.0 {
             return Err(Error::input(
                 name,
-                format!("line {lineno}: dish diameter must be positive, got {}", vals[3]),
+                format!(
+                    "line {lineno}: dish diameter must be positive, got {}",
+                    vals[3]
+                ),
             ));
         }
         positions.push([vals[0], vals[1], vals[2]]);
@@ -155,7 +169,11 @@ pub fn parse_itrf_table(text: &str, name: &str) -> Result<Array> {
             ),
         ));
     }
-    Ok(Array { name: name.to_string(), positions_itrf: positions, dish_diameter_m: diameters })
+    Ok(Array {
+        name: name.to_string(),
+        positions_itrf: positions,
+        dish_diameter_m: diameters,
+    })
 }
 
 /// What to observe and for how long.
@@ -179,19 +197,28 @@ impl TrackSpec {
         if !self.dec_rad.is_finite() || self.dec_rad.abs() > std::f64::consts::FRAC_PI_2 + 1e-12 {
             return Err(Error::parameter(
                 "declination",
-                format!("must be within [-90, 90] deg, got {} deg", self.dec_rad.to_degrees()),
+                format!(
+                    "must be within [-90, 90] deg, got {} deg",
+                    self.dec_rad.to_degrees()
+                ),
             ));
         }
         if !(self.hour_angle_span_h.is_finite() && self.hour_angle_span_h > 0.0) {
             return Err(Error::parameter(
                 "observation time",
-                format!("must be a positive number of hours, got {}", self.hour_angle_span_h),
+                format!(
+                    "must be a positive number of hours, got {}",
+                    self.hour_angle_span_h
+                ),
             ));
         }
         if !(self.integration_s.is_finite() && self.integration_s > 0.0) {
             return Err(Error::parameter(
                 "integration time",
-                format!("must be a positive number of seconds, got {}", self.integration_s),
+                format!(
+                    "must be a positive number of seconds, got {}",
+                    self.integration_s
+                ),
             ));
         }
         Ok(())
@@ -236,7 +263,11 @@ impl UvwTrack {
     /// Largest projected baseline `sqrt(u^2 + v^2)` in metres (0 if empty). Divided by the
     /// wavelength this is the `max_uv` that fixes the pixel size.
     pub fn max_uv_m(&self) -> f64 {
-        self.u_m.iter().zip(&self.v_m).map(|(u, v)| u.hypot(*v)).fold(0.0, f64::max)
+        self.u_m
+            .iter()
+            .zip(&self.v_m)
+            .map(|(u, v)| u.hypot(*v))
+            .fold(0.0, f64::max)
     }
 }
 
@@ -345,7 +376,10 @@ mod tests {
     #[test]
     fn vla_rejects_unknown_configuration() {
         let e = vla('e').unwrap_err().to_string();
-        assert!(e.contains("telescope configuration") && e.contains("a, b, c, d"), "{e}");
+        assert!(
+            e.contains("telescope configuration") && e.contains("a, b, c, d"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -370,19 +404,32 @@ mod tests {
     fn parse_errors_name_the_line() {
         let text = "#X Y Z dish\n1 2 3 25\n4 5 six 25\n";
         let e = parse_itrf_table(text, "bad.txt").unwrap_err().to_string();
-        assert!(e.contains("bad.txt") && e.contains("line 3") && e.contains("Z"), "{e}");
-        let e = parse_itrf_table("1 2 3\n", "short.txt").unwrap_err().to_string();
+        assert!(
+            e.contains("bad.txt") && e.contains("line 3") && e.contains("Z"),
+            "{e}"
+        );
+        let e = parse_itrf_table("1 2 3\n", "short.txt")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("line 1") && e.contains("4 columns"), "{e}");
-        let e = parse_itrf_table("# only a header\n1 2 3 25\n", "one").unwrap_err().to_string();
+        let e = parse_itrf_table("# only a header\n1 2 3 25\n", "one")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("at least 2 antennas"), "{e}");
-        let e = parse_itrf_table("1 2 3 25\n4 5 6 -1\n", "neg").unwrap_err().to_string();
+        let e = parse_itrf_table("1 2 3 25\n4 5 6 -1\n", "neg")
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("line 2") && e.contains("positive"), "{e}");
     }
 
     #[test]
     fn track_sizes_times_and_ordering() {
         let a = vla('c').unwrap();
-        let spec = TrackSpec { dec_rad: 0.5, hour_angle_span_h: 1.0, integration_s: 60.0 };
+        let spec = TrackSpec {
+            dec_rad: 0.5,
+            hour_angle_span_h: 1.0,
+            integration_s: 60.0,
+        };
         let t = uvw_tracks(&a, &spec).unwrap();
         assert_eq!(t.len(), 60 * 351);
         assert_eq!(t.time_s[0], 30.0);
@@ -391,9 +438,15 @@ mod tests {
         assert_eq!((t.antenna1[350], t.antenna2[350]), (25, 26));
         assert!(t.antenna1.iter().zip(&t.antenna2).all(|(i, j)| i < j));
         // A span shorter than one integration still gives one sample.
-        let short = TrackSpec { integration_s: 1e6, ..spec };
+        let short = TrackSpec {
+            integration_s: 1e6,
+            ..spec
+        };
         assert_eq!(uvw_tracks(&a, &short).unwrap().len(), 351);
-        let bad = TrackSpec { integration_s: 0.0, ..spec };
+        let bad = TrackSpec {
+            integration_s: 0.0,
+            ..spec
+        };
         assert!(uvw_tracks(&a, &bad).is_err());
     }
 
@@ -410,7 +463,10 @@ mod tests {
             for k in 0..t.len() {
                 let b = norm3(baseline(&a, t.antenna1[k], t.antenna2[k]));
                 let r = norm3([t.u_m[k], t.v_m[k], t.w_m[k]]);
-                assert!((r - b).abs() <= 1e-6 * b, "dec {dec_deg}: |uvw| {r} vs |B| {b}");
+                assert!(
+                    (r - b).abs() <= 1e-6 * b,
+                    "dec {dec_deg}: |uvw| {r} vs |B| {b}"
+                );
             }
         }
     }
@@ -418,7 +474,11 @@ mod tests {
     #[test]
     fn pole_source_has_w_equal_bz_and_circular_tracks() {
         let a = vla('b').unwrap();
-        let spec = TrackSpec { dec_rad: FRAC_PI_2, hour_angle_span_h: 12.0, integration_s: 300.0 };
+        let spec = TrackSpec {
+            dec_rad: FRAC_PI_2,
+            hour_angle_span_h: 12.0,
+            integration_s: 300.0,
+        };
         let t = uvw_tracks(&a, &spec).unwrap();
         for k in 0..t.len() {
             let [bx, by, bz] = baseline(&a, t.antenna1[k], t.antenna2[k]);
@@ -431,8 +491,9 @@ mod tests {
         // ~180 deg (12 h of time is 12.03 h of hour angle) at a uniform rate.
         let b = 5; // baseline (0, 6)
         let n_bl = a.n_baselines();
-        let angles: Vec<f64> =
-            (0..spec.n_times()).map(|k| t.v_m[k * n_bl + b].atan2(t.u_m[k * n_bl + b])).collect();
+        let angles: Vec<f64> = (0..spec.n_times())
+            .map(|k| t.v_m[k * n_bl + b].atan2(t.u_m[k * n_bl + b]))
+            .collect();
         let mut steps: Vec<f64> = angles
             .windows(2)
             .map(|w| {
@@ -448,9 +509,16 @@ mod tests {
             .collect();
         // n samples span n - 1 steps; the observation covers n integrations.
         let swept: f64 = steps.iter().sum::<f64>().abs() + steps[0].abs();
-        assert!((swept.to_degrees() - 180.0 * 1.0027).abs() < 0.1, "swept {}", swept.to_degrees());
+        assert!(
+            (swept.to_degrees() - 180.0 * 1.0027).abs() < 0.1,
+            "swept {}",
+            swept.to_degrees()
+        );
         steps.sort_by(f64::total_cmp);
-        assert!((steps[0] - steps[steps.len() - 1]).abs() < 1e-9, "uniform angular rate");
+        assert!(
+            (steps[0] - steps[steps.len() - 1]).abs() < 1e-9,
+            "uniform angular rate"
+        );
     }
 
     #[test]
@@ -458,7 +526,11 @@ mod tests {
         // The track is centred on transit: the two middle samples have opposite local hour
         // angles, and u follows the formula with H = H_local - east longitude.
         let a = vla('d').unwrap();
-        let spec = TrackSpec { dec_rad: 0.7, hour_angle_span_h: 2.0, integration_s: 60.0 };
+        let spec = TrackSpec {
+            dec_rad: 0.7,
+            hour_angle_span_h: 2.0,
+            integration_s: 60.0,
+        };
         let t = uvw_tracks(&a, &spec).unwrap();
         let n_bl = a.n_baselines();
         // Samples 59 and 60 straddle transit symmetrically (t = 3570 s and 3630 s).
@@ -473,7 +545,11 @@ mod tests {
     #[test]
     fn rotate_uv_rotates_and_keeps_lengths() {
         let a = vla('c').unwrap();
-        let spec = TrackSpec { dec_rad: 0.3, hour_angle_span_h: 1.0, integration_s: 300.0 };
+        let spec = TrackSpec {
+            dec_rad: 0.3,
+            hour_angle_span_h: 1.0,
+            integration_s: 300.0,
+        };
         let orig = uvw_tracks(&a, &spec).unwrap();
         let mut t = orig.clone();
         rotate_uv(&mut t, FRAC_PI_2);
