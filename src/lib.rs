@@ -6,5 +6,6 @@
 pub mod error;
 pub mod fft2;
 pub mod nufft;
+pub mod simulate;
 
 pub use error::{Error, Result};
