@@ -5,7 +5,10 @@
 
 pub mod error;
 pub mod fft2;
+pub mod metrics;
 pub mod nufft;
+pub mod operator;
 pub mod simulate;
+pub mod weighting;
 
 pub use error::{Error, Result};

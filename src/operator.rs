@@ -1,0 +1,445 @@
+//! The measurement operator `Phi = diag(sqrt(omega)) G F Z` and what imaging derives from it:
+//! the dirty image, the PSF, `kappa`, the normal operator `D = kappa Re{Phi^H Phi}` (by a NUFFT
+//! round trip or, exactly for coplanar data, as a convolution with the 2N x 2N PSF) and its
+//! spectral norm.
+//!
+//! Conventions (see `docs/conventions.md`): a source of flux S at direction cosines (l, m)
+//! has visibility `S exp(+2 pi i (u l + v m))`; images are row-major `x[iy * N + ix]` with
+//! `l = -pixel (ix - N/2)` (RA increases to the left, as FITS with CDELT1 < 0 shows it) and
+//! `m = pixel (iy - N/2)`. `omega_k` is the total weight of visibility k: natural weight times
+//! imaging weight (the reference code's `(nW * nWimag)^2`).
+
+use crate::fft2::Fft2;
+use crate::nufft::{Nufft2d, NufftParams};
+use crate::{Error, Result};
+use num_complex::Complex64;
+use rayon::prelude::*;
+use rustfft::FftDirection;
+
+/// Image size and pixel scale.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ImageGeometry {
+    /// Pixels per side (even).
+    pub size: usize,
+    /// Pixel size in radians.
+    pub pixel_rad: f64,
+}
+
+impl ImageGeometry {
+    /// Pixel size from the super-resolution factor: `pixel = 1 / (SR * 2 * max_uv)` radians
+    /// (max_uv in wavelengths), i.e. the longest baseline is sampled SR times finer than
+    /// Nyquist.
+    pub fn from_superresolution(size: usize, superresolution: f64, max_uv: f64) -> Result<ImageGeometry> {
+        if !(superresolution >= 1.0) || !superresolution.is_finite() {
+            return Err(Error::parameter(
+                "superresolution",
+                format!("expected a factor >= 1 (pixel no coarser than Nyquist), got {superresolution}"),
+            ));
+        }
+        if !(max_uv > 0.0) || !max_uv.is_finite() {
+            return Err(Error::parameter("uv coverage", "no baseline longer than zero: cannot derive a pixel size"));
+        }
+        Self::new(size, 1.0 / (superresolution * 2.0 * max_uv))
+    }
+
+    pub fn from_arcsec(size: usize, pixel_arcsec: f64) -> Result<ImageGeometry> {
+        Self::new(size, pixel_arcsec.to_radians() / 3600.0)
+    }
+
+    pub fn new(size: usize, pixel_rad: f64) -> Result<ImageGeometry> {
+        if size < 8 || size % 2 != 0 {
+            return Err(Error::parameter("size", format!("expected an even image size of at least 8 pixels, got {size}")));
+        }
+        if !(pixel_rad > 0.0) || !pixel_rad.is_finite() || pixel_rad * size as f64 >= 1.0 {
+            return Err(Error::parameter("pixel size", format!("expected a positive pixel size with a field under 1 rad, got {pixel_rad} rad")));
+        }
+        Ok(ImageGeometry { size, pixel_rad })
+    }
+
+    pub fn pixel_arcsec(&self) -> f64 {
+        self.pixel_rad.to_degrees() * 3600.0
+    }
+
+    pub fn pixels(&self) -> usize {
+        self.size * self.size
+    }
+
+    /// The operator's uv coordinates in radians per pixel, `(x, y) = (-2 pi u dl, 2 pi v dl)`:
+    /// the sign of x makes RA increase towards lower pixel index.
+    pub fn uv_to_phase(&self, u: f64, v: f64) -> (f64, f64) {
+        let s = 2.0 * std::f64::consts::PI * self.pixel_rad;
+        (-s * u, s * v)
+    }
+
+    /// The same geometry with twice the field of view (for the 2N PSF).
+    pub fn doubled(&self) -> ImageGeometry {
+        ImageGeometry { size: 2 * self.size, pixel_rad: self.pixel_rad }
+    }
+}
+
+/// `Phi` for fixed baselines and weights: plans the NUFFT once and keeps the weights in the
+/// plan's internal order so every application is a straight pass.
+pub struct MeasurementOperator {
+    geometry: ImageGeometry,
+    plan: Nufft2d,
+    /// `omega` in plan order.
+    weight: Vec<f64>,
+    kappa: f64,
+}
+
+impl MeasurementOperator {
+    /// `u`, `v` in wavelengths; `weight` the total weight per visibility (natural x imaging;
+    /// zero excludes a visibility). Baselines beyond the image's Nyquist limit (`|u| >= 1 / (2
+    /// pixel)`) would alias and are rejected: choose a smaller pixel.
+    pub fn new(
+        geometry: ImageGeometry,
+        u: &[f64],
+        v: &[f64],
+        weight: &[f64],
+        nufft: NufftParams,
+        threads: usize,
+    ) -> Result<MeasurementOperator> {
+        if u.len() != v.len() || u.len() != weight.len() {
+            return Err(Error::parameter("visibilities", "u, v and weight arrays differ in length"));
+        }
+        let limit = 0.5 / geometry.pixel_rad;
+        let beyond = u.iter().zip(v).filter(|(u, v)| u.abs() >= limit || v.abs() >= limit).count();
+        if beyond > 0 {
+            let max_uv = u.iter().zip(v).map(|(u, v)| u.abs().max(v.abs())).fold(0.0, f64::max);
+            return Err(Error::parameter(
+                "pixel size",
+                format!(
+                    "{beyond} visibilities lie beyond the image's Nyquist limit ({limit:.1} wavelengths for a \
+                     {:.4} arcsec pixel); the pixel must be at most {:.4} arcsec",
+                    geometry.pixel_arcsec(),
+                    (0.5 / max_uv).to_degrees() * 3600.0
+                ),
+            ));
+        }
+        if let Some(bad) = weight.iter().find(|w| !(**w >= 0.0) || !w.is_finite()) {
+            return Err(Error::parameter("weight", format!("weights must be finite and >= 0, found {bad}")));
+        }
+        let (x, y): (Vec<f64>, Vec<f64>) = u.iter().zip(v).map(|(&u, &v)| geometry.uv_to_phase(u, v)).unzip();
+        let plan = Nufft2d::new(geometry.size, geometry.size, &x, &y, nufft, threads)?;
+        let weight: Vec<f64> = plan.order().iter().map(|&k| weight[k as usize]).collect();
+        let mut op = MeasurementOperator { geometry, plan, weight, kappa: 1.0 };
+        let peak = op.unnormalised_psf_peak();
+        if !(peak > 0.0) {
+            return Err(Error::parameter("weight", "all visibilities have zero weight: nothing to image"));
+        }
+        op.kappa = 1.0 / peak;
+        Ok(op)
+    }
+
+    pub fn geometry(&self) -> ImageGeometry {
+        self.geometry
+    }
+    /// `1 / max(Re{Phi^H Phi delta})`: the factor that gives the PSF a peak of 1.
+    pub fn kappa(&self) -> f64 {
+        self.kappa
+    }
+    pub fn len(&self) -> usize {
+        self.weight.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.weight.is_empty()
+    }
+    pub fn nufft(&self) -> &Nufft2d {
+        &self.plan
+    }
+
+    fn to_complex(x: &[f64]) -> Vec<Complex64> {
+        x.iter().map(|&v| Complex64::new(v, 0.0)).collect()
+    }
+
+    /// `Re{Phi^H diag(omega) y}` for `y` in plan order (without kappa).
+    fn back_project_sorted(&self, y_sorted: &[Complex64]) -> Vec<f64> {
+        let mut img = vec![Complex64::default(); self.geometry.pixels()];
+        self.plan.adjoint_sorted(y_sorted, &mut img);
+        img.iter().map(|c| c.re).collect()
+    }
+
+    fn unnormalised_psf_peak(&self) -> f64 {
+        let ones: Vec<Complex64> = self.weight.iter().map(|&w| Complex64::new(w, 0.0)).collect();
+        let psf = self.back_project_sorted(&ones);
+        let n = self.geometry.size;
+        psf[(n / 2) * n + n / 2]
+    }
+
+    /// Bring per-visibility values from the caller's order into plan order.
+    pub fn to_plan_order<T: Copy + Send + Sync>(&self, values: &[T]) -> Vec<T> {
+        self.plan.install(|| self.plan.order().par_iter().map(|&k| values[k as usize]).collect())
+    }
+
+    /// Model visibilities `Phi_raw x` (unweighted), in the caller's order.
+    pub fn model_visibilities(&self, x: &[f64]) -> Vec<Complex64> {
+        let mut out = vec![Complex64::default(); self.len()];
+        self.plan.forward(&Self::to_complex(x), &mut out);
+        out
+    }
+
+    /// Dirty image `kappa Re{Phi_raw^H (omega y)}` of visibilities `vis` in the caller's order.
+    pub fn dirty_image(&self, vis: &[Complex64]) -> Vec<f64> {
+        let mut weighted = self.to_plan_order(vis);
+        weighted.par_iter_mut().zip(self.weight.par_iter()).for_each(|(y, &w)| *y *= w);
+        let mut img = self.back_project_sorted(&weighted);
+        img.iter_mut().for_each(|p| *p *= self.kappa);
+        img
+    }
+
+    /// PSF `kappa Re{Phi^H Phi delta}` with the delta at `(N/2, N/2)`: peak 1 at the centre.
+    pub fn psf(&self) -> Vec<f64> {
+        let ones: Vec<Complex64> = self.weight.iter().map(|&w| Complex64::new(w * self.kappa, 0.0)).collect();
+        self.back_project_sorted(&ones)
+    }
+
+    /// `D x = kappa Re{Phi^H Phi x}` by a NUFFT round trip.
+    pub fn apply_normal(&self, x: &[f64]) -> Vec<f64> {
+        let mut vis = vec![Complex64::default(); self.len()];
+        self.plan.forward_sorted(&Self::to_complex(x), &mut vis);
+        let k = self.kappa;
+        vis.par_iter_mut().zip(self.weight.par_iter()).for_each(|(y, &w)| *y *= w * k);
+        self.back_project_sorted(&vis)
+    }
+}
+
+/// The PSF over twice the field of view (`2N x 2N`, centre at `(N, N)`) for the same
+/// visibilities, scaled by `kappa` of the N x N operator: the kernel of the Toeplitz form of D.
+pub fn doubled_psf(
+    geometry: ImageGeometry,
+    u: &[f64],
+    v: &[f64],
+    weight: &[f64],
+    kappa: f64,
+    nufft: NufftParams,
+    threads: usize,
+) -> Result<Vec<f64>> {
+    let doubled = MeasurementOperator::new(geometry.doubled(), u, v, weight, nufft, threads)?;
+    let mut psf = doubled.psf();
+    // `doubled` normalised its own PSF to peak 1; rescale to the N x N operator's kappa.
+    let scale = kappa / doubled.kappa();
+    psf.iter_mut().for_each(|p| *p *= scale);
+    Ok(psf)
+}
+
+/// `D x = kappa Re{Phi^H Phi x}` as a linear convolution with the 2N x 2N PSF, by FFT:
+/// `crop(IFFT(FFT(pad(x)) FFT(psf_2N)))`. Exact (to NUFFT accuracy) for coplanar data, and
+/// once built its cost no longer depends on the number of visibilities.
+pub struct PsfConvolution {
+    size: usize,
+    /// FFT of the 2N x 2N PSF, divided by (2N)^2 for the unnormalised inverse FFT.
+    kernel_hat: Vec<Complex64>,
+    forward: Fft2,
+    inverse: Fft2,
+}
+
+impl PsfConvolution {
+    /// `psf_2n`: the doubled PSF (`2N x 2N`, centre at `(N, N)`).
+    pub fn new(size: usize, psf_2n: &[f64]) -> Result<PsfConvolution> {
+        let m = 2 * size;
+        if psf_2n.len() != m * m {
+            return Err(Error::parameter("psf", format!("expected a {m} x {m} PSF for a {size} x {size} image, got {} pixels", psf_2n.len())));
+        }
+        let forward = Fft2::new(m, m, FftDirection::Forward);
+        let inverse = Fft2::new(m, m, FftDirection::Inverse);
+        let scale = 1.0 / (m * m) as f64;
+        let mut kernel_hat: Vec<Complex64> = psf_2n.iter().map(|&p| Complex64::new(p * scale, 0.0)).collect();
+        forward.process(&mut kernel_hat);
+        Ok(PsfConvolution { size, kernel_hat, forward, inverse })
+    }
+
+    pub fn size(&self) -> usize {
+        self.size
+    }
+
+    /// `D x` for an N x N image.
+    pub fn apply(&self, x: &[f64]) -> Vec<f64> {
+        let (n, m) = (self.size, 2 * self.size);
+        assert_eq!(x.len(), n * n, "image size");
+        let mut padded = vec![Complex64::default(); m * m];
+        for iy in 0..n {
+            for ix in 0..n {
+                padded[iy * m + ix] = Complex64::new(x[iy * n + ix], 0.0);
+            }
+        }
+        self.forward.process(&mut padded);
+        padded.par_iter_mut().zip(self.kernel_hat.par_iter()).for_each(|(a, k)| *a *= k);
+        self.inverse.process(&mut padded);
+        // Linear convolution with a kernel centred at (N, N): output pixel p sits at p + N.
+        let mut out = vec![0.0; n * n];
+        for iy in 0..n {
+            for ix in 0..n {
+                out[iy * n + ix] = padded[(iy + n) * m + ix + n].re;
+            }
+        }
+        out
+    }
+}
+
+/// Largest eigenvalue of a symmetric positive semi-definite operator on `n`-pixel images, by
+/// power iteration from a deterministic start, until the relative change is below `tolerance`.
+pub fn spectral_norm(apply: impl Fn(&[f64]) -> Vec<f64>, n: usize, tolerance: f64, max_iterations: usize) -> f64 {
+    // A fixed pseudo-random start: generic enough not to be orthogonal to the top eigenvector.
+    let mut x: Vec<f64> = (0..n).map(|i| ((i as f64 * 12.9898).sin() * 43758.5453).fract().abs() + 0.1).collect();
+    let norm = |v: &[f64]| v.iter().map(|a| a * a).sum::<f64>().sqrt();
+    let n0 = norm(&x);
+    x.iter_mut().for_each(|a| *a /= n0);
+    let mut value = 0.0;
+    for _ in 0..max_iterations {
+        let y = apply(&x);
+        let next = norm(&y);
+        if next == 0.0 {
+            return 0.0;
+        }
+        x = y.into_iter().map(|a| a / next).collect();
+        let converged = (next - value).abs() <= tolerance * next;
+        value = next;
+        if converged {
+            break;
+        }
+    }
+    value
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// Random baselines in a disc of radius `max_uv` wavelengths, random positive weights.
+    fn baselines(m: usize, max_uv: f64, seed: u64) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut u = Vec::with_capacity(m);
+        let mut v = Vec::with_capacity(m);
+        while u.len() < m {
+            let (a, b): (f64, f64) = (rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0));
+            if a * a + b * b <= 1.0 {
+                u.push(a * max_uv);
+                v.push(b * max_uv);
+            }
+        }
+        let w = (0..m).map(|_| rng.gen_range(0.5..2.0)).collect();
+        (u, v, w)
+    }
+
+    fn setup(eps: f64) -> (ImageGeometry, Vec<f64>, Vec<f64>, Vec<f64>, MeasurementOperator) {
+        let (u, v, w) = baselines(4000, 1000.0, 1);
+        let geometry = ImageGeometry::from_superresolution(32, 1.5, 1000.0).unwrap();
+        let op = MeasurementOperator::new(geometry, &u, &v, &w, NufftParams { epsilon: eps, oversampling: 2.0 }, 2).unwrap();
+        (geometry, u, v, w, op)
+    }
+
+    fn dot(a: &[f64], b: &[f64]) -> f64 {
+        a.iter().zip(b).map(|(a, b)| a * b).sum()
+    }
+
+    fn random_image(n: usize, seed: u64) -> Vec<f64> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        (0..n).map(|_| rng.gen_range(0.0..1.0)).collect()
+    }
+
+    #[test]
+    fn psf_has_unit_peak_at_centre() {
+        let (g, .., op) = setup(1e-9);
+        let psf = op.psf();
+        let n = g.size;
+        let centre = psf[(n / 2) * n + n / 2];
+        assert!((centre - 1.0).abs() < 1e-12);
+        assert!(psf.iter().all(|&p| p <= centre + 1e-12));
+    }
+
+    #[test]
+    fn dirty_image_matches_direct_sum_and_puts_a_source_on_its_pixel() {
+        let (g, u, v, w, op) = setup(1e-9);
+        let n = g.size;
+        // A 2 Jy source 5 pixels east (lower ix) and 3 pixels north of the centre.
+        let (ix0, iy0) = (n / 2 - 5, n / 2 + 3);
+        let l0 = -g.pixel_rad * (ix0 as f64 - (n / 2) as f64);
+        let m0 = g.pixel_rad * (iy0 as f64 - (n / 2) as f64);
+        let vis: Vec<Complex64> = u
+            .iter()
+            .zip(&v)
+            .map(|(&u, &v)| Complex64::from_polar(2.0, 2.0 * std::f64::consts::PI * (u * l0 + v * m0)))
+            .collect();
+        let dirty = op.dirty_image(&vis);
+        let sum_w: f64 = w.iter().sum();
+        let mut max_err: f64 = 0.0;
+        for iy in 0..n {
+            for ix in 0..n {
+                let l = -g.pixel_rad * (ix as f64 - (n / 2) as f64);
+                let m = g.pixel_rad * (iy as f64 - (n / 2) as f64);
+                let direct: f64 = (0..u.len())
+                    .map(|k| w[k] * (vis[k] * Complex64::from_polar(1.0, -2.0 * std::f64::consts::PI * (u[k] * l + v[k] * m))).re)
+                    .sum::<f64>()
+                    / sum_w;
+                max_err = max_err.max((direct - dirty[iy * n + ix]).abs());
+            }
+        }
+        assert!(max_err < 1e-8, "dirty image differs from the direct sum by {max_err}");
+        let peak = dirty.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).unwrap().0;
+        assert_eq!((peak % n, peak / n), (ix0, iy0));
+        assert!((dirty[peak] - 2.0).abs() < 1e-8);
+    }
+
+    #[test]
+    fn toeplitz_and_nufft_normal_operators_agree_and_are_symmetric() {
+        let (g, u, v, w, op) = setup(1e-9);
+        let psf2 = doubled_psf(g, &u, &v, &w, op.kappa(), NufftParams { epsilon: 1e-9, oversampling: 2.0 }, 2).unwrap();
+        let conv = PsfConvolution::new(g.size, &psf2).unwrap();
+        let x = random_image(g.pixels(), 5);
+        let y = random_image(g.pixels(), 6);
+        let d_nufft = op.apply_normal(&x);
+        let d_toeplitz = conv.apply(&x);
+        let diff = d_nufft.iter().zip(&d_toeplitz).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
+        let norm = d_nufft.iter().map(|a| a * a).sum::<f64>().sqrt();
+        assert!(diff / norm <= 1e-6, "relative difference {}", diff / norm);
+        let by_nufft = |x: &[f64]| op.apply_normal(x);
+        let by_fft = |x: &[f64]| conv.apply(x);
+        let forms: [&dyn Fn(&[f64]) -> Vec<f64>; 2] = [&by_nufft, &by_fft];
+        for apply in forms {
+            let lhs = dot(&apply(&x), &y);
+            let rhs = dot(&x, &apply(&y));
+            assert!((lhs - rhs).abs() <= 1e-9 * lhs.abs(), "<Dx,y> {lhs} vs <x,Dy> {rhs}");
+        }
+        // D applied to a centred delta is the PSF.
+        let n = g.size;
+        let mut delta = vec![0.0; n * n];
+        delta[(n / 2) * n + n / 2] = 1.0;
+        let psf = op.psf();
+        let d_delta = conv.apply(&delta);
+        assert!(psf.iter().zip(&d_delta).all(|(a, b)| (a - b).abs() < 1e-7));
+    }
+
+    #[test]
+    fn spectral_norm_matches_dense_eigenvalue() {
+        // Small enough to build D densely from the direct DFT and iterate on the matrix.
+        let (u, v, w) = baselines(300, 100.0, 9);
+        let g = ImageGeometry::from_superresolution(8, 1.5, 100.0).unwrap();
+        let op = MeasurementOperator::new(g, &u, &v, &w, NufftParams { epsilon: 1e-10, oversampling: 2.0 }, 1).unwrap();
+        let n = g.size;
+        let coord = |i: usize| (-g.pixel_rad * ((i % n) as f64 - (n / 2) as f64), g.pixel_rad * ((i / n) as f64 - (n / 2) as f64));
+        let sum_w: f64 = w.iter().sum();
+        let mut dense = vec![0.0; n * n * n * n];
+        for p in 0..n * n {
+            for q in 0..n * n {
+                let ((lp, mp), (lq, mq)) = (coord(p), coord(q));
+                dense[p * n * n + q] = (0..u.len())
+                    .map(|k| w[k] * (2.0 * std::f64::consts::PI * (u[k] * (lp - lq) + v[k] * (mp - mq))).cos())
+                    .sum::<f64>()
+                    / sum_w;
+            }
+        }
+        let dense_apply = |x: &[f64]| (0..n * n).map(|p| dot(&dense[p * n * n..(p + 1) * n * n], x)).collect::<Vec<_>>();
+        let reference = spectral_norm(dense_apply, n * n, 1e-12, 5000);
+        let ours = spectral_norm(|x| op.apply_normal(x), n * n, 1e-12, 5000);
+        assert!((ours - reference).abs() < 1e-6 * reference, "{ours} vs dense {reference}");
+    }
+
+    #[test]
+    fn baselines_beyond_nyquist_are_an_error_naming_the_limit() {
+        let g = ImageGeometry::new(16, 1e-3).unwrap();
+        let err = MeasurementOperator::new(g, &[600.0], &[0.0], &[1.0], NufftParams::default(), 1).err().unwrap().to_string();
+        assert!(err.contains("Nyquist") && err.contains("arcsec"), "{err}");
+    }
+}
