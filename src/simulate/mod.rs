@@ -5,5 +5,6 @@
 //! antenna tables are compiled into the binary, and every random choice comes from a
 //! caller-supplied seed so a data set can be regenerated bit for bit.
 
+pub mod observe;
 pub mod sky;
 pub mod telescope;

@@ -1,0 +1,343 @@
+//! A simulated observation: VLA-like uv coverage over one or more configurations and
+//! frequencies, random rotation and flagging, then visibilities `Phi x + n` with the noise
+//! level the reference implementation derives from a target dynamic range.
+//!
+//! Noise (conventions file, "Noise and simulation"): with `L1 = ||Re{Phi_1^H Phi_1}||_S` for
+//! the operator weighted once by the imaging weights and `L2` for twice,
+//! `eta = sqrt(L2 / L1)` and `tau = sqrt(2 L1) / (DR eta)`; natural weighting has `eta = 1`.
+//! Complex noise `(randn + i randn) tau / sqrt(2)`; natural weights `1 / tau^2`.
+
+use super::telescope::{self, TrackSpec};
+use crate::nufft::NufftParams;
+use crate::operator::{spectral_norm, ImageGeometry, MeasurementOperator};
+use crate::weighting::{imaging_weights, Weighting};
+use crate::{Error, Result};
+use num_complex::Complex64;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+
+/// Speed of light in m/s.
+pub const SPEED_OF_LIGHT: f64 = 299_792_458.0;
+
+/// Independent random streams of one seed, so changing one choice never shifts another.
+const STREAM_ROTATION: u64 = 1;
+const STREAM_FLAGS: u64 = 2;
+const STREAM_NOISE: u64 = 3;
+
+/// What the telescope observes.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ObservationSpec {
+    /// VLA configurations and the observing time in each, hours (e.g. `[('a', 6.0), ('c', 2.0)]`).
+    pub configurations: Vec<(char, f64)>,
+    pub dec_deg: f64,
+    pub integration_s: f64,
+    /// Observing frequencies in Hz.
+    pub frequencies_hz: Vec<f64>,
+    /// Fraction of samples flagged at random, in [0, 1).
+    pub flag_fraction: f64,
+    /// Rotate the whole uv coverage by a random angle (as the paper does to vary coverage).
+    pub random_rotation: bool,
+    pub seed: u64,
+}
+
+/// `count` frequencies spaced evenly from `lowest` to `lowest * ratio`.
+pub fn frequency_channels(lowest_hz: f64, count: usize, ratio: f64) -> Result<Vec<f64>> {
+    if !(lowest_hz > 0.0) || !lowest_hz.is_finite() {
+        return Err(Error::parameter("frequency", format!("expected a positive frequency in Hz, got {lowest_hz}")));
+    }
+    if count == 0 {
+        return Err(Error::parameter("nfreq", "expected at least one frequency"));
+    }
+    if !(ratio >= 1.0) || !ratio.is_finite() {
+        return Err(Error::parameter("freq-ratio", format!("expected highest/lowest frequency >= 1, got {ratio}")));
+    }
+    if count == 1 {
+        return Ok(vec![lowest_hz]);
+    }
+    Ok((0..count).map(|k| lowest_hz * (1.0 + (ratio - 1.0) * k as f64 / (count - 1) as f64)).collect())
+}
+
+/// The sampled (u, v, w) of every visibility, one row per baseline, time and frequency.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Coverage {
+    pub u_m: Vec<f64>,
+    pub v_m: Vec<f64>,
+    pub w_m: Vec<f64>,
+    pub frequency_hz: Vec<f64>,
+    pub time_s: Vec<f64>,
+    pub antenna1: Vec<i32>,
+    pub antenna2: Vec<i32>,
+    pub flag: Vec<bool>,
+}
+
+impl Coverage {
+    pub fn len(&self) -> usize {
+        self.u_m.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.u_m.is_empty()
+    }
+    /// (u, v) in wavelengths.
+    pub fn uv_wavelengths(&self) -> (Vec<f64>, Vec<f64>) {
+        let scale = |m: &[f64]| -> Vec<f64> {
+            m.iter().zip(&self.frequency_hz).map(|(x, f)| x * f / SPEED_OF_LIGHT).collect()
+        };
+        (scale(&self.u_m), scale(&self.v_m))
+    }
+    /// Longest unflagged baseline in wavelengths.
+    pub fn max_uv(&self) -> f64 {
+        let (u, v) = self.uv_wavelengths();
+        u.iter()
+            .zip(&v)
+            .zip(&self.flag)
+            .filter(|(_, f)| !**f)
+            .map(|((u, v), _)| (u * u + v * v).sqrt())
+            .fold(0.0, f64::max)
+    }
+}
+
+/// Earth-rotation coverage of every configuration and frequency, rotated and flagged as asked.
+pub fn sample_coverage(spec: &ObservationSpec) -> Result<Coverage> {
+    if spec.configurations.is_empty() {
+        return Err(Error::parameter("configs", "expected at least one telescope configuration"));
+    }
+    if !(0.0..1.0).contains(&spec.flag_fraction) {
+        return Err(Error::parameter("flag-fraction", format!("expected a fraction in [0, 1), got {}", spec.flag_fraction)));
+    }
+    let mut cov = Coverage::default();
+    let mut time_offset = 0.0;
+    for (k, &(config, hours)) in spec.configurations.iter().enumerate() {
+        let array = telescope::vla(config)?;
+        let track = telescope::uvw_tracks(
+            &array,
+            &TrackSpec { dec_rad: spec.dec_deg.to_radians(), hour_angle_span_h: hours, integration_s: spec.integration_s },
+        )?;
+        for &f in &spec.frequencies_hz {
+            cov.u_m.extend_from_slice(&track.u_m);
+            cov.v_m.extend_from_slice(&track.v_m);
+            cov.w_m.extend_from_slice(&track.w_m);
+            cov.frequency_hz.extend(std::iter::repeat(f).take(track.len()));
+            // Configurations are observed one after another; times stay distinct.
+            cov.time_s.extend(track.time_s.iter().map(|t| t + time_offset));
+            // Antenna numbers of later configurations continue after the earlier ones'.
+            let base = (k * array.n_antennas()) as i32;
+            cov.antenna1.extend(track.antenna1.iter().map(|a| a + base));
+            cov.antenna2.extend(track.antenna2.iter().map(|a| a + base));
+        }
+        time_offset += hours * 3600.0;
+    }
+    if spec.random_rotation {
+        let mut rng = ChaCha8Rng::seed_from_u64(spec.seed);
+        rng.set_stream(STREAM_ROTATION);
+        let angle: f64 = rng.gen_range(0.0..std::f64::consts::TAU);
+        let (s, c) = angle.sin_cos();
+        for (u, v) in cov.u_m.iter_mut().zip(cov.v_m.iter_mut()) {
+            let (uu, vv) = (*u, *v);
+            *u = c * uu - s * vv;
+            *v = s * uu + c * vv;
+        }
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(spec.seed);
+    rng.set_stream(STREAM_FLAGS);
+    cov.flag = (0..cov.len()).map(|_| rng.gen_bool(spec.flag_fraction)).collect();
+    Ok(cov)
+}
+
+/// How the simulated data will be imaged: fixes the noise level through `eta`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct NoiseModel {
+    pub dynamic_range: f64,
+    pub weighting: Weighting,
+    pub grid_factor: f64,
+}
+
+/// Visibilities and the noise they carry.
+#[derive(Clone, Debug)]
+pub struct Simulated {
+    pub vis: Vec<Complex64>,
+    /// Standard deviation of the complex noise (tau).
+    pub noise_sigma: f64,
+    /// Briggs correction factor (1 for natural weighting).
+    pub eta: f64,
+    /// `||Re{Phi_1^H Phi_1}||_S`.
+    pub spectral_norm: f64,
+}
+
+/// `||Re{Phi^H diag(weight) Phi}||_S` over the unflagged visibilities (no kappa).
+fn normal_operator_norm(
+    geometry: ImageGeometry,
+    u: &[f64],
+    v: &[f64],
+    weight: &[f64],
+    nufft: NufftParams,
+    threads: usize,
+) -> Result<f64> {
+    let op = MeasurementOperator::new(geometry, u, v, weight, nufft, threads)?;
+    Ok(spectral_norm(|x| op.apply_normal(x), geometry.pixels(), 1e-6, 500) / op.kappa())
+}
+
+/// Noise level for a target dynamic range, per the reference formula.
+pub fn noise_level(
+    geometry: ImageGeometry,
+    coverage: &Coverage,
+    model: &NoiseModel,
+    nufft: NufftParams,
+    threads: usize,
+) -> Result<(f64, f64, f64)> {
+    if !(model.dynamic_range > 1.0) || !model.dynamic_range.is_finite() {
+        return Err(Error::parameter("dr", format!("expected a dynamic range > 1, got {}", model.dynamic_range)));
+    }
+    let (u, v) = coverage.uv_wavelengths();
+    let keep: Vec<usize> = (0..coverage.len()).filter(|&k| !coverage.flag[k]).collect();
+    let u: Vec<f64> = keep.iter().map(|&k| u[k]).collect();
+    let v: Vec<f64> = keep.iter().map(|&k| v[k]).collect();
+    let (x, y): (Vec<f64>, Vec<f64>) = u.iter().zip(&v).map(|(&u, &v)| geometry.uv_to_phase(u, v)).unzip();
+    let ones = vec![1.0; u.len()];
+    let iw = imaging_weights(&x, &y, &ones, geometry.size, model.weighting, model.grid_factor)?;
+    let l1 = normal_operator_norm(geometry, &u, &v, &iw, nufft, threads)?;
+    let eta = if model.weighting == Weighting::Natural {
+        1.0
+    } else {
+        let iw2: Vec<f64> = iw.iter().map(|w| w * w).collect();
+        (normal_operator_norm(geometry, &u, &v, &iw2, nufft, threads)? / l1).sqrt()
+    };
+    Ok(((2.0 * l1).sqrt() / (model.dynamic_range * eta), eta, l1))
+}
+
+/// Visibilities of `sky` (Jy/pixel on `geometry`) over `coverage`, plus Gaussian noise for the
+/// target dynamic range. Flagged samples are simulated too (they stay in the data, flagged)
+/// but do not count towards the noise level.
+pub fn simulate_visibilities(
+    sky: &[f64],
+    geometry: ImageGeometry,
+    coverage: &Coverage,
+    model: &NoiseModel,
+    nufft: NufftParams,
+    threads: usize,
+    seed: u64,
+) -> Result<Simulated> {
+    if sky.len() != geometry.pixels() {
+        return Err(Error::parameter("sky", format!("expected {} pixels, got {}", geometry.pixels(), sky.len())));
+    }
+    let (tau, eta, l1) = noise_level(geometry, coverage, model, nufft, threads)?;
+    let (u, v) = coverage.uv_wavelengths();
+    let raw = MeasurementOperator::new(geometry, &u, &v, &vec![1.0; u.len()], nufft, threads)?;
+    let mut vis = raw.model_visibilities(sky);
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    rng.set_stream(STREAM_NOISE);
+    let s = tau / std::f64::consts::SQRT_2;
+    for y in vis.iter_mut() {
+        let (a, b): (f64, f64) = (rng.sample(StandardNormal), rng.sample(StandardNormal));
+        *y += Complex64::new(a * s, b * s);
+    }
+    Ok(Simulated { vis, noise_sigma: tau, eta, spectral_norm: l1 })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::simulate::sky::{procedural_sky, SkyParams};
+
+    fn small_spec(seed: u64) -> ObservationSpec {
+        ObservationSpec {
+            configurations: vec![('c', 1.0), ('d', 0.5)],
+            dec_deg: 40.0,
+            integration_s: 120.0,
+            frequencies_hz: frequency_channels(1.0e9, 2, 1.5).unwrap(),
+            flag_fraction: 0.1,
+            random_rotation: true,
+            seed,
+        }
+    }
+
+    #[test]
+    fn coverage_and_visibilities_are_reproducible_from_the_seed() {
+        let nufft = NufftParams::default();
+        let run = |seed| {
+            let cov = sample_coverage(&small_spec(seed)).unwrap();
+            let g = ImageGeometry::from_superresolution(64, 1.5, cov.max_uv()).unwrap();
+            let sky = procedural_sky(&SkyParams::new(64, 1e3, seed)).unwrap();
+            let model = NoiseModel { dynamic_range: 1e3, weighting: Weighting::Briggs { robust: 0.0 }, grid_factor: 2.0 };
+            let sim = simulate_visibilities(&sky, g, &cov, &model, nufft, 2, seed).unwrap();
+            (cov, sim.vis)
+        };
+        let (c1, v1) = run(5);
+        let (c2, v2) = run(5);
+        let (c3, v3) = run(6);
+        assert_eq!(c1, c2);
+        assert_eq!(v1, v2);
+        assert_ne!(c1.u_m, c3.u_m);
+        assert_ne!(v1, v3);
+        // 2 configurations x 27 antennas, 351 baselines, 2 frequencies.
+        assert_eq!(c1.len(), (30 + 15) * 351 * 2);
+        let flagged = c1.flag.iter().filter(|f| **f).count() as f64 / c1.len() as f64;
+        assert!((flagged - 0.1).abs() < 0.01, "flagged fraction {flagged}");
+    }
+
+    /// Dense `Re{Phi^H diag(w) Phi}` from a direct DFT, for an independent check of the norms.
+    fn dense_normal_norm(g: ImageGeometry, u: &[f64], v: &[f64], w: &[f64]) -> f64 {
+        let n = g.size;
+        let coord = |i: usize| (-g.pixel_rad * ((i % n) as f64 - (n / 2) as f64), g.pixel_rad * ((i / n) as f64 - (n / 2) as f64));
+        let p = n * n;
+        let mut dense = vec![0.0; p * p];
+        for a in 0..p {
+            for b in 0..p {
+                let ((la, ma), (lb, mb)) = (coord(a), coord(b));
+                dense[a * p + b] = (0..u.len())
+                    .map(|k| w[k] * (2.0 * std::f64::consts::PI * (u[k] * (la - lb) + v[k] * (ma - mb))).cos())
+                    .sum();
+            }
+        }
+        spectral_norm(|x| (0..p).map(|a| dense[a * p..(a + 1) * p].iter().zip(x).map(|(d, x)| d * x).sum()).collect(), p, 1e-12, 10000)
+    }
+
+    #[test]
+    fn noise_level_follows_the_reference_formula_and_the_data_carry_it() {
+        let spec = ObservationSpec { configurations: vec![('d', 0.5)], integration_s: 300.0, ..small_spec(3) };
+        let cov = sample_coverage(&spec).unwrap();
+        let g = ImageGeometry::from_superresolution(8, 1.5, cov.max_uv()).unwrap();
+        let dr = 500.0;
+        let model = NoiseModel { dynamic_range: dr, weighting: Weighting::Briggs { robust: 0.0 }, grid_factor: 2.0 };
+        let nufft = NufftParams { epsilon: 1e-10, oversampling: 2.0 };
+        let (tau, eta, _) = noise_level(g, &cov, &model, nufft, 1).unwrap();
+
+        // Independent: dense operators from the direct DFT, weights from the public function.
+        let (u, v) = cov.uv_wavelengths();
+        let keep: Vec<usize> = (0..cov.len()).filter(|&k| !cov.flag[k]).collect();
+        let (u, v): (Vec<f64>, Vec<f64>) = keep.iter().map(|&k| (u[k], v[k])).unzip();
+        let (x, y): (Vec<f64>, Vec<f64>) = u.iter().zip(&v).map(|(&u, &v)| g.uv_to_phase(u, v)).unzip();
+        let iw = imaging_weights(&x, &y, &vec![1.0; u.len()], 8, model.weighting, 2.0).unwrap();
+        let l1 = dense_normal_norm(g, &u, &v, &iw);
+        let l2 = dense_normal_norm(g, &u, &v, &iw.iter().map(|w| w * w).collect::<Vec<_>>());
+        let eta_ref = (l2 / l1).sqrt();
+        let tau_ref = (2.0 * l1).sqrt() / (dr * eta_ref);
+        assert!((eta / eta_ref - 1.0).abs() < 1e-5, "eta {eta} vs {eta_ref}");
+        assert!((tau / tau_ref - 1.0).abs() < 1e-5, "tau {tau} vs {tau_ref}");
+
+        // The simulated noise has that standard deviation.
+        let sky = vec![0.0; 64];
+        let sim = simulate_visibilities(&sky, g, &cov, &model, nufft, 1, 3).unwrap();
+        let var = sim.vis.iter().map(|y| y.norm_sqr()).sum::<f64>() / sim.vis.len() as f64;
+        assert!((var.sqrt() / tau - 1.0).abs() < 0.02, "noise std {} vs tau {tau}", var.sqrt());
+    }
+
+    #[test]
+    fn natural_weighting_has_unit_eta() {
+        let cov = sample_coverage(&small_spec(2)).unwrap();
+        let g = ImageGeometry::from_superresolution(32, 1.5, cov.max_uv()).unwrap();
+        let model = NoiseModel { dynamic_range: 1e4, weighting: Weighting::Natural, grid_factor: 2.0 };
+        let (tau, eta, l) = noise_level(g, &cov, &model, NufftParams::default(), 2).unwrap();
+        assert_eq!(eta, 1.0);
+        assert!((tau - (2.0 * l).sqrt() / 1e4).abs() < 1e-15 * tau.max(1.0));
+    }
+
+    #[test]
+    fn bad_parameters_are_named() {
+        assert!(frequency_channels(1e9, 2, 0.5).unwrap_err().to_string().contains("freq-ratio"));
+        let spec = ObservationSpec { flag_fraction: 1.5, ..small_spec(1) };
+        assert!(sample_coverage(&spec).unwrap_err().to_string().contains("flag-fraction"));
+        let spec = ObservationSpec { configurations: vec![('x', 1.0)], ..small_spec(1) };
+        assert!(sample_coverage(&spec).is_err());
+    }
+}
