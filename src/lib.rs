@@ -4,5 +4,6 @@
 //! nothing of files, channels or configuration; `vis` and `fits` are the file formats.
 
 pub mod error;
+pub mod fits;
 
 pub use error::{Error, Result};
