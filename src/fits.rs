@@ -463,17 +463,18 @@ fn check_written_size(written: &Path, target: &Path, n_pixels: usize) -> Result<
 }
 
 /// A temporary file next to an output file; removed when dropped unless persisted.
+/// Shared with `vis`, whose outputs follow the same never-partial rule.
 ///
 /// Same directory, so that the final rename is atomic and never crosses file systems;
 /// process id and a counter in the name, so that concurrent writers do not collide.
-struct TempSibling {
+pub(crate) struct TempSibling {
     tmp: PathBuf,
     target: PathBuf,
     persisted: bool,
 }
 
 impl TempSibling {
-    fn new(target: &Path) -> Result<Self> {
+    pub(crate) fn new(target: &Path) -> Result<Self> {
         static COUNTER: AtomicU64 = AtomicU64::new(0);
         let name = target
             .file_name()
@@ -493,12 +494,12 @@ impl TempSibling {
         })
     }
 
-    fn path(&self) -> &Path {
+    pub(crate) fn path(&self) -> &Path {
         &self.tmp
     }
 
     /// Flushes the temporary to disk and renames it over the target.
-    fn persist(mut self) -> Result<()> {
+    pub(crate) fn persist(mut self) -> Result<()> {
         std::fs::File::open(&self.tmp).and_then(|f| f.sync_all()).map_err(|e| Error::io(&self.target, e))?;
         std::fs::rename(&self.tmp, &self.target).map_err(|e| Error::io(&self.target, e))?;
         self.persisted = true;
