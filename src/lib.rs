@@ -5,5 +5,6 @@
 
 pub mod error;
 pub mod fits;
+pub mod vis;
 
 pub use error::{Error, Result};
