@@ -1,14 +1,18 @@
 //! r2d2-imaging: radio-interferometric imaging with R2D2 deep-network series.
 //!
 //! The numerical modules (`nufft`, `weighting`, `operator`, `simulate`, `metrics`) know
-//! nothing of files, channels or configuration; `vis` and `fits` are the file formats.
+//! nothing of files, channels or configuration; `vis` and `fits` are the file formats, and
+//! `imaging` ties operator and weighting into the dirty products.
 
 pub mod error;
 pub mod fft2;
+pub mod fits;
+pub mod imaging;
 pub mod metrics;
 pub mod nufft;
 pub mod operator;
 pub mod simulate;
+pub mod vis;
 pub mod weighting;
 
 pub use error::{Error, Result};

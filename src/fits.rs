@@ -1,0 +1,995 @@
+//! FITS images: writing sky images the way WSClean does, and reading them back.
+//!
+//! Images are written with the layout and keywords WSClean uses (BITPIX -32; axes RA,
+//! Dec, FREQ, STOKES; SIN projection about the phase centre, which sits on pixel
+//! (nx/2, ny/2) counted from 0), so that viewers, astropy and comparison scripts place
+//! our images on the sky exactly like WSClean's and the two can be compared pixel by
+//! pixel.
+//!
+//! Pixel arrays are row-major `image[iy * nx + ix]` with `ix` along FITS axis 1 (RA,
+//! fastest varying) and `iy` along axis 2 (Dec). That is FITS storage order, so nothing
+//! is transposed on the way in or out. RA increases towards smaller `ix` (east is left,
+//! as on the sky seen from the ground), Dec towards larger `iy`.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use fitsio::errors::Error as FitsioError;
+use fitsio::hdu::{FitsHdu, HduInfo};
+use fitsio::images::{ImageDescription, ImageType};
+use fitsio::FitsFile;
+
+use crate::{Error, Result};
+
+/// Celestial coordinates of an image: where it points and how large its pixels are.
+///
+/// The reference pixel is always the image centre, pixel (nx/2, ny/2) counted from 0
+/// (FITS CRPIX = n/2 + 1), because that is where the imager puts the phase centre; a
+/// separate reference pixel would only be a second way of saying the same thing.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ImageWcs {
+    /// Right ascension of the phase centre, degrees.
+    pub ra_deg: f64,
+    /// Declination of the phase centre, degrees.
+    pub dec_deg: f64,
+    /// Side of a (square) pixel, degrees; positive.
+    pub pixel_deg: f64,
+    /// Centre frequency of the image, Hz. Without it the file has no FREQ axis.
+    pub freq_hz: Option<f64>,
+    /// Bandwidth the image covers, Hz (the FREQ axis increment). Needs `freq_hz`.
+    pub bandwidth_hz: Option<f64>,
+}
+
+/// Brightness unit of the pixels, written as BUNIT.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BrightnessUnit {
+    /// `JY/BEAM`: dirty and restored images (flux density per synthesised beam).
+    JyPerBeam,
+    /// `JY/PIXEL`: model images and the network's estimates (flux density per pixel).
+    JyPerPixel,
+}
+
+impl BrightnessUnit {
+    /// The BUNIT string, as WSClean spells it.
+    pub fn as_fits(self) -> &'static str {
+        match self {
+            BrightnessUnit::JyPerBeam => "JY/BEAM",
+            BrightnessUnit::JyPerPixel => "JY/PIXEL",
+        }
+    }
+}
+
+/// Restoring beam (Gaussian), written as BMAJ, BMIN, BPA.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Beam {
+    /// Full width at half maximum along the major axis, degrees.
+    pub major_deg: f64,
+    /// Full width at half maximum along the minor axis, degrees.
+    pub minor_deg: f64,
+    /// Position angle of the major axis, degrees east of north.
+    pub pa_deg: f64,
+}
+
+/// An image read from a FITS file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FitsImage {
+    /// Pixels, row-major `data[iy * nx + ix]` (FITS storage order), all finite.
+    pub data: Vec<f64>,
+    /// Length of FITS axis 1 (RA).
+    pub nx: usize,
+    /// Length of FITS axis 2 (Dec).
+    pub ny: usize,
+    /// Celestial coordinates, if the header has a RA/Dec SIN or TAN system.
+    pub wcs: Option<ImageWcs>,
+    /// BUNIT as written in the file, if any.
+    pub unit: Option<String>,
+}
+
+/// cfitsio's status code for "keyword does not exist".
+const KEY_NO_EXIST: i32 = 202;
+
+/// The longest string value that fits on one header card ('' quoting included).
+const MAX_STRING_VALUE: usize = 68;
+
+/// Keywords this module writes itself or that describe the file structure; extra
+/// keywords may not redefine them, or the file would contradict itself.
+const RESERVED_KEYWORDS: &[&str] = &[
+    "SIMPLE", "BITPIX", "EXTEND", "END", "BSCALE", "BZERO", "BLANK", "BUNIT", "BMAJ", "BMIN", "BPA",
+    "EQUINOX", "RADESYS", "RADECSYS", "SPECSYS", "ORIGIN", "LONPOLE", "LATPOLE", "COMMENT", "HISTORY",
+];
+
+/// Keyword families of the coordinate system (CTYPEn, PCi_j, ...), reserved like the above.
+const RESERVED_PREFIXES: &[&str] = &["NAXIS", "CTYPE", "CRPIX", "CRVAL", "CDELT", "CUNIT", "CROTA"];
+
+/// Writes a 2-D sky image as a WSClean-style FITS file, replacing `path` atomically.
+///
+/// The file gets axes RA, Dec, FREQ (only when `wcs.freq_hz` is known: a made-up
+/// frequency would be worse than none) and STOKES (I), float32 pixels, the celestial
+/// WCS, BUNIT, the beam if given, and the `extra` keywords; values of `extra` that parse
+/// as numbers are written as numbers, others as strings.
+///
+/// Nothing is ever left half-written at `path`: the file is written to a temporary
+/// sibling and renamed over the target, and the temporary is removed on failure.
+/// Header floats are written by cfitsio with 15 significant digits (as in WSClean's
+/// files); fitsio also adds `EXTNAME = '_PRIMARY'` to the primary HDU.
+#[allow(clippy::too_many_arguments)]
+pub fn write_image(
+    path: &Path,
+    image: &[f64],
+    nx: usize,
+    ny: usize,
+    wcs: &ImageWcs,
+    unit: BrightnessUnit,
+    beam: Option<&Beam>,
+    extra: &[(&str, String)],
+) -> Result<()> {
+    check_shape(image.len(), nx, ny)?;
+    check_wcs(wcs)?;
+    if let Some(beam) = beam {
+        check_beam(beam)?;
+    }
+    let extra =
+        extra.iter().map(|(name, value)| ExtraKeyword::parse(name, value)).collect::<Result<Vec<_>>>()?;
+    let pixels = to_float32(image)?;
+
+    let tmp = TempSibling::new(path)?;
+    let tmp_name = fitsio_path(tmp.path())?;
+    let header = Header { nx, ny, wcs, unit, beam, extra: &extra };
+    write_fits(&tmp_name, &pixels, &header).map_err(|e| {
+        Error::io(path, std::io::Error::other(format!("writing FITS image: {}", describe(&e))))
+    })?;
+    // cfitsio reports errors of its final flush nowhere (fitsio closes files in Drop),
+    // so check that the whole data unit reached the file before publishing it.
+    check_written_size(tmp.path(), path, pixels.len())?;
+    tmp.persist()
+}
+
+/// Reads the image in the primary HDU of a FITS file.
+///
+/// Accepts 2, 3 or 4 axes, where axes beyond the second must have length 1 (one plane),
+/// and any BITPIX (BSCALE/BZERO applied). The celestial WCS is read if CTYPE1/CTYPE2 are
+/// RA---SIN/DEC--SIN or RA---TAN/DEC--TAN (only SIN is ever written; TAN is read as if
+/// it were SIN, which agrees near the phase centre); it must have square pixels, RA
+/// increasing to the left, no rotation and the reference pixel at the image centre, as
+/// `ImageWcs` describes nothing else. Without CTYPE1/CTYPE2 `wcs` is `None`. Any
+/// non-finite or blank pixel is an error: sky images must be finite.
+pub fn read_image(path: &Path) -> Result<FitsImage> {
+    let metadata = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
+    if !metadata.is_file() {
+        return Err(Error::input(path, "not a regular file (expected a FITS image)"));
+    }
+    let fits_error = |what: &str, e: FitsioError| Error::input(path, format!("{what}: {}", describe(&e)));
+    let mut file = FitsFile::open(fitsio_path(path)?).map_err(|e| fits_error("cannot open as FITS", e))?;
+    let hdu = file.primary_hdu().map_err(|e| fits_error("cannot read the primary HDU", e))?;
+    let (shape, image_type) = match &hdu.info {
+        HduInfo::ImageInfo { shape, image_type } => (shape.clone(), *image_type),
+        _ => return Err(Error::input(path, "the primary HDU is not an image")),
+    };
+    // fitsio lists axes slowest first; reverse to FITS numbering (axes[0] is NAXIS1).
+    let axes: Vec<usize> = shape.iter().rev().copied().collect();
+    if !(2..=4).contains(&axes.len()) {
+        return Err(Error::input(
+            path,
+            format!("the primary HDU has NAXIS = {}; expected an image with 2, 3 or 4 axes", axes.len()),
+        ));
+    }
+    for (k, &len) in axes.iter().enumerate().skip(2) {
+        if len != 1 {
+            return Err(Error::input(
+                path,
+                format!(
+                    "NAXIS{} = {len}: only single-plane images are supported (axes beyond the second must have length 1)",
+                    k + 1
+                ),
+            ));
+        }
+    }
+    let (nx, ny) = (axes[0], axes[1]);
+    if nx == 0 || ny == 0 {
+        return Err(Error::input(path, format!("NAXIS1 = {nx}, NAXIS2 = {ny}: the image is empty")));
+    }
+    let data: Vec<f64> = hdu.read_image(&mut file).map_err(|e| fits_error("cannot read the pixels", e))?;
+    if data.len() != nx * ny {
+        return Err(Error::input(
+            path,
+            format!("read {} pixels but NAXIS1 x NAXIS2 = {nx} x {ny}", data.len()),
+        ));
+    }
+
+    let mut header = HeaderReader { file: &mut file, hdu: &hdu, path };
+    let blank = match image_type {
+        ImageType::Float | ImageType::Double => None,
+        _ => header.blank_value()?,
+    };
+    let bad = data.iter().filter(|v| !v.is_finite() || Some(**v) == blank).count();
+    if bad > 0 {
+        return Err(Error::input(
+            path,
+            format!(
+                "{bad} of {} pixels are not finite (NaN, infinite or BLANK); sky images must be finite",
+                data.len()
+            ),
+        ));
+    }
+    let unit = header.string("BUNIT")?.filter(|u| !u.is_empty());
+    let wcs = read_wcs(&mut header, nx, ny, axes.len())?;
+    Ok(FitsImage { data, nx, ny, wcs, unit })
+}
+
+/// What `write_fits` puts in the header besides the structural keywords.
+struct Header<'a> {
+    nx: usize,
+    ny: usize,
+    wcs: &'a ImageWcs,
+    unit: BrightnessUnit,
+    beam: Option<&'a Beam>,
+    extra: &'a [ExtraKeyword],
+}
+
+/// Creates the FITS file at `file_name` (a cfitsio file name) and writes header and pixels.
+fn write_fits(file_name: &str, pixels: &[f32], h: &Header) -> fitsio::errors::Result<()> {
+    // fitsio takes the shape slowest axis first: [STOKES, FREQ, Dec, RA].
+    let dimensions: Vec<usize> =
+        if h.wcs.freq_hz.is_some() { vec![1, 1, h.ny, h.nx] } else { vec![1, h.ny, h.nx] };
+    let description = ImageDescription { data_type: ImageType::Float, dimensions: &dimensions };
+    let mut file = FitsFile::create(file_name).with_custom_primary(&description).overwrite().open()?;
+    let hdu = file.primary_hdu()?;
+    let f = &mut file;
+
+    hdu.write_key(f, "BUNIT", h.unit.as_fits())?;
+    if let Some(beam) = h.beam {
+        hdu.write_key(f, "BMAJ", (beam.major_deg, "[deg] restoring beam major axis FWHM"))?;
+        hdu.write_key(f, "BMIN", (beam.minor_deg, "[deg] restoring beam minor axis FWHM"))?;
+        hdu.write_key(f, "BPA", (beam.pa_deg, "[deg] restoring beam position angle"))?;
+    }
+    hdu.write_key(f, "EQUINOX", 2000.0f64)?;
+    hdu.write_key(f, "RADESYS", "FK5")?;
+    if h.wcs.freq_hz.is_some() {
+        hdu.write_key(f, "SPECSYS", "TOPOCENT")?;
+    }
+    hdu.write_key(f, "ORIGIN", "r2d2-imaging")?;
+
+    // Reference pixel at the image centre (1-based n/2 + 1), as WSClean does.
+    let pixel = h.wcs.pixel_deg;
+    hdu.write_key(f, "CTYPE1", "RA---SIN")?;
+    hdu.write_key(f, "CRPIX1", (h.nx / 2 + 1) as f64)?;
+    hdu.write_key(f, "CRVAL1", (h.wcs.ra_deg, "[deg] phase centre right ascension"))?;
+    hdu.write_key(f, "CDELT1", (-pixel, "[deg] RA increases to the left"))?;
+    hdu.write_key(f, "CUNIT1", "deg")?;
+    hdu.write_key(f, "CTYPE2", "DEC--SIN")?;
+    hdu.write_key(f, "CRPIX2", (h.ny / 2 + 1) as f64)?;
+    hdu.write_key(f, "CRVAL2", (h.wcs.dec_deg, "[deg] phase centre declination"))?;
+    hdu.write_key(f, "CDELT2", pixel)?;
+    hdu.write_key(f, "CUNIT2", "deg")?;
+    let stokes_axis = match h.wcs.freq_hz {
+        Some(freq) => {
+            hdu.write_key(f, "CTYPE3", "FREQ")?;
+            hdu.write_key(f, "CRPIX3", 1.0f64)?;
+            hdu.write_key(f, "CRVAL3", freq)?;
+            // An unknown bandwidth is left to the FITS default (1); writing 1 explicitly
+            // would read back as a real 1 Hz bandwidth.
+            if let Some(bandwidth) = h.wcs.bandwidth_hz {
+                hdu.write_key(f, "CDELT3", (bandwidth, "[Hz] bandwidth"))?;
+            }
+            hdu.write_key(f, "CUNIT3", "Hz")?;
+            4
+        }
+        None => 3,
+    };
+    hdu.write_key(f, &format!("CTYPE{stokes_axis}"), "STOKES")?;
+    hdu.write_key(f, &format!("CRPIX{stokes_axis}"), 1.0f64)?;
+    hdu.write_key(f, &format!("CRVAL{stokes_axis}"), (1.0f64, "Stokes I"))?;
+    hdu.write_key(f, &format!("CDELT{stokes_axis}"), 1.0f64)?;
+
+    for keyword in h.extra {
+        match &keyword.value {
+            ExtraValue::Integer(v) => hdu.write_key(f, &keyword.name, *v)?,
+            ExtraValue::Float(v) => hdu.write_key(f, &keyword.name, *v)?,
+            ExtraValue::Text(v) => hdu.write_key(f, &keyword.name, v.as_str())?,
+        }
+    }
+    hdu.write_image(f, pixels)?;
+    Ok(())
+}
+
+/// An extra header keyword, checked and typed before anything is written.
+struct ExtraKeyword {
+    name: String,
+    value: ExtraValue,
+}
+
+enum ExtraValue {
+    Integer(i64),
+    Float(f64),
+    Text(String),
+}
+
+impl ExtraKeyword {
+    fn parse(name: &str, value: &str) -> Result<Self> {
+        let upper = name.to_ascii_uppercase();
+        let parameter = || format!("FITS keyword {name:?}");
+        let valid_name = !upper.is_empty()
+            && upper.len() <= 8
+            && upper.bytes().all(|b| b.is_ascii_uppercase() || b.is_ascii_digit() || b == b'-' || b == b'_');
+        if !valid_name {
+            return Err(Error::parameter(
+                parameter(),
+                "keyword names must have 1 to 8 characters from A-Z, 0-9, '-' and '_'",
+            ));
+        }
+        let is_wcs_matrix = ["PC", "CD", "PV"].iter().any(|p| {
+            upper.strip_prefix(p).is_some_and(|rest| rest.starts_with(|c: char| c.is_ascii_digit()))
+        });
+        if RESERVED_KEYWORDS.contains(&upper.as_str())
+            || RESERVED_PREFIXES.iter().any(|p| upper.starts_with(p))
+            || is_wcs_matrix
+        {
+            return Err(Error::parameter(
+                parameter(),
+                "is part of the image structure or coordinates written by r2d2-imaging; use another name",
+            ));
+        }
+        let trimmed = value.trim();
+        let value = if let Ok(v) = trimmed.parse::<i64>() {
+            ExtraValue::Integer(v)
+        } else if let Some(v) = trimmed.parse::<f64>().ok().filter(|v| v.is_finite()) {
+            ExtraValue::Float(v)
+        } else {
+            // Quotes are doubled on the card, so they count twice.
+            let card_len = value.len() + value.matches('\'').count();
+            if !value.bytes().all(|b| (b' '..=b'~').contains(&b)) || card_len > MAX_STRING_VALUE {
+                return Err(Error::parameter(
+                    parameter(),
+                    format!(
+                        "string values must be printable ASCII of at most {MAX_STRING_VALUE} characters, got {value:?}"
+                    ),
+                ));
+            }
+            ExtraValue::Text(value.to_string())
+        };
+        Ok(ExtraKeyword { name: upper, value })
+    }
+}
+
+fn check_shape(len: usize, nx: usize, ny: usize) -> Result<()> {
+    if nx == 0 || ny == 0 {
+        return Err(Error::parameter("image size", format!("nx = {nx}, ny = {ny}: both must be at least 1")));
+    }
+    match nx.checked_mul(ny) {
+        Some(n) if n == len => Ok(()),
+        _ => Err(Error::parameter("image", format!("has {len} pixels but nx x ny = {nx} x {ny}"))),
+    }
+}
+
+fn check_wcs(wcs: &ImageWcs) -> Result<()> {
+    if !wcs.ra_deg.is_finite() {
+        return Err(Error::parameter("wcs.ra_deg", format!("{}: must be finite", wcs.ra_deg)));
+    }
+    if !(-90.0..=90.0).contains(&wcs.dec_deg) {
+        return Err(Error::parameter("wcs.dec_deg", format!("{}: must be within [-90, 90]", wcs.dec_deg)));
+    }
+    if !(wcs.pixel_deg.is_finite() && wcs.pixel_deg > 0.0) {
+        return Err(Error::parameter("wcs.pixel_deg", format!("{}: must be positive", wcs.pixel_deg)));
+    }
+    for (name, value) in [("wcs.freq_hz", wcs.freq_hz), ("wcs.bandwidth_hz", wcs.bandwidth_hz)] {
+        if let Some(v) = value.filter(|v| !(v.is_finite() && *v > 0.0)) {
+            return Err(Error::parameter(name, format!("{v}: must be positive")));
+        }
+    }
+    if wcs.bandwidth_hz.is_some() && wcs.freq_hz.is_none() {
+        return Err(Error::parameter(
+            "wcs.bandwidth_hz",
+            "given without wcs.freq_hz; the FREQ axis that would carry it needs a frequency",
+        ));
+    }
+    Ok(())
+}
+
+fn check_beam(beam: &Beam) -> Result<()> {
+    for (name, v) in [("beam.major_deg", beam.major_deg), ("beam.minor_deg", beam.minor_deg)] {
+        if !(v.is_finite() && v > 0.0) {
+            return Err(Error::parameter(name, format!("{v}: must be positive")));
+        }
+    }
+    if beam.minor_deg > beam.major_deg {
+        return Err(Error::parameter(
+            "beam.minor_deg",
+            format!("{} is larger than beam.major_deg = {}", beam.minor_deg, beam.major_deg),
+        ));
+    }
+    if !beam.pa_deg.is_finite() {
+        return Err(Error::parameter("beam.pa_deg", format!("{}: must be finite", beam.pa_deg)));
+    }
+    Ok(())
+}
+
+/// Converts to the float32 the file stores, refusing values float32 cannot hold.
+fn to_float32(image: &[f64]) -> Result<Vec<f32>> {
+    let pixels: Vec<f32> = image.iter().map(|&v| v as f32).collect();
+    let bad = pixels.iter().filter(|v| !v.is_finite()).count();
+    if bad > 0 {
+        return Err(Error::parameter(
+            "image",
+            format!(
+                "{bad} of {} pixels are not finite or exceed the float32 range; sky images must be finite",
+                pixels.len()
+            ),
+        ));
+    }
+    Ok(pixels)
+}
+
+/// The file name to hand to cfitsio for `path`.
+///
+/// cfitsio parses file names: `-` is stdin, a leading `!` means overwrite, `mem://` and
+/// `http://` select drivers, `[...]` selects extensions. A `./` in front of relative paths
+/// disarms the prefixes; brackets cannot be escaped, so such names are refused.
+fn fitsio_path(path: &Path) -> Result<String> {
+    let name = path
+        .to_str()
+        .ok_or_else(|| Error::input(path, "the file name is not valid UTF-8, which cfitsio requires"))?;
+    if name.contains('[') {
+        return Err(Error::input(
+            path,
+            "file names containing '[' are not supported (cfitsio reads them as extension selectors)",
+        ));
+    }
+    Ok(if path.is_absolute() { name.to_string() } else { format!("./{name}") })
+}
+
+/// Readable text for a fitsio error (its own Display prints a Debug struct).
+fn describe(e: &FitsioError) -> String {
+    match e {
+        FitsioError::Fits(f) => format!("{} (cfitsio status {})", f.message, f.status),
+        other => other.to_string(),
+    }
+}
+
+/// Checks that the file is as long as header plus data unit: one header block at least,
+/// the data padded to whole 2880-byte blocks, nothing partial.
+fn check_written_size(written: &Path, target: &Path, n_pixels: usize) -> Result<()> {
+    const BLOCK: u64 = 2880;
+    let len = std::fs::metadata(written).map_err(|e| Error::io(target, e))?.len();
+    let data_bytes = (n_pixels as u64 * 4).div_ceil(BLOCK) * BLOCK;
+    if len % BLOCK != 0 || len < BLOCK + data_bytes {
+        return Err(Error::io(
+            target,
+            std::io::Error::other(format!(
+                "the FITS file came out {len} bytes long, too short for {n_pixels} float32 pixels (disk full?)"
+            )),
+        ));
+    }
+    Ok(())
+}
+
+/// A temporary file next to an output file; removed when dropped unless persisted.
+/// Shared with `vis`, whose outputs follow the same never-partial rule.
+///
+/// Same directory, so that the final rename is atomic and never crosses file systems;
+/// process id and a counter in the name, so that concurrent writers do not collide.
+pub(crate) struct TempSibling {
+    tmp: PathBuf,
+    target: PathBuf,
+    persisted: bool,
+}
+
+impl TempSibling {
+    pub(crate) fn new(target: &Path) -> Result<Self> {
+        static COUNTER: AtomicU64 = AtomicU64::new(0);
+        let name = target
+            .file_name()
+            .ok_or_else(|| Error::input(target, "the output path does not end in a file name"))?;
+        // Only harmless characters, whatever the target name holds (cfitsio parses names).
+        let safe: String = name
+            .to_string_lossy()
+            .chars()
+            .map(|c| if c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-') { c } else { '_' })
+            .collect();
+        let tmp_name =
+            format!(".{safe}.tmp-{}-{}", std::process::id(), COUNTER.fetch_add(1, Ordering::Relaxed));
+        Ok(TempSibling {
+            tmp: target.with_file_name(tmp_name),
+            target: target.to_path_buf(),
+            persisted: false,
+        })
+    }
+
+    pub(crate) fn path(&self) -> &Path {
+        &self.tmp
+    }
+
+    /// Flushes the temporary to disk and renames it over the target.
+    pub(crate) fn persist(mut self) -> Result<()> {
+        std::fs::File::open(&self.tmp).and_then(|f| f.sync_all()).map_err(|e| Error::io(&self.target, e))?;
+        std::fs::rename(&self.tmp, &self.target).map_err(|e| Error::io(&self.target, e))?;
+        self.persisted = true;
+        Ok(())
+    }
+}
+
+impl Drop for TempSibling {
+    fn drop(&mut self) {
+        if !self.persisted {
+            // The temporary may not exist yet; nothing useful to do if removal fails.
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
+}
+
+/// Header access of one HDU with errors that name the file and the keyword.
+struct HeaderReader<'a> {
+    file: &'a mut FitsFile,
+    hdu: &'a FitsHdu,
+    path: &'a Path,
+}
+
+impl HeaderReader<'_> {
+    /// A numeric keyword; `None` if absent, an error if present but not a finite number.
+    fn f64(&mut self, name: &str) -> Result<Option<f64>> {
+        match self.hdu.read_key::<f64>(self.file, name) {
+            Ok(v) if v.is_finite() => Ok(Some(v)),
+            Ok(v) => {
+                Err(Error::input(self.path, format!("header keyword {name} = {v}: expected a finite number")))
+            }
+            Err(FitsioError::Fits(e)) if e.status == KEY_NO_EXIST => Ok(None),
+            Err(e) => Err(Error::input(
+                self.path,
+                format!("header keyword {name}: expected a number ({})", describe(&e)),
+            )),
+        }
+    }
+
+    /// A numeric keyword that must be present; `why` says what needs it.
+    fn require_f64(&mut self, name: &str, why: &str) -> Result<f64> {
+        self.f64(name)?.ok_or_else(|| {
+            Error::input(self.path, format!("header keyword {name} is missing; {why} needs it"))
+        })
+    }
+
+    /// A keyword's value as text, trimmed; `None` if absent.
+    fn string(&mut self, name: &str) -> Result<Option<String>> {
+        match self.hdu.read_key::<String>(self.file, name) {
+            Ok(v) => Ok(Some(v.trim().to_string())),
+            Err(FitsioError::Fits(e)) if e.status == KEY_NO_EXIST => Ok(None),
+            Err(e) => Err(Error::input(self.path, format!("header keyword {name}: {}", describe(&e)))),
+        }
+    }
+
+    /// The value cfitsio returns for BLANK pixels of an integer image (it scales them
+    /// like any other pixel when no null value is requested).
+    fn blank_value(&mut self) -> Result<Option<f64>> {
+        let Some(blank) = self.f64("BLANK")? else {
+            return Ok(None);
+        };
+        let scale = self.f64("BSCALE")?.unwrap_or(1.0);
+        let zero = self.f64("BZERO")?.unwrap_or(0.0);
+        Ok(Some(blank * scale + zero))
+    }
+}
+
+/// Reads the celestial coordinate system and the frequency of a single-plane image.
+fn read_wcs(h: &mut HeaderReader, nx: usize, ny: usize, naxis: usize) -> Result<Option<ImageWcs>> {
+    let path = h.path;
+    let ctype1 = h.string("CTYPE1")?;
+    let ctype2 = h.string("CTYPE2")?;
+    if ctype1.is_none() && ctype2.is_none() {
+        return Ok(None);
+    }
+    let (ctype1, ctype2) = (ctype1.unwrap_or_default(), ctype2.unwrap_or_default());
+    match (ctype1.to_ascii_uppercase().as_str(), ctype2.to_ascii_uppercase().as_str()) {
+        ("RA---SIN", "DEC--SIN") => {}
+        ("RA---TAN", "DEC--TAN") => log::warn!(
+            "{}: TAN projection read as SIN; positions differ away from the phase centre",
+            path.display()
+        ),
+        _ => {
+            return Err(Error::input(
+                path,
+                format!(
+                    "CTYPE1 = '{ctype1}', CTYPE2 = '{ctype2}': expected 'RA---SIN' and 'DEC--SIN' \
+                     (or 'RA---TAN' and 'DEC--TAN'); other axes and projections are not supported"
+                ),
+            ))
+        }
+    }
+    for axis in ["CUNIT1", "CUNIT2"] {
+        if let Some(unit) = h.string(axis)?.filter(|u| !u.eq_ignore_ascii_case("deg")) {
+            return Err(Error::input(path, format!("{axis} = '{unit}': expected 'deg'")));
+        }
+    }
+    if let Some(frame) =
+        h.string("RADESYS")?.filter(|f| !["FK5", "ICRS"].contains(&f.to_ascii_uppercase().as_str()))
+    {
+        return Err(Error::input(path, format!("RADESYS = '{frame}': expected 'FK5' or 'ICRS'")));
+    }
+    if let Some(equinox) = h.f64("EQUINOX")?.filter(|e| *e != 2000.0) {
+        return Err(Error::input(path, format!("EQUINOX = {equinox}: expected 2000")));
+    }
+    // Rotations and generalised projections, which ImageWcs cannot describe.
+    for (key, default) in [
+        ("CROTA1", 0.0),
+        ("CROTA2", 0.0),
+        ("PC1_2", 0.0),
+        ("PC2_1", 0.0),
+        ("CD1_2", 0.0),
+        ("CD2_1", 0.0),
+        ("PV2_1", 0.0),
+        ("PV2_2", 0.0),
+        ("LONPOLE", 180.0),
+    ] {
+        if let Some(v) = h.f64(key)?.filter(|v| *v != default) {
+            return Err(Error::input(
+                path,
+                format!("{key} = {v}: rotated or generalised projections are not supported (expected {default} or absent)"),
+            ));
+        }
+    }
+
+    let wcs_need = "the celestial coordinate system";
+    let ra_deg = h.require_f64("CRVAL1", wcs_need)?;
+    let dec_deg = h.require_f64("CRVAL2", wcs_need)?;
+    if !(-90.0..=90.0).contains(&dec_deg) {
+        return Err(Error::input(
+            path,
+            format!("CRVAL2 = {dec_deg}: a declination must be within [-90, 90]"),
+        ));
+    }
+    for (key, n) in [("CRPIX1", nx), ("CRPIX2", ny)] {
+        let crpix = h.require_f64(key, wcs_need)?;
+        let centre = (n / 2 + 1) as f64;
+        if (crpix - centre).abs() > 1e-6 {
+            return Err(Error::input(
+                path,
+                format!("{key} = {crpix}: the reference pixel must be the image centre, {centre} for an axis of {n} pixels"),
+            ));
+        }
+    }
+
+    // Pixel increments: CD matrix (diagonal, checked above) or CDELT scaled by PC.
+    let (k1, k2, d1, d2) = if let (Some(d1), Some(d2)) = (h.f64("CD1_1")?, h.f64("CD2_2")?) {
+        ("CD1_1", "CD2_2", d1, d2)
+    } else {
+        let d1 = h.require_f64("CDELT1", wcs_need)? * h.f64("PC1_1")?.unwrap_or(1.0);
+        let d2 = h.require_f64("CDELT2", wcs_need)? * h.f64("PC2_2")?.unwrap_or(1.0);
+        ("CDELT1", "CDELT2", d1, d2)
+    };
+    if d1 == 0.0 || d2 == 0.0 {
+        return Err(Error::input(path, format!("{k1} = {d1}, {k2} = {d2}: pixel sizes must not be zero")));
+    }
+    if (d1.abs() - d2.abs()).abs() > 1e-9 * d2.abs() {
+        return Err(Error::input(
+            path,
+            format!("{k1} = {d1}, {k2} = {d2}: non-square pixels are not supported (expected {k1} = -{k2})"),
+        ));
+    }
+    if !(d1 < 0.0 && d2 > 0.0) {
+        return Err(Error::input(
+            path,
+            format!(
+                "{k1} = {d1}, {k2} = {d2}: flipped axes are not supported \
+                 (expected RA increasing to the left, {k1} < 0, and Dec upwards, {k2} > 0)"
+            ),
+        ));
+    }
+
+    let (freq_hz, bandwidth_hz) = read_frequency(h, naxis)?;
+    Ok(Some(ImageWcs { ra_deg, dec_deg, pixel_deg: d2, freq_hz, bandwidth_hz }))
+}
+
+/// Frequency of the single plane and the bandwidth it covers, from a FREQ axis if any.
+fn read_frequency(h: &mut HeaderReader, naxis: usize) -> Result<(Option<f64>, Option<f64>)> {
+    for k in 3..=naxis {
+        let is_freq =
+            h.string(&format!("CTYPE{k}"))?.is_some_and(|t| t.to_ascii_uppercase().starts_with("FREQ"));
+        if !is_freq {
+            continue;
+        }
+        let crval = h.require_f64(&format!("CRVAL{k}"), "the FREQ axis")?;
+        let crpix = h.f64(&format!("CRPIX{k}"))?.unwrap_or(1.0);
+        let cdelt = h.f64(&format!("CDELT{k}"))?;
+        if let Some(unit) = h.string(&format!("CUNIT{k}"))?.filter(|u| !u.eq_ignore_ascii_case("Hz")) {
+            return Err(Error::input(h.path, format!("CUNIT{k} = '{unit}': expected 'Hz' on the FREQ axis")));
+        }
+        // The plane is pixel 1 of the axis, wherever the reference pixel is.
+        let freq = crval + (1.0 - crpix) * cdelt.unwrap_or(1.0);
+        if freq <= 0.0 {
+            return Err(Error::input(
+                h.path,
+                format!("FREQ axis {k}: frequency {freq} Hz of the image plane is not positive"),
+            ));
+        }
+        if cdelt == Some(0.0) {
+            return Err(Error::input(h.path, format!("CDELT{k} = 0: expected a non-zero bandwidth")));
+        }
+        return Ok((Some(freq), cdelt.map(f64::abs)));
+    }
+    Ok((None, None))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn test_wcs() -> ImageWcs {
+        ImageWcs {
+            ra_deg: 187.5,
+            dec_deg: 41.25,
+            pixel_deg: 1.0 / 3600.0,
+            freq_hz: Some(1.4e9),
+            bandwidth_hz: Some(8.0e6),
+        }
+    }
+
+    /// A non-symmetric test pattern, so that transpositions and flips show.
+    fn pattern(nx: usize, ny: usize) -> Vec<f64> {
+        (0..nx * ny)
+            .map(|i| {
+                let (ix, iy) = ((i % nx) as f64, (i / nx) as f64);
+                0.1 * ix - 0.003 * iy * iy + (0.37 * ix * iy).sin() * 1e-4
+            })
+            .collect()
+    }
+
+    /// Header floats carry 15 significant digits (cfitsio's default, as in WSClean's files).
+    fn assert_wcs_close(a: &ImageWcs, b: &ImageWcs) {
+        let close = |x: f64, y: f64| (x - y).abs() <= 1e-14 * y.abs().max(1.0);
+        assert!(close(a.ra_deg, b.ra_deg) && close(a.dec_deg, b.dec_deg), "{a:?} vs {b:?}");
+        assert!((a.pixel_deg / b.pixel_deg - 1.0).abs() < 1e-14, "{a:?} vs {b:?}");
+    }
+
+    /// Creates a float32 image with fitsio directly; `shape` is slowest axis first.
+    fn write_raw(path: &Path, shape: &[usize], data: &[f32], keys: &[(&str, f64)]) {
+        let description = ImageDescription { data_type: ImageType::Float, dimensions: shape };
+        let mut f = FitsFile::create(path).with_custom_primary(&description).open().unwrap();
+        let hdu = f.primary_hdu().unwrap();
+        for (k, v) in keys {
+            hdu.write_key(&mut f, k, *v).unwrap();
+        }
+        hdu.write_image(&mut f, data).unwrap();
+    }
+
+    fn dir_entries(dir: &Path) -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(dir)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        names
+    }
+
+    #[test]
+    fn round_trip_preserves_pixels_wcs_and_keywords() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("image.fits");
+        let (nx, ny) = (64, 48);
+        let image = pattern(nx, ny);
+        let beam = Beam { major_deg: 2e-3, minor_deg: 1e-3, pa_deg: 30.0 };
+        let extra =
+            [("NITER", "500".to_string()), ("GAIN", "0.1".to_string()), ("OBJECT", "3C 286".to_string())];
+        write_image(&path, &image, nx, ny, &test_wcs(), BrightnessUnit::JyPerBeam, Some(&beam), &extra)
+            .unwrap();
+
+        let read = read_image(&path).unwrap();
+        assert_eq!((read.nx, read.ny), (nx, ny));
+        for (a, b) in image.iter().zip(&read.data) {
+            assert_eq!(*b, *a as f32 as f64);
+        }
+        let wcs = read.wcs.unwrap();
+        let expected = test_wcs();
+        assert_wcs_close(&wcs, &expected);
+        assert_eq!(wcs.freq_hz, expected.freq_hz);
+        assert_eq!(wcs.bandwidth_hz, expected.bandwidth_hz);
+        assert_eq!(read.unit.as_deref(), Some("JY/BEAM"));
+
+        let mut f = FitsFile::open(&path).unwrap();
+        let hdu = f.primary_hdu().unwrap();
+        assert_eq!(hdu.read_key::<i64>(&mut f, "NAXIS").unwrap(), 4);
+        assert_eq!(hdu.read_key::<i64>(&mut f, "BITPIX").unwrap(), -32);
+        assert_eq!(hdu.read_key::<String>(&mut f, "CTYPE4").unwrap(), "STOKES");
+        assert_eq!(hdu.read_key::<i64>(&mut f, "NITER").unwrap(), 500);
+        assert_eq!(hdu.read_key::<f64>(&mut f, "GAIN").unwrap(), 0.1);
+        assert_eq!(hdu.read_key::<String>(&mut f, "OBJECT").unwrap(), "3C 286");
+        assert_eq!(hdu.read_key::<f64>(&mut f, "BMAJ").unwrap(), 2e-3);
+        assert_eq!(hdu.read_key::<String>(&mut f, "RADESYS").unwrap(), "FK5");
+    }
+
+    #[test]
+    fn unknown_frequency_gives_three_axes_with_stokes_third() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("model.fits");
+        let wcs = ImageWcs { freq_hz: None, bandwidth_hz: None, ..test_wcs() };
+        write_image(&path, &pattern(8, 8), 8, 8, &wcs, BrightnessUnit::JyPerPixel, None, &[]).unwrap();
+
+        let mut f = FitsFile::open(&path).unwrap();
+        let hdu = f.primary_hdu().unwrap();
+        assert_eq!(hdu.read_key::<i64>(&mut f, "NAXIS").unwrap(), 3);
+        assert_eq!(hdu.read_key::<String>(&mut f, "CTYPE3").unwrap(), "STOKES");
+        let read = read_image(&path).unwrap();
+        let read_wcs = read.wcs.unwrap();
+        assert_wcs_close(&read_wcs, &wcs);
+        assert_eq!((read_wcs.freq_hz, read_wcs.bandwidth_hz), (None, None));
+        assert_eq!(read.unit.as_deref(), Some("JY/PIXEL"));
+    }
+
+    #[test]
+    fn writing_leaves_no_temporary_and_overwrites() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("out.fits");
+        std::fs::write(&path, b"old contents").unwrap();
+        write_image(&path, &pattern(16, 16), 16, 16, &test_wcs(), BrightnessUnit::JyPerBeam, None, &[])
+            .unwrap();
+        assert_eq!(dir_entries(dir.path()), vec!["out.fits"]);
+        assert_eq!(read_image(&path).unwrap().nx, 16);
+
+        // A failure at the very end (the target is a directory) still cleans up.
+        let blocked = dir.path().join("blocked.fits");
+        std::fs::create_dir(&blocked).unwrap();
+        let err =
+            write_image(&blocked, &pattern(4, 4), 4, 4, &test_wcs(), BrightnessUnit::JyPerBeam, None, &[])
+                .unwrap_err();
+        assert!(err.to_string().contains("blocked.fits"), "{err}");
+        assert_eq!(dir_entries(dir.path()), vec!["blocked.fits", "out.fits"]);
+    }
+
+    #[test]
+    fn reading_a_missing_file_names_the_path() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("no-such-image.fits");
+        let err = read_image(&path).unwrap_err();
+        assert!(err.to_string().contains("no-such-image.fits"), "{err}");
+    }
+
+    #[test]
+    fn cube_with_two_planes_is_rejected_naming_naxis3() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("cube.fits");
+        write_raw(&path, &[2, 4, 4], &[0.0; 32], &[]);
+        let err = read_image(&path).unwrap_err();
+        assert!(err.to_string().contains("NAXIS3 = 2"), "{err}");
+    }
+
+    #[test]
+    fn non_finite_pixels_are_rejected_with_count() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("nan.fits");
+        let mut data = vec![1.0f32; 16];
+        data[3] = f32::NAN;
+        data[7] = f32::INFINITY;
+        write_raw(&path, &[4, 4], &data, &[]);
+        let err = read_image(&path).unwrap_err().to_string();
+        assert!(err.contains("nan.fits") && err.contains("2 of 16"), "{err}");
+
+        let err = write_image(&path, &[f64::NAN; 4], 2, 2, &test_wcs(), BrightnessUnit::JyPerBeam, None, &[])
+            .unwrap_err();
+        assert!(err.to_string().contains("4 of 4"), "{err}");
+    }
+
+    #[test]
+    fn integer_image_is_scaled_and_wcs_less_image_has_none() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("int.fits");
+        {
+            let description = ImageDescription { data_type: ImageType::Short, dimensions: &[2, 3] };
+            let mut f = FitsFile::create(&path).with_custom_primary(&description).open().unwrap();
+            let hdu = f.primary_hdu().unwrap();
+            hdu.write_key(&mut f, "BSCALE", 0.5f64).unwrap();
+            hdu.write_key(&mut f, "BZERO", 10.0f64).unwrap();
+            hdu.write_image(&mut f, &[0i16, 1, 2, 3, 4, 5]).unwrap();
+        }
+        let read = read_image(&path).unwrap();
+        assert_eq!((read.nx, read.ny), (3, 2));
+        assert_eq!(read.data, vec![10.0, 10.5, 11.0, 11.5, 12.0, 12.5]);
+        assert_eq!(read.wcs, None);
+        assert_eq!(read.unit, None);
+    }
+
+    #[test]
+    fn non_square_pixels_are_rejected() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("rect.fits");
+        write_image(&path, &pattern(8, 8), 8, 8, &test_wcs(), BrightnessUnit::JyPerBeam, None, &[]).unwrap();
+        {
+            let mut f = FitsFile::edit(&path).unwrap();
+            let hdu = f.primary_hdu().unwrap();
+            hdu.write_key(&mut f, "CDELT1", -2.0 / 3600.0).unwrap();
+        }
+        let err = read_image(&path).unwrap_err().to_string();
+        assert!(err.contains("non-square pixels") && err.contains("CDELT1"), "{err}");
+    }
+
+    #[test]
+    fn bad_extra_keywords_and_parameters_are_rejected() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("x.fits");
+        let write = |extra: &[(&str, String)]| {
+            write_image(&path, &pattern(4, 4), 4, 4, &test_wcs(), BrightnessUnit::JyPerBeam, None, extra)
+        };
+        let err = write(&[("CRVAL1", "3".to_string())]).unwrap_err().to_string();
+        assert!(err.contains("CRVAL1"), "{err}");
+        let err = write(&[("TOOLONGNAME", "3".to_string())]).unwrap_err().to_string();
+        assert!(err.contains("TOOLONGNAME"), "{err}");
+        let err = write(&[("NOTE", "x".repeat(80))]).unwrap_err().to_string();
+        assert!(err.contains("NOTE"), "{err}");
+        let err = write_image(&path, &pattern(4, 4), 4, 5, &test_wcs(), BrightnessUnit::JyPerBeam, None, &[])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("16 pixels"), "{err}");
+        assert!(dir_entries(dir.path()).is_empty());
+    }
+
+    /// Pixel-to-world by FITS WCS paper II (Calabretta & Greisen 2002), from the header
+    /// keywords alone: intermediate coordinates x = CDELT1 (p1 - CRPIX1), y = CDELT2
+    /// (p2 - CRPIX2); SIN deprojection phi = arg(-y, x), theta = acos(R); rotation from
+    /// native to celestial with (alpha0, delta0) = CRVAL and phi_p = LONPOLE = 180 deg.
+    fn sin_pixel_to_world(keys: &[f64; 6], ix: usize, iy: usize) -> (f64, f64) {
+        let [crpix1, crpix2, crval1, crval2, cdelt1, cdelt2] = *keys;
+        let x = (cdelt1 * (ix as f64 + 1.0 - crpix1)).to_radians();
+        let y = (cdelt2 * (iy as f64 + 1.0 - crpix2)).to_radians();
+        let r = x.hypot(y);
+        let phi = x.atan2(-y);
+        let theta = r.acos();
+        let (dp, phi_p) = (crval2.to_radians(), std::f64::consts::PI);
+        let alpha = crval1.to_radians()
+            + (-theta.cos() * (phi - phi_p).sin())
+                .atan2(theta.sin() * dp.cos() - theta.cos() * dp.sin() * (phi - phi_p).cos());
+        let delta = (theta.sin() * dp.sin() + theta.cos() * dp.cos() * (phi - phi_p).cos()).asin();
+        (alpha.to_degrees().rem_euclid(360.0), delta.to_degrees())
+    }
+
+    /// The imager's convention: direction cosines l = -pixel (ix - nx/2) towards
+    /// increasing RA, m = pixel (iy - ny/2), with the standard (l, m) to (RA, Dec).
+    fn direction_cosines_to_world(wcs: &ImageWcs, nx: usize, ny: usize, ix: usize, iy: usize) -> (f64, f64) {
+        let pixel = wcs.pixel_deg.to_radians();
+        let l = -pixel * (ix as f64 - (nx / 2) as f64);
+        let m = pixel * (iy as f64 - (ny / 2) as f64);
+        let n = (1.0 - l * l - m * m).sqrt();
+        let (ra0, dec0) = (wcs.ra_deg.to_radians(), wcs.dec_deg.to_radians());
+        let ra = ra0 + l.atan2(dec0.cos() * n - m * dec0.sin());
+        let dec = (m * dec0.cos() + dec0.sin() * n).asin();
+        (ra.to_degrees().rem_euclid(360.0), dec.to_degrees())
+    }
+
+    fn angle_diff(a: f64, b: f64) -> f64 {
+        (a - b + 180.0).rem_euclid(360.0) - 180.0
+    }
+
+    #[test]
+    fn wcs_pixels_map_to_sky_like_the_imager() {
+        let dir = tempfile::tempdir().unwrap();
+        let (nx, ny) = (128, 96);
+        for (k, (ra, dec)) in [(187.5, 41.25), (359.99, -43.02), (0.005, 2.0)].into_iter().enumerate() {
+            let wcs = ImageWcs { ra_deg: ra, dec_deg: dec, pixel_deg: 2.0 / 3600.0, ..test_wcs() };
+            let path = dir.path().join(format!("wcs{k}.fits"));
+            write_image(&path, &pattern(nx, ny), nx, ny, &wcs, BrightnessUnit::JyPerBeam, None, &[]).unwrap();
+            if let Some(out) = std::env::var_os("R2D2_WCS_FITS_OUT").filter(|_| k == 0) {
+                // For tests/wcs_astropy.py: a file to check against astropy.
+                std::fs::copy(&path, out).unwrap();
+            }
+
+            let mut f = FitsFile::open(&path).unwrap();
+            let hdu = f.primary_hdu().unwrap();
+            let mut keys = [0.0; 6];
+            for (v, name) in keys.iter_mut().zip(["CRPIX1", "CRPIX2", "CRVAL1", "CRVAL2", "CDELT1", "CDELT2"])
+            {
+                *v = hdu.read_key::<f64>(&mut f, name).unwrap();
+            }
+
+            let (ra_c, dec_c) = sin_pixel_to_world(&keys, nx / 2, ny / 2);
+            assert!(
+                angle_diff(ra_c, ra).abs() < 1e-12 && (dec_c - dec).abs() < 1e-12,
+                "centre at {ra_c}, {dec_c}"
+            );
+
+            let (ra1, dec1) = sin_pixel_to_world(&keys, nx / 2 - 10, ny / 2 + 5);
+            assert!(angle_diff(ra1, ra) > 0.0, "east must be left: {ra1} vs {ra}");
+            assert!(dec1 > dec);
+
+            for (ix, iy) in [(nx / 2 - 10, ny / 2 + 5), (0, 0), (nx - 1, ny - 1), (3, ny - 2), (nx - 7, 1)] {
+                let (ra_w, dec_w) = sin_pixel_to_world(&keys, ix, iy);
+                let (ra_d, dec_d) = direction_cosines_to_world(&wcs, nx, ny, ix, iy);
+                assert!(angle_diff(ra_w, ra_d).abs() < 1e-9, "pixel ({ix}, {iy}): RA {ra_w} vs {ra_d}");
+                assert!((dec_w - dec_d).abs() < 1e-9, "pixel ({ix}, {iy}): Dec {dec_w} vs {dec_d}");
+            }
+        }
+    }
+}
