@@ -188,6 +188,15 @@ pub fn read_image(path: &Path) -> Result<FitsImage> {
     if nx == 0 || ny == 0 {
         return Err(Error::input(path, format!("NAXIS1 = {nx}, NAXIS2 = {ny}: the image is empty")));
     }
+    // A damaged header can declare any size; refuse sizes the file cannot hold before
+    // fitsio allocates a buffer for them.
+    let data_bytes = nx.checked_mul(ny).and_then(|n| n.checked_mul(bytes_per_pixel(image_type)));
+    if data_bytes.is_none_or(|bytes| bytes as u64 > metadata.len()) {
+        return Err(Error::input(
+            path,
+            format!("NAXIS1 x NAXIS2 = {nx} x {ny} pixels do not fit in the file's {} bytes", metadata.len()),
+        ));
+    }
     let data: Vec<f64> = hdu.read_image(&mut file).map_err(|e| fits_error("cannot read the pixels", e))?;
     if data.len() != nx * ny {
         return Err(Error::input(
@@ -214,6 +223,16 @@ pub fn read_image(path: &Path) -> Result<FitsImage> {
     let unit = header.string("BUNIT")?.filter(|u| !u.is_empty());
     let wcs = read_wcs(&mut header, nx, ny, axes.len())?;
     Ok(FitsImage { data, nx, ny, wcs, unit })
+}
+
+/// Bytes per stored pixel (BITPIX / 8 in absolute value).
+fn bytes_per_pixel(image_type: ImageType) -> usize {
+    match image_type {
+        ImageType::UnsignedByte | ImageType::Byte => 1,
+        ImageType::Short | ImageType::UnsignedShort => 2,
+        ImageType::Long | ImageType::UnsignedLong | ImageType::Float => 4,
+        ImageType::LongLong | ImageType::Double => 8,
+    }
 }
 
 /// What `write_fits` puts in the header besides the structural keywords.
@@ -881,6 +900,18 @@ mod tests {
         assert_eq!(read.data, vec![10.0, 10.5, 11.0, 11.5, 12.0, 12.5]);
         assert_eq!(read.wcs, None);
         assert_eq!(read.unit, None);
+    }
+
+    #[test]
+    fn truncated_file_is_rejected_before_reading() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("short.fits");
+        write_image(&path, &pattern(64, 64), 64, 64, &test_wcs(), BrightnessUnit::JyPerBeam, None, &[])
+            .unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+        let err = read_image(&path).unwrap_err().to_string();
+        assert!(err.contains("short.fits") && err.contains("64 x 64"), "{err}");
     }
 
     #[test]
