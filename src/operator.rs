@@ -276,29 +276,86 @@ impl PsfConvolution {
     }
 }
 
-/// Largest eigenvalue of a symmetric positive semi-definite operator on `n`-pixel images, by
-/// power iteration from a deterministic start, until the relative change is below `tolerance`.
+/// Largest eigenvalue of a symmetric operator on `n`-pixel images (the spectral norm, for a
+/// positive semi-definite one such as `Re{Phi^H Phi}`), by the Lanczos method with full
+/// reorthogonalisation, stopping when the top Ritz value changes by less than `tolerance`
+/// (relative). Power iteration needs hundreds of applications here because the top
+/// eigenvalues of a PSF convolution cluster; Lanczos needs tens.
 pub fn spectral_norm(apply: impl Fn(&[f64]) -> Vec<f64>, n: usize, tolerance: f64, max_iterations: usize) -> f64 {
+    let dot = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(a, b)| a * b).sum::<f64>();
     // A fixed pseudo-random start: generic enough not to be orthogonal to the top eigenvector.
-    let mut x: Vec<f64> = (0..n).map(|i| ((i as f64 * 12.9898).sin() * 43758.5453).fract().abs() + 0.1).collect();
-    let norm = |v: &[f64]| v.iter().map(|a| a * a).sum::<f64>().sqrt();
-    let n0 = norm(&x);
-    x.iter_mut().for_each(|a| *a /= n0);
+    let mut q: Vec<f64> = (0..n).map(|i| ((i as f64 * 12.9898).sin() * 43758.5453).fract().abs() + 0.1).collect();
+    let q_norm = dot(&q, &q).sqrt();
+    q.iter_mut().for_each(|a| *a /= q_norm);
+    let mut basis: Vec<Vec<f64>> = Vec::new();
+    let (mut alpha, mut beta) = (Vec::new(), Vec::new());
     let mut value = 0.0;
-    for _ in 0..max_iterations {
-        let y = apply(&x);
-        let next = norm(&y);
-        if next == 0.0 {
-            return 0.0;
+    for iteration in 1..=max_iterations.min(n) {
+        let mut w = apply(&q);
+        let a = dot(&w, &q);
+        alpha.push(a);
+        basis.push(q);
+        // Full reorthogonalisation (twice is enough) keeps the basis orthogonal in floating point.
+        for _ in 0..2 {
+            for b in &basis {
+                let c = dot(&w, b);
+                w.iter_mut().zip(b).for_each(|(w, b)| *w -= c * b);
+            }
         }
-        x = y.into_iter().map(|a| a / next).collect();
-        let converged = (next - value).abs() <= tolerance * next;
-        value = next;
-        if converged {
+        let ritz = largest_tridiagonal_eigenvalue(&alpha, &beta);
+        let converged = iteration > 1 && (ritz - value).abs() <= tolerance * ritz.abs();
+        value = ritz;
+        let b = dot(&w, &w).sqrt();
+        if converged || b <= 1e-14 * ritz.abs().max(f64::MIN_POSITIVE) {
+            log::debug!("spectral norm {value:.8e} after {iteration} Lanczos iterations");
+            return value;
+        }
+        beta.push(b);
+        q = w.into_iter().map(|w| w / b).collect();
+    }
+    log::warn!("Lanczos stopped at {max_iterations} iterations before a relative change of {tolerance:e}");
+    value
+}
+
+/// Largest eigenvalue of the symmetric tridiagonal matrix with diagonal `alpha` and
+/// off-diagonal `beta` (`beta.len() >= alpha.len() - 1`), by bisection on Sturm counts.
+fn largest_tridiagonal_eigenvalue(alpha: &[f64], beta: &[f64]) -> f64 {
+    let k = alpha.len();
+    // Gershgorin bounds.
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for i in 0..k {
+        let r = if i > 0 { beta[i - 1].abs() } else { 0.0 } + if i + 1 < k { beta[i].abs() } else { 0.0 };
+        lo = lo.min(alpha[i] - r);
+        hi = hi.max(alpha[i] + r);
+    }
+    // Number of eigenvalues below x (Sturm sequence of the LDL^T pivots).
+    let count_below = |x: f64| {
+        let mut count = 0;
+        let mut d = 1.0;
+        for i in 0..k {
+            let b2 = if i > 0 { beta[i - 1] * beta[i - 1] } else { 0.0 };
+            d = alpha[i] - x - if i > 0 { b2 / d } else { 0.0 };
+            if d == 0.0 {
+                d = -f64::EPSILON * (x.abs() + 1.0);
+            }
+            if d < 0.0 {
+                count += 1;
+            }
+        }
+        count
+    };
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if mid <= lo || mid >= hi {
             break;
         }
+        if count_below(mid) == k {
+            hi = mid;
+        } else {
+            lo = mid;
+        }
     }
-    value
+    0.5 * (lo + hi)
 }
 
 #[cfg(test)]
@@ -431,9 +488,25 @@ mod tests {
             }
         }
         let dense_apply = |x: &[f64]| (0..n * n).map(|p| dot(&dense[p * n * n..(p + 1) * n * n], x)).collect::<Vec<_>>();
-        let reference = spectral_norm(dense_apply, n * n, 1e-12, 5000);
+        // Reference: plain power iteration on the dense matrix, run to convergence.
+        let mut x = vec![1.0; n * n];
+        let mut reference = 0.0;
+        for _ in 0..20000 {
+            let y = dense_apply(&x);
+            reference = dot(&y, &y).sqrt();
+            x = y.into_iter().map(|v| v / reference).collect();
+        }
         let ours = spectral_norm(|x| op.apply_normal(x), n * n, 1e-12, 5000);
         assert!((ours - reference).abs() < 1e-6 * reference, "{ours} vs dense {reference}");
+    }
+
+    #[test]
+    fn tridiagonal_eigenvalue_of_a_known_matrix() {
+        // Tridiagonal (2, -1): eigenvalues 2 - 2 cos(k pi / (n + 1)).
+        let n = 30;
+        let top = largest_tridiagonal_eigenvalue(&vec![2.0; n], &vec![-1.0; n - 1]);
+        let expected = 2.0 - 2.0 * (n as f64 * std::f64::consts::PI / (n as f64 + 1.0)).cos();
+        assert!((top - expected).abs() < 1e-12, "{top} vs {expected}");
     }
 
     #[test]

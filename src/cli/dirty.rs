@@ -1,0 +1,50 @@
+//! `r2d2 dirty`: dirty image and PSF, named like WSClean's products.
+
+use super::ImageOptions;
+use r2d2_imaging::fits::{write_image, BrightnessUnit, ImageWcs};
+use r2d2_imaging::imaging::dirty_image;
+use r2d2_imaging::vis::read_parquet;
+use r2d2_imaging::Result;
+use std::path::PathBuf;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Visibilities (Parquet, one row per sample).
+    input: PathBuf,
+    #[command(flatten)]
+    image: ImageOptions,
+    /// Output prefix: writes PREFIX-dirty.fits and PREFIX-psf.fits.
+    #[arg(long, default_value = "r2d2")]
+    name: String,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let params = args.image.dirty_params()?;
+    let (vis, meta, stats) = read_parquet(&args.input)?;
+    log::info!("{}: {stats}", args.input.display());
+    let products = dirty_image(&vis, &params)?;
+    let geometry = products.operator.geometry();
+    log::info!(
+        "{} x {} image, {:.4} arcsec pixels, {} weighting",
+        geometry.size,
+        geometry.size,
+        geometry.pixel_arcsec(),
+        params.weighting
+    );
+    let f_min = vis.frequency.iter().copied().fold(f64::INFINITY, f64::min);
+    let f_max = vis.frequency.iter().copied().fold(0.0, f64::max);
+    let wcs = ImageWcs {
+        ra_deg: meta.phase_centre_ra_deg,
+        dec_deg: meta.phase_centre_dec_deg,
+        pixel_deg: geometry.pixel_rad.to_degrees(),
+        freq_hz: Some((f_min + f_max) / 2.0),
+        bandwidth_hz: (f_max > f_min).then_some(f_max - f_min),
+    };
+    let n = geometry.size;
+    for (suffix, image) in [("dirty", &products.dirty), ("psf", &products.psf)] {
+        let path = PathBuf::from(format!("{}-{suffix}.fits", args.name));
+        write_image(&path, image, n, n, &wcs, BrightnessUnit::JyPerBeam, None, &[("TELESCOP", meta.telescope.clone())])?;
+        log::info!("wrote {}", path.display());
+    }
+    Ok(())
+}

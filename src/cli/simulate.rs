@@ -1,0 +1,218 @@
+//! `r2d2 simulate`: a VLA observation of a sky (FITS or procedural) into a Parquet table.
+
+use r2d2_imaging::fits::{read_image, write_image, BrightnessUnit, ImageWcs};
+use r2d2_imaging::nufft::NufftParams;
+use r2d2_imaging::operator::ImageGeometry;
+use r2d2_imaging::simulate::observe::{frequency_channels, sample_coverage, simulate_visibilities, NoiseModel, ObservationSpec};
+use r2d2_imaging::simulate::sky::{exponentiate, procedural_sky, SkyParams};
+use r2d2_imaging::vis::{write_parquet, ObservationMeta, VisTable};
+use r2d2_imaging::weighting::Weighting;
+use r2d2_imaging::{metrics, Error, Result};
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Sky model: a FITS image (Jy/pixel), or `procedural[:SEED]` for a generated radio sky.
+    #[arg(long, default_value = "procedural")]
+    sky: String,
+    /// Telescope (only `vla` is built in).
+    #[arg(long, default_value = "vla")]
+    telescope: String,
+    /// Array configurations, comma separated (a, b, c, d).
+    #[arg(long, default_value = "a,c", value_delimiter = ',')]
+    configs: Vec<char>,
+    /// Observing time per configuration in hours, comma separated, one per configuration.
+    #[arg(long, default_value = "6,2", value_delimiter = ',')]
+    hours: Vec<f64>,
+    /// Declination of the phase centre, degrees.
+    #[arg(long, default_value_t = 40.0, allow_hyphen_values = true)]
+    dec: f64,
+    /// Right ascension of the phase centre, degrees.
+    #[arg(long, default_value_t = 180.0)]
+    ra: f64,
+    /// Target dynamic range: fixes the noise level (reference formula).
+    #[arg(long, default_value_t = 1e4)]
+    dr: f64,
+    /// Number of frequency channels.
+    #[arg(long, default_value_t = 1)]
+    nfreq: usize,
+    /// Lowest frequency, MHz.
+    #[arg(long, default_value_t = 1400.0)]
+    freq_mhz: f64,
+    /// Highest over lowest frequency.
+    #[arg(long, default_value_t = 1.0)]
+    freq_ratio: f64,
+    /// Fraction of samples flagged at random.
+    #[arg(long, default_value_t = 0.0)]
+    flag_fraction: f64,
+    /// Integration time, seconds.
+    #[arg(long, default_value_t = 30.0)]
+    integration_s: f64,
+    /// Do not rotate the uv coverage by a random angle.
+    #[arg(long)]
+    no_rotation: bool,
+    /// Raise a FITS sky's dynamic range to --dr by exponentiation (Terris et al. 2022).
+    #[arg(long)]
+    exponentiate: bool,
+    /// Image size of a procedural sky, pixels.
+    #[arg(long, default_value_t = 512)]
+    size: usize,
+    /// Super-resolution factor fixing the sky's pixel (unless the FITS sky has a pixel size
+    /// or --pixel-arcsec is given).
+    #[arg(long, default_value_t = 1.5)]
+    superresolution: f64,
+    /// Pixel size of the sky, arcsec.
+    #[arg(long)]
+    pixel_arcsec: Option<f64>,
+    /// Weighting the noise level is computed for (natural, uniform, briggs).
+    #[arg(long, default_value = "briggs")]
+    weighting: String,
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    robust: f64,
+    /// NUFFT accuracy.
+    #[arg(long, default_value_t = 1e-6)]
+    epsilon: f64,
+    /// Random seed: the same seed gives the same file.
+    #[arg(long, default_value_t = 7)]
+    seed: u64,
+    /// Threads (0: all cores).
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Output Parquet file.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+enum SkySource {
+    Procedural(u64),
+    File(PathBuf),
+}
+
+fn parse_sky(text: &str, seed: u64) -> Result<SkySource> {
+    match text.split_once(':') {
+        _ if text == "procedural" => Ok(SkySource::Procedural(seed)),
+        Some(("procedural", s)) => s
+            .parse()
+            .map(SkySource::Procedural)
+            .map_err(|_| Error::parameter("sky", format!("expected procedural:SEED with an integer seed, got '{text}'"))),
+        _ => Ok(SkySource::File(PathBuf::from(text))),
+    }
+}
+
+pub fn run(args: Args) -> Result<()> {
+    if !args.telescope.eq_ignore_ascii_case("vla") {
+        return Err(Error::parameter("telescope", format!("expected vla (the built-in telescope), got '{}'", args.telescope)));
+    }
+    if args.configs.len() != args.hours.len() {
+        return Err(Error::parameter(
+            "hours",
+            format!("give one observing time per configuration: {} configurations, {} times", args.configs.len(), args.hours.len()),
+        ));
+    }
+    let spec = ObservationSpec {
+        configurations: args.configs.iter().copied().zip(args.hours.iter().copied()).collect(),
+        dec_deg: args.dec,
+        integration_s: args.integration_s,
+        frequencies_hz: frequency_channels(args.freq_mhz * 1e6, args.nfreq, args.freq_ratio)?,
+        flag_fraction: args.flag_fraction,
+        random_rotation: !args.no_rotation,
+        seed: args.seed,
+    };
+    let coverage = sample_coverage(&spec)?;
+    let source = parse_sky(&args.sky, args.seed)?;
+
+    // The sky and its pixel grid.
+    let (sky, geometry) = match &source {
+        SkySource::Procedural(seed) => {
+            let sky = procedural_sky(&SkyParams::new(args.size, args.dr, *seed))?;
+            let geometry = match args.pixel_arcsec {
+                Some(p) => ImageGeometry::from_arcsec(args.size, p)?,
+                None => ImageGeometry::from_superresolution(args.size, args.superresolution, coverage.max_uv())?,
+            };
+            (sky, geometry)
+        }
+        SkySource::File(path) => {
+            let image = read_image(path)?;
+            if image.nx != image.ny {
+                return Err(Error::input(path, format!("expected a square sky image, got {} x {}", image.nx, image.ny)));
+            }
+            if image.data.iter().any(|&p| p < 0.0) {
+                return Err(Error::input(path, "a sky model must be non-negative (intensity)"));
+            }
+            let geometry = match (args.pixel_arcsec, &image.wcs) {
+                (Some(p), _) => ImageGeometry::from_arcsec(image.nx, p)?,
+                (None, Some(wcs)) => ImageGeometry::new(image.nx, wcs.pixel_deg.to_radians())?,
+                (None, None) => ImageGeometry::from_superresolution(image.nx, args.superresolution, coverage.max_uv())?,
+            };
+            let mut sky = image.data;
+            if args.exponentiate {
+                let source_dr = metrics::dynamic_range(&sky)
+                    .ok_or_else(|| Error::input(path, "the sky has no positive emission to exponentiate"))?;
+                exponentiate(&mut sky, source_dr, args.dr)?;
+            }
+            (sky, geometry)
+        }
+    };
+    log::info!(
+        "{} visibilities ({} configurations x {} channels), {} x {} sky at {:.4} arcsec",
+        coverage.len(),
+        spec.configurations.len(),
+        spec.frequencies_hz.len(),
+        geometry.size,
+        geometry.size,
+        geometry.pixel_arcsec()
+    );
+    let model = NoiseModel {
+        dynamic_range: args.dr,
+        weighting: Weighting::from_name(&args.weighting, args.robust)?,
+        grid_factor: r2d2_imaging::weighting::DEFAULT_GRID_FACTOR,
+    };
+    let nufft = NufftParams { epsilon: args.epsilon, oversampling: 2.0 };
+    let sim = simulate_visibilities(&sky, geometry, &coverage, &model, nufft, args.threads, args.seed)?;
+    log::info!("noise sigma {:.4e} Jy per visibility (eta {:.4})", sim.noise_sigma, sim.eta);
+
+    let weight = 1.0 / (sim.noise_sigma * sim.noise_sigma);
+    let n = coverage.len();
+    let table = VisTable {
+        u_m: coverage.u_m,
+        v_m: coverage.v_m,
+        w_m: coverage.w_m,
+        frequency: coverage.frequency_hz,
+        vis: sim.vis,
+        weight: vec![weight; n],
+        flag: coverage.flag,
+        time: coverage.time_s,
+        antenna1: coverage.antenna1,
+        antenna2: coverage.antenna2,
+    };
+    let mut extra = BTreeMap::new();
+    extra.insert("simulation_seed".into(), args.seed.to_string());
+    extra.insert("sky_pixel_arcsec".into(), format!("{}", geometry.pixel_arcsec()));
+    extra.insert("sky_size".into(), geometry.size.to_string());
+    extra.insert("noise_weighting".into(), model.weighting.to_string());
+    let meta = ObservationMeta {
+        phase_centre_ra_deg: args.ra,
+        phase_centre_dec_deg: args.dec,
+        telescope: "VLA".into(),
+        noise_sigma: Some(sim.noise_sigma),
+        dynamic_range: Some(args.dr),
+        extra,
+    };
+    write_parquet(&args.out, &table, &meta)?;
+    log::info!("wrote {}", args.out.display());
+
+    if let SkySource::Procedural(_) = source {
+        let sky_path = args.out.with_extension("sky.fits");
+        let wcs = ImageWcs {
+            ra_deg: args.ra,
+            dec_deg: args.dec,
+            pixel_deg: geometry.pixel_rad.to_degrees(),
+            freq_hz: Some(spec.frequencies_hz.iter().sum::<f64>() / spec.frequencies_hz.len() as f64),
+            bandwidth_hz: None,
+        };
+        write_image(&sky_path, &sky, geometry.size, geometry.size, &wcs, BrightnessUnit::JyPerPixel, None, &[])?;
+        log::info!("wrote the sky model to {}", sky_path.display());
+    }
+    Ok(())
+}
