@@ -1,0 +1,180 @@
+//! End-to-end tests of the `r2d2` binary: simulate -> dirty -> metrics, positions checked with
+//! astropy (an independent WCS implementation), and errors for bad input.
+
+use num_complex::Complex64;
+use r2d2_imaging::fits::read_image;
+use r2d2_imaging::simulate::observe::{frequency_channels, sample_coverage, ObservationSpec};
+use r2d2_imaging::vis::{write_parquet, ObservationMeta, VisTable, SPEED_OF_LIGHT};
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn r2d2(args: &[&str], dir: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_r2d2")).args(args).current_dir(dir).output().expect("r2d2 runs")
+}
+
+fn check(out: &Output) {
+    assert!(
+        out.status.success(),
+        "r2d2 failed: {}\nstdout: {}\nstderr: {}",
+        out.status,
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+fn argmax(v: &[f64]) -> usize {
+    v.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).unwrap().0
+}
+
+#[test]
+fn simulate_then_dirty_writes_wsclean_style_products() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    check(&r2d2(
+        &[
+            "simulate", "--sky", "procedural:3", "--configs", "c,d", "--hours", "2,1", "--dec", "30", "--dr", "1000",
+            "--size", "128", "--integration-s", "120", "--nfreq", "2", "--freq-ratio", "1.5", "--flag-fraction", "0.1",
+            "--seed", "3", "--out", "obs.parquet",
+        ],
+        d,
+    ));
+    assert!(d.join("obs.sky.fits").exists());
+    check(&r2d2(&["dirty", "obs.parquet", "--size", "128", "--name", "obs"], d));
+    let dirty = read_image(&d.join("obs-dirty.fits")).unwrap();
+    let psf = read_image(&d.join("obs-psf.fits")).unwrap();
+    assert_eq!((dirty.nx, dirty.ny), (128, 128));
+    assert_eq!(dirty.unit.as_deref(), Some("JY/BEAM"));
+    // PSF: peak exactly 1 (to float32) at (N/2, N/2).
+    let peak = argmax(&psf.data);
+    assert_eq!((peak % 128, peak / 128), (64, 64));
+    assert!((psf.data[peak] - 1.0).abs() < 1e-6);
+    // Same WCS as the sky model: the dirty image is of the sky that was simulated.
+    let sky = read_image(&d.join("obs.sky.fits")).unwrap();
+    let (ws, wd) = (sky.wcs.unwrap(), dirty.wcs.unwrap());
+    assert_eq!((ws.ra_deg, ws.dec_deg), (wd.ra_deg, wd.dec_deg));
+    assert!((ws.pixel_deg / wd.pixel_deg - 1.0).abs() < 1e-9);
+    // The dirty image correlates with the sky it came from.
+    let corr: f64 = sky.data.iter().zip(&dirty.data).map(|(a, b)| a * b).sum::<f64>()
+        / (sky.data.iter().map(|a| a * a).sum::<f64>().sqrt() * dirty.data.iter().map(|a| a * a).sum::<f64>().sqrt());
+    assert!(corr > 0.3, "dirty image barely correlates with the sky: {corr}");
+
+    let metrics = r2d2(&["metrics", "--truth", "obs.sky.fits", "--estimate", "obs.sky.fits", "--dr", "1000"], d);
+    check(&metrics);
+    let json: serde_json::Value = serde_json::from_slice(&metrics.stdout).unwrap();
+    assert!(json["snr"].is_null() || json["snr"].as_f64().unwrap() > 100.0, "{json}");
+}
+
+#[test]
+fn simulation_is_reproducible_from_its_seed() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let args = |out: &'static str, seed: &'static str| {
+        vec![
+            "simulate", "--configs", "d", "--hours", "1", "--size", "64", "--integration-s", "300", "--seed", seed,
+            "--out", out,
+        ]
+    };
+    check(&r2d2(&args("a.parquet", "11"), d));
+    check(&r2d2(&args("b.parquet", "11"), d));
+    check(&r2d2(&args("c.parquet", "12"), d));
+    let read = |p: &str| std::fs::read(d.join(p)).unwrap();
+    assert_eq!(read("a.parquet"), read("b.parquet"), "same seed, different files");
+    assert_ne!(read("a.parquet"), read("c.parquet"));
+    assert_eq!(read("a.sky.fits"), read("b.sky.fits"));
+}
+
+/// A point source at a known RA/Dec offset must peak on the pixel astropy assigns to it.
+#[test]
+fn point_source_lands_on_the_pixel_astropy_gives_its_position() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (ra0, dec0) = (150.0f64, 60.0f64);
+    let spec = ObservationSpec {
+        configurations: vec![('b', 4.0)],
+        dec_deg: dec0,
+        integration_s: 60.0,
+        frequencies_hz: frequency_channels(1.4e9, 1, 1.0).unwrap(),
+        flag_fraction: 0.0,
+        random_rotation: false,
+        seed: 1,
+    };
+    let cov = sample_coverage(&spec).unwrap();
+    let pixel_deg = 1.0 / (1.5 * 2.0 * cov.max_uv()) * 180.0 / std::f64::consts::PI;
+    // Source 20.3 pixels east and 11.2 pixels north of the phase centre, in true angle.
+    let (ra_s, dec_s) = (ra0 + 20.3 * pixel_deg / dec0.to_radians().cos(), dec0 + 11.2 * pixel_deg);
+    let (a, d0, a0) = (ra_s.to_radians(), dec_s.to_radians(), ra0.to_radians());
+    let l = d0.cos() * (a - a0).sin();
+    let m = d0.sin() * dec0.to_radians().cos() - d0.cos() * dec0.to_radians().sin() * (a - a0).cos();
+    let vis: Vec<Complex64> = (0..cov.len())
+        .map(|k| {
+            let scale = cov.frequency_hz[k] / SPEED_OF_LIGHT;
+            let (u, v) = (cov.u_m[k] * scale, cov.v_m[k] * scale);
+            Complex64::from_polar(1.0, 2.0 * std::f64::consts::PI * (u * l + v * m))
+        })
+        .collect();
+    let n = cov.len();
+    let table = VisTable {
+        u_m: cov.u_m,
+        v_m: cov.v_m,
+        w_m: cov.w_m,
+        frequency: cov.frequency_hz,
+        vis,
+        weight: vec![1.0; n],
+        ..Default::default()
+    };
+    let meta = ObservationMeta {
+        phase_centre_ra_deg: ra0,
+        phase_centre_dec_deg: dec0,
+        telescope: "VLA".into(),
+        noise_sigma: None,
+        dynamic_range: None,
+        extra: Default::default(),
+    };
+    write_parquet(&d.join("point.parquet"), &table, &meta).unwrap();
+    check(&r2d2(&["dirty", "point.parquet", "--size", "128", "--weighting", "uniform", "--name", "point"], d));
+    let dirty = read_image(&d.join("point-dirty.fits")).unwrap();
+    let peak = argmax(&dirty.data);
+    let (px, py) = (peak % dirty.nx, peak / dirty.nx);
+
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/world_to_pixel.py");
+    let out = Command::new("python3")
+        .arg(&script)
+        .arg(d.join("point-dirty.fits"))
+        .arg(ra_s.to_string())
+        .arg(dec_s.to_string())
+        .output()
+        .expect("python3 runs (install tests/requirements.txt)");
+    assert!(out.status.success(), "astropy check failed (pip install -r tests/requirements.txt): {}", String::from_utf8_lossy(&out.stderr));
+    let text = String::from_utf8(out.stdout).unwrap();
+    let xy: Vec<f64> = text.split_whitespace().map(|s| s.parse().unwrap()).collect();
+    assert_eq!((px, py), (xy[0].round() as usize, xy[1].round() as usize), "peak at {px},{py}; astropy puts the source at {xy:?}");
+    // East is left: the source sits at lower x than the centre, north at higher y.
+    assert!(px < 64 && py > 64);
+}
+
+#[test]
+fn bad_input_gives_errors_that_name_the_problem() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let out = r2d2(&["dirty", "missing.parquet", "--name", "x"], d);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("missing.parquet"), "{err}");
+
+    std::fs::write(d.join("garbage.parquet"), b"this is not parquet").unwrap();
+    let out = r2d2(&["dirty", "garbage.parquet", "--name", "x"], d);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("garbage.parquet"));
+    assert!(!d.join("x-dirty.fits").exists() && !d.join("x-psf.fits").exists(), "no partial products");
+
+    let out = r2d2(&["simulate", "--configs", "a,q", "--hours", "1,1", "--out", "o.parquet"], d);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("a, b, c, d"), "{}", String::from_utf8_lossy(&out.stderr));
+
+    let out = r2d2(&["simulate", "--configs", "a,c", "--hours", "1", "--out", "o.parquet"], d);
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("hours"));
+
+    let out = r2d2(&["dirty", "x.parquet", "--weighting", "superuniform"], d);
+    assert!(!out.status.success());
+}
