@@ -13,6 +13,20 @@ pub enum Error {
     #[error("invalid {name}: {message}")]
     Parameter { name: String, message: String },
 
+    /// A pipeline stage failed on a job.
+    #[error("stage '{stage}' ({kind}), job '{job}': {source}")]
+    Stage {
+        stage: String,
+        kind: String,
+        job: String,
+        #[source]
+        source: Box<Error>,
+    },
+
+    /// The run was interrupted (Ctrl-C) before it finished.
+    #[error("interrupted: {0}")]
+    Interrupted(String),
+
     /// An operating-system error while reading or writing a file.
     #[error("{}: {source}", path.display())]
     Io {

@@ -673,6 +673,17 @@ impl VisTable {
         }
     }
 
+    /// The imageable rows in wavelengths, excluded rows counted: exactly what reading the
+    /// table back from Parquet would give (same conversion, same filter).
+    pub fn to_visibilities(&self, source: &str) -> Result<(Visibilities, IngestStats)> {
+        let n = self.check_lengths()?;
+        let batch = RecordBatch::try_new(Arc::new(self.schema()), self.columns(0..n))
+            .map_err(|e| Error::parameter("table", format!("{source}: building a record batch: {e}")))?;
+        let mut stats = IngestStats::default();
+        let vis = record_batch_to_visibilities(&batch, &mut stats, source)?;
+        Ok((vis, stats))
+    }
+
     /// The Arrow schema of the written file: no nulls anywhere.
     fn schema(&self) -> Schema {
         let float64 = |name: &str| Field::new(name, DataType::Float64, false);

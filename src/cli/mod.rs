@@ -1,7 +1,9 @@
 //! Command-line interface: option parsing (clap) and dispatch to one module per command.
 
 mod dirty;
+mod image;
 mod metrics;
+mod run;
 mod simulate;
 
 use clap::{Parser, Subcommand};
@@ -26,6 +28,12 @@ enum Command {
     Simulate(simulate::Args),
     /// Dirty image and PSF of a Parquet visibility table (PREFIX-dirty.fits, PREFIX-psf.fits).
     Dirty(dirty::Args),
+    /// Run a pipeline described in YAML.
+    Run(run::RunArgs),
+    /// Check a pipeline description without running it.
+    Validate(run::ValidateArgs),
+    /// Image a Parquet table with the default pipeline (pipelines/image.yaml).
+    Image(image::Args),
     /// SNR and logSNR of an estimate against a ground truth, as JSON.
     Metrics(metrics::Args),
 }
@@ -43,6 +51,9 @@ pub fn main() -> ExitCode {
         Command::Simulate(args) => simulate::run(args),
         Command::Dirty(args) => dirty::run(args),
         Command::Metrics(args) => metrics::run(args),
+        Command::Run(args) => run::run(args),
+        Command::Validate(args) => run::validate(args),
+        Command::Image(args) => image::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -2,13 +2,12 @@
 
 use r2d2_imaging::fits::{read_image, write_image, BrightnessUnit, ImageWcs};
 use r2d2_imaging::nufft::NufftParams;
-use r2d2_imaging::operator::ImageGeometry;
-use r2d2_imaging::simulate::observe::{frequency_channels, sample_coverage, simulate_visibilities, NoiseModel, ObservationSpec};
-use r2d2_imaging::simulate::sky::{exponentiate, procedural_sky, SkyParams};
-use r2d2_imaging::vis::{write_parquet, ObservationMeta, VisTable};
+use r2d2_imaging::imaging::PixelScale;
+use r2d2_imaging::simulate::observe::{frequency_channels, ObservationSpec};
+use r2d2_imaging::simulate::{simulate, SimulationOutput, SimulationRequest, SkyModel};
+use r2d2_imaging::vis::write_parquet;
 use r2d2_imaging::weighting::Weighting;
-use r2d2_imaging::{metrics, Error, Result};
-use std::collections::BTreeMap;
+use r2d2_imaging::{Error, Result};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -119,86 +118,47 @@ pub fn run(args: Args) -> Result<()> {
         random_rotation: !args.no_rotation,
         seed: args.seed,
     };
-    let coverage = sample_coverage(&spec)?;
     let source = parse_sky(&args.sky, args.seed)?;
-
-    // The sky and its pixel grid.
-    let (sky, geometry) = match &source {
-        SkySource::Procedural(seed) => {
-            let sky = procedural_sky(&SkyParams::new(args.size, args.dr, *seed))?;
-            let geometry = match args.pixel_arcsec {
-                Some(p) => ImageGeometry::from_arcsec(args.size, p)?,
-                None => ImageGeometry::from_superresolution(args.size, args.superresolution, coverage.max_uv())?,
-            };
-            (sky, geometry)
-        }
+    let sky = match &source {
+        SkySource::Procedural(seed) => SkyModel::Procedural { seed: *seed },
         SkySource::File(path) => {
             let image = read_image(path)?;
             if image.nx != image.ny {
                 return Err(Error::input(path, format!("expected a square sky image, got {} x {}", image.nx, image.ny)));
             }
-            if image.data.iter().any(|&p| p < 0.0) {
-                return Err(Error::input(path, "a sky model must be non-negative (intensity)"));
+            SkyModel::Image {
+                data: image.data,
+                size: image.nx,
+                pixel_rad: image.wcs.map(|w| w.pixel_deg.to_radians()),
+                exponentiate: args.exponentiate,
             }
-            let geometry = match (args.pixel_arcsec, &image.wcs) {
-                (Some(p), _) => ImageGeometry::from_arcsec(image.nx, p)?,
-                (None, Some(wcs)) => ImageGeometry::new(image.nx, wcs.pixel_deg.to_radians())?,
-                (None, None) => ImageGeometry::from_superresolution(image.nx, args.superresolution, coverage.max_uv())?,
-            };
-            let mut sky = image.data;
-            if args.exponentiate {
-                let source_dr = metrics::dynamic_range(&sky)
-                    .ok_or_else(|| Error::input(path, "the sky has no positive emission to exponentiate"))?;
-                exponentiate(&mut sky, source_dr, args.dr)?;
-            }
-            (sky, geometry)
         }
     };
+    let request = SimulationRequest {
+        observation: spec.clone(),
+        sky,
+        size: args.size,
+        pixel: match args.pixel_arcsec {
+            Some(p) => PixelScale::Arcsec(p),
+            None => PixelScale::SuperResolution(args.superresolution),
+        },
+        dynamic_range: args.dr,
+        noise_weighting: Weighting::from_name(&args.weighting, args.robust)?,
+        phase_centre_deg: (args.ra, args.dec),
+        nufft: NufftParams { epsilon: args.epsilon, oversampling: 2.0 },
+        threads: args.threads,
+    };
+    let SimulationOutput { table, meta, sky, geometry } = simulate(&request)?;
     log::info!(
-        "{} visibilities ({} configurations x {} channels), {} x {} sky at {:.4} arcsec",
-        coverage.len(),
+        "{} visibilities ({} configurations x {} channels), {} x {} sky at {:.4} arcsec, noise sigma {:.4e} Jy",
+        table.len(),
         spec.configurations.len(),
         spec.frequencies_hz.len(),
         geometry.size,
         geometry.size,
-        geometry.pixel_arcsec()
+        geometry.pixel_arcsec(),
+        meta.noise_sigma.unwrap_or(0.0)
     );
-    let model = NoiseModel {
-        dynamic_range: args.dr,
-        weighting: Weighting::from_name(&args.weighting, args.robust)?,
-        grid_factor: r2d2_imaging::weighting::DEFAULT_GRID_FACTOR,
-    };
-    let nufft = NufftParams { epsilon: args.epsilon, oversampling: 2.0 };
-    let sim = simulate_visibilities(&sky, geometry, &coverage, &model, nufft, args.threads, args.seed)?;
-    log::info!("noise sigma {:.4e} Jy per visibility (eta {:.4})", sim.noise_sigma, sim.eta);
-
-    let weight = 1.0 / (sim.noise_sigma * sim.noise_sigma);
-    let n = coverage.len();
-    let table = VisTable {
-        u_m: coverage.u_m,
-        v_m: coverage.v_m,
-        w_m: coverage.w_m,
-        frequency: coverage.frequency_hz,
-        vis: sim.vis,
-        weight: vec![weight; n],
-        flag: coverage.flag,
-        time: coverage.time_s,
-        antenna1: coverage.antenna1,
-        antenna2: coverage.antenna2,
-    };
-    let mut extra = BTreeMap::new();
-    extra.insert("simulation_seed".into(), args.seed.to_string());
-    extra.insert("sky_pixel_arcsec".into(), format!("{}", geometry.pixel_arcsec()));
-    extra.insert("sky_size".into(), geometry.size.to_string());
-    extra.insert("noise_weighting".into(), model.weighting.to_string());
-    let meta = ObservationMeta {
-        phase_centre_ra_deg: args.ra,
-        phase_centre_dec_deg: args.dec,
-        telescope: "VLA".into(),
-        noise_sigma: Some(sim.noise_sigma),
-        dynamic_range: Some(args.dr),
-        extra,
-    };
     write_parquet(&args.out, &table, &meta)?;
     log::info!("wrote {}", args.out.display());
 

@@ -1,0 +1,52 @@
+//! `r2d2 run` and `r2d2 validate`: a pipeline described in YAML.
+
+use r2d2_imaging::pipeline::config::PipelineConfig;
+use r2d2_imaging::pipeline::runner;
+use r2d2_imaging::Result;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+#[derive(clap::Args)]
+pub struct RunArgs {
+    /// Pipeline description (YAML).
+    pipeline: PathBuf,
+    /// Override a value: stage.key=value (also image.size=N, threads=N).
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
+}
+
+#[derive(clap::Args)]
+pub struct ValidateArgs {
+    pipeline: PathBuf,
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
+}
+
+/// Ctrl-C sets the flag; stages stop at the next job boundary and the run fails cleanly.
+pub fn cancel_on_ctrl_c() -> Arc<AtomicBool> {
+    let cancel = Arc::new(AtomicBool::new(false));
+    let flag = cancel.clone();
+    if let Err(e) = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst)) {
+        log::warn!("Ctrl-C will not stop the pipeline cleanly: {e}");
+    }
+    cancel
+}
+
+pub fn run_pipeline(config: &PipelineConfig) -> Result<()> {
+    let report = runner::run(config, cancel_on_ctrl_c())?;
+    let split: Vec<String> = report.stage_seconds.iter().map(|(k, v)| format!("{k} {v:.2}s")).collect();
+    log::info!("{} job(s) in {:.2} s ({})", report.jobs.len(), report.seconds, split.join(", "));
+    Ok(())
+}
+
+pub fn run(args: RunArgs) -> Result<()> {
+    run_pipeline(&PipelineConfig::load(&args.pipeline, &args.set)?)
+}
+
+pub fn validate(args: ValidateArgs) -> Result<()> {
+    let config = PipelineConfig::load(&args.pipeline, &args.set)?;
+    runner::validate(&config)?;
+    println!("{}: valid ({} stages)", args.pipeline.display(), config.stages.len());
+    Ok(())
+}

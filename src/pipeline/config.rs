@@ -1,0 +1,254 @@
+//! Pipeline YAML: parsing, command-line overrides, and errors that point at the file, line
+//! and column of the problem.
+//!
+//! ```yaml
+//! name: quickstart
+//! image: {size: 256, superresolution: 1.5}   # shared by weighting, gridder and steps
+//! stages:
+//!   source: {kind: simulate, to: weights, ...}
+//!   weights: {kind: weighting, scheme: briggs, robust: 0, to: grid}
+//!   grid: {kind: gridder, to: step}
+//!   step: {kind: clean, to: update}
+//!   update: {kind: residual, method: toeplitz, to: step, done: write}
+//!   write: {kind: writer, prefix: "out/{job}"}
+//! ```
+//!
+//! The image geometry is pipeline-wide rather than a gridder option: weighting, gridder and
+//! a trained network series must all agree on it, so it is stated once.
+
+use crate::{Error, Result};
+use serde::de::DeserializeOwned;
+use serde::Deserialize;
+use serde_yaml::{Mapping, Value};
+use std::path::{Path, PathBuf};
+
+/// Image geometry shared by all stages.
+#[derive(Clone, Debug, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ImageConfig {
+    /// Pixels per side.
+    pub size: usize,
+    /// Super-resolution factor (pixel = 1 / (SR 2 max_uv)); default 1.5.
+    #[serde(default)]
+    pub superresolution: Option<f64>,
+    /// Pixel size in arcsec (instead of superresolution).
+    #[serde(default)]
+    pub pixel_arcsec: Option<f64>,
+}
+
+impl ImageConfig {
+    pub fn pixel_scale(&self) -> crate::imaging::PixelScale {
+        match self.pixel_arcsec {
+            Some(p) => crate::imaging::PixelScale::Arcsec(p),
+            None => crate::imaging::PixelScale::SuperResolution(self.superresolution.unwrap_or(1.5)),
+        }
+    }
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct RawPipeline {
+    #[serde(default)]
+    name: Option<String>,
+    /// Threads for numerical work in each stage (0: all cores).
+    #[serde(default)]
+    threads: usize,
+    /// Capacity of the channels between stages (jobs in flight per edge).
+    #[serde(default)]
+    channel_capacity: Option<usize>,
+    image: ImageConfig,
+    stages: Mapping,
+}
+
+/// One stage as written in the YAML: its name, kind, routing and its own parameters.
+#[derive(Clone, Debug)]
+pub struct StageConfig {
+    pub name: String,
+    pub kind: String,
+    pub to: Option<String>,
+    pub done: Option<String>,
+    /// The remaining keys, parsed by the stage kind's own config struct.
+    pub params: Value,
+}
+
+/// A parsed pipeline description.
+#[derive(Clone, Debug)]
+pub struct PipelineConfig {
+    pub file: PathBuf,
+    text: String,
+    pub name: String,
+    pub threads: usize,
+    pub channel_capacity: usize,
+    pub image: ImageConfig,
+    /// Stages in file order.
+    pub stages: Vec<StageConfig>,
+}
+
+impl PipelineConfig {
+    /// Read `path` and apply `overrides` (`stage.key=value`, `image.key=value`, `threads=N`).
+    pub fn load(path: &Path, overrides: &[String]) -> Result<PipelineConfig> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        Self::parse(&text, path, overrides)
+    }
+
+    pub fn parse(text: &str, file: &Path, overrides: &[String]) -> Result<PipelineConfig> {
+        // First pass on the text itself, so syntax and type errors carry line and column.
+        let mut value: Value = serde_yaml::from_str(text).map_err(|e| yaml_error(file, &e))?;
+        let raw_check: std::result::Result<RawPipeline, _> = serde_path_to_error::deserialize(
+            serde_yaml::Deserializer::from_str(text),
+        );
+        if let Err(e) = raw_check {
+            let location = e.inner().location().map(|l| (l.line(), l.column()));
+            return Err(located(file, location, &format!("{}: {}", e.path(), e.inner())));
+        }
+        for o in overrides {
+            apply_override(&mut value, o)?;
+        }
+        let raw: RawPipeline = serde_path_to_error::deserialize(value)
+            .map_err(|e| Error::parameter("--set", format!("{}: {}", e.path(), e.inner())))?;
+        let mut stages = Vec::new();
+        for (key, body) in raw.stages {
+            let name = key
+                .as_str()
+                .ok_or_else(|| located(file, None, "stage names must be strings"))?
+                .to_string();
+            let here = locate(text, &name, None);
+            let Value::Mapping(mut map) = body else {
+                return Err(located(file, here, &format!("stage '{name}': expected a mapping with a `kind`")));
+            };
+            let mut take = |k: &str| -> Result<Option<String>> {
+                match map.remove(k) {
+                    None => Ok(None),
+                    Some(Value::String(s)) => Ok(Some(s)),
+                    Some(other) => Err(located(
+                        file,
+                        locate(text, &name, Some(k)),
+                        &format!("stages.{name}.{k}: expected a stage name, got {}", short(&other)),
+                    )),
+                }
+            };
+            let kind = take("kind")?.ok_or_else(|| {
+                located(file, here, &format!("stage '{name}' has no `kind` (one of: {})", crate::stages::KINDS.join(", ")))
+            })?;
+            let to = take("to")?;
+            let done = take("done")?;
+            stages.push(StageConfig { name, kind, to, done, params: Value::Mapping(map) });
+        }
+        let capacity = raw.channel_capacity.unwrap_or(2);
+        if capacity == 0 {
+            return Err(located(file, None, "channel_capacity must be at least 1"));
+        }
+        Ok(PipelineConfig {
+            file: file.to_path_buf(),
+            text: text.to_string(),
+            name: raw.name.unwrap_or_else(|| file.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()),
+            threads: raw.threads,
+            channel_capacity: capacity,
+            image: raw.image,
+            stages,
+        })
+    }
+
+    /// Deserialize a stage's parameters into its kind's config struct; errors name the file,
+    /// line, column and key.
+    pub fn stage_params<T: DeserializeOwned>(&self, stage: &StageConfig) -> Result<T> {
+        serde_path_to_error::deserialize(stage.params.clone()).map_err(|e| {
+            let message = e.inner().to_string();
+            // serde names an unknown field in backticks; a type error has a path instead.
+            let key = message
+                .strip_prefix("unknown field `")
+                .and_then(|r| r.split('`').next())
+                .map(str::to_string)
+                .or_else(|| e.path().iter().next().map(|s| s.to_string()));
+            let key = key.filter(|k| !k.is_empty() && k != ".");
+            let location = locate(&self.text, &stage.name, key.as_deref());
+            let path = match &key {
+                Some(k) => format!("stages.{}.{k}", stage.name),
+                None => format!("stages.{}", stage.name),
+            };
+            located(&self.file, location, &format!("{path} ({} stage): {message}", stage.kind))
+        })
+    }
+
+    /// An error about a stage (or one of its keys), located in the file.
+    pub fn stage_error(&self, stage: &str, key: Option<&str>, message: &str) -> Error {
+        located(&self.file, locate(&self.text, stage, key), message)
+    }
+
+    pub fn stage(&self, name: &str) -> Option<&StageConfig> {
+        self.stages.iter().find(|s| s.name == name)
+    }
+}
+
+fn short(v: &Value) -> String {
+    serde_yaml::to_string(v).unwrap_or_default().trim().chars().take(40).collect()
+}
+
+fn yaml_error(file: &Path, e: &serde_yaml::Error) -> Error {
+    located(file, e.location().map(|l| (l.line(), l.column())), &e.to_string())
+}
+
+fn located(file: &Path, location: Option<(usize, usize)>, message: &str) -> Error {
+    match location {
+        Some((line, column)) => Error::input(file, format!("line {line}, column {column}: {message}")),
+        None => Error::input(file, message.to_string()),
+    }
+}
+
+/// Line and column (1-based) of stage `stage` under `stages:`, or of `key` inside it.
+fn locate(text: &str, stage: &str, key: Option<&str>) -> Option<(usize, usize)> {
+    let indent = |l: &str| l.len() - l.trim_start().len();
+    let lines: Vec<&str> = text.lines().collect();
+    let start = lines.iter().position(|l| l.trim_end() == "stages:" && indent(l) == 0)?;
+    let (stage_line, stage_indent) = lines.iter().enumerate().skip(start + 1).find_map(|(i, l)| {
+        let t = l.trim_start();
+        (t.starts_with(&format!("{stage}:")) && indent(l) > 0).then(|| (i, indent(l)))
+    })?;
+    let Some(key) = key else { return Some((stage_line + 1, stage_indent + 1)) };
+    // The key on the stage's own line (flow style) or on the lines nested under it.
+    if let Some(col) = lines[stage_line].find(&format!("{key}:")) {
+        return Some((stage_line + 1, col + 1));
+    }
+    for (i, l) in lines.iter().enumerate().skip(stage_line + 1) {
+        if !l.trim().is_empty() && !l.trim_start().starts_with('#') && indent(l) <= stage_indent {
+            break;
+        }
+        if l.trim_start().starts_with(&format!("{key}:")) {
+            return Some((i + 1, indent(l) + 1));
+        }
+    }
+    Some((stage_line + 1, stage_indent + 1))
+}
+
+/// `--set a.b=value`: set a key in the YAML tree (value parsed as YAML: numbers, booleans).
+fn apply_override(root: &mut Value, spec: &str) -> Result<()> {
+    let (path, text) = spec
+        .split_once('=')
+        .ok_or_else(|| Error::parameter("--set", format!("expected stage.key=value, got '{spec}'")))?;
+    let value: Value = serde_yaml::from_str(text)
+        .map_err(|e| Error::parameter("--set", format!("'{spec}': value is not valid YAML: {e}")))?;
+    let parts: Vec<&str> = path.split('.').collect();
+    // Stage names are looked up under `stages`; `image.*`, `threads`, `name` at the top.
+    let top = ["image", "threads", "name", "channel_capacity"];
+    let mut node = root;
+    let full: Vec<&str> = if top.contains(&parts[0]) { parts.clone() } else { [&["stages"][..], &parts[..]].concat() };
+    for (i, part) in full.iter().enumerate() {
+        let map = node
+            .as_mapping_mut()
+            .ok_or_else(|| Error::parameter("--set", format!("'{spec}': '{}' is not a mapping", full[..i].join("."))))?;
+        let key = Value::String(part.to_string());
+        if i + 1 == full.len() {
+            map.insert(key, value);
+            return Ok(());
+        }
+        if !map.contains_key(&key) {
+            if i == 1 && full[0] == "stages" {
+                let names: Vec<String> = map.keys().filter_map(|k| k.as_str().map(str::to_string)).collect();
+                return Err(Error::parameter("--set", format!("'{spec}': no stage '{part}' (stages: {})", names.join(", "))));
+            }
+            map.insert(key.clone(), Value::Mapping(Mapping::new()));
+        }
+        node = map.get_mut(&key).expect("just checked or inserted");
+    }
+    Err(Error::parameter("--set", format!("'{spec}': empty key")))
+}

@@ -1,0 +1,153 @@
+//! The pipeline engine: imaging as stages on their own threads, connected by bounded
+//! channels, described in YAML.
+//!
+//! A [`Job`] is one dataset being imaged; it flows source -> weighting -> gridder -> (network
+//! step <-> residual update)* -> writer. Stages implement [`Stage`] (or [`Source`] for the
+//! first one) and are registered by their YAML `kind` in `crate::stages`.
+
+pub mod config;
+pub mod graph;
+pub mod runner;
+
+use crate::metrics;
+use crate::operator::{ImageGeometry, MeasurementOperator, PsfConvolution};
+use crate::vis::{ObservationMeta, Visibilities};
+use crate::Result;
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+/// Where a stage sends a job: its `to` stage, or (residual update only) its `done` stage
+/// when the imaging loop ends for that job.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Port {
+    Next,
+    Done,
+}
+
+/// Images and operators of a job once it is gridded.
+pub struct Imaging {
+    pub geometry: ImageGeometry,
+    pub dirty: Vec<f64>,
+    pub psf: Vec<f64>,
+    /// `D x` as a convolution with the 2N PSF.
+    pub psf_convolution: Arc<PsfConvolution>,
+    /// The doubled PSF itself (2N x 2N), for steps that subtract shifted PSFs.
+    pub psf_2n: Arc<Vec<f64>>,
+    /// Kept only when the residual update runs a NUFFT round trip.
+    pub operator: Option<Arc<MeasurementOperator>>,
+    /// Current estimate `x_i` (Jy/pixel) and residual dirty image `r_i = x_d - D x_i`.
+    pub model: Vec<f64>,
+    pub residual: Vec<f64>,
+    /// Centre of the observed band, Hz (for the FITS FREQ axis).
+    pub frequency_hz: Option<f64>,
+    /// Restoring beam fitted to the PSF main lobe (FWHM degrees, PA degrees east of north).
+    pub beam: Option<crate::fits::Beam>,
+}
+
+/// One iteration's figures, as written to `<prefix>-metrics.json`.
+#[derive(Clone, Debug, Serialize)]
+pub struct IterationMetrics {
+    pub iteration: usize,
+    pub residual_ratio: f64,
+    pub step_seconds: f64,
+    pub residual_seconds: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub snr: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub logsnr: Option<f64>,
+}
+
+/// A dataset being imaged, with everything the stages have made of it so far.
+pub struct Job {
+    pub id: String,
+    pub meta: ObservationMeta,
+    /// Visibilities; released by the gridder unless the residual update needs them.
+    pub vis: Option<Visibilities>,
+    /// Ground truth on the image grid, when known (simulated data), for SNR/logSNR.
+    pub truth: Option<Vec<f64>>,
+    /// Dynamic range of the truth, for logSNR.
+    pub truth_dynamic_range: Option<f64>,
+    /// Image geometry and total weights per visibility, set by the weighting stage.
+    pub geometry: Option<ImageGeometry>,
+    pub weight: Option<Vec<f64>>,
+    pub imaging: Option<Imaging>,
+    /// Network steps done so far.
+    pub iteration: usize,
+    /// Set by the network step when it ran the last network of its series.
+    pub series_finished: bool,
+    /// Name of the step that made the model (products are named after what made them).
+    pub step_kind: Option<String>,
+    /// Seconds of the last step, recorded into the next metrics row.
+    pub last_step_seconds: f64,
+    pub metrics: Vec<IterationMetrics>,
+    /// Seconds spent per stage (summed over iterations).
+    pub stage_seconds: BTreeMap<String, f64>,
+}
+
+impl Job {
+    pub fn new(id: impl Into<String>, meta: ObservationMeta, vis: Visibilities) -> Job {
+        Job {
+            id: id.into(),
+            meta,
+            vis: Some(vis),
+            truth: None,
+            truth_dynamic_range: None,
+            geometry: None,
+            weight: None,
+            imaging: None,
+            iteration: 0,
+            series_finished: false,
+            step_kind: None,
+            last_step_seconds: 0.0,
+            metrics: Vec::new(),
+            stage_seconds: BTreeMap::new(),
+        }
+    }
+
+    /// The gridded state, or an error naming the stage that needed it.
+    pub fn imaging_mut(&mut self, stage: &str) -> Result<&mut Imaging> {
+        let id = self.id.clone();
+        self.imaging.as_mut().ok_or_else(|| {
+            crate::Error::parameter(
+                format!("stage '{stage}'"),
+                format!("job '{id}' reached it before being gridded: put a gridder stage upstream"),
+            )
+        })
+    }
+
+    /// Record iteration figures after a residual update.
+    pub fn record_iteration(&mut self, residual_seconds: f64) {
+        let Some(im) = &self.imaging else { return };
+        let (snr, logsnr) = match &self.truth {
+            Some(t) if t.len() == im.model.len() => (
+                Some(metrics::snr(&im.model, t)),
+                self.truth_dynamic_range.map(|dr| metrics::log_snr(&im.model, t, dr)),
+            ),
+            _ => (None, None),
+        };
+        self.metrics.push(IterationMetrics {
+            iteration: self.iteration,
+            residual_ratio: metrics::residual_ratio(&im.residual, &im.dirty),
+            step_seconds: self.last_step_seconds,
+            residual_seconds,
+            snr,
+            logsnr,
+        });
+    }
+}
+
+/// Sends a job on one of the stage's ports.
+pub type Emit<'a> = dyn FnMut(Port, Job) -> Result<()> + 'a;
+
+/// A pipeline stage: takes one job at a time and emits it (transformed) on a port.
+pub trait Stage: Send {
+    fn process(&mut self, job: Job, emit: &mut Emit<'_>) -> Result<()>;
+}
+
+/// The first stage: produces jobs.
+pub trait Source: Send {
+    /// Produce every job, calling `emit` for each; stop early when `emit` fails or
+    /// `cancelled()` turns true.
+    fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()>;
+}

@@ -1,0 +1,195 @@
+//! Runs a checked pipeline: one thread per stage, bounded channels between them.
+//!
+//! The imaging loop (network step <-> residual update) is a cycle of bounded channels, which
+//! could deadlock if it filled up; admission tokens keep at most `channel_capacity` jobs
+//! inside a loop, so a send inside the loop always finds room. A stage ends when its input is
+//! empty, every stage feeding it from outside the loop has ended, and its loop (if any) holds
+//! no job. The first error (or Ctrl-C) cancels every stage; the error names the stage and job.
+
+use super::config::PipelineConfig;
+use super::graph::Graph;
+use super::{Job, Port};
+use crate::stages::{build_stage, Built, Role};
+use crate::{Error, Result};
+use crossbeam_channel::{bounded, Receiver, RecvTimeoutError, Sender};
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+/// What a finished run did.
+#[derive(Clone, Debug, Default)]
+pub struct RunReport {
+    /// Ids of the jobs that reached a writer, in completion order.
+    pub jobs: Vec<String>,
+    pub seconds: f64,
+    /// Seconds per stage, summed over jobs (stage name -> seconds).
+    pub stage_seconds: BTreeMap<String, f64>,
+}
+
+const POLL: Duration = Duration::from_millis(20);
+
+/// Check and build every stage without running anything (`r2d2 validate`).
+pub fn validate(config: &PipelineConfig) -> Result<Graph> {
+    let graph = Graph::build(config)?;
+    for (i, stage) in config.stages.iter().enumerate() {
+        build_stage(config, &graph, i, stage)?;
+    }
+    Ok(graph)
+}
+
+/// Run the pipeline to completion, or until `cancel` turns true.
+pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport> {
+    let graph = Graph::build(config)?;
+    let mut built = Vec::new();
+    for (i, stage) in config.stages.iter().enumerate() {
+        built.push(build_stage(config, &graph, i, stage)?);
+    }
+    let n = built.len();
+    let cap = config.channel_capacity;
+    let channels: Vec<(Sender<Job>, Receiver<Job>)> = (0..n).map(|_| bounded(cap)).collect();
+    // Loop tokens, per step stage that heads a loop.
+    let tokens: Vec<Option<(Sender<()>, Receiver<()>)>> = (0..n)
+        .map(|i| {
+            let heads_loop = graph.roles[i] == Role::Step && graph.next[i].is_some_and(|r| graph.is_loop_back(r, i));
+            heads_loop.then(|| {
+                let (tx, rx) = bounded(cap);
+                for _ in 0..cap {
+                    tx.send(()).expect("fresh channel has room");
+                }
+                (tx, rx)
+            })
+        })
+        .collect();
+    // Stages feeding each stage from outside a loop.
+    let upstream: Vec<Vec<usize>> = (0..n)
+        .map(|j| {
+            (0..n)
+                .filter(|&i| (graph.next[i] == Some(j) || graph.done[i] == Some(j)) && !graph.is_loop_back(i, j))
+                .collect()
+        })
+        .collect();
+    let ended: Vec<AtomicBool> = (0..n).map(|_| AtomicBool::new(false)).collect();
+    let first_error: Mutex<Option<Error>> = Mutex::new(None);
+    let finished: Mutex<Vec<String>> = Mutex::new(Vec::new());
+    let totals: Mutex<BTreeMap<String, f64>> = Mutex::new(BTreeMap::new());
+    let start = Instant::now();
+    let fail = |e: Error| {
+        let mut slot = first_error.lock().expect("error slot");
+        if slot.is_none() {
+            *slot = Some(e);
+        }
+        cancel.store(true, Ordering::SeqCst);
+    };
+
+    std::thread::scope(|scope| {
+        for (i, stage) in built.into_iter().enumerate() {
+            let (config, graph, channels, tokens, upstream, ended) = (config, &graph, &channels, &tokens, &upstream, &ended);
+            let (cancel, fail, finished, totals) = (&cancel, &fail, &finished, &totals);
+            scope.spawn(move || {
+                let name = &config.stages[i].name;
+                let kind = &config.stages[i].kind;
+                // Send on a port, taking a loop token when entering a loop from outside and
+                // giving it back when leaving the loop through `done`.
+                let send = |port: Port, mut job: Job, began: Instant| -> Result<()> {
+                    *job.stage_seconds.entry(name.clone()).or_insert(0.0) += began.elapsed().as_secs_f64();
+                    let target = match port {
+                        Port::Next => graph.next[i],
+                        Port::Done => graph.done[i],
+                    }
+                    .ok_or_else(|| Error::parameter(format!("stage '{name}'"), format!("emitted on {port:?}, which is not connected")))?;
+                    if let Some((_, rx)) = &tokens[target] {
+                        if !graph.is_loop_back(i, target) {
+                            loop {
+                                match rx.recv_timeout(POLL) {
+                                    Ok(()) => break,
+                                    Err(RecvTimeoutError::Timeout) if !cancel.load(Ordering::SeqCst) => continue,
+                                    Err(_) => return Err(Error::Interrupted("pipeline stopping".into())),
+                                }
+                            }
+                        }
+                    }
+                    let mut job = Some(job);
+                    loop {
+                        match channels[target].0.send_timeout(job.take().expect("job"), POLL) {
+                            Ok(()) => break,
+                            Err(crossbeam_channel::SendTimeoutError::Timeout(j)) if !cancel.load(Ordering::SeqCst) => job = Some(j),
+                            Err(_) => return Err(Error::Interrupted("pipeline stopping".into())),
+                        }
+                    }
+                    if port == Port::Done {
+                        // Leaving the loop this residual update belongs to.
+                        if let Some(step) = graph.next[i] {
+                            if let Some((tx, _)) = &tokens[step] {
+                                let _ = tx.send(());
+                            }
+                        }
+                    }
+                    Ok(())
+                };
+                let result: Result<()> = match stage {
+                    Built::Source(mut source) => {
+                        let mut emit = |job: Job| send(Port::Next, job, Instant::now());
+                        source
+                            .produce(&mut emit, &|| cancel.load(Ordering::SeqCst))
+                            .map_err(|e| stage_error(name, kind, "-", e))
+                    }
+                    Built::Stage(mut stage) => loop {
+                        if cancel.load(Ordering::SeqCst) {
+                            break Ok(());
+                        }
+                        let job = match channels[i].1.recv_timeout(POLL) {
+                            Ok(job) => job,
+                            Err(_) => {
+                                let inputs_done = upstream[i].iter().all(|&u| ended[u].load(Ordering::SeqCst));
+                                let loop_empty = tokens[i].as_ref().is_none_or(|(_, rx)| rx.len() == cap);
+                                if inputs_done && loop_empty && channels[i].1.is_empty() {
+                                    break Ok(());
+                                }
+                                continue;
+                            }
+                        };
+                        let id = job.id.clone();
+                        let began = Instant::now();
+                        let sink = graph.roles[i] == Role::Sink;
+                        let seconds_before: f64 = job.stage_seconds.values().sum();
+                        let mut emit = |port: Port, job: Job| send(port, job, began);
+                        if let Err(e) = stage.process(job, &mut emit) {
+                            break Err(stage_error(name, kind, &id, e));
+                        }
+                        if sink {
+                            finished.lock().expect("finished list").push(id);
+                            let _ = seconds_before;
+                        }
+                        *totals.lock().expect("totals").entry(name.clone()).or_insert(0.0) += began.elapsed().as_secs_f64();
+                    },
+                };
+                if let Err(e) = result {
+                    if !matches!(e, Error::Stage { ref source, .. } if matches!(**source, Error::Interrupted(_))) {
+                        fail(e);
+                    }
+                }
+                ended[i].store(true, Ordering::SeqCst);
+            });
+        }
+    });
+
+    if let Some(e) = first_error.into_inner().expect("error slot") {
+        return Err(e);
+    }
+    if cancel.load(Ordering::SeqCst) {
+        return Err(Error::Interrupted(format!(
+            "{} job(s) finished before the stop",
+            finished.lock().expect("finished").len()
+        )));
+    }
+    Ok(RunReport {
+        jobs: finished.into_inner().expect("finished"),
+        seconds: start.elapsed().as_secs_f64(),
+        stage_seconds: totals.into_inner().expect("totals"),
+    })
+}
+
+fn stage_error(stage: &str, kind: &str, job: &str, e: Error) -> Error {
+    Error::Stage { stage: stage.to_string(), kind: kind.to_string(), job: job.to_string(), source: Box::new(e) }
+}

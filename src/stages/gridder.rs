@@ -1,0 +1,79 @@
+//! `kind: gridder`: dirty image, PSF (N and 2N), kappa and the restoring beam. Releases the
+//! visibilities unless the residual update runs a NUFFT round trip.
+
+use crate::nufft::NufftParams;
+use crate::operator::{doubled_psf, MeasurementOperator, PsfConvolution};
+use crate::pipeline::{Emit, Imaging, Job, Port, Stage};
+use crate::{Error, Result};
+use serde::Deserialize;
+use std::sync::Arc;
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GridderConfig {
+    /// NUFFT relative accuracy.
+    #[serde(default = "epsilon")]
+    epsilon: f64,
+    #[serde(default = "oversampling")]
+    oversampling: f64,
+}
+
+fn epsilon() -> f64 {
+    1e-6
+}
+fn oversampling() -> f64 {
+    2.0
+}
+
+pub struct GridderStage {
+    nufft: NufftParams,
+    threads: usize,
+    keep_operator: bool,
+}
+
+impl GridderStage {
+    pub fn new(config: GridderConfig, threads: usize, keep_operator: bool) -> Result<GridderStage> {
+        let nufft = NufftParams { epsilon: config.epsilon, oversampling: config.oversampling };
+        crate::nufft::kernel::KernelShape::for_accuracy(nufft.epsilon, nufft.oversampling)?;
+        Ok(GridderStage { nufft, threads, keep_operator })
+    }
+}
+
+impl Stage for GridderStage {
+    fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
+        let missing = || Error::parameter("gridder", "the job has no weights: put a weighting stage before the gridder");
+        let geometry = job.geometry.ok_or_else(missing)?;
+        let weight = job.weight.take().ok_or_else(missing)?;
+        let vis = job.vis.take().ok_or_else(|| Error::parameter("gridder", "the job has no visibilities"))?;
+        let operator = MeasurementOperator::new(geometry, &vis.u, &vis.v, &weight, self.nufft, self.threads)?;
+        let dirty = operator.dirty_image(&vis.vis);
+        let psf = operator.psf();
+        let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, operator.kappa(), self.nufft, self.threads)?;
+        let psf_convolution = PsfConvolution::new(geometry.size, &psf_2n)?;
+        let beam = match crate::deconv::fit_beam(&psf, geometry.size, geometry.pixel_rad) {
+            Ok(b) => Some(b),
+            Err(e) => {
+                log::warn!("job {}: no restoring beam: {e}", job.id);
+                None
+            }
+        };
+        let n = geometry.pixels();
+        let (f_min, f_max) = vis.frequency.iter().fold((f64::INFINITY, 0.0f64), |(a, b), &f| (a.min(f), b.max(f)));
+        job.imaging = Some(Imaging {
+            geometry,
+            residual: dirty.clone(),
+            dirty,
+            psf,
+            psf_convolution: Arc::new(psf_convolution),
+            psf_2n: Arc::new(psf_2n),
+            operator: self.keep_operator.then(|| Arc::new(operator)),
+            model: vec![0.0; n],
+            beam,
+            frequency_hz: (f_max >= f_min).then_some(0.5 * (f_min + f_max)),
+        });
+        if self.keep_operator {
+            job.vis = Some(vis);
+        }
+        emit(Port::Next, job)
+    }
+}

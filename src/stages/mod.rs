@@ -1,0 +1,80 @@
+//! Stage kinds, registered by their YAML `kind`. Each kind is one module with a config
+//! struct that rejects unknown keys, built by [`build_stage`].
+
+mod gridder;
+mod parquet;
+mod residual;
+mod simulate;
+mod step;
+mod weighting;
+mod writer;
+
+use crate::pipeline::config::{PipelineConfig, StageConfig};
+use crate::pipeline::graph::Graph;
+use crate::pipeline::{Source, Stage};
+use crate::Result;
+
+/// What a stage does in the graph.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Role {
+    /// Produces jobs (no input).
+    Source,
+    /// One job in, one job out.
+    Transform,
+    /// A network step of the imaging loop.
+    Step,
+    /// The residual update closing the loop (`to`: back to the step, `done`: out).
+    Residual,
+    /// Ends the pipeline (writers).
+    Sink,
+}
+
+/// Every kind, with its role.
+const REGISTRY: &[(&str, Role)] = &[
+    ("simulate", Role::Source),
+    ("parquet", Role::Source),
+    ("weighting", Role::Transform),
+    ("gridder", Role::Transform),
+    ("clean", Role::Step),
+    ("residual", Role::Residual),
+    ("writer", Role::Sink),
+];
+
+pub const KINDS: &[&str] = &["simulate", "parquet", "weighting", "gridder", "clean", "residual", "writer"];
+pub const SOURCE_KINDS: &[&str] = &["simulate", "parquet"];
+
+pub fn role(kind: &str) -> Option<Role> {
+    REGISTRY.iter().find(|(k, _)| *k == kind).map(|(_, r)| *r)
+}
+
+/// A constructed stage, ready to run on its thread.
+pub enum Built {
+    Source(Box<dyn Source>),
+    Stage(Box<dyn Stage>),
+}
+
+/// Parse the stage's parameters and construct it (cheap: heavy work happens per job).
+pub fn build_stage(config: &PipelineConfig, graph: &Graph, index: usize, stage: &StageConfig) -> Result<Built> {
+    let threads = config.threads;
+    Ok(match stage.kind.as_str() {
+        "simulate" => Built::Source(Box::new(simulate::SimulateSource::new(config.stage_params(stage)?, &config.image, threads)?)),
+        "parquet" => Built::Source(Box::new(parquet::ParquetSource::new(config.stage_params(stage)?, config, stage)?)),
+        "weighting" => Built::Stage(Box::new(weighting::WeightingStage::new(config.stage_params(stage)?, &config.image)?)),
+        "gridder" => {
+            // Keep the operator for the residual update only if one of them needs it.
+            let keep_operator = config.stages.iter().any(|s| s.kind == "residual" && residual::wants_nufft(&s.params));
+            Built::Stage(Box::new(gridder::GridderStage::new(config.stage_params(stage)?, threads, keep_operator)?))
+        }
+        "clean" => Built::Stage(Box::new(step::StepStage::clean(config.stage_params(stage)?)?)),
+        "residual" => Built::Stage(Box::new(residual::ResidualStage::new(config.stage_params(stage)?)?)),
+        "writer" => Built::Stage(Box::new(writer::WriterStage::new(config.stage_params(stage)?)?)),
+        other => {
+            let _ = (graph, index);
+            return Err(config.stage_error(
+                &stage.name,
+                Some("kind"),
+                &format!("stages.{}.kind: unknown kind '{other}' (one of: {})", stage.name, KINDS.join(", ")),
+            ));
+        }
+    })
+}

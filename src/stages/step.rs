@@ -1,0 +1,42 @@
+//! Network-step stages (`kind: clean`, later `onnx`, `native`): run the job's next step of
+//! the series and pass it to the residual update.
+
+use crate::pipeline::{Emit, Job, Port, Stage};
+use crate::steps::clean::{CleanConfig, CleanStep};
+use crate::steps::{NetworkStep, StepInput};
+use crate::Result;
+use std::time::Instant;
+
+pub struct StepStage {
+    kind: &'static str,
+    step: Box<dyn NetworkStep>,
+}
+
+impl StepStage {
+    pub fn clean(config: CleanConfig) -> Result<StepStage> {
+        Ok(StepStage { kind: "clean", step: Box::new(CleanStep::new(config)?) })
+    }
+}
+
+impl Stage for StepStage {
+    fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
+        let began = Instant::now();
+        let iteration = job.iteration + 1;
+        let im = job.imaging_mut(self.kind)?;
+        let input = StepInput {
+            size: im.geometry.size,
+            model: &im.model,
+            residual: &im.residual,
+            dirty: &im.dirty,
+            psf: &im.psf,
+            psf_2n: &im.psf_2n,
+        };
+        let model = self.step.step(iteration, &input)?;
+        im.model = model;
+        job.iteration = iteration;
+        job.series_finished = iteration >= self.step.series_length();
+        job.step_kind = Some(if self.step.restores() { format!("{}+restore", self.kind) } else { self.kind.to_string() });
+        job.last_step_seconds = began.elapsed().as_secs_f64();
+        emit(Port::Next, job)
+    }
+}

@@ -1,0 +1,34 @@
+//! Network steps: the regularisation step of the imaging loop. R2D2 runs a trained network
+//! here; the built-in `clean` step runs a Hogbom minor cycle in the same place, so the loop
+//! and everything around it is shared. ONNX series and native plugins implement the same
+//! trait.
+
+pub mod clean;
+
+use crate::Result;
+
+/// What a step sees at iteration i: the previous estimate and its residual dirty image.
+pub struct StepInput<'a> {
+    pub size: usize,
+    /// `x_{i-1}` (Jy/pixel).
+    pub model: &'a [f64],
+    /// `r_{i-1} = x_d - D x_{i-1}` (Jy/beam).
+    pub residual: &'a [f64],
+    pub dirty: &'a [f64],
+    /// PSF, N x N, peak 1 at (N/2, N/2).
+    pub psf: &'a [f64],
+    /// PSF over twice the field, 2N x 2N, peak at (N, N).
+    pub psf_2n: &'a [f64],
+}
+
+pub trait NetworkStep: Send {
+    /// Number of iterations the series runs (networks in an R2D2 series, major cycles for CLEAN).
+    fn series_length(&self) -> usize;
+    /// Iteration `iteration` (1-based): the new estimate `x_i`.
+    fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>>;
+    /// Whether the products include a restored image (model convolved with the beam plus
+    /// residual), as CLEAN users expect; R2D2's model is the image.
+    fn restores(&self) -> bool {
+        false
+    }
+}
