@@ -4,7 +4,9 @@
 //! could deadlock if it filled up; admission tokens keep at most `channel_capacity` jobs
 //! inside a loop, so a send inside the loop always finds room. A stage ends when its input is
 //! empty, every stage feeding it from outside the loop has ended, and its loop (if any) holds
-//! no job. The first error (or Ctrl-C) cancels every stage; the error names the stage and job.
+//! no job. The first stage error (or Ctrl-C) cancels every stage; the error names the stage and
+//! job. A source error (an unreadable input) stops the reading but lets the jobs already in
+//! the pipeline finish, since they do not depend on it.
 
 use super::config::PipelineConfig;
 use super::graph::Graph;
@@ -74,18 +76,21 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
     let finished: Mutex<Vec<String>> = Mutex::new(Vec::new());
     let totals: Mutex<BTreeMap<String, f64>> = Mutex::new(BTreeMap::new());
     let start = Instant::now();
-    let fail = |e: Error| {
+    let record = |e: Error| {
         let mut slot = first_error.lock().expect("error slot");
         if slot.is_none() {
             *slot = Some(e);
         }
+    };
+    let fail = |e: Error| {
+        record(e);
         cancel.store(true, Ordering::SeqCst);
     };
 
     std::thread::scope(|scope| {
         for (i, stage) in built.into_iter().enumerate() {
             let (config, graph, channels, tokens, upstream, ended) = (config, &graph, &channels, &tokens, &upstream, &ended);
-            let (cancel, fail, finished, totals) = (&cancel, &fail, &finished, &totals);
+            let (cancel, fail, record, finished, totals) = (&cancel, &fail, &record, &finished, &totals);
             scope.spawn(move || {
                 let name = &config.stages[i].name;
                 let kind = &config.stages[i].kind;
@@ -165,7 +170,13 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
                     },
                 };
                 if let Err(e) = result {
-                    if !matches!(e, Error::Stage { ref source, .. } if matches!(**source, Error::Interrupted(_))) {
+                    if matches!(e, Error::Stage { ref source, .. } if matches!(**source, Error::Interrupted(_))) {
+                        // Stopped because another stage failed: that one reports.
+                    } else if graph.roles[i] == Role::Source {
+                        // The failed job never entered the pipeline: let the jobs in flight
+                        // finish, then report.
+                        record(e);
+                    } else {
                         fail(e);
                     }
                 }
