@@ -574,16 +574,31 @@ mod tests {
         let (_, _, psf2) = real_psf(n, 1.5, 5);
         let (pos, neg) = ((12, 30, 1.0), (34, 14, -3.0));
         let dirty = dirty_of(&[pos, neg], &psf2, n);
-        let out = hogbom(&dirty, &psf2, n, &HogbomParams { threshold: 1e-3, positive_only: true, ..Default::default() });
+        let out = hogbom(&dirty, &psf2, n, &HogbomParams { threshold: 0.05, positive_only: true, ..Default::default() });
         assert!(out.components.iter().all(|&c| c >= 0.0));
         assert_eq!(out.components[neg.1 * n + neg.0], 0.0);
-        assert!((out.components[pos.1 * n + pos.0] - 1.0).abs() < 2e-3);
-        assert!(out.last_peak < 1e-3);
+        // The positive source sits on the negative one's sidelobes, which stay uncleaned: its
+        // component is its dirty value, within the sidelobes' reach of the true flux.
+        let flux = out.components[pos.1 * n + pos.0];
+        let taken: f64 = out.components.iter().sum();
+        println!("positive_only: component {flux} at the positive source, {taken} in all, dirty value {}", dirty[pos.1 * n + pos.0]);
+        assert!((flux - 1.0).abs() < 0.2, "{flux}");
+        assert!(out.n_components < 10_000, "stopped by the threshold");
+        // The negative source's positive sidelobes are cleaned too (spread over many pixels),
+        // but no single one of them reaches the positive source.
+        let largest_elsewhere = out
+            .components
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| *i != pos.1 * n + pos.0)
+            .fold(0.0f64, |m, (_, &c)| m.max(c));
+        assert!(largest_elsewhere < 0.5 * flux, "{largest_elsewhere} elsewhere vs {flux} ({taken} in all)");
+        assert!(out.last_peak < 0.05 && out.residual.iter().all(|&r| r < 0.05));
         // The negative source is still in the residual.
-        assert!((out.residual[neg.1 * n + neg.0] + 3.0).abs() < 0.05);
+        assert!(out.residual[neg.1 * n + neg.0] < -2.5, "{}", out.residual[neg.1 * n + neg.0]);
         // Without the restriction the brighter negative source is taken first.
         let both = hogbom(&dirty, &psf2, n, &HogbomParams { max_components: 1, ..Default::default() });
-        assert!((both.components[neg.1 * n + neg.0] + 0.3).abs() < 1e-9);
+        assert!((both.components[neg.1 * n + neg.0] - 0.1 * dirty[neg.1 * n + neg.0]).abs() < 1e-12);
     }
 
     #[test]
