@@ -3,6 +3,7 @@
 //! The numerical modules (`nufft`, `weighting`, `operator`, `simulate`, `metrics`) know
 //! nothing of files, channels or configuration; `vis` and `fits` are the file formats.
 
+pub mod bench;
 pub mod error;
 pub mod fft2;
 pub mod nufft;

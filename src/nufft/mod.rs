@@ -356,6 +356,18 @@ impl Nufft2d {
         });
     }
 
+    /// The adjoint's grid-to-image step (FFT and correction) alone, on a zero grid (benchmarks).
+    pub(crate) fn time_grid_to_image(&self) {
+        let mut out = vec![Complex64::default(); self.nx * self.ny];
+        self.pool.install(|| self.grid_to_image(vec![Complex64::default(); self.grid_nx * self.grid_ny], &mut out));
+    }
+
+    /// The forward transform's image-to-grid step (correction and FFT) alone (benchmarks).
+    pub(crate) fn time_image_to_grid(&self) {
+        let image = vec![Complex64::default(); self.nx * self.ny];
+        self.pool.install(|| drop(self.image_to_padded_grid(&image)));
+    }
+
     fn kernel<const W: usize>(&self) -> PolynomialKernel<W> {
         PolynomialKernel {
             coeffs: self.kernel_coeffs.chunks_exact(W).map(|c| c.try_into().expect("chunk of W")).collect(),
