@@ -29,6 +29,8 @@ fn main() {
             "plan" => drop(Nufft2d::new(size, size, &x, &y, params, threads).unwrap()),
             "grid" => plan.adjoint(&c, &mut img),
             "degrid" => plan.forward(&image, &mut vis),
+            "grid_sorted" => plan.adjoint_sorted(&c, &mut img),
+            "degrid_sorted" => plan.forward_sorted(&image, &mut vis),
             p => panic!("unknown phase {p}"),
         }
         times.push(t.elapsed().as_secs_f64());

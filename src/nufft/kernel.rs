@@ -309,7 +309,7 @@ impl<const W: usize, const W2: usize, const L: usize> SymKernel<W, W2, L> {
 
     /// `[phi_0(zx) .. phi_{W-1}(zx), phi_0(zy) .. phi_{W-1}(zy)]`.
     #[inline(always)]
-    pub fn eval(&self, zx: f64, zy: f64) -> [f64; W2] {
+    pub fn eval<const FMA: bool>(&self, zx: f64, zy: f64) -> [f64; W2] {
         let h = L / 4;
         let (x2, y2) = (zx * zx, zy * zy);
         let mut u = [x2; L];
@@ -318,7 +318,7 @@ impl<const W: usize, const W2: usize, const L: usize> SymKernel<W, W2, L> {
         let mut acc = self.coeffs[0];
         for c in &self.coeffs[1..] {
             for j in 0..L {
-                acc[j] = acc[j] * u[j] + c[j];
+                acc[j] = super::simd::madd::<FMA>(acc[j], u[j], c[j]);
             }
         }
         let mut out = [0.0; W2];
@@ -376,7 +376,7 @@ mod tests {
             for k in 0..=50 {
                 let zx = -1.0 + k as f64 / 25.0;
                 let zy = 1.0 - k as f64 / 40.0;
-                let both = sym.eval(zx, zy);
+                let both = sym.eval::<false>(zx, zy);
                 let (px, py) = (poly.eval(zx), poly.eval(zy));
                 for b in 0..W {
                     assert!((both[b] - px[b]).abs() < 1e-13, "W {W} x cell {b} at {zx}");

@@ -16,9 +16,11 @@
 //! grid under a lock, so threads never contend per visibility.
 
 pub mod kernel;
+pub mod simd;
 
 use crate::{Error, Result};
 use kernel::{KernelShape, PolynomialKernel, SymKernel};
+use simd::{madd, multiversion, SimdLevel};
 use num_complex::Complex64;
 use rayon::prelude::*;
 use rustfft::{Fft, FftDirection, FftPlanner};
@@ -135,6 +137,8 @@ pub struct Nufft2d {
     ifft_x: Arc<dyn Fft<f64>>,
     ifft_y: Arc<dyn Fft<f64>>,
     pool: rayon::ThreadPool,
+    /// Instruction set of the gridding inner loops.
+    simd: SimdLevel,
 }
 
 /// Smallest even number >= `n` whose only prime factors are 2, 3, 5 and 7 (fast FFT sizes).
@@ -220,6 +224,7 @@ impl Nufft2d {
             tasks: Vec::new(),
             row_used: Vec::new(),
             pool,
+            simd: SimdLevel::detect(),
         };
         plan.sort_points(x, y)?;
         Ok(plan)
@@ -243,6 +248,19 @@ impl Nufft2d {
     /// `order()[k]` is the caller's index of the k-th point in the plan's internal order.
     pub fn order(&self) -> &[u32] {
         &self.order
+    }
+    /// Instruction set the gridding inner loops run with (the widest the CPU supports).
+    pub fn simd_level(&self) -> SimdLevel {
+        self.simd
+    }
+    /// Run the inner loops with another instruction set (for comparisons); an error if this
+    /// CPU does not support it.
+    pub fn set_simd_level(&mut self, level: SimdLevel) -> Result<()> {
+        if !level.is_supported() {
+            return Err(Error::parameter("simd level", format!("{level:?} is not supported by this CPU")));
+        }
+        self.simd = level;
+        Ok(())
     }
     /// Run `f` on this plan's thread pool.
     pub fn install<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
@@ -466,24 +484,9 @@ impl Nufft2d {
             |buf, task| {
                 for (tx, ty, range) in &task.tiles {
                     buf.iter_mut().for_each(|v| *v = 0.0);
-                    let (x0, y0) = ((tx * TILE) as u32, (ty * TILE) as u32);
-                    for (p, &v) in self.positions[range.clone()].iter().zip(&c[range.clone()]) {
-                        let k = kernel.eval(p.zx, p.zy);
-                        let (kx, ky) = k.split_at(W);
-                        let mut vk = [0.0f64; W2];
-                        for b in 0..W {
-                            vk[2 * b] = v.re * kx[b];
-                            vk[2 * b + 1] = v.im * kx[b];
-                        }
-                        let base = (p.py - y0) as usize * bw2 + 2 * (p.px - x0) as usize;
-                        let footprint = &mut buf[base..base + (W - 1) * bw2 + 2 * W];
-                        for (a, &kya) in ky.iter().enumerate() {
-                            let row = &mut footprint[a * bw2..a * bw2 + 2 * W];
-                            for (cell, &vkj) in row.iter_mut().zip(&vk) {
-                                *cell += vkj * kya;
-                            }
-                        }
-                    }
+                    let origin = ((tx * TILE) as u32, (ty * TILE) as u32);
+                    let (positions, values) = (&self.positions[range.clone()], &c[range.clone()]);
+                    spread_tile::<W, W2, L>(self.simd, &kernel, positions, values, buf, bw2, origin);
                     // Add the tile to the grid, wrapping padded coordinates periodically.
                     let mut grid = grid.lock().expect("no task panics while holding the grid");
                     for r in 0..bw {
@@ -524,25 +527,7 @@ impl Nufft2d {
             rest = tail;
         }
         chunks.into_par_iter().for_each(|(task, out)| {
-            for (p, o) in self.positions[task.points.clone()].iter().zip(out.iter_mut()) {
-                let k = kernel.eval(p.zx, p.zy);
-                let (kx, ky) = k.split_at(W);
-                let base = p.py as usize * pw2 + 2 * p.px as usize;
-                let footprint = &padded[base..base + (W - 1) * pw2 + 2 * W];
-                let mut acc = [0.0f64; W2];
-                for (a, &kya) in ky.iter().enumerate() {
-                    let row = &footprint[a * pw2..a * pw2 + 2 * W];
-                    for (s, &cell) in acc.iter_mut().zip(row) {
-                        *s += cell * kya;
-                    }
-                }
-                let (mut re, mut im) = (0.0, 0.0);
-                for b in 0..W {
-                    re += acc[2 * b] * kx[b];
-                    im += acc[2 * b + 1] * kx[b];
-                }
-                *o = Complex64::new(re, im);
-            }
+            interp_points::<W, W2, L>(self.simd, &kernel, &self.positions[task.points.clone()], padded, pw2, out);
         });
     }
 
@@ -629,6 +614,89 @@ impl Nufft2d {
     }
 }
 
+
+multiversion! {
+    /// Spread the points of one tile into its buffer: interleaved `re, im` reals in rows of
+    /// `bw2`, the tile's padded origin at `origin`.
+    fn spread_tile<const W: usize, const W2: usize, const L: usize>(
+        kernel: &SymKernel<W, W2, L>,
+        positions: &[GridPosition],
+        values: &[Complex64],
+        buf: &mut [f64],
+        bw2: usize,
+        origin: (u32, u32),
+    ) => spread_tile_impl
+}
+
+#[inline(always)]
+fn spread_tile_impl<const W: usize, const W2: usize, const L: usize, const FMA: bool>(
+    kernel: &SymKernel<W, W2, L>,
+    positions: &[GridPosition],
+    values: &[Complex64],
+    buf: &mut [f64],
+    bw2: usize,
+    (x0, y0): (u32, u32),
+) {
+    for (p, &v) in positions.iter().zip(values) {
+        let k = kernel.eval::<FMA>(p.zx, p.zy);
+        let (kx, ky) = k.split_at(W);
+        let mut vk = [0.0f64; W2];
+        for b in 0..W {
+            vk[2 * b] = v.re * kx[b];
+            vk[2 * b + 1] = v.im * kx[b];
+        }
+        let base = (p.py - y0) as usize * bw2 + 2 * (p.px - x0) as usize;
+        let footprint = &mut buf[base..base + (W - 1) * bw2 + W2];
+        for (a, &kya) in ky.iter().enumerate() {
+            let row = &mut footprint[a * bw2..a * bw2 + W2];
+            for (cell, &vkj) in row.iter_mut().zip(&vk) {
+                *cell = madd::<FMA>(vkj, kya, *cell);
+            }
+        }
+    }
+}
+
+multiversion! {
+    /// Interpolate the padded grid (interleaved `re, im` reals in rows of `pw2`) at the
+    /// points: sum the `W` kernel rows weighted by the y kernel into `2 W` reals, then
+    /// contract with the x kernel.
+    fn interp_points<const W: usize, const W2: usize, const L: usize>(
+        kernel: &SymKernel<W, W2, L>,
+        positions: &[GridPosition],
+        padded: &[f64],
+        pw2: usize,
+        out: &mut [Complex64],
+    ) => interp_points_impl
+}
+
+#[inline(always)]
+fn interp_points_impl<const W: usize, const W2: usize, const L: usize, const FMA: bool>(
+    kernel: &SymKernel<W, W2, L>,
+    positions: &[GridPosition],
+    padded: &[f64],
+    pw2: usize,
+    out: &mut [Complex64],
+) {
+    for (p, o) in positions.iter().zip(out.iter_mut()) {
+        let k = kernel.eval::<FMA>(p.zx, p.zy);
+        let (kx, ky) = k.split_at(W);
+        let base = p.py as usize * pw2 + 2 * p.px as usize;
+        let footprint = &padded[base..base + (W - 1) * pw2 + W2];
+        let mut acc = [0.0f64; W2];
+        for (a, &kya) in ky.iter().enumerate() {
+            let row = &footprint[a * pw2..a * pw2 + W2];
+            for (s, &cell) in acc.iter_mut().zip(row) {
+                *s = madd::<FMA>(cell, kya, *s);
+            }
+        }
+        let (mut re, mut im) = (0.0, 0.0);
+        for b in 0..W {
+            re = madd::<FMA>(acc[2 * b], kx[b], re);
+            im = madd::<FMA>(acc[2 * b + 1], kx[b], im);
+        }
+        *o = Complex64::new(re, im);
+    }
+}
 
 /// `1.5 * 2^52`: adding and subtracting it rounds an `f64` of magnitude below `2^51` to the
 /// nearest integer, and after adding it the low mantissa bits hold that integer.
