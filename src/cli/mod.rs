@@ -1,5 +1,6 @@
 //! Command-line interface: option parsing (clap) and dispatch to one module per command.
 
+mod bench;
 mod dirty;
 mod image;
 mod metrics;
@@ -34,6 +35,9 @@ enum Command {
     Validate(run::ValidateArgs),
     /// Image a Parquet table with the default pipeline (pipelines/image.yaml).
     Image(image::Args),
+    /// Benchmarks of the hot paths, as JSON.
+    #[command(subcommand)]
+    Bench(bench::Command),
     /// SNR and logSNR of an estimate against a ground truth, as JSON.
     Metrics(metrics::Args),
 }
@@ -54,6 +58,7 @@ pub fn main() -> ExitCode {
         Command::Run(args) => run::run(args),
         Command::Validate(args) => run::validate(args),
         Command::Image(args) => image::run(args),
+        Command::Bench(cmd) => bench::run(cmd),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

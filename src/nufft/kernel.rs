@@ -176,15 +176,15 @@ pub struct PolynomialKernel<const W: usize> {
 }
 
 impl<const W: usize> PolynomialKernel<W> {
-    /// Fit the kernel to within `tolerance` (absolute; the kernel peak is 1), raising the
-    /// degree until the check on a fine sample passes.
+    /// Fit the kernel to within `tolerance` (absolute; the kernel peak is 1) with the lowest
+    /// degree that passes the check on a fine sample.
     /// The kernel's own jump of `exp(-beta)` at the support edge bounds what any polynomial
     /// can reach, so the tolerance is raised to twice that.
     pub fn fit(shape: &KernelShape, tolerance: f64) -> PolynomialKernel<W> {
         assert_eq!(shape.support, W, "kernel support and W disagree");
         let tolerance = tolerance.max(2.0 * (-shape.beta).exp());
         let mut best = None;
-        for degree in (W + 1)..=(W + 12).min(24) {
+        for degree in 3..=(W + 12).min(24) {
             let kernel = Self::fit_degree(shape, degree);
             let err = kernel.max_error(shape);
             best = Some(kernel);
@@ -266,6 +266,74 @@ impl<const W: usize> PolynomialKernel<W> {
     }
 }
 
+/// The x and y kernels of a point evaluated together, using the kernel's symmetry.
+///
+/// Cell `W - 1 - b` at `-z` is cell `b` at `z`, so with `p_b(z) = E_b(z^2) + z O_b(z^2)`
+/// the cells `b` and `W - 1 - b` are `E_b +- z O_b`: only the `H = ceil(W / 2)` first cells'
+/// even and odd parts are evaluated, polynomials in `z^2` of half the degree. The `L = 4 H`
+/// lanes `[E_x, E_y, O_x, O_y]` (H each) run through one Horner loop, a multiply-add over all
+/// lanes per step, which vectorises without remainders or shuffles.
+#[derive(Clone, Debug)]
+pub struct SymKernel<const W: usize, const W2: usize, const L: usize> {
+    /// Per Horner step (highest power first), the lanes' coefficients.
+    coeffs: Vec<[f64; L]>,
+}
+
+impl<const W: usize, const W2: usize, const L: usize> SymKernel<W, W2, L> {
+    pub fn new(kernel: &PolynomialKernel<W>) -> Self {
+        assert_eq!(W2, 2 * W, "W2 must be 2 W");
+        let h = W.div_ceil(2);
+        assert_eq!(L, 4 * h, "L must be 4 ceil(W / 2)");
+        let degree = kernel.coeffs.len() - 1;
+        // mono(p, b): coefficient of z^p for cell b.
+        let mono = |p: usize, b: usize| if p <= degree { kernel.coeffs[degree - p][b] } else { 0.0 };
+        let steps = degree / 2 + 1;
+        let coeffs = (0..steps)
+            .map(|s| {
+                let q = steps - 1 - s;
+                let mut lanes = [0.0; L];
+                for b in 0..h {
+                    let even = mono(2 * q, b);
+                    // The middle cell of an odd support is even in z: its odd part is zero.
+                    let odd = if W % 2 == 1 && b == h - 1 { 0.0 } else { mono(2 * q + 1, b) };
+                    lanes[b] = even;
+                    lanes[h + b] = even;
+                    lanes[2 * h + b] = odd;
+                    lanes[3 * h + b] = odd;
+                }
+                lanes
+            })
+            .collect();
+        SymKernel { coeffs }
+    }
+
+    /// `[phi_0(zx) .. phi_{W-1}(zx), phi_0(zy) .. phi_{W-1}(zy)]`.
+    #[inline(always)]
+    pub fn eval<const FMA: bool>(&self, zx: f64, zy: f64) -> [f64; W2] {
+        let h = L / 4;
+        let (x2, y2) = (zx * zx, zy * zy);
+        let mut u = [x2; L];
+        u[h..2 * h].fill(y2);
+        u[3 * h..].fill(y2);
+        let mut acc = self.coeffs[0];
+        for c in &self.coeffs[1..] {
+            for j in 0..L {
+                acc[j] = super::simd::madd::<FMA>(acc[j], u[j], c[j]);
+            }
+        }
+        let mut out = [0.0; W2];
+        for b in 0..h {
+            let (ex, ey) = (acc[b], acc[h + b]);
+            let (ox, oy) = (zx * acc[2 * h + b], zy * acc[3 * h + b]);
+            out[W - 1 - b] = ex - ox;
+            out[b] = ex + ox;
+            out[W + W - 1 - b] = ey - oy;
+            out[W + b] = ey + oy;
+        }
+        out
+    }
+}
+
 /// Exact kernel value of cell `b` for sub-cell variable `z` (see [`PolynomialKernel`]).
 fn cell_value(shape: &KernelShape, b: usize, z: f64) -> f64 {
     let w = shape.support as f64;
@@ -296,6 +364,29 @@ mod tests {
         let poly = PolynomialKernel::<8>::fit(&shape, 1e-12);
         assert!(poly.max_error(&shape) <= 2.0 * (-shape.beta).exp(), "{}", poly.max_error(&shape));
         assert!(poly.coeffs.len() <= 8 + 8, "degree {} is more than needed", poly.coeffs.len() - 1);
+    }
+
+    #[test]
+    fn symmetric_evaluation_matches_plain_horner() {
+        fn check<const W: usize, const W2: usize, const L: usize>(eps: f64) {
+            let shape = KernelShape::for_accuracy(eps, 2.0).unwrap();
+            assert_eq!(shape.support, W);
+            let poly = PolynomialKernel::<W>::fit(&shape, eps / 20.0);
+            let sym = SymKernel::<W, W2, L>::new(&poly);
+            for k in 0..=50 {
+                let zx = -1.0 + k as f64 / 25.0;
+                let zy = 1.0 - k as f64 / 40.0;
+                let both = sym.eval::<false>(zx, zy);
+                let (px, py) = (poly.eval(zx), poly.eval(zy));
+                for b in 0..W {
+                    assert!((both[b] - px[b]).abs() < 1e-13, "W {W} x cell {b} at {zx}");
+                    assert!((both[W + b] - py[b]).abs() < 1e-13, "W {W} y cell {b} at {zy}");
+                }
+            }
+        }
+        check::<7, 14, 16>(1e-5);
+        check::<8, 16, 16>(1e-6);
+        check::<3, 6, 8>(1e-2);
     }
 
     #[test]

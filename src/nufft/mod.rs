@@ -16,15 +16,18 @@
 //! grid under a lock, so threads never contend per visibility.
 
 pub mod kernel;
+pub mod simd;
 
 use crate::{Error, Result};
-use kernel::{KernelShape, PolynomialKernel};
+use kernel::{KernelShape, PolynomialKernel, SymKernel};
+use simd::{madd, multiversion, SimdLevel};
 use num_complex::Complex64;
 use rayon::prelude::*;
 use rustfft::{Fft, FftDirection, FftPlanner};
 use std::sync::{Arc, Mutex};
 
-/// Call a function generic over the kernel support `W` with the runtime support.
+/// Call a function generic over the kernel support `W` (and optionally `W2 = 2 W` and
+/// `L = 4 ceil(W / 2)`, the lane counts of [`SymKernel`]) with the runtime support.
 macro_rules! dispatch_support {
     ($w:expr, $W:ident => $body:expr) => {
         match $w {
@@ -43,6 +46,26 @@ macro_rules! dispatch_support {
             14 => { const $W: usize = 14; $body }
             15 => { const $W: usize = 15; $body }
             16 => { const $W: usize = 16; $body }
+            w => unreachable!("kernel support {w} is checked against MAX_SUPPORT when planning"),
+        }
+    };
+    ($w:expr, $W:ident, $W2:ident, $L:ident => $body:expr) => {
+        match $w {
+            2 => { const $W: usize = 2; const $W2: usize = 4; const $L: usize = 4; $body }
+            3 => { const $W: usize = 3; const $W2: usize = 6; const $L: usize = 8; $body }
+            4 => { const $W: usize = 4; const $W2: usize = 8; const $L: usize = 8; $body }
+            5 => { const $W: usize = 5; const $W2: usize = 10; const $L: usize = 12; $body }
+            6 => { const $W: usize = 6; const $W2: usize = 12; const $L: usize = 12; $body }
+            7 => { const $W: usize = 7; const $W2: usize = 14; const $L: usize = 16; $body }
+            8 => { const $W: usize = 8; const $W2: usize = 16; const $L: usize = 16; $body }
+            9 => { const $W: usize = 9; const $W2: usize = 18; const $L: usize = 20; $body }
+            10 => { const $W: usize = 10; const $W2: usize = 20; const $L: usize = 20; $body }
+            11 => { const $W: usize = 11; const $W2: usize = 22; const $L: usize = 24; $body }
+            12 => { const $W: usize = 12; const $W2: usize = 24; const $L: usize = 24; $body }
+            13 => { const $W: usize = 13; const $W2: usize = 26; const $L: usize = 28; $body }
+            14 => { const $W: usize = 14; const $W2: usize = 28; const $L: usize = 28; $body }
+            15 => { const $W: usize = 15; const $W2: usize = 30; const $L: usize = 32; $body }
+            16 => { const $W: usize = 16; const $W2: usize = 32; const $L: usize = 32; $body }
             w => unreachable!("kernel support {w} is checked against MAX_SUPPORT when planning"),
         }
     };
@@ -67,6 +90,9 @@ impl Default for NufftParams {
 
 /// Grid tile edge in cells: tiles of 32 x 32 complex (16 KiB) plus the kernel margin stay in L1/L2.
 const TILE: usize = 32;
+
+/// Largest accepted point coordinate magnitude (radians per pixel).
+const MAX_COORDINATE: f64 = 1e12;
 
 /// Where one point falls on the padded grid, and its sub-cell kernel variables.
 #[derive(Clone, Copy, Debug, Default)]
@@ -111,6 +137,8 @@ pub struct Nufft2d {
     ifft_x: Arc<dyn Fft<f64>>,
     ifft_y: Arc<dyn Fft<f64>>,
     pool: rayon::ThreadPool,
+    /// Instruction set of the gridding inner loops.
+    simd: SimdLevel,
 }
 
 /// Smallest even number >= `n` whose only prime factors are 2, 3, 5 and 7 (fast FFT sizes).
@@ -196,8 +224,9 @@ impl Nufft2d {
             tasks: Vec::new(),
             row_used: Vec::new(),
             pool,
+            simd: SimdLevel::detect(),
         };
-        plan.sort_points(x, y);
+        plan.sort_points(x, y)?;
         Ok(plan)
     }
 
@@ -220,58 +249,122 @@ impl Nufft2d {
     pub fn order(&self) -> &[u32] {
         &self.order
     }
+    /// Instruction set the gridding inner loops run with (the widest the CPU supports).
+    pub fn simd_level(&self) -> SimdLevel {
+        self.simd
+    }
+    /// Run the inner loops with another instruction set (for comparisons); an error if this
+    /// CPU does not support it.
+    pub fn set_simd_level(&mut self, level: SimdLevel) -> Result<()> {
+        if !level.is_supported() {
+            return Err(Error::parameter("simd level", format!("{level:?} is not supported by this CPU")));
+        }
+        self.simd = level;
+        Ok(())
+    }
     /// Run `f` on this plan's thread pool.
     pub fn install<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
         self.pool.install(f)
     }
 
     /// Compute each point's padded grid position and sort the points by tile (counting sort).
-    fn sort_points(&mut self, x: &[f64], y: &[f64]) {
+    ///
+    /// Pass 1 (parallel) computes each point's tile; a histogram and prefix sum give every
+    /// tile's output range; pass 2 runs one task per group of consecutive tiles (so each task
+    /// owns a contiguous part of the output): it scans the tile numbers, recomputes the
+    /// positions of its own points and writes them in order.
+    fn sort_points(&mut self, x: &[f64], y: &[f64]) -> Result<()> {
         let w = self.shape.support;
         let (gx, gy) = (self.grid_nx, self.grid_ny);
         let padded_x = gx + 2 * w;
         let padded_y = gy + 2 * w;
         let tiles_x = padded_x.div_ceil(TILE);
         let tiles_y = padded_y.div_ceil(TILE);
-        let position = |t: f64, n: usize| -> (u32, f64) {
-            let n_f = n as f64;
-            let mut t = t * n_f / (2.0 * std::f64::consts::PI);
-            t -= n_f * (t / n_f).floor();
-            if t >= n_f {
-                t -= n_f;
-            }
-            let s = t - w as f64 / 2.0;
-            let i0 = s.ceil();
-            let frac = i0 - s; // in [0, 1)
-            ((i0 as i64 + w as i64) as u32, 2.0 * frac - 1.0)
+        let ntiles = tiles_x * tiles_y;
+        let (sx, sy) = (gx as f64 / (2.0 * std::f64::consts::PI), gy as f64 / (2.0 * std::f64::consts::PI));
+        let (inv_gx, inv_gy) = (1.0 / gx as f64, 1.0 / gy as f64);
+        let position = |xk: f64, yk: f64| -> GridPosition {
+            let (px, zx) = grid_position(xk * sx, gx, inv_gx, w);
+            let (py, zy) = grid_position(yk * sy, gy, inv_gy, w);
+            GridPosition { px, py, zx, zy }
         };
-        let unsorted: Vec<GridPosition> = self.pool.install(|| {
-            x.par_iter()
-                .zip(y.par_iter())
-                .map(|(&xk, &yk)| {
-                    let (px, zx) = position(xk, gx);
-                    let (py, zy) = position(yk, gy);
-                    GridPosition { px, py, zx, zy }
+        let tile_of = |p: &GridPosition| ((p.py as usize / TILE) * tiles_x + p.px as usize / TILE) as u32;
+        let threads = self.pool.current_num_threads().max(1);
+        let npoints = x.len();
+        let chunk = npoints.div_ceil(4 * threads).max(1 << 14);
+        let (tile, counts) = self.pool.install(|| {
+            let mut tile = vec![0u32; npoints];
+            let counts = tile
+                .par_chunks_mut(chunk)
+                .zip(x.par_chunks(chunk).zip(y.par_chunks(chunk)))
+                .map(|(t, (x, y))| {
+                    let mut counts = vec![0usize; ntiles];
+                    for ((t, &xk), &yk) in t.iter_mut().zip(x).zip(y) {
+                        // Also rejects NaN; keeps the integer conversions below in range.
+                        if !(xk.abs() <= MAX_COORDINATE && yk.abs() <= MAX_COORDINATE) {
+                            return None;
+                        }
+                        *t = tile_of(&position(xk, yk));
+                        counts[*t as usize] += 1;
+                    }
+                    Some(counts)
                 })
-                .collect()
+                .try_reduce(
+                    || vec![0usize; ntiles],
+                    |mut a, b| {
+                        a.iter_mut().zip(&b).for_each(|(a, b)| *a += b);
+                        Some(a)
+                    },
+                );
+            (tile, counts)
         });
-        let tile_of = |p: &GridPosition| (p.py as usize / TILE) * tiles_x + p.px as usize / TILE;
-        let mut counts = vec![0usize; tiles_x * tiles_y + 1];
-        for p in &unsorted {
-            counts[tile_of(p) + 1] += 1;
+        let counts = counts.ok_or_else(|| Error::parameter(
+                "points",
+                format!("expected finite point coordinates of magnitude <= {MAX_COORDINATE:e} radians per pixel"),
+            ))?;
+        let mut starts = vec![0usize; ntiles + 1];
+        for t in 0..ntiles {
+            starts[t + 1] = starts[t] + counts[t];
         }
-        for t in 0..tiles_x * tiles_y {
-            counts[t + 1] += counts[t];
+        // Groups of consecutive tiles with about equal point counts, one output part each.
+        let groups = if npoints < 1 << 16 { 1 } else { threads };
+        let mut bounds = vec![0usize];
+        for g in 1..groups {
+            let target = npoints * g / groups;
+            let t = starts.partition_point(|&s| s < target).min(ntiles);
+            bounds.push(t.max(*bounds.last().expect("not empty")));
         }
-        let starts = counts.clone();
-        let mut order = vec![0u32; unsorted.len()];
-        let mut positions = vec![GridPosition::default(); unsorted.len()];
-        for (k, p) in unsorted.iter().enumerate() {
-            let t = tile_of(p);
-            order[counts[t]] = k as u32;
-            positions[counts[t]] = *p;
-            counts[t] += 1;
+        bounds.push(ntiles);
+        let mut order = vec![0u32; npoints];
+        let mut positions = vec![GridPosition::default(); npoints];
+        let mut parts = Vec::with_capacity(groups);
+        {
+            let (mut rest_o, mut rest_p) = (order.as_mut_slice(), positions.as_mut_slice());
+            for g in 0..groups {
+                let (t0, t1) = (bounds[g], bounds[g + 1]);
+                let len = starts[t1] - starts[t0];
+                let (o, ro) = std::mem::take(&mut rest_o).split_at_mut(len);
+                let (p, rp) = std::mem::take(&mut rest_p).split_at_mut(len);
+                rest_o = ro;
+                rest_p = rp;
+                parts.push((t0..t1, o, p));
+            }
         }
+        self.pool.install(|| {
+            parts.into_par_iter().for_each(|(tiles, order, positions)| {
+                let base = starts[tiles.start];
+                let mut cursor: Vec<usize> = starts[tiles.start..tiles.end].iter().map(|s| s - base).collect();
+                let (t0, t1) = (tiles.start as u32, tiles.end as u32);
+                for (k, &t) in tile.iter().enumerate() {
+                    if t >= t0 && t < t1 {
+                        let c = &mut cursor[(t - t0) as usize];
+                        order[*c] = k as u32;
+                        positions[*c] = position(x[k], y[k]);
+                        *c += 1;
+                    }
+                }
+            })
+        });
         // Rows touched by some kernel footprint, in grid coordinates.
         let mut row_used = vec![false; gy];
         let mut tile_row_used = vec![false; tiles_y];
@@ -286,8 +379,7 @@ impl Nufft2d {
             }
         }
         // Split into tasks of whole tiles, about 8 per thread for load balance.
-        let threads = self.pool.current_num_threads().max(1);
-        let target = (unsorted.len() / (8 * threads)).max(4096);
+        let target = (npoints / (8 * threads)).max(4096);
         let mut tasks = Vec::new();
         let mut current = Task { points: 0..0, tiles: Vec::new() };
         for ty in 0..tiles_y {
@@ -312,6 +404,7 @@ impl Nufft2d {
         self.order = order;
         self.tasks = tasks;
         self.row_used = row_used;
+        Ok(())
     }
 
     /// Type 2 (image to points): `out[k] = sum_j image[j] exp(+i (x_k jx + y_k jy))`, with
@@ -342,7 +435,7 @@ impl Nufft2d {
         assert_eq!(out.len(), self.len(), "number of points");
         self.pool.install(|| {
             let padded = self.image_to_padded_grid(image);
-            dispatch_support!(self.shape.support, W => self.degrid::<W>(&padded, out));
+            dispatch_support!(self.shape.support, W, W2, L => self.degrid::<W, W2, L>(&padded, out));
         });
     }
 
@@ -351,56 +444,63 @@ impl Nufft2d {
         assert_eq!(c.len(), self.len(), "number of points");
         assert_eq!(out.len(), self.nx * self.ny, "image size");
         self.pool.install(|| {
-            let grid = dispatch_support!(self.shape.support, W => self.grid::<W>(c));
+            let grid = dispatch_support!(self.shape.support, W, W2, L => self.grid::<W, W2, L>(c));
             self.grid_to_image(grid, out);
         });
     }
 
-    fn kernel<const W: usize>(&self) -> PolynomialKernel<W> {
-        PolynomialKernel {
+    /// The adjoint's grid-to-image step (FFT and correction) alone, on a zero grid (benchmarks).
+    pub(crate) fn time_grid_to_image(&self) {
+        let mut out = vec![Complex64::default(); self.nx * self.ny];
+        self.pool.install(|| self.grid_to_image(vec![Complex64::default(); self.grid_nx * self.grid_ny], &mut out));
+    }
+
+    /// The forward transform's image-to-grid step (correction and FFT) alone (benchmarks).
+    pub(crate) fn time_image_to_grid(&self) {
+        let image = vec![Complex64::default(); self.nx * self.ny];
+        self.pool.install(|| drop(self.image_to_padded_grid(&image)));
+    }
+
+    fn kernel<const W: usize, const W2: usize, const L: usize>(&self) -> SymKernel<W, W2, L> {
+        SymKernel::new(&PolynomialKernel::<W> {
             coeffs: self.kernel_coeffs.chunks_exact(W).map(|c| c.try_into().expect("chunk of W")).collect(),
-        }
+        })
     }
 
     /// Spread all points onto the (unpadded) oversampled grid.
-    fn grid<const W: usize>(&self, c: &[Complex64]) -> Vec<Complex64> {
+    ///
+    /// Each tile is accumulated in a private buffer of `(TILE + W)^2` cells stored as
+    /// interleaved `f64` pairs, so that one kernel row of a point is a contiguous run of
+    /// `2 W` reals updated by a single multiply-add loop (`re, im, re, im, ...` times the x
+    /// kernel duplicated), which vectorises without shuffles.
+    fn grid<const W: usize, const W2: usize, const L: usize>(&self, c: &[Complex64]) -> Vec<Complex64> {
         let (gx, gy) = (self.grid_nx, self.grid_ny);
         let grid = Mutex::new(vec![Complex64::default(); gx * gy]);
-        let kernel = self.kernel::<W>();
+        let kernel = self.kernel::<W, W2, L>();
         let bw = TILE + W;
+        let bw2 = 2 * bw;
         self.tasks.par_iter().for_each_init(
-            || vec![Complex64::default(); bw * bw],
+            || vec![0.0f64; bw * bw2],
             |buf, task| {
                 for (tx, ty, range) in &task.tiles {
-                    buf.iter_mut().for_each(|v| *v = Complex64::default());
-                    let (x0, y0) = ((tx * TILE) as u32, (ty * TILE) as u32);
-                    for (p, &v) in self.positions[range.clone()].iter().zip(&c[range.clone()]) {
-                        let kx = kernel.eval(p.zx);
-                        let ky = kernel.eval(p.zy);
-                        let lx = (p.px - x0) as usize;
-                        let ly = (p.py - y0) as usize;
-                        for (a, &kya) in ky.iter().enumerate() {
-                            let vy = v * kya;
-                            let row = &mut buf[(ly + a) * bw + lx..][..W];
-                            for (cell, &kxb) in row.iter_mut().zip(kx.iter()) {
-                                *cell += vy * kxb;
-                            }
-                        }
-                    }
+                    buf.iter_mut().for_each(|v| *v = 0.0);
+                    let origin = ((tx * TILE) as u32, (ty * TILE) as u32);
+                    let (positions, values) = (&self.positions[range.clone()], &c[range.clone()]);
+                    spread_tile::<W, W2, L>(self.simd, &kernel, positions, values, buf, bw2, origin);
                     // Add the tile to the grid, wrapping padded coordinates periodically.
                     let mut grid = grid.lock().expect("no task panics while holding the grid");
                     for r in 0..bw {
                         let gyi = ((ty * TILE + r) + gy - W) % gy;
-                        let src = &buf[r * bw..(r + 1) * bw];
+                        let src = &buf[r * bw2..(r + 1) * bw2];
                         let dst = &mut grid[gyi * gx..(gyi + 1) * gx];
                         let start = (tx * TILE + gx - W) % gx;
                         if start + bw <= gx {
-                            for (d, s) in dst[start..start + bw].iter_mut().zip(src) {
-                                *d += *s;
+                            for (d, s) in dst[start..start + bw].iter_mut().zip(src.chunks_exact(2)) {
+                                *d += Complex64::new(s[0], s[1]);
                             }
                         } else {
-                            for (i, s) in src.iter().enumerate() {
-                                dst[(start + i) % gx] += *s;
+                            for (i, s) in src.chunks_exact(2).enumerate() {
+                                dst[(start + i) % gx] += Complex64::new(s[0], s[1]);
                             }
                         }
                     }
@@ -410,10 +510,12 @@ impl Nufft2d {
         grid.into_inner().expect("no task panicked")
     }
 
-    /// Interpolate the padded grid at every point (sorted order).
-    fn degrid<const W: usize>(&self, padded: &[Complex64], out: &mut [Complex64]) {
-        let pw = self.grid_nx + 2 * W;
-        let kernel = self.kernel::<W>();
+    /// Interpolate the padded grid (interleaved `re, im` reals) at every point (sorted order):
+    /// sum the `W` kernel rows weighted by the y kernel into `2 W` reals, then contract with
+    /// the x kernel.
+    fn degrid<const W: usize, const W2: usize, const L: usize>(&self, padded: &[f64], out: &mut [Complex64]) {
+        let pw2 = 2 * (self.grid_nx + 2 * W);
+        let kernel = self.kernel::<W, W2, L>();
         // Split `out` into the tasks' disjoint ranges.
         let mut chunks = Vec::with_capacity(self.tasks.len());
         let mut rest = out;
@@ -425,21 +527,7 @@ impl Nufft2d {
             rest = tail;
         }
         chunks.into_par_iter().for_each(|(task, out)| {
-            for (p, o) in self.positions[task.points.clone()].iter().zip(out.iter_mut()) {
-                let kx = kernel.eval(p.zx);
-                let ky = kernel.eval(p.zy);
-                let (px, py) = (p.px as usize, p.py as usize);
-                let mut acc = Complex64::default();
-                for (a, &kya) in ky.iter().enumerate() {
-                    let row = &padded[(py + a) * pw + px..][..W];
-                    let mut racc = Complex64::default();
-                    for (cell, &kxb) in row.iter().zip(kx.iter()) {
-                        racc += cell * kxb;
-                    }
-                    acc += racc * kya;
-                }
-                *o = acc;
-            }
+            interp_points::<W, W2, L>(self.simd, &kernel, &self.positions[task.points.clone()], padded, pw2, out);
         });
     }
 
@@ -486,7 +574,7 @@ impl Nufft2d {
     /// Image -> padded grid: correct, place modes, inverse FFT the image columns, then the
     /// rows, writing each grid row into the padded layout (with periodic margins of width
     /// `support` on every side) so degridding needs no wrap-around logic.
-    fn image_to_padded_grid(&self, image: &[Complex64]) -> Vec<Complex64> {
+    fn image_to_padded_grid(&self, image: &[Complex64]) -> Vec<f64> {
         let (gx, gy, nx, ny) = (self.grid_nx, self.grid_ny, self.nx, self.ny);
         let w = self.shape.support;
         // Column-major corrected image columns, each inverse-FFT'd along y: cols[ix * gy + r].
@@ -502,8 +590,8 @@ impl Nufft2d {
             },
         );
         let (pw, ph) = (gx + 2 * w, gy + 2 * w);
-        let mut padded = vec![Complex64::default(); pw * ph];
-        padded.par_chunks_mut(pw).enumerate().for_each_init(
+        let mut padded = vec![0.0f64; 2 * pw * ph];
+        padded.par_chunks_mut(2 * pw).enumerate().for_each_init(
             || (vec![Complex64::default(); gx], vec![Complex64::default(); self.ifft_x.get_inplace_scratch_len()]),
             |(row, scratch), (q, dst)| {
                 let r = (q + gy - w) % gy;
@@ -515,8 +603,10 @@ impl Nufft2d {
                     row[(ix + gx - nx / 2) % gx] = cols[ix * gy + r];
                 }
                 self.ifft_x.process_with_scratch(row, scratch);
-                for (i, d) in dst.iter_mut().enumerate() {
-                    *d = row[(i + gx - w) % gx];
+                for (i, d) in dst.chunks_exact_mut(2).enumerate() {
+                    let v = row[(i + gx - w) % gx];
+                    d[0] = v.re;
+                    d[1] = v.im;
                 }
             },
         );
@@ -524,6 +614,125 @@ impl Nufft2d {
     }
 }
 
+
+multiversion! {
+    /// Spread the points of one tile into its buffer: interleaved `re, im` reals in rows of
+    /// `bw2`, the tile's padded origin at `origin`.
+    fn spread_tile<const W: usize, const W2: usize, const L: usize>(
+        kernel: &SymKernel<W, W2, L>,
+        positions: &[GridPosition],
+        values: &[Complex64],
+        buf: &mut [f64],
+        bw2: usize,
+        origin: (u32, u32),
+    ) => spread_tile_impl
+}
+
+#[inline(always)]
+fn spread_tile_impl<const W: usize, const W2: usize, const L: usize, const FMA: bool>(
+    kernel: &SymKernel<W, W2, L>,
+    positions: &[GridPosition],
+    values: &[Complex64],
+    buf: &mut [f64],
+    bw2: usize,
+    (x0, y0): (u32, u32),
+) {
+    for (p, &v) in positions.iter().zip(values) {
+        let k = kernel.eval::<FMA>(p.zx, p.zy);
+        let (kx, ky) = k.split_at(W);
+        let mut vk = [0.0f64; W2];
+        for b in 0..W {
+            vk[2 * b] = v.re * kx[b];
+            vk[2 * b + 1] = v.im * kx[b];
+        }
+        let base = (p.py - y0) as usize * bw2 + 2 * (p.px - x0) as usize;
+        let footprint = &mut buf[base..base + (W - 1) * bw2 + W2];
+        for (a, &kya) in ky.iter().enumerate() {
+            let row = &mut footprint[a * bw2..a * bw2 + W2];
+            for (cell, &vkj) in row.iter_mut().zip(&vk) {
+                *cell = madd::<FMA>(vkj, kya, *cell);
+            }
+        }
+    }
+}
+
+multiversion! {
+    /// Interpolate the padded grid (interleaved `re, im` reals in rows of `pw2`) at the
+    /// points: sum the `W` kernel rows weighted by the y kernel into `2 W` reals, then
+    /// contract with the x kernel.
+    fn interp_points<const W: usize, const W2: usize, const L: usize>(
+        kernel: &SymKernel<W, W2, L>,
+        positions: &[GridPosition],
+        padded: &[f64],
+        pw2: usize,
+        out: &mut [Complex64],
+    ) => interp_points_impl
+}
+
+#[inline(always)]
+fn interp_points_impl<const W: usize, const W2: usize, const L: usize, const FMA: bool>(
+    kernel: &SymKernel<W, W2, L>,
+    positions: &[GridPosition],
+    padded: &[f64],
+    pw2: usize,
+    out: &mut [Complex64],
+) {
+    for (p, o) in positions.iter().zip(out.iter_mut()) {
+        let k = kernel.eval::<FMA>(p.zx, p.zy);
+        let (kx, ky) = k.split_at(W);
+        let base = p.py as usize * pw2 + 2 * p.px as usize;
+        let footprint = &padded[base..base + (W - 1) * pw2 + W2];
+        let mut acc = [0.0f64; W2];
+        for (a, &kya) in ky.iter().enumerate() {
+            let row = &footprint[a * pw2..a * pw2 + W2];
+            for (s, &cell) in acc.iter_mut().zip(row) {
+                *s = madd::<FMA>(cell, kya, *s);
+            }
+        }
+        let (mut re, mut im) = (0.0, 0.0);
+        for b in 0..W {
+            re = madd::<FMA>(acc[2 * b], kx[b], re);
+            im = madd::<FMA>(acc[2 * b + 1], kx[b], im);
+        }
+        *o = Complex64::new(re, im);
+    }
+}
+
+/// `1.5 * 2^52`: adding and subtracting it rounds an `f64` of magnitude below `2^51` to the
+/// nearest integer, and after adding it the low mantissa bits hold that integer.
+const ROUND_MAGIC: f64 = 6755399441055744.0;
+
+/// Padded grid position of a point at grid coordinate `t` (magnitude below `2^50`): the first
+/// covered cell `i0 + w` and the kernel variable `z = 2 (i0 - s) - 1` with
+/// `s = (t mod n) - w/2` and `i0 = ceil(s)` (see [`PolynomialKernel`]).
+///
+/// Floor and ceiling use [`ROUND_MAGIC`]: the baseline x86-64 target has no SSE4.1 rounding
+/// instruction (`f64::floor` is a library call there) and `as` casts saturate, which costs
+/// several instructions each; this keeps the whole computation to a few float operations.
+#[inline(always)]
+fn grid_position(t: f64, n: usize, inv_n: f64, w: usize) -> (u32, f64) {
+    let n_f = n as f64;
+    let q = t * inv_n;
+    let mut fq = (q + ROUND_MAGIC) - ROUND_MAGIC;
+    if fq > q {
+        fq -= 1.0;
+    }
+    // t mod n, in [0, n) up to rounding: a result just below 0 only moves i0 by one cell
+    // within the padding, a result of n is folded back.
+    let mut t = t - n_f * fq;
+    if t >= n_f {
+        t -= n_f;
+    }
+    let s = t - w as f64 / 2.0;
+    let mut i0 = (s + ROUND_MAGIC) - ROUND_MAGIC;
+    if i0 < s {
+        i0 += 1.0;
+    }
+    let frac = i0 - s; // in [0, 1)
+    // i0 + w is a small non-negative integer: read it off the mantissa.
+    let px = (i0 + w as f64 + ROUND_MAGIC).to_bits() as u32;
+    (px, 2.0 * frac - 1.0)
+}
 
 fn fit_kernel(shape: &KernelShape, tolerance: f64) -> Vec<f64> {
     dispatch_support!(shape.support, W => {

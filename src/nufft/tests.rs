@@ -180,3 +180,32 @@ fn kernel_scan() {
         eprintln!("{line}");
     }
 }
+
+#[test]
+fn every_supported_simd_level_gives_the_same_result() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let (nx, ny, m) = (64, 48, 20_000);
+    let (x, y) = random_points(m, &mut rng);
+    let f = random_complex(nx * ny, &mut rng);
+    let c = random_complex(m, &mut rng);
+    for eps in [1e-3, 1e-6, 1e-12] {
+        let mut plan = Nufft2d::new(nx, ny, &x, &y, NufftParams { epsilon: eps, oversampling: 2.0 }, 2).unwrap();
+        let mut results = Vec::new();
+        for level in [SimdLevel::Baseline, SimdLevel::Avx2Fma, SimdLevel::Avx512] {
+            if plan.set_simd_level(level).is_err() {
+                assert!(!level.is_supported());
+                continue;
+            }
+            let mut fwd = vec![Complex64::default(); m];
+            plan.forward(&f, &mut fwd);
+            let mut adj = vec![Complex64::default(); nx * ny];
+            plan.adjoint(&c, &mut adj);
+            results.push((level, fwd, adj));
+        }
+        let (_, fwd0, adj0) = &results[0];
+        for (level, fwd, adj) in &results[1..] {
+            assert!(relative_error(fwd, fwd0) < 1e-13, "{level:?} forward differs at eps {eps:e}");
+            assert!(relative_error(adj, adj0) < 1e-13, "{level:?} adjoint differs at eps {eps:e}");
+        }
+    }
+}
