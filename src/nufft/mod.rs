@@ -24,7 +24,7 @@ use simd::{madd, multiversion, SimdLevel};
 use num_complex::Complex64;
 use rayon::prelude::*;
 use rustfft::{Fft, FftDirection, FftPlanner};
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 /// Call a function generic over the kernel support `W` (and optionally `W2 = 2 W` and
 /// `L = 4 ceil(W / 2)`, the lane counts of [`SymKernel`]) with the runtime support.
@@ -475,39 +475,43 @@ impl Nufft2d {
     /// kernel duplicated), which vectorises without shuffles.
     fn grid<const W: usize, const W2: usize, const L: usize>(&self, c: &[Complex64]) -> Vec<Complex64> {
         let (gx, gy) = (self.grid_nx, self.grid_ny);
-        let grid = Mutex::new(vec![Complex64::default(); gx * gy]);
+        let mut grid = vec![Complex64::default(); gx * gy];
         let kernel = self.kernel::<W, W2, L>();
         let bw = TILE + W;
         let bw2 = 2 * bw;
-        self.tasks.par_iter().for_each_init(
-            || vec![0.0f64; bw * bw2],
-            |buf, task| {
-                for (tx, ty, range) in &task.tiles {
-                    buf.iter_mut().for_each(|v| *v = 0.0);
-                    let origin = ((tx * TILE) as u32, (ty * TILE) as u32);
-                    let (positions, values) = (&self.positions[range.clone()], &c[range.clone()]);
-                    spread_tile::<W, W2, L>(self.simd, &kernel, positions, values, buf, bw2, origin);
-                    // Add the tile to the grid, wrapping padded coordinates periodically.
-                    let mut grid = grid.lock().expect("no task panics while holding the grid");
-                    for r in 0..bw {
-                        let gyi = ((ty * TILE + r) + gy - W) % gy;
-                        let src = &buf[r * bw2..(r + 1) * bw2];
-                        let dst = &mut grid[gyi * gx..(gyi + 1) * gx];
-                        let start = (tx * TILE + gx - W) % gx;
-                        if start + bw <= gx {
-                            for (d, s) in dst[start..start + bw].iter_mut().zip(src.chunks_exact(2)) {
-                                *d += Complex64::new(s[0], s[1]);
-                            }
-                        } else {
-                            for (i, s) in src.chunks_exact(2).enumerate() {
-                                dst[(start + i) % gx] += Complex64::new(s[0], s[1]);
-                            }
+        // Tiles are spread in parallel a batch at a time, and each batch's buffers are added
+        // to the grid in tile order: the floating-point sums, hence the images, do not depend
+        // on thread scheduling (a simulation is bit-for-bit reproducible from its seed).
+        let tiles: Vec<&(usize, usize, std::ops::Range<usize>)> = self.tasks.iter().flat_map(|t| t.tiles.iter()).collect();
+        let batch = 16 * self.pool.current_num_threads().max(1);
+        let mut buffers = vec![vec![0.0f64; bw * bw2]; batch.min(tiles.len())];
+        for chunk in tiles.chunks(batch) {
+            buffers.par_iter_mut().zip(chunk.par_iter()).for_each(|(buf, (tx, ty, range))| {
+                buf.iter_mut().for_each(|v| *v = 0.0);
+                let origin = ((tx * TILE) as u32, (ty * TILE) as u32);
+                let (positions, values) = (&self.positions[range.clone()], &c[range.clone()]);
+                spread_tile::<W, W2, L>(self.simd, &kernel, positions, values, buf, bw2, origin);
+            });
+            for (buf, (tx, ty, _)) in buffers.iter().zip(chunk) {
+                // Add the tile to the grid, wrapping padded coordinates periodically.
+                for r in 0..bw {
+                    let gyi = ((ty * TILE + r) + gy - W) % gy;
+                    let src = &buf[r * bw2..(r + 1) * bw2];
+                    let dst = &mut grid[gyi * gx..(gyi + 1) * gx];
+                    let start = (tx * TILE + gx - W) % gx;
+                    if start + bw <= gx {
+                        for (d, s) in dst[start..start + bw].iter_mut().zip(src.chunks_exact(2)) {
+                            *d += Complex64::new(s[0], s[1]);
+                        }
+                    } else {
+                        for (i, s) in src.chunks_exact(2).enumerate() {
+                            dst[(start + i) % gx] += Complex64::new(s[0], s[1]);
                         }
                     }
                 }
-            },
-        );
-        grid.into_inner().expect("no task panicked")
+            }
+        }
+        grid
     }
 
     /// Interpolate the padded grid (interleaved `re, im` reals) at every point (sorted order):

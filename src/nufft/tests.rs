@@ -120,6 +120,23 @@ fn forward_and_adjoint_are_adjoint() {
 }
 
 #[test]
+fn gridding_is_bit_reproducible_with_threads() {
+    let mut rng = ChaCha8Rng::seed_from_u64(4);
+    let (x, y) = random_points(400_000, &mut rng);
+    let c = random_complex(400_000, &mut rng);
+    let plan = Nufft2d::new(128, 128, &x, &y, NufftParams::default(), 2).unwrap();
+    let run = || {
+        let mut out = vec![Complex64::default(); 128 * 128];
+        plan.adjoint(&c, &mut out);
+        out
+    };
+    let first = run();
+    for _ in 0..3 {
+        assert!(run() == first, "gridding depends on thread scheduling");
+    }
+}
+
+#[test]
 fn thread_count_does_not_change_results_beyond_rounding() {
     let mut rng = ChaCha8Rng::seed_from_u64(3);
     let (x, y) = random_points(50_000, &mut rng);
