@@ -223,6 +223,12 @@ impl Visibilities {
         self.u.iter().zip(&self.v).map(|(u, v)| u.hypot(*v)).fold(0.0, f64::max)
     }
 
+    /// Centre of the observed band and its width (None for a single frequency), Hz.
+    pub fn band(&self) -> Option<(f64, Option<f64>)> {
+        let (lo, hi) = self.frequency.iter().fold((f64::INFINITY, 0.0f64), |(a, b), &f| (a.min(f), b.max(f)));
+        (hi >= lo).then(|| (0.5 * (lo + hi), (hi > lo).then_some(hi - lo)))
+    }
+
     /// Appends another batch, moving its samples.
     pub fn push_batch(&mut self, mut other: Visibilities) {
         self.u.append(&mut other.u);

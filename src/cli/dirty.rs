@@ -31,14 +31,12 @@ pub fn run(args: Args) -> Result<()> {
         geometry.pixel_arcsec(),
         params.weighting
     );
-    let f_min = vis.frequency.iter().copied().fold(f64::INFINITY, f64::min);
-    let f_max = vis.frequency.iter().copied().fold(0.0, f64::max);
     let wcs = ImageWcs {
         ra_deg: meta.phase_centre_ra_deg,
         dec_deg: meta.phase_centre_dec_deg,
         pixel_deg: geometry.pixel_rad.to_degrees(),
-        freq_hz: Some((f_min + f_max) / 2.0),
-        bandwidth_hz: (f_max > f_min).then_some(f_max - f_min),
+        freq_hz: vis.band().map(|(centre, _)| centre),
+        bandwidth_hz: vis.band().and_then(|(_, width)| width),
     };
     let n = geometry.size;
     for (suffix, image) in [("dirty", &products.dirty), ("psf", &products.psf)] {

@@ -34,8 +34,8 @@ const POLL: Duration = Duration::from_millis(20);
 /// Check and build every stage without running anything (`r2d2 validate`).
 pub fn validate(config: &PipelineConfig) -> Result<Graph> {
     let graph = Graph::build(config)?;
-    for (i, stage) in config.stages.iter().enumerate() {
-        build_stage(config, &graph, i, stage)?;
+    for stage in &config.stages {
+        build_stage(config, stage)?;
     }
     Ok(graph)
 }
@@ -44,8 +44,8 @@ pub fn validate(config: &PipelineConfig) -> Result<Graph> {
 pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport> {
     let graph = Graph::build(config)?;
     let mut built = Vec::new();
-    for (i, stage) in config.stages.iter().enumerate() {
-        built.push(build_stage(config, &graph, i, stage)?);
+    for stage in &config.stages {
+        built.push(build_stage(config, stage)?);
     }
     let n = built.len();
     let cap = config.channel_capacity;
@@ -157,14 +157,12 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
                         let id = job.id.clone();
                         let began = Instant::now();
                         let sink = graph.roles[i] == Role::Sink;
-                        let seconds_before: f64 = job.stage_seconds.values().sum();
                         let mut emit = |port: Port, job: Job| send(port, job, began);
                         if let Err(e) = stage.process(job, &mut emit) {
                             break Err(stage_error(name, kind, &id, e));
                         }
                         if sink {
                             finished.lock().expect("finished list").push(id);
-                            let _ = seconds_before;
                         }
                         *totals.lock().expect("totals").entry(name.clone()).or_insert(0.0) += began.elapsed().as_secs_f64();
                     },

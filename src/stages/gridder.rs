@@ -58,7 +58,6 @@ impl Stage for GridderStage {
             }
         };
         let n = geometry.pixels();
-        let (f_min, f_max) = vis.frequency.iter().fold((f64::INFINITY, 0.0f64), |(a, b), &f| (a.min(f), b.max(f)));
         job.imaging = Some(Imaging {
             geometry,
             residual: dirty.clone(),
@@ -69,7 +68,7 @@ impl Stage for GridderStage {
             operator: self.keep_operator.then(|| Arc::new(operator)),
             model: vec![0.0; n],
             beam,
-            frequency_hz: (f_max >= f_min).then_some(0.5 * (f_min + f_max)),
+            frequency_hz: vis.band().map(|(centre, _)| centre),
         });
         if self.keep_operator {
             job.vis = Some(vis);

@@ -10,7 +10,6 @@ mod weighting;
 mod writer;
 
 use crate::pipeline::config::{PipelineConfig, StageConfig};
-use crate::pipeline::graph::Graph;
 use crate::pipeline::{Source, Stage};
 use crate::Result;
 
@@ -54,7 +53,7 @@ pub enum Built {
 }
 
 /// Parse the stage's parameters and construct it (cheap: heavy work happens per job).
-pub fn build_stage(config: &PipelineConfig, graph: &Graph, index: usize, stage: &StageConfig) -> Result<Built> {
+pub fn build_stage(config: &PipelineConfig, stage: &StageConfig) -> Result<Built> {
     let threads = config.threads;
     Ok(match stage.kind.as_str() {
         "simulate" => Built::Source(Box::new(simulate::SimulateSource::new(config.stage_params(stage)?, &config.image, threads)?)),
@@ -69,7 +68,6 @@ pub fn build_stage(config: &PipelineConfig, graph: &Graph, index: usize, stage: 
         "residual" => Built::Stage(Box::new(residual::ResidualStage::new(config.stage_params(stage)?)?)),
         "writer" => Built::Stage(Box::new(writer::WriterStage::new(config.stage_params(stage)?)?)),
         other => {
-            let _ = (graph, index);
             return Err(config.stage_error(
                 &stage.name,
                 Some("kind"),

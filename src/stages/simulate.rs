@@ -1,7 +1,6 @@
 //! `kind: simulate`: simulated VLA observations of procedural skies (one job per seed), with
 //! the true sky attached so the run reports SNR and logSNR.
 
-use crate::imaging::PixelScale;
 use crate::nufft::NufftParams;
 use crate::pipeline::config::ImageConfig;
 use crate::pipeline::{Job, Source};
@@ -104,10 +103,7 @@ impl Source for SimulateSource {
                 },
                 sky: SkyModel::Procedural { seed },
                 size: self.image.size,
-                pixel: match self.image.pixel_scale() {
-                    PixelScale::Arcsec(p) => PixelScale::Arcsec(p),
-                    PixelScale::SuperResolution(sr) => PixelScale::SuperResolution(sr),
-                },
+                pixel: self.image.pixel_scale(),
                 dynamic_range: c.dynamic_range,
                 noise_weighting: self.weighting,
                 phase_centre_deg: (c.ra_deg, c.dec_deg),
