@@ -12,6 +12,7 @@ pub mod imaging;
 pub mod metrics;
 pub mod nufft;
 pub mod operator;
+pub mod preview;
 pub mod simulate;
 pub mod vis;
 pub mod weighting;
