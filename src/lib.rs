@@ -14,6 +14,7 @@ pub mod metrics;
 pub mod nufft;
 pub mod operator;
 pub mod pipeline;
+pub mod preview;
 pub mod simulate;
 pub mod stages;
 pub mod steps;
