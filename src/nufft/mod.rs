@@ -16,10 +16,12 @@
 //! grid under a lock, so threads never contend per visibility.
 
 pub mod kernel;
+mod permute;
 pub mod simd;
 
 use crate::{Error, Result};
 use kernel::{KernelShape, PolynomialKernel, SymKernel};
+use permute::Permutation;
 use simd::{madd, multiversion, SimdLevel};
 use num_complex::Complex64;
 use rayon::prelude::*;
@@ -130,6 +132,8 @@ pub struct Nufft2d {
     positions: Vec<GridPosition>,
     order: Vec<u32>,
     tasks: Vec<Task>,
+    /// `order` organised for cache-friendly moves to and from the caller's order.
+    perm: Permutation,
     /// Grid rows (0 .. grid_ny) touched by any point's kernel: other rows stay zero.
     row_used: Vec<bool>,
     fft_x: Arc<dyn Fft<f64>>,
@@ -222,6 +226,7 @@ impl Nufft2d {
             positions: Vec::new(),
             order: Vec::new(),
             tasks: Vec::new(),
+            perm: Permutation::default(),
             row_used: Vec::new(),
             pool,
             simd: SimdLevel::detect(),
@@ -400,6 +405,8 @@ impl Nufft2d {
         if !current.tiles.is_empty() {
             tasks.push(current);
         }
+        let ranges: Vec<_> = tasks.iter().map(|t| t.points.clone()).collect();
+        self.perm = self.pool.install(|| Permutation::new(&order, &ranges));
         self.positions = positions;
         self.order = order;
         self.tasks = tasks;
@@ -410,23 +417,29 @@ impl Nufft2d {
     /// Type 2 (image to points): `out[k] = sum_j image[j] exp(+i (x_k jx + y_k jy))`, with
     /// points in the caller's order.
     pub fn forward(&self, image: &[Complex64], out: &mut [Complex64]) {
-        assert_eq!(out.len(), self.len());
-        let mut sorted = vec![Complex64::default(); self.len()];
-        self.forward_sorted(image, &mut sorted);
+        assert_eq!(image.len(), self.nx * self.ny, "image size");
+        assert_eq!(out.len(), self.len(), "number of points");
         self.pool.install(|| {
-            // Scatter back to the caller's order.
-            for (k, &i) in self.order.iter().enumerate() {
-                out[i as usize] = sorted[k];
-            }
+            let padded = self.image_to_padded_grid(image);
+            let mut slots = vec![Complex64::default(); self.len()];
+            let sinks = self.perm.task_segments_mut(&mut slots).into_iter().map(Sink::parts).collect();
+            dispatch_support!(self.shape.support, W, W2, L => self.degrid::<W, W2, L>(&padded, sinks));
+            self.perm.scatter(&slots, out);
         });
     }
 
     /// Type 1 (points to image): `out[j] = sum_k c[k] exp(-i (x_k jx + y_k jy))`, with points
     /// in the caller's order.
     pub fn adjoint(&self, c: &[Complex64], out: &mut [Complex64]) {
-        assert_eq!(c.len(), self.len());
-        let sorted: Vec<Complex64> = self.pool.install(|| self.order.par_iter().map(|&i| c[i as usize]).collect());
-        self.adjoint_sorted(&sorted, out);
+        assert_eq!(c.len(), self.len(), "number of points");
+        assert_eq!(out.len(), self.nx * self.ny, "image size");
+        self.pool.install(|| {
+            let mut slots = vec![Complex64::default(); self.len()];
+            self.perm.gather(c, &mut slots);
+            let sources = self.perm.task_segments(&slots).into_iter().map(Source::parts).collect();
+            let grid = dispatch_support!(self.shape.support, W, W2, L => self.grid::<W, W2, L>(sources));
+            self.grid_to_image(grid, out);
+        });
     }
 
     /// [`Nufft2d::forward`] with points in the plan's order ([`Nufft2d::order`]).
@@ -435,7 +448,15 @@ impl Nufft2d {
         assert_eq!(out.len(), self.len(), "number of points");
         self.pool.install(|| {
             let padded = self.image_to_padded_grid(image);
-            dispatch_support!(self.shape.support, W, W2, L => self.degrid::<W, W2, L>(&padded, out));
+            // One sink per task, for the task's range of points.
+            let mut sinks = Vec::with_capacity(self.tasks.len());
+            let mut rest = out;
+            for task in &self.tasks {
+                let (head, tail) = std::mem::take(&mut rest).split_at_mut(task.points.len());
+                sinks.push(Sink::Sorted(head));
+                rest = tail;
+            }
+            dispatch_support!(self.shape.support, W, W2, L => self.degrid::<W, W2, L>(&padded, sinks));
         });
     }
 
@@ -444,7 +465,8 @@ impl Nufft2d {
         assert_eq!(c.len(), self.len(), "number of points");
         assert_eq!(out.len(), self.nx * self.ny, "image size");
         self.pool.install(|| {
-            let grid = dispatch_support!(self.shape.support, W, W2, L => self.grid::<W, W2, L>(c));
+            let sources = self.tasks.iter().map(|task| Source::Sorted(&c[task.points.clone()])).collect();
+            let grid = dispatch_support!(self.shape.support, W, W2, L => self.grid::<W, W2, L>(sources));
             self.grid_to_image(grid, out);
         });
     }
@@ -473,20 +495,24 @@ impl Nufft2d {
     /// interleaved `f64` pairs, so that one kernel row of a point is a contiguous run of
     /// `2 W` reals updated by a single multiply-add loop (`re, im, re, im, ...` times the x
     /// kernel duplicated), which vectorises without shuffles.
-    fn grid<const W: usize, const W2: usize, const L: usize>(&self, c: &[Complex64]) -> Vec<Complex64> {
+    ///
+    /// `sources[j]` gives the values of task `j`'s points.
+    fn grid<const W: usize, const W2: usize, const L: usize>(&self, sources: Vec<Source>) -> Vec<Complex64> {
         let (gx, gy) = (self.grid_nx, self.grid_ny);
         let grid = Mutex::new(vec![Complex64::default(); gx * gy]);
         let kernel = self.kernel::<W, W2, L>();
         let bw = TILE + W;
         let bw2 = 2 * bw;
-        self.tasks.par_iter().for_each_init(
+        self.tasks.par_iter().zip(sources).for_each_init(
             || vec![0.0f64; bw * bw2],
-            |buf, task| {
+            |buf, (task, mut source)| {
                 for (tx, ty, range) in &task.tiles {
                     buf.iter_mut().for_each(|v| *v = 0.0);
                     let origin = ((tx * TILE) as u32, (ty * TILE) as u32);
-                    let (positions, values) = (&self.positions[range.clone()], &c[range.clone()]);
-                    spread_tile::<W, W2, L>(self.simd, &kernel, positions, values, buf, bw2, origin);
+                    let positions = &self.positions[range.clone()];
+                    let local = range.start - task.points.start..range.end - task.points.start;
+                    let order = &self.order[range.clone()];
+                    spread_tile::<W, W2, L>(self.simd, &kernel, positions, &mut source, local, order, self.perm.shift, buf, bw2, origin);
                     // Add the tile to the grid, wrapping padded coordinates periodically.
                     let mut grid = grid.lock().expect("no task panics while holding the grid");
                     for r in 0..bw {
@@ -513,21 +539,14 @@ impl Nufft2d {
     /// Interpolate the padded grid (interleaved `re, im` reals) at every point (sorted order):
     /// sum the `W` kernel rows weighted by the y kernel into `2 W` reals, then contract with
     /// the x kernel.
-    fn degrid<const W: usize, const W2: usize, const L: usize>(&self, padded: &[f64], out: &mut [Complex64]) {
+    ///
+    /// `sinks[j]` receives the values of task `j`'s points.
+    fn degrid<const W: usize, const W2: usize, const L: usize>(&self, padded: &[f64], sinks: Vec<Sink>) {
         let pw2 = 2 * (self.grid_nx + 2 * W);
         let kernel = self.kernel::<W, W2, L>();
-        // Split `out` into the tasks' disjoint ranges.
-        let mut chunks = Vec::with_capacity(self.tasks.len());
-        let mut rest = out;
-        let mut offset = 0;
-        for task in &self.tasks {
-            let (head, tail) = std::mem::take(&mut rest).split_at_mut(task.points.end - offset);
-            chunks.push((task, &mut head[task.points.start - offset..]));
-            offset = task.points.end;
-            rest = tail;
-        }
-        chunks.into_par_iter().for_each(|(task, out)| {
-            interp_points::<W, W2, L>(self.simd, &kernel, &self.positions[task.points.clone()], padded, pw2, out);
+        self.tasks.par_iter().zip(sinks).for_each(|(task, mut sink)| {
+            let (positions, order) = (&self.positions[task.points.clone()], &self.order[task.points.clone()]);
+            interp_points::<W, W2, L>(self.simd, &kernel, positions, padded, pw2, &mut sink, order, self.perm.shift);
         });
     }
 
@@ -617,11 +636,15 @@ impl Nufft2d {
 
 multiversion! {
     /// Spread the points of one tile into its buffer: interleaved `re, im` reals in rows of
-    /// `bw2`, the tile's padded origin at `origin`.
+    /// `bw2`, the tile's padded origin at `origin`. The points are `local` in the task's
+    /// range (for `Source::Sorted`), with caller indices `order` (for `Source::Parts`).
     fn spread_tile<const W: usize, const W2: usize, const L: usize>(
         kernel: &SymKernel<W, W2, L>,
         positions: &[GridPosition],
-        values: &[Complex64],
+        source: &mut Source,
+        local: std::ops::Range<usize>,
+        order: &[u32],
+        shift: u32,
         buf: &mut [f64],
         bw2: usize,
         origin: (u32, u32),
@@ -632,14 +655,27 @@ multiversion! {
 fn spread_tile_impl<const W: usize, const W2: usize, const L: usize, const FMA: bool>(
     kernel: &SymKernel<W, W2, L>,
     positions: &[GridPosition],
-    values: &[Complex64],
+    source: &mut Source,
+    local: std::ops::Range<usize>,
+    order: &[u32],
+    shift: u32,
     buf: &mut [f64],
     bw2: usize,
     (x0, y0): (u32, u32),
 ) {
-    for (p, &v) in positions.iter().zip(values) {
-        let k = kernel.eval::<FMA>(p.zx, p.zy);
-        let (kx, ky) = k.split_at(W);
+    for (k, p) in positions.iter().enumerate() {
+        let v = match source {
+            Source::Sorted(values) => values[local.start + k],
+            Source::Parts { segments, cursor } => {
+                let part = (order[k] >> shift) as usize;
+                let c = &mut cursor[part];
+                let v = segments[part][*c];
+                *c += 1;
+                v
+            }
+        };
+        let kxy = kernel.eval::<FMA>(p.zx, p.zy);
+        let (kx, ky) = kxy.split_at(W);
         let mut vk = [0.0f64; W2];
         for b in 0..W {
             vk[2 * b] = v.re * kx[b];
@@ -665,7 +701,9 @@ multiversion! {
         positions: &[GridPosition],
         padded: &[f64],
         pw2: usize,
-        out: &mut [Complex64],
+        sink: &mut Sink,
+        order: &[u32],
+        shift: u32,
     ) => interp_points_impl
 }
 
@@ -675,11 +713,13 @@ fn interp_points_impl<const W: usize, const W2: usize, const L: usize, const FMA
     positions: &[GridPosition],
     padded: &[f64],
     pw2: usize,
-    out: &mut [Complex64],
+    sink: &mut Sink,
+    order: &[u32],
+    shift: u32,
 ) {
-    for (p, o) in positions.iter().zip(out.iter_mut()) {
-        let k = kernel.eval::<FMA>(p.zx, p.zy);
-        let (kx, ky) = k.split_at(W);
+    for (k, p) in positions.iter().enumerate() {
+        let kxy = kernel.eval::<FMA>(p.zx, p.zy);
+        let (kx, ky) = kxy.split_at(W);
         let base = p.py as usize * pw2 + 2 * p.px as usize;
         let footprint = &padded[base..base + (W - 1) * pw2 + W2];
         let mut acc = [0.0f64; W2];
@@ -694,7 +734,47 @@ fn interp_points_impl<const W: usize, const W2: usize, const L: usize, const FMA
             re = madd::<FMA>(acc[2 * b], kx[b], re);
             im = madd::<FMA>(acc[2 * b + 1], kx[b], im);
         }
-        *o = Complex64::new(re, im);
+        let v = Complex64::new(re, im);
+        match sink {
+            Sink::Sorted(out) => out[k] = v,
+            Sink::Parts { segments, cursor } => {
+                let part = (order[k] >> shift) as usize;
+                let c = &mut cursor[part];
+                segments[part][*c] = v;
+                *c += 1;
+            }
+        }
+    }
+}
+
+/// The values of one task's points, for gridding.
+enum Source<'a> {
+    /// In plan order.
+    Sorted(&'a [Complex64]),
+    /// The task's segments of the parts (see [`Permutation`]), read in plan order with one
+    /// cursor per part.
+    Parts { segments: Vec<&'a [Complex64]>, cursor: Vec<usize> },
+}
+
+impl<'a> Source<'a> {
+    fn parts(segments: Vec<&'a [Complex64]>) -> Self {
+        let cursor = vec![0; segments.len()];
+        Source::Parts { segments, cursor }
+    }
+}
+
+/// Where one task's interpolated values go.
+enum Sink<'a> {
+    /// In plan order.
+    Sorted(&'a mut [Complex64]),
+    /// The task's segments of the parts, written in plan order with one cursor per part.
+    Parts { segments: Vec<&'a mut [Complex64]>, cursor: Vec<usize> },
+}
+
+impl<'a> Sink<'a> {
+    fn parts(segments: Vec<&'a mut [Complex64]>) -> Self {
+        let cursor = vec![0; segments.len()];
+        Sink::Parts { segments, cursor }
     }
 }
 
