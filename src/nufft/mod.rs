@@ -96,16 +96,48 @@ const TILE: usize = 32;
 /// Largest accepted point coordinate magnitude (radians per pixel).
 const MAX_COORDINATE: f64 = 1e12;
 
-/// Where one point falls on the padded grid, and its sub-cell kernel variables.
+/// Where one point falls on the padded grid, and its sub-cell kernel variables, packed in
+/// 16 bytes (24 as plain fields): per axis, the first covered cell in padded coordinates
+/// (grid index + support, below 2^16) in the top 16 bits and the sub-cell fraction
+/// `frac in [0, 1)` of the kernel variable `z = 2 frac - 1` (see [`PolynomialKernel`]) as a
+/// 48-bit fixed-point number. The fraction's rounding, below `2^-49`, moves kernel values by
+/// less than `1e-15`; the smaller array makes plans faster to build and gridding read less.
 #[derive(Clone, Copy, Debug, Default)]
 struct GridPosition {
-    /// First covered cell in padded coordinates (grid index + support).
-    px: u32,
-    py: u32,
-    /// Kernel variables `z in [-1, 1)` (see [`PolynomialKernel`]).
-    zx: f64,
-    zy: f64,
+    x: u64,
+    y: u64,
 }
+
+/// Fraction bits of a [`GridPosition`] axis.
+const FRAC_BITS: u32 = 48;
+const FRAC_MASK: u64 = (1 << FRAC_BITS) - 1;
+
+impl GridPosition {
+    #[inline(always)]
+    fn px(&self) -> usize {
+        (self.x >> FRAC_BITS) as usize
+    }
+    #[inline(always)]
+    fn py(&self) -> usize {
+        (self.y >> FRAC_BITS) as usize
+    }
+    #[inline(always)]
+    fn zx(&self) -> f64 {
+        Self::z(self.x)
+    }
+    #[inline(always)]
+    fn zy(&self) -> f64 {
+        Self::z(self.y)
+    }
+    #[inline(always)]
+    fn z(axis: u64) -> f64 {
+        // Through i64: the value fits, and the signed conversion is one instruction.
+        ((axis & FRAC_MASK) as i64 as f64) * (2.0 / (1u64 << FRAC_BITS) as f64) - 1.0
+    }
+}
+
+/// Largest padded grid edge a [`GridPosition`] can address.
+const MAX_PADDED_GRID: usize = 1 << 16;
 
 /// A contiguous run of sorted points covering whole tiles, processed by one task.
 #[derive(Clone, Debug)]
@@ -197,6 +229,12 @@ impl Nufft2d {
         let w = shape.support;
         let grid_nx = good_fft_size(((nx as f64) * params.oversampling).ceil() as usize).max(2 * w);
         let grid_ny = good_fft_size(((ny as f64) * params.oversampling).ceil() as usize).max(2 * w);
+        if grid_nx.max(grid_ny) + 2 * w > MAX_PADDED_GRID {
+            return Err(Error::parameter(
+                "image size",
+                format!("{nx} x {ny} needs a {grid_nx} x {grid_ny} grid; at most {} cells a side are supported", MAX_PADDED_GRID - 2 * w),
+            ));
+        }
         // The polynomial's error stays well below the NUFFT's.
         let kernel_coeffs = fit_kernel(&shape, params.epsilon / 20.0);
         let psi_x = shape.fourier_coefficients(grid_nx, nx / 2);
@@ -289,11 +327,9 @@ impl Nufft2d {
         let (sx, sy) = (gx as f64 / (2.0 * std::f64::consts::PI), gy as f64 / (2.0 * std::f64::consts::PI));
         let (inv_gx, inv_gy) = (1.0 / gx as f64, 1.0 / gy as f64);
         let position = |xk: f64, yk: f64| -> GridPosition {
-            let (px, zx) = grid_position(xk * sx, gx, inv_gx, w);
-            let (py, zy) = grid_position(yk * sy, gy, inv_gy, w);
-            GridPosition { px, py, zx, zy }
+            GridPosition { x: grid_position(xk * sx, gx, inv_gx, w), y: grid_position(yk * sy, gy, inv_gy, w) }
         };
-        let tile_of = |p: &GridPosition| ((p.py as usize / TILE) * tiles_x + p.px as usize / TILE) as u32;
+        let tile_of = |p: &GridPosition| ((p.py() / TILE) * tiles_x + p.px() / TILE) as u32;
         let threads = self.pool.current_num_threads().max(1);
         let npoints = x.len();
         let chunk = npoints.div_ceil(4 * threads).max(1 << 14);
@@ -341,7 +377,7 @@ impl Nufft2d {
         }
         bounds.push(ntiles);
         let mut order = vec![0u32; npoints];
-        let mut positions = vec![GridPosition::default(); npoints];
+        let mut positions = par_filled(GridPosition::default(), npoints);
         let mut parts = Vec::with_capacity(groups);
         {
             let (mut rest_o, mut rest_p) = (order.as_mut_slice(), positions.as_mut_slice());
@@ -421,7 +457,7 @@ impl Nufft2d {
         assert_eq!(out.len(), self.len(), "number of points");
         self.pool.install(|| {
             let padded = self.image_to_padded_grid(image);
-            let mut slots = vec![Complex64::default(); self.len()];
+            let mut slots = par_filled(Complex64::default(), self.len());
             let sinks = self.perm.task_segments_mut(&mut slots).into_iter().map(Sink::parts).collect();
             dispatch_support!(self.shape.support, W, W2, L => self.degrid::<W, W2, L>(&padded, sinks));
             self.perm.scatter(&slots, out);
@@ -434,8 +470,7 @@ impl Nufft2d {
         assert_eq!(c.len(), self.len(), "number of points");
         assert_eq!(out.len(), self.nx * self.ny, "image size");
         self.pool.install(|| {
-            let mut slots = vec![Complex64::default(); self.len()];
-            self.perm.gather(c, &mut slots);
+            let slots = self.perm.gather(c);
             let sources = self.perm.task_segments(&slots).into_iter().map(Source::parts).collect();
             let grid = dispatch_support!(self.shape.support, W, W2, L => self.grid::<W, W2, L>(sources));
             self.grid_to_image(grid, out);
@@ -499,7 +534,7 @@ impl Nufft2d {
     /// `sources[j]` gives the values of task `j`'s points.
     fn grid<const W: usize, const W2: usize, const L: usize>(&self, sources: Vec<Source>) -> Vec<Complex64> {
         let (gx, gy) = (self.grid_nx, self.grid_ny);
-        let grid = Mutex::new(vec![Complex64::default(); gx * gy]);
+        let grid = Mutex::new(par_filled(Complex64::default(), gx * gy));
         let kernel = self.kernel::<W, W2, L>();
         let bw = TILE + W;
         let bw2 = 2 * bw;
@@ -565,7 +600,7 @@ impl Nufft2d {
         // Columns holding modes jx in [-nx/2, nx/2), gathered in blocks of 8, FFT'd along y,
         // kept in column-major order `cols[ix * ny + iy]` (only the rows holding image modes).
         const B: usize = 8;
-        let mut cols = vec![Complex64::default(); nx * ny];
+        let mut cols = par_filled(Complex64::default(), nx * ny);
         cols.par_chunks_mut(ny * B).enumerate().for_each_init(
             || (vec![Complex64::default(); gy * B], vec![Complex64::default(); self.fft_y.get_inplace_scratch_len()]),
             |(block, scratch), (bi, dst)| {
@@ -597,7 +632,7 @@ impl Nufft2d {
         let (gx, gy, nx, ny) = (self.grid_nx, self.grid_ny, self.nx, self.ny);
         let w = self.shape.support;
         // Column-major corrected image columns, each inverse-FFT'd along y: cols[ix * gy + r].
-        let mut cols = vec![Complex64::default(); nx * gy];
+        let mut cols = par_filled(Complex64::default(), nx * gy);
         cols.par_chunks_mut(gy).enumerate().for_each_init(
             || vec![Complex64::default(); self.ifft_y.get_inplace_scratch_len()],
             |scratch, (ix, col)| {
@@ -674,14 +709,14 @@ fn spread_tile_impl<const W: usize, const W2: usize, const L: usize, const FMA: 
                 v
             }
         };
-        let kxy = kernel.eval::<FMA>(p.zx, p.zy);
+        let kxy = kernel.eval::<FMA>(p.zx(), p.zy());
         let (kx, ky) = kxy.split_at(W);
         let mut vk = [0.0f64; W2];
         for b in 0..W {
             vk[2 * b] = v.re * kx[b];
             vk[2 * b + 1] = v.im * kx[b];
         }
-        let base = (p.py - y0) as usize * bw2 + 2 * (p.px - x0) as usize;
+        let base = (p.py() - y0 as usize) * bw2 + 2 * (p.px() - x0 as usize);
         let footprint = &mut buf[base..base + (W - 1) * bw2 + W2];
         for (a, &kya) in ky.iter().enumerate() {
             let row = &mut footprint[a * bw2..a * bw2 + W2];
@@ -718,9 +753,9 @@ fn interp_points_impl<const W: usize, const W2: usize, const L: usize, const FMA
     shift: u32,
 ) {
     for (k, p) in positions.iter().enumerate() {
-        let kxy = kernel.eval::<FMA>(p.zx, p.zy);
+        let kxy = kernel.eval::<FMA>(p.zx(), p.zy());
         let (kx, ky) = kxy.split_at(W);
-        let base = p.py as usize * pw2 + 2 * p.px as usize;
+        let base = p.py() * pw2 + 2 * p.px();
         let footprint = &padded[base..base + (W - 1) * pw2 + W2];
         let mut acc = [0.0f64; W2];
         for (a, &kya) in ky.iter().enumerate() {
@@ -778,19 +813,29 @@ impl<'a> Sink<'a> {
     }
 }
 
+/// `vec![value; n]` written by the current thread pool: the first touch of fresh pages (and
+/// the page faults it costs) is shared by the threads, and `vec!` of a non-primitive type
+/// would write it all on one thread.
+fn par_filled<T: Clone + Send>(value: T, n: usize) -> Vec<T> {
+    let mut v = Vec::with_capacity(n);
+    v.par_extend(rayon::iter::repeat_n(value, n));
+    v
+}
+
 /// `1.5 * 2^52`: adding and subtracting it rounds an `f64` of magnitude below `2^51` to the
 /// nearest integer, and after adding it the low mantissa bits hold that integer.
 const ROUND_MAGIC: f64 = 6755399441055744.0;
 
-/// Padded grid position of a point at grid coordinate `t` (magnitude below `2^50`): the first
-/// covered cell `i0 + w` and the kernel variable `z = 2 (i0 - s) - 1` with
-/// `s = (t mod n) - w/2` and `i0 = ceil(s)` (see [`PolynomialKernel`]).
+/// Padded grid position of a point at grid coordinate `t` (magnitude below `2^50`), one axis
+/// of a [`GridPosition`]: the first covered cell `i0 + w` and the fraction `frac = i0 - s`
+/// (kernel variable `z = 2 frac - 1`) with `s = (t mod n) - w/2` and `i0 = ceil(s)` (see
+/// [`PolynomialKernel`]).
 ///
 /// Floor and ceiling use [`ROUND_MAGIC`]: the baseline x86-64 target has no SSE4.1 rounding
 /// instruction (`f64::floor` is a library call there) and `as` casts saturate, which costs
 /// several instructions each; this keeps the whole computation to a few float operations.
 #[inline(always)]
-fn grid_position(t: f64, n: usize, inv_n: f64, w: usize) -> (u32, f64) {
+fn grid_position(t: f64, n: usize, inv_n: f64, w: usize) -> u64 {
     let n_f = n as f64;
     let q = t * inv_n;
     let mut fq = (q + ROUND_MAGIC) - ROUND_MAGIC;
@@ -809,9 +854,11 @@ fn grid_position(t: f64, n: usize, inv_n: f64, w: usize) -> (u32, f64) {
         i0 += 1.0;
     }
     let frac = i0 - s; // in [0, 1)
-    // i0 + w is a small non-negative integer: read it off the mantissa.
-    let px = (i0 + w as f64 + ROUND_MAGIC).to_bits() as u32;
-    (px, 2.0 * frac - 1.0)
+    // i0 + w is a small non-negative integer, frac * 2^48 rounded one below 2^51: read them
+    // off the mantissa.
+    let cell = (i0 + w as f64 + ROUND_MAGIC).to_bits() & 0xffff;
+    let frac = ((frac * (1u64 << FRAC_BITS) as f64 + ROUND_MAGIC).to_bits() & ((1 << 51) - 1)).min(FRAC_MASK);
+    cell << FRAC_BITS | frac
 }
 
 fn fit_kernel(shape: &KernelShape, tolerance: f64) -> Vec<f64> {

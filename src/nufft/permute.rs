@@ -118,16 +118,11 @@ impl Permutation {
         segs
     }
 
-    /// Slots from values in the caller's order, part by part in parallel.
-    pub fn gather(&self, values: &[Complex64], slots: &mut [Complex64]) {
-        let part = 1 << self.shift;
-        slots.par_chunks_mut(part).zip(self.local.par_chunks(part)).zip(values.par_chunks(part)).for_each(
-            |((slots, local), values)| {
-                for (s, &l) in slots.iter_mut().zip(local) {
-                    *s = values[l as usize];
-                }
-            },
-        );
+    /// Slots from values in the caller's order, in parallel (a slot's value comes from its
+    /// own part's block, which stays in cache while the slots of the part are filled).
+    pub fn gather(&self, values: &[Complex64]) -> Vec<Complex64> {
+        let shift = self.shift;
+        self.local.par_iter().enumerate().map(|(s, &l)| values[((s >> shift) << shift) + l as usize]).collect()
     }
 
     /// Values in the caller's order from slots, part by part in parallel.
@@ -156,8 +151,7 @@ mod tests {
         let perm = Permutation::new(&order, &tasks);
         assert_eq!(perm.parts(), 4);
         let values: Vec<Complex64> = (0..n).map(|i| Complex64::new(i as f64, -(i as f64))).collect();
-        let mut slots = vec![Complex64::default(); n];
-        perm.gather(&values, &mut slots);
+        let slots = perm.gather(&values);
         // Each task reads its points' values in plan order, one cursor per part.
         let segs = perm.task_segments(&slots);
         for (range, segs) in tasks.iter().zip(&segs) {
