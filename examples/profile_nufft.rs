@@ -22,7 +22,9 @@ fn main() {
     let mut vis = vec![Complex64::default(); n];
     let mut times = Vec::new();
     let mut cpus = Vec::new();
+    let mut faults = Vec::new();
     for _ in 0..reps {
+        let f0 = stat_field(7);
         let c0 = cpu_seconds();
         let t = Instant::now();
         match phase.as_str() {
@@ -35,10 +37,18 @@ fn main() {
         }
         times.push(t.elapsed().as_secs_f64());
         cpus.push(cpu_seconds() - c0);
+        faults.push(stat_field(7) - f0);
     }
     let best = times.iter().cloned().fold(f64::MAX, f64::min);
     let cpu_mean = cpus.iter().sum::<f64>() / reps as f64;
-    println!("{phase}: best wall {best:.4} s  mean cpu {cpu_mean:.4} s  walls {times:.3?}");
+    println!("{phase}: best wall {best:.4} s  mean cpu {cpu_mean:.4} s  walls {times:.3?} minor faults {faults:?}");
+}
+
+/// Field `i` (0-based, after the command name) of /proc/self/stat.
+fn stat_field(i: usize) -> f64 {
+    let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
+    let after = stat.rsplit(')').next().unwrap_or("");
+    after.split_whitespace().nth(i).and_then(|s| s.parse().ok()).unwrap_or(0.0)
 }
 
 /// User + system CPU time of the whole process (all threads), from /proc (10 ms ticks).

@@ -16,10 +16,12 @@
 //! grid under a lock, so threads never contend per visibility.
 
 pub mod kernel;
+mod permute;
 pub mod simd;
 
 use crate::{Error, Result};
 use kernel::{KernelShape, PolynomialKernel, SymKernel};
+use permute::Permutation;
 use simd::{madd, multiversion, SimdLevel};
 use num_complex::Complex64;
 use rayon::prelude::*;
@@ -94,16 +96,48 @@ const TILE: usize = 32;
 /// Largest accepted point coordinate magnitude (radians per pixel).
 const MAX_COORDINATE: f64 = 1e12;
 
-/// Where one point falls on the padded grid, and its sub-cell kernel variables.
+/// Where one point falls on the padded grid, and its sub-cell kernel variables, packed in
+/// 16 bytes (24 as plain fields): per axis, the first covered cell in padded coordinates
+/// (grid index + support, below 2^16) in the top 16 bits and the sub-cell fraction
+/// `frac in [0, 1)` of the kernel variable `z = 2 frac - 1` (see [`PolynomialKernel`]) as a
+/// 48-bit fixed-point number. The fraction's rounding, below `2^-49`, moves kernel values by
+/// less than `1e-15`; the smaller array makes plans faster to build and gridding read less.
 #[derive(Clone, Copy, Debug, Default)]
 struct GridPosition {
-    /// First covered cell in padded coordinates (grid index + support).
-    px: u32,
-    py: u32,
-    /// Kernel variables `z in [-1, 1)` (see [`PolynomialKernel`]).
-    zx: f64,
-    zy: f64,
+    x: u64,
+    y: u64,
 }
+
+/// Fraction bits of a [`GridPosition`] axis.
+const FRAC_BITS: u32 = 48;
+const FRAC_MASK: u64 = (1 << FRAC_BITS) - 1;
+
+impl GridPosition {
+    #[inline(always)]
+    fn px(&self) -> usize {
+        (self.x >> FRAC_BITS) as usize
+    }
+    #[inline(always)]
+    fn py(&self) -> usize {
+        (self.y >> FRAC_BITS) as usize
+    }
+    #[inline(always)]
+    fn zx(&self) -> f64 {
+        Self::z(self.x)
+    }
+    #[inline(always)]
+    fn zy(&self) -> f64 {
+        Self::z(self.y)
+    }
+    #[inline(always)]
+    fn z(axis: u64) -> f64 {
+        // Through i64: the value fits, and the signed conversion is one instruction.
+        ((axis & FRAC_MASK) as i64 as f64) * (2.0 / (1u64 << FRAC_BITS) as f64) - 1.0
+    }
+}
+
+/// Largest padded grid edge a [`GridPosition`] can address.
+const MAX_PADDED_GRID: usize = 1 << 16;
 
 /// A contiguous run of sorted points covering whole tiles, processed by one task.
 #[derive(Clone, Debug)]
@@ -130,6 +164,8 @@ pub struct Nufft2d {
     positions: Vec<GridPosition>,
     order: Vec<u32>,
     tasks: Vec<Task>,
+    /// `order` organised for cache-friendly moves to and from the caller's order.
+    perm: Permutation,
     /// Grid rows (0 .. grid_ny) touched by any point's kernel: other rows stay zero.
     row_used: Vec<bool>,
     fft_x: Arc<dyn Fft<f64>>,
@@ -193,6 +229,12 @@ impl Nufft2d {
         let w = shape.support;
         let grid_nx = good_fft_size(((nx as f64) * params.oversampling).ceil() as usize).max(2 * w);
         let grid_ny = good_fft_size(((ny as f64) * params.oversampling).ceil() as usize).max(2 * w);
+        if grid_nx.max(grid_ny) + 2 * w > MAX_PADDED_GRID {
+            return Err(Error::parameter(
+                "image size",
+                format!("{nx} x {ny} needs a {grid_nx} x {grid_ny} grid; at most {} cells a side are supported", MAX_PADDED_GRID - 2 * w),
+            ));
+        }
         // The polynomial's error stays well below the NUFFT's.
         let kernel_coeffs = fit_kernel(&shape, params.epsilon / 20.0);
         let psi_x = shape.fourier_coefficients(grid_nx, nx / 2);
@@ -222,6 +264,7 @@ impl Nufft2d {
             positions: Vec::new(),
             order: Vec::new(),
             tasks: Vec::new(),
+            perm: Permutation::default(),
             row_used: Vec::new(),
             pool,
             simd: SimdLevel::detect(),
@@ -284,11 +327,9 @@ impl Nufft2d {
         let (sx, sy) = (gx as f64 / (2.0 * std::f64::consts::PI), gy as f64 / (2.0 * std::f64::consts::PI));
         let (inv_gx, inv_gy) = (1.0 / gx as f64, 1.0 / gy as f64);
         let position = |xk: f64, yk: f64| -> GridPosition {
-            let (px, zx) = grid_position(xk * sx, gx, inv_gx, w);
-            let (py, zy) = grid_position(yk * sy, gy, inv_gy, w);
-            GridPosition { px, py, zx, zy }
+            GridPosition { x: grid_position(xk * sx, gx, inv_gx, w), y: grid_position(yk * sy, gy, inv_gy, w) }
         };
-        let tile_of = |p: &GridPosition| ((p.py as usize / TILE) * tiles_x + p.px as usize / TILE) as u32;
+        let tile_of = |p: &GridPosition| ((p.py() / TILE) * tiles_x + p.px() / TILE) as u32;
         let threads = self.pool.current_num_threads().max(1);
         let npoints = x.len();
         let chunk = npoints.div_ceil(4 * threads).max(1 << 14);
@@ -336,7 +377,7 @@ impl Nufft2d {
         }
         bounds.push(ntiles);
         let mut order = vec![0u32; npoints];
-        let mut positions = vec![GridPosition::default(); npoints];
+        let mut positions = par_filled(GridPosition::default(), npoints);
         let mut parts = Vec::with_capacity(groups);
         {
             let (mut rest_o, mut rest_p) = (order.as_mut_slice(), positions.as_mut_slice());
@@ -400,6 +441,8 @@ impl Nufft2d {
         if !current.tiles.is_empty() {
             tasks.push(current);
         }
+        let ranges: Vec<_> = tasks.iter().map(|t| t.points.clone()).collect();
+        self.perm = self.pool.install(|| Permutation::new(&order, &ranges));
         self.positions = positions;
         self.order = order;
         self.tasks = tasks;
@@ -410,23 +453,28 @@ impl Nufft2d {
     /// Type 2 (image to points): `out[k] = sum_j image[j] exp(+i (x_k jx + y_k jy))`, with
     /// points in the caller's order.
     pub fn forward(&self, image: &[Complex64], out: &mut [Complex64]) {
-        assert_eq!(out.len(), self.len());
-        let mut sorted = vec![Complex64::default(); self.len()];
-        self.forward_sorted(image, &mut sorted);
+        assert_eq!(image.len(), self.nx * self.ny, "image size");
+        assert_eq!(out.len(), self.len(), "number of points");
         self.pool.install(|| {
-            // Scatter back to the caller's order.
-            for (k, &i) in self.order.iter().enumerate() {
-                out[i as usize] = sorted[k];
-            }
+            let padded = self.image_to_padded_grid(image);
+            let mut slots = par_filled(Complex64::default(), self.len());
+            let sinks = self.perm.task_segments_mut(&mut slots).into_iter().map(Sink::parts).collect();
+            dispatch_support!(self.shape.support, W, W2, L => self.degrid::<W, W2, L>(&padded, sinks));
+            self.perm.scatter(&slots, out);
         });
     }
 
     /// Type 1 (points to image): `out[j] = sum_k c[k] exp(-i (x_k jx + y_k jy))`, with points
     /// in the caller's order.
     pub fn adjoint(&self, c: &[Complex64], out: &mut [Complex64]) {
-        assert_eq!(c.len(), self.len());
-        let sorted: Vec<Complex64> = self.pool.install(|| self.order.par_iter().map(|&i| c[i as usize]).collect());
-        self.adjoint_sorted(&sorted, out);
+        assert_eq!(c.len(), self.len(), "number of points");
+        assert_eq!(out.len(), self.nx * self.ny, "image size");
+        self.pool.install(|| {
+            let slots = self.perm.gather(c);
+            let sources = self.perm.task_segments(&slots).into_iter().map(Source::parts).collect();
+            let grid = dispatch_support!(self.shape.support, W, W2, L => self.grid::<W, W2, L>(sources));
+            self.grid_to_image(grid, out);
+        });
     }
 
     /// [`Nufft2d::forward`] with points in the plan's order ([`Nufft2d::order`]).
@@ -435,7 +483,15 @@ impl Nufft2d {
         assert_eq!(out.len(), self.len(), "number of points");
         self.pool.install(|| {
             let padded = self.image_to_padded_grid(image);
-            dispatch_support!(self.shape.support, W, W2, L => self.degrid::<W, W2, L>(&padded, out));
+            // One sink per task, for the task's range of points.
+            let mut sinks = Vec::with_capacity(self.tasks.len());
+            let mut rest = out;
+            for task in &self.tasks {
+                let (head, tail) = std::mem::take(&mut rest).split_at_mut(task.points.len());
+                sinks.push(Sink::Sorted(head));
+                rest = tail;
+            }
+            dispatch_support!(self.shape.support, W, W2, L => self.degrid::<W, W2, L>(&padded, sinks));
         });
     }
 
@@ -444,7 +500,8 @@ impl Nufft2d {
         assert_eq!(c.len(), self.len(), "number of points");
         assert_eq!(out.len(), self.nx * self.ny, "image size");
         self.pool.install(|| {
-            let grid = dispatch_support!(self.shape.support, W, W2, L => self.grid::<W, W2, L>(c));
+            let sources = self.tasks.iter().map(|task| Source::Sorted(&c[task.points.clone()])).collect();
+            let grid = dispatch_support!(self.shape.support, W, W2, L => self.grid::<W, W2, L>(sources));
             self.grid_to_image(grid, out);
         });
     }
@@ -473,41 +530,70 @@ impl Nufft2d {
     /// interleaved `f64` pairs, so that one kernel row of a point is a contiguous run of
     /// `2 W` reals updated by a single multiply-add loop (`re, im, re, im, ...` times the x
     /// kernel duplicated), which vectorises without shuffles.
-    fn grid<const W: usize, const W2: usize, const L: usize>(&self, c: &[Complex64]) -> Vec<Complex64> {
+    ///
+    /// `sources[j]` gives the values of task `j`'s points.
+    fn grid<const W: usize, const W2: usize, const L: usize>(&self, sources: Vec<Source>) -> Vec<Complex64> {
         let (gx, gy) = (self.grid_nx, self.grid_ny);
-        let mut grid = vec![Complex64::default(); gx * gy];
         let kernel = self.kernel::<W, W2, L>();
         let bw = TILE + W;
         let bw2 = 2 * bw;
-        // Tiles are spread in parallel a batch at a time, and each batch's buffers are added
-        // to the grid in tile order: the floating-point sums, hence the images, do not depend
-        // on thread scheduling (a simulation is bit-for-bit reproducible from its seed).
-        let tiles: Vec<&(usize, usize, std::ops::Range<usize>)> = self.tasks.iter().flat_map(|t| t.tiles.iter()).collect();
-        let batch = 16 * self.pool.current_num_threads().max(1);
-        let mut buffers = vec![vec![0.0f64; bw * bw2]; batch.min(tiles.len())];
-        for chunk in tiles.chunks(batch) {
-            buffers.par_iter_mut().zip(chunk.par_iter()).for_each(|(buf, (tx, ty, range))| {
-                buf.iter_mut().for_each(|v| *v = 0.0);
-                let origin = ((tx * TILE) as u32, (ty * TILE) as u32);
-                let (positions, values) = (&self.positions[range.clone()], &c[range.clone()]);
-                spread_tile::<W, W2, L>(self.simd, &kernel, positions, values, buf, bw2, origin);
-            });
-            for (buf, (tx, ty, _)) in buffers.iter().zip(chunk) {
-                // Add the tile to the grid, wrapping padded coordinates periodically.
-                for r in 0..bw {
-                    let gyi = ((ty * TILE + r) + gy - W) % gy;
-                    let src = &buf[r * bw2..(r + 1) * bw2];
-                    let dst = &mut grid[gyi * gx..(gyi + 1) * gx];
-                    let start = (tx * TILE + gx - W) % gx;
-                    if start + bw <= gx {
-                        for (d, s) in dst[start..start + bw].iter_mut().zip(src.chunks_exact(2)) {
-                            *d += Complex64::new(s[0], s[1]);
-                        }
-                    } else {
-                        for (i, s) in src.chunks_exact(2).enumerate() {
-                            dst[(start + i) % gx] += Complex64::new(s[0], s[1]);
+        // Tasks spread their tiles in parallel, a batch of tasks at a time (a task reads its
+        // values with per-part cursors, so its tiles go in order), and the tile buffers are
+        // added to the grid in task and tile order: the floating-point sums, hence the
+        // images, do not depend on thread scheduling (simulations are bit-for-bit
+        // reproducible from their seed).
+        let mut grid = par_filled(Complex64::default(), gx * gy);
+        let batch = 4 * self.pool.current_num_threads().max(1);
+        let mut sources: Vec<Option<Source>> = sources.into_iter().map(Some).collect();
+        let mut spare: Vec<Vec<f64>> = Vec::new();
+        for (chunk, chunk_sources) in self.tasks.chunks(batch).zip(sources.chunks_mut(batch)) {
+            let pool = std::sync::Mutex::new(std::mem::take(&mut spare));
+            let take_buffer = || {
+                let reused = pool.lock().expect("no task panics while holding the pool").pop();
+                reused.map_or_else(|| vec![0.0f64; bw * bw2], |mut b| {
+                    b.iter_mut().for_each(|v| *v = 0.0);
+                    b
+                })
+            };
+            let spread: Vec<Vec<Vec<f64>>> = chunk
+                .par_iter()
+                .zip(chunk_sources.par_iter_mut())
+                .map(|(task, source)| {
+                    let mut source = source.take().expect("each source is used once");
+                    task.tiles
+                        .iter()
+                        .map(|(tx, ty, range)| {
+                            let mut buf = take_buffer();
+                            let origin = ((tx * TILE) as u32, (ty * TILE) as u32);
+                            let positions = &self.positions[range.clone()];
+                            let local = range.start - task.points.start..range.end - task.points.start;
+                            let order = &self.order[range.clone()];
+                            spread_tile::<W, W2, L>(self.simd, &kernel, positions, &mut source, local, order, self.perm.shift, &mut buf, bw2, origin);
+                            buf
+                        })
+                        .collect()
+                })
+                .collect();
+            spare = pool.into_inner().expect("no task panics while holding the pool");
+            for (task, buffers) in chunk.iter().zip(spread) {
+                for ((tx, ty, _), buf) in task.tiles.iter().zip(buffers) {
+                    // Add the tile to the grid, wrapping padded coordinates periodically.
+                    for r in 0..bw {
+                        let gyi = ((ty * TILE + r) + gy - W) % gy;
+                        let src = &buf[r * bw2..(r + 1) * bw2];
+                        let dst = &mut grid[gyi * gx..(gyi + 1) * gx];
+                        let start = (tx * TILE + gx - W) % gx;
+                        if start + bw <= gx {
+                            for (d, s) in dst[start..start + bw].iter_mut().zip(src.chunks_exact(2)) {
+                                *d += Complex64::new(s[0], s[1]);
+                            }
+                        } else {
+                            for (i, s) in src.chunks_exact(2).enumerate() {
+                                dst[(start + i) % gx] += Complex64::new(s[0], s[1]);
+                            }
                         }
                     }
+                    spare.push(buf);
                 }
             }
         }
@@ -517,21 +603,14 @@ impl Nufft2d {
     /// Interpolate the padded grid (interleaved `re, im` reals) at every point (sorted order):
     /// sum the `W` kernel rows weighted by the y kernel into `2 W` reals, then contract with
     /// the x kernel.
-    fn degrid<const W: usize, const W2: usize, const L: usize>(&self, padded: &[f64], out: &mut [Complex64]) {
+    ///
+    /// `sinks[j]` receives the values of task `j`'s points.
+    fn degrid<const W: usize, const W2: usize, const L: usize>(&self, padded: &[f64], sinks: Vec<Sink>) {
         let pw2 = 2 * (self.grid_nx + 2 * W);
         let kernel = self.kernel::<W, W2, L>();
-        // Split `out` into the tasks' disjoint ranges.
-        let mut chunks = Vec::with_capacity(self.tasks.len());
-        let mut rest = out;
-        let mut offset = 0;
-        for task in &self.tasks {
-            let (head, tail) = std::mem::take(&mut rest).split_at_mut(task.points.end - offset);
-            chunks.push((task, &mut head[task.points.start - offset..]));
-            offset = task.points.end;
-            rest = tail;
-        }
-        chunks.into_par_iter().for_each(|(task, out)| {
-            interp_points::<W, W2, L>(self.simd, &kernel, &self.positions[task.points.clone()], padded, pw2, out);
+        self.tasks.par_iter().zip(sinks).for_each(|(task, mut sink)| {
+            let (positions, order) = (&self.positions[task.points.clone()], &self.order[task.points.clone()]);
+            interp_points::<W, W2, L>(self.simd, &kernel, positions, padded, pw2, &mut sink, order, self.perm.shift);
         });
     }
 
@@ -550,7 +629,7 @@ impl Nufft2d {
         // Columns holding modes jx in [-nx/2, nx/2), gathered in blocks of 8, FFT'd along y,
         // kept in column-major order `cols[ix * ny + iy]` (only the rows holding image modes).
         const B: usize = 8;
-        let mut cols = vec![Complex64::default(); nx * ny];
+        let mut cols = par_filled(Complex64::default(), nx * ny);
         cols.par_chunks_mut(ny * B).enumerate().for_each_init(
             || (vec![Complex64::default(); gy * B], vec![Complex64::default(); self.fft_y.get_inplace_scratch_len()]),
             |(block, scratch), (bi, dst)| {
@@ -582,7 +661,7 @@ impl Nufft2d {
         let (gx, gy, nx, ny) = (self.grid_nx, self.grid_ny, self.nx, self.ny);
         let w = self.shape.support;
         // Column-major corrected image columns, each inverse-FFT'd along y: cols[ix * gy + r].
-        let mut cols = vec![Complex64::default(); nx * gy];
+        let mut cols = par_filled(Complex64::default(), nx * gy);
         cols.par_chunks_mut(gy).enumerate().for_each_init(
             || vec![Complex64::default(); self.ifft_y.get_inplace_scratch_len()],
             |scratch, (ix, col)| {
@@ -621,11 +700,15 @@ impl Nufft2d {
 
 multiversion! {
     /// Spread the points of one tile into its buffer: interleaved `re, im` reals in rows of
-    /// `bw2`, the tile's padded origin at `origin`.
+    /// `bw2`, the tile's padded origin at `origin`. The points are `local` in the task's
+    /// range (for `Source::Sorted`), with caller indices `order` (for `Source::Parts`).
     fn spread_tile<const W: usize, const W2: usize, const L: usize>(
         kernel: &SymKernel<W, W2, L>,
         positions: &[GridPosition],
-        values: &[Complex64],
+        source: &mut Source,
+        local: std::ops::Range<usize>,
+        order: &[u32],
+        shift: u32,
         buf: &mut [f64],
         bw2: usize,
         origin: (u32, u32),
@@ -636,20 +719,33 @@ multiversion! {
 fn spread_tile_impl<const W: usize, const W2: usize, const L: usize, const FMA: bool>(
     kernel: &SymKernel<W, W2, L>,
     positions: &[GridPosition],
-    values: &[Complex64],
+    source: &mut Source,
+    local: std::ops::Range<usize>,
+    order: &[u32],
+    shift: u32,
     buf: &mut [f64],
     bw2: usize,
     (x0, y0): (u32, u32),
 ) {
-    for (p, &v) in positions.iter().zip(values) {
-        let k = kernel.eval::<FMA>(p.zx, p.zy);
-        let (kx, ky) = k.split_at(W);
+    for (k, p) in positions.iter().enumerate() {
+        let v = match source {
+            Source::Sorted(values) => values[local.start + k],
+            Source::Parts { segments, cursor } => {
+                let part = (order[k] >> shift) as usize;
+                let c = &mut cursor[part];
+                let v = segments[part][*c];
+                *c += 1;
+                v
+            }
+        };
+        let kxy = kernel.eval::<FMA>(p.zx(), p.zy());
+        let (kx, ky) = kxy.split_at(W);
         let mut vk = [0.0f64; W2];
         for b in 0..W {
             vk[2 * b] = v.re * kx[b];
             vk[2 * b + 1] = v.im * kx[b];
         }
-        let base = (p.py - y0) as usize * bw2 + 2 * (p.px - x0) as usize;
+        let base = (p.py() - y0 as usize) * bw2 + 2 * (p.px() - x0 as usize);
         let footprint = &mut buf[base..base + (W - 1) * bw2 + W2];
         for (a, &kya) in ky.iter().enumerate() {
             let row = &mut footprint[a * bw2..a * bw2 + W2];
@@ -669,7 +765,9 @@ multiversion! {
         positions: &[GridPosition],
         padded: &[f64],
         pw2: usize,
-        out: &mut [Complex64],
+        sink: &mut Sink,
+        order: &[u32],
+        shift: u32,
     ) => interp_points_impl
 }
 
@@ -679,12 +777,14 @@ fn interp_points_impl<const W: usize, const W2: usize, const L: usize, const FMA
     positions: &[GridPosition],
     padded: &[f64],
     pw2: usize,
-    out: &mut [Complex64],
+    sink: &mut Sink,
+    order: &[u32],
+    shift: u32,
 ) {
-    for (p, o) in positions.iter().zip(out.iter_mut()) {
-        let k = kernel.eval::<FMA>(p.zx, p.zy);
-        let (kx, ky) = k.split_at(W);
-        let base = p.py as usize * pw2 + 2 * p.px as usize;
+    for (k, p) in positions.iter().enumerate() {
+        let kxy = kernel.eval::<FMA>(p.zx(), p.zy());
+        let (kx, ky) = kxy.split_at(W);
+        let base = p.py() * pw2 + 2 * p.px();
         let footprint = &padded[base..base + (W - 1) * pw2 + W2];
         let mut acc = [0.0f64; W2];
         for (a, &kya) in ky.iter().enumerate() {
@@ -698,23 +798,73 @@ fn interp_points_impl<const W: usize, const W2: usize, const L: usize, const FMA
             re = madd::<FMA>(acc[2 * b], kx[b], re);
             im = madd::<FMA>(acc[2 * b + 1], kx[b], im);
         }
-        *o = Complex64::new(re, im);
+        let v = Complex64::new(re, im);
+        match sink {
+            Sink::Sorted(out) => out[k] = v,
+            Sink::Parts { segments, cursor } => {
+                let part = (order[k] >> shift) as usize;
+                let c = &mut cursor[part];
+                segments[part][*c] = v;
+                *c += 1;
+            }
+        }
     }
+}
+
+/// The values of one task's points, for gridding.
+enum Source<'a> {
+    /// In plan order.
+    Sorted(&'a [Complex64]),
+    /// The task's segments of the parts (see [`Permutation`]), read in plan order with one
+    /// cursor per part.
+    Parts { segments: Vec<&'a [Complex64]>, cursor: Vec<usize> },
+}
+
+impl<'a> Source<'a> {
+    fn parts(segments: Vec<&'a [Complex64]>) -> Self {
+        let cursor = vec![0; segments.len()];
+        Source::Parts { segments, cursor }
+    }
+}
+
+/// Where one task's interpolated values go.
+enum Sink<'a> {
+    /// In plan order.
+    Sorted(&'a mut [Complex64]),
+    /// The task's segments of the parts, written in plan order with one cursor per part.
+    Parts { segments: Vec<&'a mut [Complex64]>, cursor: Vec<usize> },
+}
+
+impl<'a> Sink<'a> {
+    fn parts(segments: Vec<&'a mut [Complex64]>) -> Self {
+        let cursor = vec![0; segments.len()];
+        Sink::Parts { segments, cursor }
+    }
+}
+
+/// `vec![value; n]` written by the current thread pool: the first touch of fresh pages (and
+/// the page faults it costs) is shared by the threads, and `vec!` of a non-primitive type
+/// would write it all on one thread.
+fn par_filled<T: Clone + Send>(value: T, n: usize) -> Vec<T> {
+    let mut v = Vec::with_capacity(n);
+    v.par_extend(rayon::iter::repeat_n(value, n));
+    v
 }
 
 /// `1.5 * 2^52`: adding and subtracting it rounds an `f64` of magnitude below `2^51` to the
 /// nearest integer, and after adding it the low mantissa bits hold that integer.
 const ROUND_MAGIC: f64 = 6755399441055744.0;
 
-/// Padded grid position of a point at grid coordinate `t` (magnitude below `2^50`): the first
-/// covered cell `i0 + w` and the kernel variable `z = 2 (i0 - s) - 1` with
-/// `s = (t mod n) - w/2` and `i0 = ceil(s)` (see [`PolynomialKernel`]).
+/// Padded grid position of a point at grid coordinate `t` (magnitude below `2^50`), one axis
+/// of a [`GridPosition`]: the first covered cell `i0 + w` and the fraction `frac = i0 - s`
+/// (kernel variable `z = 2 frac - 1`) with `s = (t mod n) - w/2` and `i0 = ceil(s)` (see
+/// [`PolynomialKernel`]).
 ///
 /// Floor and ceiling use [`ROUND_MAGIC`]: the baseline x86-64 target has no SSE4.1 rounding
 /// instruction (`f64::floor` is a library call there) and `as` casts saturate, which costs
 /// several instructions each; this keeps the whole computation to a few float operations.
 #[inline(always)]
-fn grid_position(t: f64, n: usize, inv_n: f64, w: usize) -> (u32, f64) {
+fn grid_position(t: f64, n: usize, inv_n: f64, w: usize) -> u64 {
     let n_f = n as f64;
     let q = t * inv_n;
     let mut fq = (q + ROUND_MAGIC) - ROUND_MAGIC;
@@ -733,9 +883,11 @@ fn grid_position(t: f64, n: usize, inv_n: f64, w: usize) -> (u32, f64) {
         i0 += 1.0;
     }
     let frac = i0 - s; // in [0, 1)
-    // i0 + w is a small non-negative integer: read it off the mantissa.
-    let px = (i0 + w as f64 + ROUND_MAGIC).to_bits() as u32;
-    (px, 2.0 * frac - 1.0)
+    // i0 + w is a small non-negative integer, frac * 2^48 rounded one below 2^51: read them
+    // off the mantissa.
+    let cell = (i0 + w as f64 + ROUND_MAGIC).to_bits() & 0xffff;
+    let frac = ((frac * (1u64 << FRAC_BITS) as f64 + ROUND_MAGIC).to_bits() & ((1 << 51) - 1)).min(FRAC_MASK);
+    cell << FRAC_BITS | frac
 }
 
 fn fit_kernel(shape: &KernelShape, tolerance: f64) -> Vec<f64> {
