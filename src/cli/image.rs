@@ -14,12 +14,16 @@ pub struct Args {
     input: PathBuf,
     #[command(flatten)]
     image: ImageOptions,
-    /// Network step: `clean` (built in).
+    /// Network step: `clean` (built in), or a model series directory (`models/<series>`).
     #[arg(long, default_value = "clean")]
     step: String,
-    /// Iterations of the step (CLEAN major cycles).
-    #[arg(long, default_value_t = 5)]
-    iterations: usize,
+    /// Iterations of the step: CLEAN major cycles (default 5), or the first networks of a
+    /// series (default: all).
+    #[arg(long)]
+    iterations: Option<usize>,
+    /// ONNX inference backend for a series: auto (native ONNX Runtime if found), ort, tract.
+    #[arg(long, default_value = "auto")]
+    backend: String,
     /// Ground truth (FITS) for SNR/logSNR per iteration.
     #[arg(long)]
     truth: Option<PathBuf>,
@@ -28,10 +32,30 @@ pub struct Args {
     name: String,
 }
 
-pub fn run(args: Args) -> Result<()> {
-    if args.step != "clean" {
-        return Err(Error::parameter("step", format!("expected clean (the built-in step), got '{}'", args.step)));
+/// The `step` stage of the image pipeline for `--step`.
+fn step_stage(args: &Args) -> Result<serde_yaml::Value> {
+    let yaml = |s: &str| serde_yaml::from_str::<serde_yaml::Value>(s).expect("literal YAML");
+    if args.step == "clean" {
+        let cycles = args.iterations.unwrap_or(5);
+        return Ok(yaml(&format!("{{kind: clean, major_cycles: {cycles}, to: update}}")));
     }
+    let path = Path::new(&args.step);
+    if path.is_dir() {
+        let mut stage = yaml("{kind: onnx, to: update}");
+        stage["series"] = serde_yaml::Value::String(path.to_string_lossy().into_owned());
+        stage["backend"] = serde_yaml::Value::String(args.backend.clone());
+        if let Some(n) = args.iterations {
+            stage["networks"] = n.into();
+        }
+        return Ok(stage);
+    }
+    Err(Error::parameter("step", format!("expected clean or a model series directory (models/<series>), got '{}' (not a directory)", args.step)))
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let mut pipeline: serde_yaml::Value = serde_yaml::from_str(IMAGE_PIPELINE).expect("the compiled-in pipeline is valid YAML");
+    pipeline["stages"]["step"] = step_stage(&args)?;
+    let text = serde_yaml::to_string(&pipeline).expect("YAML serialises");
     let quote = |p: &Path| serde_json::to_string(&p.to_string_lossy()).expect("strings serialise");
     let mut set = vec![
         format!("read.files={}", quote(&args.input)),
@@ -41,7 +65,6 @@ pub fn run(args: Args) -> Result<()> {
         format!("weights.grid_factor={}", args.image.weighting_grid_factor),
         format!("grid.epsilon={}", args.image.epsilon),
         format!("grid.oversampling={}", args.image.oversampling),
-        format!("step.major_cycles={}", args.iterations),
         format!("write.prefix={}", quote(Path::new(&args.name))),
         format!("threads={}", args.image.threads),
     ];
@@ -52,6 +75,6 @@ pub fn run(args: Args) -> Result<()> {
     if let Some(t) = &args.truth {
         set.push(format!("read.truth={}", quote(t)));
     }
-    let config = PipelineConfig::parse(IMAGE_PIPELINE, Path::new("pipelines/image.yaml"), &set)?;
+    let config = PipelineConfig::parse(&text, Path::new("pipelines/image.yaml"), &set)?;
     super::run::run_pipeline(&config)
 }

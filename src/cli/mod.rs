@@ -3,7 +3,9 @@
 mod bench;
 mod dirty;
 mod image;
+mod info;
 mod metrics;
+mod models;
 mod run;
 mod simulate;
 
@@ -40,6 +42,10 @@ enum Command {
     Bench(bench::Command),
     /// SNR and logSNR of an estimate against a ground truth, as JSON.
     Metrics(metrics::Args),
+    /// The model series under models/ (or a given directory) and their manifests' key facts
+    Models(models::Args),
+    /// What this build will use: ONNX inference backend, gridder SIMD level, threads
+    Info(info::Args),
 }
 
 pub fn main() -> ExitCode {
@@ -59,6 +65,8 @@ pub fn main() -> ExitCode {
         Command::Validate(args) => run::validate(args),
         Command::Image(args) => image::run(args),
         Command::Bench(cmd) => bench::run(cmd),
+        Command::Models(args) => models::run(args),
+        Command::Info(args) => info::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -1,8 +1,9 @@
-//! Network-step stages (`kind: clean`, later `onnx`, `native`): run the job's next step of
+//! Network-step stages (`kind: clean`, `onnx`): run the job's next step of
 //! the series and pass it to the residual update.
 
 use crate::pipeline::{Emit, Job, Port, Stage};
 use crate::steps::clean::{CleanConfig, CleanStep};
+use crate::steps::onnx::{OnnxConfig, OnnxStep};
 use crate::steps::{NetworkStep, StepInput};
 use crate::Result;
 use std::time::Instant;
@@ -15,6 +16,11 @@ pub struct StepStage {
 impl StepStage {
     pub fn clean(config: CleanConfig) -> Result<StepStage> {
         Ok(StepStage { kind: "clean", step: Box::new(CleanStep::new(config)?) })
+    }
+
+    /// An R2D2/R3D3 series for `size x size` images (checked now, before any job runs).
+    pub fn onnx(config: OnnxConfig, size: usize, threads: usize) -> Result<StepStage> {
+        Ok(StepStage { kind: "onnx", step: Box::new(OnnxStep::new(&config, size, threads)?) })
     }
 }
 

@@ -4,6 +4,9 @@
 //! trait.
 
 pub mod clean;
+pub mod onnx;
+pub mod runtime;
+pub mod series;
 
 use crate::Result;
 

@@ -1,0 +1,20 @@
+//! `r2d2 info`: what this build and machine will use (inference backend, SIMD level, threads).
+
+use r2d2_imaging::steps::runtime::{find_onnxruntime, BackendChoice, Runtime};
+use r2d2_imaging::Result;
+
+#[derive(clap::Args)]
+pub struct Args {}
+
+pub fn run(_args: Args) -> Result<()> {
+    println!("r2d2 {}", env!("CARGO_PKG_VERSION"));
+    println!("gridder SIMD: {:?}", r2d2_imaging::nufft::simd::SimdLevel::detect());
+    println!("threads: {} available", std::thread::available_parallelism().map_or(1, |n| n.get()));
+    match find_onnxruntime() {
+        Ok(lib) => println!("ONNX Runtime library: {}", lib.display()),
+        Err(why) => println!("ONNX Runtime library: not found ({why})"),
+    }
+    let runtime = Runtime::select(BackendChoice::Auto, 0)?;
+    println!("ONNX inference (backend: auto): {}", runtime.describe());
+    Ok(())
+}

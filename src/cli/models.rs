@@ -1,0 +1,61 @@
+//! `r2d2 models`: the model series found under a directory (default `models/`), with their
+//! manifests' key facts.
+
+use r2d2_imaging::steps::series::{discover, Architecture};
+use r2d2_imaging::Result;
+use std::path::PathBuf;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Directory holding one sub-directory per series.
+    #[arg(default_value = "models")]
+    dir: PathBuf,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let found = discover(&args.dir);
+    if found.is_empty() {
+        println!("no model series under {}", args.dir.display());
+        return Ok(());
+    }
+    for (dir, series) in found {
+        match series {
+            Err(e) => println!("{}: unusable: {e}", dir.display()),
+            Ok(s) => {
+                let arch = match s.architecture {
+                    Architecture::R2d2 => "R2D2".to_string(),
+                    Architecture::R3d3 => format!("R3D3, {} layers", s.layers()),
+                };
+                println!("{}  ({})", dir.display(), s.name);
+                println!("  {} iterations, {arch}; {}", s.len(), s.origin);
+                let sizes = if s.image_sizes.is_empty() { "unknown".to_string() } else { format!("{:?}", s.image_sizes) };
+                println!("  trained for image sizes {sizes}{}", if s.any_size { ", runs at any size" } else { " only" });
+                if let Some(m) = &s.manifest {
+                    if !m.description.is_empty() {
+                        println!("  {}", m.description);
+                    }
+                    let mut facts = Vec::new();
+                    if !m.telescope.is_empty() {
+                        facts.push(format!("telescope {}", m.telescope));
+                    }
+                    if let Some(sr) = m.superresolution {
+                        facts.push(format!("super-resolution {sr}"));
+                    }
+                    if let Some([lo, hi]) = m.dynamic_range {
+                        facts.push(format!("dynamic range {lo:.0e}..{hi:.0e}"));
+                    }
+                    if !m.weighting.is_null() {
+                        facts.push(format!("weighting {}", serde_json::to_string(&m.weighting).unwrap_or_default()));
+                    }
+                    if !facts.is_empty() {
+                        println!("  {}", facts.join(", "));
+                    }
+                    if let Some(last) = m.test.as_sequence().and_then(|t| t.last()).or_else(|| m.validation.as_sequence().and_then(|v| v.last())) {
+                        println!("  last iteration metrics: {}", serde_json::to_string(last).unwrap_or_default());
+                    }
+                }
+            }
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,370 @@
+//! The R2D2 step: a trained series of ONNX networks, run as the reference implementation does
+//! (`../shared/reference/r2d2-conventions.md`, section "Inference loop"; docs/conventions.md).
+//!
+//! Iteration i (1-based) with network N_i, alpha = mean(x_{i-1}) (mean of the dirty image at
+//! i = 1): the input is `[dirty/alpha, 0]` for i = 1 and `[x_{i-1}/alpha, r_{i-1}/alpha]` after
+//! (image first); `x_i = max(0, (N_i(input) + x_{i-1}/alpha) * alpha)`. R3D3 components run J
+//! layers on `[residual, image]` with a PSF data-fidelity update of the residual between them.
+//!
+//! Networks load lazily and at most two stay resident (the current one and the previous, so a
+//! job following another through the series rarely reloads), whatever the series length.
+
+use super::runtime::{check_network, BackendChoice, Network, Runtime};
+use super::series::{Architecture, Series};
+use super::{NetworkStep, StepInput};
+use crate::operator::PsfConvolution;
+use crate::{Error, Result};
+use serde::Deserialize;
+use std::path::{Path, PathBuf};
+
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OnnxConfig {
+    /// Series directory (`models/<name>`): a manifest and ONNX files, or the reference names.
+    pub series: PathBuf,
+    /// `auto` (native ONNX Runtime if found, else tract), `ort` or `tract`.
+    #[serde(default)]
+    pub backend: BackendChoice,
+    /// Intra-op threads for ONNX Runtime (0: the pipeline's `threads`).
+    #[serde(default)]
+    pub threads: usize,
+    /// Run only the first networks of the series.
+    #[serde(default)]
+    pub networks: Option<usize>,
+}
+
+/// Networks resident at once.
+const RESIDENT: usize = 2;
+
+pub struct OnnxStep {
+    series: Series,
+    runtime: Runtime,
+    size: usize,
+    iterations: usize,
+    /// Loaded networks, most recently used last, keyed by (iteration, layer).
+    resident: Vec<((usize, usize), Box<dyn Network>)>,
+}
+
+impl OnnxStep {
+    /// Open and check the series for `size x size` images: every file is read and its input and
+    /// output checked here, before imaging starts.
+    pub fn new(config: &OnnxConfig, size: usize, pipeline_threads: usize) -> Result<OnnxStep> {
+        let series = Series::open(&config.series)?;
+        if let Some(warning) = series.check_size(size)? {
+            log::warn!("{warning}");
+        }
+        let iterations = match config.networks {
+            None => series.len(),
+            Some(0) => return Err(Error::parameter("networks", "expected at least 1")),
+            Some(n) if n > series.len() => {
+                return Err(Error::parameter("networks", format!("series '{}' has {} networks, asked for {n}", series.name, series.len())));
+            }
+            Some(n) => n,
+        };
+        for file in series.files[..iterations].iter().flatten() {
+            check_network(file, size)?;
+        }
+        let threads = if config.threads > 0 { config.threads } else { pipeline_threads };
+        let runtime = Runtime::select(config.backend, threads)?;
+        log::info!("series '{}' ({}, {} iterations, {}), inference by {}", series.name, series.origin, iterations, arch_name(series.architecture), runtime.describe());
+        Ok(OnnxStep { series, runtime, size, iterations, resident: Vec::new() })
+    }
+
+    pub fn runtime(&self) -> &Runtime {
+        &self.runtime
+    }
+
+    fn network(&mut self, iteration: usize, layer: usize) -> Result<&mut Box<dyn Network>> {
+        let key = (iteration, layer);
+        if let Some(pos) = self.resident.iter().position(|(k, _)| *k == key) {
+            let entry = self.resident.remove(pos);
+            self.resident.push(entry);
+        } else {
+            // Free before loading, so that at most RESIDENT networks exist even while loading.
+            if self.resident.len() >= RESIDENT {
+                self.resident.remove(0);
+            }
+            let path = &self.series.files[iteration - 1][layer];
+            let net = self.runtime.load(path, self.size)?;
+            self.resident.push((key, net));
+        }
+        Ok(&mut self.resident.last_mut().expect("just pushed").1)
+    }
+
+    fn run_network(&mut self, iteration: usize, layer: usize, first: &[f64], second: &[f64], alpha: f64) -> Result<Vec<f64>> {
+        let mut input = Vec::with_capacity(2 * first.len());
+        input.extend(first.iter().map(|v| (v / alpha) as f32));
+        input.extend(second.iter().map(|v| (v / alpha) as f32));
+        let path = self.series.files[iteration - 1][layer].clone();
+        let output = self.network(iteration, layer)?.run(&input)?;
+        if let Some(bad) = output.iter().position(|v| !v.is_finite()) {
+            return Err(Error::input(path, format!("network output is not finite at pixel {bad} (iteration {iteration})")));
+        }
+        Ok(output.into_iter().map(f64::from).collect())
+    }
+}
+
+fn arch_name(a: Architecture) -> &'static str {
+    match a {
+        Architecture::R2d2 => "R2D2",
+        Architecture::R3d3 => "R3D3",
+    }
+}
+
+fn mean(x: &[f64]) -> f64 {
+    x.iter().sum::<f64>() / x.len().max(1) as f64
+}
+
+/// The normalisation alpha: the mean of the current image, or of the dirty image when the
+/// image has none (i = 1, or every pixel projected to zero, where the reference would divide
+/// by zero).
+fn normalisation(image: &[f64], dirty: &[f64], path: &Path) -> Result<f64> {
+    let a = mean(image);
+    if a > 0.0 && a.is_finite() {
+        return Ok(a);
+    }
+    let d = mean(dirty);
+    if d > 0.0 && d.is_finite() {
+        return Ok(d);
+    }
+    Err(Error::input(path, format!("cannot normalise the network input: the mean of the image ({a:.3e}) and of the dirty image ({d:.3e}) are not positive")))
+}
+
+impl NetworkStep for OnnxStep {
+    fn series_length(&self) -> usize {
+        self.iterations
+    }
+
+    fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>> {
+        if iteration == 0 || iteration > self.iterations {
+            return Err(Error::parameter("iteration", format!("expected 1..={}, got {iteration}", self.iterations)));
+        }
+        if input.size != self.size {
+            return Err(Error::parameter("image size", format!("the series was prepared for {0} x {0}, the job is {1} x {1}", self.size, input.size)));
+        }
+        let path = self.series.files[iteration - 1][0].clone();
+        match self.series.architecture {
+            Architecture::R2d2 => {
+                let (alpha, increment) = if iteration == 1 {
+                    let alpha = normalisation(&[], input.dirty, &path)?;
+                    let zero = vec![0.0; input.dirty.len()];
+                    (alpha, self.run_network(1, 0, input.dirty, &zero, alpha)?)
+                } else {
+                    let alpha = normalisation(input.model, input.dirty, &path)?;
+                    (alpha, self.run_network(iteration, 0, input.model, input.residual, alpha)?)
+                };
+                Ok(input.model.iter().zip(&increment).map(|(x, d)| ((d + x / alpha) * alpha).max(0.0)).collect())
+            }
+            Architecture::R3d3 => {
+                let layers = self.series.files[iteration - 1].len();
+                let psf = PsfConvolution::new(self.size, input.psf_2n)?;
+                let mut image = input.model.to_vec();
+                let mut residual = if iteration == 1 { input.dirty.to_vec() } else { input.residual.to_vec() };
+                let mut alpha = normalisation(&image, input.dirty, &path)?;
+                for layer in 0..layers {
+                    let increment = self.run_network(iteration, layer, &residual, &image, alpha)?;
+                    for (x, d) in image.iter_mut().zip(&increment) {
+                        *x = (*x / alpha + d) * alpha;
+                    }
+                    if layer + 1 < layers {
+                        // Data fidelity between layers: the residual of the current image.
+                        let dx = psf.apply(&image);
+                        residual = input.dirty.iter().zip(&dx).map(|(d, v)| d - v).collect();
+                        alpha = normalisation(&image, input.dirty, &path)?;
+                    }
+                }
+                Ok(image.into_iter().map(|v| v.max(0.0)).collect())
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use std::sync::OnceLock;
+
+    /// The tiny analytic networks of `tests/make_test_models.py`, generated once per test run.
+    /// Python with the `onnx` package is a test requirement (tests/requirements.txt): missing,
+    /// the tests fail saying so rather than skip.
+    pub(crate) fn test_models() -> &'static Path {
+        static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
+        DIR.get_or_init(|| {
+            let dir = tempfile::tempdir().expect("temp dir");
+            let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/make_test_models.py");
+            let out = std::process::Command::new("python3").arg(&script).arg(dir.path()).output().expect("python3 runs (a test requirement)");
+            assert!(out.status.success(), "{} failed (pip install -r tests/requirements.txt):\n{}", script.display(), String::from_utf8_lossy(&out.stderr));
+            dir
+        })
+        .path()
+    }
+
+    const N: usize = 32;
+
+    /// A Gaussian-like PSF over twice the field, peak 1 at (N, N), with a negative ring so the
+    /// residual has structure of both signs.
+    fn psf_2n() -> Vec<f64> {
+        let m = 2 * N;
+        let mut p = vec![0.0; m * m];
+        for y in 0..m {
+            for x in 0..m {
+                let r2 = ((x as f64 - N as f64).powi(2) + (y as f64 - N as f64).powi(2)) / 4.0;
+                p[y * m + x] = (-r2 / 2.0).exp() - 0.05 * (-r2 / 30.0).exp() * (r2 > 0.0) as u8 as f64;
+            }
+        }
+        p
+    }
+
+    /// `D x` by direct summation (independent of the FFT-based operator).
+    fn direct_d(psf: &[f64], x: &[f64]) -> Vec<f64> {
+        let m = 2 * N;
+        let mut out = vec![0.0; N * N];
+        for py in 0..N {
+            for px in 0..N {
+                let mut s = 0.0;
+                for qy in 0..N {
+                    for qx in 0..N {
+                        s += psf[(py + N - qy) * m + (px + N - qx)] * x[qy * N + qx];
+                    }
+                }
+                out[py * N + px] = s;
+            }
+        }
+        out
+    }
+
+    fn sky() -> Vec<f64> {
+        let mut x = vec![0.0; N * N];
+        for (i, (px, py, f)) in [(5, 7, 1.0), (20, 12, 0.4), (16, 16, 2.0), (25, 26, 0.05), (9, 24, 0.7)].into_iter().enumerate() {
+            x[py * N + px] = f + i as f64 * 1e-3;
+        }
+        x
+    }
+
+    fn rel(a: &[f64], b: &[f64]) -> f64 {
+        let num: f64 = a.iter().zip(b).map(|(x, y)| (x - y).powi(2)).sum();
+        let den: f64 = b.iter().map(|y| y * y).sum();
+        (num / den).sqrt()
+    }
+
+    fn run_series(series: &Path, backend: BackendChoice, psf: &[f64], dirty: &[f64]) -> Vec<Vec<f64>> {
+        let config = OnnxConfig { series: series.to_path_buf(), backend, threads: 1, networks: None };
+        let mut step = OnnxStep::new(&config, N, 1).unwrap();
+        let psf_n = vec![0.0; N * N];
+        let (mut model, mut residual) = (vec![0.0; N * N], dirty.to_vec());
+        let mut models = Vec::new();
+        for i in 1..=step.series_length() {
+            let input = StepInput { size: N, model: &model, residual: &residual, dirty, psf: &psf_n, psf_2n: psf };
+            model = step.step(i, &input).unwrap();
+            assert!(step.resident.len() <= RESIDENT);
+            let dx = direct_d(psf, &model);
+            residual = dirty.iter().zip(&dx).map(|(d, v)| d - v).collect();
+            models.push(model.clone());
+        }
+        models
+    }
+
+    #[test]
+    fn r2d2_loop_matches_projected_landweber_on_both_backends() {
+        let psf = psf_2n();
+        let dirty = direct_d(&psf, &sky());
+        // Independent: x_i = max(0, x + 0.5 r + 0.01 alpha_i), alpha_1 = mean(dirty), r_0 = dirty.
+        let mut expected = Vec::new();
+        let (mut x, mut r) = (vec![0.0; N * N], dirty.clone());
+        for i in 1..=4 {
+            let alpha = if i == 1 { mean(&dirty) } else { mean(&x) };
+            x = x.iter().zip(&r).map(|(x, r)| (x + 0.5 * r + 0.01 * alpha).max(0.0)).collect();
+            let dx = direct_d(&psf, &x);
+            r = dirty.iter().zip(&dx).map(|(d, v)| d - v).collect();
+            expected.push(x.clone());
+        }
+        for backend in [BackendChoice::Ort, BackendChoice::Tract] {
+            for dir in ["landweber", "landweber-ref"] {
+                let got = run_series(&test_models().join(dir), backend, &psf, &dirty);
+                for (i, (g, e)) in got.iter().zip(&expected).enumerate() {
+                    let err = rel(g, e);
+                    assert!(err < 1e-5, "{backend:?} {dir} iteration {}: relative error {err:.2e}", i + 1);
+                }
+            }
+        }
+        // The series does something: the residual falls.
+        let r1: f64 = dirty.iter().zip(&direct_d(&psf, &expected[0])).map(|(d, v)| (d - v).powi(2)).sum();
+        let r4: f64 = dirty.iter().zip(&direct_d(&psf, &expected[3])).map(|(d, v)| (d - v).powi(2)).sum();
+        assert!(r4 < 0.5 * r1, "Landweber reduces the residual: {r1} -> {r4}");
+    }
+
+    #[test]
+    fn r3d3_components_interleave_layers_with_psf_data_fidelity() {
+        let psf = psf_2n();
+        let dirty = direct_d(&psf, &sky());
+        let mut expected = Vec::new();
+        let (mut x, mut r) = (vec![0.0; N * N], dirty.clone());
+        for _component in 0..2 {
+            let mut image = x.clone();
+            let mut res = r.clone();
+            for layer in 0..3 {
+                image = image.iter().zip(&res).map(|(x, r)| x + 0.5 * r).collect();
+                if layer < 2 {
+                    let d = direct_d(&psf, &image);
+                    res = dirty.iter().zip(&d).map(|(a, b)| a - b).collect();
+                }
+            }
+            x = image.into_iter().map(|v| v.max(0.0)).collect();
+            let d = direct_d(&psf, &x);
+            r = dirty.iter().zip(&d).map(|(a, b)| a - b).collect();
+            expected.push(x.clone());
+        }
+        let got = run_series(&test_models().join("r3d3"), BackendChoice::Tract, &psf, &dirty);
+        for (i, (g, e)) in got.iter().zip(&expected).enumerate() {
+            // The step's between-layer residual uses the FFT convolution, the reference a direct sum.
+            let err = rel(g, e);
+            assert!(err < 1e-5, "component {}: relative error {err:.2e}", i + 1);
+        }
+    }
+
+    #[test]
+    fn native_onnx_runtime_and_tract_agree_on_a_unet() {
+        let path = test_models().join("unet.onnx");
+        check_network(&path, 64).unwrap();
+        let input: Vec<f32> = (0..2 * 64 * 64).map(|k| ((k * 7919 % 1000) as f32 / 1000.0).powi(2)).collect();
+        let ort = Runtime::select(BackendChoice::Ort, 1).expect("native ONNX Runtime (pip install onnxruntime)");
+        let a = ort.load(&path, 64).unwrap().run(&input).unwrap();
+        let b = Runtime::Tract.load(&path, 64).unwrap().run(&input).unwrap();
+        let (a, b): (Vec<f64>, Vec<f64>) = (a.into_iter().map(f64::from).collect(), b.into_iter().map(f64::from).collect());
+        let err = rel(&a, &b);
+        assert!(err < 1e-4, "ort vs tract: relative error {err:.2e}");
+        assert!(a.iter().map(|v| v.abs()).sum::<f64>() > 1.0, "the U-Net output is not trivially zero");
+    }
+
+    #[test]
+    fn bad_networks_are_refused_before_imaging_with_the_reason() {
+        let dir = test_models();
+        let cases = [
+            ("bad-output-channels.onnx", 64, "output: expected [1, 1, H, W]"),
+            ("bad-input-channels.onnx", 64, "input: expected [1, 2, H, W]"),
+            ("bad-rank.onnx", 64, "expected rank 4"),
+            ("bad-corrupt.onnx", 64, "not a readable ONNX model"),
+            ("fixed64.onnx", 128, "fixed image size"),
+        ];
+        for (file, size, needle) in cases {
+            let e = check_network(&dir.join(file), size).unwrap_err().to_string();
+            assert!(e.contains(file) && e.contains(needle), "{file}: {e}");
+        }
+        check_network(&dir.join("fixed64.onnx"), 64).unwrap();
+        // Through the step: a manifest that forbids other sizes.
+        let series = tempfile::tempdir().unwrap();
+        for f in ["lw1.onnx", "lw2.onnx", "lw3.onnx", "lw4.onnx"] {
+            std::fs::copy(dir.join("landweber").join(f), series.path().join(f)).unwrap();
+        }
+        let text = std::fs::read_to_string(dir.join("landweber/manifest.yaml")).unwrap().replace("any_size: true", "any_size: false");
+        std::fs::write(series.path().join("manifest.yaml"), text).unwrap();
+        let config = OnnxConfig { series: series.path().into(), backend: BackendChoice::Tract, threads: 1, networks: None };
+        let e = OnnxStep::new(&config, 128, 1).err().expect("size refused").to_string();
+        assert!(e.contains("[64]") && e.contains("128 x 128"), "{e}");
+        let e = OnnxStep::new(&OnnxConfig { networks: Some(9), ..config.clone() }, 64, 1).err().expect("too many").to_string();
+        assert!(e.contains("has 4 networks"), "{e}");
+        std::fs::write(series.path().join("lw3.onnx"), b"garbage").unwrap();
+        let e = OnnxStep::new(&config, 64, 1).err().expect("corrupt file refused").to_string();
+        assert!(e.contains("lw3.onnx"), "{e}");
+    }
+}

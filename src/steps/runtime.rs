@@ -1,0 +1,292 @@
+//! ONNX inference backends, chosen at run time: native ONNX Runtime (through `ort`, the library
+//! loaded dynamically: no download at build time) when its shared library is found, else tract
+//! (pure Rust, always available, slower).
+//!
+//! tract is used directly rather than through `ort-tract` because the R2D2 U-Nets need their
+//! input shape pinned before optimisation (tract cannot type a transposed convolution over
+//! symbolic H and W), which `ort`'s session API has no way to say.
+
+use crate::{Error, Result};
+use serde::Deserialize;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BackendChoice {
+    /// Native ONNX Runtime if found, else tract.
+    #[default]
+    Auto,
+    /// Native ONNX Runtime, or an error saying where it was looked for.
+    Ort,
+    /// tract, even when ONNX Runtime is available.
+    Tract,
+}
+
+impl std::str::FromStr for BackendChoice {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "auto" => Ok(BackendChoice::Auto),
+            "ort" => Ok(BackendChoice::Ort),
+            "tract" => Ok(BackendChoice::Tract),
+            other => Err(Error::parameter("backend", format!("expected auto, ort or tract, got '{other}'"))),
+        }
+    }
+}
+
+/// An ONNX network with one `[1, 2, N, N]` input and one `[1, 1, N, N]` output (float32).
+pub trait Network: Send {
+    fn run(&mut self, input: &[f32]) -> Result<Vec<f32>>;
+}
+
+/// The backend a run uses, with the ONNX Runtime library when native.
+#[derive(Clone, Debug)]
+pub enum Runtime {
+    Ort { library: PathBuf, version: String, threads: usize },
+    Tract,
+}
+
+/// The ONNX Runtime environment: the library can be loaded only once per process.
+static ORT_ENV: OnceLock<std::result::Result<(PathBuf, ort::environment::Environment), String>> = OnceLock::new();
+
+impl Runtime {
+    /// Pick the backend. `threads` = intra-op threads for ONNX Runtime (0: its default).
+    pub fn select(choice: BackendChoice, threads: usize) -> Result<Runtime> {
+        if choice == BackendChoice::Tract {
+            return Ok(Runtime::Tract);
+        }
+        match ort_environment() {
+            Ok((library, _)) => Ok(Runtime::Ort { version: ort_version(library), library: library.clone(), threads }),
+            Err(why) if choice == BackendChoice::Auto => {
+                log::info!("native ONNX Runtime not used ({why}); using tract");
+                Ok(Runtime::Tract)
+            }
+            Err(why) => Err(Error::parameter("backend", format!("ort: native ONNX Runtime is not available: {why}"))),
+        }
+    }
+
+    pub fn describe(&self) -> String {
+        match self {
+            Runtime::Ort { library, version, .. } => format!("ONNX Runtime {version} (native, {})", library.display()),
+            Runtime::Tract => format!("tract {} (pure Rust)", tract_version()),
+        }
+    }
+
+    pub fn name(&self) -> &'static str {
+        match self {
+            Runtime::Ort { .. } => "ort",
+            Runtime::Tract => "tract",
+        }
+    }
+
+    /// Load a network for `size x size` images.
+    pub fn load(&self, path: &Path, size: usize) -> Result<Box<dyn Network>> {
+        match self {
+            Runtime::Ort { threads, .. } => Ok(Box::new(OrtNetwork::load(path, size, *threads)?)),
+            Runtime::Tract => Ok(Box::new(TractNetwork::load(path, size)?)),
+        }
+    }
+}
+
+/// Where native ONNX Runtime is looked for: `ORT_DYLIB_PATH`, then the `onnxruntime` Python
+/// package (`onnxruntime/capi/libonnxruntime.so.*`) in the usual site-packages places, then
+/// the one `python3` imports.
+pub fn find_onnxruntime() -> std::result::Result<PathBuf, String> {
+    if let Some(p) = std::env::var_os("ORT_DYLIB_PATH").filter(|p| !p.is_empty()) {
+        let p = PathBuf::from(p);
+        return if p.is_file() { Ok(p) } else { Err(format!("ORT_DYLIB_PATH={} is not a file", p.display())) };
+    }
+    let mut roots: Vec<String> = Vec::new();
+    if let Some(venv) = std::env::var_os("VIRTUAL_ENV") {
+        roots.push(format!("{}/lib/python3*/site-packages", venv.to_string_lossy()));
+    }
+    if let Some(home) = std::env::var_os("HOME") {
+        let home = home.to_string_lossy();
+        roots.push(format!("{home}/.local/lib/python3*/site-packages"));
+        roots.push(format!("{home}/.pyenv/versions/*/lib/python3*/site-packages"));
+    }
+    roots.extend(["/usr/local/lib/python3*/site-packages", "/usr/local/lib/python3*/dist-packages", "/usr/lib/python3/dist-packages"].map(String::from));
+    for root in &roots {
+        if let Some(lib) = glob_library(&format!("{root}/onnxruntime/capi/libonnxruntime.so*")) {
+            return Ok(lib);
+        }
+    }
+    // Last resort: ask the Python on PATH where its onnxruntime lives.
+    let out = std::process::Command::new("python3")
+        .args(["-c", "import onnxruntime, os; print(os.path.dirname(onnxruntime.__file__))"])
+        .stderr(std::process::Stdio::null())
+        .output();
+    if let Ok(out) = out {
+        if out.status.success() {
+            let dir = String::from_utf8_lossy(&out.stdout).trim().to_string();
+            if let Some(lib) = glob_library(&format!("{dir}/capi/libonnxruntime.so*")) {
+                return Ok(lib);
+            }
+        }
+    }
+    Err("no ORT_DYLIB_PATH and no onnxruntime Python package found (pip install onnxruntime, or set ORT_DYLIB_PATH)".into())
+}
+
+fn glob_library(pattern: &str) -> Option<PathBuf> {
+    let mut found: Vec<PathBuf> = glob::glob(pattern).ok()?.filter_map(|p| p.ok()).filter(|p| p.is_file()).collect();
+    found.sort();
+    found.pop()
+}
+
+fn ort_environment() -> std::result::Result<&'static (PathBuf, ort::environment::Environment), String> {
+    ORT_ENV
+        .get_or_init(|| {
+            let library = find_onnxruntime()?;
+            let builder = ort::init_from(&library).map_err(|e| format!("{}: {e}", library.display()))?;
+            let env = builder.with_name("r2d2").build().map_err(|e| format!("{}: {e}", library.display()))?;
+            Ok((library, env))
+        })
+        .as_ref()
+        .map_err(Clone::clone)
+}
+
+/// The version from the library's file name (`libonnxruntime.so.1.31.1`); ONNX Runtime's build
+/// string carries a git branch, not always a version.
+fn ort_version(library: &Path) -> String {
+    let name = library.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    name.split_once(".so.").map_or_else(|| "(version unknown)".to_string(), |(_, v)| v.to_string())
+}
+
+fn tract_version() -> &'static str {
+    "0.23"
+}
+
+/// The declared shape of a network's single input and output, read from the ONNX file without
+/// building the network: checked before imaging starts.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Signature {
+    /// Dimensions; `None` for a symbolic one.
+    pub input: Vec<Option<i64>>,
+    pub output: Vec<Option<i64>>,
+}
+
+/// Read and check an R2D2 network file: one float32 input `[1, 2, H, W]`, one float32 output
+/// `[1, 1, H, W]` (H and W fixed or symbolic; fixed ones must equal `size`).
+pub fn check_network(path: &Path, size: usize) -> Result<Signature> {
+    use tract_onnx::pb::type_proto::Value as TypeValue;
+    use tract_onnx::pb::tensor_shape_proto::dimension::Value as Dim;
+    use tract_onnx::prelude::Framework;
+    let proto = tract_onnx::onnx()
+        .proto_model_for_path(path)
+        .map_err(|e| Error::input(path, format!("not a readable ONNX model: {e}")))?;
+    let graph = proto.graph.as_ref().ok_or_else(|| Error::input(path, "ONNX model without a graph"))?;
+    // Older exporters list the weights among the inputs too.
+    let weights: std::collections::HashSet<&str> = graph.initializer.iter().map(|t| t.name.as_str()).collect();
+    let inputs: Vec<_> = graph.input.iter().filter(|i| !weights.contains(i.name.as_str())).collect();
+    if inputs.len() != 1 || graph.output.len() != 1 {
+        return Err(Error::input(path, format!("expected one input and one output, found {} inputs and {} outputs", inputs.len(), graph.output.len())));
+    }
+    let shape_of = |v: &tract_onnx::pb::ValueInfoProto, what: &str| -> Result<Vec<Option<i64>>> {
+        let Some(TypeValue::TensorType(t)) = v.r#type.as_ref().and_then(|t| t.value.as_ref()) else {
+            return Err(Error::input(path, format!("{what} '{}' is not a tensor", v.name)));
+        };
+        // 1 = FLOAT in onnx.proto's TensorProto.DataType.
+        if t.elem_type != 1 {
+            return Err(Error::input(path, format!("{what} '{}': expected float32 elements, got ONNX data type {}", v.name, t.elem_type)));
+        }
+        let dims = t.shape.as_ref().map(|s| s.dim.iter().map(|d| match d.value {
+            Some(Dim::DimValue(n)) => Some(n),
+            _ => None,
+        }).collect()).unwrap_or_default();
+        Ok(dims)
+    };
+    let input = shape_of(inputs[0], "input")?;
+    let output = shape_of(&graph.output[0], "output")?;
+    let check = |dims: &[Option<i64>], channels: i64, what: &str| -> Result<()> {
+        let expected = format!("[1, {channels}, H, W]");
+        let shown = format!("[{}]", dims.iter().map(|d| d.map_or("?".into(), |n| n.to_string())).collect::<Vec<_>>().join(", "));
+        if dims.len() != 4 {
+            return Err(Error::input(path, format!("{what}: expected rank 4 {expected}, got rank {} {shown}", dims.len())));
+        }
+        let ok = |d: Option<i64>, want: i64| d.is_none() || d == Some(want);
+        if !ok(dims[0], 1) || !ok(dims[1], channels) {
+            return Err(Error::input(path, format!("{what}: expected {expected}, got {shown}")));
+        }
+        for d in &dims[2..] {
+            if let Some(n) = d {
+                if *n != size as i64 {
+                    return Err(Error::input(path, format!("{what}: the network has a fixed image size {shown}, but the pipeline images {size} x {size}")));
+                }
+            }
+        }
+        Ok(())
+    };
+    check(&input, 2, "input")?;
+    check(&output, 1, "output")?;
+    Ok(Signature { input, output })
+}
+
+struct OrtNetwork {
+    session: ort::session::Session,
+    path: PathBuf,
+    size: usize,
+}
+
+impl OrtNetwork {
+    fn load(path: &Path, size: usize, threads: usize) -> Result<OrtNetwork> {
+        let (_, env) = ort_environment().map_err(|e| Error::parameter("backend", e))?;
+        let fail = |e: &dyn std::fmt::Display| Error::input(path, format!("ONNX Runtime could not load the network: {e}"));
+        let mut builder = ort::session::Session::builder(env).map_err(|e| fail(&e))?;
+        if threads > 0 {
+            builder = builder.with_intra_threads(threads).map_err(|e| fail(&e))?;
+        }
+        let session = builder.commit_from_file(path).map_err(|e| fail(&e))?;
+        Ok(OrtNetwork { session, path: path.to_path_buf(), size })
+    }
+}
+
+impl Network for OrtNetwork {
+    fn run(&mut self, input: &[f32]) -> Result<Vec<f32>> {
+        let n = self.size;
+        let fail = |e: &dyn std::fmt::Display| Error::input(&self.path, format!("inference failed: {e}"));
+        let tensor = ort::value::Tensor::from_array(([1usize, 2, n, n], input.to_vec())).map_err(|e| fail(&e))?;
+        let outputs = self.session.run(ort::inputs![tensor]).map_err(|e| fail(&e))?;
+        let (shape, data) = outputs[0].try_extract_tensor::<f32>().map_err(|e| fail(&e))?;
+        let dims: Vec<i64> = shape.iter().copied().collect();
+        if dims != [1, 1, n as i64, n as i64] {
+            return Err(Error::input(&self.path, format!("expected an output of shape [1, 1, {n}, {n}], got {dims:?}")));
+        }
+        Ok(data.to_vec())
+    }
+}
+
+struct TractNetwork {
+    plan: std::sync::Arc<tract_onnx::prelude::TypedRunnableModel>,
+    path: PathBuf,
+    size: usize,
+}
+
+impl TractNetwork {
+    fn load(path: &Path, size: usize) -> Result<TractNetwork> {
+        use tract_onnx::prelude::*;
+        let fail = |e: &dyn std::fmt::Display| Error::input(path, format!("tract could not load the network: {e:#}"));
+        let plan = tract_onnx::onnx()
+            .model_for_path(path)
+            .and_then(|m| m.with_input_fact(0, f32::fact([1, 2, size, size]).into()))
+            .and_then(|m| m.into_optimized())
+            .and_then(|m| m.into_runnable())
+            .map_err(|e| fail(&e))?;
+        Ok(TractNetwork { plan, path: path.to_path_buf(), size })
+    }
+}
+
+impl Network for TractNetwork {
+    fn run(&mut self, input: &[f32]) -> Result<Vec<f32>> {
+        use tract_onnx::prelude::*;
+        let n = self.size;
+        let fail = |e: &dyn std::fmt::Display| Error::input(&self.path, format!("inference failed: {e:#}"));
+        let tensor = Tensor::from_shape(&[1, 2, n, n], input).map_err(|e| fail(&e))?;
+        let out = self.plan.run(tvec!(tensor.into_tvalue())).map_err(|e| fail(&e))?;
+        let view = out[0].to_plain_array_view::<f32>().map_err(|e| fail(&e))?;
+        if view.shape() != [1, 1, n, n] {
+            return Err(Error::input(&self.path, format!("expected an output of shape [1, 1, {n}, {n}], got {:?}", view.shape())));
+        }
+        Ok(view.iter().copied().collect())
+    }
+}

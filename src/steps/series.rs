@@ -1,0 +1,355 @@
+//! A model series on disk: `models/<series>/manifest.yaml` and its ONNX files, or a directory
+//! holding only the reference implementation's file names (no manifest), whose convention is
+//! then inferred. Reading a series checks everything that can be checked without running a
+//! network, so a broken series fails before imaging starts.
+
+use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// The manifest format this build reads.
+pub const MANIFEST_FORMAT: u32 = 1;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Architecture {
+    /// One U-Net per iteration.
+    R2d2,
+    /// Each iteration a component of J U-Net layers with PSF data-fidelity layers between them.
+    R3d3,
+}
+
+/// `models/<series>/manifest.yaml`. Unknown keys are rejected so a typo is not silently ignored.
+#[derive(Clone, Debug, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct Manifest {
+    pub format: u32,
+    pub name: String,
+    #[serde(default)]
+    pub description: String,
+    #[serde(default)]
+    pub telescope: String,
+    pub architecture: Architecture,
+    #[serde(default)]
+    pub network: serde_yaml::Value,
+    /// Image sizes the series was trained for.
+    pub image_sizes: Vec<usize>,
+    /// Whether it may run at other sizes (the networks are fully convolutional).
+    #[serde(default)]
+    pub any_size: bool,
+    #[serde(default)]
+    pub superresolution: Option<f64>,
+    #[serde(default)]
+    pub weighting: serde_yaml::Value,
+    #[serde(default)]
+    pub dynamic_range: Option<[f64; 2]>,
+    /// Only `reference` (network 1: `[dirty/a, 0]`, then `[x/a, r/a]`) exists today.
+    pub input_convention: String,
+    /// Only `mean` (`a` = mean of the previous estimate, of the dirty image at i = 1).
+    pub normalisation: String,
+    /// Network files in order; for R3D3 each entry lists the component's J layer files.
+    pub networks: Vec<NetworkFiles>,
+    /// Layers per component (J) for R3D3; 1 for R2D2.
+    #[serde(default = "one")]
+    pub layers: usize,
+    #[serde(default)]
+    pub provenance: serde_yaml::Value,
+    #[serde(default)]
+    pub validation: serde_yaml::Value,
+    #[serde(default)]
+    pub test: serde_yaml::Value,
+}
+
+fn one() -> usize {
+    1
+}
+
+#[derive(Clone, Debug, Deserialize, Serialize)]
+#[serde(untagged)]
+pub enum NetworkFiles {
+    One(PathBuf),
+    Layers(Vec<PathBuf>),
+}
+
+/// A series ready to run: the files of each iteration, checked to exist.
+#[derive(Clone, Debug)]
+pub struct Series {
+    pub dir: PathBuf,
+    pub name: String,
+    pub architecture: Architecture,
+    /// `files[i]`: the network(s) of iteration i + 1 (one for R2D2, J layers for R3D3).
+    pub files: Vec<Vec<PathBuf>>,
+    pub image_sizes: Vec<usize>,
+    pub any_size: bool,
+    pub manifest: Option<Manifest>,
+    /// How the series was read (for the log and `r2d2 models`).
+    pub origin: String,
+}
+
+impl Series {
+    /// Read the series in `dir`: its manifest, or else the reference file names.
+    pub fn open(dir: &Path) -> Result<Series> {
+        if !dir.is_dir() {
+            return Err(Error::input(dir, "expected a model series directory (manifest.yaml and ONNX files, or R2D2_UNet_N{i}.onnx files)"));
+        }
+        let manifest_path = dir.join("manifest.yaml");
+        let series = if manifest_path.exists() { Series::from_manifest(dir, &manifest_path)? } else { Series::infer(dir)? };
+        for file in series.files.iter().flatten() {
+            if !file.is_file() {
+                return Err(Error::input(file, format!("network file of series '{}' is missing", series.name)));
+            }
+        }
+        Ok(series)
+    }
+
+    fn from_manifest(dir: &Path, path: &Path) -> Result<Series> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let de = serde_yaml::Deserializer::from_str(&text);
+        let manifest: Manifest = serde_path_to_error::deserialize(de).map_err(|e| {
+            let at = e.path().to_string();
+            let inner = e.into_inner();
+            let place = inner.location().map(|l| format!("line {}, column {}: ", l.line(), l.column())).unwrap_or_default();
+            Error::input(path, format!("{place}{}{inner}", if at == "." { String::new() } else { format!("{at}: ") }))
+        })?;
+        if manifest.format != MANIFEST_FORMAT {
+            return Err(Error::input(path, format!("format: expected manifest format {MANIFEST_FORMAT}, got {} (written by a different version of r2d2?)", manifest.format)));
+        }
+        if manifest.input_convention != "reference" {
+            return Err(Error::input(path, format!("input_convention: expected 'reference', got '{}'", manifest.input_convention)));
+        }
+        if manifest.normalisation != "mean" {
+            return Err(Error::input(path, format!("normalisation: expected 'mean', got '{}'", manifest.normalisation)));
+        }
+        if manifest.networks.is_empty() {
+            return Err(Error::input(path, "networks: expected at least one network file"));
+        }
+        if manifest.layers == 0 {
+            return Err(Error::input(path, "layers: expected at least 1"));
+        }
+        let mut files = Vec::new();
+        for (i, entry) in manifest.networks.iter().enumerate() {
+            let list = match (entry, manifest.architecture) {
+                (NetworkFiles::One(f), Architecture::R2d2) => vec![dir.join(f)],
+                (NetworkFiles::Layers(fs), Architecture::R3d3) if fs.len() == manifest.layers => fs.iter().map(|f| dir.join(f)).collect(),
+                (NetworkFiles::Layers(fs), Architecture::R3d3) => {
+                    return Err(Error::input(path, format!("networks[{i}]: expected {} layer files (layers: {}), got {}", manifest.layers, manifest.layers, fs.len())));
+                }
+                (NetworkFiles::One(_), Architecture::R3d3) => {
+                    return Err(Error::input(path, format!("networks[{i}]: an r3d3 series lists the {} layer files of each component", manifest.layers)));
+                }
+                (NetworkFiles::Layers(_), Architecture::R2d2) => {
+                    return Err(Error::input(path, format!("networks[{i}]: an r2d2 series lists one file per network")));
+                }
+            };
+            files.push(list);
+        }
+        Ok(Series {
+            dir: dir.to_path_buf(),
+            name: manifest.name.clone(),
+            architecture: manifest.architecture,
+            files,
+            image_sizes: manifest.image_sizes.clone(),
+            any_size: manifest.any_size,
+            origin: format!("manifest {}", path.display()),
+            manifest: Some(manifest),
+        })
+    }
+
+    /// A directory laid out like the reference implementation's releases:
+    /// `R2D2_UNet_N{i}.onnx`, or `R3D3_R2D2Net_{J}Layers_N{i}/R3D3_R2D2Net_{J}Layers_N{i}_L{l}.onnx`.
+    fn infer(dir: &Path) -> Result<Series> {
+        let entries: Vec<String> = std::fs::read_dir(dir)
+            .map_err(|e| Error::io(dir, e))?
+            .filter_map(|e| e.ok().map(|e| e.file_name().to_string_lossy().into_owned()))
+            .collect();
+        let name = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let numbered = |prefix: &str, suffix: &str| -> Vec<usize> {
+            let mut ns: Vec<usize> = entries
+                .iter()
+                .filter_map(|e| e.strip_prefix(prefix).and_then(|r| r.strip_suffix(suffix)).and_then(|n| n.parse().ok()))
+                .collect();
+            ns.sort_unstable();
+            ns
+        };
+        let r2d2 = numbered("R2D2_UNet_N", ".onnx");
+        let r3d3: Vec<(usize, usize)> = entries
+            .iter()
+            .filter_map(|e| {
+                let rest = e.strip_prefix("R3D3_R2D2Net_")?;
+                let (j, rest) = rest.split_once("Layers_N")?;
+                Some((j.parse().ok()?, rest.parse().ok()?))
+            })
+            .collect();
+        let contiguous = |ns: &[usize]| ns.iter().enumerate().all(|(k, &n)| n == k + 1);
+        if !r2d2.is_empty() {
+            if !contiguous(&r2d2) {
+                return Err(Error::input(dir, format!("expected R2D2_UNet_N1.onnx .. N{}.onnx without gaps, found networks {r2d2:?}", r2d2.len())));
+            }
+            let files = r2d2.iter().map(|i| vec![dir.join(format!("R2D2_UNet_N{i}.onnx"))]).collect();
+            return Ok(Series {
+                dir: dir.to_path_buf(),
+                name,
+                architecture: Architecture::R2d2,
+                files,
+                image_sizes: Vec::new(),
+                any_size: true,
+                manifest: None,
+                origin: "reference file names R2D2_UNet_N{i}.onnx (no manifest)".into(),
+            });
+        }
+        if !r3d3.is_empty() {
+            let j = r3d3[0].0;
+            if r3d3.iter().any(|&(jj, _)| jj != j) {
+                return Err(Error::input(dir, "expected R3D3 components with one layer count J, found several"));
+            }
+            let mut ns: Vec<usize> = r3d3.iter().map(|&(_, n)| n).collect();
+            ns.sort_unstable();
+            if !contiguous(&ns) {
+                return Err(Error::input(dir, format!("expected R3D3 components N1 .. N{} without gaps, found {ns:?}", ns.len())));
+            }
+            let files = ns
+                .iter()
+                .map(|i| {
+                    let sub = format!("R3D3_R2D2Net_{j}Layers_N{i}");
+                    (1..=j).map(|l| dir.join(&sub).join(format!("{sub}_L{l}.onnx"))).collect()
+                })
+                .collect();
+            return Ok(Series {
+                dir: dir.to_path_buf(),
+                name,
+                architecture: Architecture::R3d3,
+                files,
+                image_sizes: Vec::new(),
+                any_size: true,
+                manifest: None,
+                origin: format!("reference file names R3D3_R2D2Net_{j}Layers_N{{i}} (no manifest)"),
+            });
+        }
+        Err(Error::input(
+            dir,
+            "no manifest.yaml and no network files with the reference names (R2D2_UNet_N{i}.onnx or R3D3_R2D2Net_{J}Layers_N{i}/...)",
+        ))
+    }
+
+    /// Iterations (networks or R3D3 components).
+    pub fn len(&self) -> usize {
+        self.files.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.files.is_empty()
+    }
+
+    /// Layers per iteration (1 for R2D2).
+    pub fn layers(&self) -> usize {
+        self.files.first().map_or(1, |f| f.len())
+    }
+
+    /// Whether the series may image `size x size` pixels; `Ok(Some(warning))` when it runs at a
+    /// size nobody vouched for.
+    pub fn check_size(&self, size: usize) -> Result<Option<String>> {
+        if self.image_sizes.contains(&size) {
+            return Ok(None);
+        }
+        let trained = if self.image_sizes.is_empty() {
+            "an unknown size (no manifest)".to_string()
+        } else {
+            format!("{:?}", self.image_sizes)
+        };
+        if !self.any_size {
+            return Err(Error::input(
+                self.dir.join("manifest.yaml"),
+                format!("series '{}' was trained for image sizes {trained} and does not allow others (any_size: false), but the pipeline images {size} x {size}", self.name),
+            ));
+        }
+        Ok(Some(format!("series '{}' was trained for {trained}; running it at {size} x {size}", self.name)))
+    }
+}
+
+/// The series directories under `root` (each with a manifest or reference file names).
+pub fn discover(root: &Path) -> Vec<(PathBuf, Result<Series>)> {
+    let mut dirs: Vec<PathBuf> = match std::fs::read_dir(root) {
+        Ok(rd) => rd.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.is_dir()).collect(),
+        Err(_) => Vec::new(),
+    };
+    dirs.sort();
+    dirs.into_iter().map(|d| {
+        let s = Series::open(&d);
+        (d, s)
+    }).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn touch(p: &Path) {
+        std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+        std::fs::write(p, b"x").unwrap();
+    }
+
+    #[test]
+    fn reference_r2d2_names_are_inferred_in_order() {
+        let dir = tempfile::tempdir().unwrap();
+        for i in [2, 1, 10, 3, 4, 5, 6, 7, 8, 9] {
+            touch(&dir.path().join(format!("R2D2_UNet_N{i}.onnx")));
+        }
+        let s = Series::open(dir.path()).unwrap();
+        assert_eq!(s.architecture, Architecture::R2d2);
+        assert_eq!(s.len(), 10);
+        assert!(s.files[9][0].ends_with("R2D2_UNet_N10.onnx"));
+        assert!(s.any_size && s.manifest.is_none());
+        assert!(s.check_size(512).unwrap().is_some(), "running without a manifest warns");
+    }
+
+    #[test]
+    fn reference_r3d3_names_are_inferred_with_layers() {
+        let dir = tempfile::tempdir().unwrap();
+        for i in 1..=2 {
+            for l in 1..=3 {
+                touch(&dir.path().join(format!("R3D3_R2D2Net_3Layers_N{i}/R3D3_R2D2Net_3Layers_N{i}_L{l}.onnx")));
+            }
+        }
+        let s = Series::open(dir.path()).unwrap();
+        assert_eq!((s.architecture, s.len(), s.layers()), (Architecture::R3d3, 2, 3));
+        assert!(s.files[1][2].ends_with("R3D3_R2D2Net_3Layers_N2/R3D3_R2D2Net_3Layers_N2_L3.onnx"));
+    }
+
+    #[test]
+    fn gaps_and_missing_files_are_errors_naming_them() {
+        let dir = tempfile::tempdir().unwrap();
+        touch(&dir.path().join("R2D2_UNet_N1.onnx"));
+        touch(&dir.path().join("R2D2_UNet_N3.onnx"));
+        let e = Series::open(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("without gaps") && e.contains("[1, 3]"), "{e}");
+
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(
+            dir.path().join("manifest.yaml"),
+            "format: 1\nname: t\narchitecture: r2d2\nimage_sizes: [64]\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx]\n",
+        )
+        .unwrap();
+        let e = Series::open(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("a.onnx") && e.contains("missing"), "{e}");
+    }
+
+    #[test]
+    fn manifest_errors_name_the_key_and_line() {
+        let dir = tempfile::tempdir().unwrap();
+        touch(&dir.path().join("a.onnx"));
+        let base = "name: t\narchitecture: r2d2\nimage_sizes: [64]\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx]\n";
+        std::fs::write(dir.path().join("manifest.yaml"), format!("format: 2\n{base}")).unwrap();
+        let e = Series::open(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("manifest.yaml") && e.contains("format 1") && e.contains("got 2"), "{e}");
+
+        std::fs::write(dir.path().join("manifest.yaml"), format!("format: 1\n{base}colour: red\n")).unwrap();
+        let e = Series::open(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("colour") && e.contains("line 8"), "{e}");
+
+        std::fs::write(dir.path().join("manifest.yaml"), format!("format: 1\n{base}any_size: false\n")).unwrap();
+        let s = Series::open(dir.path()).unwrap();
+        assert!(s.check_size(64).unwrap().is_none());
+        let e = s.check_size(128).unwrap_err().to_string();
+        assert!(e.contains("[64]") && e.contains("128 x 128"), "{e}");
+    }
+}

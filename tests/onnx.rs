@@ -1,0 +1,104 @@
+//! ONNX series through the `r2d2` binary: a YAML pipeline with `kind: onnx`, both inference
+//! backends, `r2d2 image --step <series>`, `r2d2 models`, `r2d2 info`, and the errors that must
+//! come before imaging starts. The networks are the tiny analytic ones of
+//! tests/make_test_models.py (generated here; Python with `onnx` is a test requirement).
+
+use r2d2_imaging::fits::read_image;
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn r2d2(args: &[&str], dir: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_r2d2")).args(args).current_dir(dir).output().expect("r2d2 runs")
+}
+
+fn text(out: &Output) -> String {
+    format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr))
+}
+
+fn check(out: &Output) {
+    assert!(out.status.success(), "r2d2 failed: {}", text(out));
+}
+
+fn make_models(dir: &Path) {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/make_test_models.py");
+    let out = Command::new("python3").arg(&script).arg(dir).output().expect("python3 runs (a test requirement)");
+    assert!(out.status.success(), "{} failed (pip install -r tests/requirements.txt): {}", script.display(), text(&out));
+}
+
+fn pipeline(series: &str, backend: &str) -> String {
+    format!(
+        "name: small\nimage:\n  size: 64\nstages:\n  source:\n    kind: simulate\n    seed: 5\n    dynamic_range: 1000\n    configurations: [c]\n    hours: [1]\n    integration_s: 300\n    to: weights\n  weights:\n    kind: weighting\n    scheme: briggs\n    robust: 0\n    to: grid\n  grid:\n    kind: gridder\n    to: step\n  step:\n    kind: onnx\n    series: {series}\n    backend: {backend}\n    to: update\n  update:\n    kind: residual\n    to: step\n    done: write\n  write:\n    kind: writer\n    prefix: \"out-{backend}/{{job}}\"\n"
+    )
+}
+
+#[test]
+fn onnx_series_images_through_a_yaml_pipeline_on_both_backends() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    make_models(&d.join("models"));
+    for backend in ["ort", "tract"] {
+        std::fs::write(d.join(format!("{backend}.yaml")), pipeline("models/landweber", backend)).unwrap();
+        check(&r2d2(&["run", &format!("{backend}.yaml")], d));
+    }
+    let ort = read_image(&d.join("out-ort/sim-5-model.fits")).unwrap().data;
+    let tract = read_image(&d.join("out-tract/sim-5-model.fits")).unwrap().data;
+    let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+    let diff: Vec<f64> = ort.iter().zip(&tract).map(|(a, b)| a - b).collect();
+    assert!(norm(&diff) <= 1e-4 * norm(&ort), "backends differ: {:e}", norm(&diff) / norm(&ort));
+    assert!(ort.iter().all(|v| *v >= 0.0) && norm(&ort) > 0.0, "the model is positive and not empty");
+    // Four networks ran and (projected Landweber) the residual ratio fell at each.
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("out-ort/sim-5-metrics.json")).unwrap()).unwrap();
+    let ratios: Vec<f64> = metrics["iterations"].as_array().unwrap().iter().map(|m| m["residual_ratio"].as_f64().unwrap()).collect();
+    assert_eq!(ratios.len(), 4);
+    assert!(ratios.windows(2).all(|w| w[1] < w[0]), "{ratios:?}");
+    // No restored image for a network series: the model is the image.
+    assert!(!d.join("out-ort/sim-5-image.fits").exists());
+}
+
+#[test]
+fn image_command_takes_a_series_and_models_lists_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    make_models(&d.join("models"));
+    check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64", "--out", "obs.parquet"], d));
+    check(&r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/landweber-ref", "--iterations", "2", "--name", "lw"], d));
+    let model = read_image(&d.join("lw-model.fits")).unwrap();
+    assert_eq!((model.nx, model.ny), (64, 64));
+    let metrics = std::fs::read_to_string(d.join("lw-metrics.json")).unwrap();
+    let v: serde_json::Value = serde_json::from_str(&metrics).unwrap();
+    assert_eq!(v["iterations"].as_array().unwrap().len(), 2);
+
+    let out = r2d2(&["models", "models"], d);
+    check(&out);
+    let listing = text(&out);
+    assert!(listing.contains("landweber") && listing.contains("4 iterations, R2D2"), "{listing}");
+    assert!(listing.contains("reference file names"), "a series without manifest says so: {listing}");
+    assert!(listing.contains("R3D3, 3 layers"), "{listing}");
+
+    let out = r2d2(&["info"], d);
+    check(&out);
+    assert!(text(&out).contains("ONNX Runtime"), "{}", text(&out));
+}
+
+#[test]
+fn broken_series_fail_before_imaging_and_leave_no_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    make_models(&d.join("models"));
+    std::fs::create_dir_all(d.join("models/broken")).unwrap();
+    std::fs::copy(d.join("models/bad-input-channels.onnx"), d.join("models/broken/R2D2_UNet_N1.onnx")).unwrap();
+    let cases = [
+        ("models/nosuch", "models/nosuch", "expected a model series directory"),
+        ("models/broken", "R2D2_UNet_N1.onnx", "input: expected [1, 2, H, W]"),
+    ];
+    for (series, name, needle) in cases {
+        std::fs::write(d.join("p.yaml"), pipeline(series, "auto")).unwrap();
+        let out = r2d2(&["run", "p.yaml"], d);
+        assert!(!out.status.success(), "{series} should fail");
+        let msg = text(&out);
+        assert!(msg.contains(name) && msg.contains(needle), "{series}: {msg}");
+        assert!(!d.join("out-auto").exists(), "{series}: nothing written");
+        let out = r2d2(&["validate", "p.yaml"], d);
+        assert!(!out.status.success() && text(&out).contains(needle), "validate checks the series too: {}", text(&out));
+    }
+}
