@@ -35,11 +35,12 @@ const REGISTRY: &[(&str, Role)] = &[
     ("weighting", Role::Transform),
     ("gridder", Role::Transform),
     ("clean", Role::Step),
+    ("native", Role::Step),
     ("residual", Role::Residual),
     ("writer", Role::Sink),
 ];
 
-pub const KINDS: &[&str] = &["simulate", "parquet", "weighting", "gridder", "clean", "residual", "writer"];
+pub const KINDS: &[&str] = &["simulate", "parquet", "weighting", "gridder", "clean", "native", "residual", "writer"];
 pub const SOURCE_KINDS: &[&str] = &["simulate", "parquet"];
 
 pub fn role(kind: &str) -> Option<Role> {
@@ -65,6 +66,7 @@ pub fn build_stage(config: &PipelineConfig, stage: &StageConfig) -> Result<Built
             Built::Stage(Box::new(gridder::GridderStage::new(config.stage_params(stage)?, threads, keep_operator)?))
         }
         "clean" => Built::Stage(Box::new(step::StepStage::clean(config.stage_params(stage)?)?)),
+        "native" => Built::Stage(Box::new(step::StepStage::native(config.stage_params(stage)?, config.image.size, &stage.name)?)),
         "residual" => Built::Stage(Box::new(residual::ResidualStage::new(config.stage_params(stage)?)?)),
         "writer" => Built::Stage(Box::new(writer::WriterStage::new(config.stage_params(stage)?)?)),
         other => {

@@ -1,8 +1,9 @@
-//! Network-step stages (`kind: clean`, later `onnx`, `native`): run the job's next step of
+//! Network-step stages (`kind: clean`, `native`, later `onnx`): run the job's next step of
 //! the series and pass it to the residual update.
 
 use crate::pipeline::{Emit, Job, Port, Stage};
 use crate::steps::clean::{CleanConfig, CleanStep};
+use crate::steps::native::{NativeConfig, NativeStep};
 use crate::steps::{NetworkStep, StepInput};
 use crate::Result;
 use std::time::Instant;
@@ -15,6 +16,11 @@ pub struct StepStage {
 impl StepStage {
     pub fn clean(config: CleanConfig) -> Result<StepStage> {
         Ok(StepStage { kind: "clean", step: Box::new(CleanStep::new(config)?) })
+    }
+
+    /// Loads and creates the plugin now, so that every plugin error comes before imaging.
+    pub fn native(config: NativeConfig, image_size: usize, stage: &str) -> Result<StepStage> {
+        Ok(StepStage { kind: "native", step: Box::new(NativeStep::new(config, image_size, stage)?) })
     }
 }
 
