@@ -19,7 +19,7 @@ use r2d2_imaging::nufft::NufftParams;
 use r2d2_imaging::operator::{spectral_norm, MeasurementOperator};
 use r2d2_imaging::vis::read_parquet;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Command;
 use std::sync::OnceLock;
 
 const SIZE: usize = 64;
