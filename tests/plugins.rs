@@ -263,7 +263,7 @@ fn plugin_load_and_create_errors_come_before_imaging_and_name_the_library() {
 
     // The host's own keys.
     let step = native_step(&faulty, 2, "{fail: none}");
-    fails_before_imaging(d, "host_key", &step.replace("    iterations: 2\n", "    iterations: 2\n    positivty: false\n"), &["line 18", "positivty", "positivity"]);
+    fails_before_imaging(d, "host_key", &step.replace("    iterations: 2\n", "    iterations: 2\n    positivty: false\n"), &["line 21", "positivty", "positivity"]);
     fails_before_imaging(d, "no_iterations", &step.replace("    iterations: 2\n", ""), &["missing field `iterations`"]);
     fails_before_imaging(d, "zero_iterations", &step.replace("iterations: 2", "iterations: 0"), &["stages.step.iterations", "at least one"]);
     fails_before_imaging(d, "config_list", &step.replace("{fail: none}", "[1, 2]"), &["stages.step.config", "expected a mapping"]);
