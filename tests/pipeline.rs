@@ -1,21 +1,11 @@
 //! Real YAML pipelines end to end through the `r2d2` binary, and every configuration and
 //! runtime error case the engine promises to report cleanly.
 
+mod common;
+
+use common::{check, r2d2, stderr};
 use r2d2_imaging::fits::read_image;
 use std::path::Path;
-use std::process::{Command, Output};
-
-fn r2d2(args: &[&str], dir: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_r2d2")).args(args).current_dir(dir).output().expect("r2d2 runs")
-}
-
-fn stderr(out: &Output) -> String {
-    String::from_utf8_lossy(&out.stderr).into_owned()
-}
-
-fn check(out: &Output) {
-    assert!(out.status.success(), "r2d2 failed: {}", stderr(out));
-}
 
 /// A small, fast pipeline (64^2, short VLA C observation) with `{extra}` appended to the
 /// clean stage and `{source}` replacing the source stage when given.

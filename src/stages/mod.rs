@@ -36,11 +36,12 @@ const REGISTRY: &[(&str, Role)] = &[
     ("gridder", Role::Transform),
     ("clean", Role::Step),
     ("onnx", Role::Step),
+    ("native", Role::Step),
     ("residual", Role::Residual),
     ("writer", Role::Sink),
 ];
 
-pub const KINDS: &[&str] = &["simulate", "parquet", "weighting", "gridder", "clean", "onnx", "residual", "writer"];
+pub const KINDS: &[&str] = &["simulate", "parquet", "weighting", "gridder", "clean", "onnx", "native", "residual", "writer"];
 pub const SOURCE_KINDS: &[&str] = &["simulate", "parquet"];
 
 pub fn role(kind: &str) -> Option<Role> {
@@ -67,6 +68,7 @@ pub fn build_stage(config: &PipelineConfig, stage: &StageConfig) -> Result<Built
         }
         "clean" => Built::Stage(Box::new(step::StepStage::clean(config.stage_params(stage)?)?)),
         "onnx" => Built::Stage(Box::new(step::StepStage::onnx(config.stage_params(stage)?, config.image.size, threads)?)),
+        "native" => Built::Stage(Box::new(step::StepStage::native(config.stage_params(stage)?, config.image.size, &stage.name)?)),
         "residual" => Built::Stage(Box::new(residual::ResidualStage::new(config.stage_params(stage)?)?)),
         "writer" => Built::Stage(Box::new(writer::WriterStage::new(config.stage_params(stage)?)?)),
         other => {

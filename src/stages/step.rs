@@ -1,9 +1,10 @@
-//! Network-step stages (`kind: clean`, `onnx`): run the job's next step of
+//! Network-step stages (`kind: clean`, `onnx`, `native`): run the job's next step of
 //! the series and pass it to the residual update.
 
 use crate::pipeline::{Emit, Job, Port, Stage};
 use crate::steps::clean::{CleanConfig, CleanStep};
 use crate::steps::onnx::{OnnxConfig, OnnxStep};
+use crate::steps::native::{NativeConfig, NativeStep};
 use crate::steps::{NetworkStep, StepInput};
 use crate::Result;
 use std::time::Instant;
@@ -21,6 +22,11 @@ impl StepStage {
     /// An R2D2/R3D3 series for `size x size` images (checked now, before any job runs).
     pub fn onnx(config: OnnxConfig, size: usize, threads: usize) -> Result<StepStage> {
         Ok(StepStage { kind: "onnx", step: Box::new(OnnxStep::new(&config, size, threads)?) })
+    }
+
+    /// Loads and creates the plugin now, so that every plugin error comes before imaging.
+    pub fn native(config: NativeConfig, image_size: usize, stage: &str) -> Result<StepStage> {
+        Ok(StepStage { kind: "native", step: Box::new(NativeStep::new(config, image_size, stage)?) })
     }
 }
 

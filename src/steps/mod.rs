@@ -1,9 +1,10 @@
 //! Network steps: the regularisation step of the imaging loop. R2D2 runs a trained network
 //! here; the built-in `clean` step runs a Hogbom minor cycle in the same place, so the loop
-//! and everything around it is shared. ONNX series and native plugins implement the same
-//! trait.
+//! and everything around it is shared. Native plugins (`native`, a shared library through a
+//! versioned C ABI) and ONNX series implement the same trait.
 
 pub mod clean;
+pub mod native;
 pub mod onnx;
 pub mod runtime;
 pub mod series;
