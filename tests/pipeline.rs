@@ -226,6 +226,12 @@ fn parquet_batches(path: &Path, rows: usize) -> (std::sync::Arc<arrow::datatypes
     (schema, batches)
 }
 
+/// `a.parquet`, a small simulated table, and its batches of 500 rows.
+fn small_table_batches(d: &Path) -> (std::sync::Arc<arrow::datatypes::Schema>, Vec<arrow::array::RecordBatch>) {
+    simulate_small(d, "3", "a.parquet", &[]);
+    parquet_batches(&d.join("a.parquet"), 500)
+}
+
 /// An Arrow IPC stream of the batches, and the byte offsets where each batch's message ends.
 fn ipc_stream(schema: &arrow::datatypes::Schema, batches: &[arrow::array::RecordBatch]) -> (Vec<u8>, Vec<usize>) {
     let mut writer = arrow::ipc::writer::StreamWriter::try_new(Vec::new(), schema).unwrap();
@@ -265,8 +271,7 @@ fn ipc_source(path: &str, extra: &str) -> String {
 fn arrow_ipc_on_stdin_and_from_a_file_images_like_parquet() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    simulate_small(d, "3", "a.parquet", &[]);
-    let (schema, batches) = parquet_batches(&d.join("a.parquet"), 500);
+    let (schema, batches) = small_table_batches(d);
     assert!(batches.len() > 2, "several batches");
     let (stream, _) = ipc_stream(&schema, &batches);
     let mut file = arrow::ipc::writer::FileWriter::try_new(Vec::new(), &schema).unwrap();
@@ -299,8 +304,7 @@ fn arrow_ipc_on_stdin_and_from_a_file_images_like_parquet() {
 fn corrupt_arrow_ipc_mid_stream_fails_cleanly() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    simulate_small(d, "3", "a.parquet", &[]);
-    let (schema, batches) = parquet_batches(&d.join("a.parquet"), 500);
+    let (schema, batches) = small_table_batches(d);
     let (stream, ends) = ipc_stream(&schema, &batches);
     // Halfway through the third batch's message.
     let cut = (ends[1] + ends[2]) / 2;
