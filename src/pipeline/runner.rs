@@ -25,7 +25,8 @@ pub struct RunReport {
     /// Ids of the jobs that reached a writer, in completion order.
     pub jobs: Vec<String>,
     pub seconds: f64,
-    /// Seconds per stage, summed over jobs (stage name -> seconds).
+    /// Seconds per stage, summed over jobs (stage name -> seconds): work only, not the time
+    /// spent waiting for room in the next stage's channel.
     pub stage_seconds: BTreeMap<String, f64>,
 }
 
@@ -105,7 +106,10 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
                 // Send on a port, taking a loop token when entering a loop from outside and
                 // giving it back when leaving the loop through `done`.
                 let send = |port: Port, mut job: Job, began: Instant| -> Result<()> {
-                    *job.stage_seconds.entry(name.clone()).or_insert(0.0) += began.elapsed().as_secs_f64();
+                    // Work time only: waiting below for room downstream is not this stage's.
+                    let spent = began.elapsed().as_secs_f64();
+                    *job.stage_seconds.entry(name.clone()).or_insert(0.0) += spent;
+                    *totals.lock().expect("totals").entry(name.clone()).or_insert(0.0) += spent;
                     let target = match port {
                         Port::Next => graph.next[i],
                         Port::Done => graph.done[i],
@@ -145,7 +149,6 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
                         // A job's source time is the time since the previous job left (reading it).
                         let mut since = Instant::now();
                         let mut emit = |job: Job| {
-                            *totals.lock().expect("totals").entry(name.clone()).or_insert(0.0) += since.elapsed().as_secs_f64();
                             let sent = send(Port::Next, job, since);
                             since = Instant::now();
                             sent
@@ -180,10 +183,10 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
                         }
                         show(i, String::new());
                         if sink {
+                            *totals.lock().expect("totals").entry(name.clone()).or_insert(0.0) += began.elapsed().as_secs_f64();
                             finished.lock().expect("finished list").push(id);
                             bar.inc(1);
                         }
-                        *totals.lock().expect("totals").entry(name.clone()).or_insert(0.0) += began.elapsed().as_secs_f64();
                     },
                 };
                 if let Err(e) = result {
