@@ -224,3 +224,164 @@ fn sampled_errors(
     };
     (rel(&grid_pairs), rel(&degrid_pairs))
 }
+
+/// `r2d2 bench pipeline`: the same jobs through one pipeline run (stages concurrently on
+/// their threads) and one run per job, one after another.
+///
+/// The jobs are copies of one simulated observation written to Parquet before any timing,
+/// so reading is cheap and the imaging stages (gridding, network step, residual update,
+/// writing) dominate, not the simulation.
+#[derive(Clone, Debug)]
+pub struct PipelineBenchParams {
+    pub jobs: usize,
+    /// Image edge in pixels.
+    pub size: usize,
+    /// VLA configuration and hours of the simulated observation.
+    pub configuration: char,
+    pub hours: f64,
+    pub integration_s: f64,
+    /// CLEAN major cycles (imaging-loop iterations) per job.
+    pub major_cycles: usize,
+    /// Threads per stage (0: all cores).
+    pub threads: usize,
+    pub channel_capacity: usize,
+    pub seed: u64,
+}
+
+impl Default for PipelineBenchParams {
+    fn default() -> Self {
+        PipelineBenchParams {
+            jobs: 8,
+            size: 256,
+            configuration: 'c',
+            hours: 2.0,
+            integration_s: 30.0,
+            major_cycles: 4,
+            threads: 1,
+            channel_capacity: 2,
+            seed: 1,
+        }
+    }
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct PipelineBenchReport {
+    pub jobs: usize,
+    pub size: usize,
+    pub visibilities_per_job: usize,
+    pub major_cycles: usize,
+    pub threads_per_stage: usize,
+    pub cores: usize,
+    /// All jobs through one pipeline run.
+    pub concurrent_seconds: f64,
+    /// One run per job, one after another.
+    pub sequential_seconds: f64,
+    /// Jobs per second of each way.
+    pub concurrent_jobs_per_second: f64,
+    pub sequential_jobs_per_second: f64,
+    /// `sequential_seconds / concurrent_seconds`: the throughput gained by running stages
+    /// concurrently.
+    pub throughput_ratio: f64,
+    /// Seconds per stage summed over jobs, for each way.
+    pub concurrent_stage_seconds: std::collections::BTreeMap<String, f64>,
+    pub sequential_stage_seconds: std::collections::BTreeMap<String, f64>,
+}
+
+/// Removes the benchmark's scratch directory however the run ends.
+struct ScratchDir(std::path::PathBuf);
+
+impl Drop for ScratchDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+pub fn run_pipeline_bench(p: &PipelineBenchParams) -> Result<PipelineBenchReport> {
+    use crate::pipeline::{config::PipelineConfig, runner};
+    use crate::simulate::observe::ObservationSpec;
+    use crate::simulate::{simulate, SimulationRequest, SkyModel};
+    use std::sync::atomic::AtomicBool;
+    use std::sync::Arc;
+
+    if p.jobs == 0 || p.major_cycles == 0 {
+        return Err(Error::parameter("jobs", "expected at least one job and one major cycle"));
+    }
+    let dir = ScratchDir(std::env::temp_dir().join(format!("r2d2-bench-pipeline-{}", std::process::id())));
+    std::fs::create_dir_all(&dir.0).map_err(|e| Error::io(&dir.0, e))?;
+    let request = SimulationRequest {
+        observation: ObservationSpec {
+            configurations: vec![(p.configuration, p.hours)],
+            dec_deg: 40.0,
+            integration_s: p.integration_s,
+            frequencies_hz: vec![1.4e9],
+            flag_fraction: 0.0,
+            random_rotation: true,
+            seed: p.seed,
+        },
+        sky: SkyModel::Procedural { seed: p.seed },
+        size: p.size,
+        pixel: crate::imaging::PixelScale::SuperResolution(1.5),
+        dynamic_range: 1e4,
+        noise_weighting: crate::weighting::Weighting::Briggs { robust: 0.0 },
+        phase_centre_deg: (180.0, 40.0),
+        nufft: NufftParams::default(),
+        threads: 0,
+    };
+    let out = simulate(&request)?;
+    let files: Vec<String> = (0..p.jobs).map(|k| format!("job-{k}.parquet")).collect();
+    crate::vis::write_parquet(&dir.0.join(&files[0]), &out.table, &out.meta)?;
+    for f in &files[1..] {
+        std::fs::copy(dir.0.join(&files[0]), dir.0.join(f)).map_err(|e| Error::io(dir.0.join(f), e))?;
+    }
+    let pipeline = |files: &[String]| -> Result<PipelineConfig> {
+        let list: Vec<String> = files.iter().map(|f| format!("\"{}\"", dir.0.join(f).display())).collect();
+        let text = format!(
+            "name: bench\nthreads: {threads}\nchannel_capacity: {cap}\nimage: {{size: {size}}}\nstages:\n  \
+             read: {{kind: parquet, files: [{list}], to: weights}}\n  \
+             weights: {{kind: weighting, scheme: briggs, to: grid}}\n  \
+             grid: {{kind: gridder, to: step}}\n  \
+             step: {{kind: clean, major_cycles: {cycles}, to: update}}\n  \
+             update: {{kind: residual, to: step, done: write}}\n  \
+             write: {{kind: writer, prefix: \"{out}/{{job}}\"}}\n",
+            threads = p.threads,
+            cap = p.channel_capacity,
+            size = p.size,
+            list = list.join(", "),
+            cycles = p.major_cycles,
+            out = dir.0.join("out").display(),
+        );
+        PipelineConfig::parse(&text, &dir.0.join("bench.yaml"), &[])
+    };
+    let cancel = Arc::new(AtomicBool::new(false));
+    let add = |into: &mut std::collections::BTreeMap<String, f64>, from: &std::collections::BTreeMap<String, f64>| {
+        for (k, v) in from {
+            *into.entry(k.clone()).or_insert(0.0) += v;
+        }
+    };
+    let all = pipeline(&files)?;
+    let start = Instant::now();
+    let concurrent = runner::run(&all, cancel.clone())?;
+    let concurrent_seconds = start.elapsed().as_secs_f64();
+    let mut sequential_stage_seconds = std::collections::BTreeMap::new();
+    let start = Instant::now();
+    for f in &files {
+        let report = runner::run(&pipeline(std::slice::from_ref(f))?, cancel.clone())?;
+        add(&mut sequential_stage_seconds, &report.stage_seconds);
+    }
+    let sequential_seconds = start.elapsed().as_secs_f64();
+    Ok(PipelineBenchReport {
+        jobs: p.jobs,
+        size: p.size,
+        visibilities_per_job: out.table.len(),
+        major_cycles: p.major_cycles,
+        threads_per_stage: p.threads,
+        cores: std::thread::available_parallelism().map_or(1, |n| n.get()),
+        concurrent_seconds,
+        sequential_seconds,
+        concurrent_jobs_per_second: p.jobs as f64 / concurrent_seconds,
+        sequential_jobs_per_second: p.jobs as f64 / sequential_seconds,
+        throughput_ratio: sequential_seconds / concurrent_seconds,
+        concurrent_stage_seconds: concurrent.stage_seconds,
+        sequential_stage_seconds,
+    })
+}

@@ -30,7 +30,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use arrow::array::{Array, ArrayRef, BooleanArray, Float32Array, Float64Array, Int32Array, RecordBatch};
-use arrow::datatypes::{DataType, Field, Schema};
+use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
 use num_complex::Complex64;
 use parquet::arrow::arrow_reader::{ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder};
 use parquet::arrow::{ArrowWriter, ProjectionMask};
@@ -239,6 +239,21 @@ impl Visibilities {
         self.frequency.append(&mut other.frequency);
     }
 
+    /// Splits the samples into `groups` parts: sample `i` goes to part `group[i]` (< `groups`),
+    /// keeping their order within each part.
+    pub fn partition(self, group: &[usize], groups: usize) -> Vec<Visibilities> {
+        assert_eq!(group.len(), self.len(), "one group per sample");
+        let mut counts = vec![0usize; groups];
+        for &g in group {
+            counts[g] += 1;
+        }
+        let mut parts: Vec<Visibilities> = counts.iter().map(|&n| Visibilities::with_capacity(n)).collect();
+        for (i, &g) in group.iter().enumerate() {
+            parts[g].push([self.u[i], self.v[i], self.w[i]], self.vis[i], self.weight[i], self.frequency[i]);
+        }
+        parts
+    }
+
     fn push(&mut self, uvw: [f64; 3], vis: Complex64, weight: f64, frequency: f64) {
         self.u.push(uvw[0]);
         self.v.push(uvw[1]);
@@ -337,7 +352,7 @@ const READ_COLUMNS: [(&str, ColumnType, bool); 8] = [
 
 /// Checks that the columns the reader uses exist (when required), once, with an
 /// accepted type.
-fn validate_schema(schema: &Schema, source: &str) -> Result<()> {
+pub(crate) fn validate_schema(schema: &Schema, source: &str) -> Result<()> {
     for (name, column_type, required) in READ_COLUMNS {
         let mut matching = schema.fields().iter().filter(|f| f.name() == name);
         match (matching.next(), matching.next()) {
@@ -368,7 +383,7 @@ fn validate_schema(schema: &Schema, source: &str) -> Result<()> {
 }
 
 /// Refuses nulls: a missing value is not a sample, and guessing one would be wrong.
-fn check_no_nulls(array: &dyn Array, name: &str, source: &str, first_row: u64) -> Result<()> {
+pub(crate) fn check_no_nulls(array: &dyn Array, name: &str, source: &str, first_row: u64) -> Result<()> {
     if array.null_count() == 0 {
         return Ok(());
     }
@@ -422,6 +437,27 @@ pub fn record_batch_to_visibilities(
     stats: &mut IngestStats,
     source: &str,
 ) -> Result<Visibilities> {
+    convert_batch(batch, stats, source, None)
+}
+
+/// As [`record_batch_to_visibilities`], also appending to `kept_rows` the batch row index of
+/// each sample kept, so that callers can follow other columns (time, to split a table)
+/// through the filter.
+pub fn record_batch_to_visibilities_keeping_rows(
+    batch: &RecordBatch,
+    stats: &mut IngestStats,
+    source: &str,
+    kept_rows: &mut Vec<usize>,
+) -> Result<Visibilities> {
+    convert_batch(batch, stats, source, Some(kept_rows))
+}
+
+fn convert_batch(
+    batch: &RecordBatch,
+    stats: &mut IngestStats,
+    source: &str,
+    mut kept_rows: Option<&mut Vec<usize>>,
+) -> Result<Visibilities> {
     validate_schema(batch.schema_ref(), source)?;
     let first_row = stats.rows;
     let column = |name| required_float_column(batch, name, source, first_row);
@@ -472,6 +508,9 @@ pub fn record_batch_to_visibilities(
             ));
         }
         let per_metre = frequency[i] / SPEED_OF_LIGHT;
+        if let Some(rows) = kept_rows.as_mut() {
+            rows.push(i);
+        }
         out.push(
             [u[i] * per_metre, v[i] * per_metre, w[i] * per_metre],
             Complex64::new(re[i], im[i]),
@@ -493,18 +532,26 @@ pub struct VisReader {
     meta: ObservationMeta,
     stats: IngestStats,
     total_rows: u64,
-    batches: ParquetRecordBatchReader,
+    /// The file's whole schema (the batches hold only the columns read).
+    schema: SchemaRef,
+    batches: GuardedBatches<ParquetRecordBatchReader>,
     finished: bool,
 }
 
 impl VisReader {
     /// Opens `path`, reading and checking the footer: columns, types and metadata.
     pub fn open(path: &Path, batch_rows: usize) -> Result<VisReader> {
+        Self::open_with_columns(path, batch_rows, &[])
+    }
+
+    /// As [`VisReader::open`], also decoding the columns `extra` (when the file has them) into
+    /// the batches of [`VisReader::next_record_batch`], e.g. `time` to split the table.
+    pub fn open_with_columns(path: &Path, batch_rows: usize, extra: &[&str]) -> Result<VisReader> {
         if batch_rows == 0 {
             return Err(Error::parameter("batch_rows", "must be at least 1"));
         }
         let file = File::open(path).map_err(|e| Error::io(path, e))?;
-        let builder = contain_panics(path, "not a readable Parquet file", || {
+        let builder = contain_panics(path, "not a readable Parquet file", PARQUET, || {
             ParquetRecordBatchReaderBuilder::try_new(file)
         })?;
         let source = path.display().to_string();
@@ -523,10 +570,13 @@ impl VisReader {
             .fields()
             .iter()
             .enumerate()
-            .filter(|(_, field)| READ_COLUMNS.iter().any(|(name, _, _)| field.name() == name))
+            .filter(|(_, field)| {
+                READ_COLUMNS.iter().any(|(name, _, _)| field.name() == name) || extra.contains(&field.name().as_str())
+            })
             .map(|(index, _)| index)
             .collect();
         let projection = ProjectionMask::roots(builder.parquet_schema(), used);
+        let schema = builder.schema().clone();
         let batches = builder
             .with_batch_size(batch_rows)
             .with_projection(projection)
@@ -538,9 +588,29 @@ impl VisReader {
             meta,
             stats: IngestStats::default(),
             total_rows,
-            batches,
+            schema,
+            batches: GuardedBatches::new(path, PARQUET, batches),
             finished: false,
         })
+    }
+
+    /// The file being read.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// The file's schema: every column, including those not read.
+    pub fn schema(&self) -> &SchemaRef {
+        &self.schema
+    }
+
+    /// The next batch as decoded (the columns used and the `extra` ones, no row dropped yet);
+    /// `None` at the end or after an error.
+    pub fn next_record_batch(&mut self) -> Option<Result<RecordBatch>> {
+        if self.finished {
+            return None;
+        }
+        self.batches.next_batch()
     }
 
     /// The observation metadata from the file footer.
@@ -563,17 +633,8 @@ impl Iterator for VisReader {
     type Item = Result<Visibilities>;
 
     fn next(&mut self) -> Option<Self::Item> {
-        if self.finished {
-            return None;
-        }
-        let batches = &mut self.batches;
-        let what = format!("corrupt data after row {}", self.stats.rows);
-        let item = match contain_panics(&self.path, &what, || batches.next().transpose()) {
-            Ok(None) => {
-                self.finished = true;
-                return None;
-            }
-            Ok(Some(batch)) => record_batch_to_visibilities(&batch, &mut self.stats, &self.source),
+        let item = match self.next_record_batch()? {
+            Ok(batch) => record_batch_to_visibilities(&batch, &mut self.stats, &self.source),
             Err(e) => Err(e),
         };
         self.finished = item.is_err();
@@ -581,8 +642,47 @@ impl Iterator for VisReader {
     }
 }
 
-/// Runs Parquet decoding of untrusted bytes, turning errors and panics alike into an
-/// `Error` naming the file.
+/// Record batches decoded from untrusted bytes: decoding errors and panics become errors
+/// naming the file and the row reached, and nothing is read after the first one.
+pub(crate) struct GuardedBatches<I> {
+    path: PathBuf,
+    decoder: &'static str,
+    batches: I,
+    rows_decoded: u64,
+    finished: bool,
+}
+
+impl<I, E> GuardedBatches<I>
+where
+    I: Iterator<Item = std::result::Result<RecordBatch, E>>,
+    E: fmt::Display,
+{
+    pub(crate) fn new(path: &Path, decoder: &'static str, batches: I) -> Self {
+        GuardedBatches { path: path.to_path_buf(), decoder, batches, rows_decoded: 0, finished: false }
+    }
+
+    /// The next batch; `None` at the end or after an error.
+    pub(crate) fn next_batch(&mut self) -> Option<Result<RecordBatch>> {
+        if self.finished {
+            return None;
+        }
+        let batches = &mut self.batches;
+        let what = format!("corrupt {} data after row {}", self.decoder, self.rows_decoded);
+        let item = contain_panics(&self.path, &what, self.decoder, || batches.next().transpose()).transpose();
+        match &item {
+            Some(Ok(batch)) => self.rows_decoded += batch.num_rows() as u64,
+            _ => self.finished = true,
+        }
+        item
+    }
+}
+
+/// Decoder names for [`contain_panics`]'s messages.
+pub(crate) const PARQUET: &str = "Parquet";
+pub(crate) const ARROW_IPC: &str = "Arrow IPC";
+
+/// Runs decoding of untrusted bytes (Parquet, Arrow IPC: `decoder` names it), turning errors
+/// and panics alike into an `Error` naming the file.
 ///
 /// parquet 55 panics on some corrupt pages instead of returning an error (dictionary
 /// indices are not bounds-checked: apache/arrow-rs#9434, fixed in later releases), and a
@@ -590,9 +690,10 @@ impl Iterator for VisReader {
 /// callers stop using the decoder after any failure (`VisReader` ends its iteration), so
 /// no state it may have left half-updated is observed. The panic hook still prints the
 /// panic to stderr.
-fn contain_panics<T, E: fmt::Display>(
+pub(crate) fn contain_panics<T, E: fmt::Display>(
     path: &Path,
     what: &str,
+    decoder: &str,
     decode: impl FnOnce() -> std::result::Result<T, E>,
 ) -> Result<T> {
     match std::panic::catch_unwind(std::panic::AssertUnwindSafe(decode)) {
@@ -604,7 +705,7 @@ fn contain_panics<T, E: fmt::Display>(
                 .map(|s| s.to_string())
                 .or_else(|| payload.downcast_ref::<String>().cloned())
                 .unwrap_or_else(|| "no message".to_string());
-            Err(Error::input(path, format!("{what}: the Parquet decoder failed ({message})")))
+            Err(Error::input(path, format!("{what}: the {decoder} decoder failed ({message})")))
         }
     }
 }
@@ -1071,11 +1172,11 @@ mod tests {
     #[test]
     fn decoder_panics_become_errors_naming_the_file() {
         let path = Path::new("some/file.parquet");
-        let err = contain_panics(path, "reading", || -> std::result::Result<(), String> { panic!("boom") })
+        let err = contain_panics(path, "reading", PARQUET, || -> std::result::Result<(), String> { panic!("boom") })
             .unwrap_err()
             .to_string();
         assert!(err.contains("some/file.parquet") && err.contains("boom"), "{err}");
-        let err = contain_panics(path, "reading", || Err::<(), _>("bad page")).unwrap_err().to_string();
+        let err = contain_panics(path, "reading", PARQUET, || Err::<(), _>("bad page")).unwrap_err().to_string();
         assert_eq!(err, "some/file.parquet: reading: bad page");
     }
 
@@ -1106,6 +1207,16 @@ mod tests {
         write_parquet(&path, &table, &test_meta()).unwrap();
         let (vis, _, _) = read_parquet(&path).unwrap();
         assert_eq!(vis.weight, vec![1.0; 3]);
+    }
+
+    #[test]
+    fn partition_keeps_order_within_groups() {
+        let (vis, _) = test_table(5).to_visibilities("t").unwrap();
+        let parts = vis.clone().partition(&[1, 0, 1, 2, 0], 4);
+        assert_eq!(parts.iter().map(Visibilities::len).collect::<Vec<_>>(), [2, 2, 1, 0]);
+        assert_eq!(parts[0].u, [vis.u[1], vis.u[4]]);
+        assert_eq!(parts[1].vis, [vis.vis[0], vis.vis[2]]);
+        assert_eq!(parts[2].frequency, [vis.frequency[3]]);
     }
 
     #[test]

@@ -48,6 +48,47 @@ fn simulate_clean_write_pipeline_produces_checked_products() {
     // The image header carries the restoring beam.
     let header = std::fs::read(d.join("out/sim-5-image.fits")).unwrap();
     assert!(String::from_utf8_lossy(&header[..2880 * 2]).contains("BMAJ"));
+
+    // A PNG preview per FITS product: a 64^2 image is shown 8x enlarged (512 rows) under a
+    // title line (12 + 14 + 10 rows) with half a label line and a 12-row margin below it.
+    for product in ["dirty", "psf", "model", "residual", "image"] {
+        let file = std::fs::File::open(d.join(format!("out/sim-5-{product}.png"))).unwrap();
+        let mut reader = png::Decoder::new(std::io::BufReader::new(file)).read_info().unwrap();
+        let mut pixels = vec![0; reader.output_buffer_size()];
+        let info = reader.next_frame(&mut pixels).unwrap();
+        assert_eq!(info.height, 12 + 14 + 10 + 512 + 7 + 12, "{product}");
+        assert!(info.width > 12 + 512 + 16 + 20 && info.width < 1024, "{product}: width {}", info.width);
+        assert_eq!(info.color_type, png::ColorType::Rgb);
+        // Not blank: the image area (from x = 12, y = 36) holds several colours.
+        let row_bytes = 3 * info.width as usize;
+        let distinct: std::collections::HashSet<&[u8]> =
+            (36..36 + 512).flat_map(|y| pixels[y * row_bytes + 36..y * row_bytes + 36 + 3 * 512].chunks(3)).collect();
+        assert!(distinct.len() > 1, "{product}: blank preview");
+    }
+
+    // The metrics again as Parquet: the same rows as the JSON, stage seconds as metadata.
+    use arrow::array::{Array, Float64Array, UInt32Array};
+    use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
+    let builder = ParquetRecordBatchReaderBuilder::try_new(std::fs::File::open(d.join("out/sim-5-metrics.parquet")).unwrap()).unwrap();
+    let kv = builder.metadata().file_metadata().key_value_metadata().unwrap().clone();
+    let value = |key: &str| kv.iter().find(|k| k.key == key).and_then(|k| k.value.clone()).unwrap();
+    assert_eq!(value("job"), "sim-5");
+    let stage_seconds: serde_json::Value = serde_json::from_str(&value("stage_seconds")).unwrap();
+    assert_eq!(stage_seconds, metrics["stage_seconds"]);
+    let batches: Vec<_> = builder.build().unwrap().map(|b| b.unwrap()).collect();
+    assert_eq!(batches.len(), 1);
+    let b = &batches[0];
+    let col = |name: &str| b.column_by_name(name).unwrap().as_any().downcast_ref::<Float64Array>().unwrap().clone();
+    let iteration = b.column_by_name("iteration").unwrap().as_any().downcast_ref::<UInt32Array>().unwrap().clone();
+    assert_eq!(iteration.values().to_vec(), [1, 2, 3]);
+    // serde_json's parser (without its float_roundtrip feature) may miss by one ulp.
+    let same = |a: f64, json: &serde_json::Value| (a - json.as_f64().unwrap()).abs() <= 1e-15 * a.abs();
+    for (k, m) in iterations.iter().enumerate() {
+        for name in ["residual_ratio", "snr", "logsnr", "step_seconds", "residual_seconds"] {
+            assert!(same(col(name).value(k), &m[name]), "{name} at {k}: {} vs {}", col(name).value(k), m[name]);
+        }
+    }
+    assert_eq!(col("snr").null_count(), 0);
 }
 
 #[test]
@@ -59,6 +100,9 @@ fn set_overrides_values_and_names_unknown_stages() {
     let metrics = std::fs::read_to_string(d.join("o2/sim-5-metrics.json")).unwrap();
     let v: serde_json::Value = serde_json::from_str(&metrics).unwrap();
     assert_eq!(v["iterations"].as_array().unwrap().len(), 2);
+    check(&r2d2(&["run", "p.yaml", "--set", "step.major_cycles=1", "--set", "write.prefix=o3/{job}", "--set", "write.previews=false"], d));
+    let written: Vec<String> = std::fs::read_dir(d.join("o3")).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    assert!(written.iter().any(|f| f.ends_with(".fits")) && !written.iter().any(|f| f.ends_with(".png")), "{written:?}");
     let out = r2d2(&["validate", "p.yaml", "--set", "nosuch.key=1"], d);
     assert!(!out.status.success());
     assert!(stderr(&out).contains("no stage 'nosuch'"), "{}", stderr(&out));
@@ -137,7 +181,7 @@ fn image_command_runs_the_default_pipeline() {
 #[test]
 fn shipped_pipelines_validate() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    for p in ["quickstart.yaml", "stream.yaml", "image.yaml"] {
+    for p in ["quickstart.yaml", "stream.yaml", "image.yaml", "ipc.yaml"] {
         let out = r2d2(&["validate", &format!("pipelines/{p}")], root);
         // image.yaml names obs.parquet, which does not exist in the repository.
         if p == "image.yaml" {
@@ -146,4 +190,200 @@ fn shipped_pipelines_validate() {
             check(&out);
         }
     }
+}
+
+fn simulate_small(d: &Path, seed: &str, out: &str, extra: &[&str]) {
+    let mut args = vec!["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64", "--seed", seed, "--out", out];
+    args.extend_from_slice(extra);
+    check(&r2d2(&args, d));
+}
+
+/// The batches of a Parquet visibility table, with its key-value metadata on the schema (as
+/// an upstream process would send them over Arrow IPC), in batches of `rows`.
+fn parquet_batches(path: &Path, rows: usize) -> (std::sync::Arc<arrow::datatypes::Schema>, Vec<arrow::array::RecordBatch>) {
+    use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
+    let builder = ParquetRecordBatchReaderBuilder::try_new(std::fs::File::open(path).unwrap()).unwrap();
+    let metadata: std::collections::HashMap<String, String> = builder
+        .metadata()
+        .file_metadata()
+        .key_value_metadata()
+        .unwrap()
+        .iter()
+        .filter(|kv| kv.key != "ARROW:schema")
+        .map(|kv| (kv.key.clone(), kv.value.clone().unwrap_or_default()))
+        .collect();
+    let schema = std::sync::Arc::new(builder.schema().as_ref().clone().with_metadata(metadata));
+    let batches = builder.with_batch_size(rows).build().unwrap().map(|b| b.unwrap().with_schema(schema.clone()).unwrap()).collect();
+    (schema, batches)
+}
+
+/// `a.parquet`, a small simulated table, and its batches of 500 rows.
+fn small_table_batches(d: &Path) -> (std::sync::Arc<arrow::datatypes::Schema>, Vec<arrow::array::RecordBatch>) {
+    simulate_small(d, "3", "a.parquet", &[]);
+    parquet_batches(&d.join("a.parquet"), 500)
+}
+
+/// An Arrow IPC stream of the batches, and the byte offsets where each batch's message ends.
+fn ipc_stream(schema: &arrow::datatypes::Schema, batches: &[arrow::array::RecordBatch]) -> (Vec<u8>, Vec<usize>) {
+    let mut writer = arrow::ipc::writer::StreamWriter::try_new(Vec::new(), schema).unwrap();
+    let mut ends = Vec::new();
+    for b in batches {
+        writer.write(b).unwrap();
+        ends.push(writer.get_ref().len());
+    }
+    writer.finish().unwrap();
+    (writer.into_inner().unwrap(), ends)
+}
+
+fn r2d2_stdin(args: &[&str], dir: &Path, input: &[u8]) -> Output {
+    use std::io::Write;
+    let mut child = Command::new(env!("CARGO_BIN_EXE_r2d2"))
+        .args(args)
+        .current_dir(dir)
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("r2d2 runs");
+    let mut stdin = child.stdin.take().unwrap();
+    // r2d2 may stop reading early (an error): a broken pipe here is then expected.
+    let _ = stdin.write_all(input);
+    drop(stdin);
+    child.wait_with_output().unwrap()
+}
+
+fn ipc_source(path: &str, extra: &str) -> String {
+    format!("  source:\n    kind: arrow-ipc\n    path: \"{path}\"\n{extra}    to: weights\n")
+}
+
+/// An Arrow IPC stream on standard input, and an IPC file, image exactly like the Parquet
+/// file they were made from.
+#[test]
+fn arrow_ipc_on_stdin_and_from_a_file_images_like_parquet() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (schema, batches) = small_table_batches(d);
+    assert!(batches.len() > 2, "several batches");
+    let (stream, _) = ipc_stream(&schema, &batches);
+    let mut file = arrow::ipc::writer::FileWriter::try_new(Vec::new(), &schema).unwrap();
+    for b in &batches {
+        file.write(b).unwrap();
+    }
+    file.finish().unwrap();
+    std::fs::write(d.join("a.arrow"), file.into_inner().unwrap()).unwrap();
+
+    let parquet = "  source:\n    kind: parquet\n    files: a.parquet\n    to: weights\n";
+    std::fs::write(d.join("pq.yaml"), small_pipeline(Some(parquet))).unwrap();
+    std::fs::write(d.join("stdin.yaml"), small_pipeline(Some(&ipc_source("-", "")))).unwrap();
+    std::fs::write(d.join("file.yaml"), small_pipeline(Some(&ipc_source("a.arrow", "    id: from-file\n")))).unwrap();
+    check(&r2d2(&["run", "pq.yaml"], d));
+    check(&r2d2_stdin(&["run", "stdin.yaml"], d, &stream));
+    check(&r2d2(&["run", "file.yaml"], d));
+    for product in ["dirty", "psf", "model", "residual", "image"] {
+        let expected = read_image(&d.join(format!("out/a-{product}.fits"))).unwrap();
+        for id in ["stdin", "from-file"] {
+            let got = read_image(&d.join(format!("out/{id}-{product}.fits"))).unwrap();
+            assert_eq!(got.data, expected.data, "{id} {product} differs from the Parquet route");
+            assert_eq!(got.wcs, expected.wcs, "{id} {product} WCS");
+        }
+    }
+}
+
+/// A stream cut in the middle of a batch: the run fails naming the stage and the job, and
+/// no product (partial or not) is written. Bytes that are no IPC at all fail the same way.
+#[test]
+fn corrupt_arrow_ipc_mid_stream_fails_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (schema, batches) = small_table_batches(d);
+    let (stream, ends) = ipc_stream(&schema, &batches);
+    // Halfway through the third batch's message.
+    let cut = (ends[1] + ends[2]) / 2;
+    std::fs::write(d.join("p.yaml"), small_pipeline(Some(&ipc_source("-", "")))).unwrap();
+    for (what, input) in [("truncated", &stream[..cut]), ("not IPC", &b"this is not an Arrow IPC stream at all"[..])] {
+        let out = r2d2_stdin(&["run", "p.yaml"], d, input);
+        assert!(!out.status.success(), "{what}: accepted");
+        let err = stderr(&out);
+        assert!(err.contains("stage 'source' (arrow-ipc), job 'stdin'") && err.contains("standard input"), "{what}: {err}");
+        let written: Vec<_> = std::fs::read_dir(d.join("out")).map(|r| r.filter_map(|e| e.ok()).map(|e| e.file_name()).collect()).unwrap_or_default();
+        assert!(written.is_empty(), "{what}: files written: {written:?}");
+    }
+    let out = r2d2_stdin(&["run", "p.yaml"], d, &stream[..cut]);
+    assert!(stderr(&out).contains("corrupt Arrow IPC data after row 1000"), "{}", stderr(&out));
+}
+
+fn job_ids(dir: &Path) -> Vec<String> {
+    let mut ids: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter_map(|e| e.file_name().to_string_lossy().strip_suffix("-metrics.json").map(str::to_string))
+        .collect();
+    ids.sort();
+    ids
+}
+
+/// One file split into jobs by time windows (Parquet) and by channel (Arrow IPC on stdin).
+#[test]
+fn split_by_time_windows_and_channels() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    simulate_small(d, "6", "a.parquet", &["--nfreq", "2", "--freq-ratio", "1.3"]);
+    let (schema, batches) = parquet_batches(&d.join("a.parquet"), 700);
+    let times: Vec<f64> = batches
+        .iter()
+        .flat_map(|b| b.column_by_name("time").unwrap().as_any().downcast_ref::<arrow::array::Float64Array>().unwrap().values().to_vec())
+        .collect();
+    let (t0, t1) = times.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &t| (a.min(t), b.max(t)));
+    let windows = ((t1 - t0) / 1200.0).floor() as usize + 1;
+    assert!(windows >= 3, "a 1 h track gives at least 3 windows of 20 min");
+
+    let source = "  source:\n    kind: parquet\n    files: a.parquet\n    split_by: {column: time, window: 1200}\n    to: weights\n";
+    std::fs::write(d.join("time.yaml"), small_pipeline(Some(source)).replace("out/{job}", "time/{job}")).unwrap();
+    check(&r2d2(&["run", "time.yaml"], d));
+    let expected: Vec<String> = (0..windows).map(|k| format!("a-t{k:03}")).collect();
+    assert_eq!(job_ids(&d.join("time")), expected);
+
+    let (stream, _) = ipc_stream(&schema, &batches);
+    let source = ipc_source("-", "    id: a\n    split_by:\n      column: frequency\n");
+    std::fs::write(d.join("chan.yaml"), small_pipeline(Some(&source)).replace("out/{job}", "chan/{job}")).unwrap();
+    check(&r2d2_stdin(&["run", "chan.yaml"], d, &stream));
+    assert_eq!(job_ids(&d.join("chan")), ["a-ch00", "a-ch01"]);
+    // The two channels see the sky through different uv coverages: different dirty images.
+    let dirty = |id: &str| read_image(&d.join(format!("chan/{id}-dirty.fits"))).unwrap().data;
+    assert_ne!(dirty("a-ch00"), dirty("a-ch01"));
+
+    // An unknown column: before any work (Parquet), or when the stream's schema arrives (IPC),
+    // the error names the YAML key and the available columns.
+    let bad = small_pipeline(Some("  source:\n    kind: parquet\n    files: a.parquet\n    split_by: {column: tim, window: 600}\n    to: weights\n"));
+    std::fs::write(d.join("bad.yaml"), bad).unwrap();
+    let out = r2d2(&["validate", "bad.yaml"], d);
+    assert!(!out.status.success());
+    let err = stderr(&out);
+    for e in ["bad.yaml", "line 8", "stages.source.split_by.column", "`tim`", "columns: u, v, w, frequency"] {
+        assert!(err.contains(e), "'{e}' missing from: {err}");
+    }
+    std::fs::write(d.join("bad2.yaml"), small_pipeline(Some(&ipc_source("-", "    split_by: {column: chan}\n")))).unwrap();
+    let out = r2d2_stdin(&["run", "bad2.yaml"], d, &stream);
+    assert!(!out.status.success());
+    let err = stderr(&out);
+    assert!(err.contains("stages.source.split_by.column") && err.contains("`chan`") && err.contains("time"), "{err}");
+    let out = r2d2(&["validate", "bad2.yaml", "--set", "source.split_by.window=-5"], d);
+    assert!(stderr(&out).contains("split_by.window") && stderr(&out).contains("positive"), "{}", stderr(&out));
+}
+
+/// Progress bars draw only on a terminal: with stderr captured there is no bar, and `-q`
+/// leaves stderr empty on success.
+#[test]
+fn no_progress_output_when_stderr_is_not_a_terminal() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::write(d.join("p.yaml"), small_pipeline(None)).unwrap();
+    let out = r2d2(&["run", "p.yaml"], d);
+    check(&out);
+    let err = stderr(&out);
+    assert!(err.contains("job(s) in"), "log lines still come: {err}");
+    assert!(!err.contains('\r') && !err.contains('\u{1b}'), "terminal control characters: {err:?}");
+    let out = r2d2(&["-q", "run", "p.yaml", "--set", "write.prefix=q/{job}"], d);
+    check(&out);
+    assert!(out.stderr.is_empty(), "{}", stderr(&out));
 }

@@ -1,7 +1,7 @@
 //! `r2d2 bench`: hot-path benchmarks printing JSON, to compare side by side with peers
 //! (`benches/gridder_vs_ducc0.py` runs ducc0 on the same data).
 
-use r2d2_imaging::bench::{run_gridder_bench, GridderBenchParams};
+use r2d2_imaging::bench::{run_gridder_bench, run_pipeline_bench, GridderBenchParams, PipelineBenchParams};
 use r2d2_imaging::Result;
 
 #[derive(clap::Subcommand)]
@@ -23,12 +23,43 @@ pub enum Command {
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },
+    /// The same jobs through one pipeline run (stages concurrently) vs one run per job, one
+    /// after another: the throughput ratio. The jobs are copies of one simulated Parquet table.
+    Pipeline {
+        #[arg(long, default_value_t = 8)]
+        jobs: usize,
+        #[arg(long, default_value_t = 256)]
+        size: usize,
+        /// VLA configuration of the simulated observation.
+        #[arg(long, default_value_t = 'c')]
+        configuration: char,
+        #[arg(long, default_value_t = 2.0)]
+        hours: f64,
+        #[arg(long, default_value_t = 30.0)]
+        integration_s: f64,
+        /// CLEAN major cycles per job.
+        #[arg(long, default_value_t = 4)]
+        major_cycles: usize,
+        /// Threads per stage (0: all cores).
+        #[arg(long, default_value_t = 1)]
+        threads: usize,
+        #[arg(long, default_value_t = 2)]
+        channel_capacity: usize,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
 }
 
 pub fn run(cmd: Command) -> Result<()> {
     match cmd {
         Command::Gridder { visibilities, size, epsilon, threads, repeats, seed } => {
             let report = run_gridder_bench(&GridderBenchParams { visibilities, size, epsilon, threads, repeats, seed })?;
+            println!("{}", serde_json::to_string_pretty(&report).expect("report serialises"));
+            Ok(())
+        }
+        Command::Pipeline { jobs, size, configuration, hours, integration_s, major_cycles, threads, channel_capacity, seed } => {
+            let params = PipelineBenchParams { jobs, size, configuration, hours, integration_s, major_cycles, threads, channel_capacity, seed };
+            let report = run_pipeline_bench(&params)?;
             println!("{}", serde_json::to_string_pretty(&report).expect("report serialises"));
             Ok(())
         }

@@ -56,7 +56,21 @@ pub fn main() -> ExitCode {
         (false, 1) => log::LevelFilter::Debug,
         (false, _) => log::LevelFilter::Trace,
     };
-    env_logger::Builder::new().filter_level(level).format_target(false).format_timestamp(None).init();
+    if cli.quiet {
+        r2d2_imaging::progress::silence();
+    }
+    env_logger::Builder::new()
+        .filter_level(level)
+        .format_target(false)
+        .format_timestamp(None)
+        .target(env_logger::Target::Pipe(Box::new(r2d2_imaging::progress::LogWriter)))
+        // Through a pipe env_logger cannot tell whether stderr is a terminal.
+        .write_style(if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
+            env_logger::WriteStyle::Always
+        } else {
+            env_logger::WriteStyle::Never
+        })
+        .init();
     let result = match cli.command {
         Command::Simulate(args) => simulate::run(args),
         Command::Dirty(args) => dirty::run(args),

@@ -150,4 +150,9 @@ pub trait Source: Send {
     /// Produce every job, calling `emit` for each; stop early when `emit` fails or
     /// `cancelled()` turns true.
     fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()>;
+
+    /// The job being read when `produce` failed, to name it in the error.
+    fn current_job(&self) -> Option<String> {
+        None
+    }
 }

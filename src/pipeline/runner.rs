@@ -25,7 +25,8 @@ pub struct RunReport {
     /// Ids of the jobs that reached a writer, in completion order.
     pub jobs: Vec<String>,
     pub seconds: f64,
-    /// Seconds per stage, summed over jobs (stage name -> seconds).
+    /// Seconds per stage, summed over jobs (stage name -> seconds): work only, not the time
+    /// spent waiting for room in the next stage's channel.
     pub stage_seconds: BTreeMap<String, f64>,
 }
 
@@ -75,6 +76,14 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
     let first_error: Mutex<Option<Error>> = Mutex::new(None);
     let finished: Mutex<Vec<String>> = Mutex::new(Vec::new());
     let totals: Mutex<BTreeMap<String, f64>> = Mutex::new(BTreeMap::new());
+    // What each stage is working on, shown beside the count of jobs written.
+    let activity: Mutex<Vec<String>> = Mutex::new(vec![String::new(); n]);
+    let bar = crate::progress::counter("job(s) written");
+    let show = |i: usize, what: String| {
+        let mut activity = activity.lock().expect("activity");
+        activity[i] = what;
+        bar.set_message(activity.iter().filter(|a| !a.is_empty()).cloned().collect::<Vec<_>>().join("  "));
+    };
     let start = Instant::now();
     let record = |e: Error| {
         let mut slot = first_error.lock().expect("error slot");
@@ -90,14 +99,17 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
     std::thread::scope(|scope| {
         for (i, stage) in built.into_iter().enumerate() {
             let (config, graph, channels, tokens, upstream, ended) = (config, &graph, &channels, &tokens, &upstream, &ended);
-            let (cancel, fail, record, finished, totals) = (&cancel, &fail, &record, &finished, &totals);
+            let (cancel, fail, record, finished, totals, show, bar) = (&cancel, &fail, &record, &finished, &totals, &show, &bar);
             scope.spawn(move || {
                 let name = &config.stages[i].name;
                 let kind = &config.stages[i].kind;
                 // Send on a port, taking a loop token when entering a loop from outside and
                 // giving it back when leaving the loop through `done`.
                 let send = |port: Port, mut job: Job, began: Instant| -> Result<()> {
-                    *job.stage_seconds.entry(name.clone()).or_insert(0.0) += began.elapsed().as_secs_f64();
+                    // Work time only: waiting below for room downstream is not this stage's.
+                    let spent = began.elapsed().as_secs_f64();
+                    *job.stage_seconds.entry(name.clone()).or_insert(0.0) += spent;
+                    *totals.lock().expect("totals").entry(name.clone()).or_insert(0.0) += spent;
                     let target = match port {
                         Port::Next => graph.next[i],
                         Port::Done => graph.done[i],
@@ -134,10 +146,17 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
                 };
                 let result: Result<()> = match stage {
                     Built::Source(mut source) => {
-                        let mut emit = |job: Job| send(Port::Next, job, Instant::now());
-                        source
-                            .produce(&mut emit, &|| cancel.load(Ordering::SeqCst))
-                            .map_err(|e| stage_error(name, kind, "-", e))
+                        // A job's source time is the time since the previous job left (reading it).
+                        let mut since = Instant::now();
+                        let mut emit = |job: Job| {
+                            let sent = send(Port::Next, job, since);
+                            since = Instant::now();
+                            sent
+                        };
+                        source.produce(&mut emit, &|| cancel.load(Ordering::SeqCst)).map_err(|e| {
+                            let job = source.current_job().unwrap_or_else(|| "-".into());
+                            stage_error(name, kind, &job, e)
+                        })
                     }
                     Built::Stage(mut stage) => loop {
                         if cancel.load(Ordering::SeqCst) {
@@ -155,16 +174,19 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
                             }
                         };
                         let id = job.id.clone();
+                        show(i, if job.iteration > 0 { format!("{name}: {id} #{}", job.iteration) } else { format!("{name}: {id}") });
                         let began = Instant::now();
                         let sink = graph.roles[i] == Role::Sink;
                         let mut emit = |port: Port, job: Job| send(port, job, began);
                         if let Err(e) = stage.process(job, &mut emit) {
                             break Err(stage_error(name, kind, &id, e));
                         }
+                        show(i, String::new());
                         if sink {
+                            *totals.lock().expect("totals").entry(name.clone()).or_insert(0.0) += began.elapsed().as_secs_f64();
                             finished.lock().expect("finished list").push(id);
+                            bar.inc(1);
                         }
-                        *totals.lock().expect("totals").entry(name.clone()).or_insert(0.0) += began.elapsed().as_secs_f64();
                     },
                 };
                 if let Err(e) = result {
@@ -183,6 +205,7 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
         }
     });
 
+    bar.finish_and_clear();
     if let Some(e) = first_error.into_inner().expect("error slot") {
         return Err(e);
     }

@@ -1,6 +1,7 @@
 //! Stage kinds, registered by their YAML `kind`. Each kind is one module with a config
 //! struct that rejects unknown keys, built by [`build_stage`].
 
+mod arrow_ipc;
 mod gridder;
 mod parquet;
 mod residual;
@@ -32,6 +33,7 @@ pub enum Role {
 const REGISTRY: &[(&str, Role)] = &[
     ("simulate", Role::Source),
     ("parquet", Role::Source),
+    ("arrow-ipc", Role::Source),
     ("weighting", Role::Transform),
     ("gridder", Role::Transform),
     ("clean", Role::Step),
@@ -41,8 +43,8 @@ const REGISTRY: &[(&str, Role)] = &[
     ("writer", Role::Sink),
 ];
 
-pub const KINDS: &[&str] = &["simulate", "parquet", "weighting", "gridder", "clean", "onnx", "native", "residual", "writer"];
-pub const SOURCE_KINDS: &[&str] = &["simulate", "parquet"];
+pub const KINDS: &[&str] = &["simulate", "parquet", "arrow-ipc", "weighting", "gridder", "clean", "onnx", "native", "residual", "writer"];
+pub const SOURCE_KINDS: &[&str] = &["simulate", "parquet", "arrow-ipc"];
 
 pub fn role(kind: &str) -> Option<Role> {
     REGISTRY.iter().find(|(k, _)| *k == kind).map(|(_, r)| *r)
@@ -60,6 +62,7 @@ pub fn build_stage(config: &PipelineConfig, stage: &StageConfig) -> Result<Built
     Ok(match stage.kind.as_str() {
         "simulate" => Built::Source(Box::new(simulate::SimulateSource::new(config.stage_params(stage)?, &config.image, threads)?)),
         "parquet" => Built::Source(Box::new(parquet::ParquetSource::new(config.stage_params(stage)?, config, stage)?)),
+        "arrow-ipc" => Built::Source(Box::new(arrow_ipc::ArrowIpcSource::new(config.stage_params(stage)?, config, stage)?)),
         "weighting" => Built::Stage(Box::new(weighting::WeightingStage::new(config.stage_params(stage)?, &config.image)?)),
         "gridder" => {
             // Keep the operator for the residual update only if one of them needs it.

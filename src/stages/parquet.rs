@@ -1,9 +1,11 @@
-//! `kind: parquet`: one imaging job per Parquet file (a path, a list, or glob patterns),
-//! read one record batch at a time.
+//! `kind: parquet`: one imaging job per Parquet file (a path, a list, or glob patterns), or
+//! several per file with `split_by` (time windows, frequency channels), read one record
+//! batch at a time.
 
+use crate::ingest::{emit_parts, read_parts, stem_id, SplitBy, Truth};
 use crate::pipeline::config::{PipelineConfig, StageConfig};
 use crate::pipeline::{Job, Source};
-use crate::vis::{VisReader, Visibilities, DEFAULT_BATCH_ROWS};
+use crate::vis::{VisReader, DEFAULT_BATCH_ROWS};
 use crate::Result;
 use serde::Deserialize;
 use std::path::PathBuf;
@@ -25,6 +27,9 @@ pub struct ParquetConfig {
     /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
     #[serde(default)]
     truth: Option<PathBuf>,
+    /// Split each file into several jobs by a column.
+    #[serde(default)]
+    split_by: Option<SplitBy>,
 }
 
 fn batch_rows() -> usize {
@@ -34,11 +39,15 @@ fn batch_rows() -> usize {
 pub struct ParquetSource {
     paths: Vec<PathBuf>,
     batch_rows: usize,
-    truth: Option<Vec<f64>>,
+    truth: Option<Truth>,
+    split_by: Option<SplitBy>,
+    split_key: String,
+    current_job: Option<String>,
 }
 
 impl ParquetSource {
     pub fn new(config: ParquetConfig, pipeline: &PipelineConfig, stage: &StageConfig) -> Result<ParquetSource> {
+        let name = &stage.name;
         let patterns = match config.files {
             Files::One(f) => vec![f],
             Files::Many(v) => v,
@@ -46,46 +55,48 @@ impl ParquetSource {
         let mut paths = Vec::new();
         for pattern in &patterns {
             let matches: Vec<PathBuf> = glob::glob(pattern)
-                .map_err(|e| pipeline.stage_error(&stage.name, Some("files"), &format!("stages.{}.files: bad pattern '{pattern}': {e}", stage.name)))?
+                .map_err(|e| pipeline.stage_error(name, Some("files"), &format!("stages.{name}.files: bad pattern '{pattern}': {e}")))?
                 .filter_map(|p| p.ok())
                 .collect();
             if matches.is_empty() {
-                return Err(pipeline.stage_error(
-                    &stage.name,
-                    Some("files"),
-                    &format!("stages.{}.files: '{pattern}' matches no file", stage.name),
-                ));
+                return Err(pipeline.stage_error(name, Some("files"), &format!("stages.{name}.files: '{pattern}' matches no file")));
             }
             paths.extend(matches);
         }
-        let truth = match &config.truth {
-            Some(path) => Some(crate::fits::read_image(path)?.data),
-            None => None,
-        };
-        Ok(ParquetSource { paths, batch_rows: config.batch_rows.max(1), truth })
+        let split_key = format!("stages.{name}.split_by.column");
+        if let Some(split) = &config.split_by {
+            split.check().map_err(|m| pipeline.stage_error(name, Some("split_by"), &format!("stages.{name}.split_by.window: {m}")))?;
+            // Before any work starts: every file's footer must have the column.
+            for path in &paths {
+                let reader = VisReader::open(path, 1)?;
+                split.check_schema(reader.schema()).map_err(|m| {
+                    pipeline.stage_error(name, Some("split_by"), &format!("{split_key}: {}: {m}", path.display()))
+                })?;
+            }
+        }
+        let truth = Truth::load(config.truth.as_deref())?;
+        Ok(ParquetSource { paths, batch_rows: config.batch_rows.max(1), truth, split_by: config.split_by, split_key, current_job: None })
     }
 }
 
 impl Source for ParquetSource {
     fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()> {
         for path in &self.paths {
-            let mut reader = VisReader::open(path, self.batch_rows)?;
-            let mut vis = Visibilities::default();
-            for batch in reader.by_ref() {
-                if cancelled() {
-                    return Ok(());
-                }
-                vis.push_batch(batch?);
-            }
-            let id = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "job".into());
-            log::info!("job {id}: {}: {}", path.display(), reader.stats());
-            let mut job = Job::new(id, reader.meta().clone(), vis);
-            if let Some(t) = &self.truth {
-                job.truth_dynamic_range = crate::metrics::dynamic_range(t);
-                job.truth = Some(t.clone());
-            }
-            emit(job)?;
+            let id = stem_id(path);
+            self.current_job = Some(id.clone());
+            let extra: Vec<&str> = self.split_by.iter().map(|s| s.column.as_str()).collect();
+            let mut reader = VisReader::open_with_columns(path, self.batch_rows, &extra)?;
+            let Some((parts, stats)) = read_parts(&mut reader, self.split_by.as_ref(), &self.split_key, cancelled)? else {
+                return Ok(());
+            };
+            log::info!("{}: {stats}", path.display());
+            emit_parts(&id, reader.meta(), parts, self.truth.as_ref(), emit)?;
         }
+        self.current_job = None;
         Ok(())
+    }
+
+    fn current_job(&self) -> Option<String> {
+        self.current_job.clone()
     }
 }

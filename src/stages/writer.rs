@@ -1,13 +1,22 @@
 //! `kind: writer`: FITS products named like WSClean's (`<prefix>-dirty.fits`, `-psf.fits`,
-//! `-model.fits`, `-residual.fits`, and `-image.fits` for CLEAN) with full WCS and beam, and
-//! `<prefix>-metrics.json`. A job's products appear together or not at all: they are
-//! written into a staging directory and moved into place only when all are complete.
+//! `-model.fits`, `-residual.fits`, and `-image.fits` for CLEAN) with full WCS and beam, a
+//! PNG preview beside each (`<prefix>-dirty.png`, ...; `previews: false` turns them off),
+//! and the per-iteration metrics as `<prefix>-metrics.json` and `<prefix>-metrics.parquet`.
+//! A job's products appear together or not at all: they are written into a staging
+//! directory and moved into place only when all are complete.
 
 use crate::fits::{write_image, BrightnessUnit, ImageWcs};
 use crate::pipeline::{Emit, Job, Stage};
+use crate::preview::{write_png, PreviewScale};
 use crate::{Error, Result};
+use arrow::array::{ArrayRef, Float64Array, RecordBatch, UInt32Array};
+use arrow::datatypes::{DataType, Field, Schema};
+use parquet::arrow::ArrowWriter;
+use parquet::file::metadata::KeyValue;
+use parquet::file::properties::WriterProperties;
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -15,14 +24,31 @@ pub struct WriterConfig {
     /// Output prefix; `{job}` is replaced by the job id.
     #[serde(default = "prefix")]
     prefix: String,
+    /// A PNG preview (log scale, colour bar) beside each FITS product.
+    #[serde(default = "yes")]
+    previews: bool,
+    /// Decades shown by the previews' log scale; default: the dynamic range of the truth
+    /// or of the simulated sky when known, else 1e3.
+    #[serde(default)]
+    preview_dynamic_range: Option<f64>,
 }
 
 fn prefix() -> String {
     "{job}".into()
 }
 
+fn yes() -> bool {
+    true
+}
+
+/// Previews' dynamic range when neither the configuration nor the data give one: deep enough
+/// to show the PSF's first sidelobes and the brighter emission of typical images.
+const DEFAULT_PREVIEW_DYNAMIC_RANGE: f64 = 1e3;
+
 pub struct WriterStage {
     prefix: String,
+    previews: bool,
+    preview_dynamic_range: Option<f64>,
 }
 
 impl WriterStage {
@@ -30,7 +56,18 @@ impl WriterStage {
         if config.prefix.trim().is_empty() {
             return Err(Error::parameter("prefix", "expected a non-empty output prefix"));
         }
-        Ok(WriterStage { prefix: config.prefix })
+        if let Some(dr) = config.preview_dynamic_range {
+            if !(dr > 1.0 && dr.is_finite()) {
+                return Err(Error::parameter("preview_dynamic_range", format!("expected a finite number above 1, got {dr}")));
+            }
+        }
+        Ok(WriterStage { prefix: config.prefix, previews: config.previews, preview_dynamic_range: config.preview_dynamic_range })
+    }
+
+    fn preview_scale(&self, job: &Job) -> PreviewScale {
+        let known = self.preview_dynamic_range.or(job.truth_dynamic_range).or(job.meta.dynamic_range);
+        let dynamic_range = known.filter(|dr| *dr > 1.0 && dr.is_finite()).unwrap_or(DEFAULT_PREVIEW_DYNAMIC_RANGE);
+        PreviewScale::Log { dynamic_range }
     }
 }
 
@@ -88,24 +125,29 @@ impl Stage for WriterStage {
         let beam = im.beam.as_ref();
         let extra = [("TELESCOP", job.meta.telescope.clone()), ("R2D2ITER", job.iteration.to_string())];
         let mut products: Vec<(&str, &[f64], BrightnessUnit)> = vec![
-            ("dirty.fits", &im.dirty, BrightnessUnit::JyPerBeam),
-            ("psf.fits", &im.psf, BrightnessUnit::JyPerBeam),
+            ("dirty", &im.dirty, BrightnessUnit::JyPerBeam),
+            ("psf", &im.psf, BrightnessUnit::JyPerBeam),
         ];
         if job.iteration > 0 {
-            products.push(("model.fits", &im.model, BrightnessUnit::JyPerPixel));
-            products.push(("residual.fits", &im.residual, BrightnessUnit::JyPerBeam));
+            products.push(("model", &im.model, BrightnessUnit::JyPerPixel));
+            products.push(("residual", &im.residual, BrightnessUnit::JyPerBeam));
         }
         let restored;
         if job.step_kind.as_deref().is_some_and(|k| k.ends_with("+restore")) {
             if let Some(beam) = beam {
                 let smooth = crate::deconv::restore(&im.model, n, beam, im.geometry.pixel_rad);
                 restored = smooth.iter().zip(&im.residual).map(|(m, r)| m + r).collect::<Vec<f64>>();
-                products.push(("image.fits", &restored, BrightnessUnit::JyPerBeam));
+                products.push(("image", &restored, BrightnessUnit::JyPerBeam));
             }
         }
-        for (suffix, data, unit) in &products {
-            let path = staging.file(target(suffix));
+        let scale = self.preview_scale(&job);
+        for (name, data, unit) in &products {
+            let path = staging.file(target(&format!("{name}.fits")));
             write_image(&path, data, n, n, &wcs, *unit, beam, &extra)?;
+            if self.previews {
+                let path = staging.file(target(&format!("{name}.png")));
+                write_png(&path, data, n, n, scale, &format!("{} {name} ({})", job.id, unit.as_fits()))?;
+            }
         }
         let metrics = serde_json::json!({
             "job": job.id,
@@ -116,8 +158,57 @@ impl Stage for WriterStage {
         });
         let path = staging.file(target("metrics.json"));
         std::fs::write(&path, serde_json::to_string_pretty(&metrics).expect("metrics serialise")).map_err(|e| Error::io(&path, e))?;
+        let path = staging.file(target("metrics.parquet"));
+        write_metrics_parquet(&path, &job, n, im.geometry.pixel_arcsec())?;
+        let count = staging.moves.len();
         staging.commit()?;
-        log::info!("job {}: wrote {} products to {}-*", job.id, products.len() + 1, dir.join(&stem).display());
+        log::info!("job {}: wrote {count} files to {}-*", job.id, dir.join(&stem).display());
         Ok(())
     }
+}
+
+/// `<prefix>-metrics.parquet`: one row per iteration (`iteration`, `residual_ratio`,
+/// `step_seconds`, `residual_seconds`, and `snr`, `logsnr`, null without a truth); the job,
+/// image size, pixel size and seconds per stage (a JSON object) as key-value metadata, since
+/// they are one value per job rather than per iteration. Written into the staging directory,
+/// which is what makes it appear whole or not at all.
+fn write_metrics_parquet(path: &Path, job: &Job, size: usize, pixel_arcsec: f64) -> Result<()> {
+    let rows = &job.metrics;
+    let float = |values: Vec<Option<f64>>| Arc::new(Float64Array::from(values)) as ArrayRef;
+    let column = |f: fn(&crate::pipeline::IterationMetrics) -> Option<f64>| float(rows.iter().map(f).collect());
+    let iterations = Arc::new(UInt32Array::from(rows.iter().map(|m| m.iteration as u32).collect::<Vec<u32>>())) as ArrayRef;
+    let fields = [
+        Field::new("iteration", DataType::UInt32, false),
+        Field::new("residual_ratio", DataType::Float64, false),
+        Field::new("step_seconds", DataType::Float64, false),
+        Field::new("residual_seconds", DataType::Float64, false),
+        Field::new("snr", DataType::Float64, true),
+        Field::new("logsnr", DataType::Float64, true),
+    ];
+    let columns = vec![
+        iterations,
+        column(|m| Some(m.residual_ratio)),
+        column(|m| Some(m.step_seconds)),
+        column(|m| Some(m.residual_seconds)),
+        column(|m| m.snr),
+        column(|m| m.logsnr),
+    ];
+    let io_error = |e: &dyn std::fmt::Display| Error::io(path, std::io::Error::other(format!("writing metrics Parquet: {e}")));
+    let schema = Arc::new(Schema::new(fields.to_vec()));
+    let batch = RecordBatch::try_new(schema.clone(), columns).map_err(|e| io_error(&e))?;
+    let stage_seconds = serde_json::to_string(&job.stage_seconds).expect("stage seconds serialise");
+    let metadata = [
+        ("job", job.id.clone()),
+        ("image_size", size.to_string()),
+        ("pixel_arcsec", pixel_arcsec.to_string()),
+        ("stage_seconds", stage_seconds),
+    ];
+    let properties = WriterProperties::builder()
+        .set_key_value_metadata(Some(metadata.into_iter().map(|(k, v)| KeyValue::new(k.to_string(), v)).collect()))
+        .build();
+    let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
+    let mut writer = ArrowWriter::try_new(file, schema, Some(properties)).map_err(|e| io_error(&e))?;
+    writer.write(&batch).map_err(|e| io_error(&e))?;
+    writer.close().map_err(|e| io_error(&e))?;
+    Ok(())
 }

@@ -1,0 +1,419 @@
+//! Visibility tables into imaging jobs, shared by the `parquet` and `arrow-ipc` sources:
+//! reading Arrow IPC (a stream or a file, standard input included) batch by batch, and
+//! splitting one table into several jobs by a column (time windows, frequency channels).
+//!
+//! Arrow IPC carries the same columns as the Parquet format (`crate::vis`), and the
+//! observation metadata (`phase_centre_ra_deg`, ...) as schema metadata, which is where
+//! `pyarrow.ipc.new_stream(sink, schema.with_metadata({...}))` puts it.
+
+use crate::pipeline::Job;
+use crate::vis::{
+    check_no_nulls, contain_panics, record_batch_to_visibilities, record_batch_to_visibilities_keeping_rows,
+    validate_schema, GuardedBatches, IngestStats, ObservationMeta, VisReader, Visibilities, ARROW_IPC,
+};
+use crate::{Error, Result};
+use arrow::array::{Array, Float64Array, RecordBatch};
+use arrow::datatypes::{DataType, Schema, SchemaRef};
+use arrow::error::ArrowError;
+use arrow::ipc::reader::{FileReader, StreamReader};
+use serde::Deserialize;
+use std::io::{BufRead, BufReader, Read};
+use std::path::{Path, PathBuf};
+
+/// How to split one table into jobs.
+///
+/// `{column: time, window: 600}`: windows of `window` (in the column's unit: seconds for
+/// `time`) counted from the column's smallest value, one job per window holding samples;
+/// `{column: frequency}`: one job per distinct value (one per channel). Job ids are the
+/// table's id, then `-t003` (time), `-ch01` (frequency) or `-<column>NN`, numbered from 0
+/// by window (so an empty window leaves a gap) or by rank of the value.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SplitBy {
+    pub column: String,
+    #[serde(default)]
+    pub window: Option<f64>,
+}
+
+impl SplitBy {
+    /// Checks the window; the message is about the `window` key.
+    pub fn check(&self) -> std::result::Result<(), String> {
+        match self.window {
+            Some(w) if !(w > 0.0 && w.is_finite()) => Err(format!("expected a positive window, got {w}")),
+            _ => Ok(()),
+        }
+    }
+
+    /// Checks that `schema` has the column and that it is numeric; the message lists the
+    /// available columns.
+    pub fn check_schema(&self, schema: &Schema) -> std::result::Result<(), String> {
+        let names: Vec<&str> = schema.fields().iter().map(|f| f.name().as_str()).collect();
+        match schema.field_with_name(&self.column) {
+            Err(_) => Err(format!("no column `{}` to split by (columns: {})", self.column, names.join(", "))),
+            Ok(field) if !field.data_type().is_numeric() => Err(format!(
+                "column `{}` has type {}; splitting needs a numeric column (columns: {})",
+                self.column,
+                field.data_type(),
+                names.join(", ")
+            )),
+            Ok(_) => Ok(()),
+        }
+    }
+
+    /// The job-id label of a part: `t` for time, `ch` for frequency channels.
+    fn label(&self) -> &str {
+        match self.column.as_str() {
+            "time" => "t",
+            "frequency" => "ch",
+            other => other,
+        }
+    }
+}
+
+/// A visibility table read one record batch at a time.
+pub trait TableReader {
+    /// Names the table in messages (a path, or `standard input`).
+    fn source(&self) -> &Path;
+    fn meta(&self) -> &ObservationMeta;
+    /// Every column of the table.
+    fn schema(&self) -> SchemaRef;
+    /// The next batch as decoded (no row dropped yet); `None` at the end or after an error.
+    fn next_batch(&mut self) -> Option<Result<RecordBatch>>;
+}
+
+impl TableReader for VisReader {
+    fn source(&self) -> &Path {
+        self.path()
+    }
+    fn meta(&self) -> &ObservationMeta {
+        VisReader::meta(self)
+    }
+    fn schema(&self) -> SchemaRef {
+        VisReader::schema(self).clone()
+    }
+    fn next_batch(&mut self) -> Option<Result<RecordBatch>> {
+        self.next_record_batch()
+    }
+}
+
+/// What `path: -` reads.
+pub const STDIN: &str = "-";
+
+/// An Arrow IPC table: the stream format (from a file or standard input) or the file format
+/// (from a file; it needs seeking), told apart by the file format's leading magic bytes.
+pub struct IpcReader {
+    source: PathBuf,
+    meta: ObservationMeta,
+    schema: SchemaRef,
+    batches: GuardedBatches<Box<dyn Iterator<Item = std::result::Result<RecordBatch, ArrowError>>>>,
+}
+
+/// The IPC file format starts with these bytes; the stream format with a message length.
+const IPC_FILE_MAGIC: &[u8] = b"ARROW1";
+
+impl IpcReader {
+    /// Opens `input` (a path, or `-` for standard input) and reads the schema and metadata.
+    pub fn open(input: &str) -> Result<IpcReader> {
+        if input == STDIN {
+            let source = PathBuf::from("standard input");
+            let mut reader = BufReader::new(std::io::stdin());
+            if peek_is_file_format(&mut reader, &source)? {
+                return Err(Error::input(
+                    &source,
+                    "this is the Arrow IPC file format, which needs a seekable file: send the stream format on standard input, or give the file's path",
+                ));
+            }
+            return Self::stream(source, reader);
+        }
+        let source = PathBuf::from(input);
+        let file = std::fs::File::open(&source).map_err(|e| Error::io(&source, e))?;
+        let mut reader = BufReader::new(file);
+        if peek_is_file_format(&mut reader, &source)? {
+            let file = contain_panics(&source, "not a readable Arrow IPC file", ARROW_IPC, || FileReader::try_new(reader, None))?;
+            let schema = file.schema();
+            return Self::new(source, schema, Box::new(file));
+        }
+        Self::stream(source, reader)
+    }
+
+    fn stream<R: Read + 'static>(source: PathBuf, reader: R) -> Result<IpcReader> {
+        let stream = contain_panics(&source, "not a readable Arrow IPC stream", ARROW_IPC, || StreamReader::try_new(reader, None))?;
+        let schema = stream.schema();
+        Self::new(source, schema, Box::new(stream))
+    }
+
+    fn new(
+        source: PathBuf,
+        schema: SchemaRef,
+        batches: Box<dyn Iterator<Item = std::result::Result<RecordBatch, ArrowError>>>,
+    ) -> Result<IpcReader> {
+        let name = source.display().to_string();
+        let meta = ObservationMeta::from_pairs(schema.metadata().iter().map(|(k, v)| (k.as_str(), Some(v.as_str()))), &name)?;
+        validate_schema(&schema, &name)?;
+        let batches = GuardedBatches::new(&source, ARROW_IPC, batches);
+        Ok(IpcReader { source, meta, schema, batches })
+    }
+}
+
+/// Whether the buffered input starts with the IPC file magic (without consuming it).
+fn peek_is_file_format<R: Read>(reader: &mut BufReader<R>, source: &Path) -> Result<bool> {
+    let head = reader.fill_buf().map_err(|e| Error::io(source, e))?;
+    if head.is_empty() {
+        return Err(Error::input(source, "empty input: expected an Arrow IPC stream or file"));
+    }
+    Ok(head.starts_with(IPC_FILE_MAGIC))
+}
+
+impl TableReader for IpcReader {
+    fn source(&self) -> &Path {
+        &self.source
+    }
+    fn meta(&self) -> &ObservationMeta {
+        &self.meta
+    }
+    fn schema(&self) -> SchemaRef {
+        self.schema.clone()
+    }
+    fn next_batch(&mut self) -> Option<Result<RecordBatch>> {
+        self.batches.next_batch()
+    }
+}
+
+/// One job's share of a table: its id suffix (`t003`) when the table is split.
+pub struct Part {
+    pub suffix: Option<String>,
+    pub vis: Visibilities,
+}
+
+/// Reads the whole table: one part, or one per group of `split` (in group order). `split_key`
+/// names the YAML key in errors about the split column. `None` when `cancelled()` turned true.
+pub fn read_parts(
+    reader: &mut dyn TableReader,
+    split: Option<&SplitBy>,
+    split_key: &str,
+    cancelled: &dyn Fn() -> bool,
+) -> Result<Option<(Vec<Part>, IngestStats)>> {
+    let source = reader.source().display().to_string();
+    if let Some(split) = split {
+        split.check_schema(&reader.schema()).map_err(|m| Error::parameter(split_key, format!("{source}: {m}")))?;
+    }
+    let mut stats = IngestStats::default();
+    let mut all = Visibilities::default();
+    // With a split: the split column's value of each kept sample, and its smallest value
+    // over all rows (windows start at the observation's start, flagged rows included).
+    let mut keys: Vec<f64> = Vec::new();
+    let mut smallest = f64::INFINITY;
+    let mut kept_rows = Vec::new();
+    while let Some(batch) = reader.next_batch() {
+        if cancelled() {
+            return Ok(None);
+        }
+        let batch = batch?;
+        let Some(split) = split else {
+            all.push_batch(record_batch_to_visibilities(&batch, &mut stats, &source)?);
+            continue;
+        };
+        let first_row = stats.rows;
+        kept_rows.clear();
+        let vis = record_batch_to_visibilities_keeping_rows(&batch, &mut stats, &source, &mut kept_rows)?;
+        let values = split_values(&batch, &split.column, &source, first_row)?;
+        smallest = values.values().iter().copied().filter(|v| v.is_finite()).fold(smallest, f64::min);
+        for &row in &kept_rows {
+            let value = values.value(row);
+            if !value.is_finite() {
+                return Err(Error::input(
+                    &source,
+                    format!("column `{}` at row {} is {value}: a sample needs a finite value to be split by", split.column, first_row + row as u64),
+                ));
+            }
+            keys.push(value);
+        }
+        all.push_batch(vis);
+    }
+    let Some(split) = split else {
+        return Ok(Some((vec![Part { suffix: None, vis: all }], stats)));
+    };
+    let (group, min_width): (Vec<usize>, usize) = match split.window {
+        Some(window) => (keys.iter().map(|k| ((k - smallest) / window).floor() as usize).collect(), 3),
+        None => {
+            let mut distinct = keys.clone();
+            distinct.sort_by(f64::total_cmp);
+            distinct.dedup_by(|a, b| a.total_cmp(b).is_eq());
+            let rank = |k: &f64| distinct.binary_search_by(|d| d.total_cmp(k)).expect("every key is among the distinct values");
+            (keys.iter().map(rank).collect(), 2)
+        }
+    };
+    let groups = group.iter().max().map_or(0, |g| g + 1);
+    let width = (groups.saturating_sub(1)).to_string().len().max(min_width);
+    let parts = all
+        .partition(&group, groups)
+        .into_iter()
+        .enumerate()
+        .filter(|(_, vis)| !vis.is_empty())
+        .map(|(g, vis)| Part { suffix: Some(format!("{}{g:0width$}", split.label())), vis })
+        .collect();
+    Ok(Some((parts, stats)))
+}
+
+/// The split column as f64 (any numeric type), nulls refused.
+fn split_values(batch: &RecordBatch, column: &str, source: &str, first_row: u64) -> Result<Float64Array> {
+    let array = batch
+        .column_by_name(column)
+        .ok_or_else(|| Error::input(source, format!("a batch lacks the split column `{column}`")))?;
+    check_no_nulls(array.as_ref(), column, source, first_row)?;
+    let cast = arrow::compute::cast(array, &DataType::Float64)
+        .map_err(|e| Error::input(source, format!("column `{column}`: cannot read as numbers: {e}")))?;
+    Ok(cast.as_any().downcast_ref::<Float64Array>().expect("cast to Float64 gives a Float64Array").clone())
+}
+
+/// The ground truth shared by a source's jobs, read when the source is built.
+pub struct Truth {
+    image: Vec<f64>,
+    dynamic_range: Option<f64>,
+}
+
+impl Truth {
+    pub fn load(path: Option<&Path>) -> Result<Option<Truth>> {
+        let Some(path) = path else { return Ok(None) };
+        let image = crate::fits::read_image(path)?.data;
+        Ok(Some(Truth { dynamic_range: crate::metrics::dynamic_range(&image), image }))
+    }
+}
+
+/// Emits one job per part, ids `<id>` or `<id>-<suffix>`.
+pub fn emit_parts(
+    id: &str,
+    meta: &ObservationMeta,
+    parts: Vec<Part>,
+    truth: Option<&Truth>,
+    emit: &mut dyn FnMut(Job) -> Result<()>,
+) -> Result<()> {
+    for part in parts {
+        let job_id = match &part.suffix {
+            Some(s) => format!("{id}-{s}"),
+            None => id.to_string(),
+        };
+        log::info!("job {job_id}: {} visibilities", part.vis.len());
+        let mut job = Job::new(job_id, meta.clone(), part.vis);
+        if let Some(t) = truth {
+            job.truth = Some(t.image.clone());
+            job.truth_dynamic_range = t.dynamic_range;
+        }
+        emit(job)?;
+    }
+    Ok(())
+}
+
+/// A table's job id: the file name without its extension.
+pub fn stem_id(path: &Path) -> String {
+    path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "job".into())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::vis::{write_parquet, VisTable};
+    use num_complex::Complex64;
+
+    fn meta() -> ObservationMeta {
+        ObservationMeta {
+            phase_centre_ra_deg: 10.0,
+            phase_centre_dec_deg: 40.0,
+            telescope: "VLA".into(),
+            noise_sigma: None,
+            dynamic_range: None,
+            extra: Default::default(),
+        }
+    }
+
+    /// 40 rows: times 1000 + 10 i s, two channels alternating, rows 3 and 4 flagged.
+    fn table() -> VisTable {
+        let n = 40;
+        VisTable {
+            u_m: (0..n).map(|i| 100.0 + i as f64).collect(),
+            v_m: vec![5.0; n],
+            w_m: vec![0.0; n],
+            frequency: (0..n).map(|i| if i % 2 == 0 { 1.4e9 } else { 1.2e9 }).collect(),
+            vis: (0..n).map(|i| Complex64::new(i as f64, 0.0)).collect(),
+            weight: vec![1.0; n],
+            flag: (0..n).map(|i| i == 3 || i == 4).collect(),
+            time: (0..n).map(|i| 1000.0 + 10.0 * i as f64).collect(),
+            antenna1: vec![],
+            antenna2: vec![],
+        }
+    }
+
+    fn parts_of(split: Option<SplitBy>, batch_rows: usize) -> (Vec<Part>, IngestStats) {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("obs.parquet");
+        write_parquet(&path, &table(), &meta()).unwrap();
+        let extra: Vec<&str> = split.iter().map(|s| s.column.as_str()).collect();
+        let mut reader = VisReader::open_with_columns(&path, batch_rows, &extra).unwrap();
+        read_parts(&mut reader, split.as_ref(), "split_by.column", &|| false).unwrap().unwrap()
+    }
+
+    /// The `vis` real parts are the row numbers, so each part says which rows it holds.
+    fn rows(part: &Part) -> Vec<usize> {
+        part.vis.vis.iter().map(|z| z.re as usize).collect()
+    }
+
+    #[test]
+    fn time_windows_start_at_the_first_time_and_keep_row_order() {
+        // Windows of 100 s from t = 1000: rows 0-9, 10-19, 20-29, 30-39; batches of 7 rows
+        // cut across windows.
+        let (parts, stats) = parts_of(Some(SplitBy { column: "time".into(), window: Some(100.0) }), 7);
+        assert_eq!(stats.rows, 40);
+        assert_eq!(stats.flagged, 2);
+        let suffixes: Vec<_> = parts.iter().map(|p| p.suffix.clone().unwrap()).collect();
+        assert_eq!(suffixes, ["t000", "t001", "t002", "t003"]);
+        assert_eq!(rows(&parts[0]), [0, 1, 2, 5, 6, 7, 8, 9]);
+        assert_eq!(rows(&parts[3]), (30..40).collect::<Vec<_>>());
+    }
+
+    #[test]
+    fn windows_without_samples_leave_a_gap_in_the_numbering() {
+        // Windows of 15 s: rows 3 and 4 (t = 1030, 1040) are flagged, so window 2 ([1030, 1045))
+        // is empty and no job is made for it.
+        let (parts, _) = parts_of(Some(SplitBy { column: "time".into(), window: Some(15.0) }), 100);
+        let suffixes: Vec<_> = parts.iter().map(|p| p.suffix.clone().unwrap()).collect();
+        assert_eq!(&suffixes[..3], ["t000", "t001", "t003"]);
+        assert_eq!(rows(&parts[1]), [2]);
+        assert_eq!(rows(&parts[2]), [5]);
+        assert_eq!(parts.iter().map(|p| p.vis.len()).sum::<usize>(), 38);
+    }
+
+    #[test]
+    fn one_job_per_channel_in_frequency_order() {
+        let (parts, _) = parts_of(Some(SplitBy { column: "frequency".into(), window: None }), 9);
+        assert_eq!(parts.len(), 2);
+        assert_eq!(parts[0].suffix.as_deref(), Some("ch00"));
+        assert!(parts[0].vis.frequency.iter().all(|&f| f == 1.2e9));
+        assert!(parts[1].vis.frequency.iter().all(|&f| f == 1.4e9));
+        assert_eq!(rows(&parts[1]), [0, 2, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30, 32, 34, 36, 38]);
+        // u is converted to wavelengths at each sample's own frequency, as without a split.
+        assert_eq!(parts[0].vis.u[0], 101.0 * (1.2e9 / crate::vis::SPEED_OF_LIGHT));
+    }
+
+    #[test]
+    fn without_a_split_everything_is_one_part() {
+        let (parts, stats) = parts_of(None, 6);
+        assert_eq!(parts.len(), 1);
+        assert!(parts[0].suffix.is_none());
+        assert_eq!(parts[0].vis.len() as u64, stats.kept());
+        assert_eq!(stats.kept(), 38);
+    }
+
+    #[test]
+    fn split_columns_must_exist_and_be_numeric() {
+        let schema = Schema::new(vec![
+            arrow::datatypes::Field::new("time", DataType::Float64, false),
+            arrow::datatypes::Field::new("flag", DataType::Boolean, false),
+        ]);
+        let missing = SplitBy { column: "tme".into(), window: None }.check_schema(&schema).unwrap_err();
+        assert!(missing.contains("`tme`") && missing.contains("columns: time, flag"), "{missing}");
+        let boolean = SplitBy { column: "flag".into(), window: None }.check_schema(&schema).unwrap_err();
+        assert!(boolean.contains("numeric"), "{boolean}");
+        assert!(SplitBy { column: "time".into(), window: Some(0.0) }.check().is_err());
+        assert!(SplitBy { column: "time".into(), window: Some(f64::NAN) }.check().is_err());
+    }
+}

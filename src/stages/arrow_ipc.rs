@@ -1,0 +1,78 @@
+//! `kind: arrow-ipc`: visibilities as an Arrow IPC stream (or file) with the Parquet format's
+//! columns and metadata, from a file or from standard input (`path: -`): how a calibration
+//! process upstream streams batches in. One job, or several with `split_by`.
+
+use crate::ingest::{emit_parts, read_parts, stem_id, IpcReader, SplitBy, Truth, STDIN};
+use crate::pipeline::config::{PipelineConfig, StageConfig};
+use crate::pipeline::{Job, Source};
+use crate::Result;
+use serde::Deserialize;
+use std::path::{Path, PathBuf};
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ArrowIpcConfig {
+    /// An IPC stream or file, or `-` for standard input (stream format).
+    path: String,
+    /// Job id (default: the file name without extension; `stdin` for standard input).
+    #[serde(default)]
+    id: Option<String>,
+    /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
+    #[serde(default)]
+    truth: Option<PathBuf>,
+    /// Split the table into several jobs by a column.
+    #[serde(default)]
+    split_by: Option<SplitBy>,
+}
+
+pub struct ArrowIpcSource {
+    path: String,
+    id: String,
+    truth: Option<Truth>,
+    split_by: Option<SplitBy>,
+    split_key: String,
+    reading: bool,
+}
+
+impl ArrowIpcSource {
+    pub fn new(config: ArrowIpcConfig, pipeline: &PipelineConfig, stage: &StageConfig) -> Result<ArrowIpcSource> {
+        let name = &stage.name;
+        if config.path != STDIN && !Path::new(&config.path).exists() {
+            return Err(pipeline.stage_error(
+                name,
+                Some("path"),
+                &format!("stages.{name}.path: '{}' does not exist (a file, or - for standard input)", config.path),
+            ));
+        }
+        let id = match config.id {
+            Some(id) if id.trim().is_empty() => {
+                return Err(pipeline.stage_error(name, Some("id"), &format!("stages.{name}.id: expected a non-empty job id")));
+            }
+            Some(id) => id,
+            None if config.path == STDIN => "stdin".into(),
+            None => stem_id(Path::new(&config.path)),
+        };
+        if let Some(split) = &config.split_by {
+            split.check().map_err(|m| pipeline.stage_error(name, Some("split_by"), &format!("stages.{name}.split_by.window: {m}")))?;
+        }
+        let truth = Truth::load(config.truth.as_deref())?;
+        Ok(ArrowIpcSource { path: config.path, id, truth, split_by: config.split_by, split_key: format!("stages.{name}.split_by.column"), reading: false })
+    }
+}
+
+impl Source for ArrowIpcSource {
+    fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()> {
+        self.reading = true;
+        let mut reader = IpcReader::open(&self.path)?;
+        let Some((parts, stats)) = read_parts(&mut reader, self.split_by.as_ref(), &self.split_key, cancelled)? else {
+            return Ok(());
+        };
+        log::info!("{}: {stats}", crate::ingest::TableReader::source(&reader).display());
+        self.reading = false;
+        emit_parts(&self.id, crate::ingest::TableReader::meta(&reader), parts, self.truth.as_ref(), emit)
+    }
+
+    fn current_job(&self) -> Option<String> {
+        self.reading.then(|| self.id.clone())
+    }
+}
