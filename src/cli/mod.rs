@@ -8,6 +8,7 @@ mod metrics;
 mod models;
 mod run;
 mod simulate;
+mod trainset;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -29,6 +30,8 @@ struct Cli {
 enum Command {
     /// Simulate a VLA observation of a sky image (or a procedural sky) into a Parquet table.
     Simulate(simulate::Args),
+    /// Training data for R2D2 series: simulated VLA A+C observations of ground truths (.npy).
+    Trainset(trainset::Args),
     /// Dirty image and PSF of a Parquet visibility table (PREFIX-dirty.fits, PREFIX-psf.fits).
     Dirty(dirty::Args),
     /// Run a pipeline described in YAML.
@@ -74,6 +77,7 @@ pub fn main() -> ExitCode {
     let result = match cli.command {
         Command::Simulate(args) => simulate::run(args),
         Command::Dirty(args) => dirty::run(args),
+        Command::Trainset(args) => trainset::run(args),
         Command::Metrics(args) => metrics::run(args),
         Command::Run(args) => run::run(args),
         Command::Validate(args) => run::validate(args),

@@ -8,6 +8,7 @@
 pub mod observe;
 pub mod sky;
 pub mod telescope;
+pub mod trainset;
 
 use crate::imaging::PixelScale;
 use crate::nufft::NufftParams;

@@ -155,7 +155,10 @@ pub struct NoiseModel {
 /// Visibilities and the noise they carry.
 #[derive(Clone, Debug)]
 pub struct Simulated {
+    /// `Phi_raw x + n`, in the coverage's order.
     pub vis: Vec<Complex64>,
+    /// The noise `n` alone (training data needs its back-projection for pruning).
+    pub noise: Vec<Complex64>,
     /// Standard deviation of the complex noise (tau).
     pub noise_sigma: f64,
     /// Briggs correction factor (1 for natural weighting).
@@ -227,11 +230,14 @@ pub fn simulate_visibilities(
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     rng.set_stream(STREAM_NOISE);
     let s = tau / std::f64::consts::SQRT_2;
-    for y in vis.iter_mut() {
-        let (a, b): (f64, f64) = (rng.sample(StandardNormal), rng.sample(StandardNormal));
-        *y += Complex64::new(a * s, b * s);
-    }
-    Ok(Simulated { vis, noise_sigma: tau, eta, spectral_norm: l1 })
+    let noise: Vec<Complex64> = (0..vis.len())
+        .map(|_| {
+            let (a, b): (f64, f64) = (rng.sample(StandardNormal), rng.sample(StandardNormal));
+            Complex64::new(a * s, b * s)
+        })
+        .collect();
+    vis.iter_mut().zip(&noise).for_each(|(y, n)| *y += n);
+    Ok(Simulated { vis, noise, noise_sigma: tau, eta, spectral_norm: l1 })
 }
 
 #[cfg(test)]

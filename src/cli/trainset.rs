@@ -1,0 +1,256 @@
+//! `r2d2 trainset`: a training/validation/test set for R2D2 series, one simulated VLA A+C
+//! observation per ground truth, written as stacked .npy arrays plus per-sample scalars.
+
+use ndarray::{Array2, Array3};
+use r2d2_imaging::fits::{read_image, write_image, BrightnessUnit, ImageWcs};
+use r2d2_imaging::vis::{write_parquet, ObservationMeta};
+use r2d2_imaging::nufft::NufftParams;
+use r2d2_imaging::simulate::trainset::{make_sample, SampleInfo, TrainSample, TrainsetParams, TruthSource};
+use r2d2_imaging::{Error, Result};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Directory of ground truths (2-D .npy float32/float64 or FITS, N x N, non-negative,
+    /// zero background), used in file-name order; each is exponentiated to its sample's DR.
+    #[arg(long, conflicts_with = "procedural", required_unless_present = "procedural")]
+    truths: Option<PathBuf>,
+    /// Dynamic range of the --truths images before exponentiation (1 / their noise level).
+    #[arg(long, default_value_t = 50.0)]
+    source_dr: f64,
+    /// Instead of --truths: this many procedural radio skies (sky seed = sample seed).
+    #[arg(long)]
+    procedural: Option<usize>,
+    /// Image size N.
+    #[arg(long, default_value_t = 128)]
+    size: usize,
+    /// Seed of sample 0; sample k uses SEED + k.
+    #[arg(long, default_value_t = 1)]
+    seed: u64,
+    /// Lowest and highest target dynamic range (log-uniform).
+    #[arg(long, default_value_t = 1e3)]
+    dr_min: f64,
+    #[arg(long, default_value_t = 1e5)]
+    dr_max: f64,
+    /// Integration time in seconds (longer: fewer points, faster).
+    #[arg(long, default_value_t = 120.0)]
+    integration_s: f64,
+    #[arg(long, default_value_t = 1.5)]
+    superresolution: f64,
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    robust: f64,
+    /// NUFFT accuracy.
+    #[arg(long, default_value_t = 1e-6)]
+    epsilon: f64,
+    /// Samples simulated at once (0: all cores); each runs single-threaded.
+    #[arg(long, default_value_t = 0)]
+    threads: usize,
+    /// Also write each sample's visibilities (vis/NNNNN.parquet) and truth (vis/NNNNN.sky.fits),
+    /// for imaging test samples with other methods.
+    #[arg(long)]
+    parquet: bool,
+    /// Output directory (replaced as a whole once every sample is done).
+    #[arg(long)]
+    out: PathBuf,
+}
+
+#[derive(Serialize)]
+struct SampleRecord<'a> {
+    index: usize,
+    source: String,
+    #[serde(flatten)]
+    info: &'a SampleInfo,
+}
+
+fn read_truth(path: &Path) -> Result<Vec<f64>> {
+    let is_npy = path.extension().is_some_and(|e| e.eq_ignore_ascii_case("npy"));
+    if is_npy {
+        let file = || std::fs::File::open(path).map_err(|e| Error::io(path, e));
+        let array: Array2<f64> = match ndarray_npy::ReadNpyExt::read_npy(file()?) {
+            Ok(a) => a,
+            Err(_) => {
+                let a: Array2<f32> = ndarray_npy::ReadNpyExt::read_npy(file()?)
+                    .map_err(|e| Error::input(path, format!("expected a 2-D float32 or float64 .npy array: {e}")))?;
+                a.mapv(f64::from)
+            }
+        };
+        if array.nrows() != array.ncols() {
+            return Err(Error::input(path, format!("expected a square image, got {:?}", array.shape())));
+        }
+        Ok(array.iter().copied().collect())
+    } else {
+        let image = read_image(path)?;
+        if image.nx != image.ny {
+            return Err(Error::input(path, format!("expected a square image, got {} x {}", image.nx, image.ny)));
+        }
+        Ok(image.data)
+    }
+}
+
+fn truth_files(dir: &Path) -> Result<Vec<PathBuf>> {
+    let entries = std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))?;
+    let mut files = Vec::new();
+    for entry in entries {
+        let path = entry.map_err(|e| Error::io(dir, e))?.path();
+        let ext = path.extension().and_then(|e| e.to_str()).map(str::to_ascii_lowercase);
+        if matches!(ext.as_deref(), Some("npy" | "fits" | "fit")) {
+            files.push(path);
+        }
+    }
+    files.sort();
+    if files.is_empty() {
+        return Err(Error::input(dir, "no .npy or .fits ground truths in this directory"));
+    }
+    Ok(files)
+}
+
+fn stack(samples: &[TrainSample], n: usize, pick: impl Fn(&TrainSample) -> &[f64]) -> Array3<f32> {
+    let data: Vec<f32> = samples.iter().flat_map(|s| pick(s).iter().map(|&v| v as f32)).collect();
+    Array3::from_shape_vec((samples.len(), n, n), data).expect("every sample has n x n pixels")
+}
+
+/// Phase centre of the simulated observations: RA is arbitrary, Dec the drawn declination.
+const PHASE_CENTRE_RA_DEG: f64 = 180.0;
+
+fn write_visibilities(dir: &Path, samples: &[TrainSample]) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    for (k, s) in samples.iter().enumerate() {
+        let table = s.table.as_ref().expect("tables kept with --parquet");
+        let dec = s.info.observation.dec_deg;
+        let meta = ObservationMeta {
+            phase_centre_ra_deg: PHASE_CENTRE_RA_DEG,
+            phase_centre_dec_deg: dec,
+            telescope: "VLA".into(),
+            noise_sigma: Some(s.info.tau),
+            dynamic_range: Some(s.info.observation.dynamic_range),
+            extra: [("simulation_seed".to_string(), s.info.seed.to_string())].into_iter().collect(),
+        };
+        write_parquet(&dir.join(format!("{k:05}.parquet")), table, &meta)?;
+        let wcs = ImageWcs { ra_deg: PHASE_CENTRE_RA_DEG, dec_deg: dec, pixel_deg: s.pixel_rad.to_degrees(), freq_hz: None, bandwidth_hz: None };
+        let n = (s.truth.len() as f64).sqrt() as usize;
+        write_image(&dir.join(format!("{k:05}.sky.fits")), &s.truth, n, n, &wcs, BrightnessUnit::JyPerPixel, None, &[])?;
+    }
+    Ok(())
+}
+
+fn write_json(path: &Path, value: &impl Serialize) -> Result<()> {
+    let text = serde_json::to_string_pretty(value).map_err(|e| Error::parameter("json", e.to_string()))?;
+    std::fs::write(path, text).map_err(|e| Error::io(path, e))
+}
+
+pub fn run(args: Args) -> Result<()> {
+    let params = TrainsetParams {
+        size: args.size,
+        superresolution: args.superresolution,
+        robust: args.robust,
+        dynamic_range: (args.dr_min, args.dr_max),
+        integration_s: args.integration_s,
+        nufft: NufftParams { epsilon: args.epsilon, oversampling: 2.0 },
+    };
+    params.validate()?;
+    let (sources, truths): (Vec<String>, Vec<Option<Vec<f64>>>) = match (&args.truths, args.procedural) {
+        (Some(dir), _) => {
+            let files = truth_files(dir)?;
+            let mut truths = Vec::with_capacity(files.len());
+            for f in &files {
+                let t = read_truth(f)?;
+                if t.len() != args.size * args.size {
+                    return Err(Error::input(f, format!("expected a {0} x {0} image (--size)", args.size)));
+                }
+                truths.push(Some(t));
+            }
+            (files.iter().map(|f| f.file_name().unwrap_or_default().to_string_lossy().into_owned()).collect(), truths)
+        }
+        (None, Some(count)) if count > 0 => ((0..count).map(|k| format!("procedural:{}", args.seed + k as u64)).collect(), vec![None; count]),
+        _ => return Err(Error::parameter("procedural", "expected --truths DIR or --procedural COUNT > 0")),
+    };
+    let total = truths.len();
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(args.threads)
+        .build()
+        .map_err(|e| Error::parameter("threads", format!("cannot start {} threads: {e}", args.threads)))?;
+    let done = AtomicUsize::new(0);
+    let started = std::time::Instant::now();
+    let samples: Vec<TrainSample> = pool.install(|| {
+        truths
+            .par_iter()
+            .enumerate()
+            .map(|(k, truth)| {
+                let seed = args.seed + k as u64;
+                let source = match truth {
+                    Some(data) => TruthSource::Image { data, source_dr: args.source_dr },
+                    None => TruthSource::Procedural { seed },
+                };
+                let sample = make_sample(source, &params, seed, 1, args.parquet)
+                    .map_err(|e| Error::parameter(format!("sample {k} ({})", sources[k]), e.to_string()))?;
+                let finished = done.fetch_add(1, Ordering::Relaxed) + 1;
+                if finished % 20 == 0 || finished == total {
+                    log::info!("{finished}/{total} samples, {:.1} s", started.elapsed().as_secs_f64());
+                }
+                Ok(sample)
+            })
+            .collect::<Result<Vec<_>>>()
+    })?;
+
+    // Write everything beside the target, then swap it in: never a half-written set.
+    let partial = args.out.with_extension("partial");
+    if partial.exists() {
+        std::fs::remove_dir_all(&partial).map_err(|e| Error::io(&partial, e))?;
+    }
+    std::fs::create_dir_all(&partial).map_err(|e| Error::io(&partial, e))?;
+    let n = args.size;
+    let arrays: [(&str, Array3<f32>); 4] = [
+        ("truth.npy", stack(&samples, n, |s| &s.truth)),
+        ("dirty.npy", stack(&samples, n, |s| &s.dirty)),
+        ("noise_dirty.npy", stack(&samples, n, |s| &s.noise_dirty)),
+        ("psf2n.npy", stack(&samples, 2 * n, |s| &s.psf_2n)),
+    ];
+    for (name, array) in &arrays {
+        let path = partial.join(name);
+        let file = std::fs::File::create(&path).map_err(|e| Error::io(&path, e))?;
+        ndarray_npy::WriteNpyExt::write_npy(array, std::io::BufWriter::new(file))
+            .map_err(|e| Error::input(&path, format!("writing .npy: {e}")))?;
+    }
+    if args.parquet {
+        write_visibilities(&partial.join("vis"), &samples)?;
+    }
+    let records: Vec<SampleRecord> =
+        samples.iter().enumerate().map(|(index, s)| SampleRecord { index, source: sources[index].clone(), info: &s.info }).collect();
+    write_json(&partial.join("samples.json"), &records)?;
+    let points: Vec<usize> = samples.iter().map(|s| s.info.points).collect();
+    write_json(
+        &partial.join("trainset.json"),
+        &serde_json::json!({
+            "samples": total,
+            "size": n,
+            "seed": args.seed,
+            "truths": args.truths.as_ref().map(|p| p.display().to_string()),
+            "source_dr": args.truths.as_ref().map(|_| args.source_dr),
+            "procedural": args.procedural,
+            "dynamic_range": [args.dr_min, args.dr_max],
+            "integration_s": args.integration_s,
+            "superresolution": args.superresolution,
+            "weighting": {"scheme": "briggs", "robust": args.robust},
+            "epsilon": args.epsilon,
+            "points_min": points.iter().min(),
+            "points_max": points.iter().max(),
+            "seconds": started.elapsed().as_secs_f64(),
+            "r2d2_version": env!("CARGO_PKG_VERSION"),
+        }),
+    )?;
+    if args.out.exists() {
+        std::fs::remove_dir_all(&args.out).map_err(|e| Error::io(&args.out, e))?;
+    }
+    std::fs::rename(&partial, &args.out).map_err(|e| Error::io(&args.out, e))?;
+    log::info!(
+        "wrote {total} samples to {} in {:.1} s ({}..{} points each)",
+        args.out.display(),
+        started.elapsed().as_secs_f64(),
+        points.iter().min().unwrap_or(&0),
+        points.iter().max().unwrap_or(&0)
+    );
+    Ok(())
+}

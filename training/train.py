@@ -1,0 +1,222 @@
+#!/usr/bin/env python3
+"""Sequential training of an R2D2 series (paper Section 3; conventions file, "Training").
+
+Network i learns from (truth, x_{i-1}, r_{i-1}) divided by alpha = mean(x_{i-1}) (mean of the
+dirty image for i = 1); loss mean L1 between truth/alpha and max(0, x_{i-1}/alpha + N_i(.));
+RMSprop, learning rate 1e-4; network i starts from network i-1's weights. After each network
+the training pairs whose residual reached the noise level (||r||^2 <= ||b||^2) are pruned, the
+network is exported to ONNX and the manifest gets its validation metrics; the series stops
+growing when validation SNR and logSNR stop improving.
+
+Checkpoints: every finished network is in the series directory (ONNX + PyTorch weights +
+manifest) and every epoch in --work; --resume continues an interrupted network or adds
+networks to an existing series (the previous networks are replayed to rebuild x and r).
+"""
+import argparse
+import os
+import subprocess
+import sys
+import time
+
+import torch
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from r2d2train import common, series  # noqa: E402
+from r2d2train.unet import UNet  # noqa: E402
+
+
+def log(msg):
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def git_commit():
+    try:
+        here = os.path.dirname(os.path.abspath(__file__))
+        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def commit_series(series_dir, message):
+    """Commit only the series directory, so a long run leaves every finished network usable."""
+    try:
+        subprocess.run(["git", "add", "--", "."], cwd=series_dir, check=True)
+        subprocess.run(["git", "commit", "-q", "-m", message, "--", "."], cwd=series_dir, check=True)
+    except (OSError, subprocess.CalledProcessError) as e:
+        log(f"warning: could not commit {series_dir}: {e}")
+
+
+def torch_runner(model):
+    def run(batch):
+        with torch.no_grad():
+            return model(batch)
+    return run
+
+
+def train_network(i, model, train, x, r, active, args, work):
+    """Train network i in place on the active samples; returns (epochs, seconds, last loss)."""
+    opt = torch.optim.RMSprop(model.parameters(), lr=args.lr)
+    epochs = args.epochs_first if i == 1 else args.epochs
+    start_epoch, seconds = 0, 0.0
+    ckpt = os.path.join(work, "current.pt")
+    if os.path.exists(ckpt):
+        state = torch.load(ckpt, weights_only=False)
+        if state["iteration"] == i:
+            model.load_state_dict(state["model"])
+            opt.load_state_dict(state["optimizer"])
+            start_epoch, seconds = state["epoch"], state["seconds"]
+            log(f"N{i}: resuming after epoch {start_epoch}")
+    idx = torch.nonzero(active).flatten()
+    inp_all, alpha, prev = common.network_input(i, train.dirty[idx], x[idx], r[idx])
+    target = train.truth[idx] / alpha
+    loss_value = float("nan")
+    for epoch in range(start_epoch, epochs):
+        t0 = time.time()
+        model.train()
+        gen = torch.Generator().manual_seed(args.seed * 100003 + i * 1009 + epoch)
+        order = torch.randperm(len(idx), generator=gen)
+        total, count = 0.0, 0
+        for s in range(0, len(order), args.batch):
+            b = order[s:s + args.batch]
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=args.bf16):
+                out = model(inp_all[b])
+            pred = torch.clamp(prev[b] + out[:, 0].float(), min=0.0)
+            loss = torch.nn.functional.l1_loss(pred, target[b])
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            total += float(loss.detach()) * len(b)
+            count += len(b)
+        loss_value = total / count
+        seconds += time.time() - t0
+        torch.save({"iteration": i, "epoch": epoch + 1, "seconds": seconds, "model": model.state_dict(),
+                    "optimizer": opt.state_dict()}, ckpt + ".tmp")
+        os.replace(ckpt + ".tmp", ckpt)
+        log(f"N{i} epoch {epoch + 1}/{epochs}: L1 {loss_value:.5f} on {len(idx)} samples, {time.time() - t0:.1f} s")
+    return epochs, seconds, loss_value
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--train", required=True, help="training set directory (r2d2 trainset)")
+    p.add_argument("--val", required=True, help="validation set directory (r2d2 trainset)")
+    p.add_argument("--series", required=True, help="series directory, e.g. models/vla-r2d2-128")
+    p.add_argument("--name", default=None, help="series name (default: directory name)")
+    p.add_argument("--work", required=True, help="directory for per-epoch checkpoints")
+    p.add_argument("--resume", action="store_true", help="continue an existing series")
+    p.add_argument("--max-networks", type=int, default=15)
+    p.add_argument("--epochs-first", type=int, default=20)
+    p.add_argument("--epochs", type=int, default=8, help="epochs of networks 2, 3, ...")
+    p.add_argument("--batch", type=int, default=4)
+    p.add_argument("--lr", type=float, default=1e-4)
+    p.add_argument("--base-channels", type=int, default=16)
+    p.add_argument("--poolings", type=int, default=3)
+    p.add_argument("--bf16", action="store_true", help="bf16 autocast for training steps (CPU)")
+    p.add_argument("--min-gain-db", type=float, default=0.05,
+                   help="a network joins the series only if it raises validation SNR or logSNR by this much")
+    p.add_argument("--limit-train", type=int, default=None)
+    p.add_argument("--limit-val", type=int, default=None)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--commit", action="store_true", help="git-commit the series directory after each network")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    os.makedirs(args.series, exist_ok=True)
+    os.makedirs(args.work, exist_ok=True)
+
+    train = common.Dataset(args.train, args.limit_train)
+    val = common.Dataset(args.val, args.limit_val)
+    size = train.size
+    log(f"{len(train)} training and {len(val)} validation samples, {size} x {size}")
+
+    manifest = series.read_manifest(args.series)
+    if manifest and manifest["networks"] and not args.resume:
+        raise SystemExit(f"{args.series} already holds {len(manifest['networks'])} networks: pass --resume to add to it, or choose a new --series")
+    if manifest is None or not manifest["networks"]:
+        name = args.name or os.path.basename(os.path.normpath(args.series))
+        provenance = {
+            "command": " ".join([os.path.basename(sys.executable)] + sys.argv),
+            "git_commit": git_commit(),
+            "torch": str(torch.__version__),
+            "seed": args.seed,
+            "optimizer": {"kind": "rmsprop", "lr": args.lr, "batch": args.batch, "bf16_autocast": args.bf16},
+            "train_data": {"path": args.train, "samples": len(train), **train.meta},
+            "validation_data": {"path": args.val, "samples": len(val), **val.meta},
+            "networks": [],
+        }
+        desc = (f"R2D2 U-Net series ({args.base_channels} channels, {args.poolings} poolings) for VLA A+C, "
+                f"Briggs 0, SR 1.5, trained at {size}x{size}; H and W must be multiples of {2 ** args.poolings}")
+        manifest = series.new_manifest(name, UNet(args.base_channels, args.poolings), size, desc, provenance)
+    net_cfg = manifest["network"]
+    if (net_cfg["base_channels"], net_cfg["poolings"]) != (args.base_channels, args.poolings):
+        raise SystemExit(f"{args.series}: the series has {net_cfg['base_channels']} channels / {net_cfg['poolings']} poolings; "
+                         f"got --base-channels {args.base_channels} --poolings {args.poolings}")
+
+    # Replay the existing networks: x, r of every sample, the pruned training set.
+    x_tr, r_tr = torch.zeros_like(train.dirty), train.dirty.clone()
+    x_va, r_va = torch.zeros_like(val.dirty), val.dirty.clone()
+    noise_energy = train.noise_dirty.flatten(1).pow(2).sum(1)
+    active = torch.ones(len(train), dtype=torch.bool)
+    history = [dict(v) for v in manifest["validation"]]
+    model = None
+    for k in range(1, len(manifest["networks"]) + 1):
+        model = series.load_model(args.series, k, args.base_channels, args.poolings)
+        run = torch_runner(model)
+        x_tr = common.update(k, run, train.dirty, x_tr, r_tr)
+        r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
+        active &= r_tr.flatten(1).pow(2).sum(1) > noise_energy
+        x_va = common.update(k, run, val.dirty, x_va, r_va)
+        r_va = common.residual(val.dirty, x_va, val.psf_hat)
+        log(f"replayed N{k}: validation {common.metrics(x_va, r_va, val)}; {int(active.sum())} training samples active")
+
+    best = {"snr_db": -1e9, "logsnr_db": -1e9}
+    for h in history:
+        best = {key: max(best[key], h[key]) for key in best}
+    if history:
+        log(f"series so far: best validation SNR {best['snr_db']:.2f} dB, logSNR {best['logsnr_db']:.2f} dB")
+    for i in range(len(manifest["networks"]) + 1, args.max_networks + 1):
+        if int(active.sum()) < args.batch:
+            log(f"stop: only {int(active.sum())} training samples left after pruning")
+            break
+        torch.manual_seed(args.seed * 7919 + i)
+        new = UNet(args.base_channels, args.poolings)
+        if model is not None:
+            new.load_state_dict(model.state_dict())  # network i starts from network i-1
+        epochs, seconds, loss = train_network(i, new, train, x_tr, r_tr, active, args, args.work)
+        new.eval()
+        run = torch_runner(new)
+        x_va_new = common.update(i, run, val.dirty, x_va, r_va)
+        r_va_new = common.residual(val.dirty, x_va_new, val.psf_hat)
+        m = common.metrics(x_va_new, r_va_new, val)
+        log(f"N{i}: validation SNR {m['snr_db']:.2f} dB, logSNR {m['logsnr_db']:.2f} dB, residual ratio {m['residual_ratio']:.4f}")
+        if m["snr_db"] < best["snr_db"] + args.min_gain_db and m["logsnr_db"] < best["logsnr_db"] + args.min_gain_db:
+            rejected = os.path.join(args.work, f"rejected_N{i}.pt")
+            torch.save(new.state_dict(), rejected)
+            os.remove(os.path.join(args.work, "current.pt"))
+            log(f"stop: N{i} does not improve validation SNR/logSNR by {args.min_gain_db} dB (kept aside as {rejected})")
+            break
+        best = {key: max(best[key], m[key]) for key in best}
+        # Commit the network to the series: weights, ONNX, then the manifest that lists it.
+        series.save_weights(args.series, i, new)
+        series.export_onnx(new, os.path.join(args.series, series.onnx_name(i)), size)
+        x_tr = common.update(i, run, train.dirty, x_tr, r_tr)
+        r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
+        before = int(active.sum())
+        active &= r_tr.flatten(1).pow(2).sum(1) > noise_energy
+        x_va, r_va, model = x_va_new, r_va_new, new
+        manifest["networks"].append(series.onnx_name(i))
+        manifest["validation"].append({"iteration": i, **{k: round(v, 4) for k, v in m.items()}})
+        manifest["provenance"]["networks"].append({
+            "iteration": i, "epochs": epochs, "train_seconds": round(seconds, 1), "train_samples": before,
+            "pruned_after": before - int(active.sum()), "final_l1": round(loss, 6), "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        })
+        series.write_manifest(args.series, manifest)
+        os.remove(os.path.join(args.work, "current.pt"))
+        log(f"N{i} added to {args.series}; {int(active.sum())} of {len(train)} training samples remain after pruning")
+        if args.commit:
+            commit_series(args.series, f"models: {manifest['name']} network {i} (validation SNR {m['snr_db']:.2f} dB, logSNR {m['logsnr_db']:.2f} dB)")
+    log("done")
+
+
+if __name__ == "__main__":
+    main()
