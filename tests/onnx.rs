@@ -3,27 +3,10 @@
 //! come before imaging starts. The networks are the tiny analytic ones of
 //! tests/make_test_models.py (generated here; Python with `onnx` is a test requirement).
 
+mod common;
+
+use common::{check, make_test_models as make_models, r2d2, text};
 use r2d2_imaging::fits::read_image;
-use std::path::Path;
-use std::process::{Command, Output};
-
-fn r2d2(args: &[&str], dir: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_r2d2")).args(args).current_dir(dir).output().expect("r2d2 runs")
-}
-
-fn text(out: &Output) -> String {
-    format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr))
-}
-
-fn check(out: &Output) {
-    assert!(out.status.success(), "r2d2 failed: {}", text(out));
-}
-
-fn make_models(dir: &Path) {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/make_test_models.py");
-    let out = Command::new("python3").arg(&script).arg(dir).output().expect("python3 runs (a test requirement)");
-    assert!(out.status.success(), "{} failed (pip install -r tests/requirements.txt): {}", script.display(), text(&out));
-}
 
 fn pipeline(series: &str, backend: &str) -> String {
     format!(

@@ -1,6 +1,6 @@
 //! Native network-step plugins (`kind: native`) end to end: the same `r2d2` binary images the
-//! same observation with the built-in CLEAN step, the Rust example plugin and the C example
-//! plugin, changing only the step stage in the YAML; the plugin's result is checked against
+//! same observation with the built-in CLEAN step, the Rust example plugin, the C example
+//! plugin and an ONNX series, changing only the step stage in the YAML; the plugin's result is checked against
 //! projected Landweber iterations computed here; and every plugin failure (missing file or
 //! symbol, ABI mismatch, create error, step error, panic, NaN) ends the run with a clear
 //! error naming the library, never a crash.
@@ -12,7 +12,7 @@
 
 mod common;
 
-use common::{check, r2d2, stderr};
+use common::{check, make_test_models, r2d2, stderr};
 use r2d2_imaging::fits::read_image;
 use r2d2_imaging::imaging::{total_weights, DirtyParams};
 use r2d2_imaging::nufft::NufftParams;
@@ -169,7 +169,9 @@ fn clean_rust_plugin_and_c_plugin_run_from_yaml_alone_and_the_plugin_runs_projec
         ("clean", "    kind: clean\n    major_cycles: 3\n".to_string()),
         ("rust", native_step(&landweber(), iterations, &format!("{{gain: {gain:e}}}"))),
         ("c", native_step(&c_library, iterations, &format!("{{gain: {gain:e}}}"))),
+        ("onnx", "    kind: onnx\n    series: models/landweber\n".to_string()),
     ];
+    make_test_models(&d.join("models"));
     for (name, step) in &steps {
         std::fs::write(d.join(format!("{name}.yaml")), pipeline(step)).unwrap();
         check(&r2d2(&["run", &format!("{name}.yaml"), "--set", &format!("write.prefix=out-{name}/{{job}}")], d));
@@ -206,6 +208,15 @@ fn clean_rust_plugin_and_c_plugin_run_from_yaml_alone_and_the_plugin_runs_projec
 
     // The C plugin, built against the header alone, computes the same numbers.
     assert_eq!(product("c", "model"), model, "C and Rust plugins disagree");
+
+    // The ONNX series (4 networks of tests/make_test_models.py; their loop is checked against a
+    // direct computation in src/steps/onnx.rs) ran in the same binary from YAML alone.
+    let onnx = product("onnx", "model");
+    assert!(onnx.iter().all(|&v| v >= 0.0) && max_abs(&onnx) > 0.0);
+    assert!(max_diff(&onnx, &model) > 1e-3 * scale, "the ONNX step cannot be the native plugin's output");
+    let metrics: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(d.join("out-onnx/obs-metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["iterations"].as_array().unwrap().len(), 4, "one iteration per network of the series");
 }
 
 /// A pipeline that must fail before imaging: exit code 1 (an error returned, not a panic of

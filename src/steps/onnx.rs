@@ -95,9 +95,9 @@ impl OnnxStep {
         let mut input = Vec::with_capacity(2 * first.len());
         input.extend(first.iter().map(|v| (v / alpha) as f32));
         input.extend(second.iter().map(|v| (v / alpha) as f32));
-        let path = self.series.files[iteration - 1][layer].clone();
         let output = self.network(iteration, layer)?.run(&input)?;
         if let Some(bad) = output.iter().position(|v| !v.is_finite()) {
+            let path = self.series.files[iteration - 1][layer].clone();
             return Err(Error::input(path, format!("network output is not finite at pixel {bad} (iteration {iteration})")));
         }
         Ok(output.into_iter().map(f64::from).collect())

@@ -154,7 +154,7 @@ fn ort_version(library: &Path) -> String {
 }
 
 fn tract_version() -> &'static str {
-    "0.23"
+    env!("R2D2_TRACT_VERSION")
 }
 
 /// The declared shape of a network's single input and output, read from the ONNX file without
