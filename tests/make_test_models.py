@@ -1,12 +1,14 @@
 """Write the tiny ONNX networks the tests use (no training: their effect is known analytically).
 
-    python3 tests/make_test_models.py OUT_DIR
+    python3 tests/make_test_models.py OUT_DIR [--gain G]
 
 OUT_DIR/
   landweber/        R2D2 series of 4 networks, manifest: a 1x1 convolution returning
-                    0.5 x (the residual channel) + 0.01, so that with the reference loop
-                    x_i = max(0, x_{i-1} + 0.5 r_{i-1} + 0.01 alpha_i): projected Landweber
+                    G x (the residual channel) + 0.01, so that with the reference loop
+                    x_i = max(0, x_{i-1} + G r_{i-1} + 0.01 alpha_i): projected Landweber
                     plus a term that shows the normalisation alpha is applied and undone.
+                    G (default 0.5) must be below 2 / ||D|| for the iterations to converge:
+                    tests on real observations pass 1 / ||D||.
                     Network 1 reads channel 0 (the dirty image), the others channel 1.
   landweber-ref/    the same networks under the reference file names R2D2_UNet_N{i}.onnx,
                     no manifest.
@@ -100,7 +102,7 @@ def manifest(path, name, networks, architecture="r2d2", sizes=(64,), any_size=Tr
         f.write("\n".join(lines) + "\n")
 
 
-def main(out):
+def main(out, gain):
     os.makedirs(out, exist_ok=True)
     # Landweber series: network 1 reads the dirty image (channel 0), later ones the residual (channel 1).
     for d, named in (("landweber", False), ("landweber-ref", True)):
@@ -108,7 +110,7 @@ def main(out):
         files = []
         for i in range(1, 5):
             f = f"R2D2_UNet_N{i}.onnx" if named else f"lw{i}.onnx"
-            conv1x1(os.path.join(out, d, f), [0.5, 0.0] if i == 1 else [0.0, 0.5], 0.01)
+            conv1x1(os.path.join(out, d, f), [gain, 0.0] if i == 1 else [0.0, gain], 0.01)
             files.append(f)
         if not named:
             manifest(os.path.join(out, d, "manifest.yaml"), "landweber", files)
@@ -128,6 +130,10 @@ def main(out):
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 2:
+    args = sys.argv[1:]
+    if len(args) == 3 and args[1] == "--gain":
+        main(args[0], float(args[2]))
+    elif len(args) == 1:
+        main(args[0], 0.5)
+    else:
         sys.exit(__doc__)
-    main(sys.argv[1])

@@ -6,6 +6,7 @@ mod common;
 use common::{check, r2d2, stderr};
 use r2d2_imaging::fits::read_image;
 use std::path::Path;
+use std::process::{Command, Output};
 
 /// A small, fast pipeline (64^2, short VLA C observation) with `{extra}` appended to the
 /// clean stage and `{source}` replacing the source stage when given.

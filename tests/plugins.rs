@@ -12,17 +12,10 @@
 
 mod common;
 
-use common::{check, make_test_models, r2d2, stderr};
-use r2d2_imaging::fits::read_image;
-use r2d2_imaging::imaging::{total_weights, DirtyParams};
-use r2d2_imaging::nufft::NufftParams;
-use r2d2_imaging::operator::{spectral_norm, MeasurementOperator};
-use r2d2_imaging::vis::read_parquet;
+use common::{check, landweber_reference, make_test_models, max_abs, max_diff, observation, r2d2, read, stderr, ReferenceOperator, SIZE};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
-
-const SIZE: usize = 64;
 
 fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -94,75 +87,13 @@ fn native_step(library: &Path, iterations: usize, config: &str) -> String {
     format!("    kind: native\n    library: \"{}\"\n    iterations: {iterations}\n    config: {config}\n", library.display())
 }
 
-/// A short VLA C observation in `dir/obs.parquet`.
-fn observation(dir: &Path) {
-    check(&r2d2(
-        &["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", &SIZE.to_string(), "--seed", "3", "--out", "obs.parquet"],
-        dir,
-    ));
-}
-
-fn read(path: &Path) -> Vec<f64> {
-    read_image(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())).data
-}
-
-fn max_abs(v: &[f64]) -> f64 {
-    v.iter().fold(0.0, |m, x| m.max(x.abs()))
-}
-
-fn max_diff(a: &[f64], b: &[f64]) -> f64 {
-    assert_eq!(a.len(), b.len());
-    a.iter().zip(b).fold(0.0, |m, (x, y)| m.max((x - y).abs()))
-}
-
-/// `D x` through a NUFFT round trip at accuracy 1e-10, for the same weights as the pipeline
-/// (Briggs 0, super-resolution 1.5): not the 2N-PSF convolution the pipeline's residual uses.
-struct ReferenceOperator {
-    operator: MeasurementOperator,
-}
-
-impl ReferenceOperator {
-    fn new(observation: &Path) -> ReferenceOperator {
-        let (vis, _, _) = read_parquet(observation).unwrap();
-        let params = DirtyParams { size: SIZE, threads: 1, nufft: NufftParams { epsilon: 1e-10, oversampling: 2.0 }, ..DirtyParams::default() };
-        let geometry = params.geometry(&vis).unwrap();
-        let weight = total_weights(&vis, geometry, params.weighting, params.grid_factor).unwrap();
-        let operator = MeasurementOperator::new(geometry, &vis.u, &vis.v, &weight, params.nufft, 1).unwrap();
-        ReferenceOperator { operator }
-    }
-
-    fn apply(&self, x: &[f64]) -> Vec<f64> {
-        self.operator.apply_normal(x)
-    }
-}
-
-/// `iterations` steps of `x_i = P(x_{i-1} + gain (x_d - D x_{i-1}))`, P the projection on the
-/// positive orthant (or the identity); returns the estimate and its residual.
-fn landweber_reference(d: &ReferenceOperator, dirty: &[f64], gain: f64, iterations: usize, positivity: bool) -> (Vec<f64>, Vec<f64>) {
-    let mut x = vec![0.0; dirty.len()];
-    let mut r = dirty.to_vec();
-    for _ in 0..iterations {
-        for (xi, ri) in x.iter_mut().zip(&r) {
-            *xi += gain * ri;
-            if positivity {
-                *xi = xi.max(0.0);
-            }
-        }
-        let dx = d.apply(&x);
-        r = dirty.iter().zip(&dx).map(|(a, b)| a - b).collect();
-    }
-    (x, r)
-}
-
 #[test]
 fn clean_rust_plugin_and_c_plugin_run_from_yaml_alone_and_the_plugin_runs_projected_landweber() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     observation(d);
     let reference = ReferenceOperator::new(&d.join("obs.parquet"));
-    // gain = 1 / ||D||: a step size for which Landweber converges.
-    let norm = spectral_norm(|x| reference.apply(x), SIZE * SIZE, 1e-8, 200);
-    let gain = 1.0 / norm;
+    let gain = reference.landweber_gain();
     let iterations = 4;
     let c_library = c_plugin(d, "c_landweber", &root().join("plugins/examples/c/landweber.c"));
     let steps = [
@@ -171,7 +102,7 @@ fn clean_rust_plugin_and_c_plugin_run_from_yaml_alone_and_the_plugin_runs_projec
         ("c", native_step(&c_library, iterations, &format!("{{gain: {gain:e}}}"))),
         ("onnx", "    kind: onnx\n    series: models/landweber\n".to_string()),
     ];
-    make_test_models(&d.join("models"));
+    make_test_models(&d.join("models"), gain);
     for (name, step) in &steps {
         std::fs::write(d.join(format!("{name}.yaml")), pipeline(step)).unwrap();
         check(&r2d2(&["run", &format!("{name}.yaml"), "--set", &format!("write.prefix=out-{name}/{{job}}")], d));
@@ -185,7 +116,7 @@ fn clean_rust_plugin_and_c_plugin_run_from_yaml_alone_and_the_plugin_runs_projec
     // The Rust plugin's model is projected Landweber, computed here from the written dirty
     // image and an independent D (FITS values are float32: relative error ~1e-7).
     let model = product("rust", "model");
-    let (expected, expected_residual) = landweber_reference(&reference, &dirty, gain, iterations, true);
+    let (expected, expected_residual) = landweber_reference(&reference, &dirty, gain, 0.0, iterations, true);
     let scale = max_abs(&expected);
     assert!(scale > 0.0);
     let error = max_diff(&model, &expected) / scale;
@@ -193,9 +124,9 @@ fn clean_rust_plugin_and_c_plugin_run_from_yaml_alone_and_the_plugin_runs_projec
     let residual_error = max_diff(&product("rust", "residual"), &expected_residual) / max_abs(&expected_residual);
     assert!(residual_error < 1e-5, "native residual differs from x_d - D x by {residual_error:e} of its peak");
     // The check can tell: without the projection (or with one step fewer) the result is far off.
-    let (unprojected, _) = landweber_reference(&reference, &dirty, gain, iterations, false);
+    let (unprojected, _) = landweber_reference(&reference, &dirty, gain, 0.0, iterations, false);
     assert!(max_diff(&model, &unprojected) / scale > 1e-2, "positivity made no difference: the test would not notice it missing");
-    let (fewer, _) = landweber_reference(&reference, &dirty, gain, iterations - 1, true);
+    let (fewer, _) = landweber_reference(&reference, &dirty, gain, 0.0, iterations - 1, true);
     assert!(max_diff(&model, &fewer) / scale > 1e-2);
     assert!(model.iter().all(|&v| v >= 0.0));
     let metrics: serde_json::Value =
@@ -209,14 +140,15 @@ fn clean_rust_plugin_and_c_plugin_run_from_yaml_alone_and_the_plugin_runs_projec
     // The C plugin, built against the header alone, computes the same numbers.
     assert_eq!(product("c", "model"), model, "C and Rust plugins disagree");
 
-    // The ONNX series (4 networks of tests/make_test_models.py; their loop is checked against a
-    // direct computation in src/steps/onnx.rs) ran in the same binary from YAML alone.
+    // The ONNX series (4 networks of tests/make_test_models.py, each `gain x residual + 0.01`)
+    // ran in the same binary from YAML alone, and computed the same loop with the bias term.
     let onnx = product("onnx", "model");
-    assert!(onnx.iter().all(|&v| v >= 0.0) && max_abs(&onnx) > 0.0);
-    assert!(max_diff(&onnx, &model) > 1e-3 * scale, "the ONNX step cannot be the native plugin's output");
-    let metrics: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(d.join("out-onnx/obs-metrics.json")).unwrap()).unwrap();
-    assert_eq!(metrics["iterations"].as_array().unwrap().len(), 4, "one iteration per network of the series");
+    let (expected, _) = landweber_reference(&reference, &dirty, gain, 0.01, iterations, true);
+    let error = max_diff(&onnx, &expected) / max_abs(&expected);
+    assert!(error < 1e-5, "ONNX model differs from projected Landweber with bias by {error:e} of its peak");
+    // (10x the 1e-5 tolerance above; measured 8.4e-4.)
+    let bias_effect = max_diff(&onnx, &model) / scale;
+    assert!(bias_effect > 1e-4, "the bias term changed the model by only {bias_effect:e} of its peak: the check would not notice it missing");
 }
 
 /// A pipeline that must fail before imaging: exit code 1 (an error returned, not a panic of

@@ -4,7 +4,7 @@
 //! it in Rust for both sides: the host (`r2d2`) loads libraries with these types, and a
 //! plugin implements [`Plugin`] and exports the C symbols with [`export_plugin!`]:
 //!
-//! ```ignore
+//! ```no_run
 //! struct Halve;
 //! impl r2d2_plugin::Plugin for Halve {
 //!     fn create(_config_json: &str, _setup: &r2d2_plugin::Setup) -> Result<Self, String> {
@@ -311,7 +311,9 @@ mod tests {
         assert_eq!(define.split_whitespace().nth(2), Some(format!("{ABI_VERSION}u").as_str()));
         for symbol in [symbols::ABI_VERSION, symbols::CREATE, symbols::STEP, symbols::LAST_ERROR, symbols::DESTROY] {
             let name = std::str::from_utf8(&symbol[..symbol.len() - 1]).unwrap();
-            assert!(HEADER.contains(&format!(" {name}(")), "{name} not declared in the header");
+            // Declared as `<type> name(` or `<type> *name(` (pointer results).
+            let declared = HEADER.contains(&format!(" {name}(")) || HEADER.contains(&format!(" *{name}("));
+            assert!(declared, "{name} not declared in the header");
         }
         assert_eq!(std::mem::size_of::<RawStepInput>(), 16 + 4 * std::mem::size_of::<*const f64>());
     }
