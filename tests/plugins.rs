@@ -249,3 +249,23 @@ fn shipped_native_pipeline_validates_with_the_example_plugin() {
     let out = r2d2(&["validate", "pipelines/native.yaml", "--set", &format!("step.library={}", library.display())], root());
     check(&out);
 }
+
+#[test]
+fn image_command_takes_a_plugin_library() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    let reference = ReferenceOperator::new(&d.join("obs.parquet"));
+    let gain = reference.landweber_gain();
+    let library = landweber();
+    let config = format!("{{gain: {gain:e}}}");
+    let args = ["image", "obs.parquet", "--size", "64", "--step", library.to_str().unwrap(), "--iterations", "3", "--plugin-config", &config, "--name", "lw"];
+    check(&r2d2(&args, d));
+    let (expected, _) = landweber_reference(&reference, &read(&d.join("lw-dirty.fits")), gain, 0.0, 3, true);
+    let error = max_diff(&read(&d.join("lw-model.fits")), &expected) / max_abs(&expected);
+    assert!(error < 1e-5, "r2d2 image --step <library>: {error:e}");
+
+    // A configuration for a step that takes none is refused, not ignored.
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--plugin-config", "{gain: 1}", "--name", "x"], d);
+    assert!(!out.status.success() && stderr(&out).contains("plugin-config"), "{}", stderr(&out));
+}

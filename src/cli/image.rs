@@ -14,13 +14,17 @@ pub struct Args {
     input: PathBuf,
     #[command(flatten)]
     image: ImageOptions,
-    /// Network step: `clean` (built in), or a model series directory (`models/<series>`).
+    /// Network step: `clean` (built in), a model series directory (`models/<series>`), or a
+    /// native plugin library (`.so`, `.dylib`, `.dll`).
     #[arg(long, default_value = "clean")]
     step: String,
-    /// Iterations of the step: CLEAN major cycles (default 5), or the first networks of a
-    /// series (default: all).
+    /// Iterations of the step: CLEAN major cycles (default 5), the first networks of a series
+    /// (default: all), or the steps of a native plugin (default 10).
     #[arg(long)]
     iterations: Option<usize>,
+    /// Configuration of a native plugin, a YAML/JSON mapping (e.g. '{gain: 0.1}').
+    #[arg(long)]
+    plugin_config: Option<String>,
     /// ONNX inference backend for a series: auto (native ONNX Runtime if found), ort, tract.
     #[arg(long, default_value = "auto")]
     backend: String,
@@ -35,11 +39,15 @@ pub struct Args {
 /// The `step` stage of the image pipeline for `--step`.
 fn step_stage(args: &Args) -> Result<serde_yaml::Value> {
     let yaml = |s: &str| serde_yaml::from_str::<serde_yaml::Value>(s).expect("literal YAML");
+    let path = Path::new(&args.step);
+    let is_library = matches!(path.extension().and_then(|e| e.to_str()), Some("so" | "dylib" | "dll"));
+    if args.plugin_config.is_some() && !is_library {
+        return Err(Error::parameter("plugin-config", format!("only a native plugin takes a configuration; --step is '{}'", args.step)));
+    }
     if args.step == "clean" {
         let cycles = args.iterations.unwrap_or(5);
         return Ok(yaml(&format!("{{kind: clean, major_cycles: {cycles}, to: update}}")));
     }
-    let path = Path::new(&args.step);
     if path.is_dir() {
         let mut stage = yaml("{kind: onnx, to: update}");
         stage["series"] = serde_yaml::Value::String(path.to_string_lossy().into_owned());
@@ -49,7 +57,21 @@ fn step_stage(args: &Args) -> Result<serde_yaml::Value> {
         }
         return Ok(stage);
     }
-    Err(Error::parameter("step", format!("expected clean or a model series directory (models/<series>), got '{}' (not a directory)", args.step)))
+    if is_library {
+        let mut stage = yaml("{kind: native, to: update}");
+        stage["library"] = serde_yaml::Value::String(path.to_string_lossy().into_owned());
+        stage["iterations"] = args.iterations.unwrap_or(10).into();
+        if let Some(text) = &args.plugin_config {
+            let config: serde_yaml::Value = serde_yaml::from_str(text)
+                .map_err(|e| Error::parameter("plugin-config", format!("expected a YAML or JSON mapping: {e}")))?;
+            stage["config"] = config;
+        }
+        return Ok(stage);
+    }
+    Err(Error::parameter(
+        "step",
+        format!("expected clean, a model series directory (models/<series>) or a plugin library (.so, .dylib, .dll), got '{}'", args.step),
+    ))
 }
 
 pub fn run(args: Args) -> Result<()> {
