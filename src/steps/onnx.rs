@@ -9,7 +9,7 @@
 //! Networks load lazily and at most two stay resident (the current one and the previous, so a
 //! job following another through the series rarely reloads), whatever the series length.
 
-use super::runtime::{check_network, BackendChoice, Network, Runtime};
+use super::runtime::{check_network, BackendChoice, Network, Runtime, Signature};
 use super::series::{Architecture, Series};
 use super::{NetworkStep, StepInput};
 use crate::operator::PsfConvolution;
@@ -43,6 +43,8 @@ pub struct OnnxStep {
     iterations: usize,
     /// Loaded networks, most recently used last, keyed by (iteration, layer).
     resident: Vec<((usize, usize), Box<dyn Network>)>,
+    /// The checked signature of every network, `[iteration - 1][layer]`.
+    signatures: Vec<Vec<Signature>>,
 }
 
 impl OnnxStep {
@@ -61,13 +63,14 @@ impl OnnxStep {
             }
             Some(n) => n,
         };
-        for file in series.files[..iterations].iter().flatten() {
-            check_network(file, size)?;
-        }
+        let signatures = series.files[..iterations]
+            .iter()
+            .map(|layers| layers.iter().map(|file| check_network(file, size)).collect::<Result<Vec<_>>>())
+            .collect::<Result<Vec<_>>>()?;
         let threads = if config.threads > 0 { config.threads } else { pipeline_threads };
         let runtime = Runtime::select(config.backend, threads)?;
         log::info!("series '{}' ({}, {} iterations, {}), inference by {}", series.name, series.origin, iterations, arch_name(series.architecture), runtime.describe());
-        Ok(OnnxStep { series, runtime, size, iterations, resident: Vec::new() })
+        Ok(OnnxStep { series, runtime, size, iterations, resident: Vec::new(), signatures })
     }
 
     pub fn runtime(&self) -> &Runtime {
@@ -85,7 +88,10 @@ impl OnnxStep {
                 self.resident.remove(0);
             }
             let path = &self.series.files[iteration - 1][layer];
-            let net = self.runtime.load(path, self.size)?;
+            let started = std::time::Instant::now();
+            let net = self.runtime.load(path, self.size, &self.signatures[iteration - 1][layer])?;
+            // Part of the step's seconds; logged so inference and loading can be told apart.
+            log::debug!("loaded {} in {:.3} s", path.display(), started.elapsed().as_secs_f64());
             self.resident.push((key, net));
         }
         Ok(&mut self.resident.last_mut().expect("just pushed").1)
@@ -328,11 +334,12 @@ pub(crate) mod tests {
     #[test]
     fn native_onnx_runtime_and_tract_agree_on_a_unet() {
         let path = test_models().join("unet.onnx");
-        check_network(&path, 64).unwrap();
+        let signature = check_network(&path, 64).unwrap();
+        assert_eq!(signature.input_params[2..], [Some("H".to_string()), Some("W".to_string())], "symbolic dimensions are named");
         let input: Vec<f32> = (0..2 * 64 * 64).map(|k| ((k * 7919 % 1000) as f32 / 1000.0).powi(2)).collect();
         let ort = Runtime::select(BackendChoice::Ort, 1).expect("native ONNX Runtime (pip install onnxruntime)");
-        let a = ort.load(&path, 64).unwrap().run(&input).unwrap();
-        let b = Runtime::Tract.load(&path, 64).unwrap().run(&input).unwrap();
+        let a = ort.load(&path, 64, &signature).unwrap().run(&input).unwrap();
+        let b = Runtime::Tract.load(&path, 64, &signature).unwrap().run(&input).unwrap();
         let (a, b): (Vec<f64>, Vec<f64>) = (a.into_iter().map(f64::from).collect(), b.into_iter().map(f64::from).collect());
         let err = rel(&a, &b);
         assert!(err < 1e-4, "ort vs tract: relative error {err:.2e}");

@@ -80,10 +80,10 @@ impl Runtime {
         }
     }
 
-    /// Load a network for `size x size` images.
-    pub fn load(&self, path: &Path, size: usize) -> Result<Box<dyn Network>> {
+    /// Load a network for `size x size` images (`signature`: from [`check_network`]).
+    pub fn load(&self, path: &Path, size: usize, signature: &Signature) -> Result<Box<dyn Network>> {
         match self {
-            Runtime::Ort { threads, .. } => Ok(Box::new(OrtNetwork::load(path, size, *threads)?)),
+            Runtime::Ort { threads, .. } => Ok(Box::new(OrtNetwork::load(path, size, *threads, signature)?)),
             Runtime::Tract => Ok(Box::new(TractNetwork::load(path, size)?)),
         }
     }
@@ -164,6 +164,9 @@ pub struct Signature {
     /// Dimensions; `None` for a symbolic one.
     pub input: Vec<Option<i64>>,
     pub output: Vec<Option<i64>>,
+    /// Names of the input's symbolic dimensions (`Some("H")`), parallel to `input`: ONNX
+    /// Runtime is told their values, so it plans memory for the one shape it will see.
+    pub input_params: Vec<Option<String>>,
 }
 
 /// Read and check an R2D2 network file: one float32 input `[1, 2, H, W]`, one float32 output
@@ -197,6 +200,13 @@ pub fn check_network(path: &Path, size: usize) -> Result<Signature> {
         Ok(dims)
     };
     let input = shape_of(inputs[0], "input")?;
+    let input_params = match inputs[0].r#type.as_ref().and_then(|t| t.value.as_ref()) {
+        Some(TypeValue::TensorType(t)) => t.shape.as_ref().map(|s| s.dim.iter().map(|d| match &d.value {
+            Some(Dim::DimParam(name)) if !name.is_empty() => Some(name.clone()),
+            _ => None,
+        }).collect()).unwrap_or_default(),
+        _ => Vec::new(),
+    };
     let output = shape_of(&graph.output[0], "output")?;
     let check = |dims: &[Option<i64>], channels: i64, what: &str| -> Result<()> {
         let expected = format!("[1, {channels}, H, W]");
@@ -219,7 +229,7 @@ pub fn check_network(path: &Path, size: usize) -> Result<Signature> {
     };
     check(&input, 2, "input")?;
     check(&output, 1, "output")?;
-    Ok(Signature { input, output })
+    Ok(Signature { input, output, input_params })
 }
 
 struct OrtNetwork {
@@ -229,10 +239,25 @@ struct OrtNetwork {
 }
 
 impl OrtNetwork {
-    fn load(path: &Path, size: usize, threads: usize) -> Result<OrtNetwork> {
+    fn load(path: &Path, size: usize, threads: usize, signature: &Signature) -> Result<OrtNetwork> {
         let (_, env) = ort_environment().map_err(|e| Error::parameter("backend", e))?;
         let fail = |e: &dyn std::fmt::Display| Error::input(path, format!("ONNX Runtime could not load the network: {e}"));
-        let mut builder = ort::session::Session::builder(env).map_err(|e| fail(&e))?;
+        // No CPU arena: an arena keeps the peak activation memory of every resident session
+        // allocated between runs (measured with the reference U-Net at 512^2: 1.95 GB peak with
+        // it). Freed buffers go back to the system instead; inference time is unchanged.
+        let cpu = ort::ep::CPU::default().with_arena_allocator(false).build();
+        let mut builder = ort::session::Session::builder(env)
+            .map_err(|e| fail(&e))?
+            .with_execution_providers([cpu])
+            .map_err(|e| fail(&e))?;
+        // Symbolic dimensions take the one shape this pipeline feeds: static shapes let ONNX
+        // Runtime plan and reuse activation buffers.
+        let shape = [1, 2, size as i64, size as i64];
+        for (name, value) in signature.input_params.iter().zip(shape) {
+            if let Some(name) = name {
+                builder = builder.with_dimension_override(name, value).map_err(|e| fail(&e))?;
+            }
+        }
         if threads > 0 {
             builder = builder.with_intra_threads(threads).map_err(|e| fail(&e))?;
         }
