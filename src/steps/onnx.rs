@@ -6,8 +6,9 @@
 //! (image first); `x_i = max(0, (N_i(input) + x_{i-1}/alpha) * alpha)`. R3D3 components run J
 //! layers on `[residual, image]` with a PSF data-fidelity update of the residual between them.
 //!
-//! Networks load lazily and at most two stay resident (the current one and the previous, so a
-//! job following another through the series rarely reloads), whatever the series length.
+//! Networks load lazily and at most two are resident, whatever the series length: the one
+//! running and the next, which loads on a background thread while the current one infers
+//! (with `prefetch: false`, the one running and the previous).
 
 use super::runtime::{check_network, BackendChoice, Network, Runtime, Signature};
 use super::series::{Architecture, Series};
@@ -31,6 +32,14 @@ pub struct OnnxConfig {
     /// Run only the first networks of the series.
     #[serde(default)]
     pub networks: Option<usize>,
+    /// Load the next network while the current one runs (hides loading, which costs 0.3 s per
+    /// 31 M-parameter network; the load's transient memory then adds to the inference peak).
+    #[serde(default = "yes")]
+    pub prefetch: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 /// Networks resident at once.
@@ -45,7 +54,12 @@ pub struct OnnxStep {
     resident: Vec<((usize, usize), Box<dyn Network>)>,
     /// The checked signature of every network, `[iteration - 1][layer]`.
     signatures: Vec<Vec<Signature>>,
+    prefetch: bool,
+    /// The next network, loading on a background thread (counts as resident).
+    pending: Option<((usize, usize), std::thread::JoinHandle<Result<Box<dyn Network>>>)>,
 }
+
+type Key = (usize, usize);
 
 impl OnnxStep {
     /// Open and check the series for `size x size` images: every file is read and its input and
@@ -70,7 +84,7 @@ impl OnnxStep {
         let threads = if config.threads > 0 { config.threads } else { pipeline_threads };
         let runtime = Runtime::select(config.backend, threads)?;
         log::info!("series '{}' ({}, {} iterations, {}), inference by {}", series.name, series.origin, iterations, arch_name(series.architecture), runtime.describe());
-        Ok(OnnxStep { series, runtime, size, iterations, resident: Vec::new(), signatures })
+        Ok(OnnxStep { series, runtime, size, iterations, resident: Vec::new(), signatures, prefetch: config.prefetch, pending: None })
     }
 
     pub fn runtime(&self) -> &Runtime {
@@ -83,18 +97,62 @@ impl OnnxStep {
             let entry = self.resident.remove(pos);
             self.resident.push(entry);
         } else {
+            let prefetched = match self.pending.take() {
+                Some((k, handle)) if k == key => Some(handle),
+                _ => None, // a different network: dropping the handle lets that load finish and be freed
+            };
             // Free before loading, so that at most RESIDENT networks exist even while loading.
             if self.resident.len() >= RESIDENT {
                 self.resident.remove(0);
             }
-            let path = &self.series.files[iteration - 1][layer];
-            let started = std::time::Instant::now();
-            let net = self.runtime.load(path, self.size, &self.signatures[iteration - 1][layer])?;
-            // Part of the step's seconds; logged so inference and loading can be told apart.
-            log::debug!("loaded {} in {:.3} s", path.display(), started.elapsed().as_secs_f64());
+            let net = match prefetched {
+                Some(handle) => handle.join().unwrap_or_else(|_| Err(Error::input(self.file(key), "loading the network panicked")))?,
+                None => self.load(key)?,
+            };
             self.resident.push((key, net));
         }
-        Ok(&mut self.resident.last_mut().expect("just pushed").1)
+        if self.prefetch {
+            self.prefetch_after(key);
+        }
+        Ok(&mut self.resident.last_mut().expect("present or just pushed").1)
+    }
+
+    fn file(&self, (iteration, layer): Key) -> PathBuf {
+        self.series.files[iteration - 1][layer].clone()
+    }
+
+    fn load(&self, key: Key) -> Result<Box<dyn Network>> {
+        let started = std::time::Instant::now();
+        let path = self.file(key);
+        let net = self.runtime.load(&path, self.size, &self.signatures[key.0 - 1][key.1])?;
+        // Part of the step's seconds; logged so inference and loading can be told apart.
+        log::debug!("loaded {} in {:.3} s", path.display(), started.elapsed().as_secs_f64());
+        Ok(net)
+    }
+
+    /// Start loading the network after `key` on a background thread, keeping only `key`
+    /// resident besides it.
+    fn prefetch_after(&mut self, key: Key) {
+        let (iteration, layer) = key;
+        let next = if layer + 1 < self.series.files[iteration - 1].len() {
+            (iteration, layer + 1)
+        } else if iteration < self.iterations {
+            (iteration + 1, 0)
+        } else {
+            return;
+        };
+        if next == key || self.resident.iter().any(|(k, _)| *k == next) || self.pending.as_ref().is_some_and(|(k, _)| *k == next) {
+            return;
+        }
+        self.resident.retain(|(k, _)| *k == key);
+        let (runtime, path, size, signature) = (self.runtime.clone(), self.file(next), self.size, self.signatures[next.0 - 1][next.1].clone());
+        let handle = std::thread::spawn(move || {
+            let started = std::time::Instant::now();
+            let net = runtime.load(&path, size, &signature);
+            log::debug!("loaded {} in {:.3} s (in the background)", path.display(), started.elapsed().as_secs_f64());
+            net
+        });
+        self.pending = Some((next, handle));
     }
 
     fn run_network(&mut self, iteration: usize, layer: usize, first: &[f64], second: &[f64], alpha: f64) -> Result<Vec<f64>> {
@@ -256,8 +314,8 @@ pub(crate) mod tests {
         (num / den).sqrt()
     }
 
-    fn run_series(series: &Path, backend: BackendChoice, psf: &[f64], dirty: &[f64]) -> Vec<Vec<f64>> {
-        let config = OnnxConfig { series: series.to_path_buf(), backend, threads: 1, networks: None };
+    fn run_series(series: &Path, backend: BackendChoice, psf: &[f64], dirty: &[f64], prefetch: bool) -> Vec<Vec<f64>> {
+        let config = OnnxConfig { series: series.to_path_buf(), backend, threads: 1, networks: None, prefetch };
         let mut step = OnnxStep::new(&config, N, 1).unwrap();
         let psf_n = vec![0.0; N * N];
         let (mut model, mut residual) = (vec![0.0; N * N], dirty.to_vec());
@@ -265,7 +323,7 @@ pub(crate) mod tests {
         for i in 1..=step.series_length() {
             let input = StepInput { size: N, model: &model, residual: &residual, dirty, psf: &psf_n, psf_2n: psf };
             model = step.step(i, &input).unwrap();
-            assert!(step.resident.len() <= RESIDENT);
+            assert!(step.resident.len() + step.pending.is_some() as usize <= RESIDENT);
             let dx = direct_d(psf, &model);
             residual = dirty.iter().zip(&dx).map(|(d, v)| d - v).collect();
             models.push(model.clone());
@@ -289,10 +347,13 @@ pub(crate) mod tests {
         }
         for backend in [BackendChoice::Ort, BackendChoice::Tract] {
             for dir in ["landweber", "landweber-ref"] {
-                let got = run_series(&test_models().join(dir), backend, &psf, &dirty);
-                for (i, (g, e)) in got.iter().zip(&expected).enumerate() {
-                    let err = rel(g, e);
-                    assert!(err < 1e-5, "{backend:?} {dir} iteration {}: relative error {err:.2e}", i + 1);
+                // Prefetching changes when networks load, never what they compute.
+                for prefetch in [true, false] {
+                    let got = run_series(&test_models().join(dir), backend, &psf, &dirty, prefetch);
+                    for (i, (g, e)) in got.iter().zip(&expected).enumerate() {
+                        let err = rel(g, e);
+                        assert!(err < 1e-5, "{backend:?} {dir} prefetch {prefetch} iteration {}: relative error {err:.2e}", i + 1);
+                    }
                 }
             }
         }
@@ -323,7 +384,7 @@ pub(crate) mod tests {
             r = dirty.iter().zip(&d).map(|(a, b)| a - b).collect();
             expected.push(x.clone());
         }
-        let got = run_series(&test_models().join("r3d3"), BackendChoice::Tract, &psf, &dirty);
+        let got = run_series(&test_models().join("r3d3"), BackendChoice::Tract, &psf, &dirty, true);
         for (i, (g, e)) in got.iter().zip(&expected).enumerate() {
             // The step's between-layer residual uses the FFT convolution, the reference a direct sum.
             let err = rel(g, e);
@@ -368,7 +429,7 @@ pub(crate) mod tests {
         }
         let text = std::fs::read_to_string(dir.join("landweber/manifest.yaml")).unwrap().replace("any_size: true", "any_size: false");
         std::fs::write(series.path().join("manifest.yaml"), text).unwrap();
-        let config = OnnxConfig { series: series.path().into(), backend: BackendChoice::Tract, threads: 1, networks: None };
+        let config = OnnxConfig { series: series.path().into(), backend: BackendChoice::Tract, threads: 1, networks: None, prefetch: true };
         let e = OnnxStep::new(&config, 128, 1).err().expect("size refused").to_string();
         assert!(e.contains("[64]") && e.contains("128 x 128"), "{e}");
         let e = OnnxStep::new(&OnnxConfig { networks: Some(9), ..config.clone() }, 64, 1).err().expect("too many").to_string();

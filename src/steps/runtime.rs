@@ -169,16 +169,40 @@ pub struct Signature {
     pub input_params: Vec<Option<String>>,
 }
 
+/// The parts of an ONNX `ModelProto` the check needs. Decoding only these skips the weights'
+/// bytes instead of copying them (a full decode of the 31 M-parameter U-Net took 0.18 s per
+/// file, which a 15-network series paid before imaging). Field numbers are onnx.proto's.
+#[derive(Clone, PartialEq, prost::Message)]
+struct ModelHead {
+    #[prost(message, optional, tag = "7")]
+    graph: Option<GraphHead>,
+}
+
+#[derive(Clone, PartialEq, prost::Message)]
+struct GraphHead {
+    #[prost(message, repeated, tag = "5")]
+    initializer: Vec<TensorName>,
+    #[prost(message, repeated, tag = "11")]
+    input: Vec<tract_onnx::pb::ValueInfoProto>,
+    #[prost(message, repeated, tag = "12")]
+    output: Vec<tract_onnx::pb::ValueInfoProto>,
+}
+
+/// A `TensorProto`'s name; its data fields are skipped.
+#[derive(Clone, PartialEq, prost::Message)]
+struct TensorName {
+    #[prost(string, tag = "8")]
+    name: String,
+}
+
 /// Read and check an R2D2 network file: one float32 input `[1, 2, H, W]`, one float32 output
 /// `[1, 1, H, W]` (H and W fixed or symbolic; fixed ones must equal `size`).
 pub fn check_network(path: &Path, size: usize) -> Result<Signature> {
     use tract_onnx::pb::type_proto::Value as TypeValue;
     use tract_onnx::pb::tensor_shape_proto::dimension::Value as Dim;
-    use tract_onnx::prelude::Framework;
-    let proto = tract_onnx::onnx()
-        .proto_model_for_path(path)
-        .map_err(|e| Error::input(path, format!("not a readable ONNX model: {e}")))?;
-    let graph = proto.graph.as_ref().ok_or_else(|| Error::input(path, "ONNX model without a graph"))?;
+    let bytes = std::fs::read(path).map_err(|e| Error::input(path, format!("cannot read the network: {e}")))?;
+    let head = <ModelHead as prost::Message>::decode(bytes.as_slice()).map_err(|e| Error::input(path, format!("not a readable ONNX model: {e}")))?;
+    let graph = head.graph.as_ref().ok_or_else(|| Error::input(path, "ONNX model without a graph"))?;
     // Older exporters list the weights among the inputs too.
     let weights: std::collections::HashSet<&str> = graph.initializer.iter().map(|t| t.name.as_str()).collect();
     let inputs: Vec<_> = graph.input.iter().filter(|i| !weights.contains(i.name.as_str())).collect();
