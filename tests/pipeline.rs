@@ -171,12 +171,29 @@ fn image_command_runs_the_default_pipeline() {
         &["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64", "--seed", "4", "--out", "obs.parquet"],
         d,
     ));
-    check(&r2d2(&["image", "obs.parquet", "--size", "64", "--iterations", "2", "--truth", "obs.sky.fits", "--name", "res/obs"], d));
-    for product in ["dirty", "psf", "model", "residual", "image"] {
+    // The default step is the shipped series, found by name.
+    check(&r2d2(&["image", "obs.parquet", "--size", "64", "--truth", "obs.sky.fits", "--name", "res/obs"], d));
+    for product in ["dirty", "psf", "model", "residual"] {
         assert!(d.join(format!("res/obs-{product}.fits")).exists(), "{product}");
     }
+    let series = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/vla-r2d2-128/manifest.yaml");
+    let manifest: serde_yaml::Value = serde_yaml::from_str(&std::fs::read_to_string(series).unwrap()).unwrap();
+    let networks = manifest["networks"].as_sequence().unwrap().len();
     let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("res/obs-metrics.json")).unwrap()).unwrap();
+    assert_eq!(v["iterations"].as_array().unwrap().len(), networks, "one iteration per network of the default series");
+    assert!(v["iterations"][0]["logsnr"].is_number());
+
+    // CLEAN on request, with its restored image.
+    check(&r2d2(&["image", "obs.parquet", "--size", "64", "--step", "clean", "--iterations", "2", "--truth", "obs.sky.fits", "--name", "cl/obs"], d));
+    for product in ["dirty", "psf", "model", "residual", "image"] {
+        assert!(d.join(format!("cl/obs-{product}.fits")).exists(), "{product}");
+    }
+    let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("cl/obs-metrics.json")).unwrap()).unwrap();
     assert!(v["iterations"][1]["logsnr"].is_number());
+
+    // A series name that is nowhere says where it looked.
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "nosuch", "--name", "x"], d);
+    assert!(!out.status.success() && stderr(&out).contains("no model series of that name"), "{}", stderr(&out));
 }
 
 #[test]

@@ -3,6 +3,7 @@
 
 use super::ImageOptions;
 use r2d2_imaging::pipeline::config::PipelineConfig;
+use r2d2_imaging::steps::series::{resolve, DEFAULT_SERIES};
 use r2d2_imaging::{Error, Result};
 use std::path::{Path, PathBuf};
 
@@ -14,9 +15,9 @@ pub struct Args {
     input: PathBuf,
     #[command(flatten)]
     image: ImageOptions,
-    /// Network step: `clean` (built in), a model series directory (`models/<series>`), or a
-    /// native plugin library (`.so`, `.dylib`, `.dll`).
-    #[arg(long, default_value = "clean")]
+    /// Network step: a model series (a name from `r2d2 models`, or its directory), `clean`
+    /// (the built-in Hogbom CLEAN), or a native plugin library (`.so`, `.dylib`, `.dll`).
+    #[arg(long, default_value = DEFAULT_SERIES)]
     step: String,
     /// Iterations of the step: CLEAN major cycles (default 5), the first networks of a series
     /// (default: all), or the steps of a native plugin (default 10).
@@ -48,30 +49,25 @@ fn step_stage(args: &Args) -> Result<serde_yaml::Value> {
         let cycles = args.iterations.unwrap_or(5);
         return Ok(yaml(&format!("{{kind: clean, major_cycles: {cycles}, to: update}}")));
     }
-    if path.is_dir() {
+    if !is_library {
+        let series = resolve(path)?;
         let mut stage = yaml("{kind: onnx, to: update}");
-        stage["series"] = serde_yaml::Value::String(path.to_string_lossy().into_owned());
+        stage["series"] = serde_yaml::Value::String(series.to_string_lossy().into_owned());
         stage["backend"] = serde_yaml::Value::String(args.backend.clone());
         if let Some(n) = args.iterations {
             stage["networks"] = n.into();
         }
         return Ok(stage);
     }
-    if is_library {
-        let mut stage = yaml("{kind: native, to: update}");
-        stage["library"] = serde_yaml::Value::String(path.to_string_lossy().into_owned());
-        stage["iterations"] = args.iterations.unwrap_or(10).into();
-        if let Some(text) = &args.plugin_config {
-            let config: serde_yaml::Value = serde_yaml::from_str(text)
-                .map_err(|e| Error::parameter("plugin-config", format!("expected a YAML or JSON mapping: {e}")))?;
-            stage["config"] = config;
-        }
-        return Ok(stage);
+    let mut stage = yaml("{kind: native, to: update}");
+    stage["library"] = serde_yaml::Value::String(path.to_string_lossy().into_owned());
+    stage["iterations"] = args.iterations.unwrap_or(10).into();
+    if let Some(text) = &args.plugin_config {
+        let config: serde_yaml::Value =
+            serde_yaml::from_str(text).map_err(|e| Error::parameter("plugin-config", format!("expected a YAML or JSON mapping: {e}")))?;
+        stage["config"] = config;
     }
-    Err(Error::parameter(
-        "step",
-        format!("expected clean, a model series directory (models/<series>) or a plugin library (.so, .dylib, .dll), got '{}'", args.step),
-    ))
+    Ok(stage)
 }
 
 pub fn run(args: Args) -> Result<()> {

@@ -1,21 +1,25 @@
 //! `r2d2 models`: the model series found under a directory (default `models/`), with their
 //! manifests' key facts.
 
-use r2d2_imaging::steps::series::{discover, Architecture};
+use r2d2_imaging::steps::series::{discover, model_dirs, Architecture};
 use r2d2_imaging::Result;
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Directory holding one sub-directory per series.
-    #[arg(default_value = "models")]
-    dir: PathBuf,
+    /// Directory holding one sub-directory per series (default: the first model directory
+    /// that exists: $R2D2_MODELS, ./models, the repository's or the installation's models/).
+    dir: Option<PathBuf>,
 }
 
 pub fn run(args: Args) -> Result<()> {
-    let found = discover(&args.dir);
+    let dir = args.dir.unwrap_or_else(|| {
+        let dirs = model_dirs();
+        dirs.iter().find(|d| d.is_dir()).cloned().unwrap_or_else(|| dirs[0].clone())
+    });
+    let found = discover(&dir);
     if found.is_empty() {
-        println!("no model series under {}", args.dir.display());
+        println!("no model series under {}", dir.display());
         return Ok(());
     }
     for (dir, series) in found {

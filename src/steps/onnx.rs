@@ -21,7 +21,8 @@ use std::path::{Path, PathBuf};
 #[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct OnnxConfig {
-    /// Series directory (`models/<name>`): a manifest and ONNX files, or the reference names.
+    /// Series directory (`models/<name>`: a manifest and ONNX files, or the reference names),
+    /// or a bare series name looked up in the model directories (`series::model_dirs`).
     pub series: PathBuf,
     /// `auto` (native ONNX Runtime if found, else tract), `ort` or `tract`.
     #[serde(default)]
@@ -65,7 +66,7 @@ impl OnnxStep {
     /// Open and check the series for `size x size` images: every file is read and its input and
     /// output checked here, before imaging starts.
     pub fn new(config: &OnnxConfig, size: usize, pipeline_threads: usize) -> Result<OnnxStep> {
-        let series = Series::open(&config.series)?;
+        let series = Series::open(&super::series::resolve(&config.series)?)?;
         if let Some(warning) = series.check_size(size)? {
             log::warn!("{warning}");
         }

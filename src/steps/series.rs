@@ -267,6 +267,39 @@ impl Series {
 }
 
 /// The series directories under `root` (each with a manifest or reference file names).
+/// The series `r2d2 image` uses when no `--step` is given, and the quickstart pipeline names.
+pub const DEFAULT_SERIES: &str = "vla-r2d2-128";
+
+/// Where series are looked up by name, in order: `$R2D2_MODELS` alone when set; else `models/`
+/// in the working directory, the repository's `models/` for a binary built in it
+/// (`target/<profile>/r2d2`), and `share/r2d2-imaging/models` beside an installed `bin/r2d2`.
+pub fn model_dirs() -> Vec<PathBuf> {
+    if let Some(dir) = std::env::var_os("R2D2_MODELS").filter(|d| !d.is_empty()) {
+        return vec![PathBuf::from(dir)];
+    }
+    let mut dirs = vec![PathBuf::from("models")];
+    if let Some(bin) = std::env::current_exe().ok().and_then(|e| e.parent().map(Path::to_path_buf)) {
+        dirs.push(bin.join("../../models"));
+        dirs.push(bin.join("../share/r2d2-imaging/models"));
+    }
+    dirs
+}
+
+/// A series given as a directory (any path with a separator, or one that exists) or as a bare
+/// name looked up in [`model_dirs`].
+pub fn resolve(series: &Path) -> Result<PathBuf> {
+    let bare = series.components().count() == 1 && !series.is_dir();
+    if !bare {
+        return Ok(series.to_path_buf());
+    }
+    let dirs = model_dirs();
+    if let Some(found) = dirs.iter().map(|d| d.join(series)).find(|d| d.is_dir()) {
+        return Ok(found);
+    }
+    let looked: Vec<String> = dirs.iter().map(|d| d.display().to_string()).collect();
+    Err(Error::input(series, format!("no model series of that name in {} (set R2D2_MODELS, or give the series directory)", looked.join(", "))))
+}
+
 pub fn discover(root: &Path) -> Vec<(PathBuf, Result<Series>)> {
     let mut dirs: Vec<PathBuf> = match std::fs::read_dir(root) {
         Ok(rd) => rd.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.is_dir()).collect(),

@@ -10,8 +10,15 @@ use r2d2_imaging::vis::read_parquet;
 use std::path::Path;
 use std::process::{Command, Output};
 
+/// Runs `r2d2` in `dir`, with the repository's `models/` as the model directory (the binary may
+/// be built outside the repository, where it would not find them by itself).
 pub fn r2d2(args: &[&str], dir: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_r2d2")).args(args).current_dir(dir).output().expect("r2d2 runs")
+    Command::new(env!("CARGO_BIN_EXE_r2d2"))
+        .args(args)
+        .current_dir(dir)
+        .env("R2D2_MODELS", Path::new(env!("CARGO_MANIFEST_DIR")).join("models"))
+        .output()
+        .expect("r2d2 runs")
 }
 
 pub fn stderr(out: &Output) -> String {
