@@ -20,5 +20,5 @@ mkdir -p "$DATA"
 RESUME=""
 [ -f "$SERIES/manifest.yaml" ] && RESUME="--resume"
 python3 training/train.py --train "$DATA/train" --val "$DATA/val" --series "$SERIES" --work "$DATA/work" \
-    --epochs-first 4 --epochs 2 --batch 8 --bf16 --seed 1 --threads 1 $RESUME ${TRAIN_ARGS:-}
+    --epochs-first 16 --epochs 6 --batch 8 --bf16 --seed 1 --threads 2 --max-networks 12 $RESUME ${TRAIN_ARGS:-}
 python3 training/evaluate.py --series "$SERIES" --test "$DATA/test" --r2d2 "$R2D2" --out "$DATA/eval" --update-manifest

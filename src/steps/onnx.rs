@@ -57,7 +57,9 @@ pub struct OnnxStep {
     signatures: Vec<Vec<Signature>>,
     prefetch: bool,
     /// The next network, loading on a background thread (counts as resident).
-    pending: Option<((usize, usize), std::thread::JoinHandle<Result<Box<dyn Network>>>)>,
+    pending: Option<(Key, std::thread::JoinHandle<Result<Box<dyn Network>>>)>,
+    /// The network of the previous call, to tell one job walking the series from several.
+    last: Option<Key>,
 }
 
 type Key = (usize, usize);
@@ -85,7 +87,7 @@ impl OnnxStep {
         let threads = if config.threads > 0 { config.threads } else { pipeline_threads };
         let runtime = Runtime::select(config.backend, threads)?;
         log::info!("series '{}' ({}, {} iterations, {}), inference by {}", series.name, series.origin, iterations, arch_name(series.architecture), runtime.describe());
-        Ok(OnnxStep { series, runtime, size, iterations, resident: Vec::new(), signatures, prefetch: config.prefetch, pending: None })
+        Ok(OnnxStep { series, runtime, size, iterations, resident: Vec::new(), signatures, prefetch: config.prefetch, pending: None, last: None })
     }
 
     pub fn runtime(&self) -> &Runtime {
@@ -94,28 +96,46 @@ impl OnnxStep {
 
     fn network(&mut self, iteration: usize, layer: usize) -> Result<&mut Box<dyn Network>> {
         let key = (iteration, layer);
+        // Prefetching assumes one job walks the series; when jobs interleave (one at network 5
+        // while the next starts at 1), loading the successor would evict the network the other
+        // job needs next, so it stops and the step keeps the two most recently used.
+        if self.prefetch && self.last.is_some_and(|last| key != (1, 0) && Some(key) != self.successor(last)) {
+            log::debug!("jobs interleave through the series: prefetching off");
+            self.prefetch = false;
+        }
+        self.last = Some(key);
+        // A background load always ends as a resident network, never detached: at most RESIDENT
+        // networks exist at any time.
+        if let Some((k, handle)) = self.pending.take() {
+            let net = handle.join().unwrap_or_else(|_| Err(Error::input(self.file(k), "loading the network panicked")))?;
+            self.resident.push((k, net));
+        }
         if let Some(pos) = self.resident.iter().position(|(k, _)| *k == key) {
             let entry = self.resident.remove(pos);
             self.resident.push(entry);
         } else {
-            let prefetched = match self.pending.take() {
-                Some((k, handle)) if k == key => Some(handle),
-                _ => None, // a different network: dropping the handle lets that load finish and be freed
-            };
             // Free before loading, so that at most RESIDENT networks exist even while loading.
             if self.resident.len() >= RESIDENT {
                 self.resident.remove(0);
             }
-            let net = match prefetched {
-                Some(handle) => handle.join().unwrap_or_else(|_| Err(Error::input(self.file(key), "loading the network panicked")))?,
-                None => self.load(key)?,
-            };
+            let net = self.load(key)?;
             self.resident.push((key, net));
         }
         if self.prefetch {
             self.prefetch_after(key);
         }
         Ok(&mut self.resident.last_mut().expect("present or just pushed").1)
+    }
+
+    /// The network after `key` in the series, if any.
+    fn successor(&self, (iteration, layer): Key) -> Option<Key> {
+        if layer + 1 < self.series.files[iteration - 1].len() {
+            Some((iteration, layer + 1))
+        } else if iteration < self.iterations {
+            Some((iteration + 1, 0))
+        } else {
+            None
+        }
     }
 
     fn file(&self, (iteration, layer): Key) -> PathBuf {
@@ -134,15 +154,8 @@ impl OnnxStep {
     /// Start loading the network after `key` on a background thread, keeping only `key`
     /// resident besides it.
     fn prefetch_after(&mut self, key: Key) {
-        let (iteration, layer) = key;
-        let next = if layer + 1 < self.series.files[iteration - 1].len() {
-            (iteration, layer + 1)
-        } else if iteration < self.iterations {
-            (iteration + 1, 0)
-        } else {
-            return;
-        };
-        if next == key || self.resident.iter().any(|(k, _)| *k == next) || self.pending.as_ref().is_some_and(|(k, _)| *k == next) {
+        let Some(next) = self.successor(key) else { return };
+        if self.resident.iter().any(|(k, _)| *k == next) {
             return;
         }
         self.resident.retain(|(k, _)| *k == key);
@@ -362,6 +375,33 @@ pub(crate) mod tests {
         let r1: f64 = dirty.iter().zip(&direct_d(&psf, &expected[0])).map(|(d, v)| (d - v).powi(2)).sum();
         let r4: f64 = dirty.iter().zip(&direct_d(&psf, &expected[3])).map(|(d, v)| (d - v).powi(2)).sum();
         assert!(r4 < 0.5 * r1, "Landweber reduces the residual: {r1} -> {r4}");
+    }
+
+    #[test]
+    fn interleaved_jobs_get_the_same_images_with_at_most_two_networks_resident() {
+        let psf = psf_2n();
+        let dirty = direct_d(&psf, &sky());
+        let series = test_models().join("landweber");
+        let alone = run_series(&series, BackendChoice::Tract, &psf, &dirty, true);
+        let config = OnnxConfig { series, backend: BackendChoice::Tract, threads: 1, networks: None, prefetch: true };
+        let mut step = OnnxStep::new(&config, N, 1).unwrap();
+        let psf_n = vec![0.0; N * N];
+        // Two jobs on the same data; job B starts when job A is at network 3.
+        let mut jobs = [(vec![0.0; N * N], dirty.clone(), Vec::new()), (vec![0.0; N * N], dirty.clone(), Vec::new())];
+        let order = [(0, 1), (0, 2), (1, 1), (0, 3), (1, 2), (0, 4), (1, 3), (1, 4)];
+        for (job, i) in order {
+            let (model, residual, models) = &mut jobs[job];
+            let input = StepInput { size: N, model, residual, dirty: &dirty, psf: &psf_n, psf_2n: &psf };
+            *model = step.step(i, &input).unwrap();
+            assert!(step.resident.len() + step.pending.is_some() as usize <= RESIDENT, "more than {RESIDENT} networks");
+            let dx = direct_d(&psf, model);
+            *residual = dirty.iter().zip(&dx).map(|(d, v)| d - v).collect();
+            models.push(model.clone());
+        }
+        assert!(!step.prefetch, "prefetching stops once jobs interleave");
+        for (_, _, models) in &jobs {
+            assert_eq!(models, &alone);
+        }
     }
 
     #[test]
