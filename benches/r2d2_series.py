@@ -6,17 +6,21 @@
 1. Writes the reference U-Net (64 channels, 4 poolings, 31 M parameters, random weights) as a
    series of --networks (benches/make_reference_unet.py).
 2. Simulates one VLA A+C observation with about --visibilities samples (r2d2 simulate).
-3. Images it with `r2d2 image --step SERIES --backend ort` under /usr/bin/time and reports the
-   seconds per network step and per residual update (from the -metrics.json the run writes),
-   the share of the total that is not network inference, and the peak resident memory
-   against the budget (visibilities + two networks + 300 MB).
-4. Runs the first --tract-networks networks with the tract backend: native/tract ratio.
+3. Images it with `r2d2 image --step SERIES --backend ort` under /usr/bin/time, with the
+   weights inline (the file as written) and packed into a side file (`r2d2 pack`), each with
+   prefetching on and off, and reports the seconds per network step and per residual update
+   (from the -metrics.json the run writes), the share of the total that is not network
+   inference, and the peak resident memory against the budget (visibilities + two networks +
+   300 MB).
+4. Runs the first --tract-networks networks of the packed series with the tract backend:
+   native/tract ratio.
 """
 
 import argparse
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -33,9 +37,11 @@ def run(cmd, **kw):
     return out, time.time() - t
 
 
-def timed_image(r2d2, obs, size, series, backend, networks, name, work):
+def timed_image(r2d2, obs, size, series, backend, networks, name, work, prefetch=True):
     cmd = ["/usr/bin/time", "-v", r2d2, "-v", "image", obs, "--size", str(size), "--step", series,
            "--backend", backend, "--iterations", str(networks), "--name", name]
+    if not prefetch:
+        cmd.append("--no-prefetch")
     out, wall = run(cmd, cwd=work)
     peak_kb = int(re.search(r"Maximum resident set size \(kbytes\): (\d+)", out.stderr).group(1))
     with open(os.path.join(work, name + "-metrics.json")) as f:
@@ -72,32 +78,42 @@ def main():
     print(f"{nvis:.3g} visibilities, {args.size}^2, series of {args.networks} x reference U-Net "
           f"({args.channels} channels), work dir {work} (simulation {t_sim:.1f} s)")
 
-    wall, peak_mb, m = timed_image(r2d2, obs, args.size, series, "ort", args.networks, "ort", work)
-    it = m["iterations"]
-    step = [x["step_seconds"] for x in it]
-    upd = [x["residual_seconds"] for x in it]
-    stages = m["stage_seconds"]
-    loads = m["load_seconds"]
-    inference = sum(step) - sum(loads)
-    print(f"\nnative ONNX Runtime: {wall:.1f} s wall, peak RSS {peak_mb:.0f} MB")
-    print(f"  network step: {sum(step) / len(step):.2f} s per network (min {min(step):.2f}, max {max(step):.2f}), "
-          f"of which loading {sum(loads) / max(1, len(loads)):.2f} s ({len(loads)} loads in the step, "
-          f"{m['background_loads']} in the background)")
-    print(f"  inference alone: {inference / len(step):.2f} s per network")
-    print(f"  residual update: {sum(upd) / len(upd):.3f} s per iteration")
-    print(f"  stage seconds: {json.dumps({k: round(v, 2) for k, v in stages.items()})}")
-    print(f"  not network inference: {100 * (wall - inference) / wall:.1f} % of the wall time (target <= 10 %)")
     model_mb = os.path.getsize(os.path.join(series, "unet.onnx")) / 2**20
     vis_mb = nvis * (3 * 8 + 8 + 16 + 8) / 2**20  # uvw, weight, complex value, imaging weight
     budget = vis_mb + 2 * model_mb + 300
-    print(f"  memory budget: visibilities {vis_mb:.0f} MB + 2 networks {2 * model_mb:.0f} MB + 300 MB = {budget:.0f} MB; "
-          f"peak {peak_mb:.0f} MB ({'within' if peak_mb <= budget else 'OVER'})")
+    print(f"memory budget: visibilities {vis_mb:.0f} MB + 2 networks {2 * model_mb:.0f} MB + 300 MB = {budget:.0f} MB")
+
+    # The same series with its weights in a side file (r2d2 pack): ONNX Runtime maps them.
+    packed = os.path.join(work, "series-packed")
+    shutil.rmtree(packed, ignore_errors=True)
+    shutil.copytree(series, packed)
+    run([r2d2, "pack", packed])
+
+    results = {}
+    for label, path in (("weights inline (one .onnx file)", series), ("weights packed (r2d2 pack)", packed)):
+        for prefetch in (True, False):
+            name = f"ort-{'packed' if path == packed else 'inline'}-{'prefetch' if prefetch else 'noprefetch'}"
+            wall, peak_mb, m = timed_image(r2d2, obs, args.size, path, "ort", args.networks, name, work, prefetch)
+            it = m["iterations"]
+            step = [x["step_seconds"] for x in it]
+            upd = [x["residual_seconds"] for x in it]
+            loads = m["load_seconds"]
+            inference = sum(step) - sum(loads)
+            results[name] = inference / len(step)
+            print(f"\nnative ONNX Runtime, {label}, prefetch {'on' if prefetch else 'off'}: {wall:.1f} s wall, "
+                  f"peak RSS {peak_mb:.0f} MB ({'within' if peak_mb <= budget else 'OVER'} the {budget:.0f} MB budget)")
+            print(f"  network step: {sum(step) / len(step):.2f} s per network (min {min(step):.2f}, max {max(step):.2f}), "
+                  f"of which loading {sum(loads) / max(1, len(loads)):.3f} s ({len(loads)} loads in the step, "
+                  f"{m['background_loads']} in the background)")
+            print(f"  inference alone: {inference / len(step):.2f} s per network; residual update: {sum(upd) / len(upd):.3f} s per iteration")
+            print(f"  stage seconds: {json.dumps({k: round(v, 2) for k, v in m['stage_seconds'].items()})}")
+            print(f"  not network inference: {100 * (wall - inference) / wall:.1f} % of the wall time (target <= 10 %)")
 
     if args.tract_networks > 0:
-        wall_t, peak_t, mt = timed_image(r2d2, obs, args.size, series, "tract", args.tract_networks, "tract", work)
+        wall_t, peak_t, mt = timed_image(r2d2, obs, args.size, packed, "tract", args.tract_networks, "tract", work)
         step_t = [x["step_seconds"] for x in mt["iterations"]]
         per_t = (sum(step_t) - sum(mt["load_seconds"])) / len(step_t)
-        per_n = inference / len(step)
+        per_n = results["ort-packed-prefetch"]
         print(f"\ntract: {per_t:.2f} s inference per network ({args.tract_networks} run), peak RSS {peak_t:.0f} MB")
         print(f"  tract / native ONNX Runtime inference time: {per_t / per_n:.1f}")
 

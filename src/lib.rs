@@ -4,6 +4,7 @@
 //! nothing of files, channels or configuration; `vis` and `fits` are the file formats, and
 //! `imaging` ties operator and weighting into the dirty products.
 
+pub mod allocator;
 pub mod bench;
 pub mod deconv;
 pub mod error;

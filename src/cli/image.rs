@@ -29,6 +29,10 @@ pub struct Args {
     /// ONNX inference backend for a series: auto (native ONNX Runtime if found), ort, tract.
     #[arg(long, default_value = "auto")]
     backend: String,
+    /// Load each network of a series only when it runs, not while the previous one infers
+    /// (one network resident instead of two; loading then adds to the wall time).
+    #[arg(long)]
+    no_prefetch: bool,
     /// Ground truth (FITS) for SNR/logSNR per iteration.
     #[arg(long)]
     truth: Option<PathBuf>,
@@ -56,6 +60,9 @@ fn step_stage(args: &Args) -> Result<serde_yaml::Value> {
         stage["backend"] = serde_yaml::Value::String(args.backend.clone());
         if let Some(n) = args.iterations {
             stage["networks"] = n.into();
+        }
+        if args.no_prefetch {
+            stage["prefetch"] = false.into();
         }
         return Ok(stage);
     }

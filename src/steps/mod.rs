@@ -6,6 +6,7 @@
 pub mod clean;
 pub mod native;
 pub mod onnx;
+pub mod pack;
 pub mod runtime;
 pub mod series;
 

@@ -6,9 +6,10 @@
 //! (image first); `x_i = max(0, (N_i(input) + x_{i-1}/alpha) * alpha)`. R3D3 components run J
 //! layers on `[residual, image]` with a PSF data-fidelity update of the residual between them.
 //!
-//! Networks load lazily and at most two are resident, whatever the series length: the one
-//! running and the next, which loads on a background thread while the current one infers
-//! (with `prefetch: false`, the one running and the previous).
+//! Networks load lazily and at most two are resident, whatever the series length. One job
+//! walking the series keeps only the network running and the next, which loads on a background
+//! thread while the current one infers (with `prefetch: false`, only the one running). When
+//! several jobs go through the series interleaved, the two most recently used stay resident.
 
 use super::runtime::{check_network, BackendChoice, Network, Runtime, Signature};
 use super::series::{Architecture, Series};
@@ -46,6 +47,9 @@ fn yes() -> bool {
 /// Networks resident at once.
 const RESIDENT: usize = 2;
 
+/// Model files larger than this get a note that `r2d2 pack` would make them cheaper to load.
+const INLINE_NOTICE_BYTES: u64 = 16 << 20;
+
 pub struct OnnxStep {
     series: Series,
     runtime: Runtime,
@@ -56,6 +60,8 @@ pub struct OnnxStep {
     /// The checked signature of every network, `[iteration - 1][layer]`.
     signatures: Vec<Vec<Signature>>,
     prefetch: bool,
+    /// Set once calls show several jobs going through the series interleaved.
+    interleaved: bool,
     /// The next network, loading on a background thread (counts as resident).
     pending: Option<(Key, std::thread::JoinHandle<Result<Box<dyn Network>>>)>,
     /// The network of the previous call, to tell one job walking the series from several.
@@ -87,7 +93,17 @@ impl OnnxStep {
         let threads = if config.threads > 0 { config.threads } else { pipeline_threads };
         let runtime = Runtime::select(config.backend, threads)?;
         log::info!("series '{}' ({}, {} iterations, {}), inference by {}", series.name, series.origin, iterations, arch_name(series.architecture), runtime.describe());
-        Ok(OnnxStep { series, runtime, size, iterations, resident: Vec::new(), signatures, prefetch: config.prefetch, pending: None, last: None })
+        let inline = signatures.iter().flatten().map(|s| s.file_bytes).max().unwrap_or(0);
+        if matches!(runtime, Runtime::Ort { .. }) && inline > INLINE_NOTICE_BYTES {
+            log::info!(
+                "series '{}' holds its weights inline (up to {} MiB per file): ONNX Runtime copies them at every load; \
+                 `r2d2 pack {}` moves them to side files it maps instead (faster loads, less memory)",
+                series.name,
+                inline >> 20,
+                series.dir.display()
+            );
+        }
+        Ok(OnnxStep { series, runtime, size, iterations, resident: Vec::new(), signatures, prefetch: config.prefetch, interleaved: false, pending: None, last: None })
     }
 
     pub fn runtime(&self) -> &Runtime {
@@ -96,12 +112,11 @@ impl OnnxStep {
 
     fn network(&mut self, iteration: usize, layer: usize) -> Result<&mut Box<dyn Network>> {
         let key = (iteration, layer);
-        // Prefetching assumes one job walks the series; when jobs interleave (one at network 5
-        // while the next starts at 1), loading the successor would evict the network the other
-        // job needs next, so it stops and the step keeps the two most recently used.
-        if self.prefetch && self.last.is_some_and(|last| key != (1, 0) && Some(key) != self.successor(last)) {
-            log::debug!("jobs interleave through the series: prefetching off");
-            self.prefetch = false;
+        // One job walks the series in order (a new job starting at network 1 included), until
+        // a call says otherwise: one job at network 5 while the next starts at 1.
+        if !self.interleaved && self.last.is_some_and(|last| key != (1, 0) && Some(key) != self.successor(last)) {
+            log::debug!("jobs interleave through the series: prefetching off, the two most recently used networks stay resident");
+            self.interleaved = true;
         }
         self.last = Some(key);
         // A background load always ends as a resident network, never detached: at most RESIDENT
@@ -109,6 +124,12 @@ impl OnnxStep {
         if let Some((k, handle)) = self.pending.take() {
             let net = handle.join().unwrap_or_else(|_| Err(Error::input(self.file(k), "loading the network panicked")))?;
             self.resident.push((k, net));
+        }
+        if !self.interleaved {
+            // Walking in order, the networks before this one are not needed again: keeping one
+            // would hold its weights (and, memory-mapped, every page the run touched) through
+            // this network's inference for nothing.
+            self.resident.retain(|(k, _)| *k == key);
         }
         if let Some(pos) = self.resident.iter().position(|(k, _)| *k == key) {
             let entry = self.resident.remove(pos);
@@ -121,7 +142,7 @@ impl OnnxStep {
             let net = self.load(key)?;
             self.resident.push((key, net));
         }
-        if self.prefetch {
+        if self.prefetch && !self.interleaved {
             self.prefetch_after(key);
         }
         Ok(&mut self.resident.last_mut().expect("present or just pushed").1)
@@ -151,14 +172,9 @@ impl OnnxStep {
         Ok(net)
     }
 
-    /// Start loading the network after `key` on a background thread, keeping only `key`
-    /// resident besides it.
+    /// Start loading the network after `key` on a background thread (only `key` is resident).
     fn prefetch_after(&mut self, key: Key) {
         let Some(next) = self.successor(key) else { return };
-        if self.resident.iter().any(|(k, _)| *k == next) {
-            return;
-        }
-        self.resident.retain(|(k, _)| *k == key);
         let (runtime, path, size, signature) = (self.runtime.clone(), self.file(next), self.size, self.signatures[next.0 - 1][next.1].clone());
         let handle = std::thread::spawn(move || {
             let started = std::time::Instant::now();
@@ -398,9 +414,28 @@ pub(crate) mod tests {
             *residual = dirty.iter().zip(&dx).map(|(d, v)| d - v).collect();
             models.push(model.clone());
         }
-        assert!(!step.prefetch, "prefetching stops once jobs interleave");
+        assert!(step.interleaved && step.pending.is_none(), "prefetching stops once jobs interleave");
         for (_, _, models) in &jobs {
             assert_eq!(models, &alone);
+        }
+    }
+
+    #[test]
+    fn one_job_keeps_only_the_running_network_and_its_successor() {
+        let series = test_models().join("landweber");
+        for prefetch in [true, false] {
+            let config = OnnxConfig { series: series.clone(), backend: BackendChoice::Tract, threads: 1, networks: None, prefetch };
+            let mut step = OnnxStep::new(&config, N, 1).unwrap();
+            for job in 0..2 {
+                for i in 1..=4 {
+                    step.network(i, 0).unwrap();
+                    let resident: Vec<Key> = step.resident.iter().map(|(k, _)| *k).collect();
+                    let pending = step.pending.as_ref().map(|(k, _)| *k);
+                    assert_eq!(resident, [(i, 0)], "job {job}, network {i}, prefetch {prefetch}");
+                    assert_eq!(pending, if prefetch && i < 4 { Some((i + 1, 0)) } else { None }, "job {job}, network {i}");
+                }
+            }
+            assert!(!step.interleaved, "jobs one after the other are not interleaved");
         }
     }
 
@@ -446,6 +481,38 @@ pub(crate) mod tests {
         let err = rel(&a, &b);
         assert!(err < 1e-4, "ort vs tract: relative error {err:.2e}");
         assert!(a.iter().map(|v| v.abs()).sum::<f64>() > 1.0, "the U-Net output is not trivially zero");
+    }
+
+    #[test]
+    fn packed_networks_give_the_same_output_and_a_missing_side_file_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("unet.onnx");
+        std::fs::copy(test_models().join("unet.onnx"), &path).unwrap();
+        let input: Vec<f32> = (0..2 * 64 * 64).map(|k| ((k * 7919 % 1000) as f32 / 1000.0).powi(2)).collect();
+        let ort = Runtime::select(BackendChoice::Ort, 1).expect("native ONNX Runtime (pip install onnxruntime)");
+        let run_both = |path: &Path| {
+            let signature = check_network(path, 64).unwrap();
+            let a = ort.load(path, 64, &signature).unwrap().run(&input).unwrap();
+            let b = Runtime::Tract.load(path, 64, &signature).unwrap().run(&input).unwrap();
+            (signature, a, b)
+        };
+        let (inline, ort_inline, tract_inline) = run_both(&path);
+        // The test U-Net's weights are all small: move every one.
+        let packed = crate::steps::pack::pack_file(&path, 1).unwrap();
+        assert!(packed.tensors > 0 && packed.data_file.is_some());
+        let (external, ort_packed, tract_packed) = run_both(&path);
+        assert_eq!((inline.external_bytes, external.external_bytes), (0, packed.bytes));
+        assert_eq!(ort_packed, ort_inline, "ONNX Runtime: packing changes nothing");
+        assert_eq!(tract_packed, tract_inline, "tract: packing changes nothing");
+        // A truncated or missing side file is refused before anything runs, naming it.
+        let data = dir.path().join("unet.onnx.data");
+        let len = std::fs::metadata(&data).unwrap().len();
+        std::fs::OpenOptions::new().write(true).open(&data).unwrap().set_len(len - 1).unwrap();
+        let e = check_network(&path, 64).unwrap_err().to_string();
+        assert!(e.contains("unet.onnx.data") && e.contains("truncated"), "{e}");
+        std::fs::remove_file(&data).unwrap();
+        let e = check_network(&path, 64).unwrap_err().to_string();
+        assert!(e.contains("unet.onnx.data") && e.contains("missing"), "{e}");
     }
 
     #[test]
