@@ -8,7 +8,7 @@
 2. Simulates one VLA A+C observation with about --visibilities samples (r2d2 simulate).
 3. Images it with `r2d2 image --step SERIES --backend ort` under /usr/bin/time, with the
    weights inline (the file as written) and packed into a side file (`r2d2 pack`), each with
-   prefetching on and off, and reports the seconds per network step and per residual update
+   prefetching on and off (and once with ONNX Runtime's `all` graph optimisations), and reports the seconds per network step and per residual update
    (from the -metrics.json the run writes), the share of the total that is not network
    inference, and the peak resident memory against the budget (visibilities + two networks +
    300 MB).
@@ -37,11 +37,13 @@ def run(cmd, **kw):
     return out, time.time() - t
 
 
-def timed_image(r2d2, obs, size, series, backend, networks, name, work, prefetch=True):
+def timed_image(r2d2, obs, size, series, backend, networks, name, work, prefetch=True, optimization="extended"):
     cmd = ["/usr/bin/time", "-v", r2d2, "-v", "image", obs, "--size", str(size), "--step", series,
            "--backend", backend, "--iterations", str(networks), "--name", name]
     if not prefetch:
         cmd.append("--no-prefetch")
+    if backend == "ort":
+        cmd += ["--graph-optimization", optimization]
     out, wall = run(cmd, cwd=work)
     peak_kb = int(re.search(r"Maximum resident set size \(kbytes\): (\d+)", out.stderr).group(1))
     with open(os.path.join(work, name + "-metrics.json")) as f:
@@ -89,31 +91,40 @@ def main():
     shutil.copytree(series, packed)
     run([r2d2, "pack", packed])
 
-    results = {}
-    for label, path in (("weights inline (one .onnx file)", series), ("weights packed (r2d2 pack)", packed)):
-        for prefetch in (True, False):
-            name = f"ort-{'packed' if path == packed else 'inline'}-{'prefetch' if prefetch else 'noprefetch'}"
-            wall, peak_mb, m = timed_image(r2d2, obs, args.size, path, "ort", args.networks, name, work, prefetch)
-            it = m["iterations"]
-            step = [x["step_seconds"] for x in it]
-            upd = [x["residual_seconds"] for x in it]
-            loads = m["load_seconds"]
-            inference = sum(step) - sum(loads)
-            results[name] = inference / len(step)
-            print(f"\nnative ONNX Runtime, {label}, prefetch {'on' if prefetch else 'off'}: {wall:.1f} s wall, "
-                  f"peak RSS {peak_mb:.0f} MB ({'within' if peak_mb <= budget else 'OVER'} the {budget:.0f} MB budget)")
-            print(f"  network step: {sum(step) / len(step):.2f} s per network (min {min(step):.2f}, max {max(step):.2f}), "
-                  f"of which loading {sum(loads) / max(1, len(loads)):.3f} s ({len(loads)} loads in the step, "
-                  f"{m['background_loads']} in the background)")
-            print(f"  inference alone: {inference / len(step):.2f} s per network; residual update: {sum(upd) / len(upd):.3f} s per iteration")
-            print(f"  stage seconds: {json.dumps({k: round(v, 2) for k, v in m['stage_seconds'].items()})}")
-            print(f"  not network inference: {100 * (wall - inference) / wall:.1f} % of the wall time (target <= 10 %)")
+    results, rows = {}, []
+    runs = [("weights inline (one .onnx file)", series, prefetch, "extended") for prefetch in (True, False)]
+    runs += [("weights packed (r2d2 pack)", packed, prefetch, "extended") for prefetch in (True, False)]
+    runs += [("weights packed, graph optimisation all", packed, True, "all")]
+    for label, path, prefetch, optimization in runs:
+        name = f"ort-{'packed' if path == packed else 'inline'}-{'prefetch' if prefetch else 'noprefetch'}-{optimization}"
+        wall, peak_mb, m = timed_image(r2d2, obs, args.size, path, "ort", args.networks, name, work, prefetch, optimization)
+        it = m["iterations"]
+        step = [x["step_seconds"] for x in it]
+        upd = [x["residual_seconds"] for x in it]
+        loads = m["load_seconds"]
+        inference = sum(step) - sum(loads)
+        results[name] = inference / len(step)
+        rows.append((label, "on" if prefetch else "off", wall, inference / len(step), sum(loads) / max(1, len(loads)),
+                     100 * (wall - inference) / wall, peak_mb))
+        print(f"\nnative ONNX Runtime, {label}, prefetch {'on' if prefetch else 'off'}: {wall:.1f} s wall, "
+              f"peak RSS {peak_mb:.0f} MB ({'within' if peak_mb <= budget else 'OVER'} the {budget:.0f} MB budget)")
+        print(f"  network step: {sum(step) / len(step):.2f} s per network (min {min(step):.2f}, max {max(step):.2f}), "
+              f"of which loading {sum(loads) / max(1, len(loads)):.3f} s ({len(loads)} loads in the step, "
+              f"{m['background_loads']} in the background)")
+        print(f"  inference alone: {inference / len(step):.2f} s per network; residual update: {sum(upd) / len(upd):.3f} s per iteration")
+        print(f"  stage seconds: {json.dumps({k: round(v, 2) for k, v in m['stage_seconds'].items()})}")
+        print(f"  not network inference: {100 * (wall - inference) / wall:.1f} % of the wall time (target <= 10 %)")
+
+    print(f"\n| ONNX Runtime, {args.networks} networks | prefetch | wall | inference per network | load in step | not inference | peak RSS (budget {budget:.0f} MB) |")
+    print("|---|---|---|---|---|---|---|")
+    for label, prefetch, wall, per, load, share, peak in rows:
+        print(f"| {label} | {prefetch} | {wall:.1f} s | {per:.2f} s | {load:.3f} s | {share:.1f} % | {peak:.0f} MB |")
 
     if args.tract_networks > 0:
         wall_t, peak_t, mt = timed_image(r2d2, obs, args.size, packed, "tract", args.tract_networks, "tract", work)
         step_t = [x["step_seconds"] for x in mt["iterations"]]
         per_t = (sum(step_t) - sum(mt["load_seconds"])) / len(step_t)
-        per_n = results["ort-packed-prefetch"]
+        per_n = results["ort-packed-prefetch-extended"]
         print(f"\ntract: {per_t:.2f} s inference per network ({args.tract_networks} run), peak RSS {peak_t:.0f} MB")
         print(f"  tract / native ONNX Runtime inference time: {per_t / per_n:.1f}")
 

@@ -33,6 +33,10 @@ pub struct Args {
     /// (one network resident instead of two; loading then adds to the wall time).
     #[arg(long)]
     no_prefetch: bool,
+    /// ONNX Runtime graph optimisation: extended (least memory) or all (faster inference:
+    /// weights copied into a blocked layout, larger activations).
+    #[arg(long, default_value = "extended", value_parser = ["extended", "all"])]
+    graph_optimization: String,
     /// Ground truth (FITS) for SNR/logSNR per iteration.
     #[arg(long)]
     truth: Option<PathBuf>,
@@ -64,6 +68,7 @@ fn step_stage(args: &Args) -> Result<serde_yaml::Value> {
         if args.no_prefetch {
             stage["prefetch"] = false.into();
         }
+        stage["graph_optimization"] = serde_yaml::Value::String(args.graph_optimization.clone());
         return Ok(stage);
     }
     let mut stage = yaml("{kind: native, to: update}");

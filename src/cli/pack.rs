@@ -12,6 +12,9 @@ pub struct Args {
     /// Series directories, series names (looked up like `--step`), or single .onnx files.
     #[arg(required = true)]
     targets: Vec<PathBuf>,
+    /// Move weights of at least this many bytes; smaller ones (biases, norm scales) stay inline.
+    #[arg(long, default_value_t = MIN_EXTERNAL_BYTES)]
+    min_bytes: usize,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -23,7 +26,7 @@ pub fn run(args: Args) -> Result<()> {
         };
         for file in files {
             let started = std::time::Instant::now();
-            let packed = pack_file(&file, MIN_EXTERNAL_BYTES)?;
+            let packed = pack_file(&file, args.min_bytes)?;
             // Read back what was written: the side file holds every weight the model names.
             let (external, model) = weight_layout(&file)?;
             let mb = |b: u64| b as f64 / (1 << 20) as f64;
