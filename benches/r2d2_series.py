@@ -6,13 +6,12 @@
 1. Writes the reference U-Net (64 channels, 4 poolings, 31 M parameters, random weights) as a
    series of --networks (benches/make_reference_unet.py).
 2. Simulates one VLA A+C observation with about --visibilities samples (r2d2 simulate).
-3. Images it with `r2d2 image --step SERIES --backend ort` under /usr/bin/time, with the
-   weights inline (the file as written) and packed into a side file (`r2d2 pack`), each with
+3. Images it with `r2d2 image --step SERIES --backend ort` under /usr/bin/time, with
    prefetching on and off (and once with ONNX Runtime's `all` graph optimisations), and reports the seconds per network step and per residual update
    (from the -metrics.json the run writes), the share of the total that is not network
    inference, and the peak resident memory against the budget (visibilities + two networks +
    300 MB).
-4. Runs the first --tract-networks networks of the packed series with the tract backend:
+4. Runs the first --tract-networks networks with the tract backend:
    native/tract ratio.
 """
 
@@ -20,7 +19,6 @@ import argparse
 import json
 import os
 import re
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -85,18 +83,11 @@ def main():
     budget = vis_mb + 2 * model_mb + 300
     print(f"memory budget: visibilities {vis_mb:.0f} MB + 2 networks {2 * model_mb:.0f} MB + 300 MB = {budget:.0f} MB")
 
-    # The same series with its weights in a side file (r2d2 pack): ONNX Runtime maps them.
-    packed = os.path.join(work, "series-packed")
-    shutil.rmtree(packed, ignore_errors=True)
-    shutil.copytree(series, packed)
-    run([r2d2, "pack", packed])
-
     results, rows = {}, []
-    runs = [("weights inline (one .onnx file)", series, prefetch, "extended") for prefetch in (True, False)]
-    runs += [("weights packed (r2d2 pack)", packed, prefetch, "extended") for prefetch in (True, False)]
-    runs += [("weights packed, graph optimisation all", packed, True, "all")]
+    runs = [("graph optimisation extended (default)", series, prefetch, "extended") for prefetch in (True, False)]
+    runs += [("graph optimisation all", series, True, "all")]
     for label, path, prefetch, optimization in runs:
-        name = f"ort-{'packed' if path == packed else 'inline'}-{'prefetch' if prefetch else 'noprefetch'}-{optimization}"
+        name = f"ort-{'prefetch' if prefetch else 'noprefetch'}-{optimization}"
         wall, peak_mb, m = timed_image(r2d2, obs, args.size, path, "ort", args.networks, name, work, prefetch, optimization)
         it = m["iterations"]
         step = [x["step_seconds"] for x in it]
@@ -121,10 +112,10 @@ def main():
         print(f"| {label} | {prefetch} | {wall:.1f} s | {per:.2f} s | {load:.3f} s | {share:.1f} % | {peak:.0f} MB |")
 
     if args.tract_networks > 0:
-        wall_t, peak_t, mt = timed_image(r2d2, obs, args.size, packed, "tract", args.tract_networks, "tract", work)
+        wall_t, peak_t, mt = timed_image(r2d2, obs, args.size, series, "tract", args.tract_networks, "tract", work)
         step_t = [x["step_seconds"] for x in mt["iterations"]]
         per_t = (sum(step_t) - sum(mt["load_seconds"])) / len(step_t)
-        per_n = results["ort-packed-prefetch-extended"]
+        per_n = results["ort-prefetch-extended"]
         print(f"\ntract: {per_t:.2f} s inference per network ({args.tract_networks} run), peak RSS {peak_t:.0f} MB")
         print(f"  tract / native ONNX Runtime inference time: {per_t / per_n:.1f}")
 

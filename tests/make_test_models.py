@@ -16,7 +16,9 @@ OUT_DIR/
                     returns 0.5 x channel 0 (the residual), no bias.
   unet.onnx         a small random U-Net (3x3 convs, instance norm, LeakyReLU, average pooling,
                     transposed convolution, skip concatenation, 1x1 output conv): the backend
-                    comparison.
+                    comparison (16 and 32 channels).
+  unet-external.onnx  the same U-Net with its weights in unet-external.onnx.data (ONNX
+                    external data).
   bad-*.onnx        networks with a wrong input/output signature, and a corrupt file.
   fixed64.onnx      a network whose input is fixed to 64 x 64.
 """
@@ -31,11 +33,15 @@ from onnx import TensorProto, helper, numpy_helper
 OPSET = 17
 
 
-def save(graph, path):
+def save(graph, path, external=None):
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", OPSET)], producer_name="r2d2-tests")
     model.ir_version = 8
     onnx.checker.check_model(model)
-    onnx.save(model, path)
+    if external:
+        # Every weight in the side file `external` (ONNX external data).
+        onnx.save(model, path, save_as_external_data=True, all_tensors_to_one_file=True, location=external, size_threshold=0)
+    else:
+        onnx.save(model, path)
 
 
 def io(name, channels, size=("H", "W"), rank4=True):
@@ -54,7 +60,7 @@ def conv1x1(path, weights, bias, in_channels=2, out_channels=1, size=("H", "W"),
     save(graph, path)
 
 
-def unet(path, seed=1):
+def unet(path, seed=1, external=None):
     rng = np.random.default_rng(seed)
     inits, nodes = [], []
 
@@ -71,16 +77,18 @@ def unet(path, seed=1):
         nodes.append(helper.make_node("LeakyRelu", [name + "_n"], [name], alpha=0.2))
         return name
 
-    e1 = block("x", "e1", 2, 4)
+    # 16 and 32 channels: some weights are over 4 KiB (mapped from the file by ONNX Runtime),
+    # some under (kept in the model's skeleton), so both paths run.
+    e1 = block("x", "e1", 2, 16)
     nodes.append(helper.make_node("AveragePool", [e1], ["p1"], kernel_shape=[2, 2], strides=[2, 2]))
-    e2 = block("p1", "e2", 4, 8)
-    nodes.append(helper.make_node("ConvTranspose", [e2, weight("up_w", (8, 4, 2, 2))], ["up"], strides=[2, 2]))
+    e2 = block("p1", "e2", 16, 32)
+    nodes.append(helper.make_node("ConvTranspose", [e2, weight("up_w", (32, 16, 2, 2))], ["up"], strides=[2, 2]))
     nodes.append(helper.make_node("Concat", ["up", e1], ["cat"], axis=1))
-    d1 = block("cat", "d1", 8, 4)
+    d1 = block("cat", "d1", 32, 16)
     inits.append(numpy_helper.from_array(np.array([0.05], np.float32), "out_b"))
-    nodes.append(helper.make_node("Conv", [d1, weight("out_w", (1, 4, 1, 1)), "out_b"], ["y"]))
+    nodes.append(helper.make_node("Conv", [d1, weight("out_w", (1, 16, 1, 1)), "out_b"], ["y"]))
     graph = helper.make_graph(nodes, "unet", [io("x", 2)], [io("y", 1)], inits)
-    save(graph, path)
+    save(graph, path, external)
 
 
 def manifest(path, name, networks, architecture="r2d2", sizes=(64,), any_size=True, layers=1):
@@ -121,6 +129,7 @@ def main(out, gain):
         for layer in range(1, 4):
             conv1x1(os.path.join(sub, f"R3D3_R2D2Net_3Layers_N{i}_L{layer}.onnx"), [0.5, 0.0], 0.0)
     unet(os.path.join(out, "unet.onnx"))
+    unet(os.path.join(out, "unet-external.onnx"), external="unet-external.onnx.data")
     conv1x1(os.path.join(out, "bad-output-channels.onnx"), [0.5, 0.0, 0.0, 0.5], 0.0, out_channels=2)
     conv1x1(os.path.join(out, "bad-input-channels.onnx"), [0.5, 0.0, 0.0], 0.0, in_channels=3)
     conv1x1(os.path.join(out, "bad-rank.onnx"), [0.5, 0.0], 0.0, rank4_in=False)

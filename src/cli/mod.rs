@@ -6,7 +6,6 @@ mod image;
 mod info;
 mod metrics;
 mod models;
-mod pack;
 mod run;
 mod simulate;
 mod trainset;
@@ -48,9 +47,6 @@ enum Command {
     Metrics(metrics::Args),
     /// The model series under models/ (or a given directory) and their manifests' key facts
     Models(models::Args),
-    /// Move a series' network weights into side files ONNX Runtime maps instead of copying
-    /// (faster loads, less memory; standard ONNX external data)
-    Pack(pack::Args),
     /// What this build will use: ONNX inference backend, gridder SIMD level, threads
     Info(info::Args),
 }
@@ -89,7 +85,6 @@ pub fn main() -> ExitCode {
         Command::Image(args) => image::run(args),
         Command::Bench(cmd) => bench::run(cmd),
         Command::Models(args) => models::run(args),
-        Command::Pack(args) => pack::run(args),
         Command::Info(args) => info::run(args),
     };
     match result {

@@ -5,8 +5,8 @@
 
 pub mod clean;
 pub mod native;
+pub mod mapped_weights;
 pub mod onnx;
-pub mod pack;
 pub mod runtime;
 pub mod series;
 

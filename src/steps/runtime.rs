@@ -118,7 +118,7 @@ impl Runtime {
     /// Load a network for `size x size` images (`signature`: from [`check_network`]).
     pub fn load(&self, path: &Path, size: usize, signature: &Signature) -> Result<Box<dyn Network>> {
         match self {
-            Runtime::Ort { threads, optimization, .. } => Ok(Box::new(OrtNetwork::load(path, size, *threads, *optimization, signature)?)),
+            Runtime::Ort { threads, optimization, .. } => Ok(Box::new(OrtNetwork::load(path, size, *threads, *optimization, signature, true)?)),
             Runtime::Tract => Ok(Box::new(TractNetwork::load(path, size)?)),
         }
     }
@@ -202,9 +202,25 @@ pub struct Signature {
     /// Names of the input's symbolic dimensions (`Some("H")`), parallel to `input`: ONNX
     /// Runtime is told their values, so it plans memory for the one shape it will see.
     pub input_params: Vec<Option<String>>,
-    /// Bytes of weights held in side files (memory-mapped by ONNX Runtime) and inline.
+    /// Bytes of weights already held in external-data side files.
     pub external_bytes: u64,
-    pub file_bytes: u64,
+    /// For ONNX Runtime: the model's skeleton with its large inline weights referring to their
+    /// own bytes in the file, which it then maps instead of copying (`mapped_weights`), and
+    /// the file's length and modification time it was made from. `None`: nothing to map.
+    pub mapped: Option<MappedWeights>,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct MappedWeights {
+    pub skeleton: std::sync::Arc<Vec<u8>>,
+    pub weights: usize,
+    pub bytes: u64,
+    stamp: (u64, Option<std::time::SystemTime>),
+}
+
+fn file_stamp(path: &Path) -> std::io::Result<(u64, Option<std::time::SystemTime>)> {
+    let m = std::fs::metadata(path)?;
+    Ok((m.len(), m.modified().ok()))
 }
 
 /// The parts of an ONNX `ModelProto` the check needs. Decoding only these skips the weights'
@@ -233,7 +249,7 @@ struct TensorName {
     name: String,
     #[prost(message, repeated, tag = "13")]
     external_data: Vec<StringEntry>,
-    /// 1 = EXTERNAL: the weights are in the file `external_data` names (see [`super::pack`]).
+    /// 1 = EXTERNAL: the weights are in the file `external_data` names.
     #[prost(int32, tag = "14")]
     data_location: i32,
 }
@@ -279,18 +295,17 @@ fn check_external_data(path: &Path, initializers: &[TensorName]) -> Result<u64> 
     Ok(total)
 }
 
-fn read_graph_head(path: &Path) -> Result<(GraphHead, u64)> {
+/// The graph's head, and the skeleton ONNX Runtime loads to map the inline weights.
+fn read_graph_head(path: &Path) -> Result<(GraphHead, Option<MappedWeights>)> {
+    let stamp = file_stamp(path).map_err(|e| Error::input(path, format!("cannot read the network: {e}")))?;
     let bytes = std::fs::read(path).map_err(|e| Error::input(path, format!("cannot read the network: {e}")))?;
     let head = <ModelHead as prost::Message>::decode(bytes.as_slice()).map_err(|e| Error::input(path, format!("not a readable ONNX model: {e}")))?;
     let graph = head.graph.ok_or_else(|| Error::input(path, "ONNX model without a graph"))?;
-    Ok((graph, bytes.len() as u64))
-}
-
-/// Where a network's weights are: `(bytes in side files, size of the model file)`, the side
-/// files checked to hold what the model says they do.
-pub fn weight_layout(path: &Path) -> Result<(u64, u64)> {
-    let (graph, file_bytes) = read_graph_head(path)?;
-    Ok((check_external_data(path, &graph.initializer)?, file_bytes))
+    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let mapped = super::mapped_weights::reference_inline_weights(&bytes, &name, super::mapped_weights::MIN_MAPPED_BYTES)
+        .map_err(|e| Error::input(path, format!("not a readable ONNX model: {e}")))?
+        .map(|(skeleton, weights, bytes)| MappedWeights { skeleton: std::sync::Arc::new(skeleton), weights, bytes, stamp });
+    Ok((graph, mapped))
 }
 
 /// Read and check an R2D2 network file: one float32 input `[1, 2, H, W]`, one float32 output
@@ -298,7 +313,7 @@ pub fn weight_layout(path: &Path) -> Result<(u64, u64)> {
 pub fn check_network(path: &Path, size: usize) -> Result<Signature> {
     use tract_onnx::pb::type_proto::Value as TypeValue;
     use tract_onnx::pb::tensor_shape_proto::dimension::Value as Dim;
-    let (graph, file_bytes) = read_graph_head(path)?;
+    let (graph, mapped) = read_graph_head(path)?;
     // Older exporters list the weights among the inputs too.
     let weights: std::collections::HashSet<&str> = graph.initializer.iter().map(|t| t.name.as_str()).collect();
     let inputs: Vec<_> = graph.input.iter().filter(|i| !weights.contains(i.name.as_str())).collect();
@@ -350,7 +365,7 @@ pub fn check_network(path: &Path, size: usize) -> Result<Signature> {
     check(&input, 2, "input")?;
     check(&output, 1, "output")?;
     let external_bytes = check_external_data(path, &graph.initializer)?;
-    Ok(Signature { input, output, input_params, external_bytes, file_bytes })
+    Ok(Signature { input, output, input_params, external_bytes, mapped })
 }
 
 struct OrtNetwork {
@@ -360,7 +375,9 @@ struct OrtNetwork {
 }
 
 impl OrtNetwork {
-    fn load(path: &Path, size: usize, threads: usize, optimization: GraphOptimization, signature: &Signature) -> Result<OrtNetwork> {
+    /// `map_weights`: load the skeleton so the weights are mapped from the file (the default;
+    /// false only to compare with ONNX Runtime's own loading).
+    fn load(path: &Path, size: usize, threads: usize, optimization: GraphOptimization, signature: &Signature, map_weights: bool) -> Result<OrtNetwork> {
         let (_, env) = ort_environment().map_err(|e| Error::parameter("backend", e))?;
         let fail = |e: &dyn std::fmt::Display| Error::input(path, format!("ONNX Runtime could not load the network: {e}"));
         // No CPU arena: an arena keeps the peak activation memory of every resident session
@@ -395,7 +412,22 @@ impl OrtNetwork {
         if threads > 0 {
             builder = builder.with_intra_threads(threads).map_err(|e| fail(&e))?;
         }
-        let session = builder.commit_from_file(path).map_err(|e| fail(&e))?;
+        let session = match signature.mapped.as_ref().filter(|_| map_weights) {
+            Some(mapped) => {
+                // The skeleton's references are offsets into the file as it was checked.
+                if file_stamp(path).ok() != Some(mapped.stamp) {
+                    return Err(Error::input(path, "the network file changed after it was checked; restart the run"));
+                }
+                // External data is looked up in the model's directory (a model from memory has
+                // no directory of its own).
+                let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+                builder = builder
+                    .with_config_entry("session.model_external_initializers_file_folder_path", dir.to_string_lossy())
+                    .map_err(|e| fail(&e))?;
+                builder.commit_from_memory(&mapped.skeleton).map_err(|e| fail(&e))?
+            }
+            None => builder.commit_from_file(path).map_err(|e| fail(&e))?,
+        };
         Ok(OrtNetwork { session, path: path.to_path_buf(), size })
     }
 }
@@ -447,5 +479,40 @@ impl Network for TractNetwork {
             return Err(Error::input(&self.path, format!("expected an output of shape [1, 1, {n}, {n}], got {:?}", view.shape())));
         }
         Ok(view.iter().copied().collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn onnx_runtime_maps_inline_weights_from_the_file_and_infers_the_same() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("mapped-unet.onnx");
+        std::fs::copy(super::super::onnx::tests::test_models().join("unet.onnx"), &path).unwrap();
+        let signature = check_network(&path, 64).unwrap();
+        let mapped = signature.mapped.as_ref().expect("the test U-Net has weights over 4 KiB");
+        assert!(mapped.weights >= 3 && mapped.bytes > 20_000, "{mapped:?}");
+        assert!((mapped.skeleton.len() as u64) < std::fs::metadata(&path).unwrap().len() - mapped.bytes + 1024);
+        let input: Vec<f32> = (0..2 * 64 * 64).map(|k| ((k * 7919 % 1000) as f32 / 1000.0).powi(2)).collect();
+        Runtime::select(BackendChoice::Ort, 1).expect("native ONNX Runtime (pip install onnxruntime)");
+        let opt = GraphOptimization::default();
+        let mut copied = OrtNetwork::load(&path, 64, 1, opt, &signature, false).unwrap();
+        let mut from_file = OrtNetwork::load(&path, 64, 1, opt, &signature, true).unwrap();
+        assert_eq!(from_file.run(&input).unwrap(), copied.run(&input).unwrap(), "mapping changes no output value");
+        // ONNX Runtime mapped the model file itself (its own loading reads it and closes it).
+        #[cfg(target_os = "linux")]
+        {
+            let maps = std::fs::read_to_string("/proc/self/maps").unwrap();
+            assert!(maps.contains("mapped-unet.onnx"), "the model file is not mapped:\n{maps}");
+        }
+        drop(from_file);
+        // A file changed after the check is refused, not read at stale offsets.
+        let mut bytes = std::fs::read(&path).unwrap();
+        bytes.push(0);
+        std::fs::write(&path, bytes).unwrap();
+        let e = OrtNetwork::load(&path, 64, 1, opt, &signature, true).err().expect("stale skeleton refused").to_string();
+        assert!(e.contains("mapped-unet.onnx") && e.contains("changed"), "{e}");
     }
 }
