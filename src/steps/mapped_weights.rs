@@ -4,7 +4,7 @@
 //! into its own buffers: for the reference U-Net (31 M parameters, 118 MB) a 0.17-0.3 s load
 //! with a transient peak of 1.3-1.5 x the model, and 130 MB resident per session. Weights
 //! stored as ONNX *external data* it maps instead (0.04 s, about 20 MB until the first
-//! inference touches the pages). [`reference_inline_weights`] gets that for an ordinary
+//! inference touches the pages). [`skeleton`] gets that for an ordinary
 //! single-file model without touching it: it rewrites the model's small skeleton so that each
 //! large inline weight becomes external data whose location is the model file itself, at the
 //! offset where its bytes already are. The engine hands ONNX Runtime the skeleton (45 KB for
@@ -14,7 +14,8 @@
 //! initializers: every other field, known to this build's ONNX schema or not, is copied byte
 //! for byte.
 
-use prost::encoding::{decode_varint, encode_varint};
+use prost::encoding::encode_varint;
+use std::io::{Read, Seek};
 
 /// Smallest weight worth a mapping: smaller ones (biases, norm scales) stay in the skeleton.
 pub const MIN_MAPPED_BYTES: usize = 4096;
@@ -34,47 +35,80 @@ const WIRE_FIXED64: u64 = 1;
 const WIRE_LEN: u64 = 2;
 const WIRE_FIXED32: u64 = 5;
 
-/// One protobuf field: its number, wire type and the bytes it spans (key included), plus the
-/// payload for length-delimited fields.
-struct Field<'a> {
-    number: u64,
-    wire: u64,
-    whole: &'a [u8],
-    payload: &'a [u8],
-    varint: u64,
+/// A protobuf reader over a file that skips the payloads it does not copy, so that building a
+/// skeleton reads only the model's small parts, not its weights.
+struct Wire<R: Read + Seek> {
+    r: std::io::BufReader<R>,
+    pos: u64,
 }
 
-fn fields(message: &[u8]) -> std::result::Result<Vec<Field<'_>>, String> {
-    let mut out = Vec::new();
-    let mut rest = message;
-    while !rest.is_empty() {
-        let start = rest;
-        let key = decode_varint(&mut rest).map_err(|e| e.to_string())?;
-        let (number, wire) = (key >> 3, key & 7);
-        let (mut payload, mut varint): (&[u8], u64) = (&[], 0);
-        match wire {
-            WIRE_VARINT => varint = decode_varint(&mut rest).map_err(|e| e.to_string())?,
-            WIRE_FIXED64 | WIRE_FIXED32 => {
-                let n = if wire == WIRE_FIXED64 { 8 } else { 4 };
-                if rest.len() < n {
-                    return Err("truncated fixed-width field".into());
-                }
-                rest = &rest[n..];
-            }
-            WIRE_LEN => {
-                let len = decode_varint(&mut rest).map_err(|e| e.to_string())? as usize;
-                if rest.len() < len {
-                    return Err(format!("field {number} runs past the end of its message"));
-                }
-                payload = &rest[..len];
-                rest = &rest[len..];
-            }
-            other => return Err(format!("unsupported protobuf wire type {other} (field {number})")),
-        }
-        let whole = &start[..start.len() - rest.len()];
-        out.push(Field { number, wire, whole, payload, varint });
+impl<R: Read + Seek> Wire<R> {
+    fn byte(&mut self) -> Result<u8, String> {
+        let mut b = [0u8; 1];
+        self.r.read_exact(&mut b).map_err(|e| format!("reading at byte {}: {e}", self.pos))?;
+        self.pos += 1;
+        Ok(b[0])
     }
-    Ok(out)
+
+    fn varint(&mut self) -> Result<u64, String> {
+        let mut value = 0u64;
+        for shift in (0..64).step_by(7) {
+            let b = self.byte()?;
+            value |= u64::from(b & 0x7f) << shift;
+            if b < 0x80 {
+                return Ok(value);
+            }
+        }
+        Err(format!("malformed varint before byte {}", self.pos))
+    }
+
+    /// A field's key and, for a length-delimited one, its length, checked to end by `end`.
+    fn key(&mut self, end: u64) -> Result<(u64, u64, u64), String> {
+        let key = self.varint()?;
+        let (number, wire) = (key >> 3, key & 7);
+        let len = if wire == WIRE_LEN { self.varint()? } else { 0 };
+        if self.pos + len > end {
+            return Err(format!("field {number} runs past the end of its message"));
+        }
+        Ok((number, wire, len))
+    }
+
+    fn bytes(&mut self, n: u64) -> Result<Vec<u8>, String> {
+        let mut b = vec![0u8; n as usize];
+        self.r.read_exact(&mut b).map_err(|e| format!("reading at byte {}: {e}", self.pos))?;
+        self.pos += n;
+        Ok(b)
+    }
+
+    fn skip(&mut self, n: u64) -> Result<(), String> {
+        self.r.seek_relative(n as i64).map_err(|e| format!("seeking past byte {}: {e}", self.pos))?;
+        self.pos += n;
+        Ok(())
+    }
+
+    /// Copy a field whose key has been read (`len`: its length if length-delimited), re-encoded.
+    /// Returns its value for a varint.
+    fn copy(&mut self, number: u64, wire: u64, len: u64, out: &mut Vec<u8>) -> Result<u64, String> {
+        match wire {
+            WIRE_LEN => {
+                let payload = self.bytes(len)?;
+                put_len(out, number, &payload);
+                Ok(0)
+            }
+            WIRE_VARINT => {
+                let v = self.varint()?;
+                encode_varint(number << 3 | WIRE_VARINT, out);
+                encode_varint(v, out);
+                Ok(v)
+            }
+            WIRE_FIXED64 | WIRE_FIXED32 => {
+                encode_varint(number << 3 | wire, out);
+                out.extend(self.bytes(if wire == WIRE_FIXED64 { 8 } else { 4 })?);
+                Ok(0)
+            }
+            other => Err(format!("unsupported protobuf wire type {other} (field {number})")),
+        }
+    }
 }
 
 fn put_len(out: &mut Vec<u8>, number: u64, payload: &[u8]) {
@@ -90,58 +124,118 @@ fn entry(key: &str, value: &str) -> Vec<u8> {
     e
 }
 
-/// The skeleton of `model` (the bytes of a file named `file_name`) in which every inline
-/// initializer of at least `min_bytes` refers to its own bytes inside that file; `None` when
-/// no weight qualifies (nothing to gain). Returns the skeleton, the weights referenced and
-/// their bytes.
-pub fn reference_inline_weights(model: &[u8], file_name: &str, min_bytes: usize) -> Result<Option<(Vec<u8>, usize, u64)>, String> {
-    let base = model.as_ptr() as usize;
-    // Where a payload starts in the file: its slice lies inside `model`.
-    let offset_of = |payload: &[u8]| payload.as_ptr() as usize - base;
-    let (mut count, mut bytes) = (0usize, 0u64);
-    let mut out = Vec::with_capacity(64 << 10);
+/// A model's skeleton: the model with its large inline weights as references into its file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Skeleton {
+    pub bytes: Vec<u8>,
+    /// Weights referenced, and their bytes.
+    pub weights: usize,
+    pub weight_bytes: u64,
+}
+
+/// The skeleton of the ONNX model in `file` (`len` bytes, named `file_name` in its directory):
+/// every inline initializer of the top-level graph of at least `min_bytes` becomes external
+/// data at its own offset in that file. Reads only what it copies.
+pub fn skeleton(file: impl Read + Seek, len: u64, file_name: &str, min_bytes: usize) -> Result<Skeleton, String> {
+    let mut w = Wire { r: std::io::BufReader::new(file), pos: 0 };
+    let mut out = Skeleton { bytes: Vec::with_capacity(64 << 10), weights: 0, weight_bytes: 0 };
     let mut graphs = 0;
-    for f in fields(model)? {
-        if f.number != MODEL_GRAPH || f.wire != WIRE_LEN {
-            out.extend_from_slice(f.whole);
-            continue;
-        }
-        graphs += 1;
-        let mut graph = Vec::with_capacity(64 << 10);
-        for g in fields(f.payload)? {
-            let tensor = if g.number == GRAPH_INITIALIZER && g.wire == WIRE_LEN { Some(fields(g.payload)?) } else { None };
-            let raw = tensor.as_ref().and_then(|t| {
-                let external = t.iter().any(|f| f.number == TENSOR_DATA_LOCATION && f.varint == LOCATION_EXTERNAL);
-                t.iter().find(|f| f.number == TENSOR_RAW_DATA && f.wire == WIRE_LEN && f.payload.len() >= min_bytes.max(1)).filter(|_| !external)
-            });
-            let (Some(t), Some(raw)) = (&tensor, raw) else {
-                graph.extend_from_slice(g.whole);
-                continue;
-            };
-            let mut skeleton = Vec::with_capacity(g.payload.len().min(4096) + 128);
-            for f in t.iter().filter(|f| f.number != TENSOR_RAW_DATA && f.number != TENSOR_EXTERNAL_DATA && f.number != TENSOR_DATA_LOCATION) {
-                skeleton.extend_from_slice(f.whole);
+    while w.pos < len {
+        let (number, wire, n) = w.key(len)?;
+        if number == MODEL_GRAPH && wire == WIRE_LEN {
+            graphs += 1;
+            let end = w.pos + n;
+            let mut graph = Vec::with_capacity(64 << 10);
+            while w.pos < end {
+                let (number, wire, n) = w.key(end)?;
+                if number == GRAPH_INITIALIZER && wire == WIRE_LEN {
+                    let tensor_end = w.pos + n;
+                    let tensor = tensor_skeleton(&mut w, tensor_end, file_name, min_bytes, &mut out)?;
+                    put_len(&mut graph, GRAPH_INITIALIZER, &tensor);
+                } else {
+                    w.copy(number, wire, n, &mut graph)?;
+                }
             }
-            put_len(&mut skeleton, TENSOR_EXTERNAL_DATA, &entry("location", file_name));
-            put_len(&mut skeleton, TENSOR_EXTERNAL_DATA, &entry("offset", &offset_of(raw.payload).to_string()));
-            put_len(&mut skeleton, TENSOR_EXTERNAL_DATA, &entry("length", &raw.payload.len().to_string()));
-            encode_varint(TENSOR_DATA_LOCATION << 3 | WIRE_VARINT, &mut skeleton);
-            encode_varint(LOCATION_EXTERNAL, &mut skeleton);
-            put_len(&mut graph, GRAPH_INITIALIZER, &skeleton);
-            count += 1;
-            bytes += raw.payload.len() as u64;
+            put_len(&mut out.bytes, MODEL_GRAPH, &graph);
+        } else {
+            w.copy(number, wire, n, &mut out.bytes)?;
         }
-        put_len(&mut out, MODEL_GRAPH, &graph);
     }
     if graphs != 1 {
         return Err(format!("expected one graph, found {graphs}"));
     }
-    Ok((count > 0).then_some((out, count, bytes)))
+    Ok(out)
+}
+
+/// One initializer (a `TensorProto` ending at `end`), its raw data referenced if large enough.
+fn tensor_skeleton<R: Read + Seek>(w: &mut Wire<R>, end: u64, file_name: &str, min_bytes: usize, stats: &mut Skeleton) -> Result<Vec<u8>, String> {
+    let mut fields: Vec<(u64, Vec<u8>)> = Vec::new();
+    let mut raw = None;
+    while w.pos < end {
+        let (number, wire, n) = w.key(end)?;
+        if number == TENSOR_RAW_DATA && wire == WIRE_LEN && n >= min_bytes.max(1) as u64 {
+            raw = Some((w.pos, n));
+            w.skip(n)?;
+        } else {
+            let mut f = Vec::new();
+            w.copy(number, wire, n, &mut f)?;
+            fields.push((number, f));
+        }
+    }
+    let mut out: Vec<u8> = Vec::new();
+    let Some((offset, length)) = raw else {
+        fields.iter().for_each(|(_, f)| out.extend_from_slice(f));
+        return Ok(out);
+    };
+    // Inline data is what counts: any stale external-data fields beside it are dropped.
+    for (_, f) in fields.iter().filter(|(n, _)| *n != TENSOR_EXTERNAL_DATA && *n != TENSOR_DATA_LOCATION) {
+        out.extend_from_slice(f);
+    }
+    put_len(&mut out, TENSOR_EXTERNAL_DATA, &entry("location", file_name));
+    put_len(&mut out, TENSOR_EXTERNAL_DATA, &entry("offset", &offset.to_string()));
+    put_len(&mut out, TENSOR_EXTERNAL_DATA, &entry("length", &length.to_string()));
+    encode_varint(TENSOR_DATA_LOCATION << 3 | WIRE_VARINT, &mut out);
+    encode_varint(LOCATION_EXTERNAL, &mut out);
+    stats.weights += 1;
+    stats.weight_bytes += length;
+    Ok(out)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use prost::encoding::decode_varint;
+
+    /// A field of a message held in memory (test-side parser, independent of `Wire`).
+    struct Field<'a> {
+        number: u64,
+        payload: &'a [u8],
+        varint: u64,
+    }
+
+    fn fields(message: &[u8]) -> Vec<Field<'_>> {
+        let mut out = Vec::new();
+        let mut rest = message;
+        while !rest.is_empty() {
+            let key = decode_varint(&mut rest).unwrap();
+            let (mut payload, mut varint): (&[u8], u64) = (&[], 0);
+            match key & 7 {
+                WIRE_VARINT => varint = decode_varint(&mut rest).unwrap(),
+                WIRE_LEN => {
+                    let len = decode_varint(&mut rest).unwrap() as usize;
+                    payload = &rest[..len];
+                    rest = &rest[len..];
+                }
+                other => panic!("wire type {other} in a test message"),
+            }
+            out.push(Field { number: key >> 3, payload, varint });
+        }
+        out
+    }
+
+    fn build(file: &[u8]) -> Result<Skeleton, String> {
+        skeleton(std::io::Cursor::new(file), file.len() as u64, "net.onnx", MIN_MAPPED_BYTES)
+    }
 
     const TENSOR_NAME: u64 = 8;
 
@@ -189,23 +283,23 @@ mod tests {
         let big2: Vec<u8> = (0..5_000u32).map(|i| (i % 13) as u8).collect();
         let small = vec![7u8; 16];
         let file = model(&[tensor("w0", &big), tensor("b0", &small), external("e0"), tensor("w1", &big2)]);
-        let (skeleton, count, bytes) = reference_inline_weights(&file, "net.onnx", MIN_MAPPED_BYTES).unwrap().unwrap();
-        assert_eq!((count, bytes), (2, 15_000));
-        assert!(skeleton.len() < 400, "the skeleton holds no large weight: {} bytes", skeleton.len());
-        let top = fields(&skeleton).unwrap();
+        let sk = build(&file).unwrap();
+        assert_eq!((sk.weights, sk.weight_bytes), (2, 15_000));
+        assert!(sk.bytes.len() < 400, "the skeleton holds no large weight: {} bytes", sk.bytes.len());
+        let top = fields(&sk.bytes);
         assert!(top.iter().any(|f| f.number == 999 && f.payload == b"an unknown field survives"));
         let graph = top.iter().find(|f| f.number == MODEL_GRAPH).unwrap().payload;
-        let gf = fields(graph).unwrap();
+        let gf = fields(graph);
         assert!(gf.iter().any(|f| f.number == 2 && f.payload == b"graph-name"));
         let inits: Vec<_> = gf.into_iter().filter(|f| f.number == GRAPH_INITIALIZER).collect();
         assert_eq!(inits.len(), 4);
         for (init, original) in inits.iter().zip([Some(&big), Some(&small), None, Some(&big2)]) {
-            let fs = fields(init.payload).unwrap();
+            let fs = fields(init.payload);
             let ext: Vec<(String, String)> = fs
                 .iter()
                 .filter(|f| f.number == TENSOR_EXTERNAL_DATA)
                 .map(|f| {
-                    let kv = fields(f.payload).unwrap();
+                    let kv = fields(f.payload);
                     (text(&kv[0]), text(&kv[1]))
                 })
                 .collect();
@@ -226,16 +320,20 @@ mod tests {
             let (offset, length): (usize, usize) = (get("offset").parse().unwrap(), get("length").parse().unwrap());
             assert_eq!(&file[offset..offset + length], &original[..], "the reference points at the weight's own bytes");
         }
-        // Nothing large enough: nothing to gain.
-        assert!(reference_inline_weights(&model(&[tensor("b0", &small)]), "net.onnx", MIN_MAPPED_BYTES).unwrap().is_none());
+        // Nothing large enough: the skeleton is the model, re-encoded field for field.
+        let small_model = model(&[tensor("b0", &small)]);
+        let sk = build(&small_model).unwrap();
+        assert_eq!((sk.weights, &sk.bytes), (0, &small_model));
     }
 
     #[test]
     fn corrupt_models_are_errors() {
         let mut bytes = model(&[tensor("w0", &vec![1u8; 8192])]);
         bytes.truncate(bytes.len() - 40); // cuts into the graph
-        let e = reference_inline_weights(&bytes, "bad.onnx", MIN_MAPPED_BYTES).unwrap_err();
+        let e = build(&bytes).unwrap_err();
         assert!(e.contains("past the end"), "{e}");
-        assert!(reference_inline_weights(b"", "empty.onnx", MIN_MAPPED_BYTES).unwrap_err().contains("one graph"));
+        assert!(build(b"").unwrap_err().contains("one graph"));
+        let e = build(b"\x08").unwrap_err();
+        assert!(e.contains("reading at byte 1"), "{e}");
     }
 }

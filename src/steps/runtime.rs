@@ -295,16 +295,23 @@ fn check_external_data(path: &Path, initializers: &[TensorName]) -> Result<u64> 
     Ok(total)
 }
 
-/// The graph's head, and the skeleton ONNX Runtime loads to map the inline weights.
+/// The graph's head, read from the model's skeleton (`mapped_weights`: only the small parts of
+/// the file are read), and the skeleton itself when it maps any weight.
 fn read_graph_head(path: &Path) -> Result<(GraphHead, Option<MappedWeights>)> {
-    let stamp = file_stamp(path).map_err(|e| Error::input(path, format!("cannot read the network: {e}")))?;
-    let bytes = std::fs::read(path).map_err(|e| Error::input(path, format!("cannot read the network: {e}")))?;
-    let head = <ModelHead as prost::Message>::decode(bytes.as_slice()).map_err(|e| Error::input(path, format!("not a readable ONNX model: {e}")))?;
-    let graph = head.graph.ok_or_else(|| Error::input(path, "ONNX model without a graph"))?;
+    let unreadable = |e: &dyn std::fmt::Display| Error::input(path, format!("cannot read the network: {e}"));
+    let stamp = file_stamp(path).map_err(|e| unreadable(&e))?;
+    let file = std::fs::File::open(path).map_err(|e| unreadable(&e))?;
     let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let mapped = super::mapped_weights::reference_inline_weights(&bytes, &name, super::mapped_weights::MIN_MAPPED_BYTES)
-        .map_err(|e| Error::input(path, format!("not a readable ONNX model: {e}")))?
-        .map(|(skeleton, weights, bytes)| MappedWeights { skeleton: std::sync::Arc::new(skeleton), weights, bytes, stamp });
+    let skeleton = super::mapped_weights::skeleton(file, stamp.0, &name, super::mapped_weights::MIN_MAPPED_BYTES)
+        .map_err(|e| Error::input(path, format!("not a readable ONNX model: {e}")))?;
+    let head = <ModelHead as prost::Message>::decode(skeleton.bytes.as_slice()).map_err(|e| Error::input(path, format!("not a readable ONNX model: {e}")))?;
+    let graph = head.graph.ok_or_else(|| Error::input(path, "ONNX model without a graph"))?;
+    let mapped = (skeleton.weights > 0).then(|| MappedWeights {
+        weights: skeleton.weights,
+        bytes: skeleton.weight_bytes,
+        skeleton: std::sync::Arc::new(skeleton.bytes),
+        stamp,
+    });
     Ok((graph, mapped))
 }
 
@@ -364,7 +371,8 @@ pub fn check_network(path: &Path, size: usize) -> Result<Signature> {
     };
     check(&input, 2, "input")?;
     check(&output, 1, "output")?;
-    let external_bytes = check_external_data(path, &graph.initializer)?;
+    // The skeleton's own references into the model file are checked with the rest.
+    let external_bytes = check_external_data(path, &graph.initializer)? - mapped.as_ref().map_or(0, |m| m.bytes);
     Ok(Signature { input, output, input_params, external_bytes, mapped })
 }
 
