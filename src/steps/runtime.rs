@@ -432,7 +432,15 @@ impl OrtNetwork {
                 builder = builder
                     .with_config_entry("session.model_external_initializers_file_folder_path", dir.to_string_lossy())
                     .map_err(|e| fail(&e))?;
-                builder.commit_from_memory(&mapped.skeleton).map_err(|e| fail(&e))?
+                match builder.commit_from_memory(&mapped.skeleton) {
+                    Ok(session) => session,
+                    // An ONNX Runtime without that option (older than this one) looks for the
+                    // weights elsewhere: let it read the file whole rather than fail.
+                    Err(e) => {
+                        log::info!("{}: ONNX Runtime could not map the weights from the file ({e}); reading it whole", path.display());
+                        builder.commit_from_file(path).map_err(|e| fail(&e))?
+                    }
+                }
             }
             None => builder.commit_from_file(path).map_err(|e| fail(&e))?,
         };
@@ -516,6 +524,15 @@ mod tests {
             assert!(maps.contains("mapped-unet.onnx"), "the model file is not mapped:\n{maps}");
         }
         drop(from_file);
+        // When ONNX Runtime cannot resolve the skeleton's references (as an older one without
+        // the folder option would not), the file is read whole instead: same output.
+        let file = std::fs::File::open(&path).unwrap();
+        let len = file.metadata().unwrap().len();
+        let elsewhere = super::super::mapped_weights::skeleton(file, len, "no-such-file.onnx", super::super::mapped_weights::MIN_MAPPED_BYTES).unwrap();
+        let mut unresolvable = signature.clone();
+        unresolvable.mapped.as_mut().unwrap().skeleton = std::sync::Arc::new(elsewhere.bytes);
+        let mut fallback = OrtNetwork::load(&path, 64, 1, opt, &unresolvable, true).unwrap();
+        assert_eq!(fallback.run(&input).unwrap(), copied.run(&input).unwrap(), "the fallback gives the same output");
         // A file changed after the check is refused, not read at stale offsets.
         let mut bytes = std::fs::read(&path).unwrap();
         bytes.push(0);
