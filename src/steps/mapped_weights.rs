@@ -11,8 +11,10 @@
 //! the U-Net) and the model's directory; the file on disk is never changed.
 //!
 //! The rewrite works on the protobuf wire format and touches only the top-level graph's
-//! initializers: every other field, known to this build's ONNX schema or not, is copied byte
-//! for byte.
+//! `raw_data` initializers of at least [`MIN_MAPPED_BYTES`]: every other field, known to this
+//! build's ONNX schema or not, is copied with its value unchanged (keys and lengths re-encoded
+//! in their minimal form). Weights held elsewhere (`float_data`, Constant nodes, subgraphs) are
+//! read and kept in the skeleton, so ONNX Runtime copies those as before.
 
 use prost::encoding::encode_varint;
 use std::io::{Read, Seek};
@@ -54,6 +56,10 @@ impl<R: Read + Seek> Wire<R> {
         let mut value = 0u64;
         for shift in (0..64).step_by(7) {
             let b = self.byte()?;
+            // The tenth byte holds bit 63 only.
+            if shift == 63 && b > 1 {
+                break;
+            }
             value |= u64::from(b & 0x7f) << shift;
             if b < 0x80 {
                 return Ok(value);
@@ -66,11 +72,22 @@ impl<R: Read + Seek> Wire<R> {
     fn key(&mut self, end: u64) -> Result<(u64, u64, u64), String> {
         let key = self.varint()?;
         let (number, wire) = (key >> 3, key & 7);
+        if number == 0 {
+            return Err(format!("field number 0 at byte {}", self.pos));
+        }
         let len = if wire == WIRE_LEN { self.varint()? } else { 0 };
-        if self.pos + len > end {
+        if len > end.saturating_sub(self.pos) {
             return Err(format!("field {number} runs past the end of its message"));
         }
         Ok((number, wire, len))
+    }
+
+    /// After a field: it must have ended within its message.
+    fn within(&self, number: u64, end: u64) -> Result<(), String> {
+        if self.pos > end {
+            return Err(format!("field {number} runs past the end of its message"));
+        }
+        Ok(())
     }
 
     fn bytes(&mut self, n: u64) -> Result<Vec<u8>, String> {
@@ -133,6 +150,15 @@ pub struct Skeleton {
     pub weight_bytes: u64,
 }
 
+/// Whether a weight at this file offset may be handed to ONNX Runtime where it lies. Payload
+/// offsets in a protobuf file are arbitrary (a third of the bytes of the shipped and benchmark
+/// U-Nets start 4-byte aligned), and ONNX Runtime maps external data at any offset. x86-64 and
+/// AArch64 load misaligned floats correctly (outputs identical to ONNX Runtime's own loading,
+/// tested); elsewhere (32-bit ARM faults on them) only 8-byte aligned weights are mapped.
+fn mappable(offset: u64) -> bool {
+    cfg!(any(target_arch = "x86_64", target_arch = "aarch64")) || offset % 8 == 0
+}
+
 /// The skeleton of the ONNX model in `file` (`len` bytes, named `file_name` in its directory):
 /// every inline initializer of the top-level graph of at least `min_bytes` becomes external
 /// data at its own offset in that file. Reads only what it copies.
@@ -154,11 +180,13 @@ pub fn skeleton(file: impl Read + Seek, len: u64, file_name: &str, min_bytes: us
                     put_len(&mut graph, GRAPH_INITIALIZER, &tensor);
                 } else {
                     w.copy(number, wire, n, &mut graph)?;
+                    w.within(number, end)?;
                 }
             }
             put_len(&mut out.bytes, MODEL_GRAPH, &graph);
         } else {
             w.copy(number, wire, n, &mut out.bytes)?;
+            w.within(number, len)?;
         }
     }
     if graphs != 1 {
@@ -167,27 +195,53 @@ pub fn skeleton(file: impl Read + Seek, len: u64, file_name: &str, min_bytes: us
     Ok(out)
 }
 
+/// Where a tensor's (last) `raw_data` is: kept among its copied fields, or left in the file.
+enum Raw {
+    Copied(usize),
+    InFile { offset: u64, length: u64 },
+}
+
 /// One initializer (a `TensorProto` ending at `end`), its raw data referenced if large enough.
+/// The meaning is kept as protobuf and ONNX Runtime read it: of repeated `raw_data` fields the
+/// last counts, and a tensor marked external reads its side file whatever `raw_data` it has.
 fn tensor_skeleton<R: Read + Seek>(w: &mut Wire<R>, end: u64, file_name: &str, min_bytes: usize, stats: &mut Skeleton) -> Result<Vec<u8>, String> {
     let mut fields: Vec<(u64, Vec<u8>)> = Vec::new();
-    let mut raw = None;
+    let (mut raw, mut external) = (None, false);
     while w.pos < end {
         let (number, wire, n) = w.key(end)?;
-        if number == TENSOR_RAW_DATA && wire == WIRE_LEN && n >= min_bytes.max(1) as u64 {
-            raw = Some((w.pos, n));
-            w.skip(n)?;
-        } else {
-            let mut f = Vec::new();
-            w.copy(number, wire, n, &mut f)?;
-            fields.push((number, f));
+        if number == TENSOR_RAW_DATA && wire == WIRE_LEN {
+            if let Some(Raw::Copied(i)) = raw {
+                fields[i].1.clear(); // superseded
+            }
+            if n >= min_bytes.max(1) as u64 && mappable(w.pos) {
+                raw = Some(Raw::InFile { offset: w.pos, length: n });
+                w.skip(n)?;
+                continue;
+            }
+            raw = Some(Raw::Copied(fields.len()));
         }
+        let mut f = Vec::new();
+        let value = w.copy(number, wire, n, &mut f)?;
+        w.within(number, end)?;
+        if number == TENSOR_DATA_LOCATION && wire == WIRE_VARINT {
+            external = value == LOCATION_EXTERNAL;
+        }
+        fields.push((number, f));
     }
     let mut out: Vec<u8> = Vec::new();
-    let Some((offset, length)) = raw else {
-        fields.iter().for_each(|(_, f)| out.extend_from_slice(f));
+    let in_file = match raw {
+        Some(Raw::InFile { offset, length }) if !external => Some((offset, length)),
+        _ => None,
+    };
+    let Some((offset, length)) = in_file else {
+        // Unchanged, except that a tensor marked external loses the raw data ONNX Runtime ignores.
+        for (number, f) in &fields {
+            if !(external && *number == TENSOR_RAW_DATA) {
+                out.extend_from_slice(f);
+            }
+        }
         return Ok(out);
     };
-    // Inline data is what counts: any stale external-data fields beside it are dropped.
     for (_, f) in fields.iter().filter(|(n, _)| *n != TENSOR_EXTERNAL_DATA && *n != TENSOR_DATA_LOCATION) {
         out.extend_from_slice(f);
     }
@@ -324,6 +378,76 @@ mod tests {
         let small_model = model(&[tensor("b0", &small)]);
         let sk = build(&small_model).unwrap();
         assert_eq!((sk.weights, &sk.bytes), (0, &small_model));
+    }
+
+    #[test]
+    fn repeated_raw_data_and_external_markers_keep_their_meaning() {
+        let big: Vec<u8> = (0..8_000u32).map(|i| (i % 7) as u8).collect();
+        let small = vec![3u8; 8];
+        let with = |parts: &[(u64, &[u8])], location: bool| {
+            let mut t = Vec::new();
+            put_len(&mut t, TENSOR_NAME, b"t");
+            for (number, payload) in parts {
+                put_len(&mut t, *number, payload);
+            }
+            if location {
+                encode_varint(TENSOR_DATA_LOCATION << 3 | WIRE_VARINT, &mut t);
+                encode_varint(LOCATION_EXTERNAL, &mut t);
+            }
+            model(&[t])
+        };
+        let tensor_fields = |sk: &Skeleton| {
+            let top = fields(&sk.bytes);
+            let graph = top.iter().find(|f| f.number == MODEL_GRAPH).unwrap().payload;
+            let init = fields(graph).into_iter().find(|f| f.number == GRAPH_INITIALIZER).unwrap().payload.to_vec();
+            init
+        };
+        // Large then small raw_data: the small one counts; nothing is mapped.
+        let sk = build(&with(&[(TENSOR_RAW_DATA, &big), (TENSOR_RAW_DATA, &small)], false)).unwrap();
+        let t = tensor_fields(&sk);
+        let raws: Vec<Vec<u8>> = fields(&t).iter().filter(|f| f.number == TENSOR_RAW_DATA).map(|f| f.payload.to_vec()).collect();
+        assert_eq!((sk.weights, raws), (0, vec![small.clone()]));
+        // Small then large: the large one counts and is mapped; the small one is gone.
+        let file = with(&[(TENSOR_RAW_DATA, &small), (TENSOR_RAW_DATA, &big)], false);
+        let sk = build(&file).unwrap();
+        let t = tensor_fields(&sk);
+        assert_eq!(sk.weights, 1);
+        assert!(fields(&t).iter().all(|f| f.number != TENSOR_RAW_DATA));
+        // Marked external with raw_data too: ONNX Runtime reads the side file, so the tensor
+        // keeps its external fields, loses the ignored raw data and is not re-pointed.
+        let side = entry("location", "side.data");
+        let sk = build(&with(&[(TENSOR_RAW_DATA, &big), (TENSOR_EXTERNAL_DATA, &side)], true)).unwrap();
+        let t = tensor_fields(&sk);
+        let fs = fields(&t);
+        assert_eq!(sk.weights, 0);
+        assert!(fs.iter().all(|f| f.number != TENSOR_RAW_DATA));
+        assert!(fs.iter().any(|f| f.number == TENSOR_EXTERNAL_DATA && f.payload == &side[..]));
+        assert!(fs.iter().any(|f| f.number == TENSOR_DATA_LOCATION && f.varint == LOCATION_EXTERNAL));
+    }
+
+    #[test]
+    fn fields_that_overrun_their_message_are_errors() {
+        // A tensor whose declared length ends inside its last varint field.
+        let mut t = Vec::new();
+        put_len(&mut t, TENSOR_NAME, b"t");
+        encode_varint(2 << 3, &mut t); // data_type
+        encode_varint(300, &mut t); // two bytes
+        let mut g = Vec::new();
+        encode_varint(GRAPH_INITIALIZER << 3 | WIRE_LEN, &mut g);
+        encode_varint(t.len() as u64 - 1, &mut g); // one byte short
+        g.extend_from_slice(&t);
+        let mut m = Vec::new();
+        put_len(&mut m, MODEL_GRAPH, &g);
+        let e = build(&m).unwrap_err();
+        assert!(e.contains("past the end"), "{e}");
+        // A length near 2^64 neither overflows nor allocates.
+        let mut m = Vec::new();
+        encode_varint(MODEL_GRAPH << 3 | WIRE_LEN, &mut m);
+        encode_varint(u64::MAX - 3, &mut m);
+        assert!(build(&m).unwrap_err().contains("past the end"));
+        // Field number 0 and an over-long varint.
+        assert!(build(&[0x02, 0x00]).unwrap_err().contains("field number 0"));
+        assert!(build(&[0x08, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0x7f]).unwrap_err().contains("malformed varint"));
     }
 
     #[test]

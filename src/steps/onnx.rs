@@ -196,6 +196,16 @@ impl OnnxStep {
     }
 }
 
+/// A background load still running when the step goes is waited for, so no network outlives
+/// the step (nor runs inside ONNX Runtime while the process exits).
+impl Drop for OnnxStep {
+    fn drop(&mut self) {
+        if let Some((_, handle)) = self.pending.take() {
+            let _ = handle.join();
+        }
+    }
+}
+
 fn arch_name(a: Architecture) -> &'static str {
     match a {
         Architecture::R2d2 => "R2D2",

@@ -286,7 +286,7 @@ fn check_external_data(path: &Path, initializers: &[TensorName]) -> Result<u64> 
                 *sizes.entry(location.to_string()).or_insert(s)
             }
         };
-        let end = offset + length.unwrap_or(size.saturating_sub(offset));
+        let end = offset.checked_add(length.unwrap_or(size.saturating_sub(offset))).ok_or_else(|| bad(format!("external data offset {offset} is out of range")))?;
         if end > size {
             return Err(Error::input(dir.join(location), format!("truncated: weight '{}' of {} needs bytes {offset}..{end}, the file has {size}", t.name, path.display())));
         }
@@ -301,8 +301,11 @@ fn read_graph_head(path: &Path) -> Result<(GraphHead, Option<MappedWeights>)> {
     let unreadable = |e: &dyn std::fmt::Display| Error::input(path, format!("cannot read the network: {e}"));
     let stamp = file_stamp(path).map_err(|e| unreadable(&e))?;
     let file = std::fs::File::open(path).map_err(|e| unreadable(&e))?;
-    let name = path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let skeleton = super::mapped_weights::skeleton(file, stamp.0, &name, super::mapped_weights::MIN_MAPPED_BYTES)
+    // A name ONNX Runtime cannot be given exactly (not UTF-8) is loaded the ordinary way: the
+    // skeleton keeps every weight (minimum size beyond any file).
+    let name = path.file_name().and_then(|n| n.to_str()).filter(|_| path.parent().is_none_or(|d| d.to_str().is_some()));
+    let min_bytes = if name.is_some() { super::mapped_weights::MIN_MAPPED_BYTES } else { usize::MAX };
+    let skeleton = super::mapped_weights::skeleton(file, stamp.0, name.unwrap_or_default(), min_bytes)
         .map_err(|e| Error::input(path, format!("not a readable ONNX model: {e}")))?;
     let head = <ModelHead as prost::Message>::decode(skeleton.bytes.as_slice()).map_err(|e| Error::input(path, format!("not a readable ONNX model: {e}")))?;
     let graph = head.graph.ok_or_else(|| Error::input(path, "ONNX model without a graph"))?;
@@ -372,7 +375,7 @@ pub fn check_network(path: &Path, size: usize) -> Result<Signature> {
     check(&input, 2, "input")?;
     check(&output, 1, "output")?;
     // The skeleton's own references into the model file are checked with the rest.
-    let external_bytes = check_external_data(path, &graph.initializer)? - mapped.as_ref().map_or(0, |m| m.bytes);
+    let external_bytes = check_external_data(path, &graph.initializer)?.saturating_sub(mapped.as_ref().map_or(0, |m| m.bytes));
     Ok(Signature { input, output, input_params, external_bytes, mapped })
 }
 
@@ -430,7 +433,7 @@ impl OrtNetwork {
                 // no directory of its own).
                 let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
                 builder = builder
-                    .with_config_entry("session.model_external_initializers_file_folder_path", dir.to_string_lossy())
+                    .with_config_entry("session.model_external_initializers_file_folder_path", dir.to_str().unwrap_or("."))
                     .map_err(|e| fail(&e))?;
                 match builder.commit_from_memory(&mapped.skeleton) {
                     Ok(session) => session,
