@@ -268,23 +268,35 @@ mod tests {
     }
 
     fn fields(message: &[u8]) -> Vec<Field<'_>> {
+        try_fields(message).expect("a well-formed test message")
+    }
+
+    /// `None` for a malformed message (the fuzz test meets copied, mutated payloads).
+    fn try_fields(message: &[u8]) -> Option<Vec<Field<'_>>> {
         let mut out = Vec::new();
         let mut rest = message;
         while !rest.is_empty() {
-            let key = decode_varint(&mut rest).unwrap();
+            let key = decode_varint(&mut rest).ok()?;
             let (mut payload, mut varint): (&[u8], u64) = (&[], 0);
             match key & 7 {
-                WIRE_VARINT => varint = decode_varint(&mut rest).unwrap(),
+                WIRE_VARINT => varint = decode_varint(&mut rest).ok()?,
                 WIRE_LEN => {
-                    let len = decode_varint(&mut rest).unwrap() as usize;
+                    let len = decode_varint(&mut rest).ok()? as usize;
+                    if len > rest.len() {
+                        return None;
+                    }
                     payload = &rest[..len];
                     rest = &rest[len..];
                 }
-                other => panic!("wire type {other} in a test message"),
+                WIRE_FIXED64 | WIRE_FIXED32 => {
+                    let n = if key & 7 == WIRE_FIXED64 { 8 } else { 4 };
+                    rest = rest.get(n..)?;
+                }
+                _ => return None,
             }
             out.push(Field { number: key >> 3, payload, varint });
         }
-        out
+        Some(out)
     }
 
     fn build(file: &[u8]) -> Result<Skeleton, String> {
@@ -448,6 +460,55 @@ mod tests {
         // Field number 0 and an over-long varint.
         assert!(build(&[0x02, 0x00]).unwrap_err().contains("field number 0"));
         assert!(build(&[0x08, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0x7f]).unwrap_err().contains("malformed varint"));
+    }
+
+    #[test]
+    fn mutated_models_never_panic_and_every_reference_stays_in_the_file() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let big: Vec<u8> = (0..6_000u32).map(|i| (i % 251) as u8).collect();
+        let original = model(&[tensor("w0", &big), tensor("b0", &[1, 2, 3, 4]), external("e0"), tensor("w1", &big)]);
+        let (mut ok, mut refused) = (0, 0);
+        for trial in 0..3000 {
+            let mut file = original.clone();
+            match trial % 3 {
+                0 => file.truncate(rng.gen_range(0..file.len())),
+                1 => {
+                    for _ in 0..rng.gen_range(1..4) {
+                        let i = rng.gen_range(0..file.len());
+                        file[i] ^= 1 << rng.gen_range(0..8);
+                    }
+                }
+                _ => {
+                    let i = rng.gen_range(0..file.len());
+                    file[i] = rng.gen();
+                }
+            }
+            let Ok(sk) = build(&file) else {
+                refused += 1;
+                continue;
+            };
+            ok += 1;
+            // Every reference the skeleton makes lies inside the file it was built from.
+            let graph = fields(&sk.bytes).into_iter().find(|f| f.number == MODEL_GRAPH).unwrap().payload.to_vec();
+            for init in fields(&graph).into_iter().filter(|f| f.number == GRAPH_INITIALIZER) {
+                let entries: Vec<(String, String)> = fields(init.payload)
+                    .iter()
+                    .filter(|f| f.number == TENSOR_EXTERNAL_DATA)
+                    .filter_map(|f| {
+                        // Entries copied from a mutated file may be malformed: not ours to check.
+                        let kv = try_fields(f.payload)?;
+                        let s = |i: usize| kv.get(i).map(|f| String::from_utf8_lossy(f.payload).into_owned());
+                        Some((s(0)?, s(1)?))
+                    })
+                    .collect();
+                if entries.iter().any(|(k, v)| k == "location" && v == "net.onnx") {
+                    let get = |k: &str| entries.iter().find(|(key, _)| key == k).unwrap().1.parse::<usize>().unwrap();
+                    assert!(get("offset") + get("length") <= file.len(), "trial {trial}: a reference past the end of the file");
+                }
+            }
+        }
+        assert!(ok > 100 && refused > 100, "both outcomes occur: {ok} read, {refused} refused");
     }
 
     #[test]
