@@ -7,12 +7,11 @@
    series of --networks (benches/make_reference_unet.py).
 2. Simulates one VLA A+C observation with about --visibilities samples (r2d2 simulate).
 3. Images it with `r2d2 image --step SERIES --backend ort` under /usr/bin/time, with
-   prefetching on and off (and once with ONNX Runtime's `all` graph optimisations), and reports the seconds per network step and per residual update
-   (from the -metrics.json the run writes), the share of the total that is not network
-   inference, and the peak resident memory against the budget (visibilities + two networks +
-   300 MB).
-4. Runs the first --tract-networks networks with the tract backend:
-   native/tract ratio.
+   prefetching on and off (and once with ONNX Runtime's `all` graph optimisations), and
+   reports the seconds per network step and per residual update (from the -metrics.json the
+   run writes), the share of the total that is not network inference, and the peak resident
+   memory against the budget (visibilities + two networks + 300 MB).
+4. Runs the first --tract-networks networks with the tract backend: native/tract ratio.
 """
 
 import argparse
@@ -84,11 +83,11 @@ def main():
     print(f"memory budget: visibilities {vis_mb:.0f} MB + 2 networks {2 * model_mb:.0f} MB + 300 MB = {budget:.0f} MB")
 
     results, rows = {}, []
-    runs = [("graph optimisation extended (default)", series, prefetch, "extended") for prefetch in (True, False)]
-    runs += [("graph optimisation all", series, True, "all")]
-    for label, path, prefetch, optimization in runs:
+    runs = [("graph optimisation extended (default)", prefetch, "extended") for prefetch in (True, False)]
+    runs += [("graph optimisation all", True, "all")]
+    for label, prefetch, optimization in runs:
         name = f"ort-{'prefetch' if prefetch else 'noprefetch'}-{optimization}"
-        wall, peak_mb, m = timed_image(r2d2, obs, args.size, path, "ort", args.networks, name, work, prefetch, optimization)
+        wall, peak_mb, m = timed_image(r2d2, obs, args.size, series, "ort", args.networks, name, work, prefetch, optimization)
         it = m["iterations"]
         step = [x["step_seconds"] for x in it]
         upd = [x["residual_seconds"] for x in it]

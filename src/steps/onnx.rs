@@ -52,7 +52,6 @@ fn yes() -> bool {
 /// Networks resident at once.
 const RESIDENT: usize = 2;
 
-
 pub struct OnnxStep {
     series: Series,
     runtime: Runtime,
@@ -301,6 +300,11 @@ pub(crate) mod tests {
         .path()
     }
 
+    /// A deterministic `[1, 2, 64, 64]` input for the test U-Net.
+    pub(crate) fn unet_input() -> Vec<f32> {
+        (0..2 * 64 * 64).map(|k| ((k * 7919 % 1000) as f32 / 1000.0).powi(2)).collect()
+    }
+
     const N: usize = 32;
 
     /// A PSF over twice the field, peak 1 at (N, N): a narrow Gaussian (sigma 0.6 px) minus a
@@ -481,7 +485,7 @@ pub(crate) mod tests {
         let path = test_models().join("unet.onnx");
         let signature = check_network(&path, 64).unwrap();
         assert_eq!(signature.input_params[2..], [Some("H".to_string()), Some("W".to_string())], "symbolic dimensions are named");
-        let input: Vec<f32> = (0..2 * 64 * 64).map(|k| ((k * 7919 % 1000) as f32 / 1000.0).powi(2)).collect();
+        let input = unet_input();
         let ort = Runtime::select(BackendChoice::Ort, 1).expect("native ONNX Runtime (pip install onnxruntime)");
         let a = ort.load(&path, 64, &signature).unwrap().run(&input).unwrap();
         let b = Runtime::Tract.load(&path, 64, &signature).unwrap().run(&input).unwrap();
@@ -498,7 +502,7 @@ pub(crate) mod tests {
         for f in ["unet.onnx", "unet-external.onnx", "unet-external.onnx.data"] {
             std::fs::copy(test_models().join(f), dir.path().join(f)).unwrap();
         }
-        let input: Vec<f32> = (0..2 * 64 * 64).map(|k| ((k * 7919 % 1000) as f32 / 1000.0).powi(2)).collect();
+        let input = unet_input();
         let ort = Runtime::select(BackendChoice::Ort, 1).expect("native ONNX Runtime (pip install onnxruntime)");
         let run_both = |path: &Path| {
             let signature = check_network(path, 64).unwrap();

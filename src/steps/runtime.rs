@@ -36,30 +36,19 @@ impl std::str::FromStr for BackendChoice {
 }
 
 /// How far ONNX Runtime rewrites a network's graph before running it. Measured on the reference
-/// U-Net (31 M parameters, 512^2, 2 threads, weights packed): `all` infers 12 % faster (1.80 s
+/// U-Net (31 M parameters, 512^2, 2 threads, weights mapped from the file): `all` infers 12 % faster (1.80 s
 /// against 2.03 s) but copies every weight into its blocked layout at load (0.31 s against
 /// 0.03 s; 136 MB resident against 21 MB before the first run) and needs 130 MB more at the
 /// inference peak (528 MB against 396 MB).
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum GraphOptimization {
-    /// Node fusions, no layout change: weights stay as they are in the file (mapped, when
-    /// packed). The least memory.
+    /// Node fusions, no layout change: weights stay as they are in the file (mapped). The
+    /// least memory.
     #[default]
     Extended,
     /// Also the layout optimisations (convolutions in ONNX Runtime's blocked NCHWc layout).
     All,
-}
-
-impl std::str::FromStr for GraphOptimization {
-    type Err = Error;
-    fn from_str(s: &str) -> Result<Self> {
-        match s {
-            "extended" => Ok(GraphOptimization::Extended),
-            "all" => Ok(GraphOptimization::All),
-            other => Err(Error::parameter("graph_optimization", format!("expected extended or all, got '{other}'"))),
-        }
-    }
 }
 
 /// An ONNX network with one `[1, 2, N, N]` input and one `[1, 1, N, N]` output (float32).
@@ -514,7 +503,7 @@ mod tests {
         let mapped = signature.mapped.as_ref().expect("the test U-Net has weights over 4 KiB");
         assert!(mapped.weights >= 3 && mapped.bytes > 20_000, "{mapped:?}");
         assert!((mapped.skeleton.len() as u64) < std::fs::metadata(&path).unwrap().len() - mapped.bytes + 1024);
-        let input: Vec<f32> = (0..2 * 64 * 64).map(|k| ((k * 7919 % 1000) as f32 / 1000.0).powi(2)).collect();
+        let input = super::super::onnx::tests::unet_input();
         Runtime::select(BackendChoice::Ort, 1).expect("native ONNX Runtime (pip install onnxruntime)");
         let opt = GraphOptimization::default();
         let mut copied = OrtNetwork::load(&path, 64, 1, opt, &signature, false).unwrap();
