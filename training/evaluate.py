@@ -93,7 +93,7 @@ def evaluate(series_dir, test_dir, r2d2, out, clean_cycles=10, clean_components=
     clean_r = torch.from_numpy(np.stack(residuals)).float()
     row("clean", clean_cycles, clean_x, clean_r)
 
-    report = {"series": manifest["name"], "test_set": os.path.abspath(test_dir), "samples": len(data),
+    report = {"series": manifest["name"], "test_set": common.repo_relative(test_dir), "samples": len(data),
               "clean": {"major_cycles": clean_cycles, "components_per_cycle": clean_components, "gain": 0.1,
                         "threshold": "1 x std of the back-projected noise"},
               "python_d_vs_engine_residual_max_rel": max(d_mismatch), "rows": rows}
@@ -160,7 +160,7 @@ def main(argv=None):
         manifest = series.read_manifest(a.series)
         manifest["test"] = [{"iteration": m["iteration"], **{k: round(m[k], 4) for k in ("snr_db", "logsnr_db", "residual_ratio")}}
                             for m in report["rows"] if m["method"] == "r2d2"]
-        manifest["provenance"]["test_data"] = {"path": a.test, "samples": report["samples"],
+        manifest["provenance"]["test_data"] = {"path": common.repo_relative(a.test), "samples": report["samples"],
                                                "clean_baseline": [{k: round(m[k], 4) if isinstance(m[k], float) else m[k] for k in m}
                                                                   for m in report["rows"] if m["method"] != "r2d2"]}
         series.write_manifest(a.series, manifest)

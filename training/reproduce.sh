@@ -1,24 +1,49 @@
 #!/usr/bin/env bash
-# Rebuild the shipped series models/vla-r2d2-128 from nothing, seeded end to end:
-#   training/reproduce.sh [DATA_DIR]        (default training/data, git-ignored)
+# Rebuild a shipped series from nothing, seeded end to end:
+#   training/reproduce.sh [vla-r2d2-512|vla-r2d2-128] [DATA_DIR]   (default vla-r2d2-512, training/data)
 # Steps whose output exists are skipped, so rerunning the script resumes it; training itself
 # resumes from its per-epoch checkpoint and adds networks to the series (--resume).
 # Environment: R2D2 (the engine binary, default target/release/r2d2), SERIES (default
-# models/vla-r2d2-128), TRAIN_ARGS (extra train.py options, e.g. "--max-networks 20").
+# models/<recipe>), TRAIN_ARGS (extra train.py options, e.g. "--max-networks 20"),
+# NICE (default 19: training yields the CPU to interactive work).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-DATA=${1:-training/data}
+RECIPE=${1:-vla-r2d2-512}
+DATA=${2:-training/data}
 R2D2=${R2D2:-target/release/r2d2}
-SERIES=${SERIES:-models/vla-r2d2-128}
-SIM="--size 128 --integration-s 300 --epsilon 1e-5"
-mkdir -p "$DATA"
+SERIES=${SERIES:-models/$RECIPE}
+RUN="nice -n ${NICE:-19}"
 [ -x "$R2D2" ] || cargo build --release
-[ -d "$DATA/truths-train" ] || python3 training/prepare_truths.py --count 640 --size 128 --seed 1 --source-dr 50 --out "$DATA/truths-train"
-[ -d "$DATA/train" ] || "$R2D2" trainset --truths "$DATA/truths-train" --source-dr 50 --seed 1 $SIM --out "$DATA/train"
-[ -d "$DATA/val" ] || "$R2D2" trainset --procedural 48 --seed 500000 $SIM --out "$DATA/val"
-[ -d "$DATA/test" ] || "$R2D2" trainset --procedural 32 --seed 900000 $SIM --parquet --out "$DATA/test"
+case "$RECIPE" in
+vla-r2d2-128)
+    D="$DATA/128"
+    SIM="--size 128 --integration-s 300 --epsilon 1e-5"
+    mkdir -p "$D"
+    [ -d "$D/truths-train" ] || $RUN python3 training/prepare_truths.py --count 640 --size 128 --seed 1 --source-dr 50 --out "$D/truths-train"
+    [ -d "$D/train" ] || $RUN "$R2D2" trainset --truths "$D/truths-train" --source-dr 50 --seed 1 $SIM --out "$D/train"
+    [ -d "$D/val" ] || $RUN "$R2D2" trainset --procedural 48 --seed 500000 $SIM --out "$D/val"
+    [ -d "$D/test" ] || $RUN "$R2D2" trainset --procedural 32 --seed 900000 $SIM --parquet --out "$D/test"
+    TRAIN=("$D/train")
+    ARGS="--epochs-first 16 --epochs 6 --batch 8 --bf16 --max-networks 12"
+    ;;
+vla-r2d2-512)
+    # Half the training truths are the project's procedural radio skies (seeds 100000..),
+    # half reworked scikit-image images; validation 500000.., test 900000..: disjoint seeds.
+    D="$DATA/512"
+    SIM="--size 512 --integration-s 300 --epsilon 1e-5"
+    mkdir -p "$D"
+    [ -d "$D/truths-train" ] || $RUN python3 training/prepare_truths.py --count 120 --size 512 --seed 2 --source-dr 50 --out "$D/truths-train"
+    [ -d "$D/train-images" ] || $RUN "$R2D2" trainset --truths "$D/truths-train" --source-dr 50 --seed 1000 $SIM --out "$D/train-images"
+    [ -d "$D/train-radio" ] || $RUN "$R2D2" trainset --procedural 120 --seed 100000 $SIM --out "$D/train-radio"
+    [ -d "$D/val" ] || $RUN "$R2D2" trainset --procedural 16 --seed 500000 $SIM --out "$D/val"
+    [ -d "$D/test" ] || $RUN "$R2D2" trainset --procedural 12 --seed 900000 $SIM --parquet --out "$D/test"
+    TRAIN=("$D/train-radio" "$D/train-images")
+    ARGS="--norm none --crop 128 --crops-per-sample 4 --epochs-first 10 --epochs 4 --batch 8 --max-networks 15"
+    ;;
+*) echo "unknown recipe $RECIPE (vla-r2d2-512 or vla-r2d2-128)" >&2; exit 2 ;;
+esac
 RESUME=""
 [ -f "$SERIES/manifest.yaml" ] && RESUME="--resume"
-python3 training/train.py --train "$DATA/train" --val "$DATA/val" --series "$SERIES" --work "$DATA/work" \
-    --epochs-first 16 --epochs 6 --batch 8 --bf16 --seed 1 --threads 2 --max-networks 12 $RESUME ${TRAIN_ARGS:-}
-python3 training/evaluate.py --series "$SERIES" --test "$DATA/test" --r2d2 "$R2D2" --out "$DATA/eval" --update-manifest
+$RUN python3 training/train.py --train "${TRAIN[@]}" --val "$D/val" --series "$SERIES" --work "$D/work" \
+    --seed 1 --threads 2 $ARGS $RESUME ${TRAIN_ARGS:-}
+$RUN python3 training/evaluate.py --series "$SERIES" --test "$D/test" --r2d2 "$R2D2" --out "$D/eval" --update-manifest

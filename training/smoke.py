@@ -74,6 +74,28 @@ def main(argv=None):
         check(refused.returncode != 0 and "--resume" in refused.stderr, "training over an existing series without --resume")
         run(train + ["--max-networks", "3", "--resume"])
         check(len(series.read_manifest(sdir)["networks"]) == 3, "resume added a third network")
+        # What makes crops valid samples: the bias-free U-Net is local (a crop's interior, beyond
+        # the receptive field, gets exactly the full field's output) and positively homogeneous.
+        from r2d2train.unet import UNet
+        torch.manual_seed(0)
+        net = UNet(8, 3, norm="none").eval()
+        field = torch.rand(1, 2, 192, 192)
+        with torch.no_grad():
+            full, part, scaled = net(field), net(field[..., 32:160, 32:160]), net(3.0 * field)
+        inner = (full[..., 80:112, 80:112] - part[..., 48:80, 48:80]).abs().max() / full.abs().max()
+        check(float(inner) < 1e-5, f"norm none is not local: crop interior differs by {float(inner):.2e}")
+        check(float((scaled - 3.0 * full).abs().max() / full.abs().max()) < 1e-5, "norm none is not homogeneous")
+        # The crop path (local, bias-free U-Net; crops of the full-field samples).
+        cdir = f"{d}/series-crops"
+        run([py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", f"{d}/val", "--val", f"{d}/val", "--series", cdir,
+             "--work", f"{d}/work-crops", "--norm", "none", "--crop", "32", "--crops-per-sample", "2", "--epochs-first", "1",
+             "--batch", "2", "--max-networks", "1", "--min-gain-db", "-1000"])
+        mc = series.read_manifest(cdir)
+        check(mc["network"]["norm"] == "none" and mc["provenance"]["crops"] == {"side": 32, "per_sample_and_epoch": 2}, "crop manifest")
+        check(not any(os.path.isabs(p) for p in mc["provenance"]["train_data"]["path"]), "provenance paths are not absolute")
+        crop_only = subprocess.run([py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", "--val", f"{d}/val", "--series",
+                                    f"{d}/series-bad", "--work", f"{d}/work-bad", "--crop", "32"], capture_output=True, text=True)
+        check(crop_only.returncode != 0 and "--norm none" in crop_only.stderr, "--crop with instance normalisation is refused")
         report = evaluate.evaluate(sdir, f"{d}/test", a.r2d2, f"{d}/eval", clean_cycles=2, clean_components=50)
         check([r["method"] for r in report["rows"]] == ["dirty", "r2d2", "r2d2", "r2d2", "clean"], "evaluation rows")
         # The package's D against the engine's Toeplitz residual on the same CLEAN model.

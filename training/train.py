@@ -46,21 +46,45 @@ def commit_series(series_dir, message):
         log(f"warning: could not commit {series_dir}: {e}")
 
 
-def torch_runner(model):
+def torch_runner(model, device):
     def run(batch):
         with torch.no_grad():
-            return model(batch)
+            return model(batch.to(device)).float().cpu()
     return run
 
 
-def train_network(i, model, train, x, r, active, args, work):
-    """Train network i in place on the active samples; returns (epochs, seconds, last loss)."""
+repo_relative = common.repo_relative
+
+
+def crop_batches(count, size, crop, crops_per_sample, batch, generator):
+    """Shuffled batches of (sample, row, column) crop origins, `crops_per_sample` per sample."""
+    samples = torch.arange(count).repeat_interleave(crops_per_sample)
+    if crop >= size:
+        rows = cols = torch.zeros_like(samples)
+    else:
+        rows = torch.randint(0, size - crop + 1, (len(samples),), generator=generator)
+        cols = torch.randint(0, size - crop + 1, (len(samples),), generator=generator)
+    order = torch.randperm(len(samples), generator=generator)
+    samples, rows, cols = samples[order], rows[order], cols[order]
+    return [(samples[s:s + batch], rows[s:s + batch], cols[s:s + batch]) for s in range(0, len(samples), batch)]
+
+
+def gather_crops(images, samples, rows, cols, crop):
+    """[B, ..., crop, crop] cut from images [S, ..., N, N] at the given origins."""
+    return torch.stack([images[k, ..., y:y + crop, x:x + crop] for k, y, x in zip(samples.tolist(), rows.tolist(), cols.tolist())])
+
+
+def train_network(i, model, train, x, r, active, args, work, device):
+    """Train network i in place on the active samples; returns (epochs, seconds, last loss).
+
+    Inputs are normalised on the full field (alpha = the full image's mean, as at inference);
+    with --crop, each step sees crops of them: valid samples for a local network (norm none)."""
     opt = torch.optim.RMSprop(model.parameters(), lr=args.lr)
     epochs = args.epochs_first if i == 1 else args.epochs
     start_epoch, seconds = 0, 0.0
     ckpt = os.path.join(work, "current.pt")
     if os.path.exists(ckpt):
-        state = torch.load(ckpt, weights_only=False)
+        state = torch.load(ckpt, weights_only=False, map_location=device)
         if state["iteration"] == i:
             model.load_state_dict(state["model"])
             opt.load_state_dict(state["optimizer"])
@@ -69,19 +93,22 @@ def train_network(i, model, train, x, r, active, args, work):
     idx = torch.nonzero(active).flatten()
     inp_all, alpha, prev = common.network_input(i, train.dirty[idx], x[idx], r[idx])
     target = train.truth[idx] / alpha
+    prev = prev.unsqueeze(1)
+    target = target.unsqueeze(1)
+    crop = args.crop or train.size
     loss_value = float("nan")
+    autocast = device.type if device.type in ("cpu", "cuda") else "cpu"
     for epoch in range(start_epoch, epochs):
         t0 = time.time()
         model.train()
         gen = torch.Generator().manual_seed(args.seed * 100003 + i * 1009 + epoch)
-        order = torch.randperm(len(idx), generator=gen)
         total, count = 0.0, 0
-        for s in range(0, len(order), args.batch):
-            b = order[s:s + args.batch]
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=args.bf16):
-                out = model(inp_all[b])
-            pred = torch.clamp(prev[b] + out[:, 0].float(), min=0.0)
-            loss = torch.nn.functional.l1_loss(pred, target[b])
+        for b, rows, cols in crop_batches(len(idx), train.size, crop, args.crops_per_sample, args.batch, gen):
+            inp = gather_crops(inp_all, b, rows, cols, crop).to(device)
+            with torch.autocast(autocast, dtype=torch.bfloat16, enabled=args.bf16):
+                out = model(inp)
+            pred = torch.clamp(gather_crops(prev, b, rows, cols, crop).to(device) + out.float(), min=0.0)
+            loss = torch.nn.functional.l1_loss(pred, gather_crops(target, b, rows, cols, crop).to(device))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -92,13 +119,13 @@ def train_network(i, model, train, x, r, active, args, work):
         torch.save({"iteration": i, "epoch": epoch + 1, "seconds": seconds, "model": model.state_dict(),
                     "optimizer": opt.state_dict()}, ckpt + ".tmp")
         os.replace(ckpt + ".tmp", ckpt)
-        log(f"N{i} epoch {epoch + 1}/{epochs}: L1 {loss_value:.5f} on {len(idx)} samples, {time.time() - t0:.1f} s")
+        log(f"N{i} epoch {epoch + 1}/{epochs}: L1 {loss_value:.5f} on {count} crops of {crop} from {len(idx)} samples, {time.time() - t0:.1f} s")
     return epochs, seconds, loss_value
 
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--train", required=True, help="training set directory (r2d2 trainset)")
+    p.add_argument("--train", required=True, nargs="+", help="training set directories (r2d2 trainset), concatenated")
     p.add_argument("--val", required=True, help="validation set directory (r2d2 trainset)")
     p.add_argument("--series", required=True, help="series directory, e.g. models/vla-r2d2-128")
     p.add_argument("--name", default=None, help="series name (default: directory name)")
@@ -111,6 +138,12 @@ def main(argv=None):
     p.add_argument("--lr", type=float, default=1e-4)
     p.add_argument("--base-channels", type=int, default=16)
     p.add_argument("--poolings", type=int, default=3)
+    p.add_argument("--norm", choices=["instance", "none"], default="instance",
+                   help="U-Net feature normalisation; none (local, bias-free) is required for --crop")
+    p.add_argument("--crop", type=int, default=None,
+                   help="train on random crops of this side cut from the full-field samples")
+    p.add_argument("--crops-per-sample", type=int, default=1, help="crops per sample and epoch")
+    p.add_argument("--device", default="auto", help="auto (CUDA when present), cpu or cuda")
     p.add_argument("--bf16", action="store_true", help="bf16 autocast for training steps (CPU)")
     p.add_argument("--min-gain-db", type=float, default=0.05,
                    help="a network joins the series only if it raises validation SNR or logSNR by this much")
@@ -120,6 +153,13 @@ def main(argv=None):
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--commit", action="store_true", help="git-commit the series directory after each network")
     args = p.parse_args(argv)
+    if args.crop is not None and args.norm != "none":
+        p.error("--crop needs --norm none: instance normalisation takes statistics over the whole input, "
+                "so a crop would not see what the full field gives the network")
+    if args.crop is not None and args.crop % (2 ** args.poolings):
+        p.error(f"--crop must be a multiple of {2 ** args.poolings}")
+    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
+                          ("cpu" if args.device == "auto" else args.device))
     torch.set_num_threads(args.threads)
     os.makedirs(args.series, exist_ok=True)
     os.makedirs(args.work, exist_ok=True)
@@ -127,7 +167,7 @@ def main(argv=None):
     train = common.Dataset(args.train, args.limit_train)
     val = common.Dataset(args.val, args.limit_val)
     size = train.size
-    log(f"{len(train)} training and {len(val)} validation samples, {size} x {size}")
+    log(f"{len(train)} training and {len(val)} validation samples, {size} x {size}, on {device}")
 
     manifest = series.read_manifest(args.series)
     if manifest and manifest["networks"] and not args.resume:
@@ -135,22 +175,25 @@ def main(argv=None):
     if manifest is None or not manifest["networks"]:
         name = args.name or os.path.basename(os.path.normpath(args.series))
         provenance = {
-            "command": " ".join([os.path.basename(sys.executable)] + sys.argv),
+            "command": " ".join(["python3", repo_relative(sys.argv[0])] +
+                                [repo_relative(a) if os.path.exists(a) and os.path.isabs(a) else a for a in sys.argv[1:]]),
             "git_commit": git_commit(),
             "torch": str(torch.__version__),
             "seed": args.seed,
             "optimizer": {"kind": "rmsprop", "lr": args.lr, "batch": args.batch, "bf16_autocast": args.bf16},
-            "train_data": {"path": args.train, "samples": len(train), **train.meta},
-            "validation_data": {"path": args.val, "samples": len(val), **val.meta},
+            "crops": {"side": args.crop, "per_sample_and_epoch": args.crops_per_sample} if args.crop else None,
+            "device": device.type,
+            "train_data": {"path": [repo_relative(t) for t in args.train], "samples": len(train), **common.portable(train.meta)},
+            "validation_data": {"path": repo_relative(args.val), "samples": len(val), **common.portable(val.meta)},
             "networks": [],
         }
-        desc = (f"R2D2 U-Net series ({args.base_channels} channels, {args.poolings} poolings) for VLA A+C, "
+        desc = (f"R2D2 U-Net series ({args.base_channels} channels, {args.poolings} poolings, norm {args.norm}) for VLA A+C, "
                 f"Briggs 0, SR 1.5, trained at {size}x{size}; H and W must be multiples of {2 ** args.poolings}")
-        manifest = series.new_manifest(name, UNet(args.base_channels, args.poolings), size, desc, provenance)
+        manifest = series.new_manifest(name, UNet(args.base_channels, args.poolings, norm=args.norm), size, desc, provenance)
     net_cfg = manifest["network"]
-    if (net_cfg["base_channels"], net_cfg["poolings"]) != (args.base_channels, args.poolings):
-        raise SystemExit(f"{args.series}: the series has {net_cfg['base_channels']} channels / {net_cfg['poolings']} poolings; "
-                         f"got --base-channels {args.base_channels} --poolings {args.poolings}")
+    if (net_cfg["base_channels"], net_cfg["poolings"], series.network_norm(manifest)) != (args.base_channels, args.poolings, args.norm):
+        raise SystemExit(f"{args.series}: the series has {net_cfg['base_channels']} channels / {net_cfg['poolings']} poolings / "
+                         f"norm {series.network_norm(manifest)}; got --base-channels {args.base_channels} --poolings {args.poolings} --norm {args.norm}")
 
     # Replay the existing networks: x, r of every sample, the pruned training set.
     x_tr, r_tr = torch.zeros_like(train.dirty), train.dirty.clone()
@@ -160,8 +203,8 @@ def main(argv=None):
     history = [dict(v) for v in manifest["validation"]]
     model = None
     for k in range(1, len(manifest["networks"]) + 1):
-        model = series.load_model(args.series, k, args.base_channels, args.poolings)
-        run = torch_runner(model)
+        model = series.load_model(args.series, k, args.base_channels, args.poolings, args.norm).to(device)
+        run = torch_runner(model, device)
         x_tr = common.update(k, run, train.dirty, x_tr, r_tr)
         r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
         active &= r_tr.flatten(1).pow(2).sum(1) > noise_energy
@@ -179,12 +222,12 @@ def main(argv=None):
             log(f"stop: only {int(active.sum())} training samples left after pruning")
             break
         torch.manual_seed(args.seed * 7919 + i)
-        new = UNet(args.base_channels, args.poolings)
+        new = UNet(args.base_channels, args.poolings, norm=args.norm).to(device)
         if model is not None:
             new.load_state_dict(model.state_dict())  # network i starts from network i-1
-        epochs, seconds, loss = train_network(i, new, train, x_tr, r_tr, active, args, args.work)
+        epochs, seconds, loss = train_network(i, new, train, x_tr, r_tr, active, args, args.work, device)
         new.eval()
-        run = torch_runner(new)
+        run = torch_runner(new, device)
         x_va_new = common.update(i, run, val.dirty, x_va, r_va)
         r_va_new = common.residual(val.dirty, x_va_new, val.psf_hat)
         m = common.metrics(x_va_new, r_va_new, val)
@@ -198,7 +241,8 @@ def main(argv=None):
         best = {key: max(best[key], m[key]) for key in best}
         # Commit the network to the series: weights, ONNX, then the manifest that lists it.
         series.save_weights(args.series, i, new)
-        series.export_onnx(new, os.path.join(args.series, series.onnx_name(i)), size)
+        series.export_onnx(new.cpu(), os.path.join(args.series, series.onnx_name(i)), size)
+        new.to(device)
         x_tr = common.update(i, run, train.dirty, x_tr, r_tr)
         r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
         before = int(active.sum())

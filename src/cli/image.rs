@@ -3,7 +3,7 @@
 
 use super::ImageOptions;
 use r2d2_imaging::pipeline::config::PipelineConfig;
-use r2d2_imaging::steps::series::{resolve, DEFAULT_SERIES};
+use r2d2_imaging::steps::series::{resolve, AUTO_SERIES};
 use r2d2_imaging::{Error, Result};
 use std::path::{Path, PathBuf};
 
@@ -15,9 +15,10 @@ pub struct Args {
     input: PathBuf,
     #[command(flatten)]
     image: ImageOptions,
-    /// Network step: a model series (a name from `r2d2 models`, or its directory), `clean`
-    /// (the built-in Hogbom CLEAN), or a native plugin library (`.so`, `.dylib`, `.dll`).
-    #[arg(long, default_value = DEFAULT_SERIES)]
+    /// Network step: `auto` (the series trained for the image size, see `r2d2 models`), a model
+    /// series (a name from `r2d2 models`, or its directory), `clean` (the built-in Hogbom
+    /// CLEAN), or a native plugin library (`.so`, `.dylib`, `.dll`).
+    #[arg(long, default_value = AUTO_SERIES)]
     step: String,
     /// Iterations of the step: CLEAN major cycles (default 5), the first networks of a series
     /// (default: all), or the steps of a native plugin (default 10).
@@ -58,7 +59,8 @@ fn step_stage(args: &Args) -> Result<serde_yaml::Value> {
         return Ok(yaml(&format!("{{kind: clean, major_cycles: {cycles}, to: update}}")));
     }
     if !is_library {
-        let series = resolve(path)?;
+        // `auto` is resolved by the step, which knows the image size.
+        let series = if args.step == AUTO_SERIES { path.to_path_buf() } else { resolve(path)? };
         let mut stage = yaml("{kind: onnx, to: update}");
         stage["series"] = serde_yaml::Value::String(series.to_string_lossy().into_owned());
         stage["backend"] = serde_yaml::Value::String(args.backend.clone());

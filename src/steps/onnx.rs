@@ -76,7 +76,7 @@ impl OnnxStep {
     /// Open and check the series for `size x size` images: every file is read and its input and
     /// output checked here, before imaging starts.
     pub fn new(config: &OnnxConfig, size: usize, pipeline_threads: usize) -> Result<OnnxStep> {
-        let series = Series::open(&super::series::resolve(&config.series)?)?;
+        let series = Series::open(&super::series::resolve_for_size(&config.series, size)?)?;
         if let Some(warning) = series.check_size(size)? {
             log::warn!("{warning}");
         }
@@ -216,19 +216,23 @@ fn mean(x: &[f64]) -> f64 {
     x.iter().sum::<f64>() / x.len().max(1) as f64
 }
 
-/// The normalisation alpha: the mean of the current image, or of the dirty image when the
-/// image has none (i = 1, or every pixel projected to zero, where the reference would divide
-/// by zero).
-fn normalisation(image: &[f64], dirty: &[f64], path: &Path) -> Result<f64> {
-    let a = mean(image);
-    if a > 0.0 && a.is_finite() {
-        return Ok(a);
+/// Added to the mean, as the reference does, so an all-zero image gives a finite alpha.
+const NORMALISATION_EPSILON: f64 = 1e-10;
+
+/// The normalisation alpha: the signed mean of `image` (the dirty image at iteration 1, else
+/// the current model) plus a tiny epsilon, as the reference computes it. A mean that is not
+/// positive is legitimate (a dirty image without short spacings can have a negative mean) and
+/// only warned about: the loop's projection `max(0, (N + x / alpha) * alpha)` is taken after
+/// de-normalising, so the sign of alpha is carried through as in the reference.
+fn normalisation(image: &[f64], what: &str, iteration: usize, path: &Path) -> Result<f64> {
+    let m = mean(image);
+    if !m.is_finite() {
+        return Err(Error::input(path, format!("cannot normalise the input of iteration {iteration}: the mean of the {what} is {m}")));
     }
-    let d = mean(dirty);
-    if d > 0.0 && d.is_finite() {
-        return Ok(d);
+    if m <= 0.0 {
+        log::warn!("iteration {iteration}: the mean of the {what} is {m:.3e} (not positive); normalising by it as the reference does");
     }
-    Err(Error::input(path, format!("cannot normalise the network input: the mean of the image ({a:.3e}) and of the dirty image ({d:.3e}) are not positive")))
+    Ok(m + NORMALISATION_EPSILON)
 }
 
 impl NetworkStep for OnnxStep {
@@ -247,11 +251,11 @@ impl NetworkStep for OnnxStep {
         match self.series.architecture {
             Architecture::R2d2 => {
                 let (alpha, increment) = if iteration == 1 {
-                    let alpha = normalisation(&[], input.dirty, &path)?;
+                    let alpha = normalisation(input.dirty, "dirty image", 1, &path)?;
                     let zero = vec![0.0; input.dirty.len()];
                     (alpha, self.run_network(1, 0, input.dirty, &zero, alpha)?)
                 } else {
-                    let alpha = normalisation(input.model, input.dirty, &path)?;
+                    let alpha = normalisation(input.model, "image", iteration, &path)?;
                     (alpha, self.run_network(iteration, 0, input.model, input.residual, alpha)?)
                 };
                 Ok(input.model.iter().zip(&increment).map(|(x, d)| ((d + x / alpha) * alpha).max(0.0)).collect())
@@ -261,7 +265,11 @@ impl NetworkStep for OnnxStep {
                 let psf = PsfConvolution::new(self.size, input.psf_2n)?;
                 let mut image = input.model.to_vec();
                 let mut residual = if iteration == 1 { input.dirty.to_vec() } else { input.residual.to_vec() };
-                let mut alpha = normalisation(&image, input.dirty, &path)?;
+                let mut alpha = if iteration == 1 {
+                    normalisation(input.dirty, "dirty image", iteration, &path)?
+                } else {
+                    normalisation(&image, "image", iteration, &path)?
+                };
                 for layer in 0..layers {
                     let increment = self.run_network(iteration, layer, &residual, &image, alpha)?;
                     for (x, d) in image.iter_mut().zip(&increment) {
@@ -271,7 +279,7 @@ impl NetworkStep for OnnxStep {
                         // Data fidelity between layers: the residual of the current image.
                         let dx = psf.apply(&image);
                         residual = input.dirty.iter().zip(&dx).map(|(d, v)| d - v).collect();
-                        alpha = normalisation(&image, input.dirty, &path)?;
+                        alpha = normalisation(&image, "image", iteration, &path)?;
                     }
                 }
                 Ok(image.into_iter().map(|v| v.max(0.0)).collect())
@@ -406,6 +414,33 @@ pub(crate) mod tests {
         let r1: f64 = residual(&psf, &dirty, &expected[0]).iter().map(|v| v * v).sum();
         let r4: f64 = residual(&psf, &dirty, &expected[3]).iter().map(|v| v * v).sum();
         assert!(r4 < 0.5 * r1, "Landweber reduces the residual: {r1} -> {r4}");
+    }
+
+    #[test]
+    fn a_dirty_image_with_a_negative_mean_is_normalised_by_its_signed_mean_as_the_reference_does() {
+        // Missing short spacings can make a dirty image's mean negative: the loop must run,
+        // dividing by the signed mean plus epsilon, and give the reference's iterates.
+        let psf = psf_2n();
+        let mut dirty = direct_d(&psf, &sky());
+        let offset = 3.0 * mean(&dirty);
+        dirty.iter_mut().for_each(|d| *d -= offset);
+        assert!(mean(&dirty) < 0.0);
+        let mut expected = Vec::new();
+        let (mut x, mut r) = (vec![0.0; N * N], dirty.clone());
+        for i in 1..=4 {
+            let alpha = if i == 1 { mean(&dirty) } else { mean(&x) } + NORMALISATION_EPSILON;
+            x = x.iter().zip(&r).map(|(x, r)| ((x / alpha + 0.5 * r / alpha + 0.01) * alpha).max(0.0)).collect();
+            r = residual(&psf, &dirty, &x);
+            expected.push(x.clone());
+        }
+        assert!(expected[0].iter().any(|&v| v > 0.0), "the first iterate is not trivially zero");
+        for backend in [BackendChoice::Ort, BackendChoice::Tract] {
+            let got = run_series(&test_models().join("landweber"), backend, &psf, &dirty, true);
+            for (i, (g, e)) in got.iter().zip(&expected).enumerate() {
+                let err = rel(g, e);
+                assert!(err < 1e-5, "{backend:?} iteration {}: relative error {err:.2e}", i + 1);
+            }
+        }
     }
 
     #[test]

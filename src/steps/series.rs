@@ -266,9 +266,71 @@ impl Series {
     }
 }
 
-/// The series directories under `root` (each with a manifest or reference file names).
-/// The series `r2d2 image` uses when no `--step` is given, and the quickstart pipeline names.
-pub const DEFAULT_SERIES: &str = "vla-r2d2-128";
+/// The value of a step's `series` (and the default of `r2d2 image --step`) that picks the
+/// series by the job's image size ([`select_for_size`]).
+pub const AUTO_SERIES: &str = "auto";
+
+/// The project's own series, preferred in this order when several were trained for a size.
+pub const PROJECT_SERIES: [&str; 2] = ["vla-r2d2-512", "vla-r2d2-128"];
+
+/// The series for `size x size` images when none is named: among the series found in
+/// [`model_dirs`], one whose manifest lists `size` in `image_sizes` (the project's own first,
+/// then by name); failing that, the series that allows other sizes and was trained nearest to
+/// `size` (by ratio), with a warning that it runs at a size it was not trained for.
+pub fn select_for_size(size: usize) -> Result<(PathBuf, Option<String>)> {
+    select_in(&model_dirs(), size)
+}
+
+fn select_in(roots: &[PathBuf], size: usize) -> Result<(PathBuf, Option<String>)> {
+    let mut found: Vec<(PathBuf, Series)> = Vec::new();
+    for root in roots {
+        for (dir, series) in discover(root) {
+            let Ok(series) = series else { continue };
+            if !series.is_empty() && !found.iter().any(|(_, s)| s.name == series.name) {
+                found.push((dir, series));
+            }
+        }
+    }
+    let rank = |s: &Series| (PROJECT_SERIES.iter().position(|p| *p == s.name).unwrap_or(PROJECT_SERIES.len()), s.name.clone());
+    found.sort_by_key(|(_, s)| rank(s));
+    if let Some((dir, s)) = found.iter().find(|(_, s)| s.image_sizes.contains(&size)) {
+        log::info!("series '{}' chosen for {size} x {size} (trained for {:?})", s.name, s.image_sizes);
+        return Ok((dir.clone(), None));
+    }
+    let distance = |s: &Series| {
+        s.image_sizes.iter().map(|&t| (t as f64 / size as f64).ln().abs()).fold(f64::INFINITY, f64::min)
+    };
+    let nearest = found
+        .iter()
+        .filter(|(_, s)| s.any_size && !s.image_sizes.is_empty())
+        .min_by(|a, b| distance(&a.1).total_cmp(&distance(&b.1)).then_with(|| rank(&a.1).cmp(&rank(&b.1))));
+    match nearest {
+        Some((dir, s)) => Ok((
+            dir.clone(),
+            Some(format!("no series was trained for {size} x {size}; using '{}', trained for {:?} (images at other sizes are less precise)", s.name, s.image_sizes)),
+        )),
+        None => {
+            let looked: Vec<String> = roots.iter().map(|d| d.display().to_string()).collect();
+            Err(Error::input(
+                Path::new(AUTO_SERIES),
+                format!("no model series for {size} x {size} images in {} (set R2D2_MODELS, or name a series)", looked.join(", ")),
+            ))
+        }
+    }
+}
+
+/// The series directory for a step's `series` value and image size: [`select_for_size`] for
+/// [`AUTO_SERIES`], else [`resolve`].
+pub fn resolve_for_size(series: &Path, size: usize) -> Result<PathBuf> {
+    if series.as_os_str() == AUTO_SERIES {
+        let (dir, warning) = select_for_size(size)?;
+        if let Some(w) = warning {
+            log::warn!("{w}");
+        }
+        return Ok(dir);
+    }
+    resolve(series)
+}
 
 /// Where series are looked up by name, in order: `$R2D2_MODELS` alone when set; else `models/`
 /// in the working directory, the repository's `models/` for a binary built in it
@@ -319,6 +381,43 @@ mod tests {
     fn touch(p: &Path) {
         std::fs::create_dir_all(p.parent().unwrap()).unwrap();
         std::fs::write(p, b"x").unwrap();
+    }
+
+    fn series_dir(root: &Path, name: &str, sizes: &str, any_size: bool) {
+        let dir = root.join(name);
+        touch(&dir.join("a.onnx"));
+        let manifest = format!(
+            "format: 1\nname: {name}\narchitecture: r2d2\nimage_sizes: {sizes}\nany_size: {any_size}\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx]\n"
+        );
+        std::fs::write(dir.join("manifest.yaml"), manifest).unwrap();
+    }
+
+    #[test]
+    fn auto_picks_the_series_trained_for_the_size_then_the_nearest_with_a_warning() {
+        let root = tempfile::tempdir().unwrap();
+        let roots = [root.path().to_path_buf()];
+        series_dir(root.path(), "aaa-other-512", "[512]", true);
+        series_dir(root.path(), "vla-r2d2-512", "[512]", true);
+        series_dir(root.path(), "vla-r2d2-128", "[128]", true);
+        series_dir(root.path(), "fixed-64", "[64]", false);
+        let pick = |size| select_in(&roots, size).unwrap();
+        // Trained for the size: the project's own series before others of the same size.
+        assert_eq!(pick(512), (root.path().join("vla-r2d2-512"), None));
+        assert_eq!(pick(128), (root.path().join("vla-r2d2-128"), None));
+        // Only allowed for other sizes: trained for 64, fixed -- chosen at 64, never elsewhere.
+        assert_eq!(pick(64), (root.path().join("fixed-64"), None));
+        // No series for the size: the nearest trained size that allows others, with a warning.
+        let (dir, warning) = pick(256);
+        assert!(dir == root.path().join("vla-r2d2-512") || dir == root.path().join("vla-r2d2-128"), "{dir:?}");
+        let (dir, warning96) = pick(96);
+        assert_eq!(dir, root.path().join("vla-r2d2-128"));
+        assert!(warning96.unwrap().contains("no series was trained for 96 x 96"));
+        assert!(warning.unwrap().contains("256 x 256"));
+        assert_eq!(pick(2048).0, root.path().join("vla-r2d2-512"));
+        // Nothing usable: an error naming where it looked.
+        let empty = tempfile::tempdir().unwrap();
+        let e = select_in(&[empty.path().to_path_buf()], 512).unwrap_err().to_string();
+        assert!(e.contains("no model series for 512 x 512") && e.contains(&empty.path().display().to_string()), "{e}");
     }
 
     #[test]

@@ -14,22 +14,40 @@ import numpy as np
 import torch
 
 
-class Dataset:
-    """Stacked arrays of one `r2d2 trainset` directory (float32 images, float64 PSF spectra)."""
+REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-    def __init__(self, path, limit=None):
-        self.path = path
+
+def repo_relative(path):
+    """A path as provenance records it: relative to the repository, never the machine's."""
+    rel = os.path.relpath(os.path.abspath(path), REPO)
+    return rel if not rel.startswith("..") else os.path.basename(os.path.normpath(path))
+
+
+def portable(meta):
+    """`meta` with every absolute path made repository-relative (recursively)."""
+    if isinstance(meta, dict):
+        return {k: portable(v) for k, v in meta.items()}
+    if isinstance(meta, list):
+        return [portable(v) for v in meta]
+    if isinstance(meta, str) and os.path.isabs(meta):
+        return repo_relative(meta)
+    return meta
+
+
+class Dataset:
+    """Stacked arrays of one or more `r2d2 trainset` directories (float32 images, float64 PSF
+    spectra), concatenated in the order given."""
+
+    def __init__(self, paths, limit=None):
+        paths = [paths] if isinstance(paths, str) else list(paths)
+        self.path = paths[0] if len(paths) == 1 else paths
+        parts = [_load_set(p) for p in paths]
         sl = slice(None, limit)
-        load = lambda name: np.load(os.path.join(path, name), mmap_mode="r")[sl]
-        self.truth = torch.from_numpy(np.array(load("truth.npy"), dtype=np.float32))
-        self.dirty = torch.from_numpy(np.array(load("dirty.npy"), dtype=np.float32))
-        self.noise_dirty = torch.from_numpy(np.array(load("noise_dirty.npy"), dtype=np.float32))
-        psf = torch.from_numpy(np.array(load("psf2n.npy"), dtype=np.float64))
-        self.psf_hat = torch.fft.rfft2(psf)  # [S, 2N, N+1] complex128
-        with open(os.path.join(path, "samples.json")) as f:
-            self.samples = json.load(f)[sl]
-        with open(os.path.join(path, "trainset.json")) as f:
-            self.meta = json.load(f)
+        cat = lambda key: torch.cat([part[key] for part in parts])[sl]
+        self.truth, self.dirty, self.noise_dirty = cat("truth"), cat("dirty"), cat("noise_dirty")
+        self.psf_hat = cat("psf_hat")  # [S, 2N, N+1] complex128
+        self.samples = [s for part in parts for s in part["samples"]][sl]
+        self.meta = parts[0]["meta"] if len(parts) == 1 else {"sets": [part["meta"] for part in parts]}
         self.dynamic_range = torch.tensor([s["dynamic_range"] for s in self.samples], dtype=torch.float64)
 
     def __len__(self):
@@ -38,6 +56,20 @@ class Dataset:
     @property
     def size(self):
         return self.truth.shape[-1]
+
+
+def _load_set(path):
+    load = lambda name: np.load(os.path.join(path, name), mmap_mode="r")
+    psf = load("psf2n.npy")
+    # The PSF spectra in chunks: the 2N PSFs as float64 all at once would double the peak.
+    psf_hat = torch.cat([torch.fft.rfft2(torch.from_numpy(np.array(psf[s:s + 32], dtype=np.float64)))
+                         for s in range(0, psf.shape[0], 32)])
+    with open(os.path.join(path, "samples.json")) as f:
+        samples = json.load(f)
+    with open(os.path.join(path, "trainset.json")) as f:
+        meta = json.load(f)
+    images = {name: torch.from_numpy(np.array(load(f"{name}.npy"), dtype=np.float32)) for name in ("truth", "dirty", "noise_dirty")}
+    return {**images, "psf_hat": psf_hat, "samples": samples, "meta": meta}
 
 
 def apply_d(x, psf_hat):
@@ -58,27 +90,32 @@ def residual(dirty, x, psf_hat, batch=64):
     return out
 
 
+# Added to the mean, as the reference and the engine do (src/steps/onnx.rs).
+NORMALISATION_EPSILON = 1e-10
+
+
 def network_input(iteration, dirty, x, r):
-    """Normalised 2-channel input [B, 2, N, N] and alpha [B, 1, 1, 1] (reference order)."""
+    """Normalised 2-channel input [B, 2, N, N] and alpha [B, 1, 1] (reference order)."""
     if iteration == 1:
-        alpha = dirty.mean(dim=(-2, -1), keepdim=True)
+        alpha = dirty.mean(dim=(-2, -1), keepdim=True) + NORMALISATION_EPSILON
         inp = torch.stack([dirty / alpha, torch.zeros_like(dirty)], dim=1)
         prev = torch.zeros_like(dirty)
     else:
-        alpha = x.mean(dim=(-2, -1), keepdim=True)
+        alpha = x.mean(dim=(-2, -1), keepdim=True) + NORMALISATION_EPSILON
         inp = torch.stack([x / alpha, r / alpha], dim=1)
         prev = x / alpha
     return inp, alpha, prev
 
 
-def update(iteration, run_network, dirty, x, r, batch=32):
+def update(iteration, run_network, dirty, x, r, batch=None):
     """x_i for every sample: max(0, x_{i-1}/alpha + N_i(input)) * alpha (float32)."""
     out = torch.empty_like(dirty)
+    batch = batch or max(1, (32 * 128 * 128) // (dirty.shape[-1] * dirty.shape[-2]))
     for s in range(0, dirty.shape[0], batch):
         e = s + batch
         inp, alpha, prev = network_input(iteration, dirty[s:e], x[s:e], r[s:e])
         inc = run_network(inp)[:, 0]
-        out[s:e] = torch.clamp(prev + inc, min=0.0) * alpha
+        out[s:e] = torch.clamp((prev + inc) * alpha, min=0.0)
     return out
 
 

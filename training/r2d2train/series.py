@@ -53,7 +53,7 @@ def new_manifest(name, model, size, description, provenance):
         "telescope": "vla",
         "architecture": "r2d2",
         "network": {"kind": "unet", "base_channels": model.base_channels, "poolings": model.poolings,
-                    "parameters": parameter_count(model)},
+                    "norm": model.norm, "parameters": parameter_count(model)},
         "image_sizes": [size],
         "any_size": True,
         "superresolution": 1.5,
@@ -72,13 +72,18 @@ def new_manifest(name, model, size, description, provenance):
 def save_weights(series_dir, i, model):
     path = os.path.join(series_dir, weights_name(i))
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    torch.save(model.state_dict(), path + ".tmp")
+    torch.save({k: v.cpu() for k, v in model.state_dict().items()}, path + ".tmp")
     os.replace(path + ".tmp", path)
 
 
-def load_model(series_dir, i, base_channels, poolings):
-    model = UNet(base_channels, poolings)
-    model.load_state_dict(torch.load(os.path.join(series_dir, weights_name(i)), weights_only=True))
+def network_norm(manifest):
+    """The U-Net's normalisation ("instance" for series written before the option existed)."""
+    return manifest["network"].get("norm", "instance")
+
+
+def load_model(series_dir, i, base_channels, poolings, norm="instance"):
+    model = UNet(base_channels, poolings, norm=norm)
+    model.load_state_dict(torch.load(os.path.join(series_dir, weights_name(i)), weights_only=True, map_location="cpu"))
     return model.eval()
 
 
