@@ -171,8 +171,11 @@ fn image_command_runs_the_default_pipeline() {
         &["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64", "--seed", "4", "--out", "obs.parquet"],
         d,
     ));
-    // The default step is the shipped series, found by name.
-    check(&r2d2(&["image", "obs.parquet", "--size", "64", "--truth", "obs.sky.fits", "--name", "res/obs"], d));
+    // The default step is the shipped series trained nearest to the size (none for 64: the 128
+    // one, with a warning saying so).
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--truth", "obs.sky.fits", "--name", "res/obs"], d);
+    check(&out);
+    assert!(stderr(&out).contains("no series was trained for 64 x 64; using 'vla-r2d2-128'"), "{}", stderr(&out));
     for product in ["dirty", "psf", "model", "residual"] {
         assert!(d.join(format!("res/obs-{product}.fits")).exists(), "{product}");
     }

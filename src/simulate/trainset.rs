@@ -174,7 +174,10 @@ pub fn make_sample(truth: TruthSource, params: &TrainsetParams, seed: u64, threa
         vis,
         weight: vec![1.0 / (sim.noise_sigma * sim.noise_sigma); coverage.len()],
         flag: coverage.flag.clone(),
-        ..Default::default()
+        // Kept so that the sample's table converts to a MeasurementSet (rows by time and baseline).
+        time: coverage.time_s.clone(),
+        antenna1: coverage.antenna1.clone(),
+        antenna2: coverage.antenna2.clone(),
     };
     let vis_table = table(sim.vis.clone());
     let (vis, _) = vis_table.to_visibilities("simulated sample")?;
