@@ -27,12 +27,12 @@ vla-r2d2-128)
     ARGS="--epochs-first 16 --epochs 6 --batch 8 --bf16 --max-networks 12"
     ;;
 vla-r2d2-512)
-    # Half the training truths are the project's procedural radio skies (seeds 100000..),
-    # half reworked scikit-image images; validation 500000.., test 900000..: disjoint seeds.
+    # Training truths: 120 of the project's procedural radio skies (seeds 100000..) and 80
+    # reworked scikit-image images; validation 500000.., test 900000..: disjoint seeds.
     D="$DATA/512"
     SIM="--size 512 --integration-s 300 --epsilon 1e-5"
     mkdir -p "$D"
-    [ -d "$D/truths-train" ] || $RUN python3 training/prepare_truths.py --count 120 --size 512 --seed 2 --source-dr 50 --out "$D/truths-train"
+    [ -d "$D/truths-train" ] || $RUN python3 training/prepare_truths.py --count 80 --size 512 --seed 2 --source-dr 50 --out "$D/truths-train"
     [ -d "$D/train-images" ] || $RUN "$R2D2" trainset --truths "$D/truths-train" --source-dr 50 --seed 1000 $SIM --out "$D/train-images"
     [ -d "$D/train-radio" ] || $RUN "$R2D2" trainset --procedural 120 --seed 100000 $SIM --out "$D/train-radio"
     [ -d "$D/val" ] || $RUN "$R2D2" trainset --procedural 16 --seed 500000 $SIM --out "$D/val"
