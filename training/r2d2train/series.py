@@ -1,4 +1,4 @@
-"""A series directory (models/<series>/): manifest (format 1, notes/manifest-spec.md), ONNX
+"""A series directory (models/<series>/): manifest (format 1, docs/models.md), ONNX
 networks, PyTorch weights for resuming, all written to a temporary name and renamed."""
 import os
 
