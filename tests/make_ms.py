@@ -34,8 +34,11 @@ import shutil
 import sys
 
 import numpy as np
-import pyarrow.parquet as pq
-from casacore.tables import default_ms, makearrcoldesc, maketabdesc, table, tableutil
+from casacore.tables import default_ms, makearrcoldesc, maketabdesc, table
+
+# The benchmark's MS writer reads Parquet tables the same way.
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benches"))
+from vs_wsclean import read_table, table_samples  # noqa: E402
 
 CORR_CODES = {"I": 1, "Q": 2, "U": 3, "V": 4, "RR": 5, "RL": 6, "LR": 7, "LL": 8,
               "XX": 9, "XY": 10, "YX": 11, "YY": 12}
@@ -71,20 +74,11 @@ def hands(corr):
 def main():
     args = parse_args()
     corr = args.corr.split(",")
-    t = pq.read_table(args.parquet)
-    meta = {k.decode(): v.decode() for k, v in (pq.ParquetFile(args.parquet).metadata.metadata or {}).items()
-            if not k.startswith(b"ARROW:")}
-    cols = {name: t.column(name).to_numpy() for name in t.column_names}
+    cols, meta = read_table(args.parquet)
     for need in ("time", "antenna1", "antenna2"):
         if need not in cols:
             sys.exit(f"{args.parquet}: no `{need}` column (use a table from `r2d2 simulate`)")
-    n = len(cols["u"])
-    freq = cols["frequency"].astype(np.float64)
-    chans = np.unique(freq)
-    ch = np.searchsorted(chans, freq)
-    weight = cols["weight"].astype(np.float64) if "weight" in cols else np.ones(n)
-    flag = cols["flag"].astype(bool) if "flag" in cols else np.zeros(n, bool)
-    vis = cols["vis_re"].astype(np.float64) + 1j * cols["vis_im"].astype(np.float64)
+    n, chans, ch, weight, flag, vis = table_samples(cols)
 
     keys = np.stack([cols["time"], cols["antenna1"], cols["antenna2"]], axis=1).astype(np.float64)
     rows, first, row_of = np.unique(keys, axis=0, return_index=True, return_inverse=True)

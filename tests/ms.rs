@@ -213,11 +213,14 @@ fn model_column_is_the_direct_dft_of_the_model() {
     assert!(grew > data_before.len(), "MODEL_DATA has files of its own");
 }
 
+/// An MS name, make_ms.py options, r2d2 options, and words the error must contain.
+type BadCase<'a> = (&'a str, &'a [&'a str], &'a [&'a str], &'a [&'a str]);
+
 #[test]
 fn bad_ms_input_names_the_ms_and_column_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
     observation(dir.path(), 1);
-    let cases: &[(&str, &[&str], &[&str], &[&str])] = &[
+    let cases: &[BadCase] = &[
         ("nopol.ms", &["--drop", "POLARIZATION"], &[], &["POLARIZATION", "missing"]),
         ("nouvw.ms", &["--drop", "UVW"], &[], &["`UVW`", "missing"]),
         ("noi.ms", &["--corr", "XX,XY"], &[], &["CORR_TYPE", "XX, XY", "Stokes I"]),

@@ -262,23 +262,14 @@ impl MsReader {
             let weights = match &weight {
                 Some((name, cells)) => {
                     let expected: &[u32] = if matches!(c.weight, WeightSource::Spectrum(_)) { &shape } else { &shape[1..] };
-                    let (found, values) = array_f64(&cells[r]).ok_or_else(|| {
+                    Some(float_cell(&cells[r], expected).ok_or_else(|| {
                         cell_error(name, &format!("a float array of shape {expected:?}, found {}", describe(&cells[r])))
-                    })?;
-                    if found != expected {
-                        return Err(cell_error(name, &format!("a float array of shape {expected:?}, found shape {found:?}")));
-                    }
-                    Some(values)
+                    })?)
                 }
                 None => None,
             };
-            out.push_row(window, &Row { uvw: uvw_row, time: time[r], antenna1: antenna1[r], antenna2: antenna2[r], field: field[r] }, &RowCells {
-                flag_row: flag_row[r],
-                vis: &vis,
-                flags: flags.as_deref(),
-                weights: weights.as_deref(),
-                weight: c.weight,
-            });
+            let row = Row { uvw: uvw_row, time: time[r], antenna1: antenna1[r], antenna2: antenna2[r], field: field[r] };
+            out.push_row(window, &row, &RowCells { flag_row: flag_row[r], vis, flags, weights, weight: c.weight });
         }
         self.counts.rows += n;
         out.into_batch(self.schema.clone(), path)
@@ -317,23 +308,56 @@ fn scan_column(table: &Table, path: &Path, column: usize, name: &str) -> Result<
     Ok(ids.into_iter().collect())
 }
 
-/// A complex array cell of `shape` as (re, im) pairs.
-fn complex_cell(value: &RecordValue, shape: &[u32; 2]) -> Option<Vec<(f64, f64)>> {
-    let RecordValue::Array(array) = value else { return None };
-    if array.shape != shape {
-        return None;
-    }
-    Some(match &array.data {
-        ArrayData::Complex(v) => v.iter().map(|&(re, im)| (f64::from(re), f64::from(im))).collect(),
-        ArrayData::DComplex(v) => v.clone(),
-        _ => return None,
-    })
+/// An array cell's numbers, borrowed from the decoded cell (no copy per row).
+#[derive(Clone, Copy)]
+enum Numbers<'a> {
+    Complex(&'a [(f32, f32)]),
+    DComplex(&'a [(f64, f64)]),
+    Float(&'a [f32]),
+    Double(&'a [f64]),
 }
 
-fn bool_cell(value: &RecordValue, shape: &[u32; 2]) -> Option<Vec<bool>> {
+impl Numbers<'_> {
+    fn complex(self, i: usize) -> (f64, f64) {
+        match self {
+            Numbers::Complex(v) => (f64::from(v[i].0), f64::from(v[i].1)),
+            Numbers::DComplex(v) => v[i],
+            Numbers::Float(v) => (f64::from(v[i]), 0.0),
+            Numbers::Double(v) => (v[i], 0.0),
+        }
+    }
+
+    fn real(self, i: usize) -> f64 {
+        self.complex(i).0
+    }
+}
+
+/// A complex array cell of exactly `shape`.
+fn complex_cell<'a>(value: &'a RecordValue, shape: &[u32]) -> Option<Numbers<'a>> {
+    let RecordValue::Array(array) = value else { return None };
+    match &array.data {
+        _ if array.shape != shape => None,
+        ArrayData::Complex(v) => Some(Numbers::Complex(v)),
+        ArrayData::DComplex(v) => Some(Numbers::DComplex(v)),
+        _ => None,
+    }
+}
+
+/// A float array cell of exactly `shape`.
+fn float_cell<'a>(value: &'a RecordValue, shape: &[u32]) -> Option<Numbers<'a>> {
+    let RecordValue::Array(array) = value else { return None };
+    match &array.data {
+        _ if array.shape != shape => None,
+        ArrayData::Float(v) => Some(Numbers::Float(v)),
+        ArrayData::Double(v) => Some(Numbers::Double(v)),
+        _ => None,
+    }
+}
+
+fn bool_cell<'a>(value: &'a RecordValue, shape: &[u32]) -> Option<&'a [bool]> {
     match value {
         RecordValue::Array(array) if array.shape == shape => match &array.data {
-            ArrayData::Bool(v) => Some(v.clone()),
+            ArrayData::Bool(v) => Some(v),
             _ => None,
         },
         _ => None,
@@ -352,9 +376,9 @@ struct Row {
 /// The array cells of one row, flattened channel-major (`[channel][correlation]`).
 struct RowCells<'a> {
     flag_row: bool,
-    vis: &'a [(f64, f64)],
+    vis: Numbers<'a>,
     flags: Option<&'a [bool]>,
-    weights: Option<&'a [f64]>,
+    weights: Option<Numbers<'a>>,
     weight: WeightSource,
 }
 
@@ -383,10 +407,10 @@ impl Samples {
         let hand_weight = |channel: usize, k: usize| -> f64 {
             let Some(values) = cells.weights else { return 1.0 };
             match cells.weight {
-                WeightSource::Spectrum(_) => values[channel * ncorr + k],
-                WeightSource::Row(_) => values[k],
+                WeightSource::Spectrum(_) => values.real(channel * ncorr + k),
+                WeightSource::Row(_) => values.real(k),
                 WeightSource::Sigma(_) => {
-                    let sigma = values[k];
+                    let sigma = values.real(k);
                     if sigma > 0.0 {
                         1.0 / (sigma * sigma)
                     } else {
@@ -398,7 +422,7 @@ impl Samples {
         };
         let flagged = |channel: usize, k: usize| cells.flags.is_some_and(|f| f[channel * ncorr + k]);
         for channel in window.channels.clone() {
-            let at = |k: usize| cells.vis[channel * ncorr + k];
+            let at = |k: usize| cells.vis.complex(channel * ncorr + k);
             let (vis, weight, flag) = match window.stokes {
                 StokesI::Direct(i) => (at(i), hand_weight(channel, i), flagged(channel, i)),
                 StokesI::Mean(a, b) => {
