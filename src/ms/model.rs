@@ -7,7 +7,7 @@
 //! elsewhere two renames, with a moment in which the MS path is absent). So at every instant
 //! the MS path holds either the untouched MS or the complete new one; a failure or an
 //! interruption before the exchange leaves the original as it was (and at most the hidden copy,
-//! removed on failure; after a kill, by the next write to the same MS). The price: free disk
+//! removed on failure; after a kill, by the next model write to the same MS). The price: free disk
 //! space for one copy of the MS while writing.
 
 use super::{open_table, MsReader, Origin, Window};
@@ -54,10 +54,33 @@ impl Drop for Staging {
     }
 }
 
-fn staging_path(ms: &Path) -> Result<PathBuf> {
+/// `.NAME.r2d2-model-` beside the MS: the prefix of its staging copies.
+fn staging_prefix(ms: &Path) -> Result<(PathBuf, String)> {
     let name = ms.file_name().ok_or_else(|| Error::input(ms, "a MeasurementSet path must name a directory"))?;
     let parent = ms.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    Ok(parent.join(format!(".{}.r2d2-model-{}", name.to_string_lossy(), std::process::id())))
+    Ok((parent.to_path_buf(), format!(".{}.r2d2-model-", name.to_string_lossy())))
+}
+
+fn staging_path(ms: &Path) -> Result<PathBuf> {
+    let (parent, prefix) = staging_prefix(ms)?;
+    Ok(parent.join(format!("{prefix}{}", std::process::id())))
+}
+
+/// Removes staging copies left by killed writers (their process no longer runs), so a kill
+/// costs disk space only until the next model write to the same MS.
+fn remove_stale_staging(ms: &Path) {
+    let Ok((parent, prefix)) = staging_prefix(ms) else { return };
+    let Ok(entries) = std::fs::read_dir(&parent) else { return };
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(pid) = name.strip_prefix(&prefix).and_then(|p| p.parse::<u32>().ok()) else { continue };
+        // Only where running processes can be told (Linux /proc); elsewhere they stay.
+        let running = Path::new("/proc").join(pid.to_string()).exists() || !Path::new("/proc/self").exists();
+        if pid != std::process::id() && !running {
+            log::info!("removing {} left by an interrupted model write", entry.path().display());
+            let _ = std::fs::remove_dir_all(entry.path());
+        }
+    }
 }
 
 /// Copies a directory tree (files and subdirectories; the tables have nothing else).
@@ -133,6 +156,7 @@ pub fn write_model_column(origin: &Origin, target: &ModelTarget<'_>) -> Result<M
     if target.model.len() != target.geometry.pixels() {
         return Err(Error::parameter("model", format!("{} pixels for a {} x {} image", target.model.len(), target.geometry.size, target.geometry.size)));
     }
+    remove_stale_staging(ms);
     let staging = Staging { path: staging_path(ms)? };
     if staging.path.exists() {
         std::fs::remove_dir_all(&staging.path).map_err(|e| Error::io(&staging.path, e))?;
