@@ -1,9 +1,9 @@
-//! `r2d2 convert OBS.ms OBS.parquet`: a MeasurementSet's Stokes I samples as a Parquet
-//! visibility table; and the MS options and input detection shared by `r2d2 dirty` and
+//! `r2d2 convert OBS.ms OBS.parquet` (a MeasurementSet's Stokes I samples as a Parquet
+//! visibility table) and back; and the MS options and input detection shared by `r2d2 dirty` and
 //! `r2d2 image`.
 
 use r2d2_imaging::vis::{IngestStats, ObservationMeta, Visibilities};
-use r2d2_imaging::{Error, Result};
+use r2d2_imaging::Result;
 use std::path::{Path, PathBuf};
 
 /// What of a MeasurementSet to read (ignored for Parquet input).
@@ -73,30 +73,39 @@ pub fn read_input(path: &Path, ms: &MsOptions) -> Result<(Visibilities, Observat
     #[cfg(not(feature = "ms"))]
     {
         let _ = ms;
-        Err(Error::input(path, "a MeasurementSet, but this r2d2 was built without the `ms` feature"))
+        Err(r2d2_imaging::Error::input(path, "a MeasurementSet, but this r2d2 was built without the `ms` feature"))
     }
 }
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// The MeasurementSet (a directory).
+    /// A MeasurementSet (written as Parquet) or a Parquet table (written as an MS).
     input: PathBuf,
-    /// The Parquet table to write (replaced atomically).
+    /// The Parquet table or MeasurementSet to write (replaced whole).
     output: PathBuf,
     #[command(flatten)]
     ms: MsOptions,
 }
 
 pub fn run(args: Args) -> Result<()> {
-    if !is_ms(&args.input) {
-        return Err(Error::input(&args.input, "not a MeasurementSet (a directory with table.dat); convert reads an MS and writes Parquet"));
-    }
     #[cfg(feature = "ms")]
     {
-        let (counts, samples) = r2d2_imaging::ms::convert_ms_to_parquet(&args.input, &args.ms.selection(), &args.output)?;
-        log::info!("{}: {counts}; wrote {samples} samples to {}", args.input.display(), args.output.display());
+        if is_ms(&args.input) {
+            let (counts, samples) = r2d2_imaging::ms::convert_ms_to_parquet(&args.input, &args.ms.selection(), &args.output)?;
+            log::info!("{}: {counts}; wrote {samples} samples to {}", args.input.display(), args.output.display());
+        } else {
+            let made = r2d2_imaging::ms::convert_parquet_to_ms(&args.input, &args.output)?;
+            log::info!(
+                "{}: wrote {} samples as {} rows x {} channels (XX, YY) to {}",
+                args.input.display(),
+                made.samples,
+                made.rows,
+                made.channels,
+                args.output.display()
+            );
+        }
         Ok(())
     }
     #[cfg(not(feature = "ms"))]
-    Err(Error::input(&args.input, "this r2d2 was built without the `ms` feature"))
+    Err(r2d2_imaging::Error::input(&args.input, "this r2d2 was built without the `ms` feature"))
 }

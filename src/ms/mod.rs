@@ -20,10 +20,12 @@
 //! so `split_by` can use them.
 
 mod convert;
+mod from_parquet;
 mod model;
 mod reader;
 
 pub use convert::convert_ms_to_parquet;
+pub use from_parquet::{convert_parquet_to_ms, ParquetToMs};
 pub use model::{write_job_model, write_model_column, ModelReport, ModelTarget};
 pub use reader::{batch_schema, fields_with_rows, MsCounts, MsReader};
 

@@ -113,7 +113,7 @@ fn sync_tree(dir: &Path) -> Result<()> {
 }
 
 /// Swaps two directories: atomically on Linux, else by two renames.
-fn exchange(a: &Path, b: &Path) -> Result<()> {
+pub(super) fn exchange(a: &Path, b: &Path) -> Result<()> {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     {
         use std::ffi::CString;
