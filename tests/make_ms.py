@@ -14,7 +14,8 @@ of it is exactly the table's samples:
   hands (4 correlations) hold junk that must not reach I. `--corr XX,XY` has no I.
 - `--spw K` cuts the channels into K windows: each row becomes K rows, one per DATA_DESC_ID.
 - `--weights spectrum` writes WEIGHT_SPECTRUM; `row` only WEIGHT (the table's weights must
-  then be the same over a row's channels); `sigma` only SIGMA (WEIGHT removed).
+  then be the same over a row's channels); `sigma` only SIGMA (WEIGHT removed);
+  `empty-spectrum` WEIGHT and a variable-shape WEIGHT_SPECTRUM column never written.
 - `--flag-hands one` flags a flagged sample in one hand only (alternating), the other hand
   keeping valid data: the reader must still exclude it. Channels a row lacks are flagged.
 - `--stman mixed` stores DATA, FLAG and WEIGHT_SPECTRUM with TiledColumnStMan and the
@@ -51,7 +52,7 @@ def parse_args():
     p.add_argument("ms")
     p.add_argument("--corr", default="XX,YY")
     p.add_argument("--spw", type=int, default=1)
-    p.add_argument("--weights", choices=["spectrum", "row", "sigma"], default="spectrum")
+    p.add_argument("--weights", choices=["spectrum", "row", "sigma", "empty-spectrum"], default="spectrum")
     p.add_argument("--flag-hands", choices=["both", "one"], default="both")
     p.add_argument("--stman", choices=["ssm", "mixed"], default="ssm")
     p.add_argument("--fields", type=int, choices=[1, 2], default=1)
@@ -162,6 +163,8 @@ def main():
         columns.append(makearrcoldesc(args.data_column, 0j, valuetype="complex", shape=[wchan, ncorr]))
     if args.weights == "spectrum":
         columns.append(makearrcoldesc("WEIGHT_SPECTRUM", 0.0, valuetype="float", shape=[wchan, ncorr]))
+    elif args.weights == "empty-spectrum":
+        columns.append(makearrcoldesc("WEIGHT_SPECTRUM", 0.0, valuetype="float", ndim=2))
     desc = maketabdesc(columns)
     dminfo = None
     if args.stman == "mixed":

@@ -86,6 +86,11 @@ fn ms_weights_from_sigma_and_a_data_column_image_as_parquet() {
 }
 
 #[test]
+fn ms_weight_stands_in_for_an_unwritten_weight_spectrum() {
+    assert_same_dirty_image(2, &["--weights", "empty-spectrum"], &[]);
+}
+
+#[test]
 fn ms_convert_selects_windows_and_channels() {
     let dir = tempfile::tempdir().unwrap();
     observation(dir.path(), 4);

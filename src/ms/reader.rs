@@ -61,6 +61,8 @@ struct Columns {
     flag: Option<usize>,
     data: usize,
     weight: WeightSource,
+    /// `WEIGHT`, for rows whose `WEIGHT_SPECTRUM` cell is empty.
+    weight_row: Option<usize>,
 }
 
 /// Streams an MS as Stokes I samples, `batch_rows` samples at most per batch (one main-table
@@ -141,6 +143,7 @@ impl MsReader {
             flag: optional_column(&table, "FLAG"),
             data,
             weight,
+            weight_row: optional_column(&table, "WEIGHT"),
         };
         let (used_fields, used_dd) = scan_ids(&table, path, &columns)?;
         let layout = Layout::read(path, selection, &used_fields, &used_dd)?;
@@ -222,6 +225,13 @@ impl MsReader {
             WeightSource::Sigma(col) => Some(("SIGMA", cells(col, "SIGMA")?)),
             WeightSource::Unit => None,
         };
+        // A declared but never written WEIGHT_SPECTRUM has empty cells: WEIGHT stands in for
+        // them, as in casacore-based imagers.
+        let spectrum_gaps = matches!(&weight, Some(("WEIGHT_SPECTRUM", cells)) if cells.iter().any(is_empty_array));
+        let row_weights = match c.weight_row {
+            Some(col) if spectrum_gaps => Some(cells(col, "WEIGHT")?),
+            _ => None,
+        };
 
         let mut out = Samples::default();
         for r in 0..n as usize {
@@ -259,17 +269,22 @@ impl MsReader {
                 })?),
                 None => None,
             };
-            let weights = match &weight {
-                Some((name, cells)) => {
-                    let expected: &[u32] = if matches!(c.weight, WeightSource::Spectrum(_)) { &shape } else { &shape[1..] };
-                    Some(float_cell(&cells[r], expected).ok_or_else(|| {
-                        cell_error(name, &format!("a float array of shape {expected:?}, found {}", describe(&cells[r])))
+            let (name, cell, source) = match (&weight, &row_weights) {
+                (Some((_, spectrum)), Some(row_cells)) if is_empty_array(&spectrum[r]) => ("WEIGHT", Some(&row_cells[r]), WeightSource::Row(0)),
+                (Some((name, cells)), _) => (*name, Some(&cells[r]), c.weight),
+                (None, _) => ("", None, c.weight),
+            };
+            let weights = match cell {
+                Some(cell) => {
+                    let expected: &[u32] = if matches!(source, WeightSource::Spectrum(_)) { &shape } else { &shape[1..] };
+                    Some(float_cell(cell, expected).ok_or_else(|| {
+                        cell_error(name, &format!("a float array of shape {expected:?}, found {}", describe(cell)))
                     })?)
                 }
                 None => None,
             };
             let row = Row { uvw: uvw_row, time: time[r], antenna1: antenna1[r], antenna2: antenna2[r], field: field[r] };
-            out.push_row(window, &row, &RowCells { flag_row: flag_row[r], vis, flags, weights, weight: c.weight });
+            out.push_row(window, &row, &RowCells { flag_row: flag_row[r], vis, flags, weights, weight: source });
         }
         self.counts.rows += n;
         out.into_batch(self.schema.clone(), path)
@@ -352,6 +367,11 @@ fn float_cell<'a>(value: &'a RecordValue, shape: &[u32]) -> Option<Numbers<'a>> 
         ArrayData::Double(v) => Some(Numbers::Double(v)),
         _ => None,
     }
+}
+
+/// An array cell without elements (an undefined cell of a variable-shape column).
+fn is_empty_array(value: &RecordValue) -> bool {
+    matches!(value, RecordValue::Array(a) if a.shape.is_empty() || a.shape.contains(&0))
 }
 
 fn bool_cell<'a>(value: &'a RecordValue, shape: &[u32]) -> Option<&'a [bool]> {
