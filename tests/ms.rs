@@ -135,6 +135,11 @@ fn ms_source_splits_by_window_and_by_field() {
     };
     let (ra0, ra1) = (ra("obs-field00"), ra("obs-field01"));
     assert!((ra1 - ra0 - 0.1f64.to_degrees()).abs() < 1e-9, "each field's own phase centre: {ra0} {ra1}");
+    // A model column with jobs split by window: refused before any work.
+    let model = yaml("spw", "field: 0, ").replace("previews: false", "previews: false, model_column: MODEL_DATA");
+    std::fs::write(dir.path().join("model.yaml"), model).unwrap();
+    let err = stderr(&r2d2(&["validate", "model.yaml"], dir.path()));
+    assert!(err.contains("split_by") && err.contains("model_column") && err.contains("line 3"), "{err}");
     // Several fields and no selection: an error listing them, before any work.
     std::fs::write(dir.path().join("none.yaml"), yaml("time, window: 600", "")).unwrap();
     let err = stderr(&r2d2(&["run", "none.yaml"], dir.path()));

@@ -87,6 +87,14 @@ impl MsSource {
         // Before any work starts: the MS opens and the selection resolves (one field, windows
         // with Stokes I, channels in range).
         let by_field = matches!(&config.split_by, Some(s) if s.column == FIELD_SPLIT);
+        // Checked here, before any work, though the writer would refuse such jobs too.
+        let writes_model = pipeline.stages.iter().any(|s| s.kind == "writer" && s.params.get("model_column").is_some_and(|v| !v.is_null()));
+        if let Some(split) = config.split_by.as_ref().filter(|_| !by_field && writes_model) {
+            return Err(error(
+                "split_by",
+                format!("a writer has `model_column`, which holds one model per MS field: split by `field` or not at all, not by `{}`", split.column),
+            ));
+        }
         if by_field && selection.field.is_some() {
             return Err(error("field", "one job per field (`split_by: {column: field}`) reads every field: drop `field`".into()));
         }
