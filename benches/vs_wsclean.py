@@ -146,6 +146,19 @@ def read_table(path):
     return cols, meta
 
 
+def table_samples(cols):
+    """A table's samples: count, distinct frequencies (the channels), each sample's channel,
+    weight (default 1), flag (default false) and complex visibility (also tests/make_ms.py)."""
+    n = len(cols["u"])
+    freq = cols["frequency"].astype(np.float64)
+    chans = np.unique(freq)
+    ch = np.searchsorted(chans, freq)
+    weight = cols["weight"].astype(np.float64) if "weight" in cols else np.ones(n)
+    flag = cols["flag"].astype(bool) if "flag" in cols else np.zeros(n, bool)
+    vis = cols["vis_re"].astype(np.float64) + 1j * cols["vis_im"].astype(np.float64)
+    return n, chans, ch, weight, flag, vis
+
+
 def vla_antennas():
     """ITRF positions of VLA configurations A and C (the engine's data/telescopes tables):
     the simulator numbers configuration A's antennas 0..26 and C's 27..53."""
@@ -193,13 +206,7 @@ def write_ms(parquet, ms, integration_s, sample=None):
     from casacore.tables import default_ms, makearrcoldesc, maketabdesc, table
 
     cols, meta = read_table(parquet)
-    n = len(cols["u"])
-    freq = cols["frequency"].astype(np.float64)
-    chans = np.unique(freq)
-    ch = np.searchsorted(chans, freq)
-    weight = cols["weight"].astype(np.float64) if "weight" in cols else np.ones(n)
-    flag = cols["flag"].astype(bool) if "flag" in cols else np.zeros(n, bool)
-    vis = cols["vis_re"].astype(np.float64) + 1j * cols["vis_im"].astype(np.float64)
+    n, chans, ch, weight, flag, vis = table_samples(cols)
     flag |= ~(np.isfinite(vis) & np.isfinite(weight) & (weight > 0))
     if all(k in cols for k in ("time", "antenna1", "antenna2")):
         keys = np.stack([cols["time"].astype(np.float64), cols["antenna1"].astype(np.float64),

@@ -13,6 +13,8 @@ pub mod fits;
 pub mod imaging;
 pub mod ingest;
 pub mod metrics;
+#[cfg(feature = "ms")]
+pub mod ms;
 pub mod nufft;
 pub mod operator;
 pub mod pipeline;

@@ -3,16 +3,17 @@
 use super::ImageOptions;
 use r2d2_imaging::fits::{write_image, BrightnessUnit, ImageWcs};
 use r2d2_imaging::imaging::dirty_image;
-use r2d2_imaging::vis::read_parquet;
 use r2d2_imaging::Result;
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Visibilities (Parquet, one row per sample).
+    /// Visibilities (Parquet, one row per sample) or a MeasurementSet.
     input: PathBuf,
     #[command(flatten)]
     image: ImageOptions,
+    #[command(flatten)]
+    ms: super::convert::MsOptions,
     /// Output prefix: writes PREFIX-dirty.fits and PREFIX-psf.fits.
     #[arg(long, default_value = "r2d2")]
     name: String,
@@ -20,7 +21,7 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     let params = args.image.dirty_params()?;
-    let (vis, meta, stats) = read_parquet(&args.input)?;
+    let (vis, meta, stats) = super::convert::read_input(&args.input, &args.ms)?;
     log::info!("{}: {stats}", args.input.display());
     let products = dirty_image(&vis, &params)?;
     let geometry = products.operator.geometry();

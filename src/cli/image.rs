@@ -11,10 +11,16 @@ const IMAGE_PIPELINE: &str = include_str!("../../pipelines/image.yaml");
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Visibilities (Parquet).
+    /// Visibilities (Parquet) or a MeasurementSet.
     input: PathBuf,
     #[command(flatten)]
     image: ImageOptions,
+    #[command(flatten)]
+    ms: super::convert::MsOptions,
+    /// MS input: predict the final model's visibilities into this column of the MS (e.g.
+    /// MODEL_DATA; created when missing).
+    #[arg(long)]
+    model_column: Option<String>,
     /// Network step: `auto` (the series trained for the image size, see `r2d2 models`), a model
     /// series (a name from `r2d2 models`, or its directory), `clean` (the built-in Hogbom
     /// CLEAN), or a native plugin library (`.so`, `.dylib`, `.dll`).
@@ -84,13 +90,29 @@ fn step_stage(args: &Args) -> Result<serde_yaml::Value> {
     Ok(stage)
 }
 
+/// The `read` stage for a MeasurementSet input: `kind: ms` with the MS options.
+fn ms_read_stage(args: &Args) -> Result<serde_yaml::Value> {
+    let mut stage = serde_yaml::from_str::<serde_yaml::Value>("{kind: ms, path: obs.ms, to: weights}").expect("literal YAML");
+    #[cfg(feature = "ms")]
+    args.ms.stage_keys(&mut stage);
+    #[cfg(not(feature = "ms"))]
+    return Err(Error::input(&args.input, "a MeasurementSet, but this r2d2 was built without the `ms` feature"));
+    Ok(stage)
+}
+
 pub fn run(args: Args) -> Result<()> {
     let mut pipeline: serde_yaml::Value = serde_yaml::from_str(IMAGE_PIPELINE).expect("the compiled-in pipeline is valid YAML");
     pipeline["stages"]["step"] = step_stage(&args)?;
+    let ms_input = super::convert::is_ms(&args.input);
+    if ms_input {
+        pipeline["stages"]["read"] = ms_read_stage(&args)?;
+    } else if args.model_column.is_some() {
+        return Err(Error::parameter("model-column", format!("{}: only a MeasurementSet input has a column to write the model into", args.input.display())));
+    }
     let text = serde_yaml::to_string(&pipeline).expect("YAML serialises");
     let quote = |p: &Path| serde_json::to_string(&p.to_string_lossy()).expect("strings serialise");
     let mut set = vec![
-        format!("read.files={}", quote(&args.input)),
+        format!("read.{}={}", if ms_input { "path" } else { "files" }, quote(&args.input)),
         format!("image.size={}", args.image.size),
         format!("weights.scheme={}", args.image.weighting),
         format!("weights.robust={}", args.image.robust),
@@ -103,6 +125,9 @@ pub fn run(args: Args) -> Result<()> {
     match args.image.pixel_arcsec {
         Some(p) => set.push(format!("image.pixel_arcsec={p}")),
         None => set.push(format!("image.superresolution={}", args.image.superresolution)),
+    }
+    if let Some(column) = &args.model_column {
+        set.push(format!("write.model_column={}", serde_json::to_string(column).expect("strings serialise")));
     }
     if let Some(t) = &args.truth {
         set.push(format!("read.truth={}", quote(t)));

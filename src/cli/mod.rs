@@ -1,6 +1,7 @@
 //! Command-line interface: option parsing (clap) and dispatch to one module per command.
 
 mod bench;
+mod convert;
 mod dirty;
 mod image;
 mod info;
@@ -32,14 +33,16 @@ enum Command {
     Simulate(simulate::Args),
     /// Training data for R2D2 series: simulated VLA A+C observations of ground truths (.npy).
     Trainset(trainset::Args),
-    /// Dirty image and PSF of a Parquet visibility table (PREFIX-dirty.fits, PREFIX-psf.fits).
+    /// Dirty image and PSF of a Parquet table or a MeasurementSet (PREFIX-dirty.fits, PREFIX-psf.fits).
     Dirty(dirty::Args),
     /// Run a pipeline described in YAML.
     Run(run::RunArgs),
     /// Check a pipeline description without running it.
     Validate(run::ValidateArgs),
-    /// Image a Parquet table with the default pipeline (pipelines/image.yaml).
+    /// Image a Parquet table or a MeasurementSet with the default pipeline (pipelines/image.yaml).
     Image(image::Args),
+    /// A MeasurementSet's Stokes I samples as a Parquet visibility table.
+    Convert(convert::Args),
     /// Benchmarks of the hot paths, as JSON.
     #[command(subcommand)]
     Bench(bench::Command),
@@ -83,6 +86,7 @@ pub fn main() -> ExitCode {
         Command::Run(args) => run::run(args),
         Command::Validate(args) => run::validate(args),
         Command::Image(args) => image::run(args),
+        Command::Convert(args) => convert::run(args),
         Command::Bench(cmd) => bench::run(cmd),
         Command::Models(args) => models::run(args),
         Command::Info(args) => info::run(args),

@@ -3,6 +3,8 @@
 
 mod arrow_ipc;
 mod gridder;
+#[cfg(feature = "ms")]
+mod ms;
 mod parquet;
 mod residual;
 mod simulate;
@@ -34,6 +36,7 @@ const REGISTRY: &[(&str, Role)] = &[
     ("simulate", Role::Source),
     ("parquet", Role::Source),
     ("arrow-ipc", Role::Source),
+    ("ms", Role::Source),
     ("weighting", Role::Transform),
     ("gridder", Role::Transform),
     ("clean", Role::Step),
@@ -43,8 +46,8 @@ const REGISTRY: &[(&str, Role)] = &[
     ("writer", Role::Sink),
 ];
 
-pub const KINDS: &[&str] = &["simulate", "parquet", "arrow-ipc", "weighting", "gridder", "clean", "onnx", "native", "residual", "writer"];
-pub const SOURCE_KINDS: &[&str] = &["simulate", "parquet", "arrow-ipc"];
+pub const KINDS: &[&str] = &["simulate", "parquet", "arrow-ipc", "ms", "weighting", "gridder", "clean", "onnx", "native", "residual", "writer"];
+pub const SOURCE_KINDS: &[&str] = &["simulate", "parquet", "arrow-ipc", "ms"];
 
 pub fn role(kind: &str) -> Option<Role> {
     REGISTRY.iter().find(|(k, _)| *k == kind).map(|(_, r)| *r)
@@ -63,6 +66,10 @@ pub fn build_stage(config: &PipelineConfig, stage: &StageConfig) -> Result<Built
         "simulate" => Built::Source(Box::new(simulate::SimulateSource::new(config.stage_params(stage)?, &config.image, threads)?)),
         "parquet" => Built::Source(Box::new(parquet::ParquetSource::new(config.stage_params(stage)?, config, stage)?)),
         "arrow-ipc" => Built::Source(Box::new(arrow_ipc::ArrowIpcSource::new(config.stage_params(stage)?, config, stage)?)),
+        #[cfg(feature = "ms")]
+        "ms" => Built::Source(Box::new(ms::MsSource::new(config.stage_params(stage)?, config, stage)?)),
+        #[cfg(not(feature = "ms"))]
+        "ms" => return Err(config.stage_error(&stage.name, Some("kind"), "kind 'ms': this r2d2 was built without the `ms` feature")),
         "weighting" => Built::Stage(Box::new(weighting::WeightingStage::new(config.stage_params(stage)?, &config.image)?)),
         "gridder" => {
             // Keep the operator for the residual update only if one of them needs it.

@@ -31,6 +31,10 @@ pub struct WriterConfig {
     /// or of the simulated sky when known, else 1e3.
     #[serde(default)]
     preview_dynamic_range: Option<f64>,
+    /// Predict the final model's visibilities into this column of the input MeasurementSet
+    /// (`kind: ms` jobs), e.g. MODEL_DATA; created when missing.
+    #[serde(default)]
+    model_column: Option<String>,
 }
 
 fn prefix() -> String {
@@ -49,6 +53,7 @@ pub struct WriterStage {
     prefix: String,
     previews: bool,
     preview_dynamic_range: Option<f64>,
+    model_column: Option<String>,
 }
 
 impl WriterStage {
@@ -61,7 +66,15 @@ impl WriterStage {
                 return Err(Error::parameter("preview_dynamic_range", format!("expected a finite number above 1, got {dr}")));
             }
         }
-        Ok(WriterStage { prefix: config.prefix, previews: config.previews, preview_dynamic_range: config.preview_dynamic_range })
+        if config.model_column.as_deref().is_some_and(|c| c.trim().is_empty()) {
+            return Err(Error::parameter("model_column", "expected a column name such as MODEL_DATA"));
+        }
+        Ok(WriterStage {
+            prefix: config.prefix,
+            previews: config.previews,
+            preview_dynamic_range: config.preview_dynamic_range,
+            model_column: config.model_column,
+        })
     }
 
     fn preview_scale(&self, job: &Job) -> PreviewScale {
@@ -161,10 +174,24 @@ impl Stage for WriterStage {
         let path = staging.file(target("metrics.parquet"));
         write_metrics_parquet(&path, &job, n, im.geometry.pixel_arcsec())?;
         let count = staging.moves.len();
+        // Before the products move into place: a failed model write leaves neither.
+        if let Some(column) = &self.model_column {
+            write_model(&job, column)?;
+        }
         staging.commit()?;
         log::info!("job {}: wrote {count} files to {}-*", job.id, dir.join(&stem).display());
         Ok(())
     }
+}
+
+#[cfg(feature = "ms")]
+fn write_model(job: &Job, column: &str) -> Result<()> {
+    crate::ms::write_job_model(job, column).map(|_| ())
+}
+
+#[cfg(not(feature = "ms"))]
+fn write_model(_job: &Job, _column: &str) -> Result<()> {
+    Err(Error::parameter("model_column", "this r2d2 was built without the `ms` feature (MeasurementSets)"))
 }
 
 /// `<prefix>-metrics.parquet`: one row per iteration (`iteration`, `residual_ratio`,

@@ -1,0 +1,111 @@
+//! `r2d2 convert OBS.ms OBS.parquet` (a MeasurementSet's Stokes I samples as a Parquet
+//! visibility table) and back; and the MS options and input detection shared by `r2d2 dirty` and
+//! `r2d2 image`.
+
+use r2d2_imaging::vis::{IngestStats, ObservationMeta, Visibilities};
+use r2d2_imaging::Result;
+use std::path::{Path, PathBuf};
+
+/// What of a MeasurementSet to read (ignored for Parquet input).
+#[derive(clap::Args, Clone, Debug, Default)]
+pub struct MsOptions {
+    /// MS input: the complex column to image (as WSClean's -data-column).
+    #[arg(long, default_value = "DATA")]
+    pub data_column: String,
+    /// MS input: field id or name (needed when the MS has several fields).
+    #[arg(long)]
+    pub field: Option<String>,
+    /// MS input: spectral windows, comma separated (default: all).
+    #[arg(long, value_delimiter = ',')]
+    pub spw: Option<Vec<usize>>,
+    /// MS input: channel range START END (END excluded) of every window.
+    #[arg(long, num_args = 2, value_names = ["START", "END"])]
+    pub channels: Option<Vec<usize>>,
+}
+
+#[cfg(feature = "ms")]
+impl MsOptions {
+    pub fn selection(&self) -> r2d2_imaging::ms::MsSelection {
+        r2d2_imaging::ms::MsSelection {
+            data_column: self.data_column.clone(),
+            field: self.field.as_deref().map(|f| f.parse().expect("any text is a field selector")),
+            spw: self.spw.clone(),
+            channels: self.channels.as_deref().map(|c| [c[0], c[1]]),
+        }
+    }
+
+    /// The options as the `ms` stage's YAML keys.
+    pub fn stage_keys(&self, stage: &mut serde_yaml::Value) {
+        let selection = self.selection();
+        let value = serde_yaml::to_value(&selection).expect("the selection serialises");
+        if let serde_yaml::Value::Mapping(map) = value {
+            for (k, v) in map {
+                if !v.is_null() {
+                    stage[k.as_str().expect("keys are strings")] = v;
+                }
+            }
+        }
+    }
+}
+
+/// Whether `path` is a MeasurementSet (else it is taken as Parquet).
+pub fn is_ms(path: &Path) -> bool {
+    #[cfg(feature = "ms")]
+    return r2d2_imaging::ms::is_measurement_set(path);
+    #[cfg(not(feature = "ms"))]
+    return path.join("table.dat").is_file();
+}
+
+/// Reads a Parquet table or a MeasurementSet whole.
+pub fn read_input(path: &Path, ms: &MsOptions) -> Result<(Visibilities, ObservationMeta, IngestStats)> {
+    if !is_ms(path) {
+        return r2d2_imaging::vis::read_parquet(path);
+    }
+    #[cfg(feature = "ms")]
+    {
+        use r2d2_imaging::ingest::{read_parts, TableReader};
+        let mut reader = r2d2_imaging::ms::MsReader::open_default(path, &ms.selection())?;
+        let (mut parts, stats) = read_parts(&mut reader, None, "split_by", &|| false)?.expect("never cancelled");
+        log::info!("{}: {}", path.display(), reader.counts());
+        let vis = parts.pop().map(|p| p.vis).unwrap_or_default();
+        Ok((vis, reader.meta().clone(), stats))
+    }
+    #[cfg(not(feature = "ms"))]
+    {
+        let _ = ms;
+        Err(r2d2_imaging::Error::input(path, "a MeasurementSet, but this r2d2 was built without the `ms` feature"))
+    }
+}
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// A MeasurementSet (written as Parquet) or a Parquet table (written as an MS).
+    input: PathBuf,
+    /// The Parquet table or MeasurementSet to write (replaced whole).
+    output: PathBuf,
+    #[command(flatten)]
+    ms: MsOptions,
+}
+
+pub fn run(args: Args) -> Result<()> {
+    #[cfg(feature = "ms")]
+    {
+        if is_ms(&args.input) {
+            let (counts, samples) = r2d2_imaging::ms::convert_ms_to_parquet(&args.input, &args.ms.selection(), &args.output)?;
+            log::info!("{}: {counts}; wrote {samples} samples to {}", args.input.display(), args.output.display());
+        } else {
+            let made = r2d2_imaging::ms::convert_parquet_to_ms(&args.input, &args.output)?;
+            log::info!(
+                "{}: wrote {} samples as {} rows x {} channels (XX, YY) to {}",
+                args.input.display(),
+                made.samples,
+                made.rows,
+                made.channels,
+                args.output.display()
+            );
+        }
+        Ok(())
+    }
+    #[cfg(not(feature = "ms"))]
+    Err(r2d2_imaging::Error::input(&args.input, "this r2d2 was built without the `ms` feature"))
+}

@@ -1,0 +1,346 @@
+//! The writer's `model_column`: the final model's visibilities, predicted with the imaging
+//! operator's degridder, into a column of the MS the job was read from.
+//!
+//! Atomicity: the MS is copied to a hidden sibling directory (`.NAME.r2d2-model-PID`; reflinked
+//! where the file system can), the column is written and flushed there, the copy's files are
+//! synced, and the two directories are exchanged in one `renameat2(RENAME_EXCHANGE)` (Linux;
+//! elsewhere two renames, with a moment in which the MS path is absent). So at every instant
+//! the MS path holds either the untouched MS or the complete new one; a failure or an
+//! interruption before the exchange leaves the original as it was (and at most the hidden copy,
+//! removed on failure; after a kill, by the next model write to the same MS). The price: free disk
+//! space for one copy of the MS while writing.
+
+use super::{open_table, MsReader, Origin, Window};
+use crate::nufft::{Nufft2d, NufftParams};
+use crate::operator::ImageGeometry;
+use crate::vis::{DEFAULT_BATCH_ROWS, SPEED_OF_LIGHT};
+use crate::{Error, Result};
+use casacure::record::{ArrayData, ArrayValue, DataType, RecordValue};
+use casacure::tabledesc::ColumnKind;
+use casacure::WritableTable;
+use num_complex::Complex64;
+use std::path::{Path, PathBuf};
+
+/// What to predict and where.
+pub struct ModelTarget<'a> {
+    /// The column to write (`MODEL_DATA`), created when missing.
+    pub column: &'a str,
+    pub geometry: ImageGeometry,
+    /// The model image, Jy/pixel, row-major `N x N`.
+    pub model: &'a [f64],
+    pub nufft: NufftParams,
+    pub threads: usize,
+}
+
+/// What was written: samples predicted, and samples left zero because their baseline lies
+/// beyond the image's Nyquist limit (only flagged samples can: kept ones were imaged).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ModelReport {
+    pub rows: u64,
+    pub samples: u64,
+    pub beyond_nyquist: u64,
+}
+
+/// A hidden sibling directory removed when dropped unless kept.
+struct Staging {
+    path: PathBuf,
+}
+
+impl Drop for Staging {
+    fn drop(&mut self) {
+        if self.path.exists() {
+            let _ = std::fs::remove_dir_all(&self.path);
+        }
+    }
+}
+
+/// `.NAME.r2d2-model-` beside the MS: the prefix of its staging copies.
+fn staging_prefix(ms: &Path) -> Result<(PathBuf, String)> {
+    let name = ms.file_name().ok_or_else(|| Error::input(ms, "a MeasurementSet path must name a directory"))?;
+    let parent = ms.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    Ok((parent.to_path_buf(), format!(".{}.r2d2-model-", name.to_string_lossy())))
+}
+
+fn staging_path(ms: &Path) -> Result<PathBuf> {
+    let (parent, prefix) = staging_prefix(ms)?;
+    Ok(parent.join(format!("{prefix}{}", std::process::id())))
+}
+
+/// Removes staging copies left by killed writers (their process no longer runs), so a kill
+/// costs disk space only until the next model write to the same MS.
+fn remove_stale_staging(ms: &Path) {
+    let Ok((parent, prefix)) = staging_prefix(ms) else { return };
+    let Ok(entries) = std::fs::read_dir(&parent) else { return };
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(pid) = name.strip_prefix(&prefix).and_then(|p| p.parse::<u32>().ok()) else { continue };
+        // Only where running processes can be told (Linux /proc); elsewhere they stay.
+        let running = Path::new("/proc").join(pid.to_string()).exists() || !Path::new("/proc/self").exists();
+        if pid != std::process::id() && !running {
+            log::info!("removing {} left by an interrupted model write", entry.path().display());
+            let _ = std::fs::remove_dir_all(entry.path());
+        }
+    }
+}
+
+/// Copies a directory tree (files and subdirectories; the tables have nothing else).
+fn copy_tree(from: &Path, to: &Path) -> Result<()> {
+    std::fs::create_dir(to).map_err(|e| Error::io(to, e))?;
+    for entry in std::fs::read_dir(from).map_err(|e| Error::io(from, e))? {
+        let entry = entry.map_err(|e| Error::io(from, e))?;
+        let kind = entry.file_type().map_err(|e| Error::io(entry.path(), e))?;
+        let target = to.join(entry.file_name());
+        if kind.is_dir() {
+            copy_tree(&entry.path(), &target)?;
+        } else {
+            std::fs::copy(entry.path(), &target).map_err(|e| Error::io(entry.path(), e))?;
+        }
+    }
+    Ok(())
+}
+
+/// fsync of every file and directory of a tree, so the exchange publishes complete data.
+fn sync_tree(dir: &Path) -> Result<()> {
+    for entry in std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))? {
+        let path = entry.map_err(|e| Error::io(dir, e))?.path();
+        if path.is_dir() {
+            sync_tree(&path)?;
+        } else {
+            std::fs::File::open(&path).and_then(|f| f.sync_all()).map_err(|e| Error::io(&path, e))?;
+        }
+    }
+    std::fs::File::open(dir).and_then(|f| f.sync_all()).map_err(|e| Error::io(dir, e))
+}
+
+/// Swaps two directories: atomically on Linux, else by two renames.
+pub(super) fn exchange(a: &Path, b: &Path) -> Result<()> {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        use std::ffi::CString;
+        use std::os::unix::ffi::OsStrExt;
+        let c = |p: &Path| CString::new(p.as_os_str().as_bytes()).map_err(|_| Error::input(p, "path contains a NUL byte"));
+        let (ca, cb) = (c(a)?, c(b)?);
+        // SAFETY: both pointers are valid NUL-terminated strings that outlive the call, and
+        // AT_FDCWD resolves relative paths against the working directory, as std does.
+        let rc = unsafe { libc::renameat2(libc::AT_FDCWD, ca.as_ptr(), libc::AT_FDCWD, cb.as_ptr(), libc::RENAME_EXCHANGE) };
+        if rc == 0 {
+            return Ok(());
+        }
+        let e = std::io::Error::last_os_error();
+        // File systems without RENAME_EXCHANGE answer EINVAL; fall back to renames.
+        if e.raw_os_error() != Some(libc::EINVAL) && e.raw_os_error() != Some(libc::ENOSYS) {
+            return Err(Error::io(a, e));
+        }
+    }
+    let aside = a.with_extension("r2d2-old");
+    std::fs::rename(b, &aside).map_err(|e| Error::io(b, e))?;
+    std::fs::rename(a, b).map_err(|e| Error::io(a, e))?;
+    std::fs::rename(&aside, a).map_err(|e| Error::io(&aside, e))
+}
+
+/// Predicts `target.model` into `target.column` of the MS `origin` names, for the rows and
+/// channels of its selection (other rows keep their contents; a new column has zeros there).
+/// Correlations that carry Stokes I (XX and YY, RR and LL, or I) get the model's visibility,
+/// the others zero: the model is unpolarised.
+pub fn write_model_column(origin: &Origin, target: &ModelTarget<'_>) -> Result<ModelReport> {
+    let ms = origin.path.as_path();
+    if let Some(split) = &origin.split {
+        return Err(Error::parameter(
+            "model_column",
+            format!(
+                "{}: the job is one part of the MS split by `{split}`; a model column holds one model per MS field, so split by `field` or not at all",
+                ms.display()
+            ),
+        ));
+    }
+    if target.model.len() != target.geometry.pixels() {
+        return Err(Error::parameter("model", format!("{} pixels for a {} x {} image", target.model.len(), target.geometry.size, target.geometry.size)));
+    }
+    remove_stale_staging(ms);
+    let staging = Staging { path: staging_path(ms)? };
+    if staging.path.exists() {
+        std::fs::remove_dir_all(&staging.path).map_err(|e| Error::io(&staging.path, e))?;
+    }
+    copy_tree(ms, &staging.path)?;
+    let report = predict_into(&staging.path, origin, target).map_err(|e| retarget(e, &staging.path, ms))?;
+    sync_tree(&staging.path)?;
+    // Checks the written copy opens as a table before it replaces the original.
+    open_table(&staging.path, "the MeasurementSet with the new model column").map_err(|e| retarget(e, &staging.path, ms))?;
+    exchange(&staging.path, ms)?;
+    // `staging` now names the old MS: dropping it removes that.
+    Ok(report)
+}
+
+/// Errors about the staging copy name the MS the user gave.
+fn retarget(error: Error, staging: &Path, ms: &Path) -> Error {
+    match error {
+        Error::Input { path, message } => Error::Input { path: swap_prefix(&path, staging, ms), message },
+        Error::Io { path, source } => Error::Io { path: swap_prefix(&path, staging, ms), source },
+        other => other,
+    }
+}
+
+fn swap_prefix(path: &Path, from: &Path, to: &Path) -> PathBuf {
+    path.strip_prefix(from).map(|rest| to.join(rest)).unwrap_or_else(|_| path.to_path_buf())
+}
+
+fn write_error(ms: &Path, column: &str, e: impl std::fmt::Display) -> Error {
+    Error::input(ms, format!("column `{column}`: writing: {e}"))
+}
+
+fn predict_into(ms: &Path, origin: &Origin, target: &ModelTarget<'_>) -> Result<ModelReport> {
+    let mut selection = origin.selection.clone();
+    selection.field = Some(super::FieldSelector::Id(origin.field_id));
+    let reader = MsReader::open(ms, &selection, DEFAULT_BATCH_ROWS)?;
+    let layout = reader.layout.clone();
+    drop(reader);
+    let column = target.column;
+    let (table, mut writable) = crate::vis::contain_panics(ms, "cannot open the MeasurementSet for writing", super::CASACORE, || {
+        WritableTable::open_for_update(ms)
+    })?;
+    let names = table.colnames();
+    let uvw_col = super::column_index(&table, ms, "UVW")?;
+    let field_col = super::column_index(&table, ms, "FIELD_ID")?;
+    let dd_col = super::column_index(&table, ms, "DATA_DESC_ID")?;
+    let data_col = super::column_index(&table, ms, &selection.data_column)?;
+    let desc = &table.dat.desc.columns;
+    let (model_col, existed) = match names.iter().position(|c| c == column) {
+        Some(i) => {
+            if !matches!(desc[i].kind, ColumnKind::Array) || !matches!(desc[i].data_type, DataType::Complex | DataType::DComplex) {
+                return Err(Error::input(ms, format!("column `{column}` exists but is not a complex array column; cannot write a model into it")));
+            }
+            (i, true)
+        }
+        None => {
+            // Shaped as the data column, in a storage manager of its own so the existing
+            // data files are not rewritten.
+            let mut new = desc[data_col].clone();
+            new.name = column.to_string();
+            new.comment = "model visibilities predicted by r2d2".into();
+            new.data_type = DataType::Complex;
+            new.data_manager_type = "StandardStMan".into();
+            new.data_manager_group = format!("R2D2_{column}");
+            writable.addcol(new);
+            (names.len(), false)
+        }
+    };
+    let double = existed && matches!(desc[model_col].data_type, DataType::DComplex);
+    let nrows = table.nrows();
+    let mut report = ModelReport::default();
+    let image: Vec<Complex64> = target.model.iter().map(|&x| Complex64::new(x, 0.0)).collect();
+    let chunk = 1u64 << 14;
+    for start in (0..nrows).step_by(chunk as usize) {
+        let n = chunk.min(nrows - start);
+        let cells = |col: usize, name: &str| super::read_cells(&table, ms, col, name, start, n);
+        let uvw = cells(uvw_col, "UVW")?;
+        let field = cells(field_col, "FIELD_ID")?;
+        let dd = cells(dd_col, "DATA_DESC_ID")?;
+        let old = if existed { Some(cells(model_col, column)?) } else { None };
+        // The selected rows of the chunk, their window, and their samples' (x, y).
+        let mut rows: Vec<(u64, &Window)> = Vec::new();
+        let (mut x, mut y, mut inside) = (Vec::new(), Vec::new(), Vec::new());
+        for r in 0..n as usize {
+            let window = super::as_i64(&dd[r])
+                .and_then(|d| usize::try_from(d).ok())
+                .and_then(|d| layout.windows.get(d))
+                .and_then(Option::as_ref)
+                .filter(|_| super::as_i64(&field[r]) == Some(layout.field_id as i64));
+            let Some(window) = window else { continue };
+            let [u, v, _] = super::array_f64(&uvw[r])
+                .and_then(|(_, values)| <[f64; 3]>::try_from(values).ok())
+                .ok_or_else(|| Error::input(ms, format!("column `UVW` at row {}: expected 3 numbers", start + r as u64)))?;
+            for channel in window.channels.clone() {
+                let per_metre = window.frequencies[channel] / SPEED_OF_LIGHT;
+                let (u, v) = (u * per_metre, v * per_metre);
+                let limit = 0.5 / target.geometry.pixel_rad;
+                let ok = u.abs() < limit && v.abs() < limit && u.is_finite() && v.is_finite();
+                inside.push(ok);
+                if ok {
+                    let (px, py) = target.geometry.uv_to_phase(u, v);
+                    x.push(px);
+                    y.push(py);
+                } else {
+                    report.beyond_nyquist += 1;
+                }
+            }
+            rows.push((start + r as u64, window));
+        }
+        let mut predicted = vec![Complex64::default(); x.len()];
+        if !x.is_empty() {
+            let plan = Nufft2d::new(target.geometry.size, target.geometry.size, &x, &y, target.nufft, target.threads)?;
+            plan.forward(&image, &mut predicted);
+        }
+        let mut next = predicted.into_iter();
+        let mut flags = inside.into_iter();
+        for (row, window) in rows {
+            let shape = [window.frequencies.len() as u32, window.ncorr as u32];
+            let mut cell = vec![(0.0f64, 0.0f64); window.frequencies.len() * window.ncorr];
+            if let Some(old) = &old {
+                // Channels outside the selection keep what the column held.
+                match &old[(row - start) as usize] {
+                    RecordValue::Array(a) if a.shape == shape => match &a.data {
+                        ArrayData::Complex(v) => cell = v.iter().map(|&(re, im)| (f64::from(re), f64::from(im))).collect(),
+                        ArrayData::DComplex(v) => cell.clone_from(v),
+                        _ => {}
+                    },
+                    _ => {}
+                }
+            }
+            for channel in window.channels.clone() {
+                let value = if flags.next().unwrap_or(false) { next.next().unwrap_or_default() } else { Complex64::default() };
+                for k in 0..window.ncorr {
+                    cell[channel * window.ncorr + k] = if window.stokes.carries_i(k) { (value.re, value.im) } else { (0.0, 0.0) };
+                }
+                report.samples += 1;
+            }
+            let data = if double {
+                ArrayData::DComplex(cell)
+            } else {
+                ArrayData::Complex(cell.into_iter().map(|(re, im)| (re as f32, im as f32)).collect())
+            };
+            let value = RecordValue::Array(ArrayValue { shape: shape.to_vec(), data });
+            writable.putcell(model_col, row, value).map_err(|e| write_error(ms, column, e))?;
+            report.rows += 1;
+        }
+        // One flush per chunk keeps the write buffer at a chunk, not the column.
+        crate::vis::contain_panics(ms, &format!("column `{column}`: writing"), super::CASACORE, || writable.flush())?;
+    }
+    if report.rows == 0 {
+        return Err(Error::input(ms, format!("no rows of field {} in the selected windows: nothing to write to `{column}`", layout.field_id)));
+    }
+    Ok(report)
+}
+
+/// The writer's `model_column` for one job: predicts the job's final model into `column` of
+/// the MS it was read from (the origin in its metadata), with the gridder's default NUFFT
+/// accuracy.
+pub fn write_job_model(job: &crate::pipeline::Job, column: &str) -> Result<ModelReport> {
+    let origin: Origin = job
+        .meta
+        .extra
+        .get(super::ORIGIN_KEY)
+        .map(|text| serde_json::from_str(text))
+        .transpose()
+        .map_err(|e| Error::parameter("model_column", format!("job '{}': unreadable MS origin in its metadata: {e}", job.id)))?
+        .ok_or_else(|| {
+            Error::parameter("model_column", format!("job '{}' was not read from a MeasurementSet (`kind: ms`): there is no MS to write `{column}` into", job.id))
+        })?;
+    let imaging = job.imaging.as_ref().ok_or_else(|| Error::parameter("model_column", format!("job '{}' was never gridded", job.id)))?;
+    let target = ModelTarget {
+        column,
+        geometry: imaging.geometry,
+        model: &imaging.model,
+        nufft: NufftParams { epsilon: 1e-6, oversampling: 2.0 },
+        threads: 0,
+    };
+    let report = write_model_column(&origin, &target)?;
+    log::info!(
+        "job {}: wrote `{column}` of {} ({} rows, {} samples{})",
+        job.id,
+        origin.path.display(),
+        report.rows,
+        report.samples,
+        if report.beyond_nyquist > 0 { format!(", {} beyond the image's Nyquist limit left zero", report.beyond_nyquist) } else { String::new() }
+    );
+    Ok(report)
+}

@@ -1,0 +1,151 @@
+//! `kind: ms`: one imaging job per MeasurementSet (Stokes I of `data_column`, one field, the
+//! selected windows and channels), or several with `split_by` (time windows, channels,
+//! `spw`, or `field`: one job per field, each with its own phase centre), read in row chunks.
+
+use crate::ingest::{emit_parts, read_parts, stem_id, SplitBy, TableReader, Truth};
+use crate::ms::{FieldSelector, MsReader, MsSelection};
+use crate::pipeline::config::{PipelineConfig, StageConfig};
+use crate::pipeline::{Job, Source};
+use crate::vis::DEFAULT_BATCH_ROWS;
+use crate::Result;
+use serde::Deserialize;
+use std::path::PathBuf;
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MsConfig {
+    /// The MeasurementSet (a directory).
+    path: PathBuf,
+    /// Job id (default: the MS name without its extension).
+    #[serde(default)]
+    id: Option<String>,
+    /// The complex column to image (default DATA; CORRECTED_DATA, MODEL_DATA, ...).
+    #[serde(default = "crate::ms::default_data_column")]
+    data_column: String,
+    /// Field id or name; required when the MS holds several fields (unless split by field).
+    #[serde(default)]
+    field: Option<FieldSelector>,
+    /// Spectral windows to read (default: all).
+    #[serde(default)]
+    spw: Option<Vec<usize>>,
+    /// Channel range `[start, end)` of every window.
+    #[serde(default)]
+    channels: Option<[usize; 2]>,
+    /// Samples per batch (a chunk of rows).
+    #[serde(default = "batch_rows")]
+    batch_rows: usize,
+    /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
+    #[serde(default)]
+    truth: Option<PathBuf>,
+    /// Split into several jobs: `{column: time, window: S}`, `{column: frequency}`,
+    /// `{column: spw}`, `{column: field}`, or another numeric column of the batches.
+    #[serde(default)]
+    split_by: Option<SplitBy>,
+}
+
+fn batch_rows() -> usize {
+    DEFAULT_BATCH_ROWS
+}
+
+/// The column that makes one job per field (each needs its own phase centre and metadata).
+const FIELD_SPLIT: &str = "field";
+
+pub struct MsSource {
+    path: PathBuf,
+    id: String,
+    selection: MsSelection,
+    batch_rows: usize,
+    truth: Option<Truth>,
+    split_by: Option<SplitBy>,
+    split_key: String,
+    reading: bool,
+}
+
+impl MsSource {
+    pub fn new(config: MsConfig, pipeline: &PipelineConfig, stage: &StageConfig) -> Result<MsSource> {
+        let name = &stage.name;
+        let error = |key: &str, message: String| pipeline.stage_error(name, Some(key), &format!("stages.{name}.{key}: {message}"));
+        if !crate::ms::is_measurement_set(&config.path) {
+            return Err(error("path", format!("'{}' is not a MeasurementSet (a directory with table.dat)", config.path.display())));
+        }
+        let id = match config.id {
+            Some(id) if id.trim().is_empty() => return Err(error("id", "expected a non-empty job id".into())),
+            Some(id) => id,
+            None => stem_id(&config.path),
+        };
+        if config.batch_rows == 0 {
+            return Err(error("batch_rows", "expected at least 1".into()));
+        }
+        let selection = MsSelection { data_column: config.data_column, field: config.field, spw: config.spw, channels: config.channels };
+        let split_key = format!("stages.{name}.split_by.column");
+        if let Some(split) = &config.split_by {
+            split.check().map_err(|m| error("split_by", format!("window: {m}")))?;
+            split
+                .check_schema(&crate::ms::batch_schema())
+                .map_err(|m| pipeline.stage_error(name, Some("split_by"), &format!("{split_key}: {}: {m}", config.path.display())))?;
+        }
+        // Before any work starts: the MS opens and the selection resolves (one field, windows
+        // with Stokes I, channels in range).
+        let by_field = matches!(&config.split_by, Some(s) if s.column == FIELD_SPLIT);
+        // Checked here, before any work, though the writer would refuse such jobs too.
+        let writes_model = pipeline.stages.iter().any(|s| s.kind == "writer" && s.params.get("model_column").is_some_and(|v| !v.is_null()));
+        if let Some(split) = config.split_by.as_ref().filter(|_| !by_field && writes_model) {
+            return Err(error(
+                "split_by",
+                format!("a writer has `model_column`, which holds one model per MS field: split by `field` or not at all, not by `{}`", split.column),
+            ));
+        }
+        if by_field && selection.field.is_some() {
+            return Err(error("field", "one job per field (`split_by: {column: field}`) reads every field: drop `field`".into()));
+        }
+        if !by_field {
+            MsReader::open(&config.path, &selection, config.batch_rows)?;
+        }
+        let truth = Truth::load(config.truth.as_deref())?;
+        Ok(MsSource { path: config.path, id, selection, batch_rows: config.batch_rows, truth, split_by: config.split_by, split_key, reading: false })
+    }
+
+    /// Reads one selection into jobs; `suffix` is appended to the id (a field's part).
+    fn read(
+        &self,
+        selection: &MsSelection,
+        id: &str,
+        emit: &mut dyn FnMut(Job) -> Result<()>,
+        cancelled: &dyn Fn() -> bool,
+    ) -> Result<bool> {
+        let split = self.split_by.as_ref().filter(|s| s.column != FIELD_SPLIT);
+        let mut reader = MsReader::open_part(&self.path, selection, self.batch_rows, split.map(|s| s.column.as_str()))?;
+        let Some((parts, stats)) = read_parts(&mut reader, split, &self.split_key, cancelled)? else {
+            return Ok(false);
+        };
+        log::info!("{} (field {} '{}'): {stats}; {}", self.path.display(), reader.field().0, reader.field().1, reader.counts());
+        emit_parts(id, reader.meta(), parts, self.truth.as_ref(), emit)?;
+        Ok(true)
+    }
+}
+
+impl Source for MsSource {
+    fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()> {
+        self.reading = true;
+        if self.split_by.as_ref().is_some_and(|s| s.column == FIELD_SPLIT) {
+            let fields = crate::ms::fields_with_rows(&self.path)?;
+            let width = fields.iter().map(|(id, _)| id.to_string().len()).max().unwrap_or(2).max(2);
+            for (field, _) in fields {
+                let mut selection = self.selection.clone();
+                selection.field = Some(FieldSelector::Id(field));
+                let id = format!("{}-field{field:0width$}", self.id);
+                if !self.read(&selection, &id, emit, cancelled)? {
+                    return Ok(());
+                }
+            }
+        } else if !self.read(&self.selection, &self.id, emit, cancelled)? {
+            return Ok(());
+        }
+        self.reading = false;
+        Ok(())
+    }
+
+    fn current_job(&self) -> Option<String> {
+        self.reading.then(|| self.id.clone())
+    }
+}
