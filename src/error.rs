@@ -27,6 +27,10 @@ pub enum Error {
     #[error("interrupted: {0}")]
     Interrupted(String),
 
+    /// A stage panicked: a bug, reported instead of bringing the process down.
+    #[error("the stage failed unexpectedly ({0}); this is a bug, please report it")]
+    Panic(String),
+
     /// An operating-system error while reading or writing a file.
     #[error("{}: {source}", path.display())]
     Io {
@@ -46,6 +50,15 @@ impl Error {
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Error::Io { path: path.into(), source }
     }
+}
+
+/// The message a panic was raised with (`panic!("...")` gives a `&str` or a `String`).
+pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
+    payload
+        .downcast_ref::<&str>()
+        .map(|s| s.to_string())
+        .or_else(|| payload.downcast_ref::<String>().cloned())
+        .unwrap_or_else(|| "no message".to_string())
 }
 
 pub type Result<T> = std::result::Result<T, Error>;

@@ -185,8 +185,15 @@ pub struct Part {
     pub vis: Visibilities,
 }
 
+/// Most jobs one table may be split into (windows counted from the first to the last, empty
+/// ones included). A day in windows of one second is 86 400; more means a value far from the
+/// others (a corrupt time) or a window too small, and the window index would overflow or the
+/// parts fill memory long before the imaging started.
+pub const MAX_SPLIT_PARTS: usize = 100_000;
+
 /// Reads the whole table: one part, or one per group of `split` (in group order). `split_key`
-/// names the YAML key in errors about the split column. `None` when `cancelled()` turned true.
+/// names the split's YAML key (`stages.source.split_by`) in errors. `None` when `cancelled()`
+/// turned true.
 pub fn read_parts(
     reader: &mut dyn TableReader,
     split: Option<&SplitBy>,
@@ -195,7 +202,7 @@ pub fn read_parts(
 ) -> Result<Option<(Vec<Part>, IngestStats)>> {
     let source = reader.source().display().to_string();
     if let Some(split) = split {
-        split.check_schema(&reader.schema()).map_err(|m| Error::parameter(split_key, format!("{source}: {m}")))?;
+        split.check_schema(&reader.schema()).map_err(|m| Error::parameter(format!("{split_key}.column"), format!("{source}: {m}")))?;
     }
     let mut stats = IngestStats::default();
     let mut all = Visibilities::default();
@@ -233,12 +240,31 @@ pub fn read_parts(
     let Some(split) = split else {
         return Ok(Some((vec![Part { suffix: None, vis: all }], stats)));
     };
+    let too_many = |key: &str, what: String| {
+        Error::parameter(
+            format!("{split_key}.{key}"),
+            format!("{source}: {what}: more than the {MAX_SPLIT_PARTS} jobs one table may be split into (a value far from the others, or a window too small?)"),
+        )
+    };
     let (group, min_width): (Vec<usize>, usize) = match split.window {
-        Some(window) => (keys.iter().map(|k| ((k - smallest) / window).floor() as usize).collect(), 3),
+        Some(window) => {
+            // Counted in f64 before any index is made: a far-off value would wrap a usize or
+            // ask for billions of windows.
+            let largest = keys.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            let windows = if keys.is_empty() { 0.0 } else { ((largest - smallest) / window).floor() + 1.0 };
+            if !(windows <= MAX_SPLIT_PARTS as f64) {
+                let column = &split.column;
+                return Err(too_many("window", format!("column `{column}` spans {smallest} to {largest}, {windows:.3e} windows of {window}")));
+            }
+            (keys.iter().map(|k| ((k - smallest) / window).floor() as usize).collect(), 3)
+        }
         None => {
             let mut distinct = keys.clone();
             distinct.sort_by(f64::total_cmp);
             distinct.dedup_by(|a, b| a.total_cmp(b).is_eq());
+            if distinct.len() > MAX_SPLIT_PARTS {
+                return Err(too_many("column", format!("column `{}` has {} distinct values", split.column, distinct.len())));
+            }
             let rank = |k: &f64| distinct.binary_search_by(|d| d.total_cmp(k)).expect("every key is among the distinct values");
             (keys.iter().map(rank).collect(), 2)
         }
@@ -349,7 +375,7 @@ mod tests {
         write_parquet(&path, &table(), &meta()).unwrap();
         let extra: Vec<&str> = split.iter().map(|s| s.column.as_str()).collect();
         let mut reader = VisReader::open_with_columns(&path, batch_rows, &extra).unwrap();
-        read_parts(&mut reader, split.as_ref(), "split_by.column", &|| false).unwrap().unwrap()
+        read_parts(&mut reader, split.as_ref(), "split_by", &|| false).unwrap().unwrap()
     }
 
     /// The `vis` real parts are the row numbers, so each part says which rows it holds.
@@ -401,6 +427,32 @@ mod tests {
         assert!(parts[0].suffix.is_none());
         assert_eq!(parts[0].vis.len() as u64, stats.kept());
         assert_eq!(stats.kept(), 38);
+    }
+
+    /// `table()` with row 7's time moved to `time`: one far-off sample.
+    fn split_error_with_outlier(time: f64) -> String {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("obs.parquet");
+        let mut t = table();
+        t.time[7] = time;
+        write_parquet(&path, &t, &meta()).unwrap();
+        let mut reader = VisReader::open_with_columns(&path, 100, &["time"]).unwrap();
+        let split = SplitBy { column: "time".into(), window: Some(600.0) };
+        match read_parts(&mut reader, Some(&split), "stages.source.split_by", &|| false) {
+            Ok(_) => panic!("a time of {time} split without error"),
+            Err(e) => e.to_string(),
+        }
+    }
+
+    #[test]
+    fn window_counts_are_bounded_before_anything_is_allocated() {
+        // 1e300 s wraps a usize window index; 1e13 s asks for ~1.7e10 windows (~133 GB).
+        for time in [1e300, 1e13] {
+            let err = split_error_with_outlier(time);
+            for expected in ["obs.parquet", "`time`", "window", "stages.source.split_by.window"] {
+                assert!(err.contains(expected), "{time}: '{expected}' missing from: {err}");
+            }
+        }
     }
 
     #[test]

@@ -700,11 +700,7 @@ pub(crate) fn contain_panics<T, E: fmt::Display>(
         Ok(Ok(value)) => Ok(value),
         Ok(Err(e)) => Err(Error::input(path, format!("{what}: {e}"))),
         Err(payload) => {
-            let message = payload
-                .downcast_ref::<&str>()
-                .map(|s| s.to_string())
-                .or_else(|| payload.downcast_ref::<String>().cloned())
-                .unwrap_or_else(|| "no message".to_string());
+            let message = crate::error::panic_message(payload.as_ref());
             Err(Error::input(path, format!("{what}: the {decoder} decoder failed ({message})")))
         }
     }

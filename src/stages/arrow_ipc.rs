@@ -56,7 +56,7 @@ impl ArrowIpcSource {
             split.check().map_err(|m| pipeline.stage_error(name, Some("split_by"), &format!("stages.{name}.split_by.window: {m}")))?;
         }
         let truth = Truth::load(config.truth.as_deref())?;
-        Ok(ArrowIpcSource { path: config.path, id, truth, split_by: config.split_by, split_key: format!("stages.{name}.split_by.column"), reading: false })
+        Ok(ArrowIpcSource { path: config.path, id, truth, split_by: config.split_by, split_key: format!("stages.{name}.split_by"), reading: false })
     }
 }
 

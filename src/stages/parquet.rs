@@ -63,14 +63,14 @@ impl ParquetSource {
             }
             paths.extend(matches);
         }
-        let split_key = format!("stages.{name}.split_by.column");
+        let split_key = format!("stages.{name}.split_by");
         if let Some(split) = &config.split_by {
             split.check().map_err(|m| pipeline.stage_error(name, Some("split_by"), &format!("stages.{name}.split_by.window: {m}")))?;
             // Before any work starts: every file's footer must have the column.
             for path in &paths {
                 let reader = VisReader::open(path, 1)?;
                 split.check_schema(reader.schema()).map_err(|m| {
-                    pipeline.stage_error(name, Some("split_by"), &format!("{split_key}: {}: {m}", path.display()))
+                    pipeline.stage_error(name, Some("split_by"), &format!("{split_key}.column: {}: {m}", path.display()))
                 })?;
             }
         }
