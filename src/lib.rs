@@ -12,6 +12,7 @@ pub mod fft2;
 pub mod fits;
 pub mod imaging;
 pub mod ingest;
+pub mod limits;
 pub mod metrics;
 pub mod nufft;
 pub mod operator;

@@ -688,21 +688,18 @@ pub(crate) const ARROW_IPC: &str = "Arrow IPC";
 /// indices are not bounds-checked: apache/arrow-rs#9434, fixed in later releases), and a
 /// damaged file must not bring down the process. Unwinding is contained here, where
 /// callers stop using the decoder after any failure (`VisReader` ends its iteration), so
-/// no state it may have left half-updated is observed. The panic hook still prints the
-/// panic to stderr.
+/// no state it may have left half-updated is observed. The panic is not printed: the error
+/// says it all, with the decoder's source location.
 pub(crate) fn contain_panics<T, E: fmt::Display>(
     path: &Path,
     what: &str,
     decoder: &str,
     decode: impl FnOnce() -> std::result::Result<T, E>,
 ) -> Result<T> {
-    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(decode)) {
+    match crate::error::catch_quietly(decode) {
         Ok(Ok(value)) => Ok(value),
         Ok(Err(e)) => Err(Error::input(path, format!("{what}: {e}"))),
-        Err(payload) => {
-            let message = crate::error::panic_message(payload.as_ref());
-            Err(Error::input(path, format!("{what}: the {decoder} decoder failed ({message})")))
-        }
+        Err(message) => Err(Error::input(path, format!("{what}: the {decoder} decoder failed ({message})"))),
     }
 }
 

@@ -178,3 +178,51 @@ fn bad_input_gives_errors_that_name_the_problem() {
     let out = r2d2(&["dirty", "x.parquet", "--weighting", "superuniform"], d);
     assert!(!out.status.success());
 }
+
+/// parquet 55 panics on some corrupt pages (apache/arrow-rs#9434); the reader contains that,
+/// and the user sees an error naming the file, not the panic hook's "thread ... panicked at".
+#[test]
+fn contained_decoder_panics_print_no_panic_message() {
+    use arrow::array::{ArrayRef, Float64Array, RecordBatch};
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // Dictionary-encoded columns (as most writers produce), damaged at many places.
+    let n = 20_000;
+    let ramp = |scale: f64| std::sync::Arc::new(Float64Array::from((0..n).map(|i| scale * (i % 5000) as f64).collect::<Vec<_>>())) as ArrayRef;
+    let columns = vec![
+        ("u", ramp(1.0)),
+        ("v", ramp(-2.0)),
+        ("w", ramp(0.1)),
+        ("frequency", std::sync::Arc::new(Float64Array::from(vec![1.4e9; n])) as ArrayRef),
+        ("vis_re", ramp(0.5)),
+        ("vis_im", ramp(0.25)),
+    ];
+    let batch = RecordBatch::try_from_iter(columns).unwrap();
+    let metadata = [("phase_centre_ra_deg", "10"), ("phase_centre_dec_deg", "40"), ("telescope", "VLA")];
+    let kv = metadata.iter().map(|(k, v)| parquet::file::metadata::KeyValue::new(k.to_string(), v.to_string())).collect();
+    let props = parquet::file::properties::WriterProperties::builder().set_key_value_metadata(Some(kv)).build();
+    let mut bytes = Vec::new();
+    let mut writer = parquet::arrow::ArrowWriter::try_new(&mut bytes, batch.schema(), Some(props)).unwrap();
+    writer.write(&batch).unwrap();
+    writer.close().unwrap();
+    let mut seed = 0x2545_f491_4f6c_dd1du64;
+    let mut contained = 0;
+    for _ in 0..60 {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        let mut damaged = bytes.clone();
+        let start = (seed % damaged.len() as u64) as usize;
+        let end = (start + 1 + (seed >> 40) as usize % 48).min(damaged.len());
+        damaged[start..end].fill((seed >> 32) as u8);
+        std::fs::write(d.join("damaged.parquet"), &damaged).unwrap();
+        let out = r2d2(&["dirty", "damaged.parquet", "--size", "64", "--name", "x"], d);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!err.contains("panicked"), "damage at {start}..{end}: {err}");
+        if err.contains("decoder failed (") {
+            assert!(err.contains("damaged.parquet") && !out.status.success(), "{err}");
+            contained += 1;
+        }
+    }
+    assert!(contained > 0, "no damage made the decoder panic: this test no longer tests anything");
+}

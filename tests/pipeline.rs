@@ -330,6 +330,52 @@ fn corrupt_arrow_ipc_mid_stream_fails_cleanly() {
     assert!(stderr(&out).contains("corrupt Arrow IPC data after row 1000"), "{}", stderr(&out));
 }
 
+/// A stream of `batches` whose first record batch header claims a body of `claimed` bytes
+/// (the body that follows is the real one), with its end-of-stream marker.
+fn ipc_stream_claiming(schema: &arrow::datatypes::Schema, batches: &[arrow::array::RecordBatch], claimed: i64) -> Vec<u8> {
+    let mut writer = arrow::ipc::writer::StreamWriter::try_new(Vec::new(), schema).unwrap();
+    let start = writer.get_ref().len();
+    for b in batches {
+        writer.write(b).unwrap();
+    }
+    writer.finish().unwrap();
+    let mut stream = writer.into_inner().unwrap();
+    // The message: continuation marker, header length, header (a flatbuffer), body.
+    assert_eq!(stream[start..start + 4], [0xff; 4]);
+    let length = i32::from_le_bytes(stream[start + 4..start + 8].try_into().unwrap()) as usize;
+    let header = start + 8..start + 8 + length;
+    let body = arrow::ipc::root_as_message(&stream[header.clone()]).unwrap().bodyLength();
+    let places: Vec<usize> = (header.start..header.end - 8).filter(|&i| stream[i..i + 8] == body.to_le_bytes()).collect();
+    assert_eq!(places.len(), 1, "the body length {body} is found once in the header");
+    stream[places[0]..places[0] + 8].copy_from_slice(&claimed.to_le_bytes());
+    assert_eq!(arrow::ipc::root_as_message(&stream[header]).unwrap().bodyLength(), claimed);
+    stream
+}
+
+/// A record batch header claiming a 1 TiB body: refused before anything is allocated, on
+/// standard input (against the memory there is) and from a file (against what is left in
+/// it), with an error naming the input, the stage and the size, not an aborted process.
+#[test]
+fn arrow_ipc_declared_sizes_are_bounded_before_allocating() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (schema, batches) = small_table_batches(d);
+    let stream = ipc_stream_claiming(&schema, &batches[..2], 1 << 40);
+    std::fs::write(d.join("huge.arrows"), &stream).unwrap();
+    std::fs::write(d.join("stdin.yaml"), small_pipeline(Some(&ipc_source("-", "")))).unwrap();
+    std::fs::write(d.join("file.yaml"), small_pipeline(Some(&ipc_source("huge.arrows", "")))).unwrap();
+    let from_stdin = r2d2_stdin(&["run", "stdin.yaml"], d, &stream);
+    let from_file = r2d2(&["run", "file.yaml"], d);
+    for (out, input, bound) in [(from_stdin, "standard input", "memory available"), (from_file, "huge.arrows", "left in the input")] {
+        let err = stderr(&out);
+        assert_eq!(out.status.code(), Some(1), "{input}: {err}");
+        for expected in ["stage 'source' (arrow-ipc)", input, "1099511627776 bytes", bound] {
+            assert!(err.contains(expected), "{input}: '{expected}' missing from: {err}");
+        }
+        assert!(!err.contains("panicked"), "{err}");
+    }
+}
+
 fn job_ids(dir: &Path) -> Vec<String> {
     let mut ids: Vec<String> = std::fs::read_dir(dir)
         .unwrap()
