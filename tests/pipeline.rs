@@ -376,6 +376,29 @@ fn arrow_ipc_declared_sizes_are_bounded_before_allocating() {
     }
 }
 
+/// Two inputs with the same file name would be the same job, the second overwriting the
+/// first's products: `validate` and `run` refuse them, naming both files, and write nothing.
+#[test]
+fn inputs_with_the_same_job_id_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    for sub in ["a", "b"] {
+        std::fs::create_dir(d.join(sub)).unwrap();
+        simulate_small(d, "3", &format!("{sub}/obs.parquet"), &[]);
+    }
+    let source = "  source:\n    kind: parquet\n    files: [a/obs.parquet, \"b/*.parquet\"]\n    to: weights\n";
+    std::fs::write(d.join("p.yaml"), small_pipeline(Some(source))).unwrap();
+    for command in ["validate", "run"] {
+        let out = r2d2(&[command, "p.yaml"], d);
+        let err = stderr(&out);
+        assert!(!out.status.success(), "{command}: accepted: {err}");
+        for expected in ["p.yaml", "line 7", "stages.source.files", "a/obs.parquet", "b/obs.parquet", "job 'obs'"] {
+            assert!(err.contains(expected), "{command}: '{expected}' missing from: {err}");
+        }
+    }
+    assert!(!d.join("out").exists(), "products written");
+}
+
 fn job_ids(dir: &Path) -> Vec<String> {
     let mut ids: Vec<String> = std::fs::read_dir(dir)
         .unwrap()

@@ -155,7 +155,16 @@ fn run_built(config: &PipelineConfig, graph: &Graph, built: Vec<Built>, cancel: 
                     Built::Source(mut source) => {
                         // A job's source time is the time since the previous job left (reading it).
                         let mut since = Instant::now();
+                        // Products are named after job ids: a repeated one would overwrite
+                        // another job's (a split part named like a file, say).
+                        let mut ids = std::collections::HashSet::new();
                         let mut emit = |job: Job| {
+                            if !ids.insert(job.id.clone()) {
+                                return Err(Error::parameter(
+                                    "job id",
+                                    format!("'{}' comes twice from this source: the second job's products would overwrite the first's", job.id),
+                                ));
+                            }
                             let sent = send(Port::Next, job, since);
                             since = Instant::now();
                             sent
@@ -323,6 +332,30 @@ mod tests {
         fn produce(&mut self, _: &mut dyn FnMut(Job) -> Result<()>, _: &dyn Fn() -> bool) -> Result<()> {
             panic!("source boom")
         }
+    }
+
+    /// Emits two jobs with the same id, as a split whose part ids collide with a file's would.
+    struct SameIdTwice;
+    impl Source for SameIdTwice {
+        fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()> {
+            OneJob.produce(emit, cancelled)?;
+            OneJob.produce(emit, cancelled)
+        }
+    }
+
+    /// Takes jobs and emits nothing.
+    struct Swallows;
+    impl Stage for Swallows {
+        fn process(&mut self, _: Job, _: &mut Emit<'_>) -> Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_job_id_emitted_twice_fails_the_run() {
+        let result = run_with(Box::new(SameIdTwice), Box::new(Swallows)).expect("the run ended");
+        let err = result.err().expect("a repeated job id failed the run").to_string();
+        assert!(err.contains("stage 'source'") && err.contains("'j1'") && err.contains("twice"), "{err}");
     }
 
     #[test]

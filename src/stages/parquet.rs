@@ -63,6 +63,20 @@ impl ParquetSource {
             }
             paths.extend(matches);
         }
+        // Jobs are named after their files (products too): two files of one name would be one
+        // job, the second overwriting the first's products.
+        let mut ids: std::collections::HashMap<String, &PathBuf> = std::collections::HashMap::new();
+        for path in &paths {
+            if let Some(first) = ids.insert(stem_id(path), path) {
+                let message = format!(
+                    "stages.{name}.files: {} and {} would both be job '{}' (a job is named after its file, without directory or extension): rename one, or image them in separate runs",
+                    first.display(),
+                    path.display(),
+                    stem_id(path)
+                );
+                return Err(pipeline.stage_error(name, Some("files"), &message));
+            }
+        }
         let split_key = format!("stages.{name}.split_by");
         if let Some(split) = &config.split_by {
             split.check().map_err(|m| pipeline.stage_error(name, Some("split_by"), &format!("stages.{name}.split_by.window: {m}")))?;
