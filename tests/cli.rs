@@ -226,3 +226,56 @@ fn contained_decoder_panics_print_no_panic_message() {
     }
     assert!(contained > 0, "no damage made the decoder panic: this test no longer tests anything");
 }
+
+/// One row a million kilometres long among a real observation's would set the pixel size
+/// (1 / longest baseline) to nonsense: it is excluded and counted, with a warning, and the
+/// images are those of the observation without it.
+#[test]
+fn physically_impossible_rows_are_excluded_with_a_warning() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let spec = ObservationSpec {
+        configurations: vec![('c', 1.0)],
+        dec_deg: 40.0,
+        integration_s: 300.0,
+        frequencies_hz: frequency_channels(1.4e9, 1, 1.0).unwrap(),
+        flag_fraction: 0.0,
+        random_rotation: false,
+        seed: 1,
+    };
+    let cov = sample_coverage(&spec).unwrap();
+    let n = cov.len();
+    let mut table = VisTable {
+        u_m: cov.u_m,
+        v_m: cov.v_m,
+        w_m: cov.w_m,
+        frequency: cov.frequency_hz,
+        vis: vec![Complex64::new(1.0, 0.0); n],
+        ..Default::default()
+    };
+    let meta = ObservationMeta {
+        phase_centre_ra_deg: 10.0,
+        phase_centre_dec_deg: 40.0,
+        telescope: "VLA".into(),
+        noise_sigma: None,
+        dynamic_range: None,
+        extra: Default::default(),
+    };
+    write_parquet(&d.join("good.parquet"), &table, &meta).unwrap();
+    table.u_m.push(1e9);
+    table.v_m.push(0.0);
+    table.w_m.push(0.0);
+    table.frequency.push(1.4e9);
+    table.vis.push(Complex64::new(1.0, 0.0));
+    write_parquet(&d.join("bad.parquet"), &table, &meta).unwrap();
+    check(&r2d2(&["dirty", "good.parquet", "--size", "64", "--name", "good"], d));
+    let out = r2d2(&["dirty", "bad.parquet", "--size", "64", "--name", "bad"], d);
+    check(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("WARN") && err.contains("bad.parquet") && err.contains("1 physically impossible"), "{err}");
+    for product in ["dirty", "psf"] {
+        let good = read_image(&d.join(format!("good-{product}.fits"))).unwrap();
+        let bad = read_image(&d.join(format!("bad-{product}.fits"))).unwrap();
+        assert_eq!((good.wcs, good.data), (bad.wcs, bad.data), "{product}");
+    }
+}

@@ -21,7 +21,7 @@ pub struct Args {
 pub fn run(args: Args) -> Result<()> {
     let params = args.image.dirty_params()?;
     let (vis, meta, stats) = read_parquet(&args.input)?;
-    log::info!("{}: {stats}", args.input.display());
+    stats.log(&args.input);
     let products = dirty_image(&vis, &params)?;
     let geometry = products.operator.geometry();
     log::info!(

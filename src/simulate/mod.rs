@@ -60,6 +60,7 @@ pub fn simulate(req: &SimulationRequest) -> Result<SimulationOutput> {
         PixelScale::Arcsec(p) => ImageGeometry::from_arcsec(size, p),
         PixelScale::SuperResolution(sr) => ImageGeometry::from_superresolution(size, sr, coverage.max_uv()),
     };
+    crate::vis::check_phase_centre(req.phase_centre_deg.0, req.phase_centre_deg.1)?;
     let (sky, geometry) = match &req.sky {
         SkyModel::Procedural { seed } => {
             (sky::procedural_sky(&sky::SkyParams::new(req.size, req.dynamic_range, *seed))?, geometry_for(req.size)?)

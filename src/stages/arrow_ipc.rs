@@ -67,7 +67,7 @@ impl Source for ArrowIpcSource {
         let Some((parts, stats)) = read_parts(&mut reader, self.split_by.as_ref(), &self.split_key, cancelled)? else {
             return Ok(());
         };
-        log::info!("{}: {stats}", crate::ingest::TableReader::source(&reader).display());
+        stats.log(crate::ingest::TableReader::source(&reader));
         self.reading = false;
         emit_parts(&self.id, crate::ingest::TableReader::meta(&reader), parts, self.truth.as_ref(), emit)
     }

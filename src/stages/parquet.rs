@@ -103,7 +103,7 @@ impl Source for ParquetSource {
             let Some((parts, stats)) = read_parts(&mut reader, self.split_by.as_ref(), &self.split_key, cancelled)? else {
                 return Ok(());
             };
-            log::info!("{}: {stats}", path.display());
+            stats.log(path);
             emit_parts(&id, reader.meta(), parts, self.truth.as_ref(), emit)?;
         }
         self.current_job = None;
