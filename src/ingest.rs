@@ -116,6 +116,8 @@ pub struct IpcReader {
     messages: IpcMessages,
     rows: u64,
     finished: bool,
+    /// Accept a stream that ends without its end-of-stream marker (with a warning).
+    allow_truncated: bool,
 }
 
 /// The IPC file format starts with these bytes; the stream format with a message length.
@@ -123,7 +125,9 @@ const IPC_FILE_MAGIC: &[u8] = b"ARROW1";
 
 impl IpcReader {
     /// Opens `input` (a path, or `-` for standard input) and reads the schema and metadata.
-    pub fn open(input: &str) -> Result<IpcReader> {
+    /// With `allow_truncated`, a stream that ends between two messages without its end-of-stream
+    /// marker is taken as complete (with a warning) instead of an error.
+    pub fn open(input: &str, allow_truncated: bool) -> Result<IpcReader> {
         if input == STDIN {
             let source = PathBuf::from("standard input");
             let mut reader = BufReader::new(std::io::stdin());
@@ -133,17 +137,17 @@ impl IpcReader {
                     "this is the Arrow IPC file format, which needs a seekable file: send the stream format on standard input, or give the file's path",
                 ));
             }
-            return Self::new(source, IpcMessages::new(Box::new(reader), None));
+            return Self::new(source, IpcMessages::new(Box::new(reader), None), allow_truncated);
         }
         let source = PathBuf::from(input);
         let file = std::fs::File::open(&source).map_err(|e| Error::io(&source, e))?;
         let length = file.metadata().map_err(|e| Error::io(&source, e))?.len();
         let mut reader = BufReader::new(file);
         let header = if peek_is_file_format(&mut reader, &source)? { skip_file_header(&mut reader, &source)? } else { 0 };
-        Self::new(source, IpcMessages::new(Box::new(reader), Some(length.saturating_sub(header))))
+        Self::new(source, IpcMessages::new(Box::new(reader), Some(length.saturating_sub(header))), allow_truncated)
     }
 
-    fn new(source: PathBuf, mut messages: IpcMessages) -> Result<IpcReader> {
+    fn new(source: PathBuf, mut messages: IpcMessages, allow_truncated: bool) -> Result<IpcReader> {
         let first = contain_panics(&source, "not a readable Arrow IPC stream", ARROW_IPC, || messages.next(None))?;
         let IpcMessage::Schema(schema) = first else {
             return Err(Error::input(&source, "not a readable Arrow IPC stream: it does not start with a schema"));
@@ -152,7 +156,7 @@ impl IpcReader {
         let name = source.display().to_string();
         let meta = ObservationMeta::from_pairs(schema.metadata().iter().map(|(k, v)| (k.as_str(), Some(v.as_str()))), &name)?;
         validate_schema(&schema, &name)?;
-        Ok(IpcReader { source, meta, schema, messages, rows: 0, finished: false })
+        Ok(IpcReader { source, meta, schema, messages, rows: 0, finished: false, allow_truncated })
     }
 }
 
@@ -203,7 +207,21 @@ impl TableReader for IpcReader {
                     self.finished = true;
                     return Some(Err(Error::input(&self.source, format!("{what}: a second schema in the stream"))));
                 }
-                Ok(IpcMessage::End | IpcMessage::EndOfInput) => self.finished = true,
+                Ok(IpcMessage::End) => self.finished = true,
+                Ok(IpcMessage::EndOfInput) => {
+                    // A sender that died between two batches leaves a stream that looks whole
+                    // but for the marker: imaging it silently would pass part of an
+                    // observation off as all of it.
+                    self.finished = true;
+                    let ended = format!("the Arrow IPC stream ended after row {} without its end-of-stream marker", self.rows);
+                    if !self.allow_truncated {
+                        return Some(Err(Error::input(
+                            &self.source,
+                            format!("{ended}: the sender may have stopped part-way (if these rows are all there is, set allow_truncated: true on the source)"),
+                        )));
+                    }
+                    log::warn!("{}: {ended}: imaging the rows received (allow_truncated)", self.source.display());
+                }
                 Err(e) => {
                     self.finished = true;
                     return Some(Err(e));

@@ -399,6 +399,41 @@ fn inputs_with_the_same_job_id_are_refused() {
     assert!(!d.join("out").exists(), "products written");
 }
 
+/// A stream cut at a batch boundary (an upstream process that died between batches) lacks
+/// the end-of-stream marker: refused by default, naming the input, so that part of an
+/// observation is not imaged as if it were all of it; `allow_truncated: true` images the rows
+/// received, with a warning.
+#[test]
+fn arrow_ipc_without_end_of_stream_is_refused_unless_allowed() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (schema, batches) = small_table_batches(d);
+    let (stream, ends) = ipc_stream(&schema, &batches);
+    let cut = &stream[..ends[1]];
+    std::fs::write(d.join("cut.arrows"), cut).unwrap();
+    std::fs::write(d.join("stdin.yaml"), small_pipeline(Some(&ipc_source("-", "")))).unwrap();
+    std::fs::write(d.join("file.yaml"), small_pipeline(Some(&ipc_source("cut.arrows", "")))).unwrap();
+    for (out, input) in [(r2d2_stdin(&["run", "stdin.yaml"], d, cut), "standard input"), (r2d2(&["run", "file.yaml"], d), "cut.arrows")] {
+        let err = stderr(&out);
+        assert!(!out.status.success(), "{input}: accepted: {err}");
+        for expected in ["stage 'source' (arrow-ipc)", input, "end-of-stream marker", "after row 1000", "allow_truncated"] {
+            assert!(err.contains(expected), "{input}: '{expected}' missing from: {err}");
+        }
+        assert!(!d.join("out").exists(), "{input}: products written");
+    }
+    let allowed = small_pipeline(Some(&ipc_source("-", "    allow_truncated: true\n")));
+    std::fs::write(d.join("allowed.yaml"), allowed).unwrap();
+    let out = r2d2_stdin(&["run", "allowed.yaml"], d, cut);
+    check(&out);
+    let err = stderr(&out);
+    assert!(err.contains("WARN") && err.contains("standard input") && err.contains("end-of-stream marker"), "{err}");
+    assert!(d.join("out/stdin-dirty.fits").exists());
+    // A complete stream needs no option and gives no warning.
+    let out = r2d2_stdin(&["run", "allowed.yaml"], d, &stream);
+    check(&out);
+    assert!(!stderr(&out).contains("WARN"), "{}", stderr(&out));
+}
+
 fn job_ids(dir: &Path) -> Vec<String> {
     let mut ids: Vec<String> = std::fs::read_dir(dir)
         .unwrap()
