@@ -72,6 +72,35 @@ pub fn check_memory(needed: f64, what: &str) -> std::result::Result<(), String> 
     Err(format!("{what} needs about {} of memory, more than {budget}", format_bytes(needed)))
 }
 
+/// Bytes one job holds per pixel of its N x N image: dirty image, PSF, model, residual and
+/// truth (5 x 8), the 2N PSF (4 x 8), the FFTs of the 2N-PSF convolution (kernel and work
+/// grid, 2 x 4 x 16) and the NUFFT grid (4 x 16), rounded up for previews and scratch space.
+pub const IMAGE_BYTES_PER_PIXEL: f64 = 320.0;
+
+/// Refuses an image size whose job cannot fit in the memory available (the product in f64:
+/// no overflow whatever the size).
+pub fn check_image_size(size: usize) -> std::result::Result<(), String> {
+    if size == 0 {
+        return Err("expected at least one pixel".into());
+    }
+    let pixels = size as f64 * size as f64;
+    check_memory(pixels * IMAGE_BYTES_PER_PIXEL, &format!("an image of {size} x {size} pixels"))
+}
+
+/// Threads per core allowed: more only adds switching (and 100 000 threads take minutes to
+/// start, or fail to).
+pub const THREADS_PER_CORE: usize = 4;
+
+/// Refuses a thread count above [`THREADS_PER_CORE`] per core (0, all cores, is fine).
+pub fn check_threads(threads: usize) -> std::result::Result<(), String> {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let most = THREADS_PER_CORE * cores;
+    if threads <= most {
+        return Ok(());
+    }
+    Err(format!("{threads} threads is more than {THREADS_PER_CORE} per core of this machine's {cores} cores ({most}); 0 uses every core"))
+}
+
 /// `1.5 GB`, `12 MB`, `800 B` (decimal units, as `free -h` users read them closely enough).
 pub fn format_bytes(bytes: f64) -> String {
     const UNITS: [&str; 7] = ["B", "kB", "MB", "GB", "TB", "PB", "EB"];
@@ -93,6 +122,17 @@ pub fn format_bytes(bytes: f64) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sizes_and_threads_are_checked() {
+        assert!(check_image_size(64).is_ok());
+        let err = check_image_size(1 << 40).unwrap_err();
+        assert!(err.contains("1099511627776 x 1099511627776") && err.contains("memory available"), "{err}");
+        assert!(check_image_size(0).is_err());
+        assert!(check_threads(0).is_ok() && check_threads(1).is_ok());
+        let err = check_threads(usize::MAX).unwrap_err();
+        assert!(err.contains("cores"), "{err}");
+    }
 
     #[test]
     fn memory_figures_parse() {

@@ -279,3 +279,52 @@ fn physically_impossible_rows_are_excluded_with_a_warning() {
         assert_eq!((good.wcs, good.data), (bad.wcs, bad.data), "{product}");
     }
 }
+
+/// Runs `r2d2` under a 4 GB address-space limit and a 60 s timeout, so that a size the checks
+/// let through fails fast instead of taking the machine's memory or hanging.
+fn r2d2_bounded(args: &[&str], dir: &Path) -> Output {
+    Command::new("sh")
+        .arg("-c")
+        .arg("ulimit -v 4000000; exec timeout 60 \"$0\" \"$@\"")
+        .arg(env!("CARGO_BIN_EXE_r2d2"))
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .expect("sh runs")
+}
+
+/// Image sizes, simulated sample counts and thread counts beyond what the machine can hold are
+/// refused up front with an error naming the option, instead of an abort on a 100 GB
+/// allocation or a hang starting 100 000 threads.
+#[test]
+fn sizes_beyond_the_machine_are_refused_before_allocating() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64", "--out", "obs.parquet"], d));
+    let cases: [(&[&str], &[&str]); 4] = [
+        (&["dirty", "obs.parquet", "--size", "100000", "--pixel-arcsec", "0.01", "--name", "x"], &["size", "100000 x 100000", "memory available"]),
+        (&["simulate", "--configs", "c", "--hours", "1e4", "--size", "64", "--out", "big.parquet"], &["hours", "samples", "memory available"]),
+        (&["simulate", "--configs", "c", "--hours", "1", "--size", "100000", "--pixel-arcsec", "0.01", "--out", "big.parquet"], &["size", "100000 x 100000", "memory available"]),
+        (&["dirty", "obs.parquet", "--size", "64", "--threads", "100000", "--name", "x"], &["threads", "100000", "cores"]),
+    ];
+    for (args, expected) in cases {
+        let out = r2d2_bounded(args, d);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {err}");
+        for e in expected {
+            assert!(err.contains(e), "{args:?}: '{e}' missing from: {err}");
+        }
+    }
+    assert!(!d.join("x-dirty.fits").exists() && !d.join("big.parquet").exists());
+
+    // The same limits in a pipeline, reported by validate with the file and the key.
+    let pipeline = "image: {size: 64}\nstages:\n  source: {kind: simulate, to: weights}\n  weights: {kind: weighting, scheme: natural, to: grid}\n  grid: {kind: gridder, to: step}\n  step: {kind: clean, to: update}\n  update: {kind: residual, to: step, done: write}\n  write: {kind: writer}\n";
+    std::fs::write(d.join("p.yaml"), pipeline).unwrap();
+    check(&r2d2(&["validate", "p.yaml"], d));
+    for (set, expected) in [("image.size=100000", "image.size"), ("threads=4000", "threads")] {
+        let out = r2d2_bounded(&["validate", "p.yaml", "--set", set], d);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{set}: {err}");
+        assert!(err.contains("p.yaml") && err.contains(expected), "{set}: {err}");
+    }
+}

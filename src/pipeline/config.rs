@@ -134,6 +134,11 @@ impl PipelineConfig {
             let done = take("done")?;
             stages.push(StageConfig { name, kind, to, done, params: Value::Mapping(map) });
         }
+        // Before any stage is built: a size or thread count this machine cannot take would
+        // otherwise surface as an aborted allocation or a hang, not as an error about the key.
+        crate::limits::check_image_size(raw.image.size)
+            .map_err(|m| located(file, locate_top(text, "image"), &format!("image.size = {}: {m}", raw.image.size)))?;
+        crate::limits::check_threads(raw.threads).map_err(|m| located(file, locate_top(text, "threads"), &format!("threads: {m}")))?;
         let capacity = raw.channel_capacity.unwrap_or(2);
         if capacity == 0 {
             return Err(located(file, None, "channel_capacity must be at least 1"));
@@ -193,6 +198,11 @@ fn located(file: &Path, location: Option<(usize, usize)>, message: &str) -> Erro
         Some((line, column)) => Error::input(file, format!("line {line}, column {column}: {message}")),
         None => Error::input(file, message.to_string()),
     }
+}
+
+/// Line and column (1-based) of a top-level key (`image`, `threads`).
+fn locate_top(text: &str, key: &str) -> Option<(usize, usize)> {
+    text.lines().position(|l| l.strip_prefix(key).is_some_and(|rest| rest.trim_start().starts_with(':'))).map(|i| (i + 1, 1))
 }
 
 /// Line and column (1-based) of stage `stage` under `stages:`, or of `key` inside it.

@@ -55,12 +55,14 @@ pub struct SimulationOutput {
 
 /// Simulate the observation: coverage, sky on its pixel grid, visibilities with noise.
 pub fn simulate(req: &SimulationRequest) -> Result<SimulationOutput> {
+    crate::vis::check_phase_centre(req.phase_centre_deg.0, req.phase_centre_deg.1)?;
+    crate::limits::check_image_size(req.size).map_err(|m| Error::parameter("size", m))?;
+    crate::limits::check_threads(req.threads).map_err(|m| Error::parameter("threads", m))?;
     let coverage = sample_coverage(&req.observation)?;
     let geometry_for = |size: usize| match req.pixel {
         PixelScale::Arcsec(p) => ImageGeometry::from_arcsec(size, p),
         PixelScale::SuperResolution(sr) => ImageGeometry::from_superresolution(size, sr, coverage.max_uv()),
     };
-    crate::vis::check_phase_centre(req.phase_centre_deg.0, req.phase_centre_deg.1)?;
     let (sky, geometry) = match &req.sky {
         SkyModel::Procedural { seed } => {
             (sky::procedural_sky(&sky::SkyParams::new(req.size, req.dynamic_range, *seed))?, geometry_for(req.size)?)
