@@ -101,6 +101,16 @@ const RESERVED_KEYWORDS: &[&str] = &[
 /// Keyword families of the coordinate system (CTYPEn, PCi_j, ...), reserved like the above.
 const RESERVED_PREFIXES: &[&str] = &["NAXIS", "CTYPE", "CRPIX", "CRVAL", "CDELT", "CUNIT", "CROTA"];
 
+/// Refuses an output prefix that names no file (`out/`, `.`, `..`): products are named
+/// `<prefix>-dirty.fits`, ..., so the prefix must end in a file-name part (`out/obs`).
+pub fn check_output_prefix(prefix: &str) -> std::result::Result<(), String> {
+    let last = prefix.rsplit(['/', std::path::MAIN_SEPARATOR]).next().unwrap_or_default();
+    if last.trim().is_empty() || last == "." || last == ".." {
+        return Err(format!("\"{prefix}\" names a directory, not a file name: products are named <prefix>-dirty.fits, ..., so end the prefix with a name (out/obs, say)"));
+    }
+    Ok(())
+}
+
 /// Writes a 2-D sky image as a WSClean-style FITS file, replacing `path` atomically.
 ///
 /// The file gets axes RA, Dec, FREQ (only when `wcs.freq_hz` is known: a made-up

@@ -482,10 +482,18 @@ pub struct Truth {
 }
 
 impl Truth {
-    pub fn load(path: Option<&Path>) -> Result<Option<Truth>> {
+    /// Reads the truth for `size x size` images; another size is an error (it was ignored,
+    /// leaving the metrics without SNR and the user without a word).
+    pub fn load(path: Option<&Path>, size: usize) -> Result<Option<Truth>> {
         let Some(path) = path else { return Ok(None) };
-        let image = crate::fits::read_image(path)?.data;
-        Ok(Some(Truth { dynamic_range: crate::metrics::dynamic_range(&image), image }))
+        let image = crate::fits::read_image(path)?;
+        if (image.nx, image.ny) != (size, size) {
+            return Err(Error::input(
+                path,
+                format!("the truth is {} x {} pixels, but the pipeline images {size} x {size} (image.size): it must be on the image's grid", image.nx, image.ny),
+            ));
+        }
+        Ok(Some(Truth { dynamic_range: crate::metrics::dynamic_range(&image.data), image: image.data }))
     }
 }
 

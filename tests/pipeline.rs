@@ -488,6 +488,46 @@ fn job_ids_if_any(dir: &Path) -> Vec<String> {
     }
 }
 
+/// Mistakes that used to run anyway, writing nothing or the wrong thing: each is refused by
+/// `validate` with the file, the key and what was expected.
+#[test]
+fn small_configuration_mistakes_are_refused_by_validate() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    simulate_small(d, "3", "obs.parquet", &[]);
+    let with_source = |source: &str| small_pipeline(Some(&format!("  source:\n    kind: parquet\n{source}    to: weights\n")));
+    let onnx = small_pipeline(None).replace("    kind: clean\n    major_cycles: 3\n    components_per_cycle: 200\n", "    kind: onnx\n    series: vla-r2d2-128\n");
+    let cases: Vec<(&str, String, Vec<&str>, Vec<&str>)> = vec![
+        // The truth is 64 x 64 (the simulated sky): nothing to compare at 128.
+        ("truth of another size", with_source("    files: obs.parquet\n    truth: obs.sky.fits\n"), vec!["image.size=128"], vec!["obs.sky.fits", "64 x 64", "128 x 128"]),
+        ("no files", with_source("    files: []\n"), vec![], vec!["stages.source.files", "at least one"]),
+        ("unknown placeholder", small_pipeline(None).replace("out/{job}", "out/{jobb}"), vec![], vec!["stages.write.prefix", "{jobb}", "{job}"]),
+        ("prefix without a file name", small_pipeline(None).replace("out/{job}", "out/"), vec![], vec!["stages.write.prefix", "out/", "file name"]),
+        ("size the series cannot take", onnx.clone(), vec!["image.size=100"], vec!["vla-r2d2-128", "multiple of 8", "100"]),
+        ("size 0", small_pipeline(None), vec!["image.size=0"], vec!["image.size", "at least one pixel"]),
+    ];
+    for (what, text, sets, expected) in cases {
+        std::fs::write(d.join("p.yaml"), text).unwrap();
+        let mut args = vec!["validate", "p.yaml"];
+        for set in &sets {
+            args.extend(["--set", set]);
+        }
+        let out = r2d2(&args, d);
+        let err = stderr(&out);
+        assert!(!out.status.success(), "{what}: accepted: {err}");
+        for e in expected.iter().chain(&["p.yaml"]) {
+            assert!(err.contains(e), "{what}: '{e}' missing from: {err}");
+        }
+    }
+    // The series takes multiples of 8 other than its training size.
+    std::fs::write(d.join("p.yaml"), onnx).unwrap();
+    check(&r2d2(&["validate", "p.yaml", "--set", "image.size=72"], d));
+    // WSClean's -name with a trailing slash names no file.
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "clean", "--name", "res/"], d);
+    assert!(!out.status.success() && stderr(&out).contains("file name"), "{}", stderr(&out));
+    assert!(!d.join("res-dirty.fits").exists() && !d.join("res").exists());
+}
+
 fn job_ids(dir: &Path) -> Vec<String> {
     let mut ids: Vec<String> = std::fs::read_dir(dir)
         .unwrap()

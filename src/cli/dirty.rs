@@ -19,6 +19,7 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> Result<()> {
+    r2d2_imaging::fits::check_output_prefix(&args.name).map_err(|m| r2d2_imaging::Error::parameter("--name", m))?;
     let params = args.image.dirty_params()?;
     let (vis, meta, stats) = read_parquet(&args.input)?;
     stats.log(&args.input);

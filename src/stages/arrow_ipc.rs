@@ -60,7 +60,8 @@ impl ArrowIpcSource {
         if let Some(split) = &config.split_by {
             split.check().map_err(|m| pipeline.stage_error(name, Some("split_by"), &format!("stages.{name}.split_by.window: {m}")))?;
         }
-        let truth = Truth::load(config.truth.as_deref())?;
+        let truth = Truth::load(config.truth.as_deref(), pipeline.image.size)
+            .map_err(|e| pipeline.stage_error(name, Some("truth"), &format!("stages.{name}.truth: {e}")))?;
         Ok(ArrowIpcSource { path: config.path, id, truth, split_by: config.split_by, split_key: format!("stages.{name}.split_by"), allow_truncated: config.allow_truncated, reading: false })
     }
 }

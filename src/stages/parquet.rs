@@ -52,6 +52,9 @@ impl ParquetSource {
             Files::One(f) => vec![f],
             Files::Many(v) => v,
         };
+        if patterns.is_empty() {
+            return Err(pipeline.stage_error(name, Some("files"), &format!("stages.{name}.files: expected at least one file or glob pattern")));
+        }
         let mut paths = Vec::new();
         for pattern in &patterns {
             let matches: Vec<PathBuf> = glob::glob(pattern)
@@ -88,7 +91,8 @@ impl ParquetSource {
                 })?;
             }
         }
-        let truth = Truth::load(config.truth.as_deref())?;
+        let truth = Truth::load(config.truth.as_deref(), pipeline.image.size)
+            .map_err(|e| pipeline.stage_error(name, Some("truth"), &format!("stages.{name}.truth: {e}")))?;
         Ok(ParquetSource { paths, batch_rows: config.batch_rows.max(1), truth, split_by: config.split_by, split_key, current_job: None })
     }
 }

@@ -6,6 +6,7 @@
 //! directory and moved into place only when all are complete.
 
 use crate::fits::{write_image, BrightnessUnit, ImageWcs};
+use crate::pipeline::config::{PipelineConfig, StageConfig};
 use crate::pipeline::{Emit, Job, Stage};
 use crate::preview::{write_png, PreviewScale};
 use crate::{Error, Result};
@@ -33,6 +34,9 @@ pub struct WriterConfig {
     preview_dynamic_range: Option<f64>,
 }
 
+/// What a writer prefix may contain besides text.
+const PLACEHOLDERS: &[&str] = &["{job}"];
+
 fn prefix() -> String {
     "{job}".into()
 }
@@ -52,10 +56,19 @@ pub struct WriterStage {
 }
 
 impl WriterStage {
-    pub fn new(config: WriterConfig) -> Result<WriterStage> {
-        if config.prefix.trim().is_empty() {
-            return Err(Error::parameter("prefix", "expected a non-empty output prefix"));
+    pub fn new(config: WriterConfig, pipeline: &PipelineConfig, stage: &StageConfig) -> Result<WriterStage> {
+        let name = &stage.name;
+        let prefix_error = |m: String| pipeline.stage_error(name, Some("prefix"), &format!("stages.{name}.prefix: {m}"));
+        // Placeholders first: a typo would otherwise be written literally into file names.
+        let mut rest = config.prefix.as_str();
+        while let Some(open) = rest.find('{') {
+            let placeholder = rest[open..].find('}').map_or(&rest[open..], |close| &rest[open..=open + close]);
+            if !PLACEHOLDERS.contains(&placeholder) {
+                return Err(prefix_error(format!("unknown placeholder {placeholder} in \"{}\" (known: {})", config.prefix, PLACEHOLDERS.join(", "))));
+            }
+            rest = &rest[open + placeholder.len()..];
         }
+        crate::fits::check_output_prefix(&config.prefix).map_err(prefix_error)?;
         if let Some(dr) = config.preview_dynamic_range {
             if !(dr > 1.0 && dr.is_finite()) {
                 return Err(Error::parameter("preview_dynamic_range", format!("expected a finite number above 1, got {dr}")));

@@ -248,6 +248,17 @@ impl Series {
     /// Whether the series may image `size x size` pixels; `Ok(Some(warning))` when it runs at a
     /// size nobody vouched for.
     pub fn check_size(&self, size: usize) -> Result<Option<String>> {
+        // A U-Net halves the image at each pooling: other sizes fail inside the runtime, late
+        // and with a raw shape error.
+        let poolings = self.manifest.as_ref().and_then(|m| m.network.get("poolings")).and_then(serde_yaml::Value::as_u64);
+        if let Some(multiple) = poolings.and_then(|p| u32::try_from(p).ok()).and_then(|p| 1usize.checked_shl(p)) {
+            if size % multiple != 0 {
+                return Err(Error::input(
+                    self.dir.join("manifest.yaml"),
+                    format!("series '{}' pools {} times (network.poolings): the image size must be a multiple of {multiple}, got {size}", self.name, multiple.trailing_zeros()),
+                ));
+            }
+        }
         if self.image_sizes.contains(&size) {
             return Ok(None);
         }
