@@ -146,7 +146,8 @@ pub fn write_image(
     let tmp_name = fitsio_path(tmp.path())?;
     let header = Header { nx, ny, wcs, unit, beam, extra: &extra };
     write_fits(&tmp_name, &pixels, &header).map_err(|e| {
-        Error::io(path, std::io::Error::other(format!("writing FITS image: {}", describe(&e))))
+        let cause = why_unwritable(path).map(|c| format!(": {c}")).unwrap_or_default();
+        Error::io(path, std::io::Error::other(format!("writing FITS image: {}{cause}", describe(&e))))
     })?;
     // cfitsio reports errors of its final flush nowhere (fitsio closes files in Drop),
     // so check that the whole data unit reached the file before publishing it.
@@ -472,6 +473,19 @@ fn describe(e: &FitsioError) -> String {
         FitsioError::Fits(f) => format!("{} (cfitsio status {})", f.message, f.status),
         other => other.to_string(),
     }
+}
+
+/// Why the directory of `path` takes no more data, in the system's words (`No space left on
+/// device`), found by writing a small probe file there: cfitsio reports only its own status
+/// (105, 106), which says nothing of the cause. `None` when the probe goes through.
+fn why_unwritable(path: &Path) -> Option<String> {
+    use std::io::Write;
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let probe = tempfile::tempfile_in(dir).and_then(|mut f| {
+        f.write_all(&[0u8; 4096])?;
+        f.sync_all()
+    });
+    probe.err().map(|e| format!("the directory takes no more data ({e})"))
 }
 
 /// Checks that the file is as long as header plus data unit: one header block at least,

@@ -20,6 +20,7 @@ pub mod pipeline;
 pub mod preview;
 pub mod progress;
 pub mod simulate;
+pub mod staging;
 pub mod stages;
 pub mod steps;
 pub mod vis;

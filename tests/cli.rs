@@ -328,3 +328,30 @@ fn sizes_beyond_the_machine_are_refused_before_allocating() {
         assert!(err.contains("p.yaml") && err.contains(expected), "{set}: {err}");
     }
 }
+
+/// `r2d2 dirty` creates the output directory, writes its two products all or nothing, and
+/// names a full disk as such. The disk is a 100 kB tmpfs in a private mount namespace (where
+/// the kernel allows one): a 128 x 128 dirty image fits, the PSF after it does not.
+#[test]
+fn dirty_products_are_all_or_nothing_and_a_full_disk_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64", "--out", "obs.parquet"], d));
+    check(&r2d2(&["dirty", "obs.parquet", "--size", "64", "--name", "new/dir/obs"], d));
+    assert!(d.join("new/dir/obs-dirty.fits").exists() && d.join("new/dir/obs-psf.fits").exists());
+
+    let probe = Command::new("unshare").args(["-rm", "true"]).output();
+    if !probe.is_ok_and(|o| o.status.success()) {
+        eprintln!("no private mount namespace here (unshare -rm): the full-disk half of this test cannot run");
+        return;
+    }
+    let script = format!(
+        "mkdir -p full && mount -t tmpfs -o size=100k tmpfs full && {} dirty obs.parquet --size 128 --name full/x; echo \"rc=$?\"; ls -A full",
+        env!("CARGO_BIN_EXE_r2d2")
+    );
+    let out = Command::new("unshare").args(["-rm", "sh", "-c", &script]).current_dir(d).output().unwrap();
+    let (stdout, err) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.starts_with("rc=1\n"), "{stdout}{err}");
+    assert_eq!(stdout.trim_end(), "rc=1", "files left on the full disk: {stdout}");
+    assert!(err.contains("x-psf.fits") && err.contains("No space left on device"), "{err}");
+}

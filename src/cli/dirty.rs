@@ -4,8 +4,9 @@ use super::ImageOptions;
 use r2d2_imaging::fits::{write_image, BrightnessUnit, ImageWcs};
 use r2d2_imaging::imaging::dirty_image;
 use r2d2_imaging::vis::read_parquet;
+use r2d2_imaging::staging::Staging;
 use r2d2_imaging::Result;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -40,10 +41,17 @@ pub fn run(args: Args) -> Result<()> {
         bandwidth_hz: vis.band().and_then(|(_, width)| width),
     };
     let n = geometry.size;
+    // Both products or neither, in a directory made if need be (as the writer stage does).
+    let prefix = PathBuf::from(&args.name);
+    let dir = prefix.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let mut staging = Staging::new(dir)?;
     for (suffix, image) in [("dirty", &products.dirty), ("psf", &products.psf)] {
         let path = PathBuf::from(format!("{}-{suffix}.fits", args.name));
-        write_image(&path, image, n, n, &wcs, BrightnessUnit::JyPerBeam, None, &[("TELESCOP", meta.telescope.clone())])?;
-        log::info!("wrote {}", path.display());
+        let extra = [("TELESCOP", meta.telescope.clone())];
+        staging.write(path, |staged| write_image(staged, image, n, n, &wcs, BrightnessUnit::JyPerBeam, None, &extra))?;
     }
+    let written: Vec<String> = staging.targets().map(|p| p.display().to_string()).collect();
+    staging.commit()?;
+    log::info!("wrote {}", written.join(", "));
     Ok(())
 }
