@@ -101,6 +101,16 @@ const RESERVED_KEYWORDS: &[&str] = &[
 /// Keyword families of the coordinate system (CTYPEn, PCi_j, ...), reserved like the above.
 const RESERVED_PREFIXES: &[&str] = &["NAXIS", "CTYPE", "CRPIX", "CRVAL", "CDELT", "CUNIT", "CROTA"];
 
+/// Refuses an output prefix that names no file (`out/`, `.`, `..`): products are named
+/// `<prefix>-dirty.fits`, ..., so the prefix must end in a file-name part (`out/obs`).
+pub fn check_output_prefix(prefix: &str) -> std::result::Result<(), String> {
+    let last = prefix.rsplit(['/', std::path::MAIN_SEPARATOR]).next().unwrap_or_default();
+    if last.trim().is_empty() || last == "." || last == ".." {
+        return Err(format!("\"{prefix}\" names a directory, not a file name: products are named <prefix>-dirty.fits, ..., so end the prefix with a name (out/obs, say)"));
+    }
+    Ok(())
+}
+
 /// Writes a 2-D sky image as a WSClean-style FITS file, replacing `path` atomically.
 ///
 /// The file gets axes RA, Dec, FREQ (only when `wcs.freq_hz` is known: a made-up
@@ -136,7 +146,8 @@ pub fn write_image(
     let tmp_name = fitsio_path(tmp.path())?;
     let header = Header { nx, ny, wcs, unit, beam, extra: &extra };
     write_fits(&tmp_name, &pixels, &header).map_err(|e| {
-        Error::io(path, std::io::Error::other(format!("writing FITS image: {}", describe(&e))))
+        let cause = why_unwritable(path).map(|c| format!(": {c}")).unwrap_or_default();
+        Error::io(path, std::io::Error::other(format!("writing FITS image: {}{cause}", describe(&e))))
     })?;
     // cfitsio reports errors of its final flush nowhere (fitsio closes files in Drop),
     // so check that the whole data unit reached the file before publishing it.
@@ -462,6 +473,19 @@ fn describe(e: &FitsioError) -> String {
         FitsioError::Fits(f) => format!("{} (cfitsio status {})", f.message, f.status),
         other => other.to_string(),
     }
+}
+
+/// Why the directory of `path` takes no more data, in the system's words (`No space left on
+/// device`), found by writing a small probe file there: cfitsio reports only its own status
+/// (105, 106), which says nothing of the cause. `None` when the probe goes through.
+fn why_unwritable(path: &Path) -> Option<String> {
+    use std::io::Write;
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let probe = tempfile::tempfile_in(dir).and_then(|mut f| {
+        f.write_all(&[0u8; 4096])?;
+        f.sync_all()
+    });
+    probe.err().map(|e| format!("the directory takes no more data ({e})"))
 }
 
 /// Checks that the file is as long as header plus data unit: one header block at least,

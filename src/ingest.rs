@@ -9,16 +9,17 @@
 use crate::pipeline::Job;
 use crate::vis::{
     check_no_nulls, contain_panics, record_batch_to_visibilities, record_batch_to_visibilities_keeping_rows,
-    validate_schema, GuardedBatches, IngestStats, ObservationMeta, VisReader, Visibilities, ARROW_IPC,
+    validate_schema, IngestStats, ObservationMeta, VisReader, Visibilities, ARROW_IPC,
 };
 use crate::{Error, Result};
 use arrow::array::{Array, Float64Array, RecordBatch};
 use arrow::datatypes::{DataType, Schema, SchemaRef};
-use arrow::error::ArrowError;
-use arrow::ipc::reader::{FileReader, StreamReader};
+use arrow::ipc::reader::{read_dictionary, read_record_batch};
+use arrow::ipc::MessageHeader;
 use serde::Deserialize;
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// How to split one table into jobs.
 ///
@@ -100,12 +101,23 @@ impl TableReader for VisReader {
 pub const STDIN: &str = "-";
 
 /// An Arrow IPC table: the stream format (from a file or standard input) or the file format
-/// (from a file; it needs seeking), told apart by the file format's leading magic bytes.
+/// (from a file), told apart by the file format's leading magic bytes.
+///
+/// Messages are framed here rather than by arrow's `StreamReader`, which allocates whatever a
+/// header declares (a 1 TiB body aborted the process): every declared size is checked first
+/// against what the input can still hold (a file's remaining bytes) and the memory available,
+/// and buffers grow with the bytes that actually arrive. The file format is read through the
+/// stream it embeds (its messages in order, up to the end-of-stream marker before the footer),
+/// so the footer's block sizes, which are as untrusted, are never used.
 pub struct IpcReader {
     source: PathBuf,
     meta: ObservationMeta,
     schema: SchemaRef,
-    batches: GuardedBatches<Box<dyn Iterator<Item = std::result::Result<RecordBatch, ArrowError>>>>,
+    messages: IpcMessages,
+    rows: u64,
+    finished: bool,
+    /// Accept a stream that ends without its end-of-stream marker (with a warning).
+    allow_truncated: bool,
 }
 
 /// The IPC file format starts with these bytes; the stream format with a message length.
@@ -113,7 +125,9 @@ const IPC_FILE_MAGIC: &[u8] = b"ARROW1";
 
 impl IpcReader {
     /// Opens `input` (a path, or `-` for standard input) and reads the schema and metadata.
-    pub fn open(input: &str) -> Result<IpcReader> {
+    /// With `allow_truncated`, a stream that ends between two messages without its end-of-stream
+    /// marker is taken as complete (with a warning) instead of an error.
+    pub fn open(input: &str, allow_truncated: bool) -> Result<IpcReader> {
         if input == STDIN {
             let source = PathBuf::from("standard input");
             let mut reader = BufReader::new(std::io::stdin());
@@ -123,35 +137,26 @@ impl IpcReader {
                     "this is the Arrow IPC file format, which needs a seekable file: send the stream format on standard input, or give the file's path",
                 ));
             }
-            return Self::stream(source, reader);
+            return Self::new(source, IpcMessages::new(Box::new(reader), None), allow_truncated);
         }
         let source = PathBuf::from(input);
         let file = std::fs::File::open(&source).map_err(|e| Error::io(&source, e))?;
+        let length = file.metadata().map_err(|e| Error::io(&source, e))?.len();
         let mut reader = BufReader::new(file);
-        if peek_is_file_format(&mut reader, &source)? {
-            let file = contain_panics(&source, "not a readable Arrow IPC file", ARROW_IPC, || FileReader::try_new(reader, None))?;
-            let schema = file.schema();
-            return Self::new(source, schema, Box::new(file));
-        }
-        Self::stream(source, reader)
+        let header = if peek_is_file_format(&mut reader, &source)? { skip_file_header(&mut reader, &source)? } else { 0 };
+        Self::new(source, IpcMessages::new(Box::new(reader), Some(length.saturating_sub(header))), allow_truncated)
     }
 
-    fn stream<R: Read + 'static>(source: PathBuf, reader: R) -> Result<IpcReader> {
-        let stream = contain_panics(&source, "not a readable Arrow IPC stream", ARROW_IPC, || StreamReader::try_new(reader, None))?;
-        let schema = stream.schema();
-        Self::new(source, schema, Box::new(stream))
-    }
-
-    fn new(
-        source: PathBuf,
-        schema: SchemaRef,
-        batches: Box<dyn Iterator<Item = std::result::Result<RecordBatch, ArrowError>>>,
-    ) -> Result<IpcReader> {
+    fn new(source: PathBuf, mut messages: IpcMessages, allow_truncated: bool) -> Result<IpcReader> {
+        let first = contain_panics(&source, "not a readable Arrow IPC stream", ARROW_IPC, || messages.next(None))?;
+        let IpcMessage::Schema(schema) = first else {
+            return Err(Error::input(&source, "not a readable Arrow IPC stream: it does not start with a schema"));
+        };
+        let schema = Arc::new(schema);
         let name = source.display().to_string();
         let meta = ObservationMeta::from_pairs(schema.metadata().iter().map(|(k, v)| (k.as_str(), Some(v.as_str()))), &name)?;
         validate_schema(&schema, &name)?;
-        let batches = GuardedBatches::new(&source, ARROW_IPC, batches);
-        Ok(IpcReader { source, meta, schema, batches })
+        Ok(IpcReader { source, meta, schema, messages, rows: 0, finished: false, allow_truncated })
     }
 }
 
@@ -162,6 +167,20 @@ fn peek_is_file_format<R: Read>(reader: &mut BufReader<R>, source: &Path) -> Res
         return Err(Error::input(source, "empty input: expected an Arrow IPC stream or file"));
     }
     Ok(head.starts_with(IPC_FILE_MAGIC))
+}
+
+/// Skips the file format's magic and the padding after it (to 8 bytes, or to 64 as arrow-rs
+/// writes it), up to its first message; the bytes skipped.
+fn skip_file_header(reader: &mut BufReader<std::fs::File>, source: &Path) -> Result<u64> {
+    let mut magic = [0u8; 8];
+    reader.read_exact(&mut magic).map_err(|_| Error::input(source, "too short for the Arrow IPC file format"))?;
+    let mut skipped = magic.len();
+    // Zero words before the schema can only be padding: a stream does not start by ending.
+    while skipped < 64 && reader.fill_buf().map_err(|e| Error::io(source, e))?.starts_with(&[0; 4]) {
+        reader.consume(4);
+        skipped += 4;
+    }
+    Ok(skipped as u64)
 }
 
 impl TableReader for IpcReader {
@@ -175,7 +194,171 @@ impl TableReader for IpcReader {
         self.schema.clone()
     }
     fn next_batch(&mut self) -> Option<Result<RecordBatch>> {
-        self.batches.next_batch()
+        while !self.finished {
+            let what = format!("corrupt Arrow IPC data after row {}", self.rows);
+            let (messages, schema) = (&mut self.messages, &self.schema);
+            match contain_panics(&self.source, &what, ARROW_IPC, || messages.next(Some(schema))) {
+                Ok(IpcMessage::Batch(batch)) => {
+                    self.rows += batch.num_rows() as u64;
+                    return Some(Ok(batch));
+                }
+                Ok(IpcMessage::Other) => continue,
+                Ok(IpcMessage::Schema(_)) => {
+                    self.finished = true;
+                    return Some(Err(Error::input(&self.source, format!("{what}: a second schema in the stream"))));
+                }
+                Ok(IpcMessage::End) => self.finished = true,
+                Ok(IpcMessage::EndOfInput) => {
+                    // A sender that died between two batches leaves a stream that looks whole
+                    // but for the marker: imaging it silently would pass part of an
+                    // observation off as all of it.
+                    self.finished = true;
+                    let ended = format!("the Arrow IPC stream ended after row {} without its end-of-stream marker", self.rows);
+                    if !self.allow_truncated {
+                        return Some(Err(Error::input(
+                            &self.source,
+                            format!("{ended}: the sender may have stopped part-way (if these rows are all there is, set allow_truncated: true on the source)"),
+                        )));
+                    }
+                    log::warn!("{}: {ended}: imaging the rows received (allow_truncated)", self.source.display());
+                }
+                Err(e) => {
+                    self.finished = true;
+                    return Some(Err(e));
+                }
+            }
+        }
+        None
+    }
+}
+
+/// One message of an IPC stream, decoded.
+enum IpcMessage {
+    Schema(Schema),
+    Batch(RecordBatch),
+    /// A dictionary (kept for the batches that follow) or an empty message.
+    Other,
+    /// The end-of-stream marker.
+    End,
+    /// The input ended between two messages, without the end-of-stream marker.
+    EndOfInput,
+}
+
+/// Marks a message length that follows (IPC format 0.15 and later).
+const CONTINUATION: [u8; 4] = [0xff; 4];
+
+/// Largest message header (a flatbuffer: the schema and its metadata, or a batch's buffer
+/// list) accepted. A visibility table's take a few kilobytes.
+const MAX_HEADER_BYTES: u64 = 16 << 20;
+
+/// Bodies are read in steps that double up to what the header declares, so that a lying
+/// header costs at most twice the bytes that actually arrived.
+const FIRST_READ_BYTES: usize = 1 << 20;
+
+/// The messages of an Arrow IPC stream, framed and bounded (see [`IpcReader`]).
+struct IpcMessages {
+    input: Box<dyn Read>,
+    /// Bytes left in the input, when it is a file.
+    left: Option<u64>,
+    dictionaries: std::collections::HashMap<i64, arrow::array::ArrayRef>,
+}
+
+impl IpcMessages {
+    fn new(input: Box<dyn Read>, left: Option<u64>) -> IpcMessages {
+        IpcMessages { input, left, dictionaries: Default::default() }
+    }
+
+    /// Reads until `buf` is full or the input ends; the number of bytes read.
+    fn fill(&mut self, buf: &mut [u8]) -> std::result::Result<usize, String> {
+        let mut got = 0;
+        while got < buf.len() {
+            match self.input.read(&mut buf[got..]) {
+                Ok(0) => break,
+                Ok(n) => got += n,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(format!("reading: {e}")),
+            }
+        }
+        if let Some(left) = &mut self.left {
+            *left = left.saturating_sub(got as u64);
+        }
+        Ok(got)
+    }
+
+    /// Refuses a declared size beyond what the input holds or `limit` allows.
+    fn check_declared(&self, what: &str, declared: u64, limit: u64, limit_text: &dyn std::fmt::Display) -> std::result::Result<(), String> {
+        if let Some(left) = self.left.filter(|&left| declared > left) {
+            return Err(format!("a {what} of {declared} bytes is declared, but only {left} bytes are left in the input"));
+        }
+        if declared > limit {
+            let size = crate::limits::format_bytes(declared as f64);
+            return Err(format!("a {what} of {declared} bytes ({size}) is declared, more than {limit_text}"));
+        }
+        Ok(())
+    }
+
+    /// Reads `length` bytes (already checked) into an aligned buffer.
+    fn read_block(&mut self, length: u64, what: &str) -> std::result::Result<arrow::buffer::Buffer, String> {
+        let length = usize::try_from(length).map_err(|_| format!("a {what} of {length} bytes does not fit in memory"))?;
+        let mut block = arrow::buffer::MutableBuffer::new(0);
+        while block.len() < length {
+            let start = block.len();
+            let end = length.min(start + start.max(FIRST_READ_BYTES));
+            block.resize(end, 0);
+            if self.fill(&mut block.as_slice_mut()[start..end])? < end - start {
+                return Err(format!("the input ends part-way through a {what} (truncated)"));
+            }
+        }
+        Ok(block.into())
+    }
+
+    /// The next message; `schema` is the stream's, once read.
+    fn next(&mut self, schema: Option<&SchemaRef>) -> std::result::Result<IpcMessage, String> {
+        let mut word = [0u8; 4];
+        match self.fill(&mut word)? {
+            0 => return Ok(IpcMessage::EndOfInput),
+            4 => {}
+            _ => return Err("the input ends part-way through a message length (truncated)".into()),
+        }
+        if word == CONTINUATION && self.fill(&mut word)? < 4 {
+            return Err("the input ends part-way through a message length (truncated)".into());
+        }
+        let length = i32::from_le_bytes(word);
+        if length == 0 {
+            return Ok(IpcMessage::End);
+        }
+        let length = u64::try_from(length).map_err(|_| format!("a negative message header length ({length})"))?;
+        self.check_declared("message header", length, MAX_HEADER_BYTES, &"the largest header accepted (16 MiB)")?;
+        let header = self.read_block(length, "message header")?;
+        let message = arrow::ipc::root_as_message(&header).map_err(|e| format!("not an Arrow IPC message header: {e}"))?;
+        let body_length = message.bodyLength();
+        let body_length = u64::try_from(body_length).map_err(|_| format!("a negative message body length ({body_length})"))?;
+        let budget = crate::limits::memory_budget();
+        self.check_declared("message body", body_length, budget.bytes, &budget)?;
+        let body = self.read_block(body_length, "message body")?;
+        let version = message.version();
+        let missing = |what: &str| format!("a {what} message without its header");
+        match message.header_type() {
+            MessageHeader::Schema => {
+                let schema = message.header_as_schema().ok_or_else(|| missing("schema"))?;
+                Ok(IpcMessage::Schema(arrow::ipc::convert::fb_to_schema(schema)))
+            }
+            MessageHeader::RecordBatch => {
+                let schema = schema.ok_or("a record batch before the schema")?;
+                let batch = message.header_as_record_batch().ok_or_else(|| missing("record batch"))?;
+                read_record_batch(&body, batch, schema.clone(), &self.dictionaries, None, &version)
+                    .map(IpcMessage::Batch)
+                    .map_err(|e| e.to_string())
+            }
+            MessageHeader::DictionaryBatch => {
+                let schema = schema.ok_or("a dictionary before the schema")?;
+                let dictionary = message.header_as_dictionary_batch().ok_or_else(|| missing("dictionary"))?;
+                read_dictionary(&body, dictionary, schema, &mut self.dictionaries, &version).map_err(|e| e.to_string())?;
+                Ok(IpcMessage::Other)
+            }
+            MessageHeader::NONE => Ok(IpcMessage::Other),
+            other => Err(format!("unexpected {other:?} message (a visibility table has a schema and record batches)")),
+        }
     }
 }
 
@@ -185,8 +368,15 @@ pub struct Part {
     pub vis: Visibilities,
 }
 
+/// Most jobs one table may be split into (windows counted from the first to the last, empty
+/// ones included). A day in windows of one second is 86 400; more means a value far from the
+/// others (a corrupt time) or a window too small, and the window index would overflow or the
+/// parts fill memory long before the imaging started.
+pub const MAX_SPLIT_PARTS: usize = 100_000;
+
 /// Reads the whole table: one part, or one per group of `split` (in group order). `split_key`
-/// names the YAML key in errors about the split column. `None` when `cancelled()` turned true.
+/// names the split's YAML key (`stages.source.split_by`) in errors. `None` when `cancelled()`
+/// turned true.
 pub fn read_parts(
     reader: &mut dyn TableReader,
     split: Option<&SplitBy>,
@@ -195,7 +385,7 @@ pub fn read_parts(
 ) -> Result<Option<(Vec<Part>, IngestStats)>> {
     let source = reader.source().display().to_string();
     if let Some(split) = split {
-        split.check_schema(&reader.schema()).map_err(|m| Error::parameter(split_key, format!("{source}: {m}")))?;
+        split.check_schema(&reader.schema()).map_err(|m| Error::parameter(format!("{split_key}.column"), format!("{source}: {m}")))?;
     }
     let mut stats = IngestStats::default();
     let mut all = Visibilities::default();
@@ -233,12 +423,31 @@ pub fn read_parts(
     let Some(split) = split else {
         return Ok(Some((vec![Part { suffix: None, vis: all }], stats)));
     };
+    let too_many = |key: &str, what: String| {
+        Error::parameter(
+            format!("{split_key}.{key}"),
+            format!("{source}: {what}: more than the {MAX_SPLIT_PARTS} jobs one table may be split into (a value far from the others, or a window too small?)"),
+        )
+    };
     let (group, min_width): (Vec<usize>, usize) = match split.window {
-        Some(window) => (keys.iter().map(|k| ((k - smallest) / window).floor() as usize).collect(), 3),
+        Some(window) => {
+            // Counted in f64 before any index is made: a far-off value would wrap a usize or
+            // ask for billions of windows.
+            let largest = keys.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            let windows = if keys.is_empty() { 0.0 } else { ((largest - smallest) / window).floor() + 1.0 };
+            if !(windows <= MAX_SPLIT_PARTS as f64) {
+                let column = &split.column;
+                return Err(too_many("window", format!("column `{column}` spans {smallest} to {largest}, {windows:.3e} windows of {window}")));
+            }
+            (keys.iter().map(|k| ((k - smallest) / window).floor() as usize).collect(), 3)
+        }
         None => {
             let mut distinct = keys.clone();
             distinct.sort_by(f64::total_cmp);
             distinct.dedup_by(|a, b| a.total_cmp(b).is_eq());
+            if distinct.len() > MAX_SPLIT_PARTS {
+                return Err(too_many("column", format!("column `{}` has {} distinct values", split.column, distinct.len())));
+            }
             let rank = |k: &f64| distinct.binary_search_by(|d| d.total_cmp(k)).expect("every key is among the distinct values");
             (keys.iter().map(rank).collect(), 2)
         }
@@ -273,10 +482,18 @@ pub struct Truth {
 }
 
 impl Truth {
-    pub fn load(path: Option<&Path>) -> Result<Option<Truth>> {
+    /// Reads the truth for `size x size` images; another size is an error (it was ignored,
+    /// leaving the metrics without SNR and the user without a word).
+    pub fn load(path: Option<&Path>, size: usize) -> Result<Option<Truth>> {
         let Some(path) = path else { return Ok(None) };
-        let image = crate::fits::read_image(path)?.data;
-        Ok(Some(Truth { dynamic_range: crate::metrics::dynamic_range(&image), image }))
+        let image = crate::fits::read_image(path)?;
+        if (image.nx, image.ny) != (size, size) {
+            return Err(Error::input(
+                path,
+                format!("the truth is {} x {} pixels, but the pipeline images {size} x {size} (image.size): it must be on the image's grid", image.nx, image.ny),
+            ));
+        }
+        Ok(Some(Truth { dynamic_range: crate::metrics::dynamic_range(&image.data), image: image.data }))
     }
 }
 
@@ -349,7 +566,7 @@ mod tests {
         write_parquet(&path, &table(), &meta()).unwrap();
         let extra: Vec<&str> = split.iter().map(|s| s.column.as_str()).collect();
         let mut reader = VisReader::open_with_columns(&path, batch_rows, &extra).unwrap();
-        read_parts(&mut reader, split.as_ref(), "split_by.column", &|| false).unwrap().unwrap()
+        read_parts(&mut reader, split.as_ref(), "split_by", &|| false).unwrap().unwrap()
     }
 
     /// The `vis` real parts are the row numbers, so each part says which rows it holds.
@@ -401,6 +618,32 @@ mod tests {
         assert!(parts[0].suffix.is_none());
         assert_eq!(parts[0].vis.len() as u64, stats.kept());
         assert_eq!(stats.kept(), 38);
+    }
+
+    /// `table()` with row 7's time moved to `time`: one far-off sample.
+    fn split_error_with_outlier(time: f64) -> String {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("obs.parquet");
+        let mut t = table();
+        t.time[7] = time;
+        write_parquet(&path, &t, &meta()).unwrap();
+        let mut reader = VisReader::open_with_columns(&path, 100, &["time"]).unwrap();
+        let split = SplitBy { column: "time".into(), window: Some(600.0) };
+        match read_parts(&mut reader, Some(&split), "stages.source.split_by", &|| false) {
+            Ok(_) => panic!("a time of {time} split without error"),
+            Err(e) => e.to_string(),
+        }
+    }
+
+    #[test]
+    fn window_counts_are_bounded_before_anything_is_allocated() {
+        // 1e300 s wraps a usize window index; 1e13 s asks for ~1.7e10 windows (~133 GB).
+        for time in [1e300, 1e13] {
+            let err = split_error_with_outlier(time);
+            for expected in ["obs.parquet", "`time`", "window", "stages.source.split_by.window"] {
+                assert!(err.contains(expected), "{time}: '{expected}' missing from: {err}");
+            }
+        }
     }
 
     #[test]

@@ -12,6 +12,7 @@ pub mod fft2;
 pub mod fits;
 pub mod imaging;
 pub mod ingest;
+pub mod limits;
 pub mod metrics;
 #[cfg(feature = "ms")]
 pub mod ms;
@@ -21,6 +22,7 @@ pub mod pipeline;
 pub mod preview;
 pub mod progress;
 pub mod simulate;
+pub mod staging;
 pub mod stages;
 pub mod steps;
 pub mod vis;

@@ -19,7 +19,7 @@
 //! Baselines are stored in metres because that is what is measured and what is the same
 //! for every channel; the reader converts them to wavelengths, the unit the imaging
 //! operators work in, and drops rows that must not be imaged (flagged, non-finite,
-//! non-positive weight), counting each reason in [`IngestStats`].
+//! physically impossible, non-positive weight), counting each reason in [`IngestStats`].
 
 use std::borrow::Cow;
 use std::collections::BTreeMap;
@@ -163,9 +163,19 @@ impl ObservationMeta {
     }
 }
 
+/// Checks a phase centre given as parameters (right ascension, declination in degrees) as the
+/// reader would check it in a file, so that no file is written that cannot be read back.
+pub fn check_phase_centre(ra_deg: f64, dec_deg: f64) -> Result<()> {
+    for (key, value) in [(KEY_RA, ra_deg), (KEY_DEC, dec_deg)] {
+        check_meta_number(key, value).map_err(|msg| Error::parameter(key, format!("{value}: {msg}")))?;
+    }
+    Ok(())
+}
+
 /// Checks a numeric metadata value; the error says what was expected.
 fn check_meta_number(key: &str, value: f64) -> std::result::Result<(), &'static str> {
     let (ok, expected) = match key {
+        KEY_RA => ((0.0..360.0).contains(&value), "expected a right ascension within [0, 360) degrees"),
         KEY_DEC => ((-90.0..=90.0).contains(&value), "expected a declination within [-90, 90] degrees"),
         KEY_NOISE_SIGMA => (value.is_finite() && value >= 0.0, "expected a finite non-negative noise level"),
         KEY_DYNAMIC_RANGE => (value.is_finite() && value > 0.0, "expected a finite positive dynamic range"),
@@ -264,16 +274,27 @@ impl Visibilities {
     }
 }
 
+/// Largest |u|, |v| or |w| of a sample, metres: no two points on Earth are farther apart than
+/// its equatorial diameter, 12 756 km. A longer baseline is a corrupt value (one such row would
+/// set the pixel size, 1 / longest baseline, to nonsense); space VLBI is out of scope.
+pub const MAX_BASELINE_M: f64 = 1.3e7;
+
+/// Frequencies a radio interferometer on the ground observes at, Hz: the ionosphere reflects
+/// what is below a few MHz, the atmosphere absorbs what is above about 1 THz.
+pub const FREQUENCY_RANGE_HZ: (f64, f64) = (1e6, 1e13);
+
 /// How many rows were read and why those not kept were excluded.
 ///
 /// Each excluded row is counted once, under the first reason that applies, in the order
 /// of the fields: flagged, then non-finite (any of u, v, w, frequency, visibility,
-/// weight), then non-positive weight.
+/// weight), then physically impossible (a baseline coordinate beyond [`MAX_BASELINE_M`],
+/// a frequency outside [`FREQUENCY_RANGE_HZ`]), then non-positive weight.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct IngestStats {
     pub rows: u64,
     pub flagged: u64,
     pub non_finite: u64,
+    pub impossible: u64,
     pub nonpositive_weight: u64,
 }
 
@@ -285,14 +306,29 @@ impl IngestStats {
 
     /// Rows dropped, for any reason.
     pub fn excluded(&self) -> u64 {
-        self.flagged + self.non_finite + self.nonpositive_weight
+        self.flagged + self.non_finite + self.impossible + self.nonpositive_weight
     }
 
     fn add(&mut self, other: &IngestStats) {
         self.rows += other.rows;
         self.flagged += other.flagged;
         self.non_finite += other.non_finite;
+        self.impossible += other.impossible;
         self.nonpositive_weight += other.nonpositive_weight;
+    }
+
+    /// Logs the counts of a table read from `source`, with a warning when rows had values no
+    /// instrument measures: the file is damaged or was written wrongly.
+    pub fn log(&self, source: &Path) {
+        log::info!("{}: {self}", source.display());
+        if self.impossible > 0 {
+            let (low, high) = FREQUENCY_RANGE_HZ;
+            log::warn!(
+                "{}: {} physically impossible rows excluded (a baseline coordinate beyond {MAX_BASELINE_M:e} m, or a frequency outside {low:e} .. {high:e} Hz): is the file damaged?",
+                source.display(),
+                self.impossible
+            );
+        }
     }
 }
 
@@ -300,12 +336,13 @@ impl fmt::Display for IngestStats {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(
             f,
-            "{} rows read, {} kept, {} excluded ({} flagged, {} non-finite, {} non-positive weight)",
+            "{} rows read, {} kept, {} excluded ({} flagged, {} non-finite, {} physically impossible, {} non-positive weight)",
             self.rows,
             self.kept(),
             self.excluded(),
             self.flagged,
             self.non_finite,
+            self.impossible,
             self.nonpositive_weight
         )
     }
@@ -492,20 +529,14 @@ fn convert_batch(
             counts.non_finite += 1;
             continue;
         }
+        let (low, high) = FREQUENCY_RANGE_HZ;
+        if [u[i], v[i], w[i]].iter().any(|x| x.abs() > MAX_BASELINE_M) || !(low..=high).contains(&frequency[i]) {
+            counts.impossible += 1;
+            continue;
+        }
         if wt <= 0.0 {
             counts.nonpositive_weight += 1;
             continue;
-        }
-        if frequency[i] <= 0.0 {
-            // Not a sample to skip but a broken file: nothing measures at 0 Hz or below.
-            return Err(Error::input(
-                source,
-                format!(
-                    "column `frequency` at row {} is {} Hz; frequencies must be positive",
-                    first_row + i as u64,
-                    frequency[i]
-                ),
-            ));
         }
         let per_metre = frequency[i] / SPEED_OF_LIGHT;
         if let Some(rows) = kept_rows.as_mut() {
@@ -688,25 +719,18 @@ pub(crate) const ARROW_IPC: &str = "Arrow IPC";
 /// indices are not bounds-checked: apache/arrow-rs#9434, fixed in later releases), and a
 /// damaged file must not bring down the process. Unwinding is contained here, where
 /// callers stop using the decoder after any failure (`VisReader` ends its iteration), so
-/// no state it may have left half-updated is observed. The panic hook still prints the
-/// panic to stderr.
+/// no state it may have left half-updated is observed. The panic is not printed: the error
+/// says it all, with the decoder's source location.
 pub(crate) fn contain_panics<T, E: fmt::Display>(
     path: &Path,
     what: &str,
     decoder: &str,
     decode: impl FnOnce() -> std::result::Result<T, E>,
 ) -> Result<T> {
-    match std::panic::catch_unwind(std::panic::AssertUnwindSafe(decode)) {
+    match crate::error::catch_quietly(decode) {
         Ok(Ok(value)) => Ok(value),
         Ok(Err(e)) => Err(Error::input(path, format!("{what}: {e}"))),
-        Err(payload) => {
-            let message = payload
-                .downcast_ref::<&str>()
-                .map(|s| s.to_string())
-                .or_else(|| payload.downcast_ref::<String>().cloned())
-                .unwrap_or_else(|| "no message".to_string());
-            Err(Error::input(path, format!("{what}: the {decoder} decoder failed ({message})")))
-        }
+        Err(message) => Err(Error::input(path, format!("{what}: the {decoder} decoder failed ({message})"))),
     }
 }
 
@@ -998,14 +1022,47 @@ mod tests {
         write_parquet(&path, &table, &test_meta()).unwrap();
 
         let (vis, _, stats) = read_parquet(&path).unwrap();
-        assert_eq!(stats, IngestStats { rows: 10, flagged: 2, non_finite: 3, nonpositive_weight: 2 });
+        assert_eq!(stats, IngestStats { rows: 10, flagged: 2, non_finite: 3, impossible: 0, nonpositive_weight: 2 });
         assert_eq!(stats.kept(), 3);
         assert_eq!(vis.len(), 3);
         assert_eq!(vis.vis, vec![table.vis[7], table.vis[8], table.vis[9]]);
         assert_eq!(
             stats.to_string(),
-            "10 rows read, 3 kept, 7 excluded (2 flagged, 3 non-finite, 2 non-positive weight)"
+            "10 rows read, 3 kept, 7 excluded (2 flagged, 3 non-finite, 0 physically impossible, 2 non-positive weight)"
         );
+    }
+
+    #[test]
+    fn physically_impossible_rows_are_excluded_and_counted() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("impossible.parquet");
+        let mut table = test_table(10);
+        table.u_m[0] = 1e9; // a million kilometres: no telescope on Earth
+        table.v_m[1] = -1e300;
+        table.w_m[2] = 2e7;
+        table.frequency[3] = 0.0;
+        table.frequency[4] = -1.4e9;
+        table.frequency[5] = 1e20;
+        table.frequency[6] = 10.0;
+        write_parquet(&path, &table, &test_meta()).unwrap();
+        let (vis, _, stats) = read_parquet(&path).expect("impossible rows are excluded, not an error");
+        assert_eq!((stats.rows, stats.kept()), (10, 3));
+        assert_eq!(vis.vis, vec![table.vis[7], table.vis[8], table.vis[9]]);
+        let text = stats.to_string();
+        assert!(text.contains("7 physically impossible"), "{text}");
+    }
+
+    #[test]
+    fn right_ascension_outside_0_to_360_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("ra.parquet");
+        for ra in ["360", "-0.5", "1e300", "inf"] {
+            write_custom(&path, basic_columns(), &[("phase_centre_ra_deg", ra), GOOD_METADATA[1], GOOD_METADATA[2]]);
+            let err = open_error(&path);
+            assert!(err.contains(&format!("`phase_centre_ra_deg` = {ra}")) && err.contains("[0, 360)"), "{ra}: {err}");
+        }
+        write_custom(&path, basic_columns(), &[("phase_centre_ra_deg", "359.9"), GOOD_METADATA[1], GOOD_METADATA[2]]);
+        assert!(VisReader::open(&path, 100).is_ok());
     }
 
     #[test]

@@ -178,3 +178,180 @@ fn bad_input_gives_errors_that_name_the_problem() {
     let out = r2d2(&["dirty", "x.parquet", "--weighting", "superuniform"], d);
     assert!(!out.status.success());
 }
+
+/// parquet 55 panics on some corrupt pages (apache/arrow-rs#9434); the reader contains that,
+/// and the user sees an error naming the file, not the panic hook's "thread ... panicked at".
+#[test]
+fn contained_decoder_panics_print_no_panic_message() {
+    use arrow::array::{ArrayRef, Float64Array, RecordBatch};
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // Dictionary-encoded columns (as most writers produce), damaged at many places.
+    let n = 20_000;
+    let ramp = |scale: f64| std::sync::Arc::new(Float64Array::from((0..n).map(|i| scale * (i % 5000) as f64).collect::<Vec<_>>())) as ArrayRef;
+    let columns = vec![
+        ("u", ramp(1.0)),
+        ("v", ramp(-2.0)),
+        ("w", ramp(0.1)),
+        ("frequency", std::sync::Arc::new(Float64Array::from(vec![1.4e9; n])) as ArrayRef),
+        ("vis_re", ramp(0.5)),
+        ("vis_im", ramp(0.25)),
+    ];
+    let batch = RecordBatch::try_from_iter(columns).unwrap();
+    let metadata = [("phase_centre_ra_deg", "10"), ("phase_centre_dec_deg", "40"), ("telescope", "VLA")];
+    let kv = metadata.iter().map(|(k, v)| parquet::file::metadata::KeyValue::new(k.to_string(), v.to_string())).collect();
+    let props = parquet::file::properties::WriterProperties::builder().set_key_value_metadata(Some(kv)).build();
+    let mut bytes = Vec::new();
+    let mut writer = parquet::arrow::ArrowWriter::try_new(&mut bytes, batch.schema(), Some(props)).unwrap();
+    writer.write(&batch).unwrap();
+    writer.close().unwrap();
+    let mut seed = 0x2545_f491_4f6c_dd1du64;
+    let mut contained = 0;
+    for _ in 0..60 {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        let mut damaged = bytes.clone();
+        let start = (seed % damaged.len() as u64) as usize;
+        let end = (start + 1 + (seed >> 40) as usize % 48).min(damaged.len());
+        damaged[start..end].fill((seed >> 32) as u8);
+        std::fs::write(d.join("damaged.parquet"), &damaged).unwrap();
+        let out = r2d2(&["dirty", "damaged.parquet", "--size", "64", "--name", "x"], d);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!err.contains("panicked"), "damage at {start}..{end}: {err}");
+        if err.contains("decoder failed (") {
+            assert!(err.contains("damaged.parquet") && !out.status.success(), "{err}");
+            contained += 1;
+        }
+    }
+    assert!(contained > 0, "no damage made the decoder panic: this test no longer tests anything");
+}
+
+/// One row a million kilometres long among a real observation's would set the pixel size
+/// (1 / longest baseline) to nonsense: it is excluded and counted, with a warning, and the
+/// images are those of the observation without it.
+#[test]
+fn physically_impossible_rows_are_excluded_with_a_warning() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let spec = ObservationSpec {
+        configurations: vec![('c', 1.0)],
+        dec_deg: 40.0,
+        integration_s: 300.0,
+        frequencies_hz: frequency_channels(1.4e9, 1, 1.0).unwrap(),
+        flag_fraction: 0.0,
+        random_rotation: false,
+        seed: 1,
+    };
+    let cov = sample_coverage(&spec).unwrap();
+    let n = cov.len();
+    let mut table = VisTable {
+        u_m: cov.u_m,
+        v_m: cov.v_m,
+        w_m: cov.w_m,
+        frequency: cov.frequency_hz,
+        vis: vec![Complex64::new(1.0, 0.0); n],
+        ..Default::default()
+    };
+    let meta = ObservationMeta {
+        phase_centre_ra_deg: 10.0,
+        phase_centre_dec_deg: 40.0,
+        telescope: "VLA".into(),
+        noise_sigma: None,
+        dynamic_range: None,
+        extra: Default::default(),
+    };
+    write_parquet(&d.join("good.parquet"), &table, &meta).unwrap();
+    table.u_m.push(1e9);
+    table.v_m.push(0.0);
+    table.w_m.push(0.0);
+    table.frequency.push(1.4e9);
+    table.vis.push(Complex64::new(1.0, 0.0));
+    write_parquet(&d.join("bad.parquet"), &table, &meta).unwrap();
+    check(&r2d2(&["dirty", "good.parquet", "--size", "64", "--name", "good"], d));
+    let out = r2d2(&["dirty", "bad.parquet", "--size", "64", "--name", "bad"], d);
+    check(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("WARN") && err.contains("bad.parquet") && err.contains("1 physically impossible"), "{err}");
+    for product in ["dirty", "psf"] {
+        let good = read_image(&d.join(format!("good-{product}.fits"))).unwrap();
+        let bad = read_image(&d.join(format!("bad-{product}.fits"))).unwrap();
+        assert_eq!((good.wcs, good.data), (bad.wcs, bad.data), "{product}");
+    }
+}
+
+/// Runs `r2d2` under a 4 GB address-space limit and a 60 s timeout, so that a size the checks
+/// let through fails fast instead of taking the machine's memory or hanging.
+fn r2d2_bounded(args: &[&str], dir: &Path) -> Output {
+    Command::new("sh")
+        .arg("-c")
+        .arg("ulimit -v 4000000; exec timeout 60 \"$0\" \"$@\"")
+        .arg(env!("CARGO_BIN_EXE_r2d2"))
+        .args(args)
+        .current_dir(dir)
+        .output()
+        .expect("sh runs")
+}
+
+/// Image sizes, simulated sample counts and thread counts beyond what the machine can hold are
+/// refused up front with an error naming the option, instead of an abort on a 100 GB
+/// allocation or a hang starting 100 000 threads.
+#[test]
+fn sizes_beyond_the_machine_are_refused_before_allocating() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64", "--out", "obs.parquet"], d));
+    let cases: [(&[&str], &[&str]); 4] = [
+        (&["dirty", "obs.parquet", "--size", "100000", "--pixel-arcsec", "0.01", "--name", "x"], &["size", "100000 x 100000", "memory available"]),
+        (&["simulate", "--configs", "c", "--hours", "1e4", "--size", "64", "--out", "big.parquet"], &["hours", "samples", "memory available"]),
+        (&["simulate", "--configs", "c", "--hours", "1", "--size", "100000", "--pixel-arcsec", "0.01", "--out", "big.parquet"], &["size", "100000 x 100000", "memory available"]),
+        (&["dirty", "obs.parquet", "--size", "64", "--threads", "100000", "--name", "x"], &["threads", "100000", "cores"]),
+    ];
+    for (args, expected) in cases {
+        let out = r2d2_bounded(args, d);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {err}");
+        for e in expected {
+            assert!(err.contains(e), "{args:?}: '{e}' missing from: {err}");
+        }
+    }
+    assert!(!d.join("x-dirty.fits").exists() && !d.join("big.parquet").exists());
+
+    // The same limits in a pipeline, reported by validate with the file and the key.
+    let pipeline = "image: {size: 64}\nstages:\n  source: {kind: simulate, to: weights}\n  weights: {kind: weighting, scheme: natural, to: grid}\n  grid: {kind: gridder, to: step}\n  step: {kind: clean, to: update}\n  update: {kind: residual, to: step, done: write}\n  write: {kind: writer}\n";
+    std::fs::write(d.join("p.yaml"), pipeline).unwrap();
+    check(&r2d2(&["validate", "p.yaml"], d));
+    for (set, expected) in [("image.size=100000", "image.size"), ("threads=4000", "threads")] {
+        let out = r2d2_bounded(&["validate", "p.yaml", "--set", set], d);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{set}: {err}");
+        assert!(err.contains("p.yaml") && err.contains(expected), "{set}: {err}");
+    }
+}
+
+/// `r2d2 dirty` creates the output directory, writes its two products all or nothing, and
+/// names a full disk as such. The disk is a 100 kB tmpfs in a private mount namespace (where
+/// the kernel allows one): a 128 x 128 dirty image fits, the PSF after it does not.
+#[test]
+fn dirty_products_are_all_or_nothing_and_a_full_disk_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64", "--out", "obs.parquet"], d));
+    check(&r2d2(&["dirty", "obs.parquet", "--size", "64", "--name", "new/dir/obs"], d));
+    assert!(d.join("new/dir/obs-dirty.fits").exists() && d.join("new/dir/obs-psf.fits").exists());
+
+    let probe = Command::new("unshare").args(["-rm", "true"]).output();
+    if !probe.is_ok_and(|o| o.status.success()) {
+        eprintln!("no private mount namespace here (unshare -rm): the full-disk half of this test cannot run");
+        return;
+    }
+    let script = format!(
+        "mkdir -p full && mount -t tmpfs -o size=100k tmpfs full && {} dirty obs.parquet --size 128 --name full/x; echo \"rc=$?\"; ls -A full",
+        env!("CARGO_BIN_EXE_r2d2")
+    );
+    let out = Command::new("unshare").args(["-rm", "sh", "-c", &script]).current_dir(d).output().unwrap();
+    let (stdout, err) = (String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.starts_with("rc=1\n"), "{stdout}{err}");
+    assert_eq!(stdout.trim_end(), "rc=1", "files left on the full disk: {stdout}");
+    assert!(err.contains("x-psf.fits") && err.contains("No space left on device"), "{err}");
+}

@@ -193,6 +193,11 @@ fn image_command_runs_the_default_pipeline() {
     }
     let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("cl/obs-metrics.json")).unwrap()).unwrap();
     assert!(v["iterations"][1]["logsnr"].is_number());
+    // A network series over the same prefix makes no restored image: CLEAN's goes, rather
+    // than stand beside the new products as if it were theirs.
+    check(&r2d2(&["image", "obs.parquet", "--size", "64", "--name", "cl/obs"], d));
+    assert!(!d.join("cl/obs-image.fits").exists() && !d.join("cl/obs-image.png").exists());
+    assert!(d.join("cl/obs-model.fits").exists());
 
     // A series name that is nowhere says where it looked.
     let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "nosuch", "--name", "x"], d);
@@ -331,6 +336,199 @@ fn corrupt_arrow_ipc_mid_stream_fails_cleanly() {
     }
     let out = r2d2_stdin(&["run", "p.yaml"], d, &stream[..cut]);
     assert!(stderr(&out).contains("corrupt Arrow IPC data after row 1000"), "{}", stderr(&out));
+}
+
+/// A stream of `batches` whose first record batch header claims a body of `claimed` bytes
+/// (the body that follows is the real one), with its end-of-stream marker.
+fn ipc_stream_claiming(schema: &arrow::datatypes::Schema, batches: &[arrow::array::RecordBatch], claimed: i64) -> Vec<u8> {
+    let mut writer = arrow::ipc::writer::StreamWriter::try_new(Vec::new(), schema).unwrap();
+    let start = writer.get_ref().len();
+    for b in batches {
+        writer.write(b).unwrap();
+    }
+    writer.finish().unwrap();
+    let mut stream = writer.into_inner().unwrap();
+    // The message: continuation marker, header length, header (a flatbuffer), body.
+    assert_eq!(stream[start..start + 4], [0xff; 4]);
+    let length = i32::from_le_bytes(stream[start + 4..start + 8].try_into().unwrap()) as usize;
+    let header = start + 8..start + 8 + length;
+    let body = arrow::ipc::root_as_message(&stream[header.clone()]).unwrap().bodyLength();
+    let places: Vec<usize> = (header.start..header.end - 8).filter(|&i| stream[i..i + 8] == body.to_le_bytes()).collect();
+    assert_eq!(places.len(), 1, "the body length {body} is found once in the header");
+    stream[places[0]..places[0] + 8].copy_from_slice(&claimed.to_le_bytes());
+    assert_eq!(arrow::ipc::root_as_message(&stream[header]).unwrap().bodyLength(), claimed);
+    stream
+}
+
+/// A record batch header claiming a 1 TiB body: refused before anything is allocated, on
+/// standard input (against the memory there is) and from a file (against what is left in
+/// it), with an error naming the input, the stage and the size, not an aborted process.
+#[test]
+fn arrow_ipc_declared_sizes_are_bounded_before_allocating() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (schema, batches) = small_table_batches(d);
+    let stream = ipc_stream_claiming(&schema, &batches[..2], 1 << 40);
+    std::fs::write(d.join("huge.arrows"), &stream).unwrap();
+    std::fs::write(d.join("stdin.yaml"), small_pipeline(Some(&ipc_source("-", "")))).unwrap();
+    std::fs::write(d.join("file.yaml"), small_pipeline(Some(&ipc_source("huge.arrows", "")))).unwrap();
+    let from_stdin = r2d2_stdin(&["run", "stdin.yaml"], d, &stream);
+    let from_file = r2d2(&["run", "file.yaml"], d);
+    for (out, input, bound) in [(from_stdin, "standard input", "memory available"), (from_file, "huge.arrows", "left in the input")] {
+        let err = stderr(&out);
+        assert_eq!(out.status.code(), Some(1), "{input}: {err}");
+        for expected in ["stage 'source' (arrow-ipc)", input, "1099511627776 bytes", bound] {
+            assert!(err.contains(expected), "{input}: '{expected}' missing from: {err}");
+        }
+        assert!(!err.contains("panicked"), "{err}");
+    }
+}
+
+/// Two inputs with the same file name would be the same job, the second overwriting the
+/// first's products: `validate` and `run` refuse them, naming both files, and write nothing.
+#[test]
+fn inputs_with_the_same_job_id_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    for sub in ["a", "b"] {
+        std::fs::create_dir(d.join(sub)).unwrap();
+        simulate_small(d, "3", &format!("{sub}/obs.parquet"), &[]);
+    }
+    let source = "  source:\n    kind: parquet\n    files: [a/obs.parquet, \"b/*.parquet\"]\n    to: weights\n";
+    std::fs::write(d.join("p.yaml"), small_pipeline(Some(source))).unwrap();
+    for command in ["validate", "run"] {
+        let out = r2d2(&[command, "p.yaml"], d);
+        let err = stderr(&out);
+        assert!(!out.status.success(), "{command}: accepted: {err}");
+        for expected in ["p.yaml", "line 7", "stages.source.files", "a/obs.parquet", "b/obs.parquet", "job 'obs'"] {
+            assert!(err.contains(expected), "{command}: '{expected}' missing from: {err}");
+        }
+    }
+    assert!(!d.join("out").exists(), "products written");
+}
+
+/// A stream cut at a batch boundary (an upstream process that died between batches) lacks
+/// the end-of-stream marker: refused by default, naming the input, so that part of an
+/// observation is not imaged as if it were all of it; `allow_truncated: true` images the rows
+/// received, with a warning.
+#[test]
+fn arrow_ipc_without_end_of_stream_is_refused_unless_allowed() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (schema, batches) = small_table_batches(d);
+    let (stream, ends) = ipc_stream(&schema, &batches);
+    let cut = &stream[..ends[1]];
+    std::fs::write(d.join("cut.arrows"), cut).unwrap();
+    std::fs::write(d.join("stdin.yaml"), small_pipeline(Some(&ipc_source("-", "")))).unwrap();
+    std::fs::write(d.join("file.yaml"), small_pipeline(Some(&ipc_source("cut.arrows", "")))).unwrap();
+    for (out, input) in [(r2d2_stdin(&["run", "stdin.yaml"], d, cut), "standard input"), (r2d2(&["run", "file.yaml"], d), "cut.arrows")] {
+        let err = stderr(&out);
+        assert!(!out.status.success(), "{input}: accepted: {err}");
+        for expected in ["stage 'source' (arrow-ipc)", input, "end-of-stream marker", "after row 1000", "allow_truncated"] {
+            assert!(err.contains(expected), "{input}: '{expected}' missing from: {err}");
+        }
+        assert!(!d.join("out").exists(), "{input}: products written");
+    }
+    let allowed = small_pipeline(Some(&ipc_source("-", "    allow_truncated: true\n")));
+    std::fs::write(d.join("allowed.yaml"), allowed).unwrap();
+    let out = r2d2_stdin(&["run", "allowed.yaml"], d, cut);
+    check(&out);
+    let err = stderr(&out);
+    assert!(err.contains("WARN") && err.contains("standard input") && err.contains("end-of-stream marker"), "{err}");
+    assert!(d.join("out/stdin-dirty.fits").exists());
+    // A complete stream needs no option and gives no warning.
+    let out = r2d2_stdin(&["run", "allowed.yaml"], d, &stream);
+    check(&out);
+    assert!(!stderr(&out).contains("WARN"), "{}", stderr(&out));
+}
+
+/// SIGTERM (what a batch scheduler or `kill` sends) stops a run like Ctrl-C: at a job
+/// boundary, with an error and a non-zero exit, every job's products complete or absent, and
+/// no staging directory left behind.
+#[test]
+fn sigterm_stops_a_run_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // Enough jobs that the run is still going when the first one is written.
+    let source = "  source:\n    kind: simulate\n    jobs: 500\n    configurations: [c]\n    hours: [1]\n    integration_s: 300\n    to: weights\n";
+    std::fs::write(d.join("p.yaml"), small_pipeline(Some(source))).unwrap();
+    let child = Command::new(env!("CARGO_BIN_EXE_r2d2"))
+        .args(["run", "p.yaml"])
+        .current_dir(d)
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let started = std::time::Instant::now();
+    while job_ids_if_any(&d.join("out")).is_empty() {
+        assert!(started.elapsed().as_secs() < 120, "no job written in two minutes");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    let kill = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+    assert!(kill.success());
+    let out = child.wait_with_output().unwrap();
+    let err = stderr(&out);
+    assert_eq!(out.status.code(), Some(1), "not stopped cleanly ({}): {err}", out.status);
+    assert!(err.contains("interrupted"), "{err}");
+    let ids = job_ids_if_any(&d.join("out"));
+    assert!(ids.len() < 500, "the run was not stopped");
+    let mut names: Vec<String> = std::fs::read_dir(d.join("out")).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    names.sort();
+    let complete: Vec<String> = ids
+        .iter()
+        .flat_map(|id| ["dirty", "psf", "model", "residual", "image"].iter().flat_map(move |p| [format!("{id}-{p}.fits"), format!("{id}-{p}.png")]).chain([format!("{id}-metrics.json"), format!("{id}-metrics.parquet")]))
+        .collect::<std::collections::BTreeSet<_>>()
+        .into_iter()
+        .collect();
+    assert_eq!(names, complete, "partial products or a staging directory left");
+}
+
+/// The job ids written in `dir` (by their metrics), none if it does not exist yet.
+fn job_ids_if_any(dir: &Path) -> Vec<String> {
+    if dir.is_dir() {
+        job_ids(dir)
+    } else {
+        Vec::new()
+    }
+}
+
+/// Mistakes that used to run anyway, writing nothing or the wrong thing: each is refused by
+/// `validate` with the file, the key and what was expected.
+#[test]
+fn small_configuration_mistakes_are_refused_by_validate() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    simulate_small(d, "3", "obs.parquet", &[]);
+    let with_source = |source: &str| small_pipeline(Some(&format!("  source:\n    kind: parquet\n{source}    to: weights\n")));
+    let onnx = small_pipeline(None).replace("    kind: clean\n    major_cycles: 3\n    components_per_cycle: 200\n", "    kind: onnx\n    series: vla-r2d2-128\n");
+    let cases: Vec<(&str, String, Vec<&str>, Vec<&str>)> = vec![
+        // The truth is 64 x 64 (the simulated sky): nothing to compare at 128.
+        ("truth of another size", with_source("    files: obs.parquet\n    truth: obs.sky.fits\n"), vec!["image.size=128"], vec!["obs.sky.fits", "64 x 64", "128 x 128"]),
+        ("no files", with_source("    files: []\n"), vec![], vec!["stages.source.files", "at least one"]),
+        ("unknown placeholder", small_pipeline(None).replace("out/{job}", "out/{jobb}"), vec![], vec!["stages.write.prefix", "{jobb}", "{job}"]),
+        ("prefix without a file name", small_pipeline(None).replace("out/{job}", "out/"), vec![], vec!["stages.write.prefix", "out/", "file name"]),
+        ("size the series cannot take", onnx.clone(), vec!["image.size=100"], vec!["vla-r2d2-128", "multiple of 8", "100"]),
+        ("size 0", small_pipeline(None), vec!["image.size=0"], vec!["image.size", "at least one pixel"]),
+    ];
+    for (what, text, sets, expected) in cases {
+        std::fs::write(d.join("p.yaml"), text).unwrap();
+        let mut args = vec!["validate", "p.yaml"];
+        for set in &sets {
+            args.extend(["--set", set]);
+        }
+        let out = r2d2(&args, d);
+        let err = stderr(&out);
+        assert!(!out.status.success(), "{what}: accepted: {err}");
+        for e in expected.iter().chain(&["p.yaml"]) {
+            assert!(err.contains(e), "{what}: '{e}' missing from: {err}");
+        }
+    }
+    // The series takes multiples of 8 other than its training size.
+    std::fs::write(d.join("p.yaml"), onnx).unwrap();
+    check(&r2d2(&["validate", "p.yaml", "--set", "image.size=72"], d));
+    // WSClean's -name with a trailing slash names no file.
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "clean", "--name", "res/"], d);
+    assert!(!out.status.success() && stderr(&out).contains("file name"), "{}", stderr(&out));
+    assert!(!d.join("res-dirty.fits").exists() && !d.join("res").exists());
 }
 
 fn job_ids(dir: &Path) -> Vec<String> {

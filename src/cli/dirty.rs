@@ -3,8 +3,9 @@
 use super::ImageOptions;
 use r2d2_imaging::fits::{write_image, BrightnessUnit, ImageWcs};
 use r2d2_imaging::imaging::dirty_image;
+use r2d2_imaging::staging::Staging;
 use r2d2_imaging::Result;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -20,9 +21,10 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> Result<()> {
+    r2d2_imaging::fits::check_output_prefix(&args.name).map_err(|m| r2d2_imaging::Error::parameter("--name", m))?;
     let params = args.image.dirty_params()?;
     let (vis, meta, stats) = super::convert::read_input(&args.input, &args.ms)?;
-    log::info!("{}: {stats}", args.input.display());
+    stats.log(&args.input);
     let products = dirty_image(&vis, &params)?;
     let geometry = products.operator.geometry();
     log::info!(
@@ -40,10 +42,17 @@ pub fn run(args: Args) -> Result<()> {
         bandwidth_hz: vis.band().and_then(|(_, width)| width),
     };
     let n = geometry.size;
+    // Both products or neither, in a directory made if need be (as the writer stage does).
+    let prefix = PathBuf::from(&args.name);
+    let dir = prefix.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let mut staging = Staging::new(dir)?;
     for (suffix, image) in [("dirty", &products.dirty), ("psf", &products.psf)] {
         let path = PathBuf::from(format!("{}-{suffix}.fits", args.name));
-        write_image(&path, image, n, n, &wcs, BrightnessUnit::JyPerBeam, None, &[("TELESCOP", meta.telescope.clone())])?;
-        log::info!("wrote {}", path.display());
+        let extra = [("TELESCOP", meta.telescope.clone())];
+        staging.write(path, |staged| write_image(staged, image, n, n, &wcs, BrightnessUnit::JyPerBeam, None, &extra))?;
     }
+    let written: Vec<String> = staging.targets().map(|p| p.display().to_string()).collect();
+    staging.commit()?;
+    log::info!("wrote {}", written.join(", "));
     Ok(())
 }

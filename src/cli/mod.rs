@@ -135,6 +135,9 @@ pub struct ImageOptions {
 impl ImageOptions {
     pub fn dirty_params(&self) -> r2d2_imaging::Result<r2d2_imaging::imaging::DirtyParams> {
         use r2d2_imaging::imaging::{DirtyParams, PixelScale};
+        use r2d2_imaging::{limits, Error};
+        limits::check_image_size(self.size).map_err(|m| Error::parameter("--size", m))?;
+        limits::check_threads(self.threads).map_err(|m| Error::parameter("--threads", m))?;
         Ok(DirtyParams {
             size: self.size,
             pixel: match self.pixel_arcsec {

@@ -23,7 +23,8 @@ pub struct ValidateArgs {
     set: Vec<String>,
 }
 
-/// Ctrl-C sets the flag; stages stop at the next job boundary and the run fails cleanly.
+/// Ctrl-C, SIGTERM and SIGHUP set the flag; stages stop at the next job boundary and the run
+/// fails cleanly (a job being written is written whole; nothing half-made stays behind).
 pub fn cancel_on_ctrl_c() -> Arc<AtomicBool> {
     let cancel = Arc::new(AtomicBool::new(false));
     let flag = cancel.clone();

@@ -151,6 +151,8 @@ pub fn run(args: Args) -> Result<()> {
         nufft: NufftParams { epsilon: args.epsilon, oversampling: 2.0 },
     };
     params.validate()?;
+    r2d2_imaging::limits::check_image_size(args.size).map_err(|m| Error::parameter("--size", m))?;
+    r2d2_imaging::limits::check_threads(args.threads).map_err(|m| Error::parameter("--threads", m))?;
     let (sources, truths): (Vec<String>, Vec<Option<Vec<f64>>>) = match (&args.truths, args.procedural) {
         (Some(dir), _) => {
             let files = truth_files(dir)?;

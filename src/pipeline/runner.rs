@@ -48,6 +48,11 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
     for stage in &config.stages {
         built.push(build_stage(config, stage)?);
     }
+    run_built(config, &graph, built, cancel)
+}
+
+/// Runs stages already built (one per stage of `config`, in file order) along `graph`.
+fn run_built(config: &PipelineConfig, graph: &Graph, built: Vec<Built>, cancel: Arc<AtomicBool>) -> Result<RunReport> {
     let n = built.len();
     let cap = config.channel_capacity;
     let channels: Vec<(Sender<Job>, Receiver<Job>)> = (0..n).map(|_| bounded(cap)).collect();
@@ -98,9 +103,11 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
 
     std::thread::scope(|scope| {
         for (i, stage) in built.into_iter().enumerate() {
-            let (config, graph, channels, tokens, upstream, ended) = (config, &graph, &channels, &tokens, &upstream, &ended);
+            let (config, graph, channels, tokens, upstream, ended) = (config, graph, &channels, &tokens, &upstream, &ended);
             let (cancel, fail, record, finished, totals, show, bar) = (&cancel, &fail, &record, &finished, &totals, &show, &bar);
             scope.spawn(move || {
+                // However this thread ends, the stages downstream must not wait for it.
+                let _ended = EndedOnExit { ended: &ended[i], cancel };
                 let name = &config.stages[i].name;
                 let kind = &config.stages[i].kind;
                 // Send on a port, taking a loop token when entering a loop from outside and
@@ -148,12 +155,21 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
                     Built::Source(mut source) => {
                         // A job's source time is the time since the previous job left (reading it).
                         let mut since = Instant::now();
+                        // Products are named after job ids: a repeated one would overwrite
+                        // another job's (a split part named like a file, say).
+                        let mut ids = std::collections::HashSet::new();
                         let mut emit = |job: Job| {
+                            if !ids.insert(job.id.clone()) {
+                                return Err(Error::parameter(
+                                    "job id",
+                                    format!("'{}' comes twice from this source: the second job's products would overwrite the first's", job.id),
+                                ));
+                            }
                             let sent = send(Port::Next, job, since);
                             since = Instant::now();
                             sent
                         };
-                        source.produce(&mut emit, &|| cancel.load(Ordering::SeqCst)).map_err(|e| {
+                        contain_stage_panic(|| source.produce(&mut emit, &|| cancel.load(Ordering::SeqCst))).map_err(|e| {
                             let job = source.current_job().unwrap_or_else(|| "-".into());
                             stage_error(name, kind, &job, e)
                         })
@@ -178,7 +194,7 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
                         let began = Instant::now();
                         let sink = graph.roles[i] == Role::Sink;
                         let mut emit = |port: Port, job: Job| send(port, job, began);
-                        if let Err(e) = stage.process(job, &mut emit) {
+                        if let Err(e) = contain_stage_panic(|| stage.process(job, &mut emit)) {
                             break Err(stage_error(name, kind, &id, e));
                         }
                         show(i, String::new());
@@ -200,7 +216,6 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
                         fail(e);
                     }
                 }
-                ended[i].store(true, Ordering::SeqCst);
             });
         }
     });
@@ -222,6 +237,131 @@ pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport
     })
 }
 
+/// Runs a stage's work, turning a panic (a bug in the stage) into an error, so that the run
+/// ends with the stage and job named instead of losing the thread that other stages wait on.
+/// The default panic hook has already printed the panic's location, which a bug report needs.
+fn contain_stage_panic(work: impl FnOnce() -> Result<()>) -> Result<()> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(work))
+        .unwrap_or_else(|payload| Err(Error::Panic(crate::error::panic_message(payload.as_ref()))))
+}
+
+/// Marks a stage ended when its thread leaves, also by a panic outside [`contain_stage_panic`]
+/// (which then stops the run: the scope re-raises the panic once every thread has ended).
+struct EndedOnExit<'a> {
+    ended: &'a AtomicBool,
+    cancel: &'a AtomicBool,
+}
+
+impl Drop for EndedOnExit<'_> {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            self.cancel.store(true, Ordering::SeqCst);
+        }
+        self.ended.store(true, Ordering::SeqCst);
+    }
+}
+
 fn stage_error(stage: &str, kind: &str, job: &str, e: Error) -> Error {
     Error::Stage { stage: stage.to_string(), kind: kind.to_string(), job: job.to_string(), source: Box::new(e) }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::{Emit, Source, Stage};
+    use crate::vis::{ObservationMeta, Visibilities};
+    use std::path::Path;
+
+    const PIPELINE: &str = "image: {size: 16}\nstages:\n  source: {kind: simulate, to: weights}\n  weights: {kind: weighting, scheme: natural, to: grid}\n  grid: {kind: gridder, to: step}\n  step: {kind: clean, to: update}\n  update: {kind: residual, to: step, done: write}\n  write: {kind: writer}\n";
+
+    /// Emits one empty job named `j1`.
+    struct OneJob;
+    impl Source for OneJob {
+        fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, _: &dyn Fn() -> bool) -> Result<()> {
+            let meta = ObservationMeta {
+                phase_centre_ra_deg: 0.0,
+                phase_centre_dec_deg: 0.0,
+                telescope: "test".into(),
+                noise_sigma: None,
+                dynamic_range: None,
+                extra: Default::default(),
+            };
+            emit(Job::new("j1", meta, Visibilities::default()))
+        }
+    }
+
+    /// Panics on every job, as a stage with a bug would.
+    struct Panics;
+    impl Stage for Panics {
+        fn process(&mut self, _: Job, _: &mut Emit<'_>) -> Result<()> {
+            panic!("boom")
+        }
+    }
+
+    /// Runs PIPELINE with `source` and the weighting stage replaced; `None` if it has not
+    /// ended after a minute.
+    fn run_with(source: Box<dyn Source>, weights: Box<dyn Stage>) -> Option<Result<RunReport>> {
+        let config = PipelineConfig::parse(PIPELINE, Path::new("p.yaml"), &[]).unwrap();
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let graph = Graph::build(&config).unwrap();
+            let mut built: Vec<Built> = config.stages.iter().map(|s| build_stage(&config, s).unwrap()).collect();
+            built[0] = Built::Source(source);
+            built[1] = Built::Stage(weights);
+            let _ = tx.send(run_built(&config, &graph, built, Arc::new(AtomicBool::new(false))));
+        });
+        match rx.recv_timeout(Duration::from_secs(60)) {
+            Ok(result) => Some(result),
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => None,
+            Err(e) => panic!("the test's pipeline was not built: {e}"),
+        }
+    }
+
+    #[test]
+    fn a_panicking_stage_fails_the_run_naming_it_instead_of_hanging() {
+        let result = run_with(Box::new(OneJob), Box::new(Panics)).expect("the run hung after a stage panicked");
+        let err = result.err().expect("a panicking stage failed the run").to_string();
+        for expected in ["stage 'weights' (weighting)", "job 'j1'", "boom"] {
+            assert!(err.contains(expected), "'{expected}' missing from: {err}");
+        }
+    }
+
+    /// Panics while producing, before any job.
+    struct PanickingSource;
+    impl Source for PanickingSource {
+        fn produce(&mut self, _: &mut dyn FnMut(Job) -> Result<()>, _: &dyn Fn() -> bool) -> Result<()> {
+            panic!("source boom")
+        }
+    }
+
+    /// Emits two jobs with the same id, as a split whose part ids collide with a file's would.
+    struct SameIdTwice;
+    impl Source for SameIdTwice {
+        fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()> {
+            OneJob.produce(emit, cancelled)?;
+            OneJob.produce(emit, cancelled)
+        }
+    }
+
+    /// Takes jobs and emits nothing.
+    struct Swallows;
+    impl Stage for Swallows {
+        fn process(&mut self, _: Job, _: &mut Emit<'_>) -> Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_job_id_emitted_twice_fails_the_run() {
+        let result = run_with(Box::new(SameIdTwice), Box::new(Swallows)).expect("the run ended");
+        let err = result.err().expect("a repeated job id failed the run").to_string();
+        assert!(err.contains("stage 'source'") && err.contains("'j1'") && err.contains("twice"), "{err}");
+    }
+
+    #[test]
+    fn a_panicking_source_fails_the_run_naming_it() {
+        let result = run_with(Box::new(PanickingSource), Box::new(Panics)).expect("the run hung after the source panicked");
+        let err = result.err().expect("a panicking source failed the run").to_string();
+        assert!(err.contains("stage 'source' (simulate)") && err.contains("source boom"), "{err}");
+    }
 }

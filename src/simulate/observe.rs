@@ -97,11 +97,34 @@ impl Coverage {
     }
 }
 
+/// Bytes a simulation holds per visibility sample: the coverage and table columns (u, v, w,
+/// frequency, time, antennas, flag: 49), the visibility and weight (24), the operators' copies
+/// in wavelengths (16) and their sorting and scratch, rounded up.
+const SIMULATION_BYTES_PER_SAMPLE: f64 = 200.0;
+
+/// Refuses an observation whose samples cannot fit in memory, counted before any is made (in
+/// f64: hours of 1e300 must not wrap a count).
+fn check_sample_count(spec: &ObservationSpec) -> Result<()> {
+    let mut samples = 0.0;
+    for &(config, hours) in &spec.configurations {
+        let integrations = (hours * 3600.0 / spec.integration_s).round().max(1.0);
+        samples += integrations * telescope::vla(config)?.n_baselines() as f64 * spec.frequencies_hz.len() as f64;
+    }
+    let what = format!(
+        "an observation of {samples:.3e} samples ({} configuration(s), {} s integrations, {} channel(s))",
+        spec.configurations.len(),
+        spec.integration_s,
+        spec.frequencies_hz.len()
+    );
+    crate::limits::check_memory(samples * SIMULATION_BYTES_PER_SAMPLE, &what).map_err(|m| Error::parameter("hours", m))
+}
+
 /// Earth-rotation coverage of every configuration and frequency, rotated and flagged as asked.
 pub fn sample_coverage(spec: &ObservationSpec) -> Result<Coverage> {
     if spec.configurations.is_empty() {
         return Err(Error::parameter("configs", "expected at least one telescope configuration"));
     }
+    check_sample_count(spec)?;
     if !(0.0..1.0).contains(&spec.flag_fraction) {
         return Err(Error::parameter("flag-fraction", format!("expected a fraction in [0, 1), got {}", spec.flag_fraction)));
     }

@@ -23,6 +23,10 @@ pub struct ArrowIpcConfig {
     /// Split the table into several jobs by a column.
     #[serde(default)]
     split_by: Option<SplitBy>,
+    /// Image a stream that ends without its end-of-stream marker (a sender that stopped
+    /// between batches), with a warning, instead of failing.
+    #[serde(default)]
+    allow_truncated: bool,
 }
 
 pub struct ArrowIpcSource {
@@ -31,6 +35,7 @@ pub struct ArrowIpcSource {
     truth: Option<Truth>,
     split_by: Option<SplitBy>,
     split_key: String,
+    allow_truncated: bool,
     reading: bool,
 }
 
@@ -55,19 +60,20 @@ impl ArrowIpcSource {
         if let Some(split) = &config.split_by {
             split.check().map_err(|m| pipeline.stage_error(name, Some("split_by"), &format!("stages.{name}.split_by.window: {m}")))?;
         }
-        let truth = Truth::load(config.truth.as_deref())?;
-        Ok(ArrowIpcSource { path: config.path, id, truth, split_by: config.split_by, split_key: format!("stages.{name}.split_by.column"), reading: false })
+        let truth = Truth::load(config.truth.as_deref(), pipeline.image.size)
+            .map_err(|e| pipeline.stage_error(name, Some("truth"), &format!("stages.{name}.truth: {e}")))?;
+        Ok(ArrowIpcSource { path: config.path, id, truth, split_by: config.split_by, split_key: format!("stages.{name}.split_by"), allow_truncated: config.allow_truncated, reading: false })
     }
 }
 
 impl Source for ArrowIpcSource {
     fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()> {
         self.reading = true;
-        let mut reader = IpcReader::open(&self.path)?;
+        let mut reader = IpcReader::open(&self.path, self.allow_truncated)?;
         let Some((parts, stats)) = read_parts(&mut reader, self.split_by.as_ref(), &self.split_key, cancelled)? else {
             return Ok(());
         };
-        log::info!("{}: {stats}", crate::ingest::TableReader::source(&reader).display());
+        stats.log(crate::ingest::TableReader::source(&reader));
         self.reading = false;
         emit_parts(&self.id, crate::ingest::TableReader::meta(&reader), parts, self.truth.as_ref(), emit)
     }

@@ -77,10 +77,16 @@ pub fn build_stage(config: &PipelineConfig, stage: &StageConfig) -> Result<Built
             Built::Stage(Box::new(gridder::GridderStage::new(config.stage_params(stage)?, threads, keep_operator)?))
         }
         "clean" => Built::Stage(Box::new(step::StepStage::clean(config.stage_params(stage)?)?)),
-        "onnx" => Built::Stage(Box::new(step::StepStage::onnx(config.stage_params(stage)?, config.image.size, threads)?)),
+        "onnx" => {
+            // The series is checked against the pipeline (image size, network shapes): say where.
+            let name = &stage.name;
+            let step = step::StepStage::onnx(config.stage_params(stage)?, config.image.size, threads)
+                .map_err(|e| config.stage_error(name, Some("series"), &format!("stages.{name}.series: {e}")))?;
+            Built::Stage(Box::new(step))
+        }
         "native" => Built::Stage(Box::new(step::StepStage::native(config.stage_params(stage)?, config.image.size, &stage.name)?)),
         "residual" => Built::Stage(Box::new(residual::ResidualStage::new(config.stage_params(stage)?)?)),
-        "writer" => Built::Stage(Box::new(writer::WriterStage::new(config.stage_params(stage)?)?)),
+        "writer" => Built::Stage(Box::new(writer::WriterStage::new(config.stage_params(stage)?, config, stage)?)),
         other => {
             return Err(config.stage_error(
                 &stage.name,

@@ -52,6 +52,9 @@ impl ParquetSource {
             Files::One(f) => vec![f],
             Files::Many(v) => v,
         };
+        if patterns.is_empty() {
+            return Err(pipeline.stage_error(name, Some("files"), &format!("stages.{name}.files: expected at least one file or glob pattern")));
+        }
         let mut paths = Vec::new();
         for pattern in &patterns {
             let matches: Vec<PathBuf> = glob::glob(pattern)
@@ -63,18 +66,33 @@ impl ParquetSource {
             }
             paths.extend(matches);
         }
-        let split_key = format!("stages.{name}.split_by.column");
+        // Jobs are named after their files (products too): two files of one name would be one
+        // job, the second overwriting the first's products.
+        let mut ids: std::collections::HashMap<String, &PathBuf> = std::collections::HashMap::new();
+        for path in &paths {
+            if let Some(first) = ids.insert(stem_id(path), path) {
+                let message = format!(
+                    "stages.{name}.files: {} and {} would both be job '{}' (a job is named after its file, without directory or extension): rename one, or image them in separate runs",
+                    first.display(),
+                    path.display(),
+                    stem_id(path)
+                );
+                return Err(pipeline.stage_error(name, Some("files"), &message));
+            }
+        }
+        let split_key = format!("stages.{name}.split_by");
         if let Some(split) = &config.split_by {
             split.check().map_err(|m| pipeline.stage_error(name, Some("split_by"), &format!("stages.{name}.split_by.window: {m}")))?;
             // Before any work starts: every file's footer must have the column.
             for path in &paths {
                 let reader = VisReader::open(path, 1)?;
                 split.check_schema(reader.schema()).map_err(|m| {
-                    pipeline.stage_error(name, Some("split_by"), &format!("{split_key}: {}: {m}", path.display()))
+                    pipeline.stage_error(name, Some("split_by"), &format!("{split_key}.column: {}: {m}", path.display()))
                 })?;
             }
         }
-        let truth = Truth::load(config.truth.as_deref())?;
+        let truth = Truth::load(config.truth.as_deref(), pipeline.image.size)
+            .map_err(|e| pipeline.stage_error(name, Some("truth"), &format!("stages.{name}.truth: {e}")))?;
         Ok(ParquetSource { paths, batch_rows: config.batch_rows.max(1), truth, split_by: config.split_by, split_key, current_job: None })
     }
 }
@@ -89,7 +107,7 @@ impl Source for ParquetSource {
             let Some((parts, stats)) = read_parts(&mut reader, self.split_by.as_ref(), &self.split_key, cancelled)? else {
                 return Ok(());
             };
-            log::info!("{}: {stats}", path.display());
+            stats.log(path);
             emit_parts(&id, reader.meta(), parts, self.truth.as_ref(), emit)?;
         }
         self.current_job = None;

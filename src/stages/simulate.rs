@@ -74,6 +74,7 @@ impl SimulateSource {
                 format!("one observing time per configuration: {} configurations, {} times", config.configurations.len(), config.hours.len()),
             ));
         }
+        crate::vis::check_phase_centre(config.ra_deg, config.dec_deg)?;
         if config.jobs == 0 {
             return Err(Error::parameter("jobs", "expected at least one job"));
         }

@@ -3,11 +3,13 @@
 //! PNG preview beside each (`<prefix>-dirty.png`, ...; `previews: false` turns them off),
 //! and the per-iteration metrics as `<prefix>-metrics.json` and `<prefix>-metrics.parquet`.
 //! A job's products appear together or not at all: they are written into a staging
-//! directory and moved into place only when all are complete.
+//! directory and moved into place only when all are complete (`crate::staging`).
 
 use crate::fits::{write_image, BrightnessUnit, ImageWcs};
+use crate::pipeline::config::{PipelineConfig, StageConfig};
 use crate::pipeline::{Emit, Job, Stage};
 use crate::preview::{write_png, PreviewScale};
+use crate::staging::Staging;
 use crate::{Error, Result};
 use arrow::array::{ArrayRef, Float64Array, RecordBatch, UInt32Array};
 use arrow::datatypes::{DataType, Field, Schema};
@@ -37,6 +39,9 @@ pub struct WriterConfig {
     model_column: Option<String>,
 }
 
+/// What a writer prefix may contain besides text.
+const PLACEHOLDERS: &[&str] = &["{job}"];
+
 fn prefix() -> String {
     "{job}".into()
 }
@@ -57,10 +62,19 @@ pub struct WriterStage {
 }
 
 impl WriterStage {
-    pub fn new(config: WriterConfig) -> Result<WriterStage> {
-        if config.prefix.trim().is_empty() {
-            return Err(Error::parameter("prefix", "expected a non-empty output prefix"));
+    pub fn new(config: WriterConfig, pipeline: &PipelineConfig, stage: &StageConfig) -> Result<WriterStage> {
+        let name = &stage.name;
+        let prefix_error = |m: String| pipeline.stage_error(name, Some("prefix"), &format!("stages.{name}.prefix: {m}"));
+        // Placeholders first: a typo would otherwise be written literally into file names.
+        let mut rest = config.prefix.as_str();
+        while let Some(open) = rest.find('{') {
+            let placeholder = rest[open..].find('}').map_or(&rest[open..], |close| &rest[open..=open + close]);
+            if !PLACEHOLDERS.contains(&placeholder) {
+                return Err(prefix_error(format!("unknown placeholder {placeholder} in \"{}\" (known: {})", config.prefix, PLACEHOLDERS.join(", "))));
+            }
+            rest = &rest[open + placeholder.len()..];
         }
+        crate::fits::check_output_prefix(&config.prefix).map_err(prefix_error)?;
         if let Some(dr) = config.preview_dynamic_range {
             if !(dr > 1.0 && dr.is_finite()) {
                 return Err(Error::parameter("preview_dynamic_range", format!("expected a finite number above 1, got {dr}")));
@@ -84,39 +98,13 @@ impl WriterStage {
     }
 }
 
-/// Products of one job, staged in a directory beside their final place.
-struct Staging {
-    dir: PathBuf,
-    moves: Vec<(PathBuf, PathBuf)>,
-}
-
-impl Staging {
-    fn new(target_dir: &Path, job: &str) -> Result<Staging> {
-        std::fs::create_dir_all(target_dir).map_err(|e| Error::io(target_dir, e))?;
-        let dir = target_dir.join(format!(".r2d2-staging-{job}-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
-        Ok(Staging { dir, moves: Vec::new() })
-    }
-
-    /// A staged path for the final file `target`.
-    fn file(&mut self, target: PathBuf) -> PathBuf {
-        let staged = self.dir.join(target.file_name().expect("products have file names"));
-        self.moves.push((staged.clone(), target));
-        staged
-    }
-
-    fn commit(mut self) -> Result<()> {
-        for (from, to) in std::mem::take(&mut self.moves) {
-            std::fs::rename(&from, &to).map_err(|e| Error::io(&to, e))?;
-        }
-        Ok(())
-    }
-}
-
-impl Drop for Staging {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.dir);
-    }
+/// Every product a writer makes for a prefix (`<prefix>-<suffix>`), to retire those of an
+/// earlier run that this one does not make.
+fn product_suffixes() -> Vec<String> {
+    let images = ["dirty", "psf", "model", "residual", "image"];
+    let mut suffixes: Vec<String> = images.iter().flat_map(|i| [format!("{i}.fits"), format!("{i}.png")]).collect();
+    suffixes.extend(["metrics.json".to_string(), "metrics.parquet".to_string()]);
+    suffixes
 }
 
 impl Stage for WriterStage {
@@ -126,7 +114,7 @@ impl Stage for WriterStage {
         let dir = prefix.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).to_path_buf();
         let stem = prefix.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| job.id.clone());
         let target = |suffix: &str| dir.join(format!("{stem}-{suffix}"));
-        let mut staging = Staging::new(&dir, &job.id)?;
+        let mut staging = Staging::new(&dir)?;
         let n = im.geometry.size;
         let wcs = ImageWcs {
             ra_deg: job.meta.phase_centre_ra_deg,
@@ -155,11 +143,10 @@ impl Stage for WriterStage {
         }
         let scale = self.preview_scale(&job);
         for (name, data, unit) in &products {
-            let path = staging.file(target(&format!("{name}.fits")));
-            write_image(&path, data, n, n, &wcs, *unit, beam, &extra)?;
+            staging.write(target(&format!("{name}.fits")), |path| write_image(path, data, n, n, &wcs, *unit, beam, &extra))?;
             if self.previews {
-                let path = staging.file(target(&format!("{name}.png")));
-                write_png(&path, data, n, n, scale, &format!("{} {name} ({})", job.id, unit.as_fits()))?;
+                let title = format!("{} {name} ({})", job.id, unit.as_fits());
+                staging.write(target(&format!("{name}.png")), |path| write_png(path, data, n, n, scale, &title))?;
             }
         }
         let metrics = serde_json::json!({
@@ -169,16 +156,23 @@ impl Stage for WriterStage {
             "image_size": n,
             "pixel_arcsec": im.geometry.pixel_arcsec(),
         });
-        let path = staging.file(target("metrics.json"));
-        std::fs::write(&path, serde_json::to_string_pretty(&metrics).expect("metrics serialise")).map_err(|e| Error::io(&path, e))?;
-        let path = staging.file(target("metrics.parquet"));
-        write_metrics_parquet(&path, &job, n, im.geometry.pixel_arcsec())?;
-        let count = staging.moves.len();
+        let text = serde_json::to_string_pretty(&metrics).expect("metrics serialise");
+        staging.write(target("metrics.json"), |path| std::fs::write(path, &text).map_err(|e| Error::io(path, e)))?;
+        staging.write(target("metrics.parquet"), |path| write_metrics_parquet(path, &job, n, im.geometry.pixel_arcsec()))?;
+        for suffix in product_suffixes() {
+            let earlier = target(&suffix);
+            if !staging.targets().any(|to| to == earlier) {
+                staging.retire(earlier);
+            }
+        }
+        let count = staging.targets().count();
         // Before the products move into place: a failed model write leaves neither.
         if let Some(column) = &self.model_column {
             write_model(&job, column)?;
         }
-        staging.commit()?;
+        for removed in staging.commit()? {
+            log::info!("job {}: removed {}, which an earlier run made and this one does not", job.id, removed.display());
+        }
         log::info!("job {}: wrote {count} files to {}-*", job.id, dir.join(&stem).display());
         Ok(())
     }

@@ -94,9 +94,19 @@ impl Series {
         }
         let manifest_path = dir.join("manifest.yaml");
         let series = if manifest_path.exists() { Series::from_manifest(dir, &manifest_path)? } else { Series::infer(dir)? };
+        // Through links too: a series reads only files of its own directory.
+        let canonical_dir = dir.canonicalize().map_err(|e| Error::io(dir, e))?;
         for file in series.files.iter().flatten() {
-            if !file.is_file() {
-                return Err(Error::input(file, format!("network file of series '{}' is missing", series.name)));
+            let size = match std::fs::metadata(file) {
+                Ok(m) if m.is_file() => m.len(),
+                _ => return Err(Error::input(file, format!("network file of series '{}' is missing", series.name))),
+            };
+            let canonical = file.canonicalize().map_err(|e| Error::io(file, e))?;
+            if !canonical.starts_with(&canonical_dir) {
+                return Err(Error::input(file, format!("network file of series '{}' leads outside the series directory (to {})", series.name, canonical.display())));
+            }
+            if size == 0 {
+                return Err(Error::input(file, format!("network file of series '{}' is empty (0 bytes): not a network", series.name)));
             }
         }
         Ok(series)
@@ -128,6 +138,19 @@ impl Series {
         }
         let mut files = Vec::new();
         for (i, entry) in manifest.networks.iter().enumerate() {
+            // Entries are relative paths down from the series directory, checked before any
+            // file is opened (`../../../etc/passwd` was).
+            let names: Vec<&PathBuf> = match entry {
+                NetworkFiles::One(f) => vec![f],
+                NetworkFiles::Layers(fs) => fs.iter().collect(),
+            };
+            for name in names {
+                let inside = name.components().all(|c| matches!(c, std::path::Component::Normal(_) | std::path::Component::CurDir));
+                if !inside || name.as_os_str().is_empty() {
+                    let name = name.display();
+                    return Err(Error::input(path, format!("networks[{i}]: '{name}' must be a path inside the series directory (no '..', not absolute)")));
+                }
+            }
             let list = match (entry, manifest.architecture) {
                 (NetworkFiles::One(f), Architecture::R2d2) => vec![dir.join(f)],
                 (NetworkFiles::Layers(fs), Architecture::R3d3) if fs.len() == manifest.layers => fs.iter().map(|f| dir.join(f)).collect(),
@@ -248,6 +271,17 @@ impl Series {
     /// Whether the series may image `size x size` pixels; `Ok(Some(warning))` when it runs at a
     /// size nobody vouched for.
     pub fn check_size(&self, size: usize) -> Result<Option<String>> {
+        // A U-Net halves the image at each pooling: other sizes fail inside the runtime, late
+        // and with a raw shape error.
+        let poolings = self.manifest.as_ref().and_then(|m| m.network.get("poolings")).and_then(serde_yaml::Value::as_u64);
+        if let Some(multiple) = poolings.and_then(|p| u32::try_from(p).ok()).and_then(|p| 1usize.checked_shl(p)) {
+            if size % multiple != 0 {
+                return Err(Error::input(
+                    self.dir.join("manifest.yaml"),
+                    format!("series '{}' pools {} times (network.poolings): the image size must be a multiple of {multiple}, got {size}", self.name, multiple.trailing_zeros()),
+                ));
+            }
+        }
         if self.image_sizes.contains(&size) {
             return Ok(None);
         }
@@ -463,6 +497,42 @@ mod tests {
         .unwrap();
         let e = Series::open(dir.path()).unwrap_err().to_string();
         assert!(e.contains("a.onnx") && e.contains("missing"), "{e}");
+    }
+
+    /// A series `dir/s` whose manifest lists `networks`.
+    fn series_listing(dir: &Path, networks: &str) -> PathBuf {
+        let series = dir.join("s");
+        std::fs::create_dir_all(&series).unwrap();
+        let manifest = format!("format: 1\nname: t\narchitecture: r2d2\nimage_sizes: [64]\ninput_convention: reference\nnormalisation: mean\nnetworks: {networks}\n");
+        std::fs::write(series.join("manifest.yaml"), manifest).unwrap();
+        series
+    }
+
+    #[test]
+    fn network_entries_must_resolve_inside_the_series_directory() {
+        let dir = tempfile::tempdir().unwrap();
+        touch(&dir.path().join("outside.onnx"));
+        for entry in ["../outside.onnx", "/etc/passwd", "sub/../../outside.onnx"] {
+            let series = series_listing(dir.path(), &format!("[\"{entry}\"]"));
+            let e = Series::open(&series).err().map(|e| e.to_string()).unwrap_or_else(|| panic!("{entry} accepted"));
+            assert!(e.contains("networks[0]") && e.contains(entry) && e.contains("inside the series directory"), "{e}");
+        }
+        // A link inside that points outside is found out through the canonical path.
+        let series = series_listing(dir.path(), "[link.onnx]");
+        std::os::unix::fs::symlink(dir.path().join("outside.onnx"), series.join("link.onnx")).unwrap();
+        let e = Series::open(&series).err().map(|e| e.to_string()).expect("a link to outside accepted");
+        assert!(e.contains("link.onnx") && e.contains("outside the series directory"), "{e}");
+    }
+
+    #[test]
+    fn empty_network_files_make_a_series_unusable() {
+        let dir = tempfile::tempdir().unwrap();
+        let series = series_listing(dir.path(), "[a.onnx]");
+        std::fs::write(series.join("a.onnx"), b"").unwrap();
+        let found = discover(dir.path());
+        assert_eq!(found.len(), 1);
+        let e = found[0].1.as_ref().err().map(|e| e.to_string()).expect("a 0-byte network listed as usable");
+        assert!(e.contains("a.onnx") && e.contains("empty"), "{e}");
     }
 
     #[test]
