@@ -533,14 +533,7 @@ mod tests {
     use num_complex::Complex64;
 
     fn meta() -> ObservationMeta {
-        ObservationMeta {
-            phase_centre_ra_deg: 10.0,
-            phase_centre_dec_deg: 40.0,
-            telescope: "VLA".into(),
-            noise_sigma: None,
-            dynamic_range: None,
-            extra: Default::default(),
-        }
+        ObservationMeta::new(10.0, 40.0, "VLA")
     }
 
     /// 40 rows: times 1000 + 10 i s, two channels alternating, rows 3 and 4 flagged.

@@ -80,6 +80,19 @@ pub struct ObservationMeta {
 }
 
 impl ObservationMeta {
+    /// A phase centre and telescope, nothing else known (no noise level, dynamic range or
+    /// other keys).
+    pub fn new(phase_centre_ra_deg: f64, phase_centre_dec_deg: f64, telescope: &str) -> Self {
+        ObservationMeta {
+            phase_centre_ra_deg,
+            phase_centre_dec_deg,
+            telescope: telescope.to_string(),
+            noise_sigma: None,
+            dynamic_range: None,
+            extra: BTreeMap::new(),
+        }
+    }
+
     /// Parses metadata from key-value pairs (Parquet file metadata, or an Arrow schema's
     /// metadata for other sources). Errors name `source` and the key.
     pub fn from_pairs<'a>(

@@ -83,21 +83,27 @@ fn simulation_is_reproducible_from_its_seed() {
     assert_eq!(read("a.sky.fits"), read("b.sky.fits"));
 }
 
+/// One VLA configuration observed for some hours at 1.4 GHz, one channel, nothing flagged, the
+/// coverage not rotated.
+fn vla_at_1_4_ghz(configuration: (char, f64), dec_deg: f64, integration_s: f64) -> ObservationSpec {
+    ObservationSpec {
+        configurations: vec![configuration],
+        dec_deg,
+        integration_s,
+        frequencies_hz: frequency_channels(1.4e9, 1, 1.0).unwrap(),
+        flag_fraction: 0.0,
+        random_rotation: false,
+        seed: 1,
+    }
+}
+
 /// A point source at a known RA/Dec offset must peak on the pixel astropy assigns to it.
 #[test]
 fn point_source_lands_on_the_pixel_astropy_gives_its_position() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     let (ra0, dec0) = (150.0f64, 60.0f64);
-    let spec = ObservationSpec {
-        configurations: vec![('b', 4.0)],
-        dec_deg: dec0,
-        integration_s: 60.0,
-        frequencies_hz: frequency_channels(1.4e9, 1, 1.0).unwrap(),
-        flag_fraction: 0.0,
-        random_rotation: false,
-        seed: 1,
-    };
+    let spec = vla_at_1_4_ghz(('b', 4.0), dec0, 60.0);
     let cov = sample_coverage(&spec).unwrap();
     let pixel_deg = 1.0 / (1.5 * 2.0 * cov.max_uv()) * 180.0 / std::f64::consts::PI;
     // Source 20.3 pixels east and 11.2 pixels north of the phase centre, in true angle.
@@ -122,15 +128,7 @@ fn point_source_lands_on_the_pixel_astropy_gives_its_position() {
         weight: vec![1.0; n],
         ..Default::default()
     };
-    let meta = ObservationMeta {
-        phase_centre_ra_deg: ra0,
-        phase_centre_dec_deg: dec0,
-        telescope: "VLA".into(),
-        noise_sigma: None,
-        dynamic_range: None,
-        extra: Default::default(),
-    };
-    write_parquet(&d.join("point.parquet"), &table, &meta).unwrap();
+    write_parquet(&d.join("point.parquet"), &table, &ObservationMeta::new(ra0, dec0, "VLA")).unwrap();
     check(&r2d2(&["dirty", "point.parquet", "--size", "128", "--weighting", "uniform", "--name", "point"], d));
     let dirty = read_image(&d.join("point-dirty.fits")).unwrap();
     let peak = argmax(&dirty.data);
@@ -205,16 +203,13 @@ fn contained_decoder_panics_print_no_panic_message() {
     let mut writer = parquet::arrow::ArrowWriter::try_new(&mut bytes, batch.schema(), Some(props)).unwrap();
     writer.write(&batch).unwrap();
     writer.close().unwrap();
-    let mut seed = 0x2545_f491_4f6c_dd1du64;
+    // 24 bytes overwritten at 64 places spread over the file.
     let mut contained = 0;
-    for _ in 0..60 {
-        seed ^= seed << 13;
-        seed ^= seed >> 7;
-        seed ^= seed << 17;
+    for k in 0..64 {
+        let start = k * bytes.len() / 64;
+        let end = (start + 24).min(bytes.len());
         let mut damaged = bytes.clone();
-        let start = (seed % damaged.len() as u64) as usize;
-        let end = (start + 1 + (seed >> 40) as usize % 48).min(damaged.len());
-        damaged[start..end].fill((seed >> 32) as u8);
+        damaged[start..end].fill(0xa5 ^ k as u8);
         std::fs::write(d.join("damaged.parquet"), &damaged).unwrap();
         let out = r2d2(&["dirty", "damaged.parquet", "--size", "64", "--name", "x"], d);
         let err = String::from_utf8_lossy(&out.stderr);
@@ -234,16 +229,7 @@ fn contained_decoder_panics_print_no_panic_message() {
 fn physically_impossible_rows_are_excluded_with_a_warning() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let spec = ObservationSpec {
-        configurations: vec![('c', 1.0)],
-        dec_deg: 40.0,
-        integration_s: 300.0,
-        frequencies_hz: frequency_channels(1.4e9, 1, 1.0).unwrap(),
-        flag_fraction: 0.0,
-        random_rotation: false,
-        seed: 1,
-    };
-    let cov = sample_coverage(&spec).unwrap();
+    let cov = sample_coverage(&vla_at_1_4_ghz(('c', 1.0), 40.0, 300.0)).unwrap();
     let n = cov.len();
     let mut table = VisTable {
         u_m: cov.u_m,
@@ -253,14 +239,7 @@ fn physically_impossible_rows_are_excluded_with_a_warning() {
         vis: vec![Complex64::new(1.0, 0.0); n],
         ..Default::default()
     };
-    let meta = ObservationMeta {
-        phase_centre_ra_deg: 10.0,
-        phase_centre_dec_deg: 40.0,
-        telescope: "VLA".into(),
-        noise_sigma: None,
-        dynamic_range: None,
-        extra: Default::default(),
-    };
+    let meta = ObservationMeta::new(10.0, 40.0, "VLA");
     write_parquet(&d.join("good.parquet"), &table, &meta).unwrap();
     table.u_m.push(1e9);
     table.v_m.push(0.0);

@@ -278,15 +278,7 @@ mod tests {
     struct OneJob;
     impl Source for OneJob {
         fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, _: &dyn Fn() -> bool) -> Result<()> {
-            let meta = ObservationMeta {
-                phase_centre_ra_deg: 0.0,
-                phase_centre_dec_deg: 0.0,
-                telescope: "test".into(),
-                noise_sigma: None,
-                dynamic_range: None,
-                extra: Default::default(),
-            };
-            emit(Job::new("j1", meta, Visibilities::default()))
+            emit(Job::new("j1", ObservationMeta::new(0.0, 0.0, "test"), Visibilities::default()))
         }
     }
 

@@ -25,6 +25,17 @@ pub fn stderr(out: &Output) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
 }
 
+/// Asserts that `out` failed cleanly (exit status 1, not a signal) with every one of `expected`
+/// in its standard error; `what` names the case in messages. Returns the standard error.
+pub fn assert_fails_with(out: &Output, what: &str, expected: &[&str]) -> String {
+    let err = stderr(out);
+    assert_eq!(out.status.code(), Some(1), "{what}: expected a clean failure, got {}: {err}", out.status);
+    for e in expected {
+        assert!(err.contains(e), "{what}: '{e}' missing from: {err}");
+    }
+    err
+}
+
 pub fn check(out: &Output) {
     assert!(out.status.success(), "r2d2 failed: {}", stderr(out));
 }
