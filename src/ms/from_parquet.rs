@@ -59,7 +59,7 @@ fn read_samples(parquet: &Path) -> Result<(SampleColumns, crate::vis::Observatio
         s.weight.extend(f64s("weight")?.unwrap_or_else(|| vec![1.0; n]));
         match cast(&batch, "flag", &DataType::Boolean, &source, rows)? {
             Some(a) => s.flag.extend(a.as_any().downcast_ref::<BooleanArray>().expect("cast to Boolean").iter().map(|f| f.unwrap_or(true))),
-            None => s.flag.extend(std::iter::repeat(false).take(n)),
+            None => s.flag.extend(vec![false; n]),
         }
         for (name, out) in [("antenna1", &mut s.antenna1), ("antenna2", &mut s.antenna2)] {
             let a = cast(&batch, name, &DataType::Int32, &source, rows)?.ok_or_else(|| Error::input(&source, format!("column `{name}` is missing")))?;
@@ -123,7 +123,8 @@ pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> 
         if !(same(s.u[i], s.u[j]) && same(s.v[i], s.v[j]) && same(s.w[i], s.w[j])) {
             return Err(Error::input(parquet, format!("rows {j} and {i}: same time and antennas but different `u`, `v`, `w` (metres)")));
         }
-        let excluded = s.flag[i] || !(s.weight[i] > 0.0) || ![s.re[i], s.im[i], s.weight[i]].iter().all(|x| x.is_finite());
+        let finite = [s.re[i], s.im[i], s.weight[i]].iter().all(|x| x.is_finite());
+        let excluded = s.flag[i] || !finite || s.weight[i] <= 0.0;
         for hand in 0..2 {
             data[cell * 2 + hand] = (s.re[i] as f32, s.im[i] as f32);
             wspec[cell * 2 + hand] = if excluded { 0.0 } else { (s.weight[i] / 2.0) as f32 };
