@@ -353,14 +353,7 @@ fn parquet_converts_to_an_ms_that_images_as_the_table() {
         vis: vec![num_complex::Complex64::new(1.0, 0.0); 2],
         ..Default::default()
     };
-    let meta = r2d2_imaging::vis::ObservationMeta {
-        phase_centre_ra_deg: 10.0,
-        phase_centre_dec_deg: 40.0,
-        telescope: "VLA".into(),
-        noise_sigma: None,
-        dynamic_range: None,
-        extra: Default::default(),
-    };
+    let (_, meta, _) = r2d2_imaging::vis::read_parquet(&dir.path().join("obs.parquet")).unwrap();
     r2d2_imaging::vis::write_parquet(&dir.path().join("plain.parquet"), &table, &meta).unwrap();
     let err = stderr(&r2d2(&["convert", "plain.parquet", "plain.ms"], dir.path()));
     assert!(err.contains("plain.parquet") && err.contains("`time`"), "{err}");

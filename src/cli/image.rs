@@ -92,12 +92,14 @@ fn step_stage(args: &Args) -> Result<serde_yaml::Value> {
 
 /// The `read` stage for a MeasurementSet input: `kind: ms` with the MS options.
 fn ms_read_stage(args: &Args) -> Result<serde_yaml::Value> {
-    let mut stage = serde_yaml::from_str::<serde_yaml::Value>("{kind: ms, path: obs.ms, to: weights}").expect("literal YAML");
     #[cfg(feature = "ms")]
-    args.ms.stage_keys(&mut stage);
+    {
+        let mut stage = serde_yaml::from_str::<serde_yaml::Value>("{kind: ms, path: obs.ms, to: weights}").expect("literal YAML");
+        args.ms.stage_keys(&mut stage);
+        Ok(stage)
+    }
     #[cfg(not(feature = "ms"))]
-    return Err(Error::input(&args.input, "a MeasurementSet, but this r2d2 was built without the `ms` feature"));
-    Ok(stage)
+    Err(Error::input(&args.input, "a MeasurementSet, but this r2d2 was built without the `ms` feature"))
 }
 
 pub fn run(args: Args) -> Result<()> {

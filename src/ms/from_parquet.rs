@@ -8,6 +8,7 @@
 //! The whole table is held in memory (rows are gathered from anywhere in it).
 
 use super::model::exchange;
+use super::{SampleColumns, TempDir};
 use crate::vis::{check_no_nulls, VisReader, DEFAULT_BATCH_ROWS};
 use crate::{Error, Result};
 use arrow::array::{Array, BooleanArray, Float64Array, Int32Array, RecordBatch};
@@ -15,23 +16,7 @@ use arrow::datatypes::DataType;
 use casacure::record::{ArrayData, ArrayValue, RecordValue};
 use casacure::WritableTable;
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
-
-/// The table's columns as the MS needs them.
-#[derive(Default)]
-struct Samples {
-    u: Vec<f64>,
-    v: Vec<f64>,
-    w: Vec<f64>,
-    frequency: Vec<f64>,
-    re: Vec<f64>,
-    im: Vec<f64>,
-    weight: Vec<f64>,
-    flag: Vec<bool>,
-    time: Vec<f64>,
-    antenna1: Vec<i32>,
-    antenna2: Vec<i32>,
-}
+use std::path::Path;
 
 /// A column of a batch cast to `to`; errors name the table and column.
 fn cast(batch: &RecordBatch, name: &str, to: &DataType, source: &str, first_row: u64) -> Result<Option<arrow::array::ArrayRef>> {
@@ -42,7 +27,7 @@ fn cast(batch: &RecordBatch, name: &str, to: &DataType, source: &str, first_row:
         .map_err(|e| Error::input(source, format!("column `{name}`: cannot read as {to}: {e}")))
 }
 
-fn read_samples(parquet: &Path) -> Result<(Samples, crate::vis::ObservationMeta)> {
+fn read_samples(parquet: &Path) -> Result<(SampleColumns, crate::vis::ObservationMeta)> {
     let extra = ["time", "antenna1", "antenna2"];
     let mut reader = VisReader::open_with_columns(parquet, DEFAULT_BATCH_ROWS, &extra)?;
     let source = parquet.display().to_string();
@@ -54,7 +39,7 @@ fn read_samples(parquet: &Path) -> Result<(Samples, crate::vis::ObservationMeta)
             ));
         }
     }
-    let mut s = Samples::default();
+    let mut s = SampleColumns::default();
     let mut rows = 0u64;
     while let Some(batch) = reader.next_record_batch() {
         let batch = batch?;
@@ -74,7 +59,7 @@ fn read_samples(parquet: &Path) -> Result<(Samples, crate::vis::ObservationMeta)
         s.weight.extend(f64s("weight")?.unwrap_or_else(|| vec![1.0; n]));
         match cast(&batch, "flag", &DataType::Boolean, &source, rows)? {
             Some(a) => s.flag.extend(a.as_any().downcast_ref::<BooleanArray>().expect("cast to Boolean").iter().map(|f| f.unwrap_or(true))),
-            None => s.flag.extend(std::iter::repeat(false).take(n)),
+            None => s.flag.extend(vec![false; n]),
         }
         for (name, out) in [("antenna1", &mut s.antenna1), ("antenna2", &mut s.antenna2)] {
             let a = cast(&batch, name, &DataType::Int32, &source, rows)?.ok_or_else(|| Error::input(&source, format!("column `{name}` is missing")))?;
@@ -138,7 +123,8 @@ pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> 
         if !(same(s.u[i], s.u[j]) && same(s.v[i], s.v[j]) && same(s.w[i], s.w[j])) {
             return Err(Error::input(parquet, format!("rows {j} and {i}: same time and antennas but different `u`, `v`, `w` (metres)")));
         }
-        let excluded = s.flag[i] || !(s.weight[i] > 0.0) || ![s.re[i], s.im[i], s.weight[i]].iter().all(|x| x.is_finite());
+        let finite = [s.re[i], s.im[i], s.weight[i]].iter().all(|x| x.is_finite());
+        let excluded = s.flag[i] || !finite || s.weight[i] <= 0.0;
         for hand in 0..2 {
             data[cell * 2 + hand] = (s.re[i] as f32, s.im[i] as f32);
             wspec[cell * 2 + hand] = if excluded { 0.0 } else { (s.weight[i] / 2.0) as f32 };
@@ -147,7 +133,7 @@ pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> 
     }
     let out_name = out.file_name().ok_or_else(|| Error::parameter("output", format!("{}: expected a directory name", out.display())))?;
     let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let building = Building { path: parent.join(format!(".{}.r2d2-convert-{}", out_name.to_string_lossy(), std::process::id())) };
+    let building = TempDir { path: parent.join(format!(".{}.r2d2-convert-{}", out_name.to_string_lossy(), std::process::id())) };
     if building.path.exists() {
         std::fs::remove_dir_all(&building.path).map_err(|e| Error::io(&building.path, e))?;
     }
@@ -164,21 +150,8 @@ pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> 
     Ok(ParquetToMs { samples: s.u.len() as u64, rows: nrow as u64, channels: nchan as u64 })
 }
 
-/// A directory being built, removed when dropped (after the move it is the old MS or gone).
-struct Building {
-    path: PathBuf,
-}
-
-impl Drop for Building {
-    fn drop(&mut self) {
-        if self.path.exists() {
-            let _ = std::fs::remove_dir_all(&self.path);
-        }
-    }
-}
-
 struct MainTable<'a> {
-    s: &'a Samples,
+    s: &'a SampleColumns,
     /// The first sample of each row.
     first: &'a [usize],
     /// `[row][channel][hand]`.

@@ -481,6 +481,39 @@ fn read_windows(ms: &Path, selection: &MsSelection, used_dd: &[usize]) -> Result
     Ok(windows)
 }
 
+/// Stokes I samples column by column, as the Parquet format has them (baselines in metres),
+/// plus the MS ids `field` and `spw` (left empty by the Parquet-to-MS conversion).
+#[derive(Default)]
+pub(crate) struct SampleColumns {
+    pub u: Vec<f64>,
+    pub v: Vec<f64>,
+    pub w: Vec<f64>,
+    pub frequency: Vec<f64>,
+    pub re: Vec<f64>,
+    pub im: Vec<f64>,
+    pub weight: Vec<f64>,
+    pub flag: Vec<bool>,
+    pub time: Vec<f64>,
+    pub antenna1: Vec<i32>,
+    pub antenna2: Vec<i32>,
+    pub field: Vec<i32>,
+    pub spw: Vec<i32>,
+}
+
+/// A directory being built beside its final place, removed when dropped (by then it is either
+/// moved into place, or holds what it replaced, or a failed attempt).
+pub(crate) struct TempDir {
+    pub path: PathBuf,
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        if self.path.exists() {
+            let _ = std::fs::remove_dir_all(&self.path);
+        }
+    }
+}
+
 /// Where the `ms` source's jobs came from, carried in the job metadata (key [`ORIGIN_KEY`])
 /// so that the writer can predict the model into the same MS rows.
 #[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]

@@ -10,7 +10,7 @@
 //! removed on failure; after a kill, by the next model write to the same MS). The price: free disk
 //! space for one copy of the MS while writing.
 
-use super::{open_table, MsReader, Origin, Window};
+use super::{open_table, MsReader, Origin, TempDir, Window};
 use crate::nufft::{Nufft2d, NufftParams};
 use crate::operator::ImageGeometry;
 use crate::vis::{DEFAULT_BATCH_ROWS, SPEED_OF_LIGHT};
@@ -39,19 +39,6 @@ pub struct ModelReport {
     pub rows: u64,
     pub samples: u64,
     pub beyond_nyquist: u64,
-}
-
-/// A hidden sibling directory removed when dropped unless kept.
-struct Staging {
-    path: PathBuf,
-}
-
-impl Drop for Staging {
-    fn drop(&mut self) {
-        if self.path.exists() {
-            let _ = std::fs::remove_dir_all(&self.path);
-        }
-    }
 }
 
 /// `.NAME.r2d2-model-` beside the MS: the prefix of its staging copies.
@@ -157,7 +144,7 @@ pub fn write_model_column(origin: &Origin, target: &ModelTarget<'_>) -> Result<M
         return Err(Error::parameter("model", format!("{} pixels for a {} x {} image", target.model.len(), target.geometry.size, target.geometry.size)));
     }
     remove_stale_staging(ms);
-    let staging = Staging { path: staging_path(ms)? };
+    let staging = TempDir { path: staging_path(ms)? };
     if staging.path.exists() {
         std::fs::remove_dir_all(&staging.path).map_err(|e| Error::io(&staging.path, e))?;
     }

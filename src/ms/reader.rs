@@ -2,7 +2,7 @@
 
 use super::{
     array_f64, as_f64, as_i64, column_index, combine_weights, describe, open_table, optional_column, read_cells, Layout,
-    MsSelection, Origin, StokesI, Window, ORIGIN_KEY,
+    MsSelection, Origin, SampleColumns, StokesI, Window, ORIGIN_KEY,
 };
 use crate::ingest::TableReader;
 use crate::vis::{ObservationMeta, DEFAULT_BATCH_ROWS};
@@ -233,7 +233,7 @@ impl MsReader {
             _ => None,
         };
 
-        let mut out = Samples::default();
+        let mut out = SampleColumns::default();
         for r in 0..n as usize {
             let row = start + r as u64;
             if antenna1[r] == antenna2[r] {
@@ -260,7 +260,7 @@ impl MsReader {
                 .and_then(|(_, values)| <[f64; 3]>::try_from(values).ok())
                 .ok_or_else(|| cell_error("UVW", &format!("3 numbers, found {}", describe(&uvw[r]))))?;
             let shape = [window.frequencies.len() as u32, window.ncorr as u32];
-            let vis = complex_cell(&data[r], &shape).ok_or_else(|| {
+            let vis = numbers_cell(&data[r], &shape, true).ok_or_else(|| {
                 cell_error(&self.data_column, &format!("a complex array of shape {shape:?}, found {}", describe(&data[r])))
             })?;
             let flags = match &flag {
@@ -277,7 +277,7 @@ impl MsReader {
             let weights = match cell {
                 Some(cell) => {
                     let expected: &[u32] = if matches!(source, WeightSource::Spectrum(_)) { &shape } else { &shape[1..] };
-                    Some(float_cell(cell, expected).ok_or_else(|| {
+                    Some(numbers_cell(cell, expected, false).ok_or_else(|| {
                         cell_error(name, &format!("a float array of shape {expected:?}, found {}", describe(cell)))
                     })?)
                 }
@@ -347,24 +347,17 @@ impl Numbers<'_> {
     }
 }
 
-/// A complex array cell of exactly `shape`.
-fn complex_cell<'a>(value: &'a RecordValue, shape: &[u32]) -> Option<Numbers<'a>> {
+/// An array cell of exactly `shape`: complex numbers when `complex`, else real ones.
+fn numbers_cell<'a>(value: &'a RecordValue, shape: &[u32], complex: bool) -> Option<Numbers<'a>> {
     let RecordValue::Array(array) = value else { return None };
-    match &array.data {
-        _ if array.shape != shape => None,
-        ArrayData::Complex(v) => Some(Numbers::Complex(v)),
-        ArrayData::DComplex(v) => Some(Numbers::DComplex(v)),
-        _ => None,
+    if array.shape != shape {
+        return None;
     }
-}
-
-/// A float array cell of exactly `shape`.
-fn float_cell<'a>(value: &'a RecordValue, shape: &[u32]) -> Option<Numbers<'a>> {
-    let RecordValue::Array(array) = value else { return None };
-    match &array.data {
-        _ if array.shape != shape => None,
-        ArrayData::Float(v) => Some(Numbers::Float(v)),
-        ArrayData::Double(v) => Some(Numbers::Double(v)),
+    match (&array.data, complex) {
+        (ArrayData::Complex(v), true) => Some(Numbers::Complex(v)),
+        (ArrayData::DComplex(v), true) => Some(Numbers::DComplex(v)),
+        (ArrayData::Float(v), false) => Some(Numbers::Float(v)),
+        (ArrayData::Double(v), false) => Some(Numbers::Double(v)),
         _ => None,
     }
 }
@@ -403,24 +396,7 @@ struct RowCells<'a> {
 }
 
 /// Columns of a batch being built.
-#[derive(Default)]
-struct Samples {
-    u: Vec<f64>,
-    v: Vec<f64>,
-    w: Vec<f64>,
-    frequency: Vec<f64>,
-    re: Vec<f64>,
-    im: Vec<f64>,
-    weight: Vec<f64>,
-    flag: Vec<bool>,
-    time: Vec<f64>,
-    antenna1: Vec<i32>,
-    antenna2: Vec<i32>,
-    field: Vec<i32>,
-    spw: Vec<i32>,
-}
-
-impl Samples {
+impl SampleColumns {
     /// One Stokes I sample per selected channel of the row.
     fn push_row(&mut self, window: &Window, row: &Row, cells: &RowCells<'_>) {
         let ncorr = window.ncorr;
