@@ -101,7 +101,7 @@ impl MsSource {
         if !by_field {
             MsReader::open(&config.path, &selection, config.batch_rows)?;
         }
-        let truth = Truth::load(config.truth.as_deref())?;
+        let truth = Truth::load(config.truth.as_deref(), pipeline.image.size).map_err(|e| error("truth", e.to_string()))?;
         Ok(MsSource { path: config.path, id, selection, batch_rows: config.batch_rows, truth, split_by: config.split_by, split_key, reading: false })
     }
 
