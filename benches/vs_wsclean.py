@@ -460,20 +460,16 @@ def one_sky(args, r2d2, data_dir, k, sample, out):
     r, _ = img("r2d2-residual.fits")
     d, _ = img("r2d2-dirty.fits")
     images["r2d2"] = (x, r, d)
-    wr, wrh = img("ws-image.fits")
-    wm, _ = img("ws-model.fits")
-    wres, _ = img("ws-residual.fits")
-    wd, _ = img("ws-dirty.fits")
-    rec["wsclean_beam_pixels"] = beam_area_pixels(wrh)
-    images["wsclean_restored"] = (wr / rec["wsclean_beam_pixels"], wres, wd)
-    images["wsclean_model"] = (wm, wres, wd)
-    cr, crh = img("clean-image.fits")
-    cm, _ = img("clean-model.fits")
-    cres, _ = img("clean-residual.fits")
-    cd, _ = img("clean-dirty.fits")
-    rec["clean_beam_pixels"] = beam_area_pixels(crh)
-    images["clean_restored"] = (cr / rec["clean_beam_pixels"], cres, cd)
-    images["clean_model"] = (cm, cres, cd)
+    # A CLEAN's two estimates, each scored with that imager's own residual and dirty image:
+    # the restored image in Jy/pixel (divided by the beam area) and the model.
+    for key, prefix in (("wsclean", "ws"), ("clean", "clean")):
+        restored, header = img(f"{prefix}-image.fits")
+        model, _ = img(f"{prefix}-model.fits")
+        res, _ = img(f"{prefix}-residual.fits")
+        dirt, _ = img(f"{prefix}-dirty.fits")
+        rec[f"{key}_beam_pixels"] = beam_area_pixels(header)
+        images[f"{key}_restored"] = (restored / rec[f"{key}_beam_pixels"], res, dirt)
+        images[f"{key}_model"] = (model, res, dirt)
 
     rec["scores"] = {}
     for key, (est, res, dirt) in images.items():

@@ -49,6 +49,11 @@ pub const SPEED_OF_LIGHT: f64 = 299_792_458.0;
 /// enough (a few MB per column) not to matter next to the visibilities themselves.
 pub const DEFAULT_BATCH_ROWS: usize = 65_536;
 
+/// [`DEFAULT_BATCH_ROWS`] as a serde default, for the sources that read tables in batches.
+pub fn default_batch_rows() -> usize {
+    DEFAULT_BATCH_ROWS
+}
+
 /// Rows per Parquet row group written: about 50 MB uncompressed, big enough for good
 /// compression and cheap footers, small enough for readers to stream.
 const ROW_GROUP_ROWS: usize = 1 << 20;

@@ -14,15 +14,17 @@ R2D2=${R2D2:-target/release/r2d2}
 SERIES=${SERIES:-models/$RECIPE}
 RUN="nice -n ${NICE:-19}"
 [ -x "$R2D2" ] || cargo build --release
+# make_once OUT COMMAND...: run COMMAND --out OUT at low priority unless OUT exists (resuming).
+make_once() { local out=$1; shift; [ -d "$out" ] || $RUN "$@" --out "$out"; }
 case "$RECIPE" in
 vla-r2d2-128)
     D="$DATA/128"
     SIM="--size 128 --integration-s 300 --epsilon 1e-5"
     mkdir -p "$D"
-    [ -d "$D/truths-train" ] || $RUN python3 training/prepare_truths.py --count 640 --size 128 --seed 1 --source-dr 50 --out "$D/truths-train"
-    [ -d "$D/train" ] || $RUN "$R2D2" trainset --truths "$D/truths-train" --source-dr 50 --seed 1 $SIM --out "$D/train"
-    [ -d "$D/val" ] || $RUN "$R2D2" trainset --procedural 48 --seed 500000 $SIM --out "$D/val"
-    [ -d "$D/test" ] || $RUN "$R2D2" trainset --procedural 32 --seed 900000 $SIM --parquet --out "$D/test"
+    make_once "$D/truths-train" python3 training/prepare_truths.py --count 640 --size 128 --seed 1 --source-dr 50
+    make_once "$D/train" "$R2D2" trainset --truths "$D/truths-train" --source-dr 50 --seed 1 $SIM
+    make_once "$D/val" "$R2D2" trainset --procedural 48 --seed 500000 $SIM
+    make_once "$D/test" "$R2D2" trainset --procedural 32 --seed 900000 $SIM --parquet
     TRAIN=("$D/train")
     ARGS="--epochs-first 16 --epochs 6 --batch 8 --bf16 --max-networks 12"
     ;;
@@ -32,11 +34,11 @@ vla-r2d2-512)
     D="$DATA/512"
     SIM="--size 512 --integration-s 300 --epsilon 1e-5"
     mkdir -p "$D"
-    [ -d "$D/truths-train" ] || $RUN python3 training/prepare_truths.py --count 80 --size 512 --seed 2 --source-dr 50 --out "$D/truths-train"
-    [ -d "$D/train-images" ] || $RUN "$R2D2" trainset --truths "$D/truths-train" --source-dr 50 --seed 1000 $SIM --out "$D/train-images"
-    [ -d "$D/train-radio" ] || $RUN "$R2D2" trainset --procedural 120 --seed 100000 $SIM --out "$D/train-radio"
-    [ -d "$D/val" ] || $RUN "$R2D2" trainset --procedural 16 --seed 500000 $SIM --out "$D/val"
-    [ -d "$D/test" ] || $RUN "$R2D2" trainset --procedural 12 --seed 900000 $SIM --parquet --out "$D/test"
+    make_once "$D/truths-train" python3 training/prepare_truths.py --count 80 --size 512 --seed 2 --source-dr 50
+    make_once "$D/train-images" "$R2D2" trainset --truths "$D/truths-train" --source-dr 50 --seed 1000 $SIM
+    make_once "$D/train-radio" "$R2D2" trainset --procedural 120 --seed 100000 $SIM
+    make_once "$D/val" "$R2D2" trainset --procedural 16 --seed 500000 $SIM
+    make_once "$D/test" "$R2D2" trainset --procedural 12 --seed 900000 $SIM --parquet
     TRAIN=("$D/train-radio" "$D/train-images")
     ARGS="--norm none --crop 128 --crops-per-sample 4 --epochs-first 10 --epochs 4 --batch 8 --max-networks 15"
     ;;

@@ -53,9 +53,6 @@ def torch_runner(model, device):
     return run
 
 
-repo_relative = common.repo_relative
-
-
 def crop_batches(count, size, crop, crops_per_sample, batch, generator):
     """Shuffled batches of (sample, row, column) crop origins, `crops_per_sample` per sample."""
     samples = torch.arange(count).repeat_interleave(crops_per_sample)
@@ -97,7 +94,6 @@ def train_network(i, model, train, x, r, active, args, work, device):
     target = target.unsqueeze(1)
     crop = args.crop or train.size
     loss_value = float("nan")
-    autocast = device.type if device.type in ("cpu", "cuda") else "cpu"
     for epoch in range(start_epoch, epochs):
         t0 = time.time()
         model.train()
@@ -105,7 +101,7 @@ def train_network(i, model, train, x, r, active, args, work, device):
         total, count = 0.0, 0
         for b, rows, cols in crop_batches(len(idx), train.size, crop, args.crops_per_sample, args.batch, gen):
             inp = gather_crops(inp_all, b, rows, cols, crop).to(device)
-            with torch.autocast(autocast, dtype=torch.bfloat16, enabled=args.bf16):
+            with torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.bf16):
                 out = model(inp)
             pred = torch.clamp(gather_crops(prev, b, rows, cols, crop).to(device) + out.float(), min=0.0)
             loss = torch.nn.functional.l1_loss(pred, gather_crops(target, b, rows, cols, crop).to(device))
@@ -175,16 +171,16 @@ def main(argv=None):
     if manifest is None or not manifest["networks"]:
         name = args.name or os.path.basename(os.path.normpath(args.series))
         provenance = {
-            "command": " ".join(["python3", repo_relative(sys.argv[0])] +
-                                [repo_relative(a) if os.path.exists(a) and os.path.isabs(a) else a for a in sys.argv[1:]]),
+            "command": " ".join(["python3", common.repo_relative(sys.argv[0])] +
+                                [common.repo_relative(a) if os.path.exists(a) and os.path.isabs(a) else a for a in sys.argv[1:]]),
             "git_commit": git_commit(),
             "torch": str(torch.__version__),
             "seed": args.seed,
             "optimizer": {"kind": "rmsprop", "lr": args.lr, "batch": args.batch, "bf16_autocast": args.bf16},
             "crops": {"side": args.crop, "per_sample_and_epoch": args.crops_per_sample} if args.crop else None,
             "device": device.type,
-            "train_data": {"path": [repo_relative(t) for t in args.train], "samples": len(train), **common.portable(train.meta)},
-            "validation_data": {"path": repo_relative(args.val), "samples": len(val), **common.portable(val.meta)},
+            "train_data": {"path": [common.repo_relative(t) for t in args.train], "samples": len(train), **common.portable(train.meta)},
+            "validation_data": {"path": common.repo_relative(args.val), "samples": len(val), **common.portable(val.meta)},
             "networks": [],
         }
         desc = (f"R2D2 U-Net series ({args.base_channels} channels, {args.poolings} poolings, norm {args.norm}) for VLA A+C, "

@@ -6,7 +6,6 @@ use crate::ingest::{emit_parts, read_parts, stem_id, SplitBy, TableReader, Truth
 use crate::ms::{FieldSelector, MsReader, MsSelection};
 use crate::pipeline::config::{PipelineConfig, StageConfig};
 use crate::pipeline::{Job, Source};
-use crate::vis::DEFAULT_BATCH_ROWS;
 use crate::Result;
 use serde::Deserialize;
 use std::path::PathBuf;
@@ -32,7 +31,7 @@ pub struct MsConfig {
     #[serde(default)]
     channels: Option<[usize; 2]>,
     /// Samples per batch (a chunk of rows).
-    #[serde(default = "batch_rows")]
+    #[serde(default = "crate::vis::default_batch_rows")]
     batch_rows: usize,
     /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
     #[serde(default)]
@@ -41,10 +40,6 @@ pub struct MsConfig {
     /// `{column: spw}`, `{column: field}`, or another numeric column of the batches.
     #[serde(default)]
     split_by: Option<SplitBy>,
-}
-
-fn batch_rows() -> usize {
-    DEFAULT_BATCH_ROWS
 }
 
 /// The column that makes one job per field (each needs its own phase centre and metadata).

@@ -5,7 +5,7 @@
 use crate::ingest::{emit_parts, read_parts, stem_id, SplitBy, Truth};
 use crate::pipeline::config::{PipelineConfig, StageConfig};
 use crate::pipeline::{Job, Source};
-use crate::vis::{VisReader, DEFAULT_BATCH_ROWS};
+use crate::vis::VisReader;
 use crate::Result;
 use serde::Deserialize;
 use std::path::PathBuf;
@@ -22,7 +22,7 @@ pub enum Files {
 pub struct ParquetConfig {
     /// A file, a list of files, or glob patterns (relative to the working directory).
     files: Files,
-    #[serde(default = "batch_rows")]
+    #[serde(default = "crate::vis::default_batch_rows")]
     batch_rows: usize,
     /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
     #[serde(default)]
@@ -30,10 +30,6 @@ pub struct ParquetConfig {
     /// Split each file into several jobs by a column.
     #[serde(default)]
     split_by: Option<SplitBy>,
-}
-
-fn batch_rows() -> usize {
-    DEFAULT_BATCH_ROWS
 }
 
 pub struct ParquetSource {

@@ -334,10 +334,8 @@ fn select_in(roots: &[PathBuf], size: usize) -> Result<(PathBuf, Option<String>)
     let distance = |s: &Series| {
         s.image_sizes.iter().map(|&t| (t as f64 / size as f64).ln().abs()).fold(f64::INFINITY, f64::min)
     };
-    let nearest = found
-        .iter()
-        .filter(|(_, s)| s.any_size && !s.image_sizes.is_empty())
-        .min_by(|a, b| distance(&a.1).total_cmp(&distance(&b.1)).then_with(|| rank(&a.1).cmp(&rank(&b.1))));
+    // `found` is in rank order and min_by keeps the first of equals: ties go to the higher rank.
+    let nearest = found.iter().filter(|(_, s)| s.any_size && !s.image_sizes.is_empty()).min_by(|a, b| distance(&a.1).total_cmp(&distance(&b.1)));
     match nearest {
         Some((dir, s)) => Ok((
             dir.clone(),

@@ -41,13 +41,18 @@ class Dataset:
     def __init__(self, paths, limit=None):
         paths = [paths] if isinstance(paths, str) else list(paths)
         self.path = paths[0] if len(paths) == 1 else paths
-        parts = [_load_set(p) for p in paths]
-        sl = slice(None, limit)
-        cat = lambda key: torch.cat([part[key] for part in parts])[sl]
+        # The first `limit` samples of the concatenation, cut before loading (memory).
+        parts = []
+        for p in paths:
+            left = None if limit is None else limit - sum(len(part["samples"]) for part in parts)
+            if left is not None and left <= 0:
+                break
+            parts.append(_load_set(p, left))
+        cat = lambda key: torch.cat([part[key] for part in parts])
         self.truth, self.dirty, self.noise_dirty = cat("truth"), cat("dirty"), cat("noise_dirty")
         self.psf_hat = cat("psf_hat")  # [S, 2N, N+1] complex128
-        self.samples = [s for part in parts for s in part["samples"]][sl]
-        self.meta = parts[0]["meta"] if len(parts) == 1 else {"sets": [part["meta"] for part in parts]}
+        self.samples = [s for part in parts for s in part["samples"]]
+        self.meta = parts[0]["meta"] if len(paths) == 1 else {"sets": [part["meta"] for part in parts]}
         self.dynamic_range = torch.tensor([s["dynamic_range"] for s in self.samples], dtype=torch.float64)
 
     def __len__(self):
@@ -58,14 +63,16 @@ class Dataset:
         return self.truth.shape[-1]
 
 
-def _load_set(path):
-    load = lambda name: np.load(os.path.join(path, name), mmap_mode="r")
+def _load_set(path, limit=None):
+    """One set's first `limit` samples (all with None)."""
+    sl = slice(None, limit)
+    load = lambda name: np.load(os.path.join(path, name), mmap_mode="r")[sl]
     psf = load("psf2n.npy")
     # The PSF spectra in chunks: the 2N PSFs as float64 all at once would double the peak.
     psf_hat = torch.cat([torch.fft.rfft2(torch.from_numpy(np.array(psf[s:s + 32], dtype=np.float64)))
                          for s in range(0, psf.shape[0], 32)])
     with open(os.path.join(path, "samples.json")) as f:
-        samples = json.load(f)
+        samples = json.load(f)[sl]
     with open(os.path.join(path, "trainset.json")) as f:
         meta = json.load(f)
     images = {name: torch.from_numpy(np.array(load(f"{name}.npy"), dtype=np.float32)) for name in ("truth", "dirty", "noise_dirty")}
