@@ -224,22 +224,133 @@ fn plugin_step_failures_stop_the_run_cleanly() {
         ("nan", "{fail: nan, at: 2}", vec!["plugin step 2 returned a non-finite increment NaN at pixel (x 1, y 0)"]),
         ("unwritten", "{fail: unwritten}", vec!["plugin step 1 returned a non-finite increment NaN at pixel (x 0, y 0)"]),
     ];
-    for (name, config, expect) in cases {
-        std::fs::write(d.join(format!("{name}.yaml")), pipeline(&native_step(&faulty, 3, config))).unwrap();
-        let out = r2d2(&["run", &format!("{name}.yaml"), "--set", &format!("write.prefix=out-{name}/{{job}}")], d);
-        let err = stderr(&out);
-        assert_eq!(out.status.code(), Some(1), "{name}: expected a clean failure (exit 1), got {:?}: {err}", out.status);
-        assert!(err.contains("stage 'step' (native), job 'obs'"), "{name}: {err}");
-        assert!(err.contains(&faulty.display().to_string()), "{name}: library not named: {err}");
-        for e in expect {
-            assert!(err.contains(e), "{name}: '{e}' missing from: {err}");
+    // The same messages whether the plugin runs in its host process (default) or in r2d2.
+    for isolation in ["process", "none"] {
+        for (name, config, expect) in &cases {
+            let step = native_step(&faulty, 3, config) + &format!("    isolation: {isolation}\n");
+            let out = run_step(d, &format!("{name}-{isolation}"), &step);
+            let err = stderr(&out);
+            assert_eq!(out.status.code(), Some(1), "{name}: expected a clean failure (exit 1), got {:?}: {err}", out.status);
+            assert!(err.contains("stage 'step' (native), job 'obs'"), "{name}: {err}");
+            assert!(err.contains(&faulty.display().to_string()), "{name}: library not named: {err}");
+            for e in expect {
+                assert!(err.contains(e), "{name} ({isolation}): '{e}' missing from: {err}");
+            }
+            assert!(!d.join(format!("out-{name}-{isolation}")).exists(), "{name}: a failed job left products");
         }
-        assert!(!d.join(format!("out-{name}/obs-model.fits")).exists(), "{name}: a failed job left products");
     }
     // The same plugin, not asked to fail, completes the series (a zero increment).
     std::fs::write(d.join("ok.yaml"), pipeline(&native_step(&faulty, 2, "{fail: none}"))).unwrap();
     check(&r2d2(&["run", "ok.yaml"], d));
     assert!(read(&d.join("out/obs-model.fits")).iter().all(|&v| v == 0.0));
+}
+
+/// Runs the pipeline with `step` as `NAME.yaml`, writing to `out-NAME/`.
+fn run_step(d: &Path, name: &str, step: &str) -> std::process::Output {
+    std::fs::write(d.join(format!("{name}.yaml")), pipeline(step)).unwrap();
+    r2d2(&["run", &format!("{name}.yaml"), "--set", &format!("write.prefix=out-{name}/{{job}}")], d)
+}
+
+#[test]
+fn isolated_plugins_that_crash_exit_or_hang_fail_the_run_naming_library_stage_and_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    let faulty = faulty();
+    let cases = [
+        ("segfault", "killed by signal 11 (SIGSEGV, a segmentation fault)"),
+        ("abort", "killed by signal 6 (SIGABRT, abort)"),
+        ("exit", "the plugin ended its host process with exit status 0 (a plugin must return from every call, never exit)"),
+        ("hang", "the plugin did not answer within"),
+    ];
+    for (fault, expect) in cases {
+        // Fails at the second step: the first job's first step went through the host.
+        let step = native_step(&faulty, 3, &format!("{{fail: {fault}, at: 2}}")) + "    timeout: 2\n";
+        let began = std::time::Instant::now();
+        let out = run_step(d, fault, &step);
+        let err = stderr(&out);
+        assert_eq!(out.status.code(), Some(1), "{fault}: expected a clean failure (exit 1), got {:?}: {err}", out.status);
+        for e in [expect, "the plugin failed while running step 2", "stage 'step' (native), job 'obs'", &faulty.display().to_string()] {
+            assert!(err.contains(e), "{fault}: '{e}' missing from: {err}");
+        }
+        assert!(!d.join(format!("out-{fault}")).exists(), "{fault}: a failed job left products");
+        assert!(began.elapsed().as_secs() < 60, "{fault}: took {:?}", began.elapsed());
+    }
+    // The faults are real: loaded into r2d2 itself, the segfault kills the engine.
+    let step = native_step(&faulty, 3, "{fail: segfault}") + "    isolation: none\n";
+    let out = run_step(d, "segfault-in-process", &step);
+    assert_eq!(out.status.code(), None, "an in-process segfault should kill r2d2: {}", stderr(&out));
+
+    // A host that cannot be found is a clear error, before imaging.
+    let step = native_step(&faulty, 2, "{fail: none}");
+    std::fs::write(d.join("nohost.yaml"), pipeline(&step)).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_r2d2"))
+        .args(["run", "nohost.yaml"])
+        .current_dir(d)
+        .env("R2D2_PLUGIN_HOST", d.join("no-such-host"))
+        .output()
+        .unwrap();
+    let err = stderr(&out);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("R2D2_PLUGIN_HOST=") && err.contains("is not a file"), "{err}");
+}
+
+/// Processes whose command line mentions `needle` (the plugin hosts of one library).
+fn processes_mentioning(needle: &str) -> Vec<String> {
+    let mut found = Vec::new();
+    for entry in std::fs::read_dir("/proc").unwrap().flatten() {
+        if let Ok(cmdline) = std::fs::read(entry.path().join("cmdline")) {
+            if String::from_utf8_lossy(&cmdline).contains(needle) {
+                found.push(entry.file_name().to_string_lossy().into_owned());
+            }
+        }
+    }
+    found
+}
+
+#[test]
+fn ctrl_c_stops_a_hung_isolated_plugin() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    // A copy under a name of this test's own, to find its host process.
+    let library = d.join(library_file("hung_plugin_for_ctrl_c"));
+    std::fs::copy(faulty(), &library).unwrap();
+    std::fs::write(d.join("hang.yaml"), pipeline(&native_step(&library, 3, "{fail: hang}"))).unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_r2d2"))
+        .args(["run", "hang.yaml"])
+        .current_dir(d)
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let needle = library.display().to_string();
+    let began = std::time::Instant::now();
+    while processes_mentioning(&needle).is_empty() {
+        assert!(began.elapsed().as_secs() < 60, "the plugin host never started");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    std::thread::sleep(std::time::Duration::from_millis(1000));
+    // SIGINT to r2d2 alone (not its process group): the engine must stop the host itself.
+    let status = Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
+    assert!(status.success());
+    let stopped = std::time::Instant::now();
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        if stopped.elapsed().as_secs() > 20 {
+            let _ = child.kill();
+            panic!("r2d2 did not stop within 20 s of Ctrl-C with a hung plugin");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    };
+    let mut err = String::new();
+    std::io::Read::read_to_string(&mut child.stderr.take().unwrap(), &mut err).unwrap();
+    assert_eq!(status.code(), Some(1), "{err}");
+    assert!(err.contains("interrupted"), "{err}");
+    assert!(!d.join("out").exists(), "products written by an interrupted run");
+    std::thread::sleep(std::time::Duration::from_millis(200));
+    assert!(processes_mentioning(&needle).is_empty(), "the plugin host outlived r2d2");
 }
 
 #[test]

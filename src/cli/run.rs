@@ -28,7 +28,12 @@ pub struct ValidateArgs {
 pub fn cancel_on_ctrl_c() -> Arc<AtomicBool> {
     let cancel = Arc::new(AtomicBool::new(false));
     let flag = cancel.clone();
-    if let Err(e) = ctrlc::set_handler(move || flag.store(true, Ordering::SeqCst)) {
+    let handler = move || {
+        flag.store(true, Ordering::SeqCst);
+        // A plugin hung in its host process would otherwise keep its stage waiting.
+        r2d2_imaging::steps::native_host::interrupt_all();
+    };
+    if let Err(e) = ctrlc::set_handler(handler) {
         log::warn!("Ctrl-C will not stop the pipeline cleanly: {e}");
     }
     cancel

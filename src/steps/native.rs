@@ -8,20 +8,23 @@
 //!   iterations: 10                                 # series length
 //!   positivity: true                               # x_i = max(0, x_{i-1} + increment)
 //!   config: {gain: 1.0}                            # passed to the plugin as JSON
+//!   isolation: process                             # default; `none` loads it into r2d2
+//!   timeout: 600                                   # seconds per call (isolated plugins)
 //!   to: update
 //! ```
 //!
 //! Everything that can be checked is checked when the pipeline is built, before any imaging:
 //! the file, the ABI version, the symbols, and the plugin's own creation (its configuration).
+//! By default the plugin runs in a supervised child process (`native_host`), so that a crash,
+//! an exit or a hang is an error of the run instead of the end of the engine.
 
+use super::native_host::HostedInstance;
 use super::{NetworkStep, StepInput};
 use crate::{Error, Result};
-use libloading::Library;
-use r2d2_plugin::{symbols, AbiVersionFn, CreateFn, DestroyFn, LastErrorFn, RawStepInput, StepFn, ABI_VERSION};
+use r2d2_plugin::host::Instance;
 use serde::Deserialize;
-use std::ffi::{c_char, c_void, CStr, CString};
-use std::path::{Path, PathBuf};
-use std::ptr::NonNull;
+use std::path::PathBuf;
+use std::time::Duration;
 
 #[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -37,110 +40,45 @@ pub struct NativeConfig {
     /// Plugin configuration, any mapping; the plugin receives it as a JSON object.
     #[serde(default)]
     pub config: Option<serde_yaml::Value>,
+    /// Where the plugin runs: in a supervised child process (default) or in this one.
+    #[serde(default)]
+    pub isolation: Isolation,
+    /// Seconds one call into an isolated plugin (its creation, each step) may take.
+    #[serde(default = "default_timeout")]
+    pub timeout: f64,
+}
+
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum Isolation {
+    /// In `r2d2-plugin-host`, a child process: a crash, exit or hang is an error of the run.
+    #[default]
+    Process,
+    /// Loaded into this process: no copy per step, but a crashing plugin ends the engine.
+    None,
 }
 
 fn yes() -> bool {
     true
 }
 
-/// A created plugin instance and the library it lives in.
-struct Instance {
-    handle: NonNull<c_void>,
-    step: StepFn,
-    last_error: LastErrorFn,
-    destroy: DestroyFn,
-    path: PathBuf,
-    /// Declared last so it is dropped after `Drop::drop` has destroyed the handle: the
-    /// library's code must stay mapped while the handle exists.
-    _library: Library,
+fn default_timeout() -> f64 {
+    600.0
 }
 
-// SAFETY: the ABI (header, "Threads") requires that a handle may be used from any thread, one
-// thread at a time; `Instance` is only used through `&mut self` (or dropped), so Rust's
-// ownership rules already give one thread at a time. The function pointers are plain code.
-unsafe impl Send for Instance {}
-
-impl Drop for Instance {
-    fn drop(&mut self) {
-        // SAFETY: the handle came from this library's create, is destroyed exactly once here,
-        // and the library (a later field) is still loaded.
-        unsafe { (self.destroy)(self.handle.as_ptr()) };
-    }
-}
-
-/// A message returned by the plugin (NUL-terminated UTF-8 owned by the plugin).
-///
-/// # Safety
-/// `p` is NULL or points to a NUL-terminated string valid until the next call into the plugin.
-unsafe fn plugin_message(p: *const c_char) -> String {
-    if p.is_null() {
-        return "(the plugin gave no message)".into();
-    }
-    // SAFETY: non-NULL and NUL-terminated by the caller's contract; copied out at once.
-    let text = unsafe { CStr::from_ptr(p) }.to_string_lossy().trim().to_string();
-    if text.is_empty() {
-        "(the plugin gave an empty message)".into()
-    } else {
-        text
-    }
-}
-
-impl Instance {
-    fn load(path: &Path, config_json: &str, image_size: usize, iterations: usize) -> Result<Instance> {
-        let fail = |message: String| Error::input(path, message);
-        if !path.is_file() {
-            let cwd = std::env::current_dir().map(|d| d.display().to_string()).unwrap_or_default();
-            return Err(fail(format!(
-                "no such plugin library (relative paths are relative to the working directory {cwd}; build the example plugins with `cargo build --release`)"
-            )));
-        }
-        // SAFETY: loading a library runs its initialisers, arbitrary code the user chose to
-        // trust by naming it in the pipeline; nothing more can be checked before loading.
-        let library = unsafe { Library::new(path) }.map_err(|e| fail(format!("cannot load the plugin library: {e}")))?;
-        let symbol_name = |s: &[u8]| String::from_utf8_lossy(&s[..s.len() - 1]).into_owned();
-        // SAFETY (each `get`): the type is the header's signature for that symbol, which a
-        // library exporting the symbol promises by the ABI version checked first. The copied
-        // function pointers are only used while `library` stays loaded (it lives in `Instance`).
-        let abi_version: AbiVersionFn = *unsafe { library.get::<AbiVersionFn>(symbols::ABI_VERSION) }.map_err(|e| {
-            fail(format!("not an r2d2 plugin: missing symbol {} ({e})", symbol_name(symbols::ABI_VERSION)))
-        })?;
-        // SAFETY: takes no arguments and, by the ABI, cannot fail.
-        let version = unsafe { abi_version() };
-        if version != ABI_VERSION {
-            return Err(fail(format!(
-                "plugin ABI version {version}, but this r2d2 speaks version {ABI_VERSION}: rebuild the plugin against r2d2_plugin.h version {ABI_VERSION}"
-            )));
-        }
-        fn get<T: Copy>(library: &Library, name: &[u8], path: &Path) -> Result<T> {
-            // SAFETY: see above; T is the header's signature for `name`.
-            unsafe { library.get::<T>(name) }.map(|s| *s).map_err(|e| {
-                let shown = String::from_utf8_lossy(&name[..name.len() - 1]).into_owned();
-                Error::input(path, format!("plugin ABI version {ABI_VERSION} but missing symbol {shown} ({e})"))
-            })
-        }
-        let create: CreateFn = get(&library, symbols::CREATE, path)?;
-        let step: StepFn = get(&library, symbols::STEP, path)?;
-        let last_error: LastErrorFn = get(&library, symbols::LAST_ERROR, path)?;
-        let destroy: DestroyFn = get(&library, symbols::DESTROY, path)?;
-        let config = CString::new(config_json).map_err(|_| fail("the plugin configuration contains a NUL character".into()))?;
-        let iterations = u32::try_from(iterations).map_err(|_| fail(format!("{iterations} iterations is too many")))?;
-        // SAFETY: a NUL-terminated string that outlives the call, as create requires.
-        let handle = unsafe { create(config.as_ptr(), image_size as u64, iterations) };
-        let Some(handle) = NonNull::new(handle) else {
-            // SAFETY: NULL asks for the calling thread's create error, read right after create.
-            let message = unsafe { plugin_message(last_error(std::ptr::null())) };
-            return Err(fail(format!("the plugin refused its configuration {config_json}: {message}")));
-        };
-        Ok(Instance { handle, step, last_error, destroy, path: path.to_path_buf(), _library: library })
-    }
+/// Where the plugin instance lives.
+enum Backend {
+    InProcess(Instance),
+    Isolated(HostedInstance),
 }
 
 pub struct NativeStep {
-    instance: Instance,
+    backend: Backend,
+    library: PathBuf,
     iterations: usize,
     positivity: bool,
     size: usize,
-    /// Host-side output buffer, refilled with NaN before each call.
+    /// Output buffer of the in-process backend, refilled with NaN before each call.
     increment: Vec<f64>,
 }
 
@@ -150,6 +88,9 @@ impl NativeStep {
         if config.iterations == 0 {
             return Err(Error::parameter(format!("stages.{stage}.iterations"), "expected at least one iteration"));
         }
+        if !(config.timeout.is_finite() && config.timeout > 0.0 && config.timeout <= 1e9) {
+            return Err(Error::parameter(format!("stages.{stage}.timeout"), format!("expected seconds > 0, got {}", config.timeout)));
+        }
         let config_json = match &config.config {
             None | Some(serde_yaml::Value::Null) => "{}".to_string(),
             Some(value @ serde_yaml::Value::Mapping(_)) => serde_json::to_string(value).map_err(|e| {
@@ -157,12 +98,24 @@ impl NativeStep {
             })?,
             Some(_) => return Err(Error::parameter(format!("stages.{stage}.config"), "expected a mapping (key: value, ...)")),
         };
-        let instance = Instance::load(&config.library, &config_json, image_size, config.iterations).map_err(|e| match e {
-            Error::Input { path, message } => Error::Input { path, message: format!("stages.{stage}.library: {message}") },
-            other => other,
-        })?;
+        let path = &config.library;
+        let fail = |message: String| Error::input(path, format!("stages.{stage}.library: {message}"));
+        if !path.is_file() {
+            let cwd = std::env::current_dir().map(|d| d.display().to_string()).unwrap_or_default();
+            return Err(fail(format!(
+                "no such plugin library (relative paths are relative to the working directory {cwd}; build the example plugins with `cargo build --release`)"
+            )));
+        }
+        let backend = match config.isolation {
+            Isolation::None => Backend::InProcess(Instance::load(path, &config_json, image_size, config.iterations).map_err(fail)?),
+            Isolation::Process => Backend::Isolated(
+                HostedInstance::start(path, &config_json, image_size, config.iterations, Duration::from_secs_f64(config.timeout))
+                    .map_err(fail)?,
+            ),
+        };
         Ok(NativeStep {
-            instance,
+            backend,
+            library: config.library,
             iterations: config.iterations,
             positivity: config.positivity,
             size: image_size,
@@ -178,34 +131,19 @@ impl NetworkStep for NativeStep {
 
     fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>> {
         let n = input.size;
-        let path = &self.instance.path;
+        let path = &self.library;
         if n != self.size {
             return Err(Error::input(path, format!("the plugin was created for {0} x {0} images, the job has {n} x {n}", self.size)));
         }
-        let pixels = n * n;
-        let lengths = [input.residual.len(), input.model.len(), input.dirty.len()];
-        if lengths.iter().any(|&l| l != pixels) || input.psf_2n.len() != 4 * pixels {
-            return Err(Error::parameter("native step", format!("inconsistent image sizes for N = {n}")));
+        let (residual, model, dirty, psf_2n) = (input.residual, input.model, input.dirty, input.psf_2n);
+        match &mut self.backend {
+            Backend::InProcess(instance) => {
+                self.increment.resize(n * n, f64::NAN);
+                instance.step(iteration, residual, model, dirty, psf_2n, &mut self.increment)
+            }
+            Backend::Isolated(hosted) => hosted.step(iteration, residual, model, dirty, psf_2n).map(|d| self.increment = d),
         }
-        self.increment.clear();
-        self.increment.resize(pixels, f64::NAN);
-        let raw = RawStepInput {
-            size: n as u64,
-            iteration: iteration as u64,
-            residual: input.residual.as_ptr(),
-            model: input.model.as_ptr(),
-            dirty: input.dirty.as_ptr(),
-            psf_2n: input.psf_2n.as_ptr(),
-        };
-        // SAFETY: a live handle used by this thread only (`&mut self`); every input pointer
-        // covers the lengths checked above and outlives the call; the output buffer has N x N
-        // writable values and is a separate allocation, so it overlaps no input.
-        let status = unsafe { (self.instance.step)(self.instance.handle.as_ptr(), &raw, self.increment.as_mut_ptr()) };
-        if status != 0 {
-            // SAFETY: the handle's message, valid until the next call, copied at once.
-            let message = unsafe { plugin_message((self.instance.last_error)(self.instance.handle.as_ptr())) };
-            return Err(Error::input(path, format!("plugin step {iteration} failed (status {status}): {message}")));
-        }
+        .map_err(|message| Error::input(path, message))?;
         if let Some(k) = self.increment.iter().position(|v| !v.is_finite()) {
             return Err(Error::input(
                 path,

@@ -28,6 +28,9 @@ use std::cell::RefCell;
 use std::ffi::{c_char, c_void, CStr, CString};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 
+#[cfg(feature = "host")]
+pub mod host;
+
 /// Version of the C ABI; equal to `R2D2_PLUGIN_ABI_VERSION` in the header.
 pub const ABI_VERSION: u32 = 1;
 

@@ -1,7 +1,9 @@
 //! A plugin that misbehaves on request, for the host's error-handling tests:
 //! `config: {fail: <where>}` with `<where>` one of `create_error`, `create_panic`,
 //! `step_error`, `step_panic`, `nan` (a NaN increment at pixel (1, 0)), `unwritten` (leaves
-//! pixel 0 unwritten) or `none` (a zero increment), at iteration `at` (default 1).
+//! pixel 0 unwritten) or `none` (a zero increment), at iteration `at` (default 1); and, to
+//! test process isolation, `segfault`, `abort`, `exit` (exit status 0) and `hang` (sleeps
+//! forever) in the step.
 
 use r2d2_plugin::{export_plugin, Plugin, Setup, StepInput};
 use serde::Deserialize;
@@ -37,6 +39,16 @@ impl Plugin for Faulty {
         match self.config.fail.as_str() {
             "step_error" if failing => return Err(format!("step {} failed as asked", input.iteration)),
             "step_panic" if failing => panic!("step {} panicked as asked", input.iteration),
+            "segfault" if failing => {
+                // SAFETY: none: this plugin exists to crash its process the way a buggy
+                // native plugin does; a volatile write to address 0 is not optimised away.
+                unsafe { std::ptr::null_mut::<u8>().write_volatile(1) };
+            }
+            "abort" if failing => std::process::abort(),
+            "exit" if failing => std::process::exit(0),
+            "hang" if failing => loop {
+                std::thread::sleep(std::time::Duration::from_secs(3600));
+            },
             _ => {}
         }
         match self.config.fail.as_str() {

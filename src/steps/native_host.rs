@@ -1,0 +1,316 @@
+//! Process isolation for native plugins (`isolation: process`, the default): the plugin runs
+//! in a child process, `r2d2-plugin-host`, that this module starts and supervises. Images
+//! cross over pipes (`r2d2_plugin::host::wire`). A plugin that crashes (segfault, abort),
+//! ends its process (exit) or runs past the timeout becomes an error naming what happened;
+//! the caller adds the library, and the runner the stage and the job.
+//!
+//! The host executable is found, in order: `$R2D2_PLUGIN_HOST`; beside the running
+//! executable (the `r2d2` CLI, next to which `cargo build` puts it) or in its parent
+//! directory (test and example binaries); then on `PATH`. An embedding program whose
+//! executable is not `r2d2` (Python, say) sets `R2D2_PLUGIN_HOST` or puts the host on `PATH`.
+
+use r2d2_plugin::host::wire;
+use std::io::{BufReader, BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Child, ChildStdin, Command, ExitStatus, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+/// Name of the host executable.
+pub const HOST: &str = "r2d2-plugin-host";
+/// Environment variable naming the host executable.
+pub const HOST_ENV: &str = "R2D2_PLUGIN_HOST";
+
+/// Process ids of running hosts, for [`interrupt_all`].
+static LIVE: Mutex<Vec<u32>> = Mutex::new(Vec::new());
+static INTERRUPTED: AtomicBool = AtomicBool::new(false);
+
+/// Stop every running plugin host now (Ctrl-C): a hung plugin cannot keep the run waiting.
+/// The steps waiting on them fail with "interrupted".
+pub fn interrupt_all() {
+    INTERRUPTED.store(true, Ordering::SeqCst);
+    let live = LIVE.lock().unwrap_or_else(|e| e.into_inner());
+    for &pid in live.iter() {
+        kill(pid);
+    }
+}
+
+#[cfg(unix)]
+fn kill(pid: u32) {
+    // SAFETY: kill(2) takes plain integers. The pid is a child of ours that has not been reaped
+    // (it leaves LIVE, under this lock, before it is waited for), so it cannot name another process.
+    unsafe { libc::kill(pid as libc::pid_t, libc::SIGKILL) };
+}
+
+#[cfg(not(unix))]
+fn kill(_pid: u32) {}
+
+/// The host executable (see the module documentation for the search order).
+pub fn find_host() -> Result<PathBuf, String> {
+    if let Some(path) = std::env::var_os(HOST_ENV) {
+        let path = PathBuf::from(path);
+        return if path.is_file() { Ok(path) } else { Err(format!("{HOST_ENV}={} is not a file", path.display())) };
+    }
+    let name = format!("{HOST}{}", std::env::consts::EXE_SUFFIX);
+    let mut places = Vec::new();
+    if let Ok(exe) = std::env::current_exe() {
+        if let Some(dir) = exe.parent() {
+            places.push(dir.to_path_buf());
+            places.extend(dir.parent().map(Path::to_path_buf));
+        }
+    }
+    places.extend(std::env::var_os("PATH").map(|p| std::env::split_paths(&p).collect::<Vec<_>>()).unwrap_or_default());
+    places.iter().map(|dir| dir.join(&name)).find(|p| p.is_file()).ok_or_else(|| {
+        format!(
+            "the plugin host `{name}` was not found beside this executable nor on PATH: build it (`cargo build --release` puts it beside r2d2), point {HOST_ENV} at it, or set `isolation: none` to load the plugin into this process"
+        )
+    })
+}
+
+enum Reply {
+    Ok,
+    Error(String),
+    Increment(Vec<f64>),
+    /// The host's output ended (or broke): the process is gone or going.
+    Gone,
+}
+
+/// A plugin instance living in a supervised child process.
+pub struct HostedInstance {
+    child: Child,
+    input: Option<BufWriter<ChildStdin>>,
+    replies: crossbeam_channel::Receiver<Reply>,
+    timeout: Duration,
+    size: usize,
+    /// The dirty image and PSF the host holds (sent again only when a new job brings others).
+    sent_dirty: Vec<f64>,
+    sent_psf: Vec<f64>,
+    /// Set once the host has failed: later calls report that instead of talking to it.
+    dead: Option<String>,
+}
+
+impl HostedInstance {
+    /// Start the host for `library` and create the plugin there; `timeout` bounds every call.
+    pub fn start(library: &Path, config_json: &str, size: usize, iterations: usize, timeout: Duration) -> Result<HostedInstance, String> {
+        let host = find_host()?;
+        let mut child = Command::new(&host)
+            .arg(library)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .map_err(|e| format!("cannot start the plugin host {}: {e}", host.display()))?;
+        LIVE.lock().unwrap_or_else(|e| e.into_inner()).push(child.id());
+        let output = child.stdout.take().expect("piped");
+        let input = BufWriter::with_capacity(1 << 16, child.stdin.take().expect("piped"));
+        let (send, replies) = crossbeam_channel::bounded(1);
+        let pixels = size * size;
+        std::thread::Builder::new()
+            .name("plugin-host-reader".into())
+            .spawn(move || {
+                let mut output = BufReader::with_capacity(1 << 16, output);
+                loop {
+                    let reply = match wire::read_tag(&mut output) {
+                        Ok(Some(wire::OK)) => Reply::Ok,
+                        Ok(Some(wire::ERROR)) => wire::read_text(&mut output).map(Reply::Error).unwrap_or(Reply::Gone),
+                        Ok(Some(wire::INCREMENT)) => {
+                            let mut increment = vec![0.0; pixels];
+                            match wire::read_f64s(&mut output, &mut increment) {
+                                Ok(()) => Reply::Increment(increment),
+                                Err(_) => Reply::Gone,
+                            }
+                        }
+                        _ => Reply::Gone,
+                    };
+                    let gone = matches!(reply, Reply::Gone);
+                    if send.send(reply).is_err() || gone {
+                        return;
+                    }
+                }
+            })
+            .map_err(|e| format!("cannot start a thread: {e}"))?;
+        let mut hosted = HostedInstance {
+            child,
+            input: Some(input),
+            replies,
+            timeout,
+            size,
+            sent_dirty: Vec::new(),
+            sent_psf: Vec::new(),
+            dead: None,
+        };
+        let sent = hosted.send(|w| {
+            w.write_all(&[wire::CREATE])?;
+            wire::write_u64(w, size as u64)?;
+            wire::write_u64(w, iterations as u64)?;
+            wire::write_text(w, config_json)
+        });
+        let reply = match sent {
+            Ok(()) => hosted.reply("creating the plugin")?,
+            Err(()) => hosted.gone("creating the plugin")?,
+        };
+        match reply {
+            Reply::Ok => Ok(hosted),
+            Reply::Error(message) => Err(message),
+            _ => Err(hosted.fail("creating the plugin", "an unexpected reply from the plugin host".into())),
+        }
+    }
+
+    /// Write one message and flush; `Err` when the host's input is closed (the host is gone).
+    fn send(&mut self, write: impl FnOnce(&mut BufWriter<ChildStdin>) -> std::io::Result<()>) -> Result<(), ()> {
+        let input = self.input.as_mut().ok_or(())?;
+        write(input).and_then(|()| input.flush()).map_err(|_| ())
+    }
+
+    /// The next reply, within the timeout; the host's end (or a timeout) is an error.
+    fn reply(&mut self, doing: &str) -> Result<Reply, String> {
+        let began = Instant::now();
+        match self.replies.recv_timeout(self.timeout) {
+            Ok(Reply::Gone) | Err(crossbeam_channel::RecvTimeoutError::Disconnected) => self.gone(doing),
+            Ok(reply) => Ok(reply),
+            Err(crossbeam_channel::RecvTimeoutError::Timeout) => {
+                let waited = began.elapsed().as_secs_f64();
+                self.stop();
+                Err(self.fail(doing, format!("the plugin did not answer within {waited:.1} s (timeout: {} s); its host process was stopped", self.timeout.as_secs_f64())))
+            }
+        }
+    }
+
+    /// The host ended: say how.
+    fn gone<T>(&mut self, doing: &str) -> Result<T, String> {
+        let status = self.reap(Duration::from_secs(5));
+        let how = match status {
+            _ if INTERRUPTED.load(Ordering::SeqCst) => "interrupted: its host process was stopped".to_string(),
+            Some(status) => describe_end(status),
+            None => {
+                self.stop();
+                "its host process closed its output and was stopped".to_string()
+            }
+        };
+        Err(self.fail(doing, how))
+    }
+
+    fn fail(&mut self, doing: &str, how: String) -> String {
+        let message = format!("the plugin failed while {doing}: {how}");
+        self.dead = Some(message.clone());
+        message
+    }
+
+    /// Wait up to `patience` for the host to end; its status, or None if it still runs.
+    fn reap(&mut self, patience: Duration) -> Option<ExitStatus> {
+        let began = Instant::now();
+        loop {
+            match self.child.try_wait() {
+                Ok(Some(status)) => {
+                    self.forget();
+                    return Some(status);
+                }
+                Ok(None) if began.elapsed() < patience => std::thread::sleep(Duration::from_millis(5)),
+                _ => return None,
+            }
+        }
+    }
+
+    /// Kill the host and reap it.
+    fn stop(&mut self) {
+        self.input = None;
+        self.forget_then(|child| {
+            let _ = child.kill();
+            let _ = child.wait();
+        });
+    }
+
+    fn forget(&mut self) {
+        self.forget_then(|_| {});
+    }
+
+    /// Leave LIVE (under its lock, so `interrupt_all` never signals a reaped pid), then act.
+    fn forget_then(&mut self, then: impl FnOnce(&mut Child)) {
+        let mut live = LIVE.lock().unwrap_or_else(|e| e.into_inner());
+        let pid = self.child.id();
+        live.retain(|&p| p != pid);
+        drop(live);
+        then(&mut self.child);
+    }
+
+    /// One step in the host: the increment (N x N), unchecked.
+    pub fn step(&mut self, iteration: usize, residual: &[f64], model: &[f64], dirty: &[f64], psf_2n: &[f64]) -> Result<Vec<f64>, String> {
+        if let Some(message) = &self.dead {
+            return Err(format!("the plugin host failed earlier ({message})"));
+        }
+        let pixels = self.size * self.size;
+        if [residual.len(), model.len(), dirty.len()].iter().any(|&l| l != pixels) || psf_2n.len() != 4 * pixels {
+            return Err(format!("inconsistent image sizes for N = {}", self.size));
+        }
+        let new_dirty = self.sent_dirty != dirty;
+        let new_psf = self.sent_psf != psf_2n;
+        let flags = if new_dirty { wire::WITH_DIRTY } else { 0 } | if new_psf { wire::WITH_PSF } else { 0 };
+        let sent = self.send(|w| {
+            w.write_all(&[wire::STEP])?;
+            wire::write_u64(w, iteration as u64)?;
+            wire::write_u64(w, flags)?;
+            wire::write_f64s(w, residual)?;
+            wire::write_f64s(w, model)?;
+            if new_dirty {
+                wire::write_f64s(w, dirty)?;
+            }
+            if new_psf {
+                wire::write_f64s(w, psf_2n)?;
+            }
+            Ok(())
+        });
+        let doing = format!("running step {iteration}");
+        if sent.is_err() {
+            return self.gone(&doing);
+        }
+        if new_dirty {
+            self.sent_dirty = dirty.to_vec();
+        }
+        if new_psf {
+            self.sent_psf = psf_2n.to_vec();
+        }
+        match self.reply(&doing)? {
+            Reply::Increment(increment) => Ok(increment),
+            Reply::Error(message) => Err(message),
+            _ => Err(self.fail(&doing, "an unexpected reply from the plugin host".into())),
+        }
+    }
+}
+
+impl Drop for HostedInstance {
+    /// Closing the host's input ends it (the plugin's destroy runs there); one that does not
+    /// end promptly is killed.
+    fn drop(&mut self) {
+        self.input = None;
+        if self.reap(Duration::from_secs(2)).is_none() {
+            self.stop();
+        }
+    }
+}
+
+/// How a host process ended, in words.
+fn describe_end(status: ExitStatus) -> String {
+    #[cfg(unix)]
+    {
+        use std::os::unix::process::ExitStatusExt;
+        if let Some(signal) = status.signal() {
+            let name = match signal {
+                libc::SIGSEGV => " (SIGSEGV, a segmentation fault)",
+                libc::SIGABRT => " (SIGABRT, abort)",
+                libc::SIGBUS => " (SIGBUS)",
+                libc::SIGFPE => " (SIGFPE)",
+                libc::SIGILL => " (SIGILL)",
+                libc::SIGKILL => " (SIGKILL)",
+                libc::SIGINT => " (SIGINT)",
+                libc::SIGTERM => " (SIGTERM)",
+                _ => "",
+            };
+            return format!("its host process crashed: killed by signal {signal}{name}");
+        }
+    }
+    match status.code() {
+        Some(code) => format!("the plugin ended its host process with exit status {code} (a plugin must return from every call, never exit)"),
+        None => format!("its host process ended ({status})"),
+    }
+}
