@@ -167,6 +167,38 @@ fn fails_before_imaging(d: &Path, name: &str, step: &str, expect: &[&str]) {
     assert!(!d.join("out").exists(), "{name}: products written although the pipeline was invalid");
 }
 
+/// The four functions after the version, doing nothing (for libraries that differ in the version).
+const STUBS: &str = "void *r2d2_plugin_create(const char *c, uint64_t n, uint32_t i) { (void)c; (void)n; (void)i; return 0; }\n\
+int32_t r2d2_plugin_step(void *h, const r2d2_step_input *in, double *out) { (void)h; (void)in; (void)out; return 1; }\n\
+const char *r2d2_plugin_last_error(const void *h) { (void)h; return \"stub\"; }\n\
+void r2d2_plugin_destroy(void *h) { (void)h; }\n";
+
+/// A library whose constructor leaves a mark: checking it must not run it.
+#[test]
+fn validate_reads_the_library_without_loading_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    let marker = d.join("constructor-ran");
+    let text = format!(
+        "#include \"r2d2_plugin.h\"\n#include <stdio.h>\n__attribute__((constructor)) static void mark(void) {{ FILE *f = fopen(\"{}\", \"w\"); if (f) fclose(f); }}\n{STUBS}",
+        marker.display()
+    );
+    // Without the version function the file check refuses it before anything loads it.
+    let library = c_plugin_from_text(d, "marking", &text);
+    for isolation in ["process", "none"] {
+        let step = native_step(&library, 2, "{}") + &format!("    isolation: {isolation}\n");
+        fails_before_imaging(d, &format!("marking-{isolation}"), &step, &["missing symbol r2d2_plugin_abi_version (read from the file, not loaded)"]);
+        assert!(!marker.exists(), "checking the library ran its constructor ({isolation})");
+    }
+    // A complete plugin is created in the isolated host: its constructor runs there, not in r2d2.
+    let complete = c_plugin_from_text(d, "marking_complete", &format!("{text}uint32_t r2d2_plugin_abi_version(void) {{ return R2D2_PLUGIN_ABI_VERSION; }}\n"));
+    std::fs::write(d.join("complete.yaml"), pipeline(&native_step(&complete, 2, "{}"))).unwrap();
+    let out = r2d2(&["validate", "complete.yaml"], d);
+    assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
+    assert!(stderr(&out).contains("the plugin refused its configuration {}: stub"), "{}", stderr(&out));
+}
+
 #[test]
 fn plugin_load_and_create_errors_come_before_imaging_and_name_the_library() {
     let dir = tempfile::tempdir().unwrap();
@@ -177,7 +209,7 @@ fn plugin_load_and_create_errors_come_before_imaging_and_name_the_library() {
 
     let not_a_library = d.join("notes.so");
     std::fs::write(&not_a_library, "not a shared library").unwrap();
-    fails_before_imaging(d, "garbage", &native_step(&not_a_library, 2, "{}"), &["notes.so", "cannot load the plugin library"]);
+    fails_before_imaging(d, "garbage", &native_step(&not_a_library, 2, "{}"), &["notes.so", "not a shared library: the file does not start with an ELF header"]);
 
     let unrelated = c_plugin_from_text(d, "unrelated", "int some_function(void) { return 1; }\n");
     fails_before_imaging(d, "unrelated", &native_step(&unrelated, 2, "{}"), &[&unrelated.display().to_string(), "missing symbol r2d2_plugin_abi_version"]);
@@ -185,7 +217,7 @@ fn plugin_load_and_create_errors_come_before_imaging_and_name_the_library() {
     let future = c_plugin_from_text(
         d,
         "future",
-        "#include \"r2d2_plugin.h\"\nuint32_t r2d2_plugin_abi_version(void) { return R2D2_PLUGIN_ABI_VERSION + 1; }\n",
+        &format!("#include \"r2d2_plugin.h\"\nuint32_t r2d2_plugin_abi_version(void) {{ return R2D2_PLUGIN_ABI_VERSION + 1; }}\n{STUBS}"),
     );
     fails_before_imaging(d, "future", &native_step(&future, 2, "{}"), &[&future.display().to_string(), "plugin ABI version 2, but this r2d2 speaks version 1"]);
 

@@ -5,6 +5,7 @@
 
 pub mod clean;
 pub mod native;
+pub mod native_file;
 pub mod native_host;
 pub mod mapped_weights;
 pub mod onnx;

@@ -106,6 +106,7 @@ impl NativeStep {
                 "no such plugin library (relative paths are relative to the working directory {cwd}; build the example plugins with `cargo build --release`)"
             )));
         }
+        super::native_file::check(path).map_err(fail)?;
         let backend = match config.isolation {
             Isolation::None => Backend::InProcess(Instance::load(path, &config_json, image_size, config.iterations).map_err(fail)?),
             Isolation::Process => Backend::Isolated(
