@@ -21,6 +21,7 @@ pub mod operator;
 pub mod pipeline;
 pub mod preview;
 pub mod progress;
+pub mod sanity;
 pub mod simulate;
 pub mod staging;
 pub mod stages;

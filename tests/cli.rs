@@ -259,6 +259,27 @@ fn physically_impossible_rows_are_excluded_with_a_warning() {
     }
 }
 
+/// A visibility of 1e300 (finite, so not excluded as non-finite) blows up the dirty image: the
+/// run fails naming the gridder stage, the job and the image, not at the writer.
+#[test]
+fn huge_finite_visibilities_are_named_where_they_appear() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let cov = sample_coverage(&vla_at_1_4_ghz(('c', 1.0), 40.0, 300.0)).unwrap();
+    let n = cov.len();
+    let mut vis = vec![Complex64::new(1.0, 0.0); n];
+    vis[n / 2] = Complex64::new(1e300, 0.0);
+    let table = VisTable { u_m: cov.u_m, v_m: cov.v_m, w_m: cov.w_m, frequency: cov.frequency_hz, vis, ..Default::default() };
+    write_parquet(&d.join("huge.parquet"), &table, &ObservationMeta::new(10.0, 40.0, "VLA")).unwrap();
+    let out = r2d2(&["image", "huge.parquet", "--size", "64", "--step", "clean", "--name", "out/huge"], d);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    for e in ["(gridder), job 'huge'", "invalid dirty image", "exceed 1e30 in magnitude", "check the data column"] {
+        assert!(err.contains(e), "'{e}' missing from: {err}");
+    }
+    assert!(!d.join("out").exists() || std::fs::read_dir(d.join("out")).unwrap().next().is_none(), "products written");
+}
+
 /// Runs `r2d2` under a 4 GB address-space limit and a 60 s timeout, so that a size the checks
 /// let through fails fast instead of taking the machine's memory or hanging.
 fn r2d2_bounded(args: &[&str], dir: &Path) -> Output {

@@ -47,6 +47,7 @@ impl Stage for GridderStage {
         let vis = job.vis.take().ok_or_else(|| Error::parameter("gridder", "the job has no visibilities"))?;
         let operator = MeasurementOperator::new(geometry, &vis.u, &vis.v, &weight, self.nufft, self.threads)?;
         let dirty = operator.dirty_image(&vis.vis);
+        crate::sanity::check_image(&dirty, geometry.size, "dirty image", "the visibilities or weights hold values too large to image (check the data column and the weights)")?;
         let psf = operator.psf();
         let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, operator.kappa(), self.nufft, self.threads)?;
         let psf_convolution = PsfConvolution::new(geometry.size, &psf_2n)?;

@@ -68,6 +68,7 @@ impl Stage for ResidualStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
         let began = Instant::now();
         let method = self.config.method;
+        let iteration = job.iteration;
         let im = job.imaging_mut("residual")?;
         let d_x = match method {
             Method::Toeplitz => im.psf_convolution.apply(&im.model),
@@ -77,6 +78,8 @@ impl Stage for ResidualStage {
             },
         };
         im.residual = im.dirty.iter().zip(&d_x).map(|(d, x)| d - x).collect();
+        let what = format!("residual after step {iteration}");
+        crate::sanity::check_image(&im.residual, im.geometry.size, &what, "the model is too large for the residual update to stay finite")?;
         job.record_iteration(began.elapsed().as_secs_f64());
         if let Some(m) = job.metrics.last() {
             log::info!(

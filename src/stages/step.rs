@@ -44,6 +44,8 @@ impl Stage for StepStage {
             psf_2n: &im.psf_2n,
         };
         let model = self.step.step(iteration, &input)?;
+        let cause = format!("the {} step made it from a finite residual: a diverging network or plugin", self.kind);
+        crate::sanity::check_image(&model, im.geometry.size, &format!("model after step {iteration}"), &cause)?;
         im.model = model;
         job.iteration = iteration;
         job.series_finished = iteration >= self.step.series_length();

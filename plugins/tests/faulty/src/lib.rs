@@ -1,6 +1,6 @@
 //! A plugin that misbehaves on request, for the host's error-handling tests:
 //! `config: {fail: <where>}` with `<where>` one of `create_error`, `create_panic`,
-//! `step_error`, `step_panic`, `nan` (a NaN increment at pixel (1, 0)), `unwritten` (leaves
+//! `step_error`, `step_panic`, `nan` (a NaN increment at pixel (1, 0)), `huge` (1e300 there), `unwritten` (leaves
 //! pixel 0 unwritten) or `none` (a zero increment), at iteration `at` (default 1); and, to
 //! test process isolation, `segfault`, `abort`, `exit` (exit status 0) and `hang` (sleeps
 //! forever) in the step.
@@ -52,6 +52,10 @@ impl Plugin for Faulty {
             _ => {}
         }
         match self.config.fail.as_str() {
+            "huge" if failing => {
+                increment.fill(0.0);
+                increment[1] = 1e300;
+            }
             "nan" if failing => {
                 increment.fill(0.0);
                 increment[1] = f64::NAN;
