@@ -44,12 +44,30 @@ impl Stage for GridderStage {
         let missing = || Error::parameter("gridder", "the job has no weights: put a weighting stage before the gridder");
         let geometry = job.geometry.ok_or_else(missing)?;
         let weight = job.weight.take().ok_or_else(missing)?;
-        let vis = job.vis.take().ok_or_else(|| Error::parameter("gridder", "the job has no visibilities"))?;
+        let mut vis = job.vis.take().ok_or_else(|| Error::parameter("gridder", "the job has no visibilities"))?;
+        let frequency_hz = vis.band().map(|(centre, _)| centre);
+        // Memory: each column goes as soon as nothing further needs it, so that the two
+        // NUFFT plans below (N x N, then 2N x 2N) never coexist with the whole table. The
+        // residual's NUFFT method keeps everything.
+        if !self.keep_operator {
+            vis.w = Vec::new();
+            vis.frequency = Vec::new();
+            vis.weight = Vec::new(); // natural weights: `weight` (set by the weighting stage) replaces them
+        }
         let operator = MeasurementOperator::new(geometry, &vis.u, &vis.v, &weight, self.nufft, self.threads)?;
         let dirty = operator.dirty_image(&vis.vis);
         crate::sanity::check_image(&dirty, geometry.size, "dirty image", "the visibilities or weights hold values too large to image (check the data column and the weights)")?;
         let psf = operator.psf();
-        let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, operator.kappa(), self.nufft, self.threads)?;
+        let kappa = operator.kappa();
+        let operator = if self.keep_operator {
+            Some(Arc::new(operator))
+        } else {
+            drop(operator);
+            vis.vis = Vec::new();
+            None
+        };
+        let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, kappa, self.nufft, self.threads)?;
+        drop(weight);
         let psf_convolution = PsfConvolution::new(geometry.size, &psf_2n)?;
         let beam = match crate::deconv::fit_beam(&psf, geometry.size, geometry.pixel_rad) {
             Ok(b) => Some(b),
@@ -66,10 +84,10 @@ impl Stage for GridderStage {
             psf,
             psf_convolution: Arc::new(psf_convolution),
             psf_2n: Arc::new(psf_2n),
-            operator: self.keep_operator.then(|| Arc::new(operator)),
+            operator,
             model: vec![0.0; n],
             beam,
-            frequency_hz: vis.band().map(|(centre, _)| centre),
+            frequency_hz,
         });
         if self.keep_operator {
             job.vis = Some(vis);

@@ -1,0 +1,92 @@
+"""Peak memory of `r2d2 image` per visibility row, beside WSClean on the same data.
+
+    python3 benches/memory.py [--rows 1e6,1e7] [--size 512] [--dir bench-out/memory]
+
+Simulates VLA-C observations of about 1e4 (the baseline: the image-size cost) and each of
+--rows samples (`r2d2 simulate`, 8 h at 10 s, channels scale the count), converts each to a
+MeasurementSet (`r2d2 convert`), then images each under /usr/bin/time (peak RSS, wall):
+`r2d2 image OBS.parquet --size N --step clean` and `wsclean -size N N -scale <r2d2's pixel>
+-niter 0` on the MS. Bytes per row = (peak - baseline peak) / rows. Build first:
+cargo build --release. Prints a table and one JSON object.
+"""
+
+import argparse
+import json
+import os
+import subprocess
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+R2D2 = os.path.join(REPO, "target", "release", "r2d2")
+
+
+def timed(cmd, cwd):
+    out = subprocess.run(["/usr/bin/time", "-f", "%e %M"] + cmd, cwd=cwd, capture_output=True, text=True)
+    if out.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{out.stderr[-3000:]}")
+    wall, rss_kb = out.stderr.strip().splitlines()[-1].split()
+    return float(wall), int(rss_kb) / 1024
+
+
+def fits_header_value(path, key):
+    with open(path, "rb") as f:
+        while True:
+            block = f.read(2880)
+            if not block:
+                raise SystemExit(f"{path}: no {key}")
+            for i in range(0, 2880, 80):
+                card = block[i:i + 80].decode("ascii", "replace")
+                if card[:8].strip() == key:
+                    return float(card[10:].split("/")[0])
+
+
+def observation(d, name, hours, channels):
+    parquet = os.path.join(d, f"{name}.parquet")
+    if not os.path.exists(parquet):
+        subprocess.run([R2D2, "simulate", "--configs", "c", "--hours", str(hours), "--integration-s", "10", "--nfreq", str(channels),
+                        "--freq-ratio", "1.5" if channels > 1 else "1", "--seed", "1", "--out", parquet, "-q"], check=True)
+    ms = os.path.join(d, f"{name}.ms")
+    if not os.path.isdir(ms):
+        subprocess.run([R2D2, "convert", parquet, ms, "-q"], check=True)
+    rows = int(subprocess.run(["python3", "-c", f"import pyarrow.parquet as pq; print(pq.ParquetFile('{parquet}').metadata.num_rows)"],
+                              capture_output=True, text=True, check=True).stdout)
+    return parquet, ms, rows
+
+
+def measure(d, name, parquet, ms, size):
+    r2d2 = timed([R2D2, "image", parquet, "--size", str(size), "--step", "clean", "--name", f"{name}-r2d2", "-q"], d)
+    scale_arcsec = abs(fits_header_value(os.path.join(d, f"{name}-r2d2-dirty.fits"), "CDELT2")) * 3600
+    wsclean = timed(["wsclean", "-quiet", "-size", str(size), str(size), "-scale", f"{scale_arcsec}asec", "-niter", "0", "-j", "2",
+                     "-name", f"{name}-wsclean", ms], d)
+    return r2d2, wsclean
+
+
+def main():
+    p = argparse.ArgumentParser()
+    p.add_argument("--rows", default="1e6,1e7")
+    p.add_argument("--size", type=int, default=512)
+    p.add_argument("--dir", default="bench-out/memory")
+    args = p.parse_args()
+    os.makedirs(args.dir, exist_ok=True)
+    d = os.path.abspath(args.dir)
+    base = observation(d, "base", 0.08, 1)
+    (base_r2d2, base_wsclean) = measure(d, "base", base[0], base[1], args.size)
+    results = []
+    for target in [float(r) for r in args.rows.split(",")]:
+        channels = max(1, round(target / 1e6))
+        parquet, ms, rows = observation(d, f"rows{channels}m", 8, channels)
+        (r2d2, wsclean) = measure(d, f"rows{channels}m", parquet, ms, args.size)
+        results.append({
+            "rows": rows,
+            "r2d2": {"seconds": r2d2[0], "peak_mb": r2d2[1], "bytes_per_row": (r2d2[1] - base_r2d2[1]) * 2**20 / (rows - base[2])},
+            "wsclean": {"seconds": wsclean[0], "peak_mb": wsclean[1], "bytes_per_row": (wsclean[1] - base_wsclean[1]) * 2**20 / (rows - base[2])},
+        })
+    print(f"{args.size} x {args.size}; baseline ({base[2]} rows): r2d2 {base_r2d2[1]:.0f} MB, WSClean {base_wsclean[1]:.0f} MB")
+    print(f"{'rows':>10} {'r2d2 MB':>9} {'r2d2 B/row':>11} {'r2d2 s':>7} {'WSClean MB':>11} {'WSClean B/row':>14} {'WSClean s':>10}")
+    for r in results:
+        a, b = r["r2d2"], r["wsclean"]
+        print(f"{r['rows']:>10} {a['peak_mb']:>9.0f} {a['bytes_per_row']:>11.1f} {a['seconds']:>7.1f} {b['peak_mb']:>11.0f} {b['bytes_per_row']:>14.1f} {b['seconds']:>10.1f}")
+    print(json.dumps({"size": args.size, "baseline_rows": base[2], "baseline": {"r2d2_mb": base_r2d2[1], "wsclean_mb": base_wsclean[1]}, "results": results}, indent=2))
+
+
+if __name__ == "__main__":
+    main()
