@@ -1,0 +1,127 @@
+//! Fault injection against the release binary: the process killed (SIGKILL, no chance to
+//! clean up) at moments through a run, a full disk, a read-only output directory. Each must
+//! keep the all-or-nothing promise: a job's products are the earlier run's or this run's,
+//! never a mix, and a failure leaves the earlier products as they were. (Plugin faults:
+//! tests/plugins.rs; SIGTERM and Ctrl-C: tests/pipeline.rs and tests/plugins.rs.)
+//!
+//! The disk faults need a private mount namespace (`unshare -rm`, util-linux); CI machines
+//! allow it, and without one the test fails rather than passing untested.
+
+mod common;
+
+use common::{check, observation, r2d2, SIZE};
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::process::Command;
+
+fn pipeline() -> String {
+    format!(
+        "name: faults\nimage:\n  size: {SIZE}\nstages:\n  source:\n    kind: parquet\n    files: obs.parquet\n    to: weights\n  weights:\n    kind: weighting\n    scheme: briggs\n    robust: 0\n    to: grid\n  grid:\n    kind: gridder\n    to: step\n  step:\n    kind: clean\n    major_cycles: 2\n    to: update\n  update:\n    kind: residual\n    to: step\n    done: write\n  write:\n    kind: writer\n    prefix: \"out/{{job}}\"\n"
+    )
+}
+
+/// Every file of `dir` (names starting with '.' included) and its bytes.
+fn contents(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+    let mut files = BTreeMap::new();
+    for entry in std::fs::read_dir(dir).unwrap().flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        files.insert(name, if entry.path().is_file() { std::fs::read(entry.path()).unwrap() } else { Vec::new() });
+    }
+    files
+}
+
+/// Products (visible files) only.
+fn products(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+    contents(dir).into_iter().filter(|(n, _)| !n.starts_with('.')).collect()
+}
+
+#[test]
+fn a_run_killed_at_any_moment_leaves_the_earlier_products_or_the_new_ones_never_a_mix() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    std::fs::write(d.join("p.yaml"), pipeline()).unwrap();
+    let run = |cycles: &str| Command::new(env!("CARGO_BIN_EXE_r2d2")).args(["run", "p.yaml", "--set", &format!("step.major_cycles={cycles}")]).current_dir(d).spawn().unwrap();
+    // The two complete sets: 2 and 3 major cycles (their models, residuals and metrics differ).
+    assert!(run("3").wait().unwrap().success());
+    let new = products(&d.join("out"));
+    assert!(run("2").wait().unwrap().success());
+    let old = products(&d.join("out"));
+    assert_ne!(old["obs-model.fits"], new["obs-model.fits"]);
+    let began = std::time::Instant::now();
+    let mut child = run("3");
+    child.wait().unwrap();
+    let full = began.elapsed();
+    let (mut saw_old, mut saw_new) = (0, 0);
+    for k in 0..12 {
+        // Back to the earlier set, then kill a run at a fraction of its length.
+        for entry in std::fs::read_dir(d.join("out")).unwrap().flatten() {
+            let _ = std::fs::remove_dir_all(entry.path()).or_else(|_| std::fs::remove_file(entry.path()));
+        }
+        for (name, bytes) in &old {
+            std::fs::write(d.join("out").join(name), bytes).unwrap();
+        }
+        let mut child = run("3");
+        std::thread::sleep(full.mul_f64(k as f64 / 6.0));
+        let _ = child.kill();
+        let _ = child.wait();
+        // Products carry run-specific values (timings, dates), so a new set is recognised as
+        // one in which no file that differs between the two runs is the earlier one.
+        let now = products(&d.join("out"));
+        assert_eq!(now.keys().collect::<Vec<_>>(), old.keys().collect::<Vec<_>>(), "killed at {k}/6: the set of products changed");
+        let differing: Vec<&String> = old.keys().filter(|n| old[*n] != new[*n]).collect();
+        let still_old: Vec<&&String> = differing.iter().filter(|n| now[**n] == old[**n]).collect();
+        if still_old.len() == differing.len() {
+            saw_old += 1;
+        } else if still_old.is_empty() {
+            saw_new += 1;
+        } else {
+            panic!("killed at {k}/6 of the run: a mix of earlier and new products (still the earlier: {still_old:?} of {differing:?})");
+        }
+    }
+    // The kills fell both before and after the commit, so both outcomes were checked.
+    assert!(saw_old > 0 && saw_new > 0, "old {saw_old}, new {saw_new}: the kill times missed one side");
+}
+
+/// Runs `script` in a private mount namespace (as `sh -c`), in `dir`; stdout and stderr.
+fn in_namespace(dir: &Path, script: &str) -> (String, String) {
+    let probe = Command::new("unshare").args(["-rm", "true"]).output();
+    assert!(probe.is_ok_and(|o| o.status.success()), "no private mount namespace here (unshare -rm): the disk faults cannot be injected");
+    let out = Command::new("unshare").args(["-rm", "sh", "-c", script]).current_dir(dir).output().unwrap();
+    (String::from_utf8_lossy(&out.stdout).into_owned(), String::from_utf8_lossy(&out.stderr).into_owned())
+}
+
+#[test]
+fn a_full_disk_or_a_read_only_directory_fails_cleanly_and_keeps_the_earlier_products() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    std::fs::write(d.join("p.yaml"), pipeline()).unwrap();
+    let exe = env!("CARGO_BIN_EXE_r2d2");
+    // A small disk: a first run fits; the disk is then filled but for 8 KiB, and a second run
+    // (another result) must fail naming the full disk and leave the first run's files whole.
+    let script = format!(
+        "set -u; mkdir -p out && mount -t tmpfs -o size=1m tmpfs out && {exe} run p.yaml -q || exit 9; \
+         md5sum out/* > before.txt; dd if=/dev/zero of=out/.filler bs=4k 2>/dev/null; truncate -s -8k out/.filler; \
+         {exe} run p.yaml -q --set step.major_cycles=3; echo \"rc=$?\"; rm out/.filler; md5sum out/* > after.txt; \
+         cmp before.txt after.txt && echo same; ls -A out | grep -c staging"
+    );
+    let (stdout, err) = in_namespace(d, &script);
+    assert!(stdout.contains("rc=1\n"), "{stdout}{err}");
+    assert!(err.contains("No space left on device"), "{err}");
+    assert!(stdout.contains("same\n"), "the earlier products changed: {stdout}{err}");
+    assert!(stdout.trim_end().ends_with("\n0") || stdout.trim_end() == "0", "staging left behind: {stdout}");
+
+    // A read-only output directory: refused naming it, nothing written anywhere.
+    let script = format!("mkdir -p out && mount -t tmpfs -o ro tmpfs out && {exe} run p.yaml -q; echo \"rc=$?\"; ls -A out | wc -l");
+    let (stdout, err) = in_namespace(d, &script);
+    assert_eq!(stdout, "rc=1\n0\n", "{err}");
+    assert!(err.contains("out") && err.contains("Read-only file system"), "{err}");
+
+    // An output "directory" that is a file: refused naming it.
+    std::fs::write(d.join("file"), "a file").unwrap();
+    let out = r2d2(&["run", "p.yaml", "--set", "write.prefix=file/{job}"], d);
+    let err = common::assert_fails_with(&out, "output path is a file", &["file"]);
+    assert!(std::fs::read_to_string(d.join("file")).unwrap() == "a file", "{err}");
+    check(&r2d2(&["run", "p.yaml", "--set", "write.prefix=dir/{job}"], d));
+}
