@@ -13,10 +13,11 @@ pub const MAX_ABS: f64 = 1e30;
 /// magnitude; otherwise an error naming `what` (e.g. "the model after step 3") and the first
 /// bad pixel, with `cause` saying what usually makes it.
 pub fn check_image(image: &[f64], n: usize, what: &str, cause: &str) -> Result<()> {
-    let Some(k) = image.iter().position(|v| !(v.abs() <= MAX_ABS)) else {
+    let out_of_bounds = |v: &f64| v.is_nan() || v.abs() > MAX_ABS;
+    let Some(k) = image.iter().position(out_of_bounds) else {
         return Ok(());
     };
-    let bad = image.iter().filter(|v| !(v.abs() <= MAX_ABS)).count();
+    let bad = image.iter().filter(|v| out_of_bounds(v)).count();
     Err(Error::parameter(
         what.to_string(),
         format!(

@@ -364,7 +364,8 @@ fn ctrl_c_stops_a_hung_isolated_plugin() {
         assert!(began.elapsed().as_secs() < 60, "the plugin host never started");
         std::thread::sleep(std::time::Duration::from_millis(50));
     }
-    std::thread::sleep(std::time::Duration::from_millis(1000));
+    // Long enough for the job to reach the step, where the plugin hangs (64 x 64: well under a second).
+    std::thread::sleep(std::time::Duration::from_millis(2000));
     // SIGINT to r2d2 alone (not its process group): the engine must stop the host itself.
     let status = Command::new("kill").args(["-INT", &child.id().to_string()]).status().unwrap();
     assert!(status.success());
