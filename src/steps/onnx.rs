@@ -6,6 +6,10 @@
 //! (image first); `x_i = max(0, (N_i(input) + x_{i-1}/alpha) * alpha)`. R3D3 components run J
 //! layers on `[residual, image]` with a PSF data-fidelity update of the residual between them.
 //!
+//! A series of several realisations runs them one after the other, each from the dirty image:
+//! the step numbers its iterations across them (realisation r's network i is iteration
+//! (r - 1) I + i) and the step stage resets the job between them and images their mean.
+//!
 //! Networks load lazily and at most two are resident, whatever the series length. One job
 //! walking the series keeps only the network running and the next, which loads on a background
 //! thread while the current one infers (with `prefetch: false`, only the one running). When

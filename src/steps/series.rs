@@ -611,6 +611,46 @@ mod tests {
     }
 
     #[test]
+    fn realisations_are_listed_in_order_and_must_agree_in_length() {
+        let dir = tempfile::tempdir().unwrap();
+        for f in ["V1/a.onnx", "V1/b.onnx", "V2/a.onnx", "V2/b.onnx"] {
+            touch(&dir.path().join(f));
+        }
+        let base = "format: 1\nname: t\narchitecture: r2d2\nimage_sizes: [64]\ninput_convention: reference\nnormalisation: mean\n";
+        let write = |rest: &str| std::fs::write(dir.path().join("manifest.yaml"), format!("{base}{rest}")).unwrap();
+        write("realisations: [[V1/a.onnx, V1/b.onnx], [V2/a.onnx, V2/b.onnx]]\n");
+        let s = Series::open(dir.path()).unwrap();
+        assert_eq!((s.len(), s.realisations), (2, 2));
+        assert!(s.realisation(1)[0][0].ends_with("V2/a.onnx") && s.realisation(0)[1][0].ends_with("V1/b.onnx"));
+        write("realisations: [[V1/a.onnx, V1/b.onnx], [V2/a.onnx]]\n");
+        let e = Series::open(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("realisations[1]") && e.contains("expected 2 networks"), "{e}");
+        write("networks: [V1/a.onnx]\nrealisations: [[V2/a.onnx]]\n");
+        let e = Series::open(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("give one of them"), "{e}");
+        write("realisations: [[V1/a.onnx], [\"../x.onnx\"]]\n");
+        let e = Series::open(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("realisations[1][0]") && e.contains("inside the series directory"), "{e}");
+    }
+
+    #[test]
+    fn validity_ranges_report_each_problem() {
+        let dir = tempfile::tempdir().unwrap();
+        touch(&dir.path().join("a.onnx"));
+        let manifest = "format: 1\nname: t\narchitecture: r2d2\nimage_sizes: [64]\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx]\nvalidity: {superresolution: [1.5, 2.5], robust: [-1, 1], weighting: [briggs]}\n";
+        std::fs::write(dir.path().join("manifest.yaml"), manifest).unwrap();
+        let s = Series::open(dir.path()).unwrap();
+        let setup = |sr, scheme: &str, robust| ImagingSetup { superresolution: sr, weighting: Some(scheme.to_string()), robust: Some(robust) };
+        assert!(s.validity_problems(&setup(Some(2.5), "briggs", -1.0)).is_empty());
+        let p = s.validity_problems(&setup(Some(3.0), "briggs", 1.5));
+        assert_eq!(p.len(), 2, "{p:?}");
+        assert!(p[0].contains("super-resolution 3") && p[1].contains("robust 1.5"), "{p:?}");
+        let p = s.validity_problems(&setup(None, "natural", 5.0));
+        assert_eq!(p.len(), 1, "robust is not checked for natural weighting, SR unknown is not checked: {p:?}");
+        assert!(p[0].contains("weighting 'natural'"), "{p:?}");
+    }
+
+    #[test]
     fn manifest_errors_name_the_key_and_line() {
         let dir = tempfile::tempdir().unwrap();
         touch(&dir.path().join("a.onnx"));
