@@ -47,6 +47,8 @@ pub enum BrightnessUnit {
     JyPerBeam,
     /// `JY/PIXEL`: model images and the network's estimates (flux density per pixel).
     JyPerPixel,
+    /// No unit (an empty BUNIT): ratios such as the uncertainty map.
+    Ratio,
 }
 
 impl BrightnessUnit {
@@ -55,6 +57,7 @@ impl BrightnessUnit {
         match self {
             BrightnessUnit::JyPerBeam => "JY/BEAM",
             BrightnessUnit::JyPerPixel => "JY/PIXEL",
+            BrightnessUnit::Ratio => "",
         }
     }
 }

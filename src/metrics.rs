@@ -30,6 +30,42 @@ pub fn residual_ratio(residual: &[f64], dirty: &[f64]) -> f64 {
     norm(residual) / norm(dirty)
 }
 
+/// The pixel-wise mean of equally sized images.
+pub fn pixel_mean(images: &[Vec<f64>]) -> Vec<f64> {
+    let n = images.first().map_or(0, Vec::len);
+    let mut mean = vec![0.0; n];
+    for image in images {
+        assert_eq!(image.len(), n, "images differ in size");
+        mean.iter_mut().zip(image).for_each(|(m, x)| *m += x);
+    }
+    mean.iter_mut().for_each(|m| *m /= images.len().max(1) as f64);
+    mean
+}
+
+/// The spread of independently trained realisations' images, as the R2D2 reference reports
+/// its epistemic uncertainty: per pixel the standard deviation over the realisations (of the
+/// population, dividing by their count) over their mean, where the mean exceeds `threshold`,
+/// and 0 elsewhere (the reference writes NaN there; images here stay finite). Also the mean
+/// relative uncertainty: the map's average over every pixel, the masked ones counting 0.
+pub fn std_over_mean(images: &[Vec<f64>], threshold: f64) -> (Vec<f64>, f64) {
+    let mean = pixel_mean(images);
+    let count = images.len().max(1) as f64;
+    let map: Vec<f64> = mean
+        .iter()
+        .enumerate()
+        .map(|(k, &m)| {
+            if m > threshold {
+                let variance = images.iter().map(|im| (im[k] - m).powi(2)).sum::<f64>() / count;
+                variance.sqrt() / m
+            } else {
+                0.0
+            }
+        })
+        .collect();
+    let average = map.iter().sum::<f64>() / map.len().max(1) as f64;
+    (map, average)
+}
+
 /// Dynamic range of a ground truth: peak over the faintest positive pixel.
 pub fn dynamic_range(truth: &[f64]) -> Option<f64> {
     let peak = truth.iter().copied().fold(0.0f64, f64::max);
@@ -40,6 +76,18 @@ pub fn dynamic_range(truth: &[f64]) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn std_over_mean_of_realisations_by_hand() {
+        // Pixel 0: values 1, 2, 3 -> mean 2, population std sqrt(2/3); pixel 1: all 4 -> 0;
+        // pixel 2: mean 0.1, below the threshold -> 0.
+        let images = vec![vec![1.0, 4.0, 0.0], vec![2.0, 4.0, 0.1], vec![3.0, 4.0, 0.2]];
+        let (map, average) = std_over_mean(&images, 0.5);
+        assert!((map[0] - (2.0f64 / 3.0).sqrt() / 2.0).abs() < 1e-15, "{map:?}");
+        assert_eq!((map[1], map[2]), (0.0, 0.0));
+        assert!((average - map[0] / 3.0).abs() < 1e-15);
+        assert_eq!(pixel_mean(&images)[..2], [2.0, 4.0]);
+    }
 
     #[test]
     fn snr_of_a_known_error() {

@@ -96,6 +96,13 @@ def main(argv=None):
         crop_only = subprocess.run([py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", "--val", f"{d}/val", "--series",
                                     f"{d}/series-bad", "--work", f"{d}/work-bad", "--crop", "32"], capture_output=True, text=True)
         check(crop_only.returncode != 0 and "--norm none" in crop_only.stderr, "--crop with instance normalisation is refused")
+        # The reference's U-WDSR trains through the same path (--arch uwdsr; local, so crops).
+        wdir = f"{d}/series-uwdsr"
+        run([py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", "--val", f"{d}/val", "--series", wdir, "--work", f"{d}/work-uwdsr",
+             "--arch", "uwdsr", "--base-channels", "4", "--poolings", "2", "--crop", "32", "--epochs-first", "1", "--batch", "2",
+             "--max-networks", "1", "--min-gain-db", "-1000"])
+        mw = series.read_manifest(wdir)
+        check(mw["network"]["kind"] == "uwdsr" and mw["network"]["norm"] == "none" and len(mw["networks"]) == 1, f"uwdsr series {mw['network']}")
         report = evaluate.evaluate(sdir, f"{d}/test", a.r2d2, f"{d}/eval", clean_cycles=2, clean_components=50)
         check([r["method"] for r in report["rows"]] == ["dirty", "r2d2", "r2d2", "r2d2", "clean"], "evaluation rows")
         # The package's D against the engine's Toeplitz residual on the same CLEAN model.

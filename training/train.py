@@ -22,7 +22,6 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from r2d2train import common, series  # noqa: E402
-from r2d2train.unet import UNet  # noqa: E402
 
 
 def log(msg):
@@ -134,6 +133,8 @@ def main(argv=None):
     p.add_argument("--lr", type=float, default=1e-4)
     p.add_argument("--base-channels", type=int, default=16)
     p.add_argument("--poolings", type=int, default=3)
+    p.add_argument("--arch", choices=series.KINDS, default="unet",
+                   help="unet (the project's U-Net) or uwdsr (the reference's U-Net of WDSR blocks, no feature normalisation)")
     p.add_argument("--norm", choices=["instance", "none"], default="instance",
                    help="U-Net feature normalisation; none (local, bias-free) is required for --crop")
     p.add_argument("--crop", type=int, default=None,
@@ -149,6 +150,8 @@ def main(argv=None):
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--commit", action="store_true", help="git-commit the series directory after each network")
     args = p.parse_args(argv)
+    if args.arch == "uwdsr":
+        args.norm = "none"  # U-WDSR has no feature normalisation: local, crops are valid samples
     if args.crop is not None and args.norm != "none":
         p.error("--crop needs --norm none: instance normalisation takes statistics over the whole input, "
                 "so a crop would not see what the full field gives the network")
@@ -183,13 +186,14 @@ def main(argv=None):
             "validation_data": {"path": common.repo_relative(args.val), "samples": len(val), **common.portable(val.meta)},
             "networks": [],
         }
-        desc = (f"R2D2 U-Net series ({args.base_channels} channels, {args.poolings} poolings, norm {args.norm}) for VLA A+C, "
+        desc = (f"R2D2 {args.arch} series ({args.base_channels} channels, {args.poolings} poolings, norm {args.norm}) for VLA A+C, "
                 f"Briggs 0, SR 1.5, trained at {size}x{size}; H and W must be multiples of {2 ** args.poolings}")
-        manifest = series.new_manifest(name, UNet(args.base_channels, args.poolings, norm=args.norm), size, desc, provenance)
+        manifest = series.new_manifest(name, series.make_network(args.arch, args.base_channels, args.poolings, args.norm), size, desc, provenance)
     net_cfg = manifest["network"]
-    if (net_cfg["base_channels"], net_cfg["poolings"], series.network_norm(manifest)) != (args.base_channels, args.poolings, args.norm):
-        raise SystemExit(f"{args.series}: the series has {net_cfg['base_channels']} channels / {net_cfg['poolings']} poolings / "
-                         f"norm {series.network_norm(manifest)}; got --base-channels {args.base_channels} --poolings {args.poolings} --norm {args.norm}")
+    have = (series.network_kind(manifest), net_cfg["base_channels"], net_cfg["poolings"], series.network_norm(manifest))
+    if have != (args.arch, args.base_channels, args.poolings, args.norm):
+        raise SystemExit(f"{args.series}: the series has {have[0]}, {have[1]} channels / {have[2]} poolings / norm {have[3]}; "
+                         f"got --arch {args.arch} --base-channels {args.base_channels} --poolings {args.poolings} --norm {args.norm}")
 
     # Replay the existing networks: x, r of every sample, the pruned training set.
     x_tr, r_tr = torch.zeros_like(train.dirty), train.dirty.clone()
@@ -199,7 +203,7 @@ def main(argv=None):
     history = [dict(v) for v in manifest["validation"]]
     model = None
     for k in range(1, len(manifest["networks"]) + 1):
-        model = series.load_model(args.series, k, args.base_channels, args.poolings, args.norm).to(device)
+        model = series.load_model(args.series, k, args.base_channels, args.poolings, args.norm, args.arch).to(device)
         run = torch_runner(model, device)
         x_tr = common.update(k, run, train.dirty, x_tr, r_tr)
         r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
@@ -218,7 +222,7 @@ def main(argv=None):
             log(f"stop: only {int(active.sum())} training samples left after pruning")
             break
         torch.manual_seed(args.seed * 7919 + i)
-        new = UNet(args.base_channels, args.poolings, norm=args.norm).to(device)
+        new = series.make_network(args.arch, args.base_channels, args.poolings, args.norm).to(device)
         if model is not None:
             new.load_state_dict(model.state_dict())  # network i starts from network i-1
         epochs, seconds, loss = train_network(i, new, train, x_tr, r_tr, active, args, args.work, device)

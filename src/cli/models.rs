@@ -31,7 +31,8 @@ pub fn run(args: Args) -> Result<()> {
                     Architecture::R3d3 => format!("R3D3, {} layers", s.layers()),
                 };
                 println!("{}  ({})", dir.display(), s.name);
-                println!("  {} iterations, {arch}; {}", s.len(), s.origin);
+                let realisations = if s.realisations > 1 { format!(" x {} realisations", s.realisations) } else { String::new() };
+                println!("  {} iterations{realisations}, {arch}; {}", s.len(), s.origin);
                 let sizes = if s.image_sizes.is_empty() { "unknown".to_string() } else { format!("{:?}", s.image_sizes) };
                 println!("  trained for image sizes {sizes}{}", if s.any_size { ", runs at any size" } else { " only" });
                 if let Some(m) = &s.manifest {

@@ -49,6 +49,9 @@ pub struct Imaging {
 #[derive(Clone, Debug, Serialize)]
 pub struct IterationMetrics {
     pub iteration: usize,
+    /// The realisation this iteration belongs to (steps of several realisations only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub realisation: Option<usize>,
     pub residual_ratio: f64,
     pub step_seconds: f64,
     pub residual_seconds: f64,
@@ -78,6 +81,10 @@ pub struct Job {
     pub series_finished: bool,
     /// Name of the step that made the model (products are named after what made them).
     pub step_kind: Option<String>,
+    /// A step of several realisations: the realisation running (1-based; 0 otherwise, and for
+    /// the final step that images their mean) and the final models of those done.
+    pub realisation: usize,
+    pub realisation_models: Vec<Vec<f64>>,
     /// Seconds of the last step, recorded into the next metrics row.
     pub last_step_seconds: f64,
     pub metrics: Vec<IterationMetrics>,
@@ -99,6 +106,8 @@ impl Job {
             iteration: 0,
             series_finished: false,
             step_kind: None,
+            realisation: 0,
+            realisation_models: Vec::new(),
             last_step_seconds: 0.0,
             metrics: Vec::new(),
             stage_seconds: BTreeMap::new(),
@@ -128,6 +137,7 @@ impl Job {
         };
         self.metrics.push(IterationMetrics {
             iteration: self.iteration,
+            realisation: (self.realisation > 0).then_some(self.realisation),
             residual_ratio: metrics::residual_ratio(&im.residual, &im.dirty),
             step_seconds: self.last_step_seconds,
             residual_seconds,

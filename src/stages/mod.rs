@@ -59,6 +59,18 @@ pub enum Built {
     Stage(Box<dyn Stage>),
 }
 
+/// The job's imaging as a series' validity sees it: the super-resolution (unknown when the
+/// pixel size is given in arcsec: it then depends on each job's longest baseline) and the
+/// weighting of the pipeline's first weighting stage.
+fn imaging_setup(config: &PipelineConfig) -> crate::steps::series::ImagingSetup {
+    let weighting = config.stages.iter().find(|s| s.kind == "weighting").map(|s| &s.params);
+    crate::steps::series::ImagingSetup {
+        superresolution: config.image.pixel_arcsec.is_none().then(|| config.image.superresolution.unwrap_or(1.5)),
+        weighting: weighting.and_then(|p| p.get("scheme")).and_then(serde_yaml::Value::as_str).map(str::to_string),
+        robust: weighting.map(|p| p.get("robust").and_then(serde_yaml::Value::as_f64).unwrap_or(0.0)),
+    }
+}
+
 /// Parse the stage's parameters and construct it (cheap: heavy work happens per job).
 pub fn build_stage(config: &PipelineConfig, stage: &StageConfig) -> Result<Built> {
     let threads = config.threads;
@@ -80,7 +92,7 @@ pub fn build_stage(config: &PipelineConfig, stage: &StageConfig) -> Result<Built
         "onnx" => {
             // The series is checked against the pipeline (image size, network shapes): say where.
             let name = &stage.name;
-            let step = step::StepStage::onnx(config.stage_params(stage)?, config.image.size, threads)
+            let step = step::StepStage::onnx(config.stage_params(stage)?, config.image.size, threads, &imaging_setup(config))
                 .map_err(|e| config.stage_error(name, Some("series"), &format!("stages.{name}.series: {e}")))?;
             Built::Stage(Box::new(step))
         }

@@ -90,7 +90,10 @@ impl Stage for ResidualStage {
                 m.snr.map(|s| format!(", SNR {s:.2} dB")).unwrap_or_default()
             );
         }
-        let finished = job.series_finished || (self.config.early_stop && self.should_stop(&job));
+        // Realisations run their whole series: stopping one early would end the job (the
+        // ratios of several realisations' iterations are not one sequence either).
+        let several = job.realisation > 0;
+        let finished = job.series_finished || (self.config.early_stop && !several && self.should_stop(&job));
         emit(if finished { Port::Done } else { Port::Next }, job)
     }
 }

@@ -4,6 +4,7 @@
 use crate::pipeline::{Emit, Job, Port, Stage};
 use crate::steps::clean::{CleanConfig, CleanStep};
 use crate::steps::onnx::{OnnxConfig, OnnxStep};
+use crate::steps::series::ImagingSetup;
 use crate::steps::native::{NativeConfig, NativeStep};
 use crate::steps::{NetworkStep, StepInput};
 use crate::Result;
@@ -20,8 +21,8 @@ impl StepStage {
     }
 
     /// An R2D2/R3D3 series for `size x size` images (checked now, before any job runs).
-    pub fn onnx(config: OnnxConfig, size: usize, threads: usize) -> Result<StepStage> {
-        Ok(StepStage { kind: "onnx", step: Box::new(OnnxStep::new(&config, size, threads)?) })
+    pub fn onnx(config: OnnxConfig, size: usize, threads: usize, setup: &ImagingSetup) -> Result<StepStage> {
+        Ok(StepStage { kind: "onnx", step: Box::new(OnnxStep::new(&config, size, threads, setup)?) })
     }
 
     /// Loads and creates the plugin now, so that every plugin error comes before imaging.
@@ -30,10 +31,38 @@ impl StepStage {
     }
 }
 
+impl StepStage {
+    /// Before `iteration` of a step of several realisations: when the previous realisation has
+    /// run its series, keep its final model and start the next from the dirty image (model 0,
+    /// residual = dirty). True once every realisation is done.
+    fn next_realisation(&self, job: &mut Job, iteration: usize, realisations: usize) -> Result<bool> {
+        let per = self.step.series_length() / realisations;
+        if iteration > 1 && (iteration - 1) % per == 0 {
+            let im = job.imaging_mut(self.kind)?;
+            let done = std::mem::replace(&mut im.model, vec![0.0; im.dirty.len()]);
+            im.residual = im.dirty.clone();
+            job.realisation_models.push(done);
+        }
+        job.realisation = (iteration - 1) / per + 1;
+        Ok(job.realisation_models.len() == realisations)
+    }
+}
+
 impl Stage for StepStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
         let began = Instant::now();
         let iteration = job.iteration + 1;
+        let realisations = self.step.realisations();
+        if realisations > 1 && self.next_realisation(&mut job, iteration, realisations)? {
+            // Every realisation is done: the image is their mean, whose residual comes next.
+            let mean = crate::metrics::pixel_mean(&job.realisation_models);
+            job.imaging_mut(self.kind)?.model = mean;
+            job.realisation = 0;
+            job.iteration = iteration;
+            job.series_finished = true;
+            job.last_step_seconds = began.elapsed().as_secs_f64();
+            return emit(Port::Next, job);
+        }
         let im = job.imaging_mut(self.kind)?;
         let input = StepInput {
             size: im.geometry.size,
@@ -48,7 +77,7 @@ impl Stage for StepStage {
         crate::sanity::check_image(&model, im.geometry.size, &format!("model after step {iteration}"), &cause)?;
         im.model = model;
         job.iteration = iteration;
-        job.series_finished = iteration >= self.step.series_length();
+        job.series_finished = realisations == 1 && iteration >= self.step.series_length();
         job.step_kind = Some(if self.step.restores() { format!("{}+restore", self.kind) } else { self.kind.to_string() });
         job.last_step_seconds = began.elapsed().as_secs_f64();
         emit(Port::Next, job)

@@ -101,7 +101,7 @@ impl WriterStage {
 /// Every product a writer makes for a prefix (`<prefix>-<suffix>`), to retire those of an
 /// earlier run that this one does not make.
 fn product_suffixes() -> Vec<String> {
-    let images = ["dirty", "psf", "model", "residual", "image"];
+    let images = ["dirty", "psf", "model", "residual", "image", "uncertainty"];
     let mut suffixes: Vec<String> = images.iter().flat_map(|i| [format!("{i}.fits"), format!("{i}.png")]).collect();
     suffixes.extend(["metrics.json".to_string(), "metrics.parquet".to_string()]);
     suffixes
@@ -142,20 +142,30 @@ impl Stage for WriterStage {
             }
         }
         let scale = self.preview_scale(&job);
+        let uncertainty = (!job.realisation_models.is_empty()).then(|| realisation_summary(&job, scale));
+        if let Some((map, _)) = &uncertainty {
+            products.push(("uncertainty", map, BrightnessUnit::Ratio));
+        }
         for (name, data, unit) in &products {
             staging.write(target(&format!("{name}.fits")), |path| write_image(path, data, n, n, &wcs, *unit, beam, &extra))?;
             if self.previews {
-                let title = format!("{} {name} ({})", job.id, unit.as_fits());
+                let (title, scale) = match unit {
+                    BrightnessUnit::Ratio => (format!("{} {name} (std / mean)", job.id), PreviewScale::Linear),
+                    _ => (format!("{} {name} ({})", job.id, unit.as_fits()), scale),
+                };
                 staging.write(target(&format!("{name}.png")), |path| write_png(path, data, n, n, scale, &title))?;
             }
         }
-        let metrics = serde_json::json!({
+        let mut metrics = serde_json::json!({
             "job": job.id,
             "iterations": job.metrics,
             "stage_seconds": job.stage_seconds,
             "image_size": n,
             "pixel_arcsec": im.geometry.pixel_arcsec(),
         });
+        if let Some((_, summary)) = uncertainty {
+            metrics["realisations"] = summary;
+        }
         let text = serde_json::to_string_pretty(&metrics).expect("metrics serialise");
         staging.write(target("metrics.json"), |path| std::fs::write(path, &text).map_err(|e| Error::io(path, e)))?;
         staging.write(target("metrics.parquet"), |path| write_metrics_parquet(path, &job, n, im.geometry.pixel_arcsec()))?;
@@ -186,6 +196,31 @@ fn write_model(job: &Job, column: &str) -> Result<()> {
 #[cfg(not(feature = "ms"))]
 fn write_model(_job: &Job, _column: &str) -> Result<()> {
     Err(Error::parameter("model_column", "this r2d2 was built without the `ms` feature (MeasurementSets)"))
+}
+
+/// For a job imaged with several realisations: the uncertainty map (`metrics::std_over_mean`
+/// of their final models, masked below the mean image's peak over the dynamic range the
+/// previews use) and the figures of each realisation's final iteration, of the mean, and the
+/// mean relative uncertainty.
+fn realisation_summary(job: &Job, scale: PreviewScale) -> (Vec<f64>, serde_json::Value) {
+    let dynamic_range = match scale {
+        PreviewScale::Log { dynamic_range } => dynamic_range,
+        PreviewScale::Linear => DEFAULT_PREVIEW_DYNAMIC_RANGE,
+    };
+    let mean = crate::metrics::pixel_mean(&job.realisation_models);
+    let threshold = mean.iter().copied().fold(0.0f64, f64::max) / dynamic_range;
+    let (map, mru) = crate::metrics::std_over_mean(&job.realisation_models, threshold);
+    let last_of = |r: Option<usize>| job.metrics.iter().rev().find(|m| m.realisation == r).map(|m| serde_json::json!(m));
+    let each: Vec<serde_json::Value> = (1..=job.realisation_models.len()).map(|r| last_of(Some(r)).unwrap_or_default()).collect();
+    let summary = serde_json::json!({
+        "count": job.realisation_models.len(),
+        "final": each,
+        "mean": last_of(None),
+        "mean_relative_uncertainty": mru,
+        "uncertainty_threshold": threshold,
+        "uncertainty_dynamic_range": dynamic_range,
+    });
+    (map, summary)
 }
 
 /// `<prefix>-metrics.parquet`: one row per iteration (`iteration`, `residual_ratio`,

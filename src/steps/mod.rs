@@ -29,8 +29,15 @@ pub struct StepInput<'a> {
 }
 
 pub trait NetworkStep: Send {
-    /// Number of iterations the series runs (networks in an R2D2 series, major cycles for CLEAN).
+    /// Number of iterations the series runs (networks in an R2D2 series, major cycles for CLEAN),
+    /// over all its realisations.
     fn series_length(&self) -> usize;
+    /// Independently trained realisations, run one after the other, each over
+    /// `series_length() / realisations()` iterations from the dirty image; the stage keeps
+    /// each one's final model and images their mean (1: a single series).
+    fn realisations(&self) -> usize {
+        1
+    }
     /// Iteration `iteration` (1-based): the new estimate `x_i`.
     fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>>;
     /// Whether the products include a restored image (model convolved with the beam plus

@@ -6,13 +6,17 @@
 //! (image first); `x_i = max(0, (N_i(input) + x_{i-1}/alpha) * alpha)`. R3D3 components run J
 //! layers on `[residual, image]` with a PSF data-fidelity update of the residual between them.
 //!
+//! A series of several realisations runs them one after the other, each from the dirty image:
+//! the step numbers its iterations across them (realisation r's network i is iteration
+//! (r - 1) I + i) and the step stage resets the job between them and images their mean.
+//!
 //! Networks load lazily and at most two are resident, whatever the series length. One job
 //! walking the series keeps only the network running and the next, which loads on a background
 //! thread while the current one infers (with `prefetch: false`, only the one running). When
 //! several jobs go through the series interleaved, the two most recently used stay resident.
 
 use super::runtime::{check_network, BackendChoice, GraphOptimization, Network, Runtime, Signature};
-use super::series::{Architecture, Series};
+use super::series::{Architecture, ImagingSetup, Series};
 use super::{NetworkStep, StepInput};
 use crate::operator::PsfConvolution;
 use crate::{Error, Result};
@@ -43,6 +47,21 @@ pub struct OnnxConfig {
     /// inference, more memory); see `runtime::GraphOptimization`.
     #[serde(default)]
     pub graph_optimization: GraphOptimization,
+    /// A series of several realisations: run only this one (1-based) instead of all of them.
+    #[serde(default)]
+    pub realisation: Option<usize>,
+    /// A job outside the manifest's `validity` (super-resolution, weighting, robust): `warn`
+    /// (the default) or `error`.
+    #[serde(default)]
+    pub validity: ValidityMode,
+}
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ValidityMode {
+    #[default]
+    Warn,
+    Error,
 }
 
 fn yes() -> bool {
@@ -56,7 +75,11 @@ pub struct OnnxStep {
     series: Series,
     runtime: Runtime,
     size: usize,
+    /// Network steps in all: `per_realisation` times the realisations run.
     iterations: usize,
+    per_realisation: usize,
+    /// The files of every step, `[iteration - 1][layer]`, realisations one after the other.
+    plan: Vec<Vec<PathBuf>>,
     /// Loaded networks, most recently used last, keyed by (iteration, layer).
     resident: Vec<((usize, usize), Box<dyn Network>)>,
     /// The checked signature of every network, `[iteration - 1][layer]`.
@@ -75,12 +98,20 @@ type Key = (usize, usize);
 impl OnnxStep {
     /// Open and check the series for `size x size` images: every file is read and its input and
     /// output checked here, before imaging starts.
-    pub fn new(config: &OnnxConfig, size: usize, pipeline_threads: usize) -> Result<OnnxStep> {
+    pub fn new(config: &OnnxConfig, size: usize, pipeline_threads: usize, setup: &ImagingSetup) -> Result<OnnxStep> {
         let series = Series::open(&super::series::resolve_for_size(&config.series, size)?)?;
         if let Some(warning) = series.check_size(size)? {
             log::warn!("{warning}");
         }
-        let iterations = match config.networks {
+        let problems = series.validity_problems(setup);
+        if !problems.is_empty() {
+            let message = format!("series '{}' was not trained for this job: {}", series.name, problems.join("; "));
+            match config.validity {
+                ValidityMode::Warn => log::warn!("{message} (its image may be less precise; `validity: error` refuses such jobs)"),
+                ValidityMode::Error => return Err(Error::parameter("validity", message)),
+            }
+        }
+        let per_realisation = match config.networks {
             None => series.len(),
             Some(0) => return Err(Error::parameter("networks", "expected at least 1")),
             Some(n) if n > series.len() => {
@@ -88,19 +119,33 @@ impl OnnxStep {
             }
             Some(n) => n,
         };
-        let signatures = series.files[..iterations]
+        let chosen: Vec<usize> = match config.realisation {
+            None => (0..series.realisations).collect(),
+            Some(r) if (1..=series.realisations).contains(&r) => vec![r - 1],
+            Some(r) => return Err(Error::parameter("realisation", format!("series '{}' has realisations 1..={}, asked for {r}", series.name, series.realisations))),
+        };
+        let plan: Vec<Vec<PathBuf>> = chosen.iter().flat_map(|&r| series.realisation(r)[..per_realisation].to_vec()).collect();
+        let iterations = plan.len();
+        let signatures = plan
             .iter()
             .map(|layers| layers.iter().map(|file| check_network(file, size)).collect::<Result<Vec<_>>>())
             .collect::<Result<Vec<_>>>()?;
         let threads = if config.threads > 0 { config.threads } else { pipeline_threads };
         let runtime = Runtime::select(config.backend, threads)?.with_graph_optimization(config.graph_optimization);
-        log::info!("series '{}' ({}, {} iterations, {}), inference by {}", series.name, series.origin, iterations, arch_name(series.architecture), runtime.describe());
+        log::info!(
+            "series '{}' ({}, {per_realisation} iterations x {} realisation(s), {}), inference by {}",
+            series.name,
+            series.origin,
+            chosen.len(),
+            arch_name(series.architecture),
+            runtime.describe()
+        );
         if matches!(runtime, Runtime::Ort { .. }) {
             let mapped: Vec<_> = signatures.iter().flatten().filter_map(|s| s.mapped.as_ref()).collect();
             let mb = mapped.iter().map(|m| m.bytes).sum::<u64>() as f64 / 1e6;
             log::debug!("weights mapped from the files, not copied: {} of {} networks ({mb:.0} MB)", mapped.len(), signatures.iter().flatten().count());
         }
-        Ok(OnnxStep { series, runtime, size, iterations, resident: Vec::new(), signatures, prefetch: config.prefetch, interleaved: false, pending: None, last: None })
+        Ok(OnnxStep { series, runtime, size, iterations, per_realisation, plan, resident: Vec::new(), signatures, prefetch: config.prefetch, interleaved: false, pending: None, last: None })
     }
 
     pub fn runtime(&self) -> &Runtime {
@@ -147,7 +192,7 @@ impl OnnxStep {
 
     /// The network after `key` in the series, if any.
     fn successor(&self, (iteration, layer): Key) -> Option<Key> {
-        if layer + 1 < self.series.files[iteration - 1].len() {
+        if layer + 1 < self.plan[iteration - 1].len() {
             Some((iteration, layer + 1))
         } else if iteration < self.iterations {
             Some((iteration + 1, 0))
@@ -157,7 +202,7 @@ impl OnnxStep {
     }
 
     fn file(&self, (iteration, layer): Key) -> PathBuf {
-        self.series.files[iteration - 1][layer].clone()
+        self.plan[iteration - 1][layer].clone()
     }
 
     fn load(&self, key: Key) -> Result<Box<dyn Network>> {
@@ -188,7 +233,7 @@ impl OnnxStep {
         input.extend(second.iter().map(|v| (v / alpha) as f32));
         let output = self.network(iteration, layer)?.run(&input)?;
         if let Some(bad) = output.iter().position(|v| !v.is_finite()) {
-            let path = self.series.files[iteration - 1][layer].clone();
+            let path = self.plan[iteration - 1][layer].clone();
             return Err(Error::input(path, format!("network output is not finite at pixel {bad} (iteration {iteration})")));
         }
         Ok(output.into_iter().map(f64::from).collect())
@@ -240,6 +285,10 @@ impl NetworkStep for OnnxStep {
         self.iterations
     }
 
+    fn realisations(&self) -> usize {
+        self.iterations / self.per_realisation
+    }
+
     fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>> {
         if iteration == 0 || iteration > self.iterations {
             return Err(Error::parameter("iteration", format!("expected 1..={}, got {iteration}", self.iterations)));
@@ -247,13 +296,15 @@ impl NetworkStep for OnnxStep {
         if input.size != self.size {
             return Err(Error::parameter("image size", format!("the series was prepared for {0} x {0}, the job is {1} x {1}", self.size, input.size)));
         }
-        let path = self.series.files[iteration - 1][0].clone();
+        let path = self.plan[iteration - 1][0].clone();
+        // Each realisation starts again from the dirty image (the stage resets the job).
+        let first = (iteration - 1) % self.per_realisation == 0;
         match self.series.architecture {
             Architecture::R2d2 => {
-                let (alpha, increment) = if iteration == 1 {
-                    let alpha = normalisation(input.dirty, "dirty image", 1, &path)?;
+                let (alpha, increment) = if first {
+                    let alpha = normalisation(input.dirty, "dirty image", iteration, &path)?;
                     let zero = vec![0.0; input.dirty.len()];
-                    (alpha, self.run_network(1, 0, input.dirty, &zero, alpha)?)
+                    (alpha, self.run_network(iteration, 0, input.dirty, &zero, alpha)?)
                 } else {
                     let alpha = normalisation(input.model, "image", iteration, &path)?;
                     (alpha, self.run_network(iteration, 0, input.model, input.residual, alpha)?)
@@ -261,11 +312,11 @@ impl NetworkStep for OnnxStep {
                 Ok(input.model.iter().zip(&increment).map(|(x, d)| ((d + x / alpha) * alpha).max(0.0)).collect())
             }
             Architecture::R3d3 => {
-                let layers = self.series.files[iteration - 1].len();
+                let layers = self.plan[iteration - 1].len();
                 let psf = PsfConvolution::new(self.size, input.psf_2n)?;
                 let mut image = input.model.to_vec();
-                let mut residual = if iteration == 1 { input.dirty.to_vec() } else { input.residual.to_vec() };
-                let mut alpha = if iteration == 1 {
+                let mut residual = if first { input.dirty.to_vec() } else { input.residual.to_vec() };
+                let mut alpha = if first {
                     normalisation(input.dirty, "dirty image", iteration, &path)?
                 } else {
                     normalisation(&image, "image", iteration, &path)?
@@ -370,8 +421,8 @@ pub(crate) mod tests {
     }
 
     fn run_series(series: &Path, backend: BackendChoice, psf: &[f64], dirty: &[f64], prefetch: bool) -> Vec<Vec<f64>> {
-        let config = OnnxConfig { series: series.to_path_buf(), backend, threads: 1, networks: None, prefetch, graph_optimization: GraphOptimization::default() };
-        let mut step = OnnxStep::new(&config, N, 1).unwrap();
+        let config = OnnxConfig { series: series.to_path_buf(), backend, threads: 1, networks: None, prefetch, graph_optimization: GraphOptimization::default(), realisation: None, validity: ValidityMode::Warn };
+        let mut step = OnnxStep::new(&config, N, 1, &ImagingSetup::default()).unwrap();
         let psf_n = vec![0.0; N * N];
         let (mut model, mut residual) = (vec![0.0; N * N], dirty.to_vec());
         let mut models = Vec::new();
@@ -449,8 +500,8 @@ pub(crate) mod tests {
         let dirty = direct_d(&psf, &sky());
         let series = test_models().join("landweber");
         let alone = run_series(&series, BackendChoice::Tract, &psf, &dirty, true);
-        let config = OnnxConfig { series, backend: BackendChoice::Tract, threads: 1, networks: None, prefetch: true, graph_optimization: GraphOptimization::default() };
-        let mut step = OnnxStep::new(&config, N, 1).unwrap();
+        let config = OnnxConfig { series, backend: BackendChoice::Tract, threads: 1, networks: None, prefetch: true, graph_optimization: GraphOptimization::default(), realisation: None, validity: ValidityMode::Warn };
+        let mut step = OnnxStep::new(&config, N, 1, &ImagingSetup::default()).unwrap();
         let psf_n = vec![0.0; N * N];
         // Two jobs on the same data; job B starts when job A is at network 3.
         let mut jobs = [(vec![0.0; N * N], dirty.clone(), Vec::new()), (vec![0.0; N * N], dirty.clone(), Vec::new())];
@@ -473,8 +524,8 @@ pub(crate) mod tests {
     fn one_job_keeps_only_the_running_network_and_its_successor() {
         let series = test_models().join("landweber");
         for prefetch in [true, false] {
-            let config = OnnxConfig { series: series.clone(), backend: BackendChoice::Tract, threads: 1, networks: None, prefetch, graph_optimization: GraphOptimization::default() };
-            let mut step = OnnxStep::new(&config, N, 1).unwrap();
+            let config = OnnxConfig { series: series.clone(), backend: BackendChoice::Tract, threads: 1, networks: None, prefetch, graph_optimization: GraphOptimization::default(), realisation: None, validity: ValidityMode::Warn };
+            let mut step = OnnxStep::new(&config, N, 1, &ImagingSetup::default()).unwrap();
             for job in 0..2 {
                 for i in 1..=4 {
                     step.network(i, 0).unwrap();
@@ -585,13 +636,13 @@ pub(crate) mod tests {
         }
         let text = std::fs::read_to_string(dir.join("landweber/manifest.yaml")).unwrap().replace("any_size: true", "any_size: false");
         std::fs::write(series.path().join("manifest.yaml"), text).unwrap();
-        let config = OnnxConfig { series: series.path().into(), backend: BackendChoice::Tract, threads: 1, networks: None, prefetch: true, graph_optimization: GraphOptimization::default() };
-        let e = OnnxStep::new(&config, 128, 1).err().expect("size refused").to_string();
+        let config = OnnxConfig { series: series.path().into(), backend: BackendChoice::Tract, threads: 1, networks: None, prefetch: true, graph_optimization: GraphOptimization::default(), realisation: None, validity: ValidityMode::Warn };
+        let e = OnnxStep::new(&config, 128, 1, &ImagingSetup::default()).err().expect("size refused").to_string();
         assert!(e.contains("[64]") && e.contains("128 x 128"), "{e}");
-        let e = OnnxStep::new(&OnnxConfig { networks: Some(9), ..config.clone() }, 64, 1).err().expect("too many").to_string();
+        let e = OnnxStep::new(&OnnxConfig { networks: Some(9), ..config.clone() }, 64, 1, &ImagingSetup::default()).err().expect("too many").to_string();
         assert!(e.contains("has 4 networks"), "{e}");
         std::fs::write(series.path().join("lw3.onnx"), b"garbage").unwrap();
-        let e = OnnxStep::new(&config, 64, 1).err().expect("corrupt file refused").to_string();
+        let e = OnnxStep::new(&config, 64, 1, &ImagingSetup::default()).err().expect("corrupt file refused").to_string();
         assert!(e.contains("lw3.onnx"), "{e}");
     }
 }

@@ -48,7 +48,17 @@ pub struct Manifest {
     /// Only `mean` (`a` = mean of the previous estimate, of the dirty image at i = 1).
     pub normalisation: String,
     /// Network files in order; for R3D3 each entry lists the component's J layer files.
+    #[serde(default)]
     pub networks: Vec<NetworkFiles>,
+    /// Instead of `networks`: several independently trained realisations of the series, each
+    /// listed as `networks` is; run one after the other, their mean is the image and their
+    /// spread the uncertainty map.
+    #[serde(default)]
+    pub realisations: Vec<Vec<NetworkFiles>>,
+    /// Where the series may be used; a job outside it is warned about (or refused, with the
+    /// step's `validity: error`).
+    #[serde(default)]
+    pub validity: Option<Validity>,
     /// Layers per component (J) for R3D3; 1 for R2D2.
     #[serde(default = "one")]
     pub layers: usize,
@@ -64,11 +74,60 @@ fn one() -> usize {
     1
 }
 
+/// The observations a series was trained for (`validity:` in the manifest).
+#[derive(Clone, Debug, Default, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct Validity {
+    /// Super-resolution factors `[min, max]`.
+    #[serde(default)]
+    pub superresolution: Option<[f64; 2]>,
+    /// Briggs robustness `[min, max]`.
+    #[serde(default)]
+    pub robust: Option<[f64; 2]>,
+    /// Weighting schemes (`briggs`, `uniform`, `natural`).
+    #[serde(default)]
+    pub weighting: Option<Vec<String>>,
+}
+
+/// What a job's imaging is, as far as a series' validity goes (unknown parts are not checked).
+#[derive(Clone, Debug, Default)]
+pub struct ImagingSetup {
+    pub superresolution: Option<f64>,
+    pub weighting: Option<String>,
+    pub robust: Option<f64>,
+}
+
 #[derive(Clone, Debug, Deserialize, Serialize)]
 #[serde(untagged)]
 pub enum NetworkFiles {
     One(PathBuf),
     Layers(Vec<PathBuf>),
+}
+
+/// The files of one `networks` entry (`key`, e.g. `networks[3]`), checked to be paths inside the
+/// series directory and to match the architecture.
+fn manifest_entry(dir: &Path, path: &Path, manifest: &Manifest, key: &str, entry: &NetworkFiles) -> Result<Vec<PathBuf>> {
+    // Entries are relative paths down from the series directory, checked before any file is
+    // opened (`../../../etc/passwd` was).
+    let names: Vec<&PathBuf> = match entry {
+        NetworkFiles::One(f) => vec![f],
+        NetworkFiles::Layers(fs) => fs.iter().collect(),
+    };
+    for name in names {
+        let inside = name.components().all(|c| matches!(c, std::path::Component::Normal(_) | std::path::Component::CurDir));
+        if !inside || name.as_os_str().is_empty() {
+            let name = name.display();
+            return Err(Error::input(path, format!("{key}: '{name}' must be a path inside the series directory (no '..', not absolute)")));
+        }
+    }
+    let layers = manifest.layers;
+    match (entry, manifest.architecture) {
+        (NetworkFiles::One(f), Architecture::R2d2) => Ok(vec![dir.join(f)]),
+        (NetworkFiles::Layers(fs), Architecture::R3d3) if fs.len() == layers => Ok(fs.iter().map(|f| dir.join(f)).collect()),
+        (NetworkFiles::Layers(fs), Architecture::R3d3) => Err(Error::input(path, format!("{key}: expected {layers} layer files (layers: {layers}), got {}", fs.len()))),
+        (NetworkFiles::One(_), Architecture::R3d3) => Err(Error::input(path, format!("{key}: an r3d3 series lists the {layers} layer files of each component"))),
+        (NetworkFiles::Layers(_), Architecture::R2d2) => Err(Error::input(path, format!("{key}: an r2d2 series lists one file per network"))),
+    }
 }
 
 /// A series ready to run: the files of each iteration, checked to exist.
@@ -77,8 +136,11 @@ pub struct Series {
     pub dir: PathBuf,
     pub name: String,
     pub architecture: Architecture,
-    /// `files[i]`: the network(s) of iteration i + 1 (one for R2D2, J layers for R3D3).
+    /// `files[i]`: the network(s) of iteration i + 1 (one for R2D2, J layers for R3D3); with
+    /// several realisations, theirs one after the other ([`Series::realisation`]).
     pub files: Vec<Vec<PathBuf>>,
+    /// Independently trained realisations (1 for most series).
+    pub realisations: usize,
     pub image_sizes: Vec<usize>,
     pub any_size: bool,
     pub manifest: Option<Manifest>,
@@ -130,41 +192,23 @@ impl Series {
         if manifest.normalisation != "mean" {
             return Err(Error::input(path, format!("normalisation: expected 'mean', got '{}'", manifest.normalisation)));
         }
-        if manifest.networks.is_empty() {
-            return Err(Error::input(path, "networks: expected at least one network file"));
-        }
+        let lists: Vec<(String, &Vec<NetworkFiles>)> = match (manifest.networks.is_empty(), manifest.realisations.is_empty()) {
+            (false, true) => vec![("networks".to_string(), &manifest.networks)],
+            (true, false) => manifest.realisations.iter().enumerate().map(|(r, list)| (format!("realisations[{r}]"), list)).collect(),
+            (true, true) => return Err(Error::input(path, "networks: expected at least one network file (or realisations: one list per realisation)")),
+            (false, false) => return Err(Error::input(path, "networks and realisations: give one of them (realisations lists the networks of each realisation)")),
+        };
         if manifest.layers == 0 {
             return Err(Error::input(path, "layers: expected at least 1"));
         }
         let mut files = Vec::new();
-        for (i, entry) in manifest.networks.iter().enumerate() {
-            // Entries are relative paths down from the series directory, checked before any
-            // file is opened (`../../../etc/passwd` was).
-            let names: Vec<&PathBuf> = match entry {
-                NetworkFiles::One(f) => vec![f],
-                NetworkFiles::Layers(fs) => fs.iter().collect(),
-            };
-            for name in names {
-                let inside = name.components().all(|c| matches!(c, std::path::Component::Normal(_) | std::path::Component::CurDir));
-                if !inside || name.as_os_str().is_empty() {
-                    let name = name.display();
-                    return Err(Error::input(path, format!("networks[{i}]: '{name}' must be a path inside the series directory (no '..', not absolute)")));
-                }
+        for (key, list) in &lists {
+            if list.len() != lists[0].1.len() || list.is_empty() {
+                return Err(Error::input(path, format!("{key}: expected {} networks, as every realisation has, got {}", lists[0].1.len(), list.len())));
             }
-            let list = match (entry, manifest.architecture) {
-                (NetworkFiles::One(f), Architecture::R2d2) => vec![dir.join(f)],
-                (NetworkFiles::Layers(fs), Architecture::R3d3) if fs.len() == manifest.layers => fs.iter().map(|f| dir.join(f)).collect(),
-                (NetworkFiles::Layers(fs), Architecture::R3d3) => {
-                    return Err(Error::input(path, format!("networks[{i}]: expected {} layer files (layers: {}), got {}", manifest.layers, manifest.layers, fs.len())));
-                }
-                (NetworkFiles::One(_), Architecture::R3d3) => {
-                    return Err(Error::input(path, format!("networks[{i}]: an r3d3 series lists the {} layer files of each component", manifest.layers)));
-                }
-                (NetworkFiles::Layers(_), Architecture::R2d2) => {
-                    return Err(Error::input(path, format!("networks[{i}]: an r2d2 series lists one file per network")));
-                }
-            };
-            files.push(list);
+            for (i, entry) in list.iter().enumerate() {
+                files.push(manifest_entry(dir, path, &manifest, &format!("{key}[{i}]"), entry)?);
+            }
         }
         Ok(Series {
             dir: dir.to_path_buf(),
@@ -173,6 +217,7 @@ impl Series {
             files,
             image_sizes: manifest.image_sizes.clone(),
             any_size: manifest.any_size,
+            realisations: lists.len(),
             origin: format!("manifest {}", path.display()),
             manifest: Some(manifest),
         })
@@ -216,6 +261,7 @@ impl Series {
                 files,
                 image_sizes: Vec::new(),
                 any_size: true,
+                realisations: 1,
                 manifest: None,
                 origin: "reference file names R2D2_UNet_N{i}.onnx (no manifest)".into(),
             });
@@ -244,6 +290,7 @@ impl Series {
                 files,
                 image_sizes: Vec::new(),
                 any_size: true,
+                realisations: 1,
                 manifest: None,
                 origin: format!("reference file names R3D3_R2D2Net_{j}Layers_N{{i}} (no manifest)"),
             });
@@ -254,9 +301,39 @@ impl Series {
         ))
     }
 
-    /// Iterations (networks or R3D3 components).
+    /// Iterations (networks or R3D3 components) of one realisation.
     pub fn len(&self) -> usize {
-        self.files.len()
+        self.files.len() / self.realisations.max(1)
+    }
+
+    /// The files of realisation `r` (0-based), `[iteration - 1][layer]`.
+    pub fn realisation(&self, r: usize) -> &[Vec<PathBuf>] {
+        &self.files[r * self.len()..(r + 1) * self.len()]
+    }
+
+    /// Where the job lies outside the manifest's `validity`, one sentence per problem (empty
+    /// when it lies inside, or the series states no validity).
+    pub fn validity_problems(&self, job: &ImagingSetup) -> Vec<String> {
+        let Some(v) = self.manifest.as_ref().and_then(|m| m.validity.as_ref()) else { return Vec::new() };
+        let mut problems = Vec::new();
+        let outside = |x: f64, [lo, hi]: [f64; 2]| x < lo - 1e-9 || x > hi + 1e-9;
+        if let (Some(range), Some(sr)) = (v.superresolution, job.superresolution) {
+            if outside(sr, range) {
+                problems.push(format!("super-resolution {sr} is outside the series' range {range:?}"));
+            }
+        }
+        if let (Some(schemes), Some(scheme)) = (&v.weighting, &job.weighting) {
+            if !schemes.iter().any(|s| s.eq_ignore_ascii_case(scheme)) {
+                problems.push(format!("weighting '{scheme}' is not one the series was trained for ({})", schemes.join(", ")));
+            }
+        }
+        let briggs = job.weighting.as_deref().is_some_and(|s| s.eq_ignore_ascii_case("briggs"));
+        if let (Some(range), Some(robust), true) = (v.robust, job.robust, briggs) {
+            if outside(robust, range) {
+                problems.push(format!("Briggs robust {robust} is outside the series' range {range:?}"));
+            }
+        }
+        problems
     }
 
     pub fn is_empty(&self) -> bool {
@@ -531,6 +608,46 @@ mod tests {
         assert_eq!(found.len(), 1);
         let e = found[0].1.as_ref().err().map(|e| e.to_string()).expect("a 0-byte network listed as usable");
         assert!(e.contains("a.onnx") && e.contains("empty"), "{e}");
+    }
+
+    #[test]
+    fn realisations_are_listed_in_order_and_must_agree_in_length() {
+        let dir = tempfile::tempdir().unwrap();
+        for f in ["V1/a.onnx", "V1/b.onnx", "V2/a.onnx", "V2/b.onnx"] {
+            touch(&dir.path().join(f));
+        }
+        let base = "format: 1\nname: t\narchitecture: r2d2\nimage_sizes: [64]\ninput_convention: reference\nnormalisation: mean\n";
+        let write = |rest: &str| std::fs::write(dir.path().join("manifest.yaml"), format!("{base}{rest}")).unwrap();
+        write("realisations: [[V1/a.onnx, V1/b.onnx], [V2/a.onnx, V2/b.onnx]]\n");
+        let s = Series::open(dir.path()).unwrap();
+        assert_eq!((s.len(), s.realisations), (2, 2));
+        assert!(s.realisation(1)[0][0].ends_with("V2/a.onnx") && s.realisation(0)[1][0].ends_with("V1/b.onnx"));
+        write("realisations: [[V1/a.onnx, V1/b.onnx], [V2/a.onnx]]\n");
+        let e = Series::open(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("realisations[1]") && e.contains("expected 2 networks"), "{e}");
+        write("networks: [V1/a.onnx]\nrealisations: [[V2/a.onnx]]\n");
+        let e = Series::open(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("give one of them"), "{e}");
+        write("realisations: [[V1/a.onnx], [\"../x.onnx\"]]\n");
+        let e = Series::open(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("realisations[1][0]") && e.contains("inside the series directory"), "{e}");
+    }
+
+    #[test]
+    fn validity_ranges_report_each_problem() {
+        let dir = tempfile::tempdir().unwrap();
+        touch(&dir.path().join("a.onnx"));
+        let manifest = "format: 1\nname: t\narchitecture: r2d2\nimage_sizes: [64]\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx]\nvalidity: {superresolution: [1.5, 2.5], robust: [-1, 1], weighting: [briggs]}\n";
+        std::fs::write(dir.path().join("manifest.yaml"), manifest).unwrap();
+        let s = Series::open(dir.path()).unwrap();
+        let setup = |sr, scheme: &str, robust| ImagingSetup { superresolution: sr, weighting: Some(scheme.to_string()), robust: Some(robust) };
+        assert!(s.validity_problems(&setup(Some(2.5), "briggs", -1.0)).is_empty());
+        let p = s.validity_problems(&setup(Some(3.0), "briggs", 1.5));
+        assert_eq!(p.len(), 2, "{p:?}");
+        assert!(p[0].contains("super-resolution 3") && p[1].contains("robust 1.5"), "{p:?}");
+        let p = s.validity_problems(&setup(None, "natural", 5.0));
+        assert_eq!(p.len(), 1, "robust is not checked for natural weighting, SR unknown is not checked: {p:?}");
+        assert!(p[0].contains("weighting 'natural'"), "{p:?}");
     }
 
     #[test]

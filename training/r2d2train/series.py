@@ -9,6 +9,20 @@ import torch
 import yaml
 
 from .unet import UNet, parameter_count
+from .uwdsr import UWDSR
+
+KINDS = ("unet", "uwdsr")
+
+
+def make_network(kind, base_channels, poolings, norm="instance"):
+    """The project's U-Net, or the reference's U-WDSR (which has no feature normalisation)."""
+    if kind == "uwdsr":
+        return UWDSR(base_channels, poolings)
+    return UNet(base_channels, poolings, norm=norm)
+
+
+def network_kind(manifest):
+    return manifest["network"].get("kind", "unet")
 
 MANIFEST = "manifest.yaml"
 
@@ -52,8 +66,8 @@ def new_manifest(name, model, size, description, provenance):
         "description": description,
         "telescope": "vla",
         "architecture": "r2d2",
-        "network": {"kind": "unet", "base_channels": model.base_channels, "poolings": model.poolings,
-                    "norm": model.norm, "parameters": parameter_count(model)},
+        "network": {"kind": "uwdsr" if isinstance(model, UWDSR) else "unet", "base_channels": model.base_channels,
+                    "poolings": model.poolings, "norm": getattr(model, "norm", "none"), "parameters": parameter_count(model)},
         "image_sizes": [size],
         "any_size": True,
         "superresolution": 1.5,
@@ -81,8 +95,8 @@ def network_norm(manifest):
     return manifest["network"].get("norm", "instance")
 
 
-def load_model(series_dir, i, base_channels, poolings, norm="instance"):
-    model = UNet(base_channels, poolings, norm=norm)
+def load_model(series_dir, i, base_channels, poolings, norm="instance", kind="unet"):
+    model = make_network(kind, base_channels, poolings, norm)
     model.load_state_dict(torch.load(os.path.join(series_dir, weights_name(i)), weights_only=True, map_location="cpu"))
     return model.eval()
 
