@@ -150,7 +150,10 @@ fn errors_name_the_file_line_and_stage() {
     // No weighting stage: found when the graph is checked, before anything runs.
     let text = PIPELINE.replace("read: {kind: arrow, to: weights}", "read: {kind: arrow, to: grid}").replace("  weights: {kind: weighting, scheme: natural, to: grid}\n", "");
     let spec = engine.load_yaml(&text, "embedded.yaml", &[]).unwrap();
-    let err = engine.validate(&spec).unwrap_err().to_string();
+    let err = engine.validate(&spec).unwrap_err();
+    let (file, line, _) = err.location().expect("a located error");
+    assert_eq!((file, line), (std::path::Path::new("embedded.yaml"), 4));
+    let err = err.to_string();
     assert!(err.contains("embedded.yaml") && err.contains("line 4") && err.contains("weighting stage"), "{err}");
     // A misspelt key of a stage, at its line and column.
     let err = engine.load_yaml(&PIPELINE.replace("scheme: natural", "schme: natural"), "embedded.yaml", &[]).and_then(|s| engine.validate(&s));

@@ -278,7 +278,7 @@ fn yaml_error(file: &Path, e: &serde_yaml::Error) -> Error {
 
 fn located(file: &Path, location: Option<(usize, usize)>, message: &str) -> Error {
     match location {
-        Some((line, column)) => Error::input(file, format!("line {line}, column {column}: {message}")),
+        Some((line, column)) => Error::Located { file: file.to_path_buf(), line, column, message: message.to_string() },
         None => Error::input(file, message.to_string()),
     }
 }
