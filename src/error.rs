@@ -11,6 +11,11 @@ pub enum Error {
     #[error("{}: {message}", path.display())]
     Input { path: PathBuf, message: String },
 
+    /// A problem at a place in a pipeline description (YAML): the file, line and column (both
+    /// from 1), for an editor or a notebook to point at.
+    #[error("{}: line {line}, column {column}: {message}", file.display())]
+    Located { file: PathBuf, line: usize, column: usize, message: String },
+
     /// A parameter (command-line option or configuration value) out of its allowed range.
     #[error("invalid {name}: {message}")]
     Parameter { name: String, message: String },
@@ -51,6 +56,24 @@ impl Error {
     }
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Error::Io { path: path.into(), source }
+    }
+
+    /// Where in a pipeline file the error is (file, line, column), for this error or the one
+    /// it wraps (a stage's).
+    pub fn location(&self) -> Option<(&std::path::Path, usize, usize)> {
+        match self {
+            Error::Located { file, line, column, .. } => Some((file, *line, *column)),
+            Error::Stage { source, .. } => source.location(),
+            _ => None,
+        }
+    }
+
+    /// The stage, its kind and the job an error happened in, when a stage failed on a job.
+    pub fn stage(&self) -> Option<(&str, &str, &str)> {
+        match self {
+            Error::Stage { stage, kind, job, .. } => Some((stage, kind, job)),
+            _ => None,
+        }
     }
 }
 

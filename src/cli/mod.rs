@@ -3,10 +3,12 @@
 mod bench;
 mod convert;
 mod dirty;
+mod engine;
 mod image;
 mod info;
 mod metrics;
 mod models;
+mod onnx_runtime;
 mod run;
 mod simulate;
 mod trainset;

@@ -3,11 +3,22 @@
 //!
 //! A [`Job`] is one dataset being imaged; it flows source -> weighting -> gridder -> (network
 //! step <-> residual update)* -> writer. Stages implement [`Stage`] (or [`Source`] for the
-//! first one) and are registered by their YAML `kind` in `crate::stages`.
+//! first one); a [`Registry`] of [`StageKind`]s builds them by their YAML `kind`. The engine
+//! owns these contracts: the built-in kinds (`crate::stages`) plug into them, and so can an
+//! embedding program's.
 
-pub mod config;
-pub mod graph;
-pub mod runner;
+pub(crate) mod config;
+pub(crate) mod graph;
+pub(crate) mod io;
+pub(crate) mod registry;
+pub(crate) mod runner;
+pub(crate) mod stage;
+
+pub use config::{ImageConfig, PipelineSpec, StageSpec};
+pub use io::{MemoryInput, ProductSink};
+pub use registry::{BuildContext, Built, KindFn, Product, Registry, Role, StageKind};
+pub use runner::{Progress, RunReport};
+pub use stage::{Emit, Source, Stage};
 
 use crate::metrics;
 use crate::operator::{ImageGeometry, MeasurementOperator, PsfConvolution};
@@ -43,6 +54,11 @@ pub struct Imaging {
     pub frequency_hz: Option<f64>,
     /// Restoring beam fitted to the PSF main lobe (FWHM degrees, PA degrees east of north).
     pub beam: Option<crate::fits::Beam>,
+}
+
+/// The error of a stage reached by a job not gridded yet (the graph check makes it a bug).
+pub(crate) fn not_gridded(stage: &str, job: &str) -> crate::Error {
+    crate::Error::parameter(format!("stage '{stage}'"), format!("job '{job}' reached it before being gridded: put a gridder stage upstream"))
 }
 
 /// One iteration's figures, as written to `<prefix>-metrics.json`.
@@ -116,13 +132,8 @@ impl Job {
 
     /// The gridded state, or an error naming the stage that needed it.
     pub fn imaging_mut(&mut self, stage: &str) -> Result<&mut Imaging> {
-        let id = self.id.clone();
-        self.imaging.as_mut().ok_or_else(|| {
-            crate::Error::parameter(
-                format!("stage '{stage}'"),
-                format!("job '{id}' reached it before being gridded: put a gridder stage upstream"),
-            )
-        })
+        let id = &self.id;
+        self.imaging.as_mut().ok_or_else(|| not_gridded(stage, id))
     }
 
     /// Record iteration figures after a residual update.
@@ -147,22 +158,3 @@ impl Job {
     }
 }
 
-/// Sends a job on one of the stage's ports.
-pub type Emit<'a> = dyn FnMut(Port, Job) -> Result<()> + 'a;
-
-/// A pipeline stage: takes one job at a time and emits it (transformed) on a port.
-pub trait Stage: Send {
-    fn process(&mut self, job: Job, emit: &mut Emit<'_>) -> Result<()>;
-}
-
-/// The first stage: produces jobs.
-pub trait Source: Send {
-    /// Produce every job, calling `emit` for each; stop early when `emit` fails or
-    /// `cancelled()` turns true.
-    fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()>;
-
-    /// The job being read when `produce` failed, to name it in the error.
-    fn current_job(&self) -> Option<String> {
-        None
-    }
-}

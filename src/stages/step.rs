@@ -56,21 +56,24 @@ impl Stage for StepStage {
         if realisations > 1 && self.next_realisation(&mut job, iteration, realisations)? {
             // Every realisation is done: the image is their mean, whose residual comes next.
             let mean = crate::metrics::pixel_mean(&job.realisation_models);
-            job.imaging_mut(self.kind)?.model = mean;
+            job.imaging.as_mut().ok_or_else(|| crate::pipeline::not_gridded(self.kind, &job.id))?.model = mean;
             job.realisation = 0;
             job.iteration = iteration;
             job.series_finished = true;
             job.last_step_seconds = began.elapsed().as_secs_f64();
             return emit(Port::Next, job);
         }
-        let im = job.imaging_mut(self.kind)?;
+        let Job { id, imaging, .. } = &mut job;
+        let im = imaging.as_mut().ok_or_else(|| crate::pipeline::not_gridded(self.kind, id))?;
         let input = StepInput {
+            job: id,
             size: im.geometry.size,
             model: &im.model,
             residual: &im.residual,
             dirty: &im.dirty,
             psf: &im.psf,
             psf_2n: &im.psf_2n,
+            psf_convolution: &im.psf_convolution,
         };
         let model = self.step.step(iteration, &input)?;
         let cause = format!("the {} step made it from a finite residual: a diverging network or plugin", self.kind);

@@ -3,19 +3,24 @@
 //! and everything around it is shared. Native plugins (`native`, a shared library through a
 //! versioned C ABI) and ONNX series implement the same trait.
 
-pub mod clean;
+pub(crate) mod clean;
+// Public for examples/native_isolation (the per-step cost of isolation), not the interface.
+#[doc(hidden)]
 pub mod native;
-pub mod native_file;
+pub(crate) mod native_file;
+// The CLI's Ctrl-C handler stops hung plugin hosts (interrupt_all).
 pub mod native_host;
-pub mod mapped_weights;
-pub mod onnx;
-pub mod runtime;
-pub mod series;
+pub(crate) mod onnx;
+
+// The ONNX internals by their former paths (the command line names series and backends).
+pub use onnx::{runtime, series};
 
 use crate::Result;
 
 /// What a step sees at iteration i: the previous estimate and its residual dirty image.
 pub struct StepInput<'a> {
+    /// The job being imaged (a step serving several jobs tells them apart by it).
+    pub job: &'a str,
     pub size: usize,
     /// `x_{i-1}` (Jy/pixel).
     pub model: &'a [f64],
@@ -26,6 +31,8 @@ pub struct StepInput<'a> {
     pub psf: &'a [f64],
     /// PSF over twice the field, 2N x 2N, peak at (N, N).
     pub psf_2n: &'a [f64],
+    /// `D x` as a convolution with `psf_2n`, prepared once per job by the gridder.
+    pub psf_convolution: &'a crate::operator::PsfConvolution,
 }
 
 pub trait NetworkStep: Send {
