@@ -1,0 +1,115 @@
+//! `r2d2_imaging._native`: the engine's Rust API for Python (the pure-Python half,
+//! `python/r2d2_imaging/`, gives it its documented signatures).
+//!
+//! Every call that does engine work runs it on a thread of its own and waits for it with the
+//! GIL released, taking the GIL back between short waits only to let Python run its signal
+//! handlers: Ctrl-C (KeyboardInterrupt) cancels the run at the engine's next job boundary,
+//! waits for the engine to stop, then raises. Engine errors become `R2D2Error` with the
+//! engine's message (file, line, column, stage, job).
+
+use pyo3::create_exception;
+use pyo3::exceptions::PyRuntimeError;
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use r2d2_imaging::pipeline::config::PipelineConfig;
+use r2d2_imaging::pipeline::runner;
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use crossbeam_channel::{bounded, RecvTimeoutError};
+use std::sync::Arc;
+use std::time::Duration;
+
+create_exception!(_native, R2D2Error, PyRuntimeError, "An error reported by the r2d2 engine; its message names the file, line, column, stage or job.");
+
+/// How often a waiting call looks at Python's signals.
+const SIGNAL_POLL: Duration = Duration::from_millis(50);
+
+fn engine_error(e: r2d2_imaging::Error) -> PyErr {
+    R2D2Error::new_err(e.to_string())
+}
+
+/// Runs `work` on a thread of its own with the GIL released, checking Python's signals while
+/// it runs. On KeyboardInterrupt (or any exception a signal handler raises) `cancel` is set,
+/// the engine is waited for (it stops at its next job boundary) and the exception is raised.
+fn run_released<T: Send + 'static>(
+    py: Python<'_>,
+    cancel: Arc<AtomicBool>,
+    work: impl FnOnce(Arc<AtomicBool>) -> r2d2_imaging::Result<T> + Send + 'static,
+) -> PyResult<T> {
+    let (tx, rx) = bounded(1);
+    let flag = cancel.clone();
+    let worker = std::thread::Builder::new()
+        .name("r2d2-engine".into())
+        .spawn(move || {
+            // A panic is a bug; it must reach Python as an exception, not unwind through it.
+            let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| work(flag)));
+            let _ = tx.send(outcome);
+        })
+        .map_err(|e| R2D2Error::new_err(format!("cannot start the engine thread: {e}")))?;
+    let outcome = loop {
+        match py.allow_threads(|| rx.recv_timeout(SIGNAL_POLL)) {
+            Ok(outcome) => break outcome,
+            Err(RecvTimeoutError::Timeout) => {
+                if let Err(interrupt) = py.check_signals() {
+                    cancel.store(true, Ordering::SeqCst);
+                    py.allow_threads(|| {
+                        let _ = rx.recv();
+                    });
+                    let _ = worker.join();
+                    return Err(interrupt);
+                }
+            }
+            Err(RecvTimeoutError::Disconnected) => {
+                return Err(R2D2Error::new_err("the engine thread ended without a result (this is a bug, please report it)"));
+            }
+        }
+    };
+    let _ = worker.join();
+    match outcome {
+        Ok(result) => result.map_err(engine_error),
+        Err(payload) => Err(R2D2Error::new_err(format!(
+            "the engine failed unexpectedly ({}); this is a bug, please report it",
+            r2d2_imaging::error::panic_message(payload.as_ref())
+        ))),
+    }
+}
+
+/// Parses a pipeline: `text` as read from `file_name` (named in errors), with `overrides`
+/// (`stage.key=value`, as `r2d2 run --set`).
+fn parse(text: &str, file_name: &str, overrides: Vec<String>) -> PyResult<PipelineConfig> {
+    PipelineConfig::parse(text, Path::new(file_name), &overrides).map_err(engine_error)
+}
+
+/// Checks a pipeline without running it (`r2d2 validate`); returns its stage names.
+#[pyfunction]
+#[pyo3(signature = (text, file_name, overrides))]
+fn validate(py: Python<'_>, text: &str, file_name: &str, overrides: Vec<String>) -> PyResult<Vec<String>> {
+    let config = parse(text, file_name, overrides)?;
+    let names = config.stages.iter().map(|s| s.name.clone()).collect();
+    // Building the stages reads model manifests and plugin libraries: no GIL needed.
+    run_released(py, Arc::new(AtomicBool::new(false)), move |_| runner::validate(&config).map(|_| ()))?;
+    Ok(names)
+}
+
+/// Runs a pipeline (`r2d2 run`); returns the run's report as a dict: `jobs` (ids in completion
+/// order), `seconds`, `stage_seconds`.
+#[pyfunction]
+#[pyo3(signature = (text, file_name, overrides))]
+fn run<'py>(py: Python<'py>, text: &str, file_name: &str, overrides: Vec<String>) -> PyResult<Bound<'py, PyDict>> {
+    let config = parse(text, file_name, overrides)?;
+    let report = run_released(py, Arc::new(AtomicBool::new(false)), move |cancel| runner::run(&config, cancel))?;
+    let out = PyDict::new(py);
+    out.set_item("jobs", report.jobs)?;
+    out.set_item("seconds", report.seconds)?;
+    out.set_item("stage_seconds", report.stage_seconds)?;
+    Ok(out)
+}
+
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("R2D2Error", m.py().get_type::<R2D2Error>())?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add_function(wrap_pyfunction!(validate, m)?)?;
+    m.add_function(wrap_pyfunction!(run, m)?)?;
+    Ok(())
+}
