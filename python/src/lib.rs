@@ -7,6 +7,9 @@
 //! waits for the engine to stop, then raises. Engine errors become `R2D2Error` with the
 //! engine's message (file, line, column, stage, job).
 
+mod arrow_in;
+
+use numpy::PyArray1;
 use pyo3::create_exception;
 use pyo3::exceptions::PyRuntimeError;
 use pyo3::prelude::*;
@@ -105,11 +108,37 @@ fn run<'py>(py: Python<'py>, text: &str, file_name: &str, overrides: Vec<String>
     Ok(out)
 }
 
+/// The table rows of each job that `split_by: {column, window}` makes of `table` (anything
+/// with `__arrow_c_stream__`, named `name` in messages), exactly as the engine's sources split
+/// it: `[(suffix, rows)]`, rows a uint64 array of the rows kept for imaging.
+#[pyfunction]
+#[pyo3(signature = (table, name, column, window=None))]
+fn split_rows<'py>(
+    py: Python<'py>,
+    table: &Bound<'py, PyAny>,
+    name: &str,
+    column: String,
+    window: Option<f64>,
+) -> PyResult<Vec<(String, Bound<'py, PyArray1<u64>>)>> {
+    let stream = arrow_in::stream_of(table)?;
+    let split = r2d2_imaging::ingest::SplitBy { column, window };
+    split.check().map_err(|m| R2D2Error::new_err(format!("split_by.window: {m}")))?;
+    let name = name.to_string();
+    let parts = run_released(py, Arc::new(AtomicBool::new(false)), move |cancel| {
+        let mut reader = arrow_in::StreamTable::new(stream, &name)?;
+        r2d2_imaging::ingest::split_rows(&mut reader, &split, "split_by", &|| cancel.load(Ordering::SeqCst))
+    })?;
+    let parts = parts.ok_or_else(|| R2D2Error::new_err("interrupted while splitting"))?;
+    // The row vectors become the arrays' buffers: moved, not copied.
+    Ok(parts.into_iter().map(|(suffix, rows)| (suffix, PyArray1::from_vec(py, rows))).collect())
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("R2D2Error", m.py().get_type::<R2D2Error>())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add_function(wrap_pyfunction!(validate, m)?)?;
     m.add_function(wrap_pyfunction!(run, m)?)?;
+    m.add_function(wrap_pyfunction!(split_rows, m)?)?;
     Ok(())
 }
