@@ -18,10 +18,10 @@ import os
 from typing import Any, Mapping, Optional, Union
 
 from . import _native
-from ._native import R2D2Error
+from ._native import Products, R2D2Error
 
 __version__ = _native.__version__
-__all__ = ["R2D2Error", "run", "validate", "__version__"]
+__all__ = ["R2D2Error", "Products", "image", "run", "validate", "__version__"]
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -60,3 +60,55 @@ def run(pipeline: PathLike, set: Optional[Mapping[str, Any]] = None) -> dict:
     or ``KeyboardInterrupt`` after stopping the engine cleanly on Ctrl-C."""
     text, name = _pipeline_text(pipeline)
     return _native.run(text, name, _overrides(set))
+
+
+def _onnx_runtime() -> Optional[str]:
+    """The ONNX Runtime library of this interpreter's `onnxruntime` package, when installed and
+    ORT_DYLIB_PATH does not name one (the engine looks there itself)."""
+    if os.environ.get("ORT_DYLIB_PATH"):
+        return None
+    import importlib.util
+
+    spec = importlib.util.find_spec("onnxruntime")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    capi = os.path.join(list(spec.submodule_search_locations)[0], "capi")
+    try:
+        names = sorted(n for n in os.listdir(capi) if n.startswith("libonnxruntime.so") or n == "onnxruntime.dll" or n.startswith("libonnxruntime") and n.endswith(".dylib"))
+    except OSError:
+        return None
+    return os.path.join(capi, names[-1]) if names else None
+
+
+def image(obs, size: int = 512, step: Optional[str] = None, weighting: str = "briggs", robust: float = 0.0,
+          superresolution: float = 1.5, pixel_arcsec: Optional[float] = None, truth: Optional[PathLike] = None, *,
+          iterations: Optional[int] = None, threads: int = 0, id: Optional[str] = None, backend: str = "auto",
+          prefetch: bool = True, plugin_config: Optional[str] = None, epsilon: float = 1e-6, oversampling: float = 2.0,
+          weighting_grid_factor: Optional[float] = None, onnx_runtime: Optional[PathLike] = None) -> Products:
+    """Image one observation as ``r2d2 image`` does, in this process.
+
+    ``obs`` is a path (Parquet, Arrow IPC, MeasurementSet) or a table in the documented
+    visibility schema with the observation's metadata on its schema: a ``pyarrow.Table`` or
+    ``RecordBatchReader`` (anything with ``__arrow_c_stream__``), read through the Arrow C
+    stream without copying its buffers. ``step``: ``None``/``"auto"`` (the series trained
+    for ``size``), ``"clean"``, a series name or directory, or a plugin library;
+    ``iterations``: CLEAN major cycles, the first networks of a series, or a plugin's steps.
+    ``threads``: the engine's threads (0: every core). ``id`` names the job (default: the
+    file name without its extension, or ``table``).
+
+    Returns :class:`Products`: ``dirty``, ``psf``, ``model``, ``residual`` (and ``image`` for
+    CLEAN) as float32 arrays (N, N) in FITS orientation (row 0 at the bottom, as astropy reads
+    the files), owned by numpy without a copy; ``metrics``; ``header``; ``write(prefix)``.
+    The engine runs with the GIL released; Ctrl-C stops it and raises KeyboardInterrupt;
+    its errors raise :class:`R2D2Error`."""
+    if weighting_grid_factor is None:
+        weighting_grid_factor = _native.DEFAULT_WEIGHTING_GRID_FACTOR
+    if not isinstance(obs, (str, os.PathLike)) and not hasattr(obs, "__arrow_c_stream__"):
+        raise TypeError(f"obs: expected a path or an Arrow table (pyarrow.Table, RecordBatchReader), got {type(obs).__name__}")
+    return _native.image(
+        os.fspath(obs) if isinstance(obs, os.PathLike) else obs,
+        id=id, size=size, step=step or "auto", weighting=weighting, robust=robust, superresolution=superresolution,
+        pixel_arcsec=pixel_arcsec, truth=os.fspath(truth) if truth is not None else None, iterations=iterations,
+        threads=threads, backend=backend, prefetch=prefetch, plugin_config=plugin_config, epsilon=epsilon,
+        oversampling=oversampling, weighting_grid_factor=weighting_grid_factor,
+        onnx_runtime=os.fspath(onnx_runtime) if onnx_runtime is not None else _onnx_runtime())

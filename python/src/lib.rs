@@ -22,7 +22,7 @@ use crossbeam_channel::{bounded, RecvTimeoutError};
 use std::sync::Arc;
 use std::time::Duration;
 
-create_exception!(_native, R2D2Error, PyRuntimeError, "An error reported by the r2d2 engine; its message names the file, line, column, stage or job.");
+create_exception!(r2d2_imaging, R2D2Error, PyRuntimeError, "An error reported by the r2d2 engine; its message names the file, line, column, stage or job.");
 
 /// How often a waiting call looks at Python's signals.
 const SIGNAL_POLL: Duration = Duration::from_millis(50);
