@@ -55,11 +55,20 @@ def run(pipeline: PathLike, set: Optional[Mapping[str, Any]] = None) -> dict:
     """Run a pipeline (a YAML file, or YAML text) as ``r2d2 run`` does, with ``set``
     overriding values (``{"image.size": 256}``, as ``--set image.size=256``).
 
-    Returns the run's report: ``jobs`` (ids in completion order), ``seconds`` and
-    ``stage_seconds``. Raises :class:`R2D2Error` with the engine's message (stage and job),
-    or ``KeyboardInterrupt`` after stopping the engine cleanly on Ctrl-C."""
+    Returns the run's report: ``jobs`` (ids in completion order), ``metrics`` (job id -> its
+    metrics as the writer wrote them to ``<prefix>-metrics.json``: residual ratio, SNR, logSNR
+    and seconds per iteration), ``seconds`` and ``stage_seconds``. Raises :class:`R2D2Error`
+    with the engine's message (stage and job), or ``KeyboardInterrupt`` after stopping the
+    engine cleanly on Ctrl-C."""
     text, name = _pipeline_text(pipeline)
-    return _native.run(text, name, _overrides(set))
+    report = _native.run(text, name, _overrides(set))
+    files = report.pop("metrics_files")
+    report["metrics"] = {}
+    for job in report["jobs"]:
+        for path in files[job]:
+            with open(path, encoding="utf-8") as f:
+                report["metrics"][job] = json.load(f)
+    return report
 
 
 def _onnx_runtime() -> Optional[str]:

@@ -100,8 +100,21 @@ fn validate(py: Python<'_>, text: &str, file_name: &str, overrides: Vec<String>)
 #[pyo3(signature = (text, file_name, overrides))]
 fn run<'py>(py: Python<'py>, text: &str, file_name: &str, overrides: Vec<String>) -> PyResult<Bound<'py, PyDict>> {
     let config = parse(text, file_name, overrides)?;
+    // Where the writers put each job's metrics (`<prefix>-metrics.json`).
+    let prefixes: Vec<String> = config
+        .stages
+        .iter()
+        .filter(|s| s.kind == "writer")
+        .filter_map(|s| s.params.get("prefix").and_then(|p| p.as_str()).map(str::to_string))
+        .collect();
     let report = run_released(py, Arc::new(AtomicBool::new(false)), move |cancel| runner::run(&config, cancel))?;
+    let metrics_files = PyDict::new(py);
+    for job in &report.jobs {
+        let files: Vec<String> = prefixes.iter().map(|p| format!("{}-metrics.json", p.replace("{job}", job))).collect();
+        metrics_files.set_item(job, files)?;
+    }
     let out = PyDict::new(py);
+    out.set_item("metrics_files", metrics_files)?;
     out.set_item("jobs", report.jobs)?;
     out.set_item("seconds", report.seconds)?;
     out.set_item("stage_seconds", report.stage_seconds)?;

@@ -1,5 +1,6 @@
 """r2d2_imaging.run / validate: a YAML pipeline as `r2d2 run` / `r2d2 validate` runs it."""
 
+import json
 import os
 import signal
 import subprocess
@@ -31,9 +32,11 @@ PIPELINE = textwrap.dedent("""\
 def test_run_makes_the_cli_products(r2d2_bin, tmp_path):
     (tmp_path / "p.yaml").write_text(PIPELINE)
     report = r2d2_imaging.run(tmp_path / "p.yaml", set={"write.prefix": str(tmp_path / "py/{job}")})
-    assert sorted(report["jobs"]) == ["sim-11", "sim-12"]
-    assert report["seconds"] > 0 and set(report["stage_seconds"]) == {"source", "weights", "grid", "step", "update", "write"}
     subprocess.run([str(r2d2_bin), "-q", "run", "p.yaml", "--set", f"write.prefix={tmp_path}/cli/{{job}}"], cwd=tmp_path, check=True)
+    assert sorted(report["jobs"]) == ["sim-11", "sim-12"]
+    assert [m["residual_ratio"] for m in report["metrics"]["sim-11"]["iterations"]] == [
+        m["residual_ratio"] for m in json.loads((tmp_path / "cli/sim-11-metrics.json").read_text())["iterations"]]
+    assert report["seconds"] > 0 and set(report["stage_seconds"]) == {"source", "weights", "grid", "step", "update", "write"}
     for job in report["jobs"]:
         for product in ["dirty", "psf", "model", "residual", "image"]:
             a, _ = read_fits(tmp_path / f"py/{job}-{product}.fits")
