@@ -297,7 +297,8 @@ impl Drop for ScratchDir {
 }
 
 pub fn run_pipeline_bench(p: &PipelineBenchParams) -> Result<PipelineBenchReport> {
-    use crate::pipeline::{config::PipelineConfig, runner};
+    use crate::pipeline::{ImageConfig, PipelineSpec, StageSpec};
+    use serde_json::json;
     use crate::simulate::observe::ObservationSpec;
     use crate::simulate::{simulate, SimulationRequest, SkyModel};
     use std::sync::atomic::AtomicBool;
@@ -305,6 +306,9 @@ pub fn run_pipeline_bench(p: &PipelineBenchParams) -> Result<PipelineBenchReport
 
     if p.jobs == 0 || p.major_cycles == 0 {
         return Err(Error::parameter("jobs", "expected at least one job and one major cycle"));
+    }
+    if p.channel_capacity == 0 {
+        return Err(Error::parameter("channel capacity", "expected at least 1"));
     }
     let dir = ScratchDir(std::env::temp_dir().join(format!("r2d2-bench-pipeline-{}", std::process::id())));
     std::fs::create_dir_all(&dir.0).map_err(|e| Error::io(&dir.0, e))?;
@@ -333,25 +337,24 @@ pub fn run_pipeline_bench(p: &PipelineBenchParams) -> Result<PipelineBenchReport
     for f in &files[1..] {
         std::fs::copy(dir.0.join(&files[0]), dir.0.join(f)).map_err(|e| Error::io(dir.0.join(f), e))?;
     }
-    let pipeline = |files: &[String]| -> Result<PipelineConfig> {
-        let list: Vec<String> = files.iter().map(|f| format!("\"{}\"", dir.0.join(f).display())).collect();
-        let text = format!(
-            "name: bench\nthreads: {threads}\nchannel_capacity: {cap}\nimage: {{size: {size}}}\nstages:\n  \
-             read: {{kind: parquet, files: [{list}], to: weights}}\n  \
-             weights: {{kind: weighting, scheme: briggs, to: grid}}\n  \
-             grid: {{kind: gridder, to: step}}\n  \
-             step: {{kind: clean, major_cycles: {cycles}, to: update}}\n  \
-             update: {{kind: residual, to: step, done: write}}\n  \
-             write: {{kind: writer, prefix: \"{out}/{{job}}\"}}\n",
-            threads = p.threads,
-            cap = p.channel_capacity,
-            size = p.size,
-            list = list.join(", "),
-            cycles = p.major_cycles,
-            out = dir.0.join("out").display(),
-        );
-        PipelineConfig::parse(&text, &dir.0.join("bench.yaml"), &[])
+    let out_prefix = dir.0.join("out").join("{job}").to_string_lossy().into_owned();
+    let pipeline = |files: &[String]| -> Result<PipelineSpec> {
+        let list: Vec<String> = files.iter().map(|f| dir.0.join(f).to_string_lossy().into_owned()).collect();
+        let stage = |name: &str, params: serde_json::Value| StageSpec::new(name, serde_yaml::to_value(params).expect("JSON is YAML"));
+        let stages = vec![
+            stage("read", json!({"kind": "parquet", "files": list})).to("weights"),
+            stage("weights", json!({"kind": "weighting", "scheme": "briggs"})).to("grid"),
+            stage("grid", json!({"kind": "gridder"})).to("step"),
+            stage("step", json!({"kind": "clean", "major_cycles": p.major_cycles})).to("update"),
+            stage("update", json!({"kind": "residual"})).to("step").done("write"),
+            stage("write", json!({"kind": "writer", "prefix": out_prefix})),
+        ];
+        let mut spec = PipelineSpec::new("bench", ImageConfig { size: p.size, superresolution: None, pixel_arcsec: None }, stages)?;
+        spec.threads = p.threads;
+        spec.channel_capacity = p.channel_capacity;
+        Ok(spec)
     };
+    let engine = crate::Engine::new(crate::EngineOptions { threads: p.threads, onnx_runtime: None })?;
     let cancel = Arc::new(AtomicBool::new(false));
     let add = |into: &mut std::collections::BTreeMap<String, f64>, from: &std::collections::BTreeMap<String, f64>| {
         for (k, v) in from {
@@ -360,12 +363,12 @@ pub fn run_pipeline_bench(p: &PipelineBenchParams) -> Result<PipelineBenchReport
     };
     let all = pipeline(&files)?;
     let start = Instant::now();
-    let concurrent = runner::run(&all, cancel.clone())?;
+    let concurrent = engine.run(&all, Vec::new(), None, cancel.clone())?;
     let concurrent_seconds = start.elapsed().as_secs_f64();
     let mut sequential_stage_seconds = std::collections::BTreeMap::new();
     let start = Instant::now();
     for f in &files {
-        let report = runner::run(&pipeline(std::slice::from_ref(f))?, cancel.clone())?;
+        let report = engine.run(&pipeline(std::slice::from_ref(f))?, Vec::new(), None, cancel.clone())?;
         add(&mut sequential_stage_seconds, &report.stage_seconds);
     }
     let sequential_seconds = start.elapsed().as_secs_f64();

@@ -7,6 +7,7 @@
 pub mod allocator;
 pub mod bench;
 pub mod deconv;
+mod engine;
 pub mod error;
 pub mod fft2;
 pub mod fits;
@@ -18,8 +19,10 @@ pub mod metrics;
 pub mod ms;
 pub mod nufft;
 pub mod operator;
+pub mod parallel;
 pub mod pipeline;
 pub mod preview;
+pub mod products;
 pub mod progress;
 pub mod simulate;
 pub mod staging;
@@ -28,4 +31,11 @@ pub mod steps;
 pub mod vis;
 pub mod weighting;
 
+pub use engine::{is_ms, BackendChoice, Engine, EngineOptions, GraphOptimization, ImageParams, Observation, ProgressObserver, StepChoice};
 pub use error::{Error, Result};
+pub use pipeline::{
+    BuildContext, Built, Emit, ImageConfig, IterationMetrics, Job, KindFn, MemoryInput, PipelineSpec, Product, ProductSink, Progress,
+    Registry, Role, RunReport, Source, Stage, StageKind, StageSpec,
+};
+pub use products::{JobProducts, WriteOptions};
+pub use weighting::Weighting;

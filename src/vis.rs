@@ -885,6 +885,24 @@ impl VisTable {
     }
 }
 
+/// A visibility table as Arrow record batches of at most `batch_rows` rows, the observation
+/// metadata in the schema's metadata: what an Arrow IPC stream of the table carries, and what
+/// the in-memory source (`kind: arrow`) reads.
+pub fn to_record_batches(table: &VisTable, meta: &ObservationMeta, batch_rows: usize) -> Result<(SchemaRef, Vec<RecordBatch>)> {
+    let n = table.check_lengths()?;
+    let metadata = meta.to_pairs()?.into_iter().collect();
+    let schema = Arc::new(table.schema().with_metadata(metadata));
+    let batches = (0..n)
+        .step_by(batch_rows.max(1))
+        .map(|start| {
+            let rows = start..(start + batch_rows.max(1)).min(n);
+            RecordBatch::try_new(schema.clone(), table.columns(rows))
+                .map_err(|e| Error::parameter("table", format!("building a record batch: {e}")))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    Ok((schema, batches))
+}
+
 /// Writes a visibility table and its metadata as Parquet (zstd, row groups of about a
 /// million rows), replacing `path` atomically: the file is written to a temporary
 /// sibling, synced and renamed, and the temporary is removed on failure.

@@ -33,19 +33,6 @@ impl MsOptions {
             channels: self.channels.as_deref().map(|c| [c[0], c[1]]),
         }
     }
-
-    /// The options as the `ms` stage's YAML keys.
-    pub fn stage_keys(&self, stage: &mut serde_yaml::Value) {
-        let selection = self.selection();
-        let value = serde_yaml::to_value(&selection).expect("the selection serialises");
-        if let serde_yaml::Value::Mapping(map) = value {
-            for (k, v) in map {
-                if !v.is_null() {
-                    stage[k.as_str().expect("keys are strings")] = v;
-                }
-            }
-        }
-    }
 }
 
 /// Whether `path` is a MeasurementSet (else it is taken as Parquet).

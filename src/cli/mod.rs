@@ -3,6 +3,7 @@
 mod bench;
 mod convert;
 mod dirty;
+mod engine;
 mod image;
 mod info;
 mod metrics;

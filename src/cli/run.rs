@@ -1,8 +1,6 @@
 //! `r2d2 run` and `r2d2 validate`: a pipeline described in YAML.
 
-use r2d2_imaging::pipeline::config::PipelineConfig;
-use r2d2_imaging::pipeline::runner;
-use r2d2_imaging::Result;
+use r2d2_imaging::{PipelineSpec, Result};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -34,20 +32,27 @@ pub fn cancel_on_ctrl_c() -> Arc<AtomicBool> {
     cancel
 }
 
-pub fn run_pipeline(config: &PipelineConfig) -> Result<()> {
-    let report = runner::run(config, cancel_on_ctrl_c())?;
+/// Whether a stage of `spec` may run native ONNX Runtime.
+fn uses_onnx(spec: &PipelineSpec) -> bool {
+    spec.stages.iter().any(|s| s.kind == "onnx" && s.params.get("backend").and_then(|b| b.as_str()) != Some("tract"))
+}
+
+pub fn run_pipeline(spec: &PipelineSpec) -> Result<()> {
+    let (engine, _bar) = super::engine::engine(spec.threads, uses_onnx(spec))?;
+    let report = engine.run(spec, Vec::new(), None, cancel_on_ctrl_c())?;
     let split: Vec<String> = report.stage_seconds.iter().map(|(k, v)| format!("{k} {v:.2}s")).collect();
     log::info!("{} job(s) in {:.2} s ({})", report.jobs.len(), report.seconds, split.join(", "));
     Ok(())
 }
 
 pub fn run(args: RunArgs) -> Result<()> {
-    run_pipeline(&PipelineConfig::load(&args.pipeline, &args.set)?)
+    run_pipeline(&PipelineSpec::load(&args.pipeline, &args.set)?)
 }
 
 pub fn validate(args: ValidateArgs) -> Result<()> {
-    let config = PipelineConfig::load(&args.pipeline, &args.set)?;
-    runner::validate(&config)?;
-    println!("{}: valid ({} stages)", args.pipeline.display(), config.stages.len());
+    let spec = PipelineSpec::load(&args.pipeline, &args.set)?;
+    let (engine, _bar) = super::engine::engine(spec.threads, uses_onnx(&spec))?;
+    engine.validate(&spec)?;
+    println!("{}: valid ({} stages)", args.pipeline.display(), spec.stages.len());
     Ok(())
 }

@@ -172,7 +172,8 @@ pub struct Nufft2d {
     fft_y: Arc<dyn Fft<f64>>,
     ifft_x: Arc<dyn Fft<f64>>,
     ifft_y: Arc<dyn Fft<f64>>,
-    pool: rayon::ThreadPool,
+    /// The shared pool of the plan's size (`crate::parallel`).
+    pool: std::sync::Arc<rayon::ThreadPool>,
     /// Instruction set of the gridding inner loops.
     simd: SimdLevel,
 }
@@ -242,10 +243,7 @@ impl Nufft2d {
         let correction_x = (0..nx).map(|i| 1.0 / psi_x[(i as isize - nx as isize / 2).unsigned_abs()]).collect();
         let correction_y = (0..ny).map(|i| 1.0 / psi_y[(i as isize - ny as isize / 2).unsigned_abs()]).collect();
 
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .map_err(|e| Error::parameter("threads", format!("cannot start {threads} threads: {e}")))?;
+        let pool = crate::parallel::shared_pool(threads)?;
 
         let mut planner = FftPlanner::new();
         let mut plan = Nufft2d {

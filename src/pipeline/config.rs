@@ -62,7 +62,7 @@ struct RawPipeline {
 
 /// One stage as written in the YAML: its name, kind, routing and its own parameters.
 #[derive(Clone, Debug)]
-pub struct StageConfig {
+pub struct StageSpec {
     pub name: String,
     pub kind: String,
     pub to: Option<String>,
@@ -73,7 +73,7 @@ pub struct StageConfig {
 
 /// A parsed pipeline description.
 #[derive(Clone, Debug)]
-pub struct PipelineConfig {
+pub struct PipelineSpec {
     pub file: PathBuf,
     text: String,
     pub name: String,
@@ -81,17 +81,51 @@ pub struct PipelineConfig {
     pub channel_capacity: usize,
     pub image: ImageConfig,
     /// Stages in file order.
-    pub stages: Vec<StageConfig>,
+    pub stages: Vec<StageSpec>,
 }
 
-impl PipelineConfig {
+impl StageSpec {
+    /// A stage from its parameters, a mapping with its `kind` (as it would be written in YAML).
+    pub fn new(name: impl Into<String>, params: Value) -> StageSpec {
+        let mut params = params;
+        let kind = params.as_mapping_mut().and_then(|m| m.remove("kind")).and_then(|k| k.as_str().map(str::to_string)).unwrap_or_default();
+        StageSpec { name: name.into(), kind, to: None, done: None, params }
+    }
+
+    /// Where the stage's jobs go next.
+    pub fn to(mut self, stage: impl Into<String>) -> StageSpec {
+        self.to = Some(stage.into());
+        self
+    }
+
+    /// Where a residual update's jobs go when the imaging loop ends.
+    pub fn done(mut self, stage: impl Into<String>) -> StageSpec {
+        self.done = Some(stage.into());
+        self
+    }
+}
+
+impl PipelineSpec {
+    /// A pipeline built in code (no file: errors name the stage and key, without a line).
+    pub fn new(name: impl Into<String>, image: ImageConfig, stages: Vec<StageSpec>) -> Result<PipelineSpec> {
+        let name = name.into();
+        let file = PathBuf::from(format!("pipeline '{name}'"));
+        for stage in &stages {
+            if stage.kind.is_empty() {
+                return Err(located(&file, None, &format!("stage '{}' has no `kind`", stage.name)));
+            }
+        }
+        crate::limits::check_image_size(image.size).map_err(|m| located(&file, None, &format!("image.size = {}: {m}", image.size)))?;
+        Ok(PipelineSpec { file, text: String::new(), name, threads: 0, channel_capacity: 2, image, stages })
+    }
+
     /// Read `path` and apply `overrides` (`stage.key=value`, `image.key=value`, `threads=N`).
-    pub fn load(path: &Path, overrides: &[String]) -> Result<PipelineConfig> {
+    pub fn load(path: &Path, overrides: &[String]) -> Result<PipelineSpec> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
         Self::parse(&text, path, overrides)
     }
 
-    pub fn parse(text: &str, file: &Path, overrides: &[String]) -> Result<PipelineConfig> {
+    pub fn parse(text: &str, file: &Path, overrides: &[String]) -> Result<PipelineSpec> {
         check_nesting(text, file)?;
         // First pass on the text itself, so syntax and type errors carry line and column.
         let mut value: Value = serde_yaml::from_str(text).map_err(|e| yaml_error(file, &e))?;
@@ -128,12 +162,10 @@ impl PipelineConfig {
                     )),
                 }
             };
-            let kind = take("kind")?.ok_or_else(|| {
-                located(file, here, &format!("stage '{name}' has no `kind` (one of: {})", crate::stages::KINDS.join(", ")))
-            })?;
+            let kind = take("kind")?.ok_or_else(|| located(file, here, &format!("stage '{name}' has no `kind`")))?;
             let to = take("to")?;
             let done = take("done")?;
-            stages.push(StageConfig { name, kind, to, done, params: Value::Mapping(map) });
+            stages.push(StageSpec { name, kind, to, done, params: Value::Mapping(map) });
         }
         // Before any stage is built: a size or thread count this machine cannot take would
         // otherwise surface as an aborted allocation or a hang, not as an error about the key.
@@ -144,7 +176,7 @@ impl PipelineConfig {
         if capacity == 0 {
             return Err(located(file, None, "channel_capacity must be at least 1"));
         }
-        Ok(PipelineConfig {
+        Ok(PipelineSpec {
             file: file.to_path_buf(),
             text: text.to_string(),
             name: raw.name.unwrap_or_else(|| file.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()),
@@ -157,7 +189,7 @@ impl PipelineConfig {
 
     /// Deserialize a stage's parameters into its kind's config struct; errors name the file,
     /// line, column and key.
-    pub fn stage_params<T: DeserializeOwned>(&self, stage: &StageConfig) -> Result<T> {
+    pub fn stage_params<T: DeserializeOwned>(&self, stage: &StageSpec) -> Result<T> {
         serde_path_to_error::deserialize(stage.params.clone()).map_err(|e| {
             let message = e.inner().to_string();
             // serde names an unknown field in backticks; a type error has a path instead.
@@ -181,7 +213,7 @@ impl PipelineConfig {
         located(&self.file, locate(&self.text, stage, key), message)
     }
 
-    pub fn stage(&self, name: &str) -> Option<&StageConfig> {
+    pub fn stage(&self, name: &str) -> Option<&StageSpec> {
         self.stages.iter().find(|s| s.name == name)
     }
 }
@@ -324,7 +356,7 @@ mod tests {
         for open in ["[", "{a: "] {
             let text = format!("image: {{size: 16}}\nstages:\n  source: {}\n", open.repeat(50_000));
             let start = Instant::now();
-            let err = PipelineConfig::parse(&text, Path::new("deep.yaml"), &[]).unwrap_err().to_string();
+            let err = PipelineSpec::parse(&text, Path::new("deep.yaml"), &[]).unwrap_err().to_string();
             let seconds = start.elapsed().as_secs_f64();
             assert!(seconds < 1.0, "{open:?} x 50 000 took {seconds:.1} s to refuse");
             assert!(err.contains("deep.yaml") && err.contains("line 3") && err.contains("nested"), "{err}");
@@ -337,9 +369,9 @@ mod tests {
         let text = format!(
             "image: {{size: 16}}  # {many}\nstages:\n  source: {{kind: simulate, to: w}}\n  w: {{kind: writer, prefix: \"out{many}/{{job}}\"}}\n  x: 'it''s {many}'\n"
         );
-        let err = PipelineConfig::parse(&text, Path::new("ok.yaml"), &[]).err().map(|e| e.to_string()).unwrap_or_default();
+        let err = PipelineSpec::parse(&text, Path::new("ok.yaml"), &[]).err().map(|e| e.to_string()).unwrap_or_default();
         assert!(!err.contains("nested"), "{err}");
         let words = format!("image: {{size: 16}}\nname: a{many}\nstages:\n  source: {{kind: simulate, to: w}}\n  w: {{kind: writer}}\n");
-        PipelineConfig::parse(&words, Path::new("ok.yaml"), &[]).unwrap();
+        PipelineSpec::parse(&words, Path::new("ok.yaml"), &[]).unwrap();
     }
 }

@@ -2,8 +2,8 @@
 //! there is one source, every stage is reachable, and the only cycle allowed is the imaging
 //! loop (network step -> residual update -> network step).
 
-use super::config::PipelineConfig;
-use crate::stages::{role, Role};
+use super::config::PipelineSpec;
+use super::registry::{Registry, Role};
 use crate::Result;
 
 /// Edges of the checked graph, by stage index in file order.
@@ -16,18 +16,14 @@ pub struct Graph {
 }
 
 impl Graph {
-    pub fn build(config: &PipelineConfig) -> Result<Graph> {
+    pub fn build(registry: &Registry, config: &PipelineSpec) -> Result<Graph> {
         let names: Vec<&str> = config.stages.iter().map(|s| s.name.as_str()).collect();
         let mut roles = Vec::new();
+        let mut passes_on = Vec::new();
         for s in &config.stages {
-            let r = role(&s.kind).ok_or_else(|| {
-                config.stage_error(
-                    &s.name,
-                    Some("kind"),
-                    &format!("stages.{}.kind: unknown kind '{}' (one of: {})", s.name, s.kind, crate::stages::KINDS.join(", ")),
-                )
-            })?;
-            roles.push(r);
+            let kind = registry.kind_of(config, s)?;
+            roles.push(kind.role());
+            passes_on.push(kind.passes_on());
         }
         let resolve = |stage: &str, key: &str, target: &Option<String>| -> Result<Option<usize>> {
             match target {
@@ -48,7 +44,7 @@ impl Graph {
             done.push(resolve(&s.name, "done", &s.done)?);
             let err = |key: Option<&str>, msg: String| Err(config.stage_error(&s.name, key, &msg));
             match roles[i] {
-                Role::Sink if s.to.is_some() => return err(Some("to"), format!("stages.{}: a {} stage ends the pipeline and takes no `to`", s.name, s.kind)),
+                Role::Sink if s.to.is_some() && !passes_on[i] => return err(Some("to"), format!("stages.{}: a {} stage ends the pipeline and takes no `to`", s.name, s.kind)),
                 Role::Sink => {}
                 _ if s.to.is_none() => return err(None, format!("stages.{}: missing `to` (the stage its jobs go to next)", s.name)),
                 _ => {}
@@ -63,7 +59,7 @@ impl Graph {
         let sources: Vec<usize> = (0..roles.len()).filter(|&i| roles[i] == Role::Source).collect();
         let source = match sources.as_slice() {
             [one] => *one,
-            [] => return Err(crate::Error::input(&config.file, format!("no source stage (kinds: {})", crate::stages::SOURCE_KINDS.join(", ")))),
+            [] => return Err(crate::Error::input(&config.file, format!("no source stage (kinds: {})", registry.names_with_role(Role::Source).join(", ")))),
             [_, second, ..] => {
                 return Err(config.stage_error(&config.stages[*second].name, None, "only one source stage per pipeline"))
             }
@@ -86,7 +82,7 @@ impl Graph {
         self.roles[from] == Role::Residual && self.roles[to] == Role::Step && self.next[to] == Some(from)
     }
 
-    fn check_cycles(&self, config: &PipelineConfig) -> Result<()> {
+    fn check_cycles(&self, config: &PipelineSpec) -> Result<()> {
         // Depth-first search over the graph without loop back edges: any cycle left is wrong.
         let n = self.roles.len();
         let mut state = vec![0u8; n]; // 0 new, 1 on stack, 2 done
@@ -130,7 +126,24 @@ impl Graph {
         Ok(())
     }
 
-    fn check_reachable(&self, config: &PipelineConfig) -> Result<()> {
+    /// `reach[i][j]`: a job leaving stage `i` can come to stage `j` (loop edges included).
+    pub fn reach(&self) -> Vec<Vec<bool>> {
+        let n = self.roles.len();
+        (0..n)
+            .map(|i| {
+                let mut seen = vec![false; n];
+                let mut stack: Vec<usize> = [self.next[i], self.done[i]].into_iter().flatten().collect();
+                while let Some(j) = stack.pop() {
+                    if !std::mem::replace(&mut seen[j], true) {
+                        stack.extend([self.next[j], self.done[j]].into_iter().flatten());
+                    }
+                }
+                seen
+            })
+            .collect()
+    }
+
+    fn check_reachable(&self, config: &PipelineSpec) -> Result<()> {
         let mut seen = vec![false; self.roles.len()];
         let mut stack = vec![self.source];
         while let Some(i) = stack.pop() {

@@ -3,11 +3,22 @@
 //!
 //! A [`Job`] is one dataset being imaged; it flows source -> weighting -> gridder -> (network
 //! step <-> residual update)* -> writer. Stages implement [`Stage`] (or [`Source`] for the
-//! first one) and are registered by their YAML `kind` in `crate::stages`.
+//! first one); a [`Registry`] of [`StageKind`]s builds them by their YAML `kind`. The engine
+//! owns these contracts: the built-in kinds (`crate::stages`) plug into them, and so can an
+//! embedding program's.
 
 pub mod config;
 pub mod graph;
+pub mod io;
+pub mod registry;
 pub mod runner;
+pub mod stage;
+
+pub use config::{ImageConfig, PipelineSpec, StageSpec};
+pub use io::{MemoryInput, ProductSink};
+pub use registry::{BuildContext, Built, KindFn, Product, Registry, Role, StageKind};
+pub use runner::{Progress, RunReport};
+pub use stage::{Emit, Source, Stage};
 
 use crate::metrics;
 use crate::operator::{ImageGeometry, MeasurementOperator, PsfConvolution};
@@ -137,22 +148,3 @@ impl Job {
     }
 }
 
-/// Sends a job on one of the stage's ports.
-pub type Emit<'a> = dyn FnMut(Port, Job) -> Result<()> + 'a;
-
-/// A pipeline stage: takes one job at a time and emits it (transformed) on a port.
-pub trait Stage: Send {
-    fn process(&mut self, job: Job, emit: &mut Emit<'_>) -> Result<()>;
-}
-
-/// The first stage: produces jobs.
-pub trait Source: Send {
-    /// Produce every job, calling `emit` for each; stop early when `emit` fails or
-    /// `cancelled()` turns true.
-    fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()>;
-
-    /// The job being read when `produce` failed, to name it in the error.
-    fn current_job(&self) -> Option<String> {
-        None
-    }
-}

@@ -8,10 +8,10 @@
 //! job. A source error (an unreadable input) stops the reading but lets the jobs already in
 //! the pipeline finish, since they do not depend on it.
 
-use super::config::PipelineConfig;
+use super::config::PipelineSpec;
 use super::graph::Graph;
+use super::registry::{check_products, BuildContext, Built, Registry, Role, RunIo};
 use super::{Job, Port};
-use crate::stages::{build_stage, Built, Role};
 use crate::{Error, Result};
 use crossbeam_channel::{bounded, Receiver, RecvTimeoutError, Sender};
 use std::collections::BTreeMap;
@@ -32,27 +32,66 @@ pub struct RunReport {
 
 const POLL: Duration = Duration::from_millis(20);
 
+/// What the stages are doing, reported to the caller's observer as it happens (the CLI draws
+/// a progress bar from it; the runner draws nothing).
+#[derive(Clone, Debug)]
+pub enum Progress {
+    /// `stage` started on `job` (`iteration`: network steps done so far).
+    Working { stage: String, job: String, iteration: usize },
+    /// `stage` finished its job and waits for the next.
+    Idle { stage: String },
+    /// `job` reached the end of the pipeline.
+    Finished { job: String },
+}
+
 /// Check and build every stage without running anything (`r2d2 validate`).
-pub fn validate(config: &PipelineConfig) -> Result<Graph> {
-    let graph = Graph::build(config)?;
-    for stage in &config.stages {
-        build_stage(config, stage)?;
-    }
+pub fn validate(registry: &Registry, config: &PipelineSpec) -> Result<Graph> {
+    let graph = Graph::build(registry, config)?;
+    build_all(registry, config, &graph, &RunIo::validating())?;
     Ok(graph)
 }
 
-/// Run the pipeline to completion, or until `cancel` turns true.
-pub fn run(config: &PipelineConfig, cancel: Arc<AtomicBool>) -> Result<RunReport> {
-    let graph = Graph::build(config)?;
-    let mut built = Vec::new();
+/// Run the pipeline to completion, or until `cancel` turns true, reporting to `progress`.
+pub fn run(
+    registry: &Registry,
+    config: &PipelineSpec,
+    io: RunIo,
+    cancel: Arc<AtomicBool>,
+    progress: &(dyn Fn(&Progress) + Sync),
+) -> Result<RunReport> {
+    let graph = Graph::build(registry, config)?;
+    let built = build_all(registry, config, &graph, &io)?;
+    run_built(config, &graph, built, cancel, progress)
+}
+
+/// Checks what each stage consumes against what the stages before it produce, then builds
+/// every stage (in file order), telling each what the stages after it consume.
+fn build_all(registry: &Registry, config: &PipelineSpec, graph: &Graph, io: &RunIo) -> Result<Vec<Built>> {
+    let context = |stage, downstream| BuildContext { pipeline: config, stage, threads: config.threads, downstream, io };
+    let mut consumes = Vec::new();
+    let mut produces = Vec::new();
     for stage in &config.stages {
-        built.push(build_stage(config, stage)?);
+        let kind = registry.kind_of(config, stage)?;
+        consumes.push(kind.consumes(&context(stage, Vec::new()))?);
+        produces.push(kind.produces());
     }
-    run_built(config, &graph, built, cancel)
+    let downstream = check_products(config, &graph.reach(), &consumes, &produces)?;
+    config
+        .stages
+        .iter()
+        .zip(downstream)
+        .map(|(stage, downstream)| registry.kind_of(config, stage)?.build(&context(stage, downstream)))
+        .collect()
 }
 
 /// Runs stages already built (one per stage of `config`, in file order) along `graph`.
-fn run_built(config: &PipelineConfig, graph: &Graph, built: Vec<Built>, cancel: Arc<AtomicBool>) -> Result<RunReport> {
+fn run_built(
+    config: &PipelineSpec,
+    graph: &Graph,
+    built: Vec<Built>,
+    cancel: Arc<AtomicBool>,
+    progress: &(dyn Fn(&Progress) + Sync),
+) -> Result<RunReport> {
     let n = built.len();
     let cap = config.channel_capacity;
     let channels: Vec<(Sender<Job>, Receiver<Job>)> = (0..n).map(|_| bounded(cap)).collect();
@@ -81,14 +120,6 @@ fn run_built(config: &PipelineConfig, graph: &Graph, built: Vec<Built>, cancel: 
     let first_error: Mutex<Option<Error>> = Mutex::new(None);
     let finished: Mutex<Vec<String>> = Mutex::new(Vec::new());
     let totals: Mutex<BTreeMap<String, f64>> = Mutex::new(BTreeMap::new());
-    // What each stage is working on, shown beside the count of jobs written.
-    let activity: Mutex<Vec<String>> = Mutex::new(vec![String::new(); n]);
-    let bar = crate::progress::counter("job(s) written");
-    let show = |i: usize, what: String| {
-        let mut activity = activity.lock().expect("activity");
-        activity[i] = what;
-        bar.set_message(activity.iter().filter(|a| !a.is_empty()).cloned().collect::<Vec<_>>().join("  "));
-    };
     let start = Instant::now();
     let record = |e: Error| {
         let mut slot = first_error.lock().expect("error slot");
@@ -104,7 +135,7 @@ fn run_built(config: &PipelineConfig, graph: &Graph, built: Vec<Built>, cancel: 
     std::thread::scope(|scope| {
         for (i, stage) in built.into_iter().enumerate() {
             let (config, graph, channels, tokens, upstream, ended) = (config, graph, &channels, &tokens, &upstream, &ended);
-            let (cancel, fail, record, finished, totals, show, bar) = (&cancel, &fail, &record, &finished, &totals, &show, &bar);
+            let (cancel, fail, record, finished, totals) = (&cancel, &fail, &record, &finished, &totals);
             scope.spawn(move || {
                 // However this thread ends, the stages downstream must not wait for it.
                 let _ended = EndedOnExit { ended: &ended[i], cancel };
@@ -190,18 +221,19 @@ fn run_built(config: &PipelineConfig, graph: &Graph, built: Vec<Built>, cancel: 
                             }
                         };
                         let id = job.id.clone();
-                        show(i, if job.iteration > 0 { format!("{name}: {id} #{}", job.iteration) } else { format!("{name}: {id}") });
+                        progress(&Progress::Working { stage: name.clone(), job: id.clone(), iteration: job.iteration });
                         let began = Instant::now();
-                        let sink = graph.roles[i] == Role::Sink;
+                        // A sink passing its jobs on (the product sink before a writer) ends nothing.
+                        let sink = graph.roles[i] == Role::Sink && graph.next[i].is_none();
                         let mut emit = |port: Port, job: Job| send(port, job, began);
                         if let Err(e) = contain_stage_panic(|| stage.process(job, &mut emit)) {
                             break Err(stage_error(name, kind, &id, e));
                         }
-                        show(i, String::new());
+                        progress(&Progress::Idle { stage: name.clone() });
                         if sink {
                             *totals.lock().expect("totals").entry(name.clone()).or_insert(0.0) += began.elapsed().as_secs_f64();
-                            finished.lock().expect("finished list").push(id);
-                            bar.inc(1);
+                            finished.lock().expect("finished list").push(id.clone());
+                            progress(&Progress::Finished { job: id });
                         }
                     },
                 };
@@ -220,7 +252,6 @@ fn run_built(config: &PipelineConfig, graph: &Graph, built: Vec<Built>, cancel: 
         }
     });
 
-    bar.finish_and_clear();
     if let Some(e) = first_error.into_inner().expect("error slot") {
         return Err(e);
     }
@@ -293,14 +324,15 @@ mod tests {
     /// Runs PIPELINE with `source` and the weighting stage replaced; `None` if it has not
     /// ended after a minute.
     fn run_with(source: Box<dyn Source>, weights: Box<dyn Stage>) -> Option<Result<RunReport>> {
-        let config = PipelineConfig::parse(PIPELINE, Path::new("p.yaml"), &[]).unwrap();
+        let config = PipelineSpec::parse(PIPELINE, Path::new("p.yaml"), &[]).unwrap();
         let (tx, rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
-            let graph = Graph::build(&config).unwrap();
-            let mut built: Vec<Built> = config.stages.iter().map(|s| build_stage(&config, s).unwrap()).collect();
+            let registry = crate::stages::builtin();
+            let graph = Graph::build(&registry, &config).unwrap();
+            let mut built = build_all(&registry, &config, &graph, &RunIo::default()).unwrap();
             built[0] = Built::Source(source);
             built[1] = Built::Stage(weights);
-            let _ = tx.send(run_built(&config, &graph, built, Arc::new(AtomicBool::new(false))));
+            let _ = tx.send(run_built(&config, &graph, built, Arc::new(AtomicBool::new(false)), &|_| {}));
         });
         match rx.recv_timeout(Duration::from_secs(60)) {
             Ok(result) => Some(result),

@@ -3,7 +3,7 @@
 //! process upstream streams batches in. One job, or several with `split_by`.
 
 use crate::ingest::{emit_parts, read_parts, stem_id, IpcReader, SplitBy, Truth, STDIN};
-use crate::pipeline::config::{PipelineConfig, StageConfig};
+use crate::pipeline::config::{PipelineSpec, StageSpec};
 use crate::pipeline::{Job, Source};
 use crate::Result;
 use serde::Deserialize;
@@ -40,7 +40,7 @@ pub struct ArrowIpcSource {
 }
 
 impl ArrowIpcSource {
-    pub fn new(config: ArrowIpcConfig, pipeline: &PipelineConfig, stage: &StageConfig) -> Result<ArrowIpcSource> {
+    pub fn new(config: ArrowIpcConfig, pipeline: &PipelineSpec, stage: &StageSpec) -> Result<ArrowIpcSource> {
         let name = &stage.name;
         if config.path != STDIN && !Path::new(&config.path).exists() {
             return Err(pipeline.stage_error(

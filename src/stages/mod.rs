@@ -1,98 +1,109 @@
-//! Stage kinds, registered by their YAML `kind`. Each kind is one module with a config
-//! struct that rejects unknown keys, built by [`build_stage`].
+//! The built-in stage kinds, registered by their YAML `kind` in [`builtin`]. Each kind is one
+//! module with a config struct that rejects unknown keys; the engine's contracts
+//! (`crate::pipeline::registry`) say what a kind declares and how it is built.
 
 mod arrow_ipc;
 mod gridder;
+mod memory;
 #[cfg(feature = "ms")]
 mod ms;
 mod parquet;
+mod products;
 mod residual;
 mod simulate;
 mod step;
 mod weighting;
 mod writer;
 
-use crate::pipeline::config::{PipelineConfig, StageConfig};
-use crate::pipeline::{Source, Stage};
+use crate::pipeline::registry::{BuildContext, Built, KindFn, Product, Registry, Role};
 use crate::Result;
 
-/// What a stage does in the graph.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Role {
-    /// Produces jobs (no input).
-    Source,
-    /// One job in, one job out.
-    Transform,
-    /// A network step of the imaging loop.
-    Step,
-    /// The residual update closing the loop (`to`: back to the step, `done`: out).
-    Residual,
-    /// Ends the pipeline (writers).
-    Sink,
+const VISIBILITIES: &[Product] = &[Product::Visibilities];
+const IMAGING: &[Product] = &[Product::Imaging];
+
+/// A source kind: produces jobs with visibilities.
+const fn source(name: &'static str, build: fn(&BuildContext<'_>) -> Result<Built>) -> KindFn {
+    KindFn { name, role: Role::Source, consumes: &[], produces: VISIBILITIES, consumes_also: None, passes_on: false, build }
 }
 
-/// Every kind, with its role.
-const REGISTRY: &[(&str, Role)] = &[
-    ("simulate", Role::Source),
-    ("parquet", Role::Source),
-    ("arrow-ipc", Role::Source),
-    ("ms", Role::Source),
-    ("weighting", Role::Transform),
-    ("gridder", Role::Transform),
-    ("clean", Role::Step),
-    ("onnx", Role::Step),
-    ("native", Role::Step),
-    ("residual", Role::Residual),
-    ("writer", Role::Sink),
+/// A network step kind: improves the model of a gridded job.
+const fn step(name: &'static str, build: fn(&BuildContext<'_>) -> Result<Built>) -> KindFn {
+    KindFn { name, role: Role::Step, consumes: IMAGING, produces: &[Product::Model], consumes_also: None, passes_on: false, build }
+}
+
+/// Every built-in kind.
+const BUILTIN: &[KindFn] = &[
+    source("simulate", |c| Ok(Built::Source(Box::new(simulate::SimulateSource::new(c.params()?, c.image(), c.threads)?)))),
+    source("parquet", |c| Ok(Built::Source(Box::new(parquet::ParquetSource::new(c.params()?, c.pipeline, c.stage)?)))),
+    source("arrow-ipc", |c| Ok(Built::Source(Box::new(arrow_ipc::ArrowIpcSource::new(c.params()?, c.pipeline, c.stage)?)))),
+    source("arrow", |c| Ok(Built::Source(Box::new(memory::MemorySource::new(c.params()?, c)?)))),
+    #[cfg(feature = "ms")]
+    source("ms", |c| Ok(Built::Source(Box::new(ms::MsSource::new(c.params()?, c.pipeline, c.stage)?)))),
+    #[cfg(not(feature = "ms"))]
+    source("ms", |c| Err(c.error(Some("kind"), "kind 'ms': this r2d2 was built without the `ms` feature"))),
+    KindFn {
+        name: "weighting",
+        role: Role::Transform,
+        consumes: VISIBILITIES,
+        produces: &[Product::Weights],
+        consumes_also: None,
+        passes_on: false,
+        build: |c| Ok(Built::Stage(Box::new(weighting::WeightingStage::new(c.params()?, c.image())?))),
+    },
+    KindFn {
+        name: "gridder",
+        role: Role::Transform,
+        consumes: &[Product::Visibilities, Product::Weights],
+        produces: &[Product::Imaging, Product::Operator],
+        consumes_also: None,
+        passes_on: false,
+        // The operator (and the visibilities) stay only if a stage downstream consumes them.
+        build: |c| {
+            let keep_operator = c.consumed_downstream(Product::Operator);
+            Ok(Built::Stage(Box::new(gridder::GridderStage::new(c.params()?, c.threads, keep_operator)?)))
+        },
+    },
+    step("clean", |c| Ok(Built::Stage(Box::new(step::StepStage::clean(c.params()?)?)))),
+    // The series is checked against the pipeline (image size, network shapes): say where.
+    step("onnx", |c| {
+        let step = step::StepStage::onnx(c.params()?, c.image().size, c.threads).map_err(|e| c.error(Some("series"), e))?;
+        Ok(Built::Stage(Box::new(step)))
+    }),
+    step("native", |c| Ok(Built::Stage(Box::new(step::StepStage::native(c.params()?, c.image().size, c.name())?)))),
+    KindFn {
+        name: "residual",
+        role: Role::Residual,
+        consumes: &[Product::Imaging, Product::Model],
+        produces: &[],
+        consumes_also: Some(residual::consumes),
+        passes_on: false,
+        build: |c| Ok(Built::Stage(Box::new(residual::ResidualStage::new(c.params()?)?))),
+    },
+    KindFn {
+        name: "writer",
+        role: Role::Sink,
+        consumes: IMAGING,
+        produces: &[],
+        consumes_also: None,
+        passes_on: false,
+        build: |c| Ok(Built::Stage(Box::new(writer::WriterStage::new(c.params()?, c.pipeline, c.stage)?))),
+    },
+    KindFn {
+        name: "products",
+        role: Role::Sink,
+        consumes: IMAGING,
+        produces: &[],
+        consumes_also: None,
+        passes_on: true,
+        build: |c| Ok(Built::Stage(Box::new(products::ProductsStage::new(c.params()?, c)?))),
+    },
 ];
 
-pub const KINDS: &[&str] = &["simulate", "parquet", "arrow-ipc", "ms", "weighting", "gridder", "clean", "onnx", "native", "residual", "writer"];
-pub const SOURCE_KINDS: &[&str] = &["simulate", "parquet", "arrow-ipc", "ms"];
-
-pub fn role(kind: &str) -> Option<Role> {
-    REGISTRY.iter().find(|(k, _)| *k == kind).map(|(_, r)| *r)
-}
-
-/// A constructed stage, ready to run on its thread.
-pub enum Built {
-    Source(Box<dyn Source>),
-    Stage(Box<dyn Stage>),
-}
-
-/// Parse the stage's parameters and construct it (cheap: heavy work happens per job).
-pub fn build_stage(config: &PipelineConfig, stage: &StageConfig) -> Result<Built> {
-    let threads = config.threads;
-    Ok(match stage.kind.as_str() {
-        "simulate" => Built::Source(Box::new(simulate::SimulateSource::new(config.stage_params(stage)?, &config.image, threads)?)),
-        "parquet" => Built::Source(Box::new(parquet::ParquetSource::new(config.stage_params(stage)?, config, stage)?)),
-        "arrow-ipc" => Built::Source(Box::new(arrow_ipc::ArrowIpcSource::new(config.stage_params(stage)?, config, stage)?)),
-        #[cfg(feature = "ms")]
-        "ms" => Built::Source(Box::new(ms::MsSource::new(config.stage_params(stage)?, config, stage)?)),
-        #[cfg(not(feature = "ms"))]
-        "ms" => return Err(config.stage_error(&stage.name, Some("kind"), "kind 'ms': this r2d2 was built without the `ms` feature")),
-        "weighting" => Built::Stage(Box::new(weighting::WeightingStage::new(config.stage_params(stage)?, &config.image)?)),
-        "gridder" => {
-            // Keep the operator for the residual update only if one of them needs it.
-            let keep_operator = config.stages.iter().any(|s| s.kind == "residual" && residual::wants_nufft(&s.params));
-            Built::Stage(Box::new(gridder::GridderStage::new(config.stage_params(stage)?, threads, keep_operator)?))
-        }
-        "clean" => Built::Stage(Box::new(step::StepStage::clean(config.stage_params(stage)?)?)),
-        "onnx" => {
-            // The series is checked against the pipeline (image size, network shapes): say where.
-            let name = &stage.name;
-            let step = step::StepStage::onnx(config.stage_params(stage)?, config.image.size, threads)
-                .map_err(|e| config.stage_error(name, Some("series"), &format!("stages.{name}.series: {e}")))?;
-            Built::Stage(Box::new(step))
-        }
-        "native" => Built::Stage(Box::new(step::StepStage::native(config.stage_params(stage)?, config.image.size, &stage.name)?)),
-        "residual" => Built::Stage(Box::new(residual::ResidualStage::new(config.stage_params(stage)?)?)),
-        "writer" => Built::Stage(Box::new(writer::WriterStage::new(config.stage_params(stage)?, config, stage)?)),
-        other => {
-            return Err(config.stage_error(
-                &stage.name,
-                Some("kind"),
-                &format!("stages.{}.kind: unknown kind '{other}' (one of: {})", stage.name, KINDS.join(", ")),
-            ));
-        }
-    })
+/// A registry holding the built-in kinds.
+pub fn builtin() -> Registry {
+    let mut registry = Registry::new();
+    for kind in BUILTIN {
+        registry.register(KindFn { ..*kind }).expect("built-in kinds have distinct names");
+    }
+    registry
 }

@@ -4,7 +4,7 @@
 
 use crate::ingest::{emit_parts, read_parts, stem_id, SplitBy, TableReader, Truth};
 use crate::ms::{FieldSelector, MsReader, MsSelection};
-use crate::pipeline::config::{PipelineConfig, StageConfig};
+use crate::pipeline::config::{PipelineSpec, StageSpec};
 use crate::pipeline::{Job, Source};
 use crate::Result;
 use serde::Deserialize;
@@ -57,7 +57,7 @@ pub struct MsSource {
 }
 
 impl MsSource {
-    pub fn new(config: MsConfig, pipeline: &PipelineConfig, stage: &StageConfig) -> Result<MsSource> {
+    pub fn new(config: MsConfig, pipeline: &PipelineSpec, stage: &StageSpec) -> Result<MsSource> {
         let name = &stage.name;
         let error = |key: &str, message: String| pipeline.stage_error(name, Some(key), &format!("stages.{name}.{key}: {message}"));
         if !crate::ms::is_measurement_set(&config.path) {

@@ -3,7 +3,7 @@
 //! batch at a time.
 
 use crate::ingest::{emit_parts, read_parts, stem_id, SplitBy, Truth};
-use crate::pipeline::config::{PipelineConfig, StageConfig};
+use crate::pipeline::config::{PipelineSpec, StageSpec};
 use crate::pipeline::{Job, Source};
 use crate::vis::VisReader;
 use crate::Result;
@@ -42,7 +42,7 @@ pub struct ParquetSource {
 }
 
 impl ParquetSource {
-    pub fn new(config: ParquetConfig, pipeline: &PipelineConfig, stage: &StageConfig) -> Result<ParquetSource> {
+    pub fn new(config: ParquetConfig, pipeline: &PipelineSpec, stage: &StageSpec) -> Result<ParquetSource> {
         let name = &stage.name;
         let patterns = match config.files {
             Files::One(f) => vec![f],

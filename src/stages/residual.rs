@@ -5,6 +5,7 @@
 //! longer grows with the number of visibilities. `method: nufft` is the exact round trip
 //! through the kept visibilities (the reference's choice).
 
+use crate::pipeline::registry::{BuildContext, Product};
 use crate::pipeline::{Emit, Job, Port, Stage};
 use crate::{Error, Result};
 use serde::Deserialize;
@@ -35,9 +36,11 @@ fn tolerance() -> f64 {
     1e-4
 }
 
-/// Whether a residual stage's raw parameters ask for the NUFFT method.
-pub fn wants_nufft(params: &serde_yaml::Value) -> bool {
-    params.get("method").and_then(|m| m.as_str()) == Some("nufft")
+/// What the stage needs besides the imaging state: the NUFFT method runs the measurement
+/// operator, which the gridder then keeps.
+pub fn consumes(ctx: &BuildContext<'_>) -> Result<Vec<Product>> {
+    let config: ResidualConfig = ctx.params()?;
+    Ok(if config.method == Method::Nufft { vec![Product::Operator] } else { Vec::new() })
 }
 
 pub struct ResidualStage {

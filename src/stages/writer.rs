@@ -5,20 +5,11 @@
 //! A job's products appear together or not at all: they are written into a staging
 //! directory and moved into place only when all are complete (`crate::staging`).
 
-use crate::fits::{write_image, BrightnessUnit, ImageWcs};
-use crate::pipeline::config::{PipelineConfig, StageConfig};
+use crate::pipeline::config::{PipelineSpec, StageSpec};
 use crate::pipeline::{Emit, Job, Stage};
-use crate::preview::{write_png, PreviewScale};
-use crate::staging::Staging;
+use crate::products::{JobProducts, WriteOptions};
 use crate::{Error, Result};
-use arrow::array::{ArrayRef, Float64Array, RecordBatch, UInt32Array};
-use arrow::datatypes::{DataType, Field, Schema};
-use parquet::arrow::ArrowWriter;
-use parquet::file::metadata::KeyValue;
-use parquet::file::properties::WriterProperties;
 use serde::Deserialize;
-use std::path::{Path, PathBuf};
-use std::sync::Arc;
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -50,19 +41,14 @@ fn yes() -> bool {
     true
 }
 
-/// Previews' dynamic range when neither the configuration nor the data give one: deep enough
-/// to show the PSF's first sidelobes and the brighter emission of typical images.
-const DEFAULT_PREVIEW_DYNAMIC_RANGE: f64 = 1e3;
-
 pub struct WriterStage {
     prefix: String,
-    previews: bool,
-    preview_dynamic_range: Option<f64>,
+    options: WriteOptions,
     model_column: Option<String>,
 }
 
 impl WriterStage {
-    pub fn new(config: WriterConfig, pipeline: &PipelineConfig, stage: &StageConfig) -> Result<WriterStage> {
+    pub fn new(config: WriterConfig, pipeline: &PipelineSpec, stage: &StageSpec) -> Result<WriterStage> {
         let name = &stage.name;
         let prefix_error = |m: String| pipeline.stage_error(name, Some("prefix"), &format!("stages.{name}.prefix: {m}"));
         // Placeholders first: a typo would otherwise be written literally into file names.
@@ -85,96 +71,20 @@ impl WriterStage {
         }
         Ok(WriterStage {
             prefix: config.prefix,
-            previews: config.previews,
-            preview_dynamic_range: config.preview_dynamic_range,
+            options: WriteOptions { previews: config.previews, preview_dynamic_range: config.preview_dynamic_range },
             model_column: config.model_column,
         })
     }
-
-    fn preview_scale(&self, job: &Job) -> PreviewScale {
-        let known = self.preview_dynamic_range.or(job.truth_dynamic_range).or(job.meta.dynamic_range);
-        let dynamic_range = known.filter(|dr| *dr > 1.0 && dr.is_finite()).unwrap_or(DEFAULT_PREVIEW_DYNAMIC_RANGE);
-        PreviewScale::Log { dynamic_range }
-    }
-}
-
-/// Every product a writer makes for a prefix (`<prefix>-<suffix>`), to retire those of an
-/// earlier run that this one does not make.
-fn product_suffixes() -> Vec<String> {
-    let images = ["dirty", "psf", "model", "residual", "image"];
-    let mut suffixes: Vec<String> = images.iter().flat_map(|i| [format!("{i}.fits"), format!("{i}.png")]).collect();
-    suffixes.extend(["metrics.json".to_string(), "metrics.parquet".to_string()]);
-    suffixes
 }
 
 impl Stage for WriterStage {
     fn process(&mut self, job: Job, _emit: &mut Emit<'_>) -> Result<()> {
-        let im = job.imaging.as_ref().ok_or_else(|| Error::parameter("writer", "the job was never gridded: nothing to write"))?;
-        let prefix = PathBuf::from(self.prefix.replace("{job}", &job.id));
-        let dir = prefix.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).to_path_buf();
-        let stem = prefix.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| job.id.clone());
-        let target = |suffix: &str| dir.join(format!("{stem}-{suffix}"));
-        let mut staging = Staging::new(&dir)?;
-        let n = im.geometry.size;
-        let wcs = ImageWcs {
-            ra_deg: job.meta.phase_centre_ra_deg,
-            dec_deg: job.meta.phase_centre_dec_deg,
-            pixel_deg: im.geometry.pixel_rad.to_degrees(),
-            freq_hz: im.frequency_hz,
-            bandwidth_hz: None,
-        };
-        let beam = im.beam.as_ref();
-        let extra = [("TELESCOP", job.meta.telescope.clone()), ("R2D2ITER", job.iteration.to_string())];
-        let mut products: Vec<(&str, &[f64], BrightnessUnit)> = vec![
-            ("dirty", &im.dirty, BrightnessUnit::JyPerBeam),
-            ("psf", &im.psf, BrightnessUnit::JyPerBeam),
-        ];
-        if job.iteration > 0 {
-            products.push(("model", &im.model, BrightnessUnit::JyPerPixel));
-            products.push(("residual", &im.residual, BrightnessUnit::JyPerBeam));
-        }
-        let restored;
-        if job.step_kind.as_deref().is_some_and(|k| k.ends_with("+restore")) {
-            if let Some(beam) = beam {
-                let smooth = crate::deconv::restore(&im.model, n, beam, im.geometry.pixel_rad);
-                restored = smooth.iter().zip(&im.residual).map(|(m, r)| m + r).collect::<Vec<f64>>();
-                products.push(("image", &restored, BrightnessUnit::JyPerBeam));
-            }
-        }
-        let scale = self.preview_scale(&job);
-        for (name, data, unit) in &products {
-            staging.write(target(&format!("{name}.fits")), |path| write_image(path, data, n, n, &wcs, *unit, beam, &extra))?;
-            if self.previews {
-                let title = format!("{} {name} ({})", job.id, unit.as_fits());
-                staging.write(target(&format!("{name}.png")), |path| write_png(path, data, n, n, scale, &title))?;
-            }
-        }
-        let metrics = serde_json::json!({
-            "job": job.id,
-            "iterations": job.metrics,
-            "stage_seconds": job.stage_seconds,
-            "image_size": n,
-            "pixel_arcsec": im.geometry.pixel_arcsec(),
-        });
-        let text = serde_json::to_string_pretty(&metrics).expect("metrics serialise");
-        staging.write(target("metrics.json"), |path| std::fs::write(path, &text).map_err(|e| Error::io(path, e)))?;
-        staging.write(target("metrics.parquet"), |path| write_metrics_parquet(path, &job, n, im.geometry.pixel_arcsec()))?;
-        for suffix in product_suffixes() {
-            let earlier = target(&suffix);
-            if !staging.targets().any(|to| to == earlier) {
-                staging.retire(earlier);
-            }
-        }
-        let count = staging.targets().count();
+        let staged = JobProducts::from_job(&job)?.stage(&self.prefix, &self.options)?;
         // Before the products move into place: a failed model write leaves neither.
         if let Some(column) = &self.model_column {
             write_model(&job, column)?;
         }
-        for removed in staging.commit()? {
-            log::info!("job {}: removed {}, which an earlier run made and this one does not", job.id, removed.display());
-        }
-        log::info!("job {}: wrote {count} files to {}-*", job.id, dir.join(&stem).display());
-        Ok(())
+        staged.commit(&job.id)
     }
 }
 
@@ -186,50 +96,4 @@ fn write_model(job: &Job, column: &str) -> Result<()> {
 #[cfg(not(feature = "ms"))]
 fn write_model(_job: &Job, _column: &str) -> Result<()> {
     Err(Error::parameter("model_column", "this r2d2 was built without the `ms` feature (MeasurementSets)"))
-}
-
-/// `<prefix>-metrics.parquet`: one row per iteration (`iteration`, `residual_ratio`,
-/// `step_seconds`, `residual_seconds`, and `snr`, `logsnr`, null without a truth); the job,
-/// image size, pixel size and seconds per stage (a JSON object) as key-value metadata, since
-/// they are one value per job rather than per iteration. Written into the staging directory,
-/// which is what makes it appear whole or not at all.
-fn write_metrics_parquet(path: &Path, job: &Job, size: usize, pixel_arcsec: f64) -> Result<()> {
-    let rows = &job.metrics;
-    let float = |values: Vec<Option<f64>>| Arc::new(Float64Array::from(values)) as ArrayRef;
-    let column = |f: fn(&crate::pipeline::IterationMetrics) -> Option<f64>| float(rows.iter().map(f).collect());
-    let iterations = Arc::new(UInt32Array::from(rows.iter().map(|m| m.iteration as u32).collect::<Vec<u32>>())) as ArrayRef;
-    let fields = [
-        Field::new("iteration", DataType::UInt32, false),
-        Field::new("residual_ratio", DataType::Float64, false),
-        Field::new("step_seconds", DataType::Float64, false),
-        Field::new("residual_seconds", DataType::Float64, false),
-        Field::new("snr", DataType::Float64, true),
-        Field::new("logsnr", DataType::Float64, true),
-    ];
-    let columns = vec![
-        iterations,
-        column(|m| Some(m.residual_ratio)),
-        column(|m| Some(m.step_seconds)),
-        column(|m| Some(m.residual_seconds)),
-        column(|m| m.snr),
-        column(|m| m.logsnr),
-    ];
-    let io_error = |e: &dyn std::fmt::Display| Error::io(path, std::io::Error::other(format!("writing metrics Parquet: {e}")));
-    let schema = Arc::new(Schema::new(fields.to_vec()));
-    let batch = RecordBatch::try_new(schema.clone(), columns).map_err(|e| io_error(&e))?;
-    let stage_seconds = serde_json::to_string(&job.stage_seconds).expect("stage seconds serialise");
-    let metadata = [
-        ("job", job.id.clone()),
-        ("image_size", size.to_string()),
-        ("pixel_arcsec", pixel_arcsec.to_string()),
-        ("stage_seconds", stage_seconds),
-    ];
-    let properties = WriterProperties::builder()
-        .set_key_value_metadata(Some(metadata.into_iter().map(|(k, v)| KeyValue::new(k.to_string(), v)).collect()))
-        .build();
-    let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
-    let mut writer = ArrowWriter::try_new(file, schema, Some(properties)).map_err(|e| io_error(&e))?;
-    writer.write(&batch).map_err(|e| io_error(&e))?;
-    writer.close().map_err(|e| io_error(&e))?;
-    Ok(())
 }

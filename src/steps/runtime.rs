@@ -9,7 +9,7 @@
 use crate::{Error, Result};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
-use std::sync::OnceLock;
+use std::sync::{Mutex, OnceLock};
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -158,10 +158,35 @@ fn glob_library(pattern: &str) -> Option<PathBuf> {
     found.pop()
 }
 
+/// The ONNX Runtime library the embedding program chose (`EngineOptions::onnx_runtime`).
+static ORT_LIBRARY: Mutex<Option<PathBuf>> = Mutex::new(None);
+
+/// Sets the native ONNX Runtime library `onnx` steps load. A process loads one: another
+/// library after the first was loaded is refused.
+pub fn use_onnx_runtime(library: &Path) -> Result<()> {
+    if let Some(Ok((loaded, _))) = ORT_ENV.get() {
+        if loaded != library {
+            return Err(Error::parameter(
+                "onnx_runtime",
+                format!("{}: this process loaded {} already, and ONNX Runtime cannot be loaded twice", library.display(), loaded.display()),
+            ));
+        }
+    }
+    if !library.is_file() {
+        return Err(Error::input(library, "the ONNX Runtime library is not a file"));
+    }
+    *ORT_LIBRARY.lock().expect("ONNX Runtime library") = Some(library.to_path_buf());
+    Ok(())
+}
+
 fn ort_environment() -> std::result::Result<&'static (PathBuf, ort::environment::Environment), String> {
     ORT_ENV
         .get_or_init(|| {
-            let library = find_onnxruntime()?;
+            let chosen = ORT_LIBRARY.lock().expect("ONNX Runtime library").clone();
+            let library = match chosen {
+                Some(library) => library,
+                None => find_onnxruntime()?,
+            };
             let builder = ort::init_from(&library).map_err(|e| format!("{}: {e}", library.display()))?;
             let env = builder.with_name("r2d2").build().map_err(|e| format!("{}: {e}", library.display()))?;
             Ok((library, env))

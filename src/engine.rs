@@ -1,0 +1,357 @@
+//! The embedding API: an [`Engine`] holds the stage registry and the run-wide settings (the
+//! thread pool's size, the ONNX Runtime library), loads and checks pipeline specs, and runs
+//! them with in-memory inputs and a product sink as well as with files. [`Engine::image`] is
+//! the one-call path `r2d2 image` itself takes.
+//!
+#![doc = include_str!("../docs/embedding.md")]
+
+use crate::pipeline::registry::RunIo;
+use crate::pipeline::{runner, MemoryInput, PipelineSpec, ProductSink, Progress, Registry, RunReport, StageSpec};
+use crate::products::JobProducts;
+use crate::weighting::Weighting;
+use crate::{Error, Result};
+use serde_json::json;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::{Arc, Mutex};
+
+/// Run-wide settings, fixed when the engine is made.
+#[derive(Clone, Debug, Default)]
+pub struct EngineOptions {
+    /// Threads of the shared pool that numerical work runs on (0: all cores). A pipeline's
+    /// own `threads` key takes precedence for its run.
+    pub threads: usize,
+    /// The native ONNX Runtime library (`libonnxruntime.so.*`) for `onnx` steps; without one
+    /// they run on tract (pure Rust). The library is loaded once per process.
+    pub onnx_runtime: Option<PathBuf>,
+}
+
+/// Observer of a run's progress (the CLI draws its progress bar from it).
+pub type ProgressObserver = dyn Fn(&Progress) + Send + Sync;
+
+/// The imaging engine.
+pub struct Engine {
+    registry: Registry,
+    options: EngineOptions,
+    progress: Option<Box<ProgressObserver>>,
+    cancel: Arc<AtomicBool>,
+}
+
+impl Engine {
+    /// An engine with the built-in stage kinds.
+    pub fn new(options: EngineOptions) -> Result<Engine> {
+        crate::limits::check_threads(options.threads).map_err(|m| Error::parameter("threads", m))?;
+        crate::parallel::size_shared_pool(options.threads)?;
+        if let Some(library) = &options.onnx_runtime {
+            crate::steps::runtime::use_onnx_runtime(library)?;
+        }
+        Ok(Engine { registry: crate::stages::builtin(), options, progress: None, cancel: Arc::new(AtomicBool::new(false)) })
+    }
+
+    pub fn options(&self) -> &EngineOptions {
+        &self.options
+    }
+
+    pub fn registry(&self) -> &Registry {
+        &self.registry
+    }
+
+    /// To register stage kinds of the embedding program's own.
+    pub fn registry_mut(&mut self) -> &mut Registry {
+        &mut self.registry
+    }
+
+    /// Reports each run's progress to `observer`.
+    pub fn with_progress(mut self, observer: impl Fn(&Progress) + Send + Sync + 'static) -> Engine {
+        self.progress = Some(Box::new(observer));
+        self
+    }
+
+    /// Stops [`Engine::image`] at the next job boundary when `cancel` turns true.
+    pub fn with_cancel(mut self, cancel: Arc<AtomicBool>) -> Engine {
+        self.cancel = cancel;
+        self
+    }
+
+    /// The flag that stops [`Engine::image`] (and runs given it) at the next job boundary.
+    pub fn cancel_flag(&self) -> Arc<AtomicBool> {
+        self.cancel.clone()
+    }
+
+    /// Parses a pipeline written in YAML; `file` names it in errors (which carry line and
+    /// column), `overrides` are `stage.key=value` settings as `r2d2 run --set` takes them.
+    pub fn load_yaml(&self, text: &str, file: impl AsRef<Path>, overrides: &[String]) -> Result<PipelineSpec> {
+        PipelineSpec::parse(text, file.as_ref(), overrides)
+    }
+
+    /// Reads and parses a pipeline file.
+    pub fn load_file(&self, path: impl AsRef<Path>, overrides: &[String]) -> Result<PipelineSpec> {
+        PipelineSpec::load(path.as_ref(), overrides)
+    }
+
+    /// Checks the graph and builds every stage without running anything.
+    pub fn validate(&self, spec: &PipelineSpec) -> Result<()> {
+        runner::validate(&self.registry, &self.with_threads(spec)).map(|_| ())
+    }
+
+    /// Runs `spec` to completion (or until `cancel` turns true). An `arrow` source reads
+    /// `inputs`; a `products` stage delivers each finished job to `sink`.
+    pub fn run(
+        &self,
+        spec: &PipelineSpec,
+        inputs: Vec<MemoryInput>,
+        sink: Option<Box<dyn ProductSink>>,
+        cancel: Arc<AtomicBool>,
+    ) -> Result<RunReport> {
+        let spec = self.with_threads(spec);
+        let progress: &(dyn Fn(&Progress) + Sync) = match &self.progress {
+            Some(observer) => observer.as_ref(),
+            None => &|_| {},
+        };
+        runner::run(&self.registry, &spec, RunIo::new(inputs, sink), cancel, progress)
+    }
+
+    /// The spec with the engine's thread count where it sets none.
+    fn with_threads(&self, spec: &PipelineSpec) -> PipelineSpec {
+        let mut spec = spec.clone();
+        if spec.threads == 0 {
+            spec.threads = self.options.threads;
+        }
+        spec
+    }
+
+    /// Images one observation with the default pipeline (weighting, gridder, the step, the
+    /// residual update) and returns its products; with `params.write`, also writes them as
+    /// `r2d2 image` does.
+    pub fn image(&self, obs: impl Into<Observation>, params: &ImageParams) -> Result<JobProducts> {
+        let obs = obs.into();
+        let (spec, inputs) = image_spec(obs, params)?;
+        let delivered: Arc<Mutex<Vec<JobProducts>>> = Arc::default();
+        let into = delivered.clone();
+        let sink = move |products: JobProducts| -> Result<()> {
+            into.lock().expect("products").push(products);
+            Ok(())
+        };
+        self.run(&spec, inputs, Some(Box::new(sink)), self.cancel.clone())?;
+        let mut delivered = std::mem::take(&mut *delivered.lock().expect("products"));
+        match delivered.len() {
+            1 => Ok(delivered.remove(0)),
+            n => Err(Error::parameter("observation", format!("made {n} jobs where one was expected"))),
+        }
+    }
+}
+
+/// An observation for [`Engine::image`]: a file (Parquet, Arrow IPC, a MeasurementSet) or
+/// record batches in memory.
+pub enum Observation {
+    Path(PathBuf),
+    Batches(MemoryInput),
+}
+
+impl From<PathBuf> for Observation {
+    fn from(path: PathBuf) -> Self {
+        Observation::Path(path)
+    }
+}
+
+impl From<&Path> for Observation {
+    fn from(path: &Path) -> Self {
+        Observation::Path(path.to_path_buf())
+    }
+}
+
+impl From<MemoryInput> for Observation {
+    fn from(input: MemoryInput) -> Self {
+        Observation::Batches(input)
+    }
+}
+
+/// The network step of [`Engine::image`].
+#[derive(Clone, Debug, PartialEq)]
+pub enum StepChoice {
+    /// The series trained for the image size (see `r2d2 models`).
+    Auto,
+    /// The built-in Hogbom CLEAN.
+    Clean,
+    /// A model series: its directory, or a name `r2d2 models` lists.
+    Series(PathBuf),
+    /// A native plugin library and its configuration (a YAML/JSON mapping).
+    Native { library: PathBuf, config: Option<serde_yaml::Value> },
+}
+
+pub use crate::steps::runtime::{BackendChoice, GraphOptimization};
+
+/// What [`Engine::image`] makes, with `r2d2 image`'s defaults.
+#[derive(Clone, Debug)]
+pub struct ImageParams {
+    /// Pixels per side.
+    pub size: usize,
+    /// Pixel = 1 / (superresolution x 2 max_uv), unless `pixel_arcsec` is given.
+    pub superresolution: f64,
+    pub pixel_arcsec: Option<f64>,
+    pub weighting: Weighting,
+    pub weighting_grid_factor: f64,
+    /// NUFFT accuracy and oversampling.
+    pub epsilon: f64,
+    pub oversampling: f64,
+    pub step: StepChoice,
+    /// CLEAN major cycles (default 5), the first networks of a series (default all), or a
+    /// plugin's steps (default 10).
+    pub iterations: Option<usize>,
+    /// Series only: inference backend, prefetching of the next network, graph optimisation.
+    pub backend: BackendChoice,
+    pub prefetch: bool,
+    pub graph_optimization: GraphOptimization,
+    /// Ground truth (FITS) for SNR/logSNR per iteration.
+    pub truth: Option<PathBuf>,
+    /// Also write the products at this prefix (`{job}`: the job id), as `r2d2 image --name`.
+    pub write: Option<String>,
+    /// MeasurementSet input: predict the model's visibilities into this column.
+    pub model_column: Option<String>,
+    /// MeasurementSet input: what to read (data column, field, windows, channels).
+    #[cfg(feature = "ms")]
+    pub ms: Option<crate::ms::MsSelection>,
+}
+
+impl Default for ImageParams {
+    fn default() -> Self {
+        ImageParams {
+            size: 512,
+            superresolution: 1.5,
+            pixel_arcsec: None,
+            weighting: Weighting::Briggs { robust: 0.0 },
+            weighting_grid_factor: crate::weighting::DEFAULT_GRID_FACTOR,
+            epsilon: 1e-6,
+            oversampling: 2.0,
+            step: StepChoice::Auto,
+            iterations: None,
+            backend: BackendChoice::Auto,
+            prefetch: true,
+            graph_optimization: GraphOptimization::Extended,
+            truth: None,
+            write: None,
+            model_column: None,
+            #[cfg(feature = "ms")]
+            ms: None,
+        }
+    }
+}
+
+/// The `r2d2 image` pipeline for `obs` and `params`, and the in-memory inputs it reads.
+fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, Vec<MemoryInput>)> {
+    let value = |v: serde_json::Value| serde_yaml::to_value(v).expect("JSON values are YAML values");
+    let mut inputs = Vec::new();
+    let mut read = match obs {
+        Observation::Batches(input) => {
+            inputs.push(input);
+            json!({"kind": "arrow"})
+        }
+        Observation::Path(path) if is_ms(&path) => ms_read(&path, params)?,
+        Observation::Path(path) => {
+            if params.model_column.is_some() {
+                return Err(Error::parameter("model-column", format!("{}: only a MeasurementSet input has a column to write the model into", path.display())));
+            }
+            let text = path.to_string_lossy().into_owned();
+            let is_ipc = matches!(path.extension().and_then(|e| e.to_str()), Some("arrow" | "arrows" | "ipc" | "feather"));
+            if is_ipc { json!({"kind": "arrow-ipc", "path": text}) } else { json!({"kind": "parquet", "files": text}) }
+        }
+    };
+    if let Some(truth) = &params.truth {
+        read["truth"] = json!(truth.to_string_lossy());
+    }
+    let (scheme, robust) = match params.weighting {
+        Weighting::Natural => ("natural", 0.0),
+        Weighting::Uniform => ("uniform", 0.0),
+        Weighting::Briggs { robust } => ("briggs", robust),
+    };
+    let mut stages = vec![
+        StageSpec::new("read", value(read)).to("weights"),
+        StageSpec::new("weights", value(json!({"kind": "weighting", "scheme": scheme, "robust": robust, "grid_factor": params.weighting_grid_factor}))).to("grid"),
+        StageSpec::new("grid", value(json!({"kind": "gridder", "epsilon": params.epsilon, "oversampling": params.oversampling}))).to("step"),
+        StageSpec::new("step", value(step_params(params)?)).to("update"),
+        StageSpec::new("update", value(json!({"kind": "residual", "method": "toeplitz"}))).to("step").done("products"),
+    ];
+    let products = StageSpec::new("products", value(json!({"kind": "products"})));
+    match &params.write {
+        Some(prefix) => {
+            stages.push(products.to("write"));
+            let mut write = json!({"kind": "writer", "prefix": prefix});
+            if let Some(column) = &params.model_column {
+                write["model_column"] = json!(column);
+            }
+            stages.push(StageSpec::new("write", value(write)));
+        }
+        None => stages.push(products),
+    }
+    let image = crate::pipeline::ImageConfig {
+        size: params.size,
+        superresolution: params.pixel_arcsec.is_none().then_some(params.superresolution),
+        pixel_arcsec: params.pixel_arcsec,
+    };
+    Ok((PipelineSpec::new("image", image, stages)?, inputs))
+}
+
+/// The step stage's parameters for `params.step`.
+fn step_params(params: &ImageParams) -> Result<serde_json::Value> {
+    Ok(match &params.step {
+        StepChoice::Clean => json!({"kind": "clean", "major_cycles": params.iterations.unwrap_or(5)}),
+        StepChoice::Auto | StepChoice::Series(_) => {
+            // `auto` is resolved by the step, which knows the image size.
+            let series = match &params.step {
+                StepChoice::Series(path) => crate::steps::series::resolve(path)?,
+                _ => PathBuf::from(crate::steps::series::AUTO_SERIES),
+            };
+            let backend = match params.backend {
+                BackendChoice::Auto => "auto",
+                BackendChoice::Ort => "ort",
+                BackendChoice::Tract => "tract",
+            };
+            let optimization = match params.graph_optimization {
+                GraphOptimization::Extended => "extended",
+                GraphOptimization::All => "all",
+            };
+            let mut step = json!({"kind": "onnx", "series": series.to_string_lossy(), "backend": backend, "graph_optimization": optimization});
+            if let Some(n) = params.iterations {
+                step["networks"] = json!(n);
+            }
+            if !params.prefetch {
+                step["prefetch"] = json!(false);
+            }
+            step
+        }
+        StepChoice::Native { library, config } => {
+            let mut step = json!({"kind": "native", "library": library.to_string_lossy(), "iterations": params.iterations.unwrap_or(10)});
+            if let Some(config) = config {
+                step["config"] = serde_json::to_value(config).map_err(|e| Error::parameter("plugin-config", e.to_string()))?;
+            }
+            step
+        }
+    })
+}
+
+/// Whether `path` is a MeasurementSet (a directory with a table), else a file.
+pub fn is_ms(path: &Path) -> bool {
+    #[cfg(feature = "ms")]
+    return crate::ms::is_measurement_set(path);
+    #[cfg(not(feature = "ms"))]
+    return path.join("table.dat").is_file();
+}
+
+#[cfg(feature = "ms")]
+fn ms_read(path: &Path, params: &ImageParams) -> Result<serde_json::Value> {
+    let mut read = match &params.ms {
+        Some(selection) => serde_json::to_value(selection).map_err(|e| Error::parameter("ms", e.to_string()))?,
+        None => json!({}),
+    };
+    if let Some(map) = read.as_object_mut() {
+        map.retain(|_, v| !v.is_null());
+    }
+    read["kind"] = json!("ms");
+    read["path"] = json!(path.to_string_lossy());
+    Ok(read)
+}
+
+#[cfg(not(feature = "ms"))]
+fn ms_read(path: &Path, _params: &ImageParams) -> Result<serde_json::Value> {
+    Err(Error::input(path, "a MeasurementSet, but this r2d2 was built without the `ms` feature"))
+}

@@ -1,0 +1,285 @@
+//! A finished job's products as arrays ([`JobProducts`]): what the product sink hands an
+//! embedding program, and what the writer stage writes (FITS named like WSClean's, a PNG
+//! preview beside each, the per-iteration metrics as JSON and Parquet), all or nothing.
+
+use crate::fits::{write_image, Beam, BrightnessUnit, ImageWcs};
+use crate::pipeline::{IterationMetrics, Job};
+use crate::preview::{write_png, PreviewScale};
+use crate::staging::Staging;
+use crate::{Error, Result};
+use arrow::array::{ArrayRef, Float64Array, RecordBatch, UInt32Array};
+use arrow::datatypes::{DataType, Field, Schema};
+use parquet::arrow::ArrowWriter;
+use parquet::file::metadata::KeyValue;
+use parquet::file::properties::WriterProperties;
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// One finished job's images and figures. Images are `size x size` float32, row-major in FITS
+/// storage order (`data[y * size + x]`, row 0 at the bottom: as astropy reads the FITS files).
+#[derive(Clone, Debug)]
+pub struct JobProducts {
+    pub id: String,
+    pub size: usize,
+    /// Dirty image (Jy/beam) and PSF (peak 1).
+    pub dirty: Vec<f32>,
+    pub psf: Vec<f32>,
+    /// Final estimate (Jy/pixel) and its residual dirty image (Jy/beam); `None` when no
+    /// network step ran.
+    pub model: Option<Vec<f32>>,
+    pub residual: Option<Vec<f32>>,
+    /// Restored image (model convolved with the beam, plus residual), for steps that
+    /// restore (CLEAN) when a beam could be fitted.
+    pub image: Option<Vec<f32>>,
+    /// The FITS header keywords every product shares (celestial WCS, frequency axis, beam,
+    /// telescope, iterations), as key/value text; each file adds its BUNIT.
+    pub header: Vec<(String, String)>,
+    /// Figures per iteration (residual ratio, seconds, SNR/logSNR with a truth).
+    pub metrics: Vec<IterationMetrics>,
+    /// Seconds spent per stage on this job.
+    pub stage_seconds: BTreeMap<String, f64>,
+    /// Network steps run.
+    pub iterations: usize,
+    pub pixel_arcsec: f64,
+    pub wcs: ImageWcs,
+    pub beam: Option<Beam>,
+    pub telescope: String,
+    /// Dynamic range of the truth or of the simulated sky, when known (previews' scale).
+    pub dynamic_range: Option<f64>,
+}
+
+/// How [`JobProducts::write_with`] writes.
+#[derive(Clone, Debug)]
+pub struct WriteOptions {
+    /// A PNG preview (log scale, colour bar) beside each FITS product.
+    pub previews: bool,
+    /// Decades the previews show; default: the job's known dynamic range, else 1e3.
+    pub preview_dynamic_range: Option<f64>,
+}
+
+impl Default for WriteOptions {
+    fn default() -> Self {
+        WriteOptions { previews: true, preview_dynamic_range: None }
+    }
+}
+
+/// Previews' dynamic range when neither the options nor the data give one: deep enough to
+/// show the PSF's first sidelobes and the brighter emission of typical images.
+const DEFAULT_PREVIEW_DYNAMIC_RANGE: f64 = 1e3;
+
+/// Products staged for a prefix, not yet in place.
+pub(crate) struct Staged {
+    staging: Staging,
+    pub count: usize,
+    /// The prefix's directory and file-name part.
+    pub dir: PathBuf,
+    pub stem: String,
+}
+
+impl Staged {
+    /// Moves every product into place; earlier products this run does not make are removed.
+    pub fn commit(self, id: &str) -> Result<()> {
+        for removed in self.staging.commit()? {
+            log::info!("job {id}: removed {}, which an earlier run made and this one does not", removed.display());
+        }
+        log::info!("job {id}: wrote {} files to {}-*", self.count, self.dir.join(&self.stem).display());
+        Ok(())
+    }
+}
+
+impl JobProducts {
+    /// The products of a gridded job.
+    pub(crate) fn from_job(job: &Job) -> Result<JobProducts> {
+        let im = job.imaging.as_ref().ok_or_else(|| Error::parameter("writer", "the job was never gridded: nothing to write"))?;
+        let n = im.geometry.size;
+        let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
+        let stepped = job.iteration > 0;
+        let image = match (&im.beam, job.step_kind.as_deref().is_some_and(|k| k.ends_with("+restore"))) {
+            (Some(beam), true) => {
+                let smooth = crate::deconv::restore(&im.model, n, beam, im.geometry.pixel_rad);
+                Some(smooth.iter().zip(&im.residual).map(|(m, r)| (m + r) as f32).collect())
+            }
+            _ => None,
+        };
+        let wcs = ImageWcs {
+            ra_deg: job.meta.phase_centre_ra_deg,
+            dec_deg: job.meta.phase_centre_dec_deg,
+            pixel_deg: im.geometry.pixel_rad.to_degrees(),
+            freq_hz: im.frequency_hz,
+            bandwidth_hz: None,
+        };
+        let mut products = JobProducts {
+            id: job.id.clone(),
+            size: n,
+            dirty: f32s(&im.dirty),
+            psf: f32s(&im.psf),
+            model: stepped.then(|| f32s(&im.model)),
+            residual: stepped.then(|| f32s(&im.residual)),
+            image,
+            header: Vec::new(),
+            metrics: job.metrics.clone(),
+            stage_seconds: job.stage_seconds.clone(),
+            iterations: job.iteration,
+            pixel_arcsec: im.geometry.pixel_arcsec(),
+            wcs,
+            beam: im.beam,
+            telescope: job.meta.telescope.clone(),
+            dynamic_range: job.truth_dynamic_range.or(job.meta.dynamic_range),
+        };
+        products.header = products.header_cards();
+        Ok(products)
+    }
+
+    /// The keywords written into every product's header, as text.
+    fn header_cards(&self) -> Vec<(String, String)> {
+        let w = &self.wcs;
+        let mut cards: Vec<(&str, String)> = vec![
+            ("CTYPE1", "RA---SIN".into()),
+            ("CRPIX1", (self.size / 2 + 1).to_string()),
+            ("CRVAL1", w.ra_deg.to_string()),
+            ("CDELT1", (-w.pixel_deg).to_string()),
+            ("CUNIT1", "deg".into()),
+            ("CTYPE2", "DEC--SIN".into()),
+            ("CRPIX2", (self.size / 2 + 1).to_string()),
+            ("CRVAL2", w.dec_deg.to_string()),
+            ("CDELT2", w.pixel_deg.to_string()),
+            ("CUNIT2", "deg".into()),
+            ("EQUINOX", "2000".into()),
+            ("RADESYS", "FK5".into()),
+        ];
+        if let Some(freq) = w.freq_hz {
+            cards.extend([("CTYPE3", "FREQ".into()), ("CRPIX3", "1".into()), ("CRVAL3", freq.to_string()), ("CUNIT3", "Hz".into())]);
+            if let Some(bandwidth) = w.bandwidth_hz {
+                cards.push(("CDELT3", bandwidth.to_string()));
+            }
+        }
+        if let Some(beam) = &self.beam {
+            cards.extend([("BMAJ", beam.major_deg.to_string()), ("BMIN", beam.minor_deg.to_string()), ("BPA", beam.pa_deg.to_string())]);
+        }
+        cards.extend(self.extra_keywords());
+        cards.into_iter().map(|(k, v)| (k.to_string(), v)).collect()
+    }
+
+    /// The keywords beside the WCS that every product carries.
+    fn extra_keywords(&self) -> [(&'static str, String); 2] {
+        [("TELESCOP", self.telescope.clone()), ("R2D2ITER", self.iterations.to_string())]
+    }
+
+    /// Writes the products as `r2d2 image` does (`<prefix>-dirty.fits`, `-psf`, `-model`,
+    /// `-residual`, `-image` and a PNG preview of each, `-metrics.json`, `-metrics.parquet`),
+    /// all appearing together or not at all; products of an earlier run at this prefix that
+    /// this one does not make are removed. `{job}` in `prefix` is replaced by the job id.
+    pub fn write(&self, prefix: impl AsRef<Path>) -> Result<()> {
+        self.write_with(prefix, &WriteOptions::default())
+    }
+
+    pub fn write_with(&self, prefix: impl AsRef<Path>, options: &WriteOptions) -> Result<()> {
+        let prefix = prefix.as_ref().to_string_lossy().into_owned();
+        crate::fits::check_output_prefix(&prefix).map_err(|m| Error::parameter("prefix", m))?;
+        self.stage(&prefix, options)?.commit(&self.id)
+    }
+
+    /// Writes every product into a staging directory beside the prefix.
+    pub(crate) fn stage(&self, prefix: &str, options: &WriteOptions) -> Result<Staged> {
+        let prefix = PathBuf::from(prefix.replace("{job}", &self.id));
+        let dir = prefix.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).to_path_buf();
+        let stem = prefix.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| self.id.clone());
+        let target = |suffix: &str| dir.join(format!("{stem}-{suffix}"));
+        let mut staging = Staging::new(&dir)?;
+        let n = self.size;
+        let extra = self.extra_keywords();
+        let mut images: Vec<(&str, &[f32], BrightnessUnit)> =
+            vec![("dirty", &self.dirty, BrightnessUnit::JyPerBeam), ("psf", &self.psf, BrightnessUnit::JyPerBeam)];
+        if let (Some(model), Some(residual)) = (&self.model, &self.residual) {
+            images.push(("model", model, BrightnessUnit::JyPerPixel));
+            images.push(("residual", residual, BrightnessUnit::JyPerBeam));
+        }
+        if let Some(image) = &self.image {
+            images.push(("image", image, BrightnessUnit::JyPerBeam));
+        }
+        let known = options.preview_dynamic_range.or(self.dynamic_range);
+        let dynamic_range = known.filter(|dr| *dr > 1.0 && dr.is_finite()).unwrap_or(DEFAULT_PREVIEW_DYNAMIC_RANGE);
+        let scale = PreviewScale::Log { dynamic_range };
+        for (name, data, unit) in &images {
+            let data: Vec<f64> = data.iter().map(|&v| f64::from(v)).collect();
+            staging.write(target(&format!("{name}.fits")), |path| write_image(path, &data, n, n, &self.wcs, *unit, self.beam.as_ref(), &extra))?;
+            if options.previews {
+                let title = format!("{} {name} ({})", self.id, unit.as_fits());
+                staging.write(target(&format!("{name}.png")), |path| write_png(path, &data, n, n, scale, &title))?;
+            }
+        }
+        let metrics = serde_json::json!({
+            "job": self.id,
+            "iterations": self.metrics,
+            "stage_seconds": self.stage_seconds,
+            "image_size": n,
+            "pixel_arcsec": self.pixel_arcsec,
+        });
+        let text = serde_json::to_string_pretty(&metrics).expect("metrics serialise");
+        staging.write(target("metrics.json"), |path| std::fs::write(path, &text).map_err(|e| Error::io(path, e)))?;
+        staging.write(target("metrics.parquet"), |path| self.write_metrics_parquet(path))?;
+        for suffix in product_suffixes() {
+            let earlier = target(&suffix);
+            if !staging.targets().any(|to| to == earlier) {
+                staging.retire(earlier);
+            }
+        }
+        let count = staging.targets().count();
+        Ok(Staged { staging, count, dir, stem })
+    }
+
+    /// `<prefix>-metrics.parquet`: one row per iteration (`iteration`, `residual_ratio`,
+    /// `step_seconds`, `residual_seconds`, and `snr`, `logsnr`, null without a truth); the job,
+    /// image size, pixel size and seconds per stage (a JSON object) as key-value metadata,
+    /// since they are one value per job rather than per iteration.
+    fn write_metrics_parquet(&self, path: &Path) -> Result<()> {
+        let rows = &self.metrics;
+        let float = |values: Vec<Option<f64>>| Arc::new(Float64Array::from(values)) as ArrayRef;
+        let column = |f: fn(&IterationMetrics) -> Option<f64>| float(rows.iter().map(f).collect());
+        let iterations = Arc::new(UInt32Array::from(rows.iter().map(|m| m.iteration as u32).collect::<Vec<u32>>())) as ArrayRef;
+        let fields = [
+            Field::new("iteration", DataType::UInt32, false),
+            Field::new("residual_ratio", DataType::Float64, false),
+            Field::new("step_seconds", DataType::Float64, false),
+            Field::new("residual_seconds", DataType::Float64, false),
+            Field::new("snr", DataType::Float64, true),
+            Field::new("logsnr", DataType::Float64, true),
+        ];
+        let columns = vec![
+            iterations,
+            column(|m| Some(m.residual_ratio)),
+            column(|m| Some(m.step_seconds)),
+            column(|m| Some(m.residual_seconds)),
+            column(|m| m.snr),
+            column(|m| m.logsnr),
+        ];
+        let io_error = |e: &dyn std::fmt::Display| Error::io(path, std::io::Error::other(format!("writing metrics Parquet: {e}")));
+        let schema = Arc::new(Schema::new(fields.to_vec()));
+        let batch = RecordBatch::try_new(schema.clone(), columns).map_err(|e| io_error(&e))?;
+        let stage_seconds = serde_json::to_string(&self.stage_seconds).expect("stage seconds serialise");
+        let metadata = [
+            ("job", self.id.clone()),
+            ("image_size", self.size.to_string()),
+            ("pixel_arcsec", self.pixel_arcsec.to_string()),
+            ("stage_seconds", stage_seconds),
+        ];
+        let properties = WriterProperties::builder()
+            .set_key_value_metadata(Some(metadata.into_iter().map(|(k, v)| KeyValue::new(k.to_string(), v)).collect()))
+            .build();
+        let file = std::fs::File::create(path).map_err(|e| Error::io(path, e))?;
+        let mut writer = ArrowWriter::try_new(file, schema, Some(properties)).map_err(|e| io_error(&e))?;
+        writer.write(&batch).map_err(|e| io_error(&e))?;
+        writer.close().map_err(|e| io_error(&e))?;
+        Ok(())
+    }
+}
+
+/// Every product a writer makes for a prefix (`<prefix>-<suffix>`), to retire those of an
+/// earlier run that this one does not make.
+fn product_suffixes() -> Vec<String> {
+    let images = ["dirty", "psf", "model", "residual", "image"];
+    let mut suffixes: Vec<String> = images.iter().flat_map(|i| [format!("{i}.fits"), format!("{i}.png")]).collect();
+    suffixes.extend(["metrics.json".to_string(), "metrics.parquet".to_string()]);
+    suffixes
+}

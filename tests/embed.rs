@@ -1,0 +1,212 @@
+//! The engine embedded in a Rust program: observations handed in as Arrow record batches,
+//! products handed back as arrays, no file read or written for either; stage kinds of the
+//! program's own; the products it writes are those the file pipeline writes.
+
+use r2d2_imaging::imaging::{dirty_image, DirtyParams, PixelScale};
+use r2d2_imaging::nufft::NufftParams;
+use r2d2_imaging::simulate::observe::ObservationSpec;
+use r2d2_imaging::simulate::{simulate, SimulationOutput, SimulationRequest, SkyModel};
+use r2d2_imaging::vis::to_record_batches;
+use r2d2_imaging::{
+    BuildContext, Built, Emit, Engine, EngineOptions, ImageParams, Job, JobProducts, MemoryInput, Product, Role, Stage, StageKind,
+    StepChoice, Weighting,
+};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex};
+
+const SIZE: usize = 64;
+
+fn observation(seed: u64) -> SimulationOutput {
+    simulate(&SimulationRequest {
+        observation: ObservationSpec {
+            configurations: vec![('c', 1.0)],
+            dec_deg: 40.0,
+            integration_s: 120.0,
+            frequencies_hz: vec![1.4e9],
+            flag_fraction: 0.0,
+            random_rotation: false,
+            seed,
+        },
+        sky: SkyModel::Procedural { seed },
+        size: SIZE,
+        pixel: PixelScale::SuperResolution(1.5),
+        dynamic_range: 1e3,
+        noise_weighting: Weighting::Briggs { robust: 0.0 },
+        phase_centre_deg: (150.0, 40.0),
+        nufft: NufftParams::default(),
+        threads: 2,
+    })
+    .unwrap()
+}
+
+/// The observation as an in-memory input, in batches of 1000 rows.
+fn input(id: &str, obs: &SimulationOutput) -> MemoryInput {
+    let (schema, batches) = to_record_batches(&obs.table, &obs.meta, 1000).unwrap();
+    assert!(batches.len() > 1, "the test should stream several batches");
+    MemoryInput::from_batches(id, schema, batches)
+}
+
+fn clean_params() -> ImageParams {
+    ImageParams { size: SIZE, step: StepChoice::Clean, iterations: Some(2), ..ImageParams::default() }
+}
+
+fn engine() -> Engine {
+    Engine::new(EngineOptions { threads: 2, onnx_runtime: None }).unwrap()
+}
+
+#[test]
+fn image_from_record_batches_returns_the_products_as_arrays() {
+    let obs = observation(3);
+    let products = engine().image(input("obs", &obs), &clean_params()).unwrap();
+    assert_eq!(products.id, "obs");
+    assert_eq!(products.size, SIZE);
+    // The dirty image is the library's, made from the same visibilities directly.
+    let (vis, _) = obs.table.to_visibilities("table").unwrap();
+    let reference = dirty_image(&vis, &DirtyParams { size: SIZE, threads: 2, ..DirtyParams::default() }).unwrap();
+    let expected: Vec<f32> = reference.dirty.iter().map(|&v| v as f32).collect();
+    assert_eq!(products.dirty, expected);
+    assert_eq!(products.psf.len(), SIZE * SIZE);
+    let peak = products.psf[SIZE / 2 * SIZE + SIZE / 2];
+    assert!((peak - 1.0).abs() < 1e-5, "PSF peak {peak}");
+    // Two CLEAN major cycles: model, residual, restored image and two metrics rows.
+    assert_eq!(products.iterations, 2);
+    assert_eq!(products.metrics.len(), 2);
+    let model = products.model.as_ref().expect("a model");
+    assert!(model.iter().any(|&v| v > 0.0));
+    assert!(products.residual.is_some() && products.image.is_some());
+    // The WCS keywords the FITS files carry, with the observation's phase centre.
+    let key = |k: &str| products.header.iter().find(|(name, _)| name == k).map(|(_, v)| v.clone());
+    assert_eq!(key("CTYPE1").as_deref(), Some("RA---SIN"));
+    assert_eq!(key("CRVAL1").and_then(|v| v.parse::<f64>().ok()), Some(150.0));
+    assert_eq!(key("CRPIX2").as_deref(), Some(&*format!("{}", SIZE / 2 + 1)));
+    assert_eq!(key("TELESCOP").as_deref(), Some("VLA"));
+}
+
+#[test]
+fn memory_and_parquet_inputs_give_the_same_products_and_files() {
+    let obs = observation(5);
+    let engine = engine();
+    let from_memory = engine.image(input("obs", &obs), &clean_params()).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let parquet = dir.path().join("obs.parquet");
+    r2d2_imaging::vis::write_parquet(&parquet, &obs.table, &obs.meta).unwrap();
+    // The file path, writing its products as `r2d2 image --name` does.
+    let prefix = dir.path().join("file").to_string_lossy().into_owned();
+    let from_file = engine.image(parquet.as_path(), &ImageParams { write: Some(prefix), ..clean_params() }).unwrap();
+    assert_eq!(from_memory.dirty, from_file.dirty);
+    assert_eq!(from_memory.model, from_file.model);
+    assert_eq!(from_memory.header, from_file.header);
+    // JobProducts::write makes the files the writer stage made, pixel for pixel.
+    let written = dir.path().join("memory");
+    from_memory.write(&written).unwrap();
+    for product in ["dirty", "psf", "model", "residual", "image"] {
+        let read = |prefix: &str| r2d2_imaging::fits::read_image(&dir.path().join(format!("{prefix}-{product}.fits"))).unwrap();
+        let (a, b) = (read("memory"), read("file"));
+        assert_eq!(a.data, b.data, "{product}");
+        assert_eq!(a.wcs, b.wcs, "{product}");
+        assert!(dir.path().join(format!("memory-{product}.png")).is_file());
+    }
+    let model = r2d2_imaging::fits::read_image(&dir.path().join("memory-model.fits")).unwrap();
+    let expected: Vec<f64> = from_memory.model.as_ref().unwrap().iter().map(|&v| f64::from(v)).collect();
+    assert_eq!(model.data, expected);
+    for suffix in ["metrics.json", "metrics.parquet"] {
+        assert!(dir.path().join(format!("memory-{suffix}")).is_file(), "{suffix}");
+    }
+}
+
+const PIPELINE: &str = "\
+image: {size: 64}
+stages:
+  read: {kind: arrow, to: weights}
+  weights: {kind: weighting, scheme: natural, to: grid}
+  grid: {kind: gridder, to: step}
+  step: {kind: clean, major_cycles: 1, to: update}
+  update: {kind: residual, to: step, done: deliver}
+  deliver: {kind: products}
+";
+
+#[test]
+fn a_yaml_pipeline_runs_on_several_inputs_and_delivers_each_job() {
+    let engine = engine();
+    let spec = engine.load_yaml(PIPELINE, "embedded.yaml", &[]).unwrap();
+    engine.validate(&spec).unwrap();
+    let received: Arc<Mutex<Vec<JobProducts>>> = Arc::default();
+    let into = received.clone();
+    let sink = move |p: JobProducts| {
+        into.lock().unwrap().push(p);
+        Ok(())
+    };
+    let inputs = vec![input("a", &observation(1)), input("b", &observation(2))];
+    let report = engine.run(&spec, inputs, Some(Box::new(sink)), Arc::new(AtomicBool::new(false))).unwrap();
+    let mut ids: Vec<String> = received.lock().unwrap().iter().map(|p| p.id.clone()).collect();
+    ids.sort();
+    assert_eq!(ids, ["a", "b"]);
+    assert_eq!(report.jobs.len(), 2);
+}
+
+#[test]
+fn errors_name_the_file_line_and_stage() {
+    let engine = engine();
+    // No weighting stage: found when the graph is checked, before anything runs.
+    let text = PIPELINE.replace("read: {kind: arrow, to: weights}", "read: {kind: arrow, to: grid}").replace("  weights: {kind: weighting, scheme: natural, to: grid}\n", "");
+    let spec = engine.load_yaml(&text, "embedded.yaml", &[]).unwrap();
+    let err = engine.validate(&spec).unwrap_err().to_string();
+    assert!(err.contains("embedded.yaml") && err.contains("line 4") && err.contains("weighting stage"), "{err}");
+    // A misspelt key of a stage, at its line and column.
+    let err = engine.load_yaml(&PIPELINE.replace("scheme: natural", "schme: natural"), "embedded.yaml", &[]).and_then(|s| engine.validate(&s));
+    let err = err.unwrap_err().to_string();
+    assert!(err.contains("embedded.yaml") && err.contains("line 4") && err.contains("schme"), "{err}");
+    // A run without inputs for its memory source says so.
+    let spec = engine.load_yaml(PIPELINE, "embedded.yaml", &[]).unwrap();
+    let err = engine.run(&spec, Vec::new(), Some(Box::new(|_: JobProducts| Ok(()))), Arc::default()).unwrap_err().to_string();
+    assert!(err.contains("in-memory inputs"), "{err}");
+    // Batches without the observation metadata are refused, naming the input.
+    let obs = observation(4);
+    let (schema, batches) = to_record_batches(&obs.table, &obs.meta, 1000).unwrap();
+    let bare = Arc::new(schema.as_ref().clone().with_metadata(Default::default()));
+    let batches = batches.into_iter().map(|b| arrow::array::RecordBatch::try_new(bare.clone(), b.columns().to_vec()).unwrap()).collect();
+    let err = engine.image(MemoryInput::from_batches("bare", bare, batches), &clean_params()).unwrap_err().to_string();
+    assert!(err.contains("in-memory input 'bare'") && err.contains("phase_centre"), "{err}");
+}
+
+/// Counts the jobs it receives: a sink of the embedding program's own.
+struct Count(Arc<AtomicUsize>);
+
+impl Stage for Count {
+    fn process(&mut self, job: Job, _emit: &mut Emit<'_>) -> r2d2_imaging::Result<()> {
+        assert!(job.imaging.is_some());
+        self.0.fetch_add(1, Ordering::SeqCst);
+        Ok(())
+    }
+}
+
+/// The kind building [`Count`] stages, all adding to one counter.
+struct CountKind(Arc<AtomicUsize>);
+
+impl StageKind for CountKind {
+    fn name(&self) -> &str {
+        "count"
+    }
+    fn role(&self) -> Role {
+        Role::Sink
+    }
+    fn consumes(&self, _: &BuildContext<'_>) -> r2d2_imaging::Result<Vec<Product>> {
+        Ok(vec![Product::Imaging])
+    }
+    fn build(&self, _: &BuildContext<'_>) -> r2d2_imaging::Result<Built> {
+        Ok(Built::Stage(Box::new(Count(self.0.clone()))))
+    }
+}
+
+#[test]
+fn a_program_registers_a_stage_kind_of_its_own() {
+    let mut engine = engine();
+    let counted = Arc::new(AtomicUsize::new(0));
+    engine.registry_mut().register(CountKind(counted.clone())).unwrap();
+    let spec = engine.load_yaml(&PIPELINE.replace("kind: products", "kind: count"), "custom.yaml", &[]).unwrap();
+    let inputs = vec![input("a", &observation(6)), input("b", &observation(7))];
+    engine.run(&spec, inputs, None, Arc::default()).unwrap();
+    assert_eq!(counted.load(Ordering::SeqCst), 2);
+    // A name taken already is refused.
+    assert!(engine.registry_mut().register(CountKind(counted)).is_err());
+}
