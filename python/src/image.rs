@@ -4,7 +4,7 @@ use crate::arrow_in;
 use crate::products::Products;
 use crate::{run_released, R2D2Error};
 use pyo3::prelude::*;
-use r2d2_imaging::engine::{BackendChoice, Engine, EngineOptions, ImageParams, Observation, StepChoice};
+use r2d2_imaging::{BackendChoice, Engine, EngineOptions, ImageParams, Observation, StepChoice};
 use r2d2_imaging::pipeline::MemoryInput;
 use r2d2_imaging::weighting::Weighting;
 use std::path::PathBuf;

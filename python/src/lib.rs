@@ -8,15 +8,15 @@
 //! engine's message (file, line, column, stage, job).
 
 mod arrow_in;
+mod image;
+mod products;
 
 use numpy::PyArray1;
 use pyo3::create_exception;
 use pyo3::exceptions::PyRuntimeError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
-use r2d2_imaging::pipeline::config::PipelineConfig;
-use r2d2_imaging::pipeline::runner;
-use std::path::Path;
+use r2d2_imaging::{Engine, EngineOptions, PipelineSpec};
 use std::sync::atomic::{AtomicBool, Ordering};
 use crossbeam_channel::{bounded, RecvTimeoutError};
 use std::sync::Arc;
@@ -27,14 +27,14 @@ create_exception!(r2d2_imaging, R2D2Error, PyRuntimeError, "An error reported by
 /// How often a waiting call looks at Python's signals.
 const SIGNAL_POLL: Duration = Duration::from_millis(50);
 
-fn engine_error(e: r2d2_imaging::Error) -> PyErr {
+pub(crate) fn engine_error(e: r2d2_imaging::Error) -> PyErr {
     R2D2Error::new_err(e.to_string())
 }
 
 /// Runs `work` on a thread of its own with the GIL released, checking Python's signals while
 /// it runs. On KeyboardInterrupt (or any exception a signal handler raises) `cancel` is set,
 /// the engine is waited for (it stops at its next job boundary) and the exception is raised.
-fn run_released<T: Send + 'static>(
+pub(crate) fn run_released<T: Send + 'static>(
     py: Python<'_>,
     cancel: Arc<AtomicBool>,
     work: impl FnOnce(Arc<AtomicBool>) -> r2d2_imaging::Result<T> + Send + 'static,
@@ -77,29 +77,42 @@ fn run_released<T: Send + 'static>(
     }
 }
 
+/// An engine with the built-in stage kinds; the pipeline's own `threads` sizes its runs.
+fn engine(onnx_runtime: Option<std::path::PathBuf>) -> r2d2_imaging::Result<Engine> {
+    Engine::new(EngineOptions { threads: 0, onnx_runtime })
+}
+
 /// Parses a pipeline: `text` as read from `file_name` (named in errors), with `overrides`
 /// (`stage.key=value`, as `r2d2 run --set`).
-fn parse(text: &str, file_name: &str, overrides: Vec<String>) -> PyResult<PipelineConfig> {
-    PipelineConfig::parse(text, Path::new(file_name), &overrides).map_err(engine_error)
+fn parse(engine: &Engine, text: &str, file_name: &str, overrides: Vec<String>) -> PyResult<PipelineSpec> {
+    engine.load_yaml(text, file_name, &overrides).map_err(engine_error)
 }
 
 /// Checks a pipeline without running it (`r2d2 validate`); returns its stage names.
 #[pyfunction]
 #[pyo3(signature = (text, file_name, overrides))]
 fn validate(py: Python<'_>, text: &str, file_name: &str, overrides: Vec<String>) -> PyResult<Vec<String>> {
-    let config = parse(text, file_name, overrides)?;
-    let names = config.stages.iter().map(|s| s.name.clone()).collect();
+    let engine = engine(None).map_err(engine_error)?;
+    let spec = parse(&engine, text, file_name, overrides)?;
+    let names = spec.stages.iter().map(|s| s.name.clone()).collect();
     // Building the stages reads model manifests and plugin libraries: no GIL needed.
-    run_released(py, Arc::new(AtomicBool::new(false)), move |_| runner::validate(&config).map(|_| ()))?;
+    run_released(py, Arc::new(AtomicBool::new(false)), move |_| engine.validate(&spec))?;
     Ok(names)
 }
 
 /// Runs a pipeline (`r2d2 run`); returns the run's report as a dict: `jobs` (ids in completion
 /// order), `seconds`, `stage_seconds`.
 #[pyfunction]
-#[pyo3(signature = (text, file_name, overrides))]
-fn run<'py>(py: Python<'py>, text: &str, file_name: &str, overrides: Vec<String>) -> PyResult<Bound<'py, PyDict>> {
-    let config = parse(text, file_name, overrides)?;
+#[pyo3(signature = (text, file_name, overrides, onnx_runtime=None))]
+fn run<'py>(
+    py: Python<'py>,
+    text: &str,
+    file_name: &str,
+    overrides: Vec<String>,
+    onnx_runtime: Option<std::path::PathBuf>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let engine = engine(onnx_runtime).map_err(engine_error)?;
+    let config = parse(&engine, text, file_name, overrides)?;
     // Where the writers put each job's metrics (`<prefix>-metrics.json`).
     let prefixes: Vec<String> = config
         .stages
@@ -107,7 +120,7 @@ fn run<'py>(py: Python<'py>, text: &str, file_name: &str, overrides: Vec<String>
         .filter(|s| s.kind == "writer")
         .filter_map(|s| s.params.get("prefix").and_then(|p| p.as_str()).map(str::to_string))
         .collect();
-    let report = run_released(py, Arc::new(AtomicBool::new(false)), move |cancel| runner::run(&config, cancel))?;
+    let report = run_released(py, Arc::new(AtomicBool::new(false)), move |cancel| engine.run(&config, Vec::new(), None, cancel))?;
     let metrics_files = PyDict::new(py);
     for job in &report.jobs {
         let files: Vec<String> = prefixes.iter().map(|p| format!("{}-metrics.json", p.replace("{job}", job))).collect();
@@ -153,5 +166,9 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(validate, m)?)?;
     m.add_function(wrap_pyfunction!(run, m)?)?;
     m.add_function(wrap_pyfunction!(split_rows, m)?)?;
+    m.add_function(wrap_pyfunction!(image::image, m)?)?;
+    m.add_function(wrap_pyfunction!(products::_products, m)?)?;
+    m.add_class::<products::Products>()?;
+    m.add("DEFAULT_WEIGHTING_GRID_FACTOR", r2d2_imaging::weighting::DEFAULT_GRID_FACTOR)?;
     Ok(())
 }

@@ -35,7 +35,7 @@ fn square<'py>(py: Python<'py>, data: Vec<f32>, size: usize) -> PyResult<Bound<'
 impl Products {
     pub fn new(py: Python<'_>, mut job: JobProducts) -> PyResult<Products> {
         let size = job.size;
-        let mut take = |v: Option<Vec<f32>>| -> PyResult<Option<Py<PyArray2<f32>>>> {
+        let take = |v: Option<Vec<f32>>| -> PyResult<Option<Py<PyArray2<f32>>>> {
             v.map(|data| square(py, data, size).map(Bound::unbind)).transpose()
         };
         let images = [

@@ -31,7 +31,12 @@ def assert_same(a, b, what):
     for name in ARRAYS:
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=f"{what}: {name}")
     assert a.header == b.header, what
-    assert a.metrics == b.metrics, what
+    assert figures(a.metrics) == figures(b.metrics), what
+
+
+def figures(metrics):
+    """The metrics without the seconds, which differ from run to run."""
+    return [(m["iteration"], m["residual_ratio"], m["snr"], m["logsnr"]) for m in metrics["iterations"]]
 
 
 def test_every_job_equals_a_single_process_run(client, observations):
