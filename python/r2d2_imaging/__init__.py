@@ -61,7 +61,7 @@ def run(pipeline: PathLike, set: Optional[Mapping[str, Any]] = None) -> dict:
     with the engine's message (stage and job), or ``KeyboardInterrupt`` after stopping the
     engine cleanly on Ctrl-C."""
     text, name = _pipeline_text(pipeline)
-    report = _native.run(text, name, _overrides(set))
+    report = _native.run(text, name, _overrides(set), _onnx_runtime())
     files = report.pop("metrics_files")
     report["metrics"] = {}
     for job in report["jobs"]:

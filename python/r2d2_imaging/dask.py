@@ -4,7 +4,8 @@ The jobs are a list of observations (paths or Arrow tables), or observations spl
 exactly as a pipeline's ``split_by`` splits them (one job per channel, time window, field ...).
 Each job is one Dask task that images it with :func:`r2d2_imaging.image` on a worker; the
 products come back to the client, or are written by the workers under a shared prefix and only
-their metrics come back. Tasks are named ``r2d2-image-<job>`` on the Dask dashboard.
+their metrics come back. On the Dask dashboard the tasks of a call make one ``r2d2-image``
+group (one progress bar), each keyed by its job id.
 
     from dask.distributed import Client
     from r2d2_imaging.dask import image_many
@@ -133,17 +134,17 @@ def image_many(client, observations, *, split_by: Optional[Mapping[str, Any]] = 
     placeholder, on a file system the workers share) each worker writes its job's products
     there (as ``r2d2 image --name``) and returns a :class:`JobResult`; without, the products
     (:class:`r2d2_imaging.Products`, numpy arrays) come back to the client. ``progress`` shows a
-    progress bar here; the dashboard shows the ``r2d2-image`` tasks either way. The first failed
+    progress bar here; the dashboard shows the ``r2d2-image`` group either way. The first failed
     job raises its :class:`r2d2_imaging.R2D2Error`."""
     if prefix is not None and "{job}" not in prefix:
         raise ValueError(f"prefix {prefix!r}: expected the {{job}} placeholder, or every job would write the same files")
     todo = jobs(observations, split_by)
     # Tables go to the cluster once, as data of their own, rather than inside the task graph.
     shipped = [client.scatter(job, hash=False) if isinstance(job.obs, pa.Table) else job for job in todo]
-    futures = [
-        client.submit(_image_job, job, prefix, params, key=f"r2d2-image-{todo[i].id}-{os.urandom(4).hex()}", pure=False)
-        for i, job in enumerate(shipped)
-    ]
+    # Keys (r2d2-image-<token>, job id): the dashboard groups every task of the call under
+    # `r2d2-image` (one progress bar) and names each job.
+    token = os.urandom(8).hex()
+    futures = [client.submit(_image_job, job, prefix, params, key=(f"r2d2-image-{token}", todo[i].id), pure=False) for i, job in enumerate(shipped)]
     if progress:
         from distributed import progress as show
         show(futures)

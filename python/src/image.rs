@@ -8,8 +8,6 @@ use r2d2_imaging::{BackendChoice, Engine, EngineOptions, ImageParams, Observatio
 use r2d2_imaging::pipeline::MemoryInput;
 use r2d2_imaging::weighting::Weighting;
 use std::path::PathBuf;
-use std::sync::atomic::AtomicBool;
-use std::sync::Arc;
 
 fn parameter(name: &str, message: impl std::fmt::Display) -> PyErr {
     R2D2Error::new_err(format!("invalid {name}: {message}"))
@@ -93,7 +91,7 @@ pub fn image(
         truth,
         ..ImageParams::default()
     };
-    let mut products = run_released(py, Arc::new(AtomicBool::new(false)), move |cancel| {
+    let mut products = run_released(py, move |cancel| {
         let engine = Engine::new(EngineOptions { threads, onnx_runtime })?.with_cancel(cancel);
         engine.image(observation, &params)
     })?;

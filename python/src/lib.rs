@@ -17,8 +17,8 @@ use pyo3::exceptions::PyRuntimeError;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use r2d2_imaging::{Engine, EngineOptions, PipelineSpec};
-use std::sync::atomic::{AtomicBool, Ordering};
 use crossbeam_channel::{bounded, RecvTimeoutError};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -32,13 +32,14 @@ pub(crate) fn engine_error(e: r2d2_imaging::Error) -> PyErr {
 }
 
 /// Runs `work` on a thread of its own with the GIL released, checking Python's signals while
-/// it runs. On KeyboardInterrupt (or any exception a signal handler raises) `cancel` is set,
-/// the engine is waited for (it stops at its next job boundary) and the exception is raised.
+/// it runs. On KeyboardInterrupt (or any exception a signal handler raises) the cancel flag
+/// given to `work` is set, the engine is waited for (it stops at its next job boundary) and
+/// the exception is raised.
 pub(crate) fn run_released<T: Send + 'static>(
     py: Python<'_>,
-    cancel: Arc<AtomicBool>,
     work: impl FnOnce(Arc<AtomicBool>) -> r2d2_imaging::Result<T> + Send + 'static,
 ) -> PyResult<T> {
+    let cancel = Arc::new(AtomicBool::new(false));
     let (tx, rx) = bounded(1);
     let flag = cancel.clone();
     let worker = std::thread::Builder::new()
@@ -96,7 +97,7 @@ fn validate(py: Python<'_>, text: &str, file_name: &str, overrides: Vec<String>)
     let spec = parse(&engine, text, file_name, overrides)?;
     let names = spec.stages.iter().map(|s| s.name.clone()).collect();
     // Building the stages reads model manifests and plugin libraries: no GIL needed.
-    run_released(py, Arc::new(AtomicBool::new(false)), move |_| engine.validate(&spec))?;
+    run_released(py, move |_| engine.validate(&spec))?;
     Ok(names)
 }
 
@@ -120,7 +121,7 @@ fn run<'py>(
         .filter(|s| s.kind == "writer")
         .filter_map(|s| s.params.get("prefix").and_then(|p| p.as_str()).map(str::to_string))
         .collect();
-    let report = run_released(py, Arc::new(AtomicBool::new(false)), move |cancel| engine.run(&config, Vec::new(), None, cancel))?;
+    let report = run_released(py, move |cancel| engine.run(&config, Vec::new(), None, cancel))?;
     let metrics_files = PyDict::new(py);
     for job in &report.jobs {
         let files: Vec<String> = prefixes.iter().map(|p| format!("{}-metrics.json", p.replace("{job}", job))).collect();
@@ -150,7 +151,7 @@ fn split_rows<'py>(
     let split = r2d2_imaging::ingest::SplitBy { column, window };
     split.check().map_err(|m| R2D2Error::new_err(format!("split_by.window: {m}")))?;
     let name = name.to_string();
-    let parts = run_released(py, Arc::new(AtomicBool::new(false)), move |cancel| {
+    let parts = run_released(py, move |cancel| {
         let mut reader = arrow_in::StreamTable::new(stream, &name)?;
         r2d2_imaging::ingest::split_rows(&mut reader, &split, "split_by", &|| cancel.load(Ordering::SeqCst))
     })?;

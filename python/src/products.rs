@@ -13,8 +13,6 @@ use r2d2_imaging::fits::{Beam, ImageWcs};
 use r2d2_imaging::pipeline::IterationMetrics;
 use r2d2_imaging::products::{JobProducts, WriteOptions};
 use std::collections::BTreeMap;
-use std::sync::atomic::AtomicBool;
-use std::sync::Arc;
 
 /// The image products a job may have, in the order they pickle.
 const IMAGES: [&str; 5] = ["dirty", "psf", "model", "residual", "image"];
@@ -174,7 +172,7 @@ impl Products {
     fn write(&self, py: Python<'_>, prefix: std::path::PathBuf, previews: bool) -> PyResult<()> {
         let job = self.to_job(py)?;
         let options = WriteOptions { previews, ..WriteOptions::default() };
-        run_released(py, Arc::new(AtomicBool::new(false)), move |_| job.write_with(&prefix, &options))
+        run_released(py, move |_| job.write_with(&prefix, &options))
     }
 
     fn __repr__(&self) -> String {

@@ -2,6 +2,7 @@
 single-process run's, pixel for pixel."""
 
 import numpy as np
+from dask.utils import key_split
 import pytest
 from distributed import Client, LocalCluster, get_task_stream
 
@@ -45,8 +46,9 @@ def test_every_job_equals_a_single_process_run(client, observations):
     assert [r.id for r in results] == [p.stem for p in observations]
     for path, result in zip(observations, results):
         assert_same(result, r2d2_imaging.image(path, **PARAMS), path.name)
-    # The jobs ran on both workers, one engine per task.
+    # The jobs ran on both workers, one engine per task, as one group on the dashboard.
     assert len({task["worker"] for task in stream.data}) == 2
+    assert {key_split(task["key"]) for task in stream.data} == {"r2d2-image"}
 
 
 def test_split_by_channel_equals_the_engines_own_split(client, channels, tmp_path):
