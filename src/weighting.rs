@@ -22,6 +22,30 @@ pub enum Weighting {
     Briggs { robust: f64 },
 }
 
+/// A weighting scheme as a configuration names it (`scheme: briggs`); Briggs takes its
+/// robustness from beside it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum WeightingScheme {
+    #[serde(alias = "Natural")]
+    Natural,
+    #[serde(alias = "Uniform")]
+    Uniform,
+    #[serde(alias = "Briggs", alias = "robust")]
+    Briggs,
+}
+
+impl WeightingScheme {
+    /// The weighting, with `robust` for Briggs (ignored otherwise).
+    pub fn with_robust(self, robust: f64) -> Result<Weighting> {
+        match self {
+            WeightingScheme::Natural => Ok(Weighting::Natural),
+            WeightingScheme::Uniform => Ok(Weighting::Uniform),
+            WeightingScheme::Briggs => Weighting::from_name("briggs", robust),
+        }
+    }
+}
+
 impl Weighting {
     /// Parse `natural`, `uniform` or `briggs` (with its robustness).
     pub fn from_name(name: &str, robust: f64) -> Result<Weighting> {

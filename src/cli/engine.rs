@@ -2,7 +2,6 @@
 //! edge, and injected; a progress bar drawn from the runner's progress reports.
 
 use indicatif::ProgressBar;
-use r2d2_imaging::steps::runtime::find_onnxruntime;
 use r2d2_imaging::{Engine, EngineOptions, Progress, Result};
 use std::sync::{Arc, Mutex};
 
@@ -10,10 +9,10 @@ use std::sync::{Arc, Mutex};
 /// for it may run `python3`, so it is skipped when nothing needs it).
 pub fn engine(threads: usize, onnx: bool) -> Result<(Engine, JobsBar)> {
     let onnx_runtime = if onnx {
-        match find_onnxruntime() {
+        match super::onnx_runtime::find_onnxruntime() {
             Ok(library) => Some(library),
             Err(why) => {
-                log::debug!("native ONNX Runtime not found: {why}");
+                log::info!("native ONNX Runtime not found: {why}");
                 None
             }
         }

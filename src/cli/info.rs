@@ -1,6 +1,7 @@
 //! `r2d2 info`: what this build and machine will use (inference backend, SIMD level, threads).
 
-use r2d2_imaging::steps::runtime::{find_onnxruntime, BackendChoice, Runtime};
+use super::onnx_runtime::find_onnxruntime;
+use r2d2_imaging::steps::runtime::{use_onnx_runtime, BackendChoice, Runtime};
 use r2d2_imaging::Result;
 
 #[derive(clap::Args)]
@@ -11,7 +12,10 @@ pub fn run(_args: Args) -> Result<()> {
     println!("gridder SIMD: {:?}", r2d2_imaging::nufft::simd::SimdLevel::detect());
     println!("threads: {} available", std::thread::available_parallelism().map_or(1, |n| n.get()));
     match find_onnxruntime() {
-        Ok(lib) => println!("ONNX Runtime library: {}", lib.display()),
+        Ok(lib) => {
+            println!("ONNX Runtime library: {}", lib.display());
+            use_onnx_runtime(&lib)?;
+        }
         Err(why) => println!("ONNX Runtime library: not found ({why})"),
     }
     let runtime = Runtime::select(BackendChoice::Auto, 0)?;

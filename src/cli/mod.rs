@@ -8,6 +8,7 @@ mod image;
 mod info;
 mod metrics;
 mod models;
+mod onnx_runtime;
 mod run;
 mod simulate;
 mod trainset;

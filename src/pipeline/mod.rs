@@ -56,6 +56,11 @@ pub struct Imaging {
     pub beam: Option<crate::fits::Beam>,
 }
 
+/// The error of a stage reached by a job not gridded yet (the graph check makes it a bug).
+pub(crate) fn not_gridded(stage: &str, job: &str) -> crate::Error {
+    crate::Error::parameter(format!("stage '{stage}'"), format!("job '{job}' reached it before being gridded: put a gridder stage upstream"))
+}
+
 /// One iteration's figures, as written to `<prefix>-metrics.json`.
 #[derive(Clone, Debug, Serialize)]
 pub struct IterationMetrics {
@@ -118,13 +123,8 @@ impl Job {
 
     /// The gridded state, or an error naming the stage that needed it.
     pub fn imaging_mut(&mut self, stage: &str) -> Result<&mut Imaging> {
-        let id = self.id.clone();
-        self.imaging.as_mut().ok_or_else(|| {
-            crate::Error::parameter(
-                format!("stage '{stage}'"),
-                format!("job '{id}' reached it before being gridded: put a gridder stage upstream"),
-            )
-        })
+        let id = &self.id;
+        self.imaging.as_mut().ok_or_else(|| not_gridded(stage, id))
     }
 
     /// Record iteration figures after a residual update.

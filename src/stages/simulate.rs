@@ -6,7 +6,7 @@ use crate::pipeline::config::ImageConfig;
 use crate::pipeline::{Job, Source};
 use crate::simulate::observe::{frequency_channels, ObservationSpec};
 use crate::simulate::{simulate, SimulationRequest, SkyModel};
-use crate::weighting::Weighting;
+use crate::weighting::{Weighting, WeightingScheme};
 use crate::{Error, Result};
 use serde::Deserialize;
 
@@ -42,7 +42,7 @@ pub struct SimulateConfig {
     flag_fraction: f64,
     /// Weighting the noise level is defined for.
     #[serde(default = "briggs")]
-    noise_weighting: String,
+    noise_weighting: WeightingScheme,
     #[serde(default)]
     robust: f64,
 }
@@ -57,7 +57,7 @@ fn ra() -> f64 { 180.0 }
 fn integration() -> f64 { 30.0 }
 fn frequency() -> f64 { 1400.0 }
 fn ratio() -> f64 { 1.0 }
-fn briggs() -> String { "briggs".into() }
+fn briggs() -> WeightingScheme { WeightingScheme::Briggs }
 
 pub struct SimulateSource {
     config: SimulateConfig,
@@ -78,7 +78,7 @@ impl SimulateSource {
         if config.jobs == 0 {
             return Err(Error::parameter("jobs", "expected at least one job"));
         }
-        let weighting = Weighting::from_name(&config.noise_weighting, config.robust)?;
+        let weighting = config.noise_weighting.with_robust(config.robust)?;
         frequency_channels(config.frequency_mhz * 1e6, config.channels, config.frequency_ratio)?;
         Ok(SimulateSource { config, image: image.clone(), weighting, threads })
     }

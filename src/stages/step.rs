@@ -34,14 +34,17 @@ impl Stage for StepStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
         let began = Instant::now();
         let iteration = job.iteration + 1;
-        let im = job.imaging_mut(self.kind)?;
+        let Job { id, imaging, .. } = &mut job;
+        let im = imaging.as_mut().ok_or_else(|| crate::pipeline::not_gridded(self.kind, id))?;
         let input = StepInput {
+            job: id,
             size: im.geometry.size,
             model: &im.model,
             residual: &im.residual,
             dirty: &im.dirty,
             psf: &im.psf,
             psf_2n: &im.psf_2n,
+            psf_convolution: &im.psf_convolution,
         };
         let model = self.step.step(iteration, &input)?;
         im.model = model;

@@ -4,7 +4,7 @@
 use crate::imaging::{total_weights, DirtyParams};
 use crate::pipeline::config::ImageConfig;
 use crate::pipeline::{Emit, Job, Port, Stage};
-use crate::weighting::{Weighting, DEFAULT_GRID_FACTOR};
+use crate::weighting::{Weighting, WeightingScheme, DEFAULT_GRID_FACTOR};
 use crate::{Error, Result};
 use serde::Deserialize;
 
@@ -12,7 +12,7 @@ use serde::Deserialize;
 #[serde(deny_unknown_fields)]
 pub struct WeightingConfig {
     /// natural, uniform or briggs.
-    scheme: String,
+    scheme: WeightingScheme,
     #[serde(default)]
     robust: f64,
     #[serde(default = "grid_factor")]
@@ -32,7 +32,7 @@ pub struct WeightingStage {
 impl WeightingStage {
     pub fn new(config: WeightingConfig, image: &ImageConfig) -> Result<WeightingStage> {
         Ok(WeightingStage {
-            weighting: Weighting::from_name(&config.scheme, config.robust)?,
+            weighting: config.scheme.with_robust(config.robust)?,
             grid_factor: config.grid_factor,
             image: image.clone(),
         })

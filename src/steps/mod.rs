@@ -14,6 +14,8 @@ use crate::Result;
 
 /// What a step sees at iteration i: the previous estimate and its residual dirty image.
 pub struct StepInput<'a> {
+    /// The job being imaged (a step serving several jobs tells them apart by it).
+    pub job: &'a str,
     pub size: usize,
     /// `x_{i-1}` (Jy/pixel).
     pub model: &'a [f64],
@@ -24,6 +26,8 @@ pub struct StepInput<'a> {
     pub psf: &'a [f64],
     /// PSF over twice the field, 2N x 2N, peak at (N, N).
     pub psf_2n: &'a [f64],
+    /// `D x` as a convolution with `psf_2n`, prepared once per job by the gridder.
+    pub psf_convolution: &'a crate::operator::PsfConvolution,
 }
 
 pub trait NetworkStep: Send {

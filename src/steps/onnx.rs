@@ -14,7 +14,6 @@
 use super::runtime::{check_network, BackendChoice, GraphOptimization, Network, Runtime, Signature};
 use super::series::{Architecture, Series};
 use super::{NetworkStep, StepInput};
-use crate::operator::PsfConvolution;
 use crate::{Error, Result};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
@@ -66,8 +65,10 @@ pub struct OnnxStep {
     interleaved: bool,
     /// The next network, loading on a background thread (counts as resident).
     pending: Option<(Key, std::thread::JoinHandle<Result<Box<dyn Network>>>)>,
-    /// The network of the previous call, to tell one job walking the series from several.
-    last: Option<Key>,
+    /// The job of the previous call, and the jobs part-way through the series: a job coming
+    /// back after another one's call means jobs interleave.
+    last_job: Option<String>,
+    walking: std::collections::HashSet<String>,
 }
 
 type Key = (usize, usize);
@@ -100,22 +101,29 @@ impl OnnxStep {
             let mb = mapped.iter().map(|m| m.bytes).sum::<u64>() as f64 / 1e6;
             log::debug!("weights mapped from the files, not copied: {} of {} networks ({mb:.0} MB)", mapped.len(), signatures.iter().flatten().count());
         }
-        Ok(OnnxStep { series, runtime, size, iterations, resident: Vec::new(), signatures, prefetch: config.prefetch, interleaved: false, pending: None, last: None })
+        Ok(OnnxStep { series, runtime, size, iterations, resident: Vec::new(), signatures, prefetch: config.prefetch, interleaved: false, pending: None, last_job: None, walking: Default::default() })
     }
 
     pub fn runtime(&self) -> &Runtime {
         &self.runtime
     }
 
-    fn network(&mut self, iteration: usize, layer: usize) -> Result<&mut Box<dyn Network>> {
+    fn network(&mut self, job: &str, iteration: usize, layer: usize) -> Result<&mut Box<dyn Network>> {
         let key = (iteration, layer);
-        // One job walks the series in order (a new job starting at network 1 included), until
-        // a call says otherwise: one job at network 5 while the next starts at 1.
-        if !self.interleaved && self.last.is_some_and(|last| key != (1, 0) && Some(key) != self.successor(last)) {
+        // One job walks the series in order until another job's call comes between two of its
+        // own: one job at network 5 while the next is at 1. (A job that stopped early never
+        // comes back, so it does not count.)
+        let returning = self.walking.contains(job) && self.last_job.as_deref() != Some(job);
+        if !self.interleaved && returning {
             log::debug!("jobs interleave through the series: prefetching off, the two most recently used networks stay resident");
             self.interleaved = true;
         }
-        self.last = Some(key);
+        if self.successor(key).is_some() {
+            self.walking.insert(job.to_string());
+        } else {
+            self.walking.remove(job);
+        }
+        self.last_job = Some(job.to_string());
         // A background load always ends as a resident network, never detached: at most RESIDENT
         // networks exist at any time.
         if let Some((k, handle)) = self.pending.take() {
@@ -182,11 +190,11 @@ impl OnnxStep {
         self.pending = Some((next, handle));
     }
 
-    fn run_network(&mut self, iteration: usize, layer: usize, first: &[f64], second: &[f64], alpha: f64) -> Result<Vec<f64>> {
+    fn run_network(&mut self, job: &str, iteration: usize, layer: usize, first: &[f64], second: &[f64], alpha: f64) -> Result<Vec<f64>> {
         let mut input = Vec::with_capacity(2 * first.len());
         input.extend(first.iter().map(|v| (v / alpha) as f32));
         input.extend(second.iter().map(|v| (v / alpha) as f32));
-        let output = self.network(iteration, layer)?.run(&input)?;
+        let output = self.network(job, iteration, layer)?.run(&input)?;
         if let Some(bad) = output.iter().position(|v| !v.is_finite()) {
             let path = self.series.files[iteration - 1][layer].clone();
             return Err(Error::input(path, format!("network output is not finite at pixel {bad} (iteration {iteration})")));
@@ -253,16 +261,16 @@ impl NetworkStep for OnnxStep {
                 let (alpha, increment) = if iteration == 1 {
                     let alpha = normalisation(input.dirty, "dirty image", 1, &path)?;
                     let zero = vec![0.0; input.dirty.len()];
-                    (alpha, self.run_network(1, 0, input.dirty, &zero, alpha)?)
+                    (alpha, self.run_network(input.job, 1, 0, input.dirty, &zero, alpha)?)
                 } else {
                     let alpha = normalisation(input.model, "image", iteration, &path)?;
-                    (alpha, self.run_network(iteration, 0, input.model, input.residual, alpha)?)
+                    (alpha, self.run_network(input.job, iteration, 0, input.model, input.residual, alpha)?)
                 };
                 Ok(input.model.iter().zip(&increment).map(|(x, d)| ((d + x / alpha) * alpha).max(0.0)).collect())
             }
             Architecture::R3d3 => {
                 let layers = self.series.files[iteration - 1].len();
-                let psf = PsfConvolution::new(self.size, input.psf_2n)?;
+                let psf = input.psf_convolution;
                 let mut image = input.model.to_vec();
                 let mut residual = if iteration == 1 { input.dirty.to_vec() } else { input.residual.to_vec() };
                 let mut alpha = if iteration == 1 {
@@ -271,7 +279,7 @@ impl NetworkStep for OnnxStep {
                     normalisation(&image, "image", iteration, &path)?
                 };
                 for layer in 0..layers {
-                    let increment = self.run_network(iteration, layer, &residual, &image, alpha)?;
+                    let increment = self.run_network(input.job, iteration, layer, &residual, &image, alpha)?;
                     for (x, d) in image.iter_mut().zip(&increment) {
                         *x = (*x / alpha + d) * alpha;
                     }
@@ -291,6 +299,7 @@ impl NetworkStep for OnnxStep {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+    use crate::operator::PsfConvolution;
     use std::sync::OnceLock;
 
     /// The tiny analytic networks of `tests/make_test_models.py`, generated once per test run.
@@ -373,10 +382,11 @@ pub(crate) mod tests {
         let config = OnnxConfig { series: series.to_path_buf(), backend, threads: 1, networks: None, prefetch, graph_optimization: GraphOptimization::default() };
         let mut step = OnnxStep::new(&config, N, 1).unwrap();
         let psf_n = vec![0.0; N * N];
+        let convolution = PsfConvolution::new(N, psf).unwrap();
         let (mut model, mut residual) = (vec![0.0; N * N], dirty.to_vec());
         let mut models = Vec::new();
         for i in 1..=step.series_length() {
-            let input = StepInput { size: N, model: &model, residual: &residual, dirty, psf: &psf_n, psf_2n: psf };
+            let input = StepInput { job: "job", size: N, model: &model, residual: &residual, dirty, psf: &psf_n, psf_2n: psf, psf_convolution: &convolution };
             model = step.step(i, &input).unwrap();
             assert!(step.resident.len() + step.pending.is_some() as usize <= RESIDENT);
             residual = self::residual(psf, dirty, &model);
@@ -452,12 +462,14 @@ pub(crate) mod tests {
         let config = OnnxConfig { series, backend: BackendChoice::Tract, threads: 1, networks: None, prefetch: true, graph_optimization: GraphOptimization::default() };
         let mut step = OnnxStep::new(&config, N, 1).unwrap();
         let psf_n = vec![0.0; N * N];
+        let convolution = PsfConvolution::new(N, &psf).unwrap();
         // Two jobs on the same data; job B starts when job A is at network 3.
         let mut jobs = [(vec![0.0; N * N], dirty.clone(), Vec::new()), (vec![0.0; N * N], dirty.clone(), Vec::new())];
         let order = [(0, 1), (0, 2), (1, 1), (0, 3), (1, 2), (0, 4), (1, 3), (1, 4)];
         for (job, i) in order {
             let (model, residual, models) = &mut jobs[job];
-            let input = StepInput { size: N, model, residual, dirty: &dirty, psf: &psf_n, psf_2n: &psf };
+            let id = ["a", "b"][job];
+            let input = StepInput { job: id, size: N, model, residual, dirty: &dirty, psf: &psf_n, psf_2n: &psf, psf_convolution: &convolution };
             *model = step.step(i, &input).unwrap();
             assert!(step.resident.len() + step.pending.is_some() as usize <= RESIDENT, "more than {RESIDENT} networks");
             *residual = self::residual(&psf, &dirty, model);
@@ -477,7 +489,7 @@ pub(crate) mod tests {
             let mut step = OnnxStep::new(&config, N, 1).unwrap();
             for job in 0..2 {
                 for i in 1..=4 {
-                    step.network(i, 0).unwrap();
+                    step.network(&format!("job{job}"), i, 0).unwrap();
                     let resident: Vec<Key> = step.resident.iter().map(|(k, _)| *k).collect();
                     let pending = step.pending.as_ref().map(|(k, _)| *k);
                     assert_eq!(resident, [(i, 0)], "job {job}, network {i}, prefetch {prefetch}");
@@ -521,7 +533,7 @@ pub(crate) mod tests {
         let signature = check_network(&path, 64).unwrap();
         assert_eq!(signature.input_params[2..], [Some("H".to_string()), Some("W".to_string())], "symbolic dimensions are named");
         let input = unet_input();
-        let ort = Runtime::select(BackendChoice::Ort, 1).expect("native ONNX Runtime (pip install onnxruntime)");
+        let ort = { crate::steps::runtime::use_onnx_runtime_for_tests(); Runtime::select(BackendChoice::Ort, 1) }.expect("native ONNX Runtime (pip install onnxruntime)");
         let a = ort.load(&path, 64, &signature).unwrap().run(&input).unwrap();
         let b = Runtime::Tract.load(&path, 64, &signature).unwrap().run(&input).unwrap();
         let (a, b): (Vec<f64>, Vec<f64>) = (a.into_iter().map(f64::from).collect(), b.into_iter().map(f64::from).collect());
@@ -538,7 +550,7 @@ pub(crate) mod tests {
             std::fs::copy(test_models().join(f), dir.path().join(f)).unwrap();
         }
         let input = unet_input();
-        let ort = Runtime::select(BackendChoice::Ort, 1).expect("native ONNX Runtime (pip install onnxruntime)");
+        let ort = { crate::steps::runtime::use_onnx_runtime_for_tests(); Runtime::select(BackendChoice::Ort, 1) }.expect("native ONNX Runtime (pip install onnxruntime)");
         let run_both = |path: &Path| {
             let signature = check_network(path, 64).unwrap();
             let a = ort.load(path, 64, &signature).unwrap().run(&input).unwrap();

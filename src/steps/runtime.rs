@@ -113,51 +113,6 @@ impl Runtime {
     }
 }
 
-/// Where native ONNX Runtime is looked for: `ORT_DYLIB_PATH`, then the `onnxruntime` Python
-/// package (`onnxruntime/capi/libonnxruntime.so.*`) in the usual site-packages places, then
-/// the one `python3` imports.
-pub fn find_onnxruntime() -> std::result::Result<PathBuf, String> {
-    if let Some(p) = std::env::var_os("ORT_DYLIB_PATH").filter(|p| !p.is_empty()) {
-        let p = PathBuf::from(p);
-        return if p.is_file() { Ok(p) } else { Err(format!("ORT_DYLIB_PATH={} is not a file", p.display())) };
-    }
-    let mut roots: Vec<String> = Vec::new();
-    if let Some(venv) = std::env::var_os("VIRTUAL_ENV") {
-        roots.push(format!("{}/lib/python3*/site-packages", venv.to_string_lossy()));
-    }
-    if let Some(home) = std::env::var_os("HOME") {
-        let home = home.to_string_lossy();
-        roots.push(format!("{home}/.local/lib/python3*/site-packages"));
-        roots.push(format!("{home}/.pyenv/versions/*/lib/python3*/site-packages"));
-    }
-    roots.extend(["/usr/local/lib/python3*/site-packages", "/usr/local/lib/python3*/dist-packages", "/usr/lib/python3/dist-packages"].map(String::from));
-    for root in &roots {
-        if let Some(lib) = glob_library(&format!("{root}/onnxruntime/capi/libonnxruntime.so*")) {
-            return Ok(lib);
-        }
-    }
-    // Last resort: ask the Python on PATH where its onnxruntime lives.
-    let out = std::process::Command::new("python3")
-        .args(["-c", "import onnxruntime, os; print(os.path.dirname(onnxruntime.__file__))"])
-        .stderr(std::process::Stdio::null())
-        .output();
-    if let Ok(out) = out {
-        if out.status.success() {
-            let dir = String::from_utf8_lossy(&out.stdout).trim().to_string();
-            if let Some(lib) = glob_library(&format!("{dir}/capi/libonnxruntime.so*")) {
-                return Ok(lib);
-            }
-        }
-    }
-    Err("no ORT_DYLIB_PATH and no onnxruntime Python package found (pip install onnxruntime, or set ORT_DYLIB_PATH)".into())
-}
-
-fn glob_library(pattern: &str) -> Option<PathBuf> {
-    let mut found: Vec<PathBuf> = glob::glob(pattern).ok()?.filter_map(|p| p.ok()).filter(|p| p.is_file()).collect();
-    found.sort();
-    found.pop()
-}
-
 /// The ONNX Runtime library the embedding program chose (`EngineOptions::onnx_runtime`).
 static ORT_LIBRARY: Mutex<Option<PathBuf>> = Mutex::new(None);
 
@@ -183,10 +138,9 @@ fn ort_environment() -> std::result::Result<&'static (PathBuf, ort::environment:
     ORT_ENV
         .get_or_init(|| {
             let chosen = ORT_LIBRARY.lock().expect("ONNX Runtime library").clone();
-            let library = match chosen {
-                Some(library) => library,
-                None => find_onnxruntime()?,
-            };
+            // The library does not search the machine for one: that is the caller's policy
+            // (the command line looks in the usual places and passes what it finds).
+            let library = chosen.ok_or("no ONNX Runtime library given (EngineOptions::onnx_runtime)")?;
             let builder = ort::init_from(&library).map_err(|e| format!("{}: {e}", library.display()))?;
             let env = builder.with_name("r2d2").build().map_err(|e| format!("{}: {e}", library.display()))?;
             Ok((library, env))
@@ -515,6 +469,18 @@ impl Network for TractNetwork {
     }
 }
 
+/// The command line's lookup, for the tests that need native ONNX Runtime.
+#[cfg(test)]
+#[path = "../cli/onnx_runtime.rs"]
+mod lookup;
+
+/// Injects the ONNX Runtime library the command line would find (tests only).
+#[cfg(test)]
+pub(crate) fn use_onnx_runtime_for_tests() {
+    let library = lookup::find_onnxruntime().expect("native ONNX Runtime (pip install onnxruntime)");
+    use_onnx_runtime(&library).expect("the library loads");
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -529,7 +495,7 @@ mod tests {
         assert!(mapped.weights >= 3 && mapped.bytes > 20_000, "{mapped:?}");
         assert!((mapped.skeleton.len() as u64) < std::fs::metadata(&path).unwrap().len() - mapped.bytes + 1024);
         let input = super::super::onnx::tests::unet_input();
-        Runtime::select(BackendChoice::Ort, 1).expect("native ONNX Runtime (pip install onnxruntime)");
+        { use_onnx_runtime_for_tests(); Runtime::select(BackendChoice::Ort, 1) }.expect("native ONNX Runtime (pip install onnxruntime)");
         let opt = GraphOptimization::default();
         let mut copied = OrtNetwork::load(&path, 64, 1, opt, &signature, false).unwrap();
         let mut from_file = OrtNetwork::load(&path, 64, 1, opt, &signature, true).unwrap();
