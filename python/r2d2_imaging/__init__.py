@@ -72,10 +72,11 @@ def run(pipeline: PathLike, set: Optional[Mapping[str, Any]] = None) -> dict:
 
 
 def _onnx_runtime() -> Optional[str]:
-    """The ONNX Runtime library of this interpreter's `onnxruntime` package, when installed and
-    ORT_DYLIB_PATH does not name one (the engine looks there itself)."""
+    """The native ONNX Runtime library for series steps (the engine loads only the one it is
+    given, else runs the networks on tract): ORT_DYLIB_PATH, else this interpreter's
+    `onnxruntime` package's library, else None."""
     if os.environ.get("ORT_DYLIB_PATH"):
-        return None
+        return os.environ["ORT_DYLIB_PATH"]
     import importlib.util
 
     spec = importlib.util.find_spec("onnxruntime")
@@ -83,7 +84,7 @@ def _onnx_runtime() -> Optional[str]:
         return None
     capi = os.path.join(list(spec.submodule_search_locations)[0], "capi")
     try:
-        names = sorted(n for n in os.listdir(capi) if n.startswith("libonnxruntime.so") or n == "onnxruntime.dll" or n.startswith("libonnxruntime") and n.endswith(".dylib"))
+        names = sorted(n for n in os.listdir(capi) if n.startswith("libonnxruntime.so") or n.startswith("libonnxruntime") and n.endswith(".dylib") or n == "onnxruntime.dll")
     except OSError:
         return None
     return os.path.join(capi, names[-1]) if names else None
