@@ -1,41 +1,55 @@
 //! r2d2-imaging: radio-interferometric imaging with R2D2 deep-network series.
 //!
+//! The front door is the [`Engine`] (docs/embedding.md): stage kinds in a [`Registry`],
+//! pipelines as [`PipelineSpec`]s (from YAML or built in code), observations in as files or
+//! Arrow record batches ([`MemoryInput`]), products out as files or arrays ([`JobProducts`]).
+//!
 //! The numerical modules (`nufft`, `weighting`, `operator`, `simulate`, `metrics`) know
-//! nothing of files, channels or configuration; `vis` and `fits` are the file formats, and
-//! `imaging` ties operator and weighting into the dirty products.
+//! nothing of files, channels or configuration; `vis` holds the visibilities and their table
+//! formats, `fits` the image files, and `imaging` ties operator and weighting into the dirty
+//! products. The pipeline's machinery (`pipeline`, `stages`, `steps`) is internal but for the
+//! contracts the facade re-exports.
 
-pub mod allocator;
-pub mod bench;
-pub mod deconv;
+mod deconv;
 mod engine;
 pub mod error;
-pub mod fft2;
+mod fft2;
 pub mod fits;
 pub mod imaging;
-pub mod ingest;
-pub mod limits;
 pub mod metrics;
 #[cfg(feature = "ms")]
 pub mod ms;
 pub mod nufft;
 pub mod operator;
-pub mod parallel;
-pub mod pipeline;
+mod parallel;
+mod pipeline;
 pub mod preview;
-pub mod products;
-pub mod progress;
+mod products;
 pub mod simulate;
-pub mod staging;
-pub mod stages;
+mod stages;
 pub mod steps;
 pub mod vis;
 pub mod weighting;
 
+// For the `r2d2` binary and the benches, not part of the library's interface.
+#[doc(hidden)]
+pub mod allocator;
+#[doc(hidden)]
+pub mod bench;
+#[doc(hidden)]
+pub mod limits;
+#[doc(hidden)]
+pub mod progress;
+#[doc(hidden)]
+pub mod staging;
+
 pub use engine::{is_ms, BackendChoice, Engine, EngineOptions, GraphOptimization, ImageParams, Observation, ProgressObserver, StepChoice};
 pub use error::{Error, Result};
 pub use pipeline::{
-    BuildContext, Built, Emit, ImageConfig, IterationMetrics, Job, KindFn, MemoryInput, PipelineSpec, Product, ProductSink, Progress,
-    Registry, Role, RunReport, Source, Stage, StageKind, StageSpec,
+    BuildContext, Built, Emit, ImageConfig, Imaging, IterationMetrics, Job, KindFn, MemoryInput, PipelineSpec, Port, Product,
+    ProductSink, Progress, Registry, Role, RunReport, Source, Stage, StageKind, StageSpec,
 };
 pub use products::{JobProducts, WriteOptions};
-pub use weighting::Weighting;
+/// Reading visibility tables into jobs (the file and memory sources share it).
+pub use stages::ingest;
+pub use weighting::{Weighting, WeightingScheme};

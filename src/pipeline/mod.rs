@@ -7,12 +7,12 @@
 //! owns these contracts: the built-in kinds (`crate::stages`) plug into them, and so can an
 //! embedding program's.
 
-pub mod config;
-pub mod graph;
-pub mod io;
-pub mod registry;
-pub mod runner;
-pub mod stage;
+pub(crate) mod config;
+pub(crate) mod graph;
+pub(crate) mod io;
+pub(crate) mod registry;
+pub(crate) mod runner;
+pub(crate) mod stage;
 
 pub use config::{ImageConfig, PipelineSpec, StageSpec};
 pub use io::{MemoryInput, ProductSink};

@@ -4,6 +4,7 @@
 
 mod arrow_ipc;
 mod gridder;
+pub mod ingest;
 mod memory;
 #[cfg(feature = "ms")]
 mod ms;

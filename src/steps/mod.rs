@@ -3,12 +3,12 @@
 //! and everything around it is shared. Native plugins (`native`, a shared library through a
 //! versioned C ABI) and ONNX series implement the same trait.
 
-pub mod clean;
-pub mod native;
-pub mod mapped_weights;
-pub mod onnx;
-pub mod runtime;
-pub mod series;
+pub(crate) mod clean;
+pub(crate) mod native;
+pub(crate) mod onnx;
+
+// The ONNX internals by their former paths (the command line names series and backends).
+pub use onnx::{runtime, series};
 
 use crate::Result;
 

@@ -471,7 +471,7 @@ impl Network for TractNetwork {
 
 /// The command line's lookup, for the tests that need native ONNX Runtime.
 #[cfg(test)]
-#[path = "../cli/onnx_runtime.rs"]
+#[path = "../../cli/onnx_runtime.rs"]
 mod lookup;
 
 /// Injects the ONNX Runtime library the command line would find (tests only).
@@ -489,12 +489,12 @@ mod tests {
     fn onnx_runtime_maps_inline_weights_from_the_file_and_infers_the_same() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("mapped-unet.onnx");
-        std::fs::copy(super::super::onnx::tests::test_models().join("unet.onnx"), &path).unwrap();
+        std::fs::copy(super::super::tests::test_models().join("unet.onnx"), &path).unwrap();
         let signature = check_network(&path, 64).unwrap();
         let mapped = signature.mapped.as_ref().expect("the test U-Net has weights over 4 KiB");
         assert!(mapped.weights >= 3 && mapped.bytes > 20_000, "{mapped:?}");
         assert!((mapped.skeleton.len() as u64) < std::fs::metadata(&path).unwrap().len() - mapped.bytes + 1024);
-        let input = super::super::onnx::tests::unet_input();
+        let input = super::super::tests::unet_input();
         { use_onnx_runtime_for_tests(); Runtime::select(BackendChoice::Ort, 1) }.expect("native ONNX Runtime (pip install onnxruntime)");
         let opt = GraphOptimization::default();
         let mut copied = OrtNetwork::load(&path, 64, 1, opt, &signature, false).unwrap();

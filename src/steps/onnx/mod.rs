@@ -11,9 +11,13 @@
 //! thread while the current one infers (with `prefetch: false`, only the one running). When
 //! several jobs go through the series interleaved, the two most recently used stay resident.
 
-use super::runtime::{check_network, BackendChoice, GraphOptimization, Network, Runtime, Signature};
-use super::series::{Architecture, Series};
+mod mapped_weights;
+pub mod runtime;
+pub mod series;
+
 use super::{NetworkStep, StepInput};
+use runtime::{check_network, BackendChoice, GraphOptimization, Network, Runtime, Signature};
+use series::{Architecture, Series};
 use crate::{Error, Result};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
@@ -77,7 +81,7 @@ impl OnnxStep {
     /// Open and check the series for `size x size` images: every file is read and its input and
     /// output checked here, before imaging starts.
     pub fn new(config: &OnnxConfig, size: usize, pipeline_threads: usize) -> Result<OnnxStep> {
-        let series = Series::open(&super::series::resolve_for_size(&config.series, size)?)?;
+        let series = Series::open(&series::resolve_for_size(&config.series, size)?)?;
         if let Some(warning) = series.check_size(size)? {
             log::warn!("{warning}");
         }
@@ -102,10 +106,6 @@ impl OnnxStep {
             log::debug!("weights mapped from the files, not copied: {} of {} networks ({mb:.0} MB)", mapped.len(), signatures.iter().flatten().count());
         }
         Ok(OnnxStep { series, runtime, size, iterations, resident: Vec::new(), signatures, prefetch: config.prefetch, interleaved: false, pending: None, last_job: None, walking: Default::default() })
-    }
-
-    pub fn runtime(&self) -> &Runtime {
-        &self.runtime
     }
 
     fn network(&mut self, job: &str, iteration: usize, layer: usize) -> Result<&mut Box<dyn Network>> {
@@ -533,7 +533,7 @@ pub(crate) mod tests {
         let signature = check_network(&path, 64).unwrap();
         assert_eq!(signature.input_params[2..], [Some("H".to_string()), Some("W".to_string())], "symbolic dimensions are named");
         let input = unet_input();
-        let ort = { crate::steps::runtime::use_onnx_runtime_for_tests(); Runtime::select(BackendChoice::Ort, 1) }.expect("native ONNX Runtime (pip install onnxruntime)");
+        let ort = { runtime::use_onnx_runtime_for_tests(); Runtime::select(BackendChoice::Ort, 1) }.expect("native ONNX Runtime (pip install onnxruntime)");
         let a = ort.load(&path, 64, &signature).unwrap().run(&input).unwrap();
         let b = Runtime::Tract.load(&path, 64, &signature).unwrap().run(&input).unwrap();
         let (a, b): (Vec<f64>, Vec<f64>) = (a.into_iter().map(f64::from).collect(), b.into_iter().map(f64::from).collect());
@@ -550,7 +550,7 @@ pub(crate) mod tests {
             std::fs::copy(test_models().join(f), dir.path().join(f)).unwrap();
         }
         let input = unet_input();
-        let ort = { crate::steps::runtime::use_onnx_runtime_for_tests(); Runtime::select(BackendChoice::Ort, 1) }.expect("native ONNX Runtime (pip install onnxruntime)");
+        let ort = { runtime::use_onnx_runtime_for_tests(); Runtime::select(BackendChoice::Ort, 1) }.expect("native ONNX Runtime (pip install onnxruntime)");
         let run_both = |path: &Path| {
             let signature = check_network(path, 64).unwrap();
             let a = ort.load(path, 64, &signature).unwrap().run(&input).unwrap();
