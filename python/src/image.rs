@@ -5,8 +5,8 @@ use crate::products::Products;
 use crate::{run_released, R2D2Error};
 use pyo3::prelude::*;
 use r2d2_imaging::{BackendChoice, Engine, EngineOptions, ImageParams, Observation, StepChoice};
-use r2d2_imaging::pipeline::MemoryInput;
-use r2d2_imaging::weighting::Weighting;
+use r2d2_imaging::MemoryInput;
+use r2d2_imaging::Weighting;
 use std::path::PathBuf;
 
 fn parameter(name: &str, message: impl std::fmt::Display) -> PyErr {

@@ -10,8 +10,8 @@ use pyo3::exceptions::PyValueError;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
 use r2d2_imaging::fits::{Beam, ImageWcs};
-use r2d2_imaging::pipeline::IterationMetrics;
-use r2d2_imaging::products::{JobProducts, WriteOptions};
+use r2d2_imaging::IterationMetrics;
+use r2d2_imaging::{JobProducts, WriteOptions};
 use std::collections::BTreeMap;
 
 /// The image products a job may have, in the order they pickle.
