@@ -383,32 +383,75 @@ pub fn read_parts(
     split_key: &str,
     cancelled: &dyn Fn() -> bool,
 ) -> Result<Option<(Vec<Part>, IngestStats)>> {
+    let Some(scan) = scan(reader, split, split_key, cancelled)? else { return Ok(None) };
+    let Some(split) = split else {
+        return Ok(Some((vec![Part { suffix: None, vis: scan.vis }], scan.stats)));
+    };
+    let grouping = grouping(&scan, split, split_key, &reader.source().display().to_string())?;
+    let parts = scan
+        .vis
+        .partition(&grouping.group, grouping.suffixes.len())
+        .into_iter()
+        .zip(grouping.suffixes)
+        .filter(|(vis, _)| !vis.is_empty())
+        .map(|(vis, suffix)| Part { suffix: Some(suffix), vis })
+        .collect();
+    Ok(Some((parts, scan.stats)))
+}
+
+/// The rows (0-based, over the whole table) of each job `split` makes of the table, as
+/// [`read_parts`] splits it: only rows kept for imaging, each part's in table order, parts in
+/// group order with their id suffixes. For a caller that ships each part elsewhere as a table
+/// of its own (the Python package's Dask fan-out), which then images exactly as the part.
+pub fn split_rows(
+    reader: &mut dyn TableReader,
+    split: &SplitBy,
+    split_key: &str,
+    cancelled: &dyn Fn() -> bool,
+) -> Result<Option<Vec<(String, Vec<u64>)>>> {
+    let Some(scan) = scan(reader, Some(split), split_key, cancelled)? else { return Ok(None) };
+    let grouping = grouping(&scan, split, split_key, &reader.source().display().to_string())?;
+    let mut rows: Vec<Vec<u64>> = vec![Vec::new(); grouping.suffixes.len()];
+    for (&g, &row) in grouping.group.iter().zip(&scan.kept_rows) {
+        rows[g].push(row);
+    }
+    Ok(Some(grouping.suffixes.into_iter().zip(rows).filter(|(_, rows)| !rows.is_empty()).collect()))
+}
+
+/// A table read for imaging: the kept samples and, with a split, each one's split-column
+/// value and table row.
+struct Scan {
+    vis: Visibilities,
+    stats: IngestStats,
+    keys: Vec<f64>,
+    kept_rows: Vec<u64>,
+    /// The split column's smallest value over all rows (windows start at the observation's
+    /// start, flagged rows included).
+    smallest: f64,
+}
+
+fn scan(reader: &mut dyn TableReader, split: Option<&SplitBy>, split_key: &str, cancelled: &dyn Fn() -> bool) -> Result<Option<Scan>> {
     let source = reader.source().display().to_string();
     if let Some(split) = split {
         split.check_schema(&reader.schema()).map_err(|m| Error::parameter(format!("{split_key}.column"), format!("{source}: {m}")))?;
     }
-    let mut stats = IngestStats::default();
-    let mut all = Visibilities::default();
-    // With a split: the split column's value of each kept sample, and its smallest value
-    // over all rows (windows start at the observation's start, flagged rows included).
-    let mut keys: Vec<f64> = Vec::new();
-    let mut smallest = f64::INFINITY;
-    let mut kept_rows = Vec::new();
+    let mut scan = Scan { vis: Visibilities::default(), stats: IngestStats::default(), keys: Vec::new(), kept_rows: Vec::new(), smallest: f64::INFINITY };
+    let mut kept_in_batch = Vec::new();
     while let Some(batch) = reader.next_batch() {
         if cancelled() {
             return Ok(None);
         }
         let batch = batch?;
         let Some(split) = split else {
-            all.push_batch(record_batch_to_visibilities(&batch, &mut stats, &source)?);
+            scan.vis.push_batch(record_batch_to_visibilities(&batch, &mut scan.stats, &source)?);
             continue;
         };
-        let first_row = stats.rows;
-        kept_rows.clear();
-        let vis = record_batch_to_visibilities_keeping_rows(&batch, &mut stats, &source, &mut kept_rows)?;
+        let first_row = scan.stats.rows;
+        kept_in_batch.clear();
+        let vis = record_batch_to_visibilities_keeping_rows(&batch, &mut scan.stats, &source, &mut kept_in_batch)?;
         let values = split_values(&batch, &split.column, &source, first_row)?;
-        smallest = values.values().iter().copied().filter(|v| v.is_finite()).fold(smallest, f64::min);
-        for &row in &kept_rows {
+        scan.smallest = values.values().iter().copied().filter(|v| v.is_finite()).fold(scan.smallest, f64::min);
+        for &row in &kept_in_batch {
             let value = values.value(row);
             if !value.is_finite() {
                 return Err(Error::input(
@@ -416,13 +459,22 @@ pub fn read_parts(
                     format!("column `{}` at row {} is {value}: a sample needs a finite value to be split by", split.column, first_row + row as u64),
                 ));
             }
-            keys.push(value);
+            scan.keys.push(value);
+            scan.kept_rows.push(first_row + row as u64);
         }
-        all.push_batch(vis);
+        scan.vis.push_batch(vis);
     }
-    let Some(split) = split else {
-        return Ok(Some((vec![Part { suffix: None, vis: all }], stats)));
-    };
+    Ok(Some(scan))
+}
+
+/// Each kept sample's group, and every group's id suffix (`t003`, `ch01`), empty ones included.
+struct Grouping {
+    group: Vec<usize>,
+    suffixes: Vec<String>,
+}
+
+fn grouping(scan: &Scan, split: &SplitBy, split_key: &str, source: &str) -> Result<Grouping> {
+    let (keys, smallest) = (&scan.keys, scan.smallest);
     let too_many = |key: &str, what: String| {
         Error::parameter(
             format!("{split_key}.{key}"),
@@ -454,14 +506,8 @@ pub fn read_parts(
     };
     let groups = group.iter().max().map_or(0, |g| g + 1);
     let width = (groups.saturating_sub(1)).to_string().len().max(min_width);
-    let parts = all
-        .partition(&group, groups)
-        .into_iter()
-        .enumerate()
-        .filter(|(_, vis)| !vis.is_empty())
-        .map(|(g, vis)| Part { suffix: Some(format!("{}{g:0width$}", split.label())), vis })
-        .collect();
-    Ok(Some((parts, stats)))
+    let suffixes = (0..groups).map(|g| format!("{}{g:0width$}", split.label())).collect();
+    Ok(Grouping { group, suffixes })
 }
 
 /// The split column as f64 (any numeric type), nulls refused.
@@ -602,6 +648,25 @@ mod tests {
         assert_eq!(rows(&parts[1]), [0, 2, 6, 8, 10, 12, 14, 16, 18, 20, 22, 24, 26, 28, 30, 32, 34, 36, 38]);
         // u is converted to wavelengths at each sample's own frequency, as without a split.
         assert_eq!(parts[0].vis.u[0], 101.0 * (1.2e9 / crate::vis::SPEED_OF_LIGHT));
+    }
+
+    /// `split_rows` names the same parts as `read_parts` and gives each the table rows it holds
+    /// (the visibilities' real parts are the row numbers), for windows with a gap and channels.
+    #[test]
+    fn split_rows_are_the_rows_of_read_parts() {
+        for split in [SplitBy { column: "time".into(), window: Some(15.0) }, SplitBy { column: "frequency".into(), window: None }] {
+            let (parts, _) = parts_of(Some(split.clone()), 7);
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("obs.parquet");
+            write_parquet(&path, &table(), &meta()).unwrap();
+            let mut reader = VisReader::open_with_columns(&path, 7, &[split.column.as_str()]).unwrap();
+            let split_rows = split_rows(&mut reader, &split, "split_by", &|| false).unwrap().unwrap();
+            assert_eq!(split_rows.len(), parts.len());
+            for ((suffix, rows_of_part), part) in split_rows.iter().zip(&parts) {
+                assert_eq!(Some(suffix), part.suffix.as_ref());
+                assert_eq!(rows_of_part.iter().map(|&r| r as usize).collect::<Vec<_>>(), rows(part));
+            }
+        }
     }
 
     #[test]

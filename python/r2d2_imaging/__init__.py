@@ -1,0 +1,124 @@
+"""r2d2_imaging: radio-interferometric imaging with R2D2 deep-network series, from Python.
+
+A thin layer over the Rust engine (the same one the ``r2d2`` command runs): the engine works
+with the GIL released on its own threads, Ctrl-C stops it at the next job boundary, and its
+errors are raised as :class:`R2D2Error` carrying the engine's message.
+
+- :func:`run` / :func:`validate`: a YAML pipeline, as ``r2d2 run`` / ``r2d2 validate``.
+- :func:`image`: one observation through the default imaging pipeline, as ``r2d2 image``.
+- :mod:`r2d2_imaging.dask`: many jobs over the workers of a ``dask.distributed`` cluster.
+- ``r2d2.yml`` beside this file: Stimela2 cabs for ``r2d2 image``, ``r2d2 run`` and
+  ``r2d2 simulate`` (``_include: (r2d2_imaging)r2d2.yml``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any, Mapping, Optional, Union
+
+from . import _native
+from ._native import Products, R2D2Error
+
+__version__ = _native.__version__
+__all__ = ["R2D2Error", "Products", "image", "run", "validate", "__version__"]
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+
+def _pipeline_text(pipeline: PathLike) -> tuple[str, str]:
+    """The YAML text and the name errors give it: a path is read; a string holding a newline
+    is the YAML itself (named ``<string>``)."""
+    if isinstance(pipeline, str) and "\n" in pipeline:
+        return pipeline, "<string>"
+    path = os.fspath(pipeline)
+    with open(path, encoding="utf-8") as f:
+        return f.read(), path
+
+
+def _overrides(set: Optional[Mapping[str, Any]]) -> list[str]:
+    """``{"image.size": 256, "write.prefix": "out/{job}"}`` as ``r2d2 run --set`` takes them:
+    each value written as JSON, which YAML reads back as the same value."""
+    if not set:
+        return []
+    return [f"{key}={json.dumps(os.fspath(v) if isinstance(v, os.PathLike) else v)}" for key, v in set.items()]
+
+
+def validate(pipeline: PathLike, set: Optional[Mapping[str, Any]] = None) -> list[str]:
+    """Check a pipeline (a YAML file, or YAML text) without running it, as ``r2d2 validate``;
+    returns its stage names. Raises :class:`R2D2Error` naming the file, line and column."""
+    text, name = _pipeline_text(pipeline)
+    return _native.validate(text, name, _overrides(set))
+
+
+def run(pipeline: PathLike, set: Optional[Mapping[str, Any]] = None) -> dict:
+    """Run a pipeline (a YAML file, or YAML text) as ``r2d2 run`` does, with ``set``
+    overriding values (``{"image.size": 256}``, as ``--set image.size=256``).
+
+    Returns the run's report: ``jobs`` (ids in completion order), ``metrics`` (job id -> its
+    metrics as the writer wrote them to ``<prefix>-metrics.json``: residual ratio, SNR, logSNR
+    and seconds per iteration), ``seconds`` and ``stage_seconds``. Raises :class:`R2D2Error`
+    with the engine's message (stage and job), or ``KeyboardInterrupt`` after stopping the
+    engine cleanly on Ctrl-C."""
+    text, name = _pipeline_text(pipeline)
+    report = _native.run(text, name, _overrides(set), _onnx_runtime())
+    files = report.pop("metrics_files")
+    report["metrics"] = {}
+    for job in report["jobs"]:
+        for path in files[job]:
+            with open(path, encoding="utf-8") as f:
+                report["metrics"][job] = json.load(f)
+    return report
+
+
+def _onnx_runtime() -> Optional[str]:
+    """The native ONNX Runtime library for series steps (the engine loads only the one it is
+    given, else runs the networks on tract): ORT_DYLIB_PATH, else this interpreter's
+    `onnxruntime` package's library, else None."""
+    if os.environ.get("ORT_DYLIB_PATH"):
+        return os.environ["ORT_DYLIB_PATH"]
+    import importlib.util
+
+    spec = importlib.util.find_spec("onnxruntime")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    capi = os.path.join(list(spec.submodule_search_locations)[0], "capi")
+    try:
+        names = sorted(n for n in os.listdir(capi) if n.startswith("libonnxruntime.so") or n.startswith("libonnxruntime") and n.endswith(".dylib") or n == "onnxruntime.dll")
+    except OSError:
+        return None
+    return os.path.join(capi, names[-1]) if names else None
+
+
+def image(obs, size: int = 512, step: Optional[str] = None, weighting: str = "briggs", robust: float = 0.0,
+          superresolution: float = 1.5, pixel_arcsec: Optional[float] = None, truth: Optional[PathLike] = None, *,
+          iterations: Optional[int] = None, threads: int = 0, id: Optional[str] = None, backend: str = "auto",
+          prefetch: bool = True, plugin_config: Optional[str] = None, epsilon: float = 1e-6, oversampling: float = 2.0,
+          weighting_grid_factor: Optional[float] = None, onnx_runtime: Optional[PathLike] = None) -> Products:
+    """Image one observation as ``r2d2 image`` does, in this process.
+
+    ``obs`` is a path (Parquet, Arrow IPC, MeasurementSet) or a table in the documented
+    visibility schema with the observation's metadata on its schema: a ``pyarrow.Table`` or
+    ``RecordBatchReader`` (anything with ``__arrow_c_stream__``), read through the Arrow C
+    stream without copying its buffers. ``step``: ``None``/``"auto"`` (the series trained
+    for ``size``), ``"clean"``, a series name or directory, or a plugin library;
+    ``iterations``: CLEAN major cycles, the first networks of a series, or a plugin's steps.
+    ``threads``: the engine's threads (0: every core). ``id`` names the job (default: the
+    file name without its extension, or ``table``).
+
+    Returns :class:`Products`: ``dirty``, ``psf``, ``model``, ``residual`` (and ``image`` for
+    CLEAN) as float32 arrays (N, N) in FITS orientation (row 0 at the bottom, as astropy reads
+    the files), owned by numpy without a copy; ``metrics``; ``header``; ``write(prefix)``.
+    The engine runs with the GIL released; Ctrl-C stops it and raises KeyboardInterrupt;
+    its errors raise :class:`R2D2Error`."""
+    if weighting_grid_factor is None:
+        weighting_grid_factor = _native.DEFAULT_WEIGHTING_GRID_FACTOR
+    if not isinstance(obs, (str, os.PathLike)) and not hasattr(obs, "__arrow_c_stream__"):
+        raise TypeError(f"obs: expected a path or an Arrow table (pyarrow.Table, RecordBatchReader), got {type(obs).__name__}")
+    return _native.image(
+        os.fspath(obs) if isinstance(obs, os.PathLike) else obs,
+        id=id, size=size, step=step or "auto", weighting=weighting, robust=robust, superresolution=superresolution,
+        pixel_arcsec=pixel_arcsec, truth=os.fspath(truth) if truth is not None else None, iterations=iterations,
+        threads=threads, backend=backend, prefetch=prefetch, plugin_config=plugin_config, epsilon=epsilon,
+        oversampling=oversampling, weighting_grid_factor=weighting_grid_factor,
+        onnx_runtime=os.fspath(onnx_runtime) if onnx_runtime is not None else _onnx_runtime())

@@ -1,0 +1,151 @@
+"""Many imaging jobs over the workers of a ``dask.distributed`` cluster: one engine per task.
+
+The jobs are a list of observations (paths or Arrow tables), or observations split by a column
+exactly as a pipeline's ``split_by`` splits them (one job per channel, time window, field ...).
+Each job is one Dask task that images it with :func:`r2d2_imaging.image` on a worker; the
+products come back to the client, or are written by the workers under a shared prefix and only
+their metrics come back. On the Dask dashboard the tasks of a call make one ``r2d2-image``
+group (one progress bar), each keyed by its job id.
+
+    from dask.distributed import Client
+    from r2d2_imaging.dask import image_many
+    client = Client("tcp://scheduler:8786")        # or LocalCluster(), or dask-jobqueue
+    results = image_many(client, ["a.parquet", "b.parquet"], size=512, prefix="out/{job}")
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Optional, Sequence, Union
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+import r2d2_imaging
+from r2d2_imaging import _native
+
+__all__ = ["Job", "JobResult", "jobs", "split", "image_many", "read_parquet"]
+
+Observation = Union[str, "os.PathLike[str]", pa.Table]
+
+
+@dataclass
+class Job:
+    """One imaging job: its id (products are named after it) and its observation: a path, a
+    table, or the rows ``rows`` of the table at ``path`` (a part of a split file, read by the
+    worker itself from a file system it shares with the client)."""
+
+    id: str
+    obs: Any
+    rows: Optional[np.ndarray] = None
+
+    def observation(self):
+        """What :func:`r2d2_imaging.image` takes for this job (on the worker)."""
+        if self.rows is None:
+            return self.obs
+        return read_parquet(self.obs).take(self.rows)
+
+
+def read_parquet(path) -> pa.Table:
+    """A Parquet visibility table with the observation's metadata on its schema, where the
+    engine expects it of a table (pyarrow puts the file's key-value metadata there only when
+    the file carries no Arrow schema of its own)."""
+    file = pq.ParquetFile(path)
+    meta = {k: v for k, v in (file.metadata.metadata or {}).items() if k != b"ARROW:schema"}
+    table = file.read()
+    return table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
+
+
+@dataclass
+class JobResult:
+    """What a worker sends back when it wrote the products itself: the job's id, the product
+    prefix, the per-iteration metrics and the FITS header."""
+
+    id: str
+    prefix: str
+    metrics: dict
+    header: dict
+
+
+def _stem(obs, index: int) -> str:
+    """A job's id: the file name without its extension, as the engine's sources name jobs; a
+    table without a name is ``table<index>``."""
+    if isinstance(obs, (str, os.PathLike)):
+        return Path(obs).stem
+    return f"table{index}"
+
+
+def split(obs: Observation, column: str, window: Optional[float] = None, id: Optional[str] = None) -> list[Job]:
+    """The jobs ``split_by: {column, window}`` makes of one observation (a Parquet path or an
+    Arrow table), named ``<id>-ch00``, ``<id>-t003`` ... exactly as the engine names and fills
+    them (the rows it keeps for imaging, windows counted from the first sample). The split is
+    computed here (the table is read once); each path job carries only its row numbers, for
+    the worker to read from the shared file."""
+    name = id or _stem(obs, 0)
+    table = read_parquet(obs) if isinstance(obs, (str, os.PathLike)) else obs
+    parts = _native.split_rows(table, str(obs) if isinstance(obs, (str, os.PathLike)) else name, column, window)
+    if isinstance(obs, (str, os.PathLike)):
+        return [Job(f"{name}-{suffix}", os.fspath(obs), rows) for suffix, rows in parts]
+    return [Job(f"{name}-{suffix}", table.take(rows)) for suffix, rows in parts]
+
+
+def jobs(observations: Union[Sequence[Observation], Mapping[str, Observation]], split_by: Optional[Mapping[str, Any]] = None) -> list[Job]:
+    """The jobs of a list of observations (ids from file names) or a mapping id -> observation,
+    each one job, or each split by ``split_by`` (``{"column": "frequency"}``,
+    ``{"column": "time", "window": 600}``). Repeated ids are refused: their products would
+    overwrite each other."""
+    items = list(observations.items()) if isinstance(observations, Mapping) else [(_stem(o, i), o) for i, o in enumerate(observations)]
+    if split_by is None:
+        out = [Job(name, os.fspath(obs) if isinstance(obs, os.PathLike) else obs) for name, obs in items]
+    else:
+        unknown = set(split_by) - {"column", "window"}
+        if unknown or "column" not in split_by:
+            raise ValueError(f"split_by: expected {{column, window}}, got {dict(split_by)}")
+        out = [job for name, obs in items for job in split(obs, split_by["column"], split_by.get("window"), id=name)]
+    seen = set()
+    for job in out:
+        if job.id in seen:
+            raise ValueError(f"job id '{job.id}' comes twice: the second job's products would overwrite the first's (name the observations with a mapping)")
+        seen.add(job.id)
+    return out
+
+
+def _image_job(job: Job, prefix: Optional[str], params: dict):
+    """One task: one engine, one job (runs on a worker)."""
+    products = r2d2_imaging.image(job.observation(), id=job.id, **params)
+    if prefix is None:
+        return products
+    target = prefix.format(job=job.id)
+    products.write(target)
+    return JobResult(job.id, target, products.metrics, products.header)
+
+
+def image_many(client, observations, *, split_by: Optional[Mapping[str, Any]] = None, prefix: Optional[str] = None,
+               progress: bool = False, **params) -> list:
+    """Image every job of ``observations`` (see :func:`jobs`) on ``client``'s workers, one
+    task and one engine per job, and return the results in job order.
+
+    ``params`` are :func:`r2d2_imaging.image`'s (``size``, ``step``, ``weighting``, ``threads``
+    ...); ``threads`` is per task: give each task the cores of one worker thread (the default,
+    0, uses every core of the worker's machine for each task). With ``prefix`` (``{job}`` its
+    placeholder, on a file system the workers share) each worker writes its job's products
+    there (as ``r2d2 image --name``) and returns a :class:`JobResult`; without, the products
+    (:class:`r2d2_imaging.Products`, numpy arrays) come back to the client. ``progress`` shows a
+    progress bar here; the dashboard shows the ``r2d2-image`` group either way. The first failed
+    job raises its :class:`r2d2_imaging.R2D2Error`."""
+    if prefix is not None and "{job}" not in prefix:
+        raise ValueError(f"prefix {prefix!r}: expected the {{job}} placeholder, or every job would write the same files")
+    todo = jobs(observations, split_by)
+    # Tables go to the cluster once, as data of their own, rather than inside the task graph.
+    shipped = [client.scatter(job, hash=False) if isinstance(job.obs, pa.Table) else job for job in todo]
+    # Keys (r2d2-image-<token>, job id): the dashboard groups every task of the call under
+    # `r2d2-image` (one progress bar) and names each job.
+    token = os.urandom(8).hex()
+    futures = [client.submit(_image_job, job, prefix, params, key=(f"r2d2-image-{token}", todo[i].id), pure=False) for i, job in enumerate(shipped)]
+    if progress:
+        from distributed import progress as show
+        show(futures)
+    return client.gather(futures)

@@ -1,0 +1,175 @@
+//! `r2d2_imaging._native`: the engine's Rust API for Python (the pure-Python half,
+//! `python/r2d2_imaging/`, gives it its documented signatures).
+//!
+//! Every call that does engine work runs it on a thread of its own and waits for it with the
+//! GIL released, taking the GIL back between short waits only to let Python run its signal
+//! handlers: Ctrl-C (KeyboardInterrupt) cancels the run at the engine's next job boundary,
+//! waits for the engine to stop, then raises. Engine errors become `R2D2Error` with the
+//! engine's message (file, line, column, stage, job).
+
+mod arrow_in;
+mod image;
+mod products;
+
+use numpy::PyArray1;
+use pyo3::create_exception;
+use pyo3::exceptions::PyRuntimeError;
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+use r2d2_imaging::{Engine, EngineOptions, PipelineSpec};
+use crossbeam_channel::{bounded, RecvTimeoutError};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+create_exception!(r2d2_imaging, R2D2Error, PyRuntimeError, "An error reported by the r2d2 engine; its message names the file, line, column, stage or job.");
+
+/// How often a waiting call looks at Python's signals.
+const SIGNAL_POLL: Duration = Duration::from_millis(50);
+
+pub(crate) fn engine_error(e: r2d2_imaging::Error) -> PyErr {
+    R2D2Error::new_err(e.to_string())
+}
+
+/// Runs `work` on a thread of its own with the GIL released, checking Python's signals while
+/// it runs. On KeyboardInterrupt (or any exception a signal handler raises) the cancel flag
+/// given to `work` is set, the engine is waited for (it stops at its next job boundary) and
+/// the exception is raised.
+pub(crate) fn run_released<T: Send + 'static>(
+    py: Python<'_>,
+    work: impl FnOnce(Arc<AtomicBool>) -> r2d2_imaging::Result<T> + Send + 'static,
+) -> PyResult<T> {
+    let cancel = Arc::new(AtomicBool::new(false));
+    let (tx, rx) = bounded(1);
+    let flag = cancel.clone();
+    let worker = std::thread::Builder::new()
+        .name("r2d2-engine".into())
+        .spawn(move || {
+            // A panic is a bug; it must reach Python as an exception, not unwind through it.
+            let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| work(flag)));
+            let _ = tx.send(outcome);
+        })
+        .map_err(|e| R2D2Error::new_err(format!("cannot start the engine thread: {e}")))?;
+    let outcome = loop {
+        match py.allow_threads(|| rx.recv_timeout(SIGNAL_POLL)) {
+            Ok(outcome) => break outcome,
+            Err(RecvTimeoutError::Timeout) => {
+                if let Err(interrupt) = py.check_signals() {
+                    cancel.store(true, Ordering::SeqCst);
+                    py.allow_threads(|| {
+                        let _ = rx.recv();
+                    });
+                    let _ = worker.join();
+                    return Err(interrupt);
+                }
+            }
+            Err(RecvTimeoutError::Disconnected) => {
+                return Err(R2D2Error::new_err("the engine thread ended without a result (this is a bug, please report it)"));
+            }
+        }
+    };
+    let _ = worker.join();
+    match outcome {
+        Ok(result) => result.map_err(engine_error),
+        Err(payload) => Err(R2D2Error::new_err(format!(
+            "the engine failed unexpectedly ({}); this is a bug, please report it",
+            r2d2_imaging::error::panic_message(payload.as_ref())
+        ))),
+    }
+}
+
+/// An engine with the built-in stage kinds; the pipeline's own `threads` sizes its runs.
+fn engine(onnx_runtime: Option<std::path::PathBuf>) -> r2d2_imaging::Result<Engine> {
+    Engine::new(EngineOptions { threads: 0, onnx_runtime })
+}
+
+/// Parses a pipeline: `text` as read from `file_name` (named in errors), with `overrides`
+/// (`stage.key=value`, as `r2d2 run --set`).
+fn parse(engine: &Engine, text: &str, file_name: &str, overrides: Vec<String>) -> PyResult<PipelineSpec> {
+    engine.load_yaml(text, file_name, &overrides).map_err(engine_error)
+}
+
+/// Checks a pipeline without running it (`r2d2 validate`); returns its stage names.
+#[pyfunction]
+#[pyo3(signature = (text, file_name, overrides))]
+fn validate(py: Python<'_>, text: &str, file_name: &str, overrides: Vec<String>) -> PyResult<Vec<String>> {
+    let engine = engine(None).map_err(engine_error)?;
+    let spec = parse(&engine, text, file_name, overrides)?;
+    let names = spec.stages.iter().map(|s| s.name.clone()).collect();
+    // Building the stages reads model manifests and plugin libraries: no GIL needed.
+    run_released(py, move |_| engine.validate(&spec))?;
+    Ok(names)
+}
+
+/// Runs a pipeline (`r2d2 run`); returns the run's report as a dict: `jobs` (ids in completion
+/// order), `seconds`, `stage_seconds`.
+#[pyfunction]
+#[pyo3(signature = (text, file_name, overrides, onnx_runtime=None))]
+fn run<'py>(
+    py: Python<'py>,
+    text: &str,
+    file_name: &str,
+    overrides: Vec<String>,
+    onnx_runtime: Option<std::path::PathBuf>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let engine = engine(onnx_runtime).map_err(engine_error)?;
+    let config = parse(&engine, text, file_name, overrides)?;
+    // Where the writers put each job's metrics (`<prefix>-metrics.json`).
+    let prefixes: Vec<String> = config
+        .stages
+        .iter()
+        .filter(|s| s.kind == "writer")
+        .filter_map(|s| s.params.get("prefix").and_then(|p| p.as_str()).map(str::to_string))
+        .collect();
+    let report = run_released(py, move |cancel| engine.run(&config, Vec::new(), None, cancel))?;
+    let metrics_files = PyDict::new(py);
+    for job in &report.jobs {
+        let files: Vec<String> = prefixes.iter().map(|p| format!("{}-metrics.json", p.replace("{job}", job))).collect();
+        metrics_files.set_item(job, files)?;
+    }
+    let out = PyDict::new(py);
+    out.set_item("metrics_files", metrics_files)?;
+    out.set_item("jobs", report.jobs)?;
+    out.set_item("seconds", report.seconds)?;
+    out.set_item("stage_seconds", report.stage_seconds)?;
+    Ok(out)
+}
+
+/// The table rows of each job that `split_by: {column, window}` makes of `table` (anything
+/// with `__arrow_c_stream__`, named `name` in messages), exactly as the engine's sources split
+/// it: `[(suffix, rows)]`, rows a uint64 array of the rows kept for imaging.
+#[pyfunction]
+#[pyo3(signature = (table, name, column, window=None))]
+fn split_rows<'py>(
+    py: Python<'py>,
+    table: &Bound<'py, PyAny>,
+    name: &str,
+    column: String,
+    window: Option<f64>,
+) -> PyResult<Vec<(String, Bound<'py, PyArray1<u64>>)>> {
+    let stream = arrow_in::stream_of(table)?;
+    let split = r2d2_imaging::ingest::SplitBy { column, window };
+    split.check().map_err(|m| R2D2Error::new_err(format!("split_by.window: {m}")))?;
+    let name = name.to_string();
+    let parts = run_released(py, move |cancel| {
+        let mut reader = arrow_in::StreamTable::new(stream, &name)?;
+        r2d2_imaging::ingest::split_rows(&mut reader, &split, "split_by", &|| cancel.load(Ordering::SeqCst))
+    })?;
+    let parts = parts.ok_or_else(|| R2D2Error::new_err("interrupted while splitting"))?;
+    // The row vectors become the arrays' buffers: moved, not copied.
+    Ok(parts.into_iter().map(|(suffix, rows)| (suffix, PyArray1::from_vec(py, rows))).collect())
+}
+
+#[pymodule]
+fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    m.add("R2D2Error", m.py().get_type::<R2D2Error>())?;
+    m.add("__version__", env!("CARGO_PKG_VERSION"))?;
+    m.add_function(wrap_pyfunction!(validate, m)?)?;
+    m.add_function(wrap_pyfunction!(run, m)?)?;
+    m.add_function(wrap_pyfunction!(split_rows, m)?)?;
+    m.add_function(wrap_pyfunction!(image::image, m)?)?;
+    m.add_function(wrap_pyfunction!(products::_products, m)?)?;
+    m.add_class::<products::Products>()?;
+    m.add("DEFAULT_WEIGHTING_GRID_FACTOR", r2d2_imaging::weighting::DEFAULT_GRID_FACTOR)?;
+    Ok(())
+}

@@ -1,0 +1,100 @@
+"""r2d2_imaging.dask on a LocalCluster of two worker processes: every job's products equal a
+single-process run's, pixel for pixel."""
+
+import numpy as np
+from dask.utils import key_split
+import pytest
+from distributed import Client, LocalCluster, get_task_stream
+
+import r2d2_imaging
+from r2d2_imaging.dask import JobResult, image_many, jobs, read_parquet
+from conftest import read_fits, simulate
+
+# CLEAN keeps these tests quick; one thread per task, as in the single-process runs they are
+# compared with (the gridder's sums follow the thread count).
+PARAMS = dict(size=128, step="clean", iterations=3, threads=1)
+ARRAYS = ["dirty", "psf", "model", "residual", "image"]
+
+
+@pytest.fixture(scope="module")
+def client():
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, Client(cluster) as client:
+        yield client
+
+
+@pytest.fixture(scope="module")
+def channels(r2d2_bin, tmp_path_factory):
+    """One observation of 3 channels with a tenth of its samples flagged."""
+    return simulate(r2d2_bin, tmp_path_factory.mktemp("split") / "multi.parquet", 21, nfreq=3, freq_ratio=1.5, flag_fraction=0.1)
+
+
+def assert_same(a, b, what):
+    for name in ARRAYS:
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=f"{what}: {name}")
+    assert a.header == b.header, what
+    assert figures(a.metrics) == figures(b.metrics), what
+
+
+def figures(metrics):
+    """The metrics without the seconds, which differ from run to run."""
+    return [(m["iteration"], m["residual_ratio"], m["snr"], m["logsnr"]) for m in metrics["iterations"]]
+
+
+def test_every_job_equals_a_single_process_run(client, observations):
+    with get_task_stream(client) as stream:
+        results = image_many(client, observations, **PARAMS)
+    assert [r.id for r in results] == [p.stem for p in observations]
+    for path, result in zip(observations, results):
+        assert_same(result, r2d2_imaging.image(path, **PARAMS), path.name)
+    # The jobs ran on both workers, one engine per task, as one group on the dashboard.
+    assert len({task["worker"] for task in stream.data}) == 2
+    assert {key_split(task["key"]) for task in stream.data} == {"r2d2-image"}
+
+
+def test_split_by_channel_equals_the_engines_own_split(client, channels, tmp_path):
+    """Split here and imaged on the workers, written under a prefix, against one `r2d2 run` of
+    the file with `split_by`: the same jobs and the same files."""
+    results = image_many(client, [channels], split_by={"column": "frequency"}, prefix=str(tmp_path / "dask/{job}"), **PARAMS)
+    assert all(isinstance(r, JobResult) for r in results)
+    yaml = f"""\
+name: split
+threads: 1
+image: {{size: 128, superresolution: 1.5}}
+stages:
+  read: {{kind: parquet, files: "{channels}", split_by: {{column: frequency}}, to: weights}}
+  weights: {{kind: weighting, scheme: briggs, robust: 0, to: grid}}
+  grid: {{kind: gridder, to: step}}
+  step: {{kind: clean, major_cycles: 3, to: update}}
+  update: {{kind: residual, method: toeplitz, to: step, done: write}}
+  write: {{kind: writer, prefix: "{tmp_path}/single/{{job}}"}}
+"""
+    report = r2d2_imaging.run(yaml)
+    assert sorted(r.id for r in results) == sorted(report["jobs"]) == ["multi-ch00", "multi-ch01", "multi-ch02"]
+    written = sorted(p.name for p in (tmp_path / "dask").iterdir())
+    assert written == sorted(p.name for p in (tmp_path / "single").iterdir())
+    for name in written:
+        if name.endswith(".fits"):
+            a, ha = read_fits(tmp_path / "dask" / name)
+            b, hb = read_fits(tmp_path / "single" / name)
+            np.testing.assert_array_equal(a, b, err_msg=name)
+            assert ha == hb, name
+
+
+def test_time_windows_of_a_table_in_memory(client, channels):
+    table = read_parquet(channels)
+    todo = jobs({"obs": table}, split_by={"column": "time", "window": 1200})
+    results = image_many(client, {"obs": table}, split_by={"column": "time", "window": 1200}, **PARAMS)
+    assert [r.id for r in results] == [j.id for j in todo] and len(todo) >= 3
+    for job, result in zip(todo, results):
+        assert_same(result, r2d2_imaging.image(job.obs, id=job.id, **PARAMS), job.id)
+
+
+def test_a_failed_job_raises_the_engines_error(client, observations, tmp_path):
+    missing = tmp_path / "missing.parquet"
+    with pytest.raises(r2d2_imaging.R2D2Error, match="missing.parquet"):
+        image_many(client, [observations[0], missing], **PARAMS)
+
+
+def test_prefix_needs_the_job_placeholder(client, observations):
+    with pytest.raises(ValueError, match="placeholder"):
+        image_many(client, observations, prefix="out/same", **PARAMS)

@@ -1,0 +1,127 @@
+"""r2d2_imaging.image: one observation in this process, against `r2d2 image` on the same file."""
+
+import json
+import pickle
+import subprocess
+import threading
+import time
+
+import numpy as np
+import pyarrow as pa
+import pytest
+
+import r2d2_imaging
+from r2d2_imaging.dask import read_parquet
+from conftest import read_fits
+
+CLEAN = dict(size=128, step="clean", iterations=3, threads=1)
+
+
+def cli_image(r2d2_bin, obs, prefix, *args):
+    subprocess.run([str(r2d2_bin), "-q", "image", str(obs), "--name", str(prefix), *args], check=True)
+
+
+@pytest.fixture(scope="module")
+def clean_products(observations):
+    return r2d2_imaging.image(observations[0], **CLEAN)
+
+
+def test_arrays_header_and_metrics_are_the_cli_products(r2d2_bin, observations, clean_products, tmp_path):
+    cli_image(r2d2_bin, observations[0], tmp_path / "cli/obs", "--size", "128", "--step", "clean", "--iterations", "3", "--threads", "1")
+    p = clean_products
+    assert p.id == observations[0].stem and p.size == 128
+    for name in ["dirty", "psf", "model", "residual", "image"]:
+        array = getattr(p, name)
+        assert array.dtype == np.float32 and array.shape == (128, 128), name
+        data, header = read_fits(tmp_path / f"cli/obs-{name}.fits")
+        np.testing.assert_array_equal(array, data, err_msg=name)
+    # The header's keywords are the FITS files' (astropy's reading of them).
+    _, header = read_fits(tmp_path / "cli/obs-model.fits")
+    for key, value in p.header.items():
+        assert header[key] == pytest.approx(value) if isinstance(value, float) else header[key] == value, key
+    for key in ["CTYPE1", "CRVAL1", "CDELT1", "CRPIX1", "CTYPE2", "CRVAL2", "CDELT2", "CRPIX2"]:
+        assert key in p.header, key
+    cli_metrics = json.loads((tmp_path / "cli/obs-metrics.json").read_text())
+    assert [m["residual_ratio"] for m in p.metrics["iterations"]] == [m["residual_ratio"] for m in cli_metrics["iterations"]]
+    assert p.metrics["image_size"] == 128 and len(p.metrics["iterations"]) == 3
+
+
+def test_write_makes_exactly_the_cli_files(r2d2_bin, observations, clean_products, tmp_path):
+    cli_image(r2d2_bin, observations[0], tmp_path / "cli/obs", "--size", "128", "--step", "clean", "--iterations", "3", "--threads", "1")
+    clean_products.write(tmp_path / "py/obs")
+    names = sorted(p.name for p in (tmp_path / "py").iterdir())
+    assert names == sorted(p.name for p in (tmp_path / "cli").iterdir())
+    for name in names:
+        if name.endswith(".fits"):
+            a, ha = read_fits(tmp_path / "py" / name)
+            b, hb = read_fits(tmp_path / "cli" / name)
+            np.testing.assert_array_equal(a, b, err_msg=name)
+            assert ha == hb, name
+
+
+def test_series_step_with_truth(r2d2_bin, observations, tmp_path):
+    obs = observations[1]
+    truth = obs.with_suffix(".sky.fits")
+    p = r2d2_imaging.image(obs, size=128, truth=truth, threads=1)
+    cli_image(r2d2_bin, obs, tmp_path / "obs", "--size", "128", "--truth", str(truth), "--threads", "1")
+    assert p.image is None
+    for name in ["dirty", "psf", "model", "residual"]:
+        np.testing.assert_array_equal(getattr(p, name), read_fits(tmp_path / f"obs-{name}.fits")[0], err_msg=name)
+    snr = [m["snr"] for m in p.metrics["iterations"]]
+    assert len(snr) == 8 and snr[-1] > snr[0] > 0, snr
+
+
+def test_tables_in_memory_image_as_the_file(observations, clean_products):
+    table = read_parquet(observations[0])
+    for obs in [table, pa.RecordBatchReader.from_batches(table.schema, table.to_batches(max_chunksize=5000))]:
+        p = r2d2_imaging.image(obs, id=observations[0].stem, **CLEAN)
+        for name in ["dirty", "psf", "model", "residual", "image"]:
+            np.testing.assert_array_equal(getattr(p, name), getattr(clean_products, name), err_msg=name)
+    assert r2d2_imaging.image(table, **CLEAN).id == "table"
+
+
+def test_products_pickle_whole(clean_products, tmp_path):
+    copy = pickle.loads(pickle.dumps(clean_products))
+    assert copy.id == clean_products.id and copy.header == clean_products.header and copy.metrics == clean_products.metrics
+    for name in ["dirty", "psf", "model", "residual", "image"]:
+        np.testing.assert_array_equal(getattr(copy, name), getattr(clean_products, name))
+    copy.write(tmp_path / "a/obs")
+    clean_products.write(tmp_path / "b/obs")
+    for name in ["dirty", "model", "image"]:
+        np.testing.assert_array_equal(read_fits(tmp_path / f"a/obs-{name}.fits")[0], read_fits(tmp_path / f"b/obs-{name}.fits")[0])
+
+
+def test_errors_are_r2d2_errors_with_the_engines_message(observations, tmp_path):
+    with pytest.raises(r2d2_imaging.R2D2Error, match="missing.parquet"):
+        r2d2_imaging.image(tmp_path / "missing.parquet", **CLEAN)
+    with pytest.raises(r2d2_imaging.R2D2Error, match="weighting"):
+        r2d2_imaging.image(observations[0], **{**CLEAN, "weighting": "brigs"})
+    table = read_parquet(observations[0]).replace_schema_metadata({})
+    with pytest.raises(r2d2_imaging.R2D2Error, match="phase_centre_ra_deg"):
+        r2d2_imaging.image(table, **CLEAN)
+    with pytest.raises(TypeError, match="Arrow table"):
+        r2d2_imaging.image(42, **CLEAN)
+
+
+def test_the_gil_is_released_while_the_engine_works(observations):
+    """Python code runs in another thread while the engine images: with the GIL held it could
+    not advance at all until the call returned."""
+    done = threading.Event()
+    ticks_during = []
+
+    def count():
+        n = 0
+        while not done.is_set():
+            n += 1
+            time.sleep(0.001)
+        ticks_during.append(n)
+
+    counter = threading.Thread(target=count)
+    counter.start()
+    start = time.perf_counter()
+    r2d2_imaging.image(observations[2], size=128, threads=1)
+    seconds = time.perf_counter() - start
+    done.set()
+    counter.join()
+    # At most one tick per millisecond; at least a quarter of them happened.
+    assert ticks_during[0] > 0.25 * seconds * 1000 * 0.5, (ticks_during, seconds)
