@@ -4,9 +4,13 @@
 //!
 //!     cargo run --release --example run_network -- NET.onnx N ort|tract INPUT.f32 [EXPECTED.f32] [REPEATS]
 
-use r2d2_imaging::steps::runtime::{check_network, BackendChoice, Runtime};
+use r2d2_imaging::steps::runtime::{check_network, use_onnx_runtime, BackendChoice, Runtime};
 use std::path::PathBuf;
 use std::time::Instant;
+
+// The command line's lookup of native ONNX Runtime, which the library leaves to its caller.
+#[path = "../src/cli/onnx_runtime.rs"]
+mod onnx_runtime;
 
 fn read_f32(path: &str) -> Vec<f32> {
     let bytes = std::fs::read(path).unwrap_or_else(|e| panic!("{path}: {e}"));
@@ -29,6 +33,11 @@ fn main() -> r2d2_imaging::Result<()> {
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let started = Instant::now();
     let signature = check_network(&path, size)?;
+    if !matches!(backend, BackendChoice::Tract) {
+        if let Ok(library) = onnx_runtime::find_onnxruntime() {
+            use_onnx_runtime(&library)?;
+        }
+    }
     let mut network = Runtime::select(backend, threads)?.load(&path, size, &signature)?;
     let load = started.elapsed().as_secs_f64();
     let mut best = f64::INFINITY;

@@ -6,9 +6,12 @@
 //! three realisations run one by one.
 
 mod common;
+// The command line's lookup of native ONNX Runtime, which the library leaves to its caller.
+#[path = "../src/cli/onnx_runtime.rs"]
+mod onnx_runtime;
 
 use common::{assert_fails_with, check, observation, r2d2, read, stderr, SIZE};
-use r2d2_imaging::steps::runtime::{check_network, BackendChoice, Runtime};
+use r2d2_imaging::steps::runtime::{check_network, use_onnx_runtime, BackendChoice, Runtime};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -45,6 +48,7 @@ fn read_f32(path: &Path) -> Vec<f32> {
 /// the importer's check input to 1e-5 of its peak.
 fn backends_match_pytorch(dir: &Path, name: &str, networks: &[&str]) {
     let input = read_f32(&dir.join(format!("check-{name}/input.f32")));
+    use_onnx_runtime(&onnx_runtime::find_onnxruntime().expect("native ONNX Runtime (pip install onnxruntime)")).unwrap();
     for network in networks {
         let expected = read_f32(&dir.join(format!("check-{name}/{}", network.replace('/', "-").replace(".onnx", ".f32"))));
         let path = dir.join(name).join(network);

@@ -15,14 +15,14 @@ use r2d2_imaging::{JobProducts, WriteOptions};
 use std::collections::BTreeMap;
 
 /// The image products a job may have, in the order they pickle.
-const IMAGES: [&str; 5] = ["dirty", "psf", "model", "residual", "image"];
+const IMAGES: [&str; 6] = ["dirty", "psf", "model", "residual", "image", "uncertainty"];
 
 #[pyclass(module = "r2d2_imaging", name = "Products", frozen)]
 pub struct Products {
     /// Everything but the images (whose vectors are empty here: numpy owns them).
     job: JobProducts,
-    /// dirty, psf, model, residual, image.
-    images: [Option<Py<PyArray2<f32>>>; 5],
+    /// dirty, psf, model, residual, image, uncertainty.
+    images: [Option<Py<PyArray2<f32>>>; 6],
 }
 
 /// A vector of `size * size` values as an `(N, N)` numpy array owning the vector's buffer.
@@ -42,6 +42,7 @@ impl Products {
             take(job.model.take())?,
             take(job.residual.take())?,
             take(job.image.take())?,
+            take(job.uncertainty.take())?,
         ];
         Ok(Products { job, images })
     }
@@ -57,6 +58,7 @@ impl Products {
         job.model = copy(2)?;
         job.residual = copy(3)?;
         job.image = copy(4)?;
+        job.uncertainty = copy(5)?;
         Ok(job)
     }
 
@@ -73,6 +75,9 @@ fn metrics_row<'py>(py: Python<'py>, m: &IterationMetrics) -> PyResult<Bound<'py
     row.set_item("residual_seconds", m.residual_seconds)?;
     row.set_item("snr", m.snr)?;
     row.set_item("logsnr", m.logsnr)?;
+    if let Some(r) = m.realisation {
+        row.set_item("realisation", r)?;
+    }
     Ok(row)
 }
 
@@ -85,6 +90,7 @@ fn metrics_from_row(row: &Bound<'_, PyDict>) -> PyResult<IterationMetrics> {
         residual_seconds: get("residual_seconds")?.extract()?,
         snr: get("snr")?.extract()?,
         logsnr: get("logsnr")?.extract()?,
+        realisation: row.get_item("realisation")?.map(|r| r.extract()).transpose()?,
     })
 }
 
@@ -139,6 +145,12 @@ impl Products {
     fn image(&self, py: Python<'_>) -> Option<Py<PyArray2<f32>>> {
         self.array(py, 4)
     }
+    /// For a series of several realisations: the pixel-wise standard deviation over their
+    /// mean (the model), as `-uncertainty.fits`; None otherwise.
+    #[getter]
+    fn uncertainty(&self, py: Python<'_>) -> Option<Py<PyArray2<f32>>> {
+        self.array(py, 5)
+    }
     /// The FITS keywords every product carries (WCS, frequency, beam, telescope ...), with
     /// values as astropy reads them.
     #[getter]
@@ -163,6 +175,10 @@ impl Products {
         }
         out.set_item("iterations", rows)?;
         out.set_item("stage_seconds", &self.job.stage_seconds)?;
+        if let Some(summary) = &self.job.realisations {
+            let json = py.import("json")?;
+            out.set_item("realisations", json.call_method1("loads", (summary.to_string(),))?)?;
+        }
         Ok(out)
     }
 
@@ -192,7 +208,7 @@ impl Products {
         let beam = j.beam.as_ref().map(|b| (b.major_deg, b.minor_deg, b.pa_deg));
         let state = (
             (j.id.clone(), j.size, images, j.header.clone(), metrics, j.stage_seconds.clone()),
-            (j.iterations, j.pixel_arcsec, wcs, beam, j.telescope.clone(), j.dynamic_range),
+            (j.iterations, j.pixel_arcsec, wcs, beam, j.telescope.clone(), j.dynamic_range, j.realisations.as_ref().map(|v| v.to_string())),
         );
         let restore = py.import("r2d2_imaging._native")?.getattr("_products")?.unbind();
         Ok((restore, PyTuple::new(py, [state.into_pyobject(py)?.into_any()])?))
@@ -202,17 +218,17 @@ impl Products {
 type Wcs = (f64, f64, f64, Option<f64>, Option<f64>);
 type State<'py> = (
     (String, usize, Vec<Option<Bound<'py, PyArray2<f32>>>>, Vec<(String, String)>, Vec<Bound<'py, PyDict>>, BTreeMap<String, f64>),
-    (usize, f64, Wcs, Option<(f64, f64, f64)>, String, Option<f64>),
+    (usize, f64, Wcs, Option<(f64, f64, f64)>, String, Option<f64>, Option<String>),
 );
 
 /// Products from their pickled state.
 #[pyfunction]
 pub fn _products(state: State<'_>) -> PyResult<Products> {
-    let ((id, size, images, header, metrics, stage_seconds), (iterations, pixel_arcsec, wcs, beam, telescope, dynamic_range)) = state;
+    let ((id, size, images, header, metrics, stage_seconds), (iterations, pixel_arcsec, wcs, beam, telescope, dynamic_range, realisations)) = state;
     if images.len() != IMAGES.len() {
         return Err(PyValueError::new_err("products state with the wrong number of images"));
     }
-    let mut slots: [Option<Py<PyArray2<f32>>>; 5] = Default::default();
+    let mut slots: [Option<Py<PyArray2<f32>>>; 6] = Default::default();
     for (slot, image) in slots.iter_mut().zip(images) {
         if let Some(a) = &image {
             if a.shape() != [size, size] {
@@ -229,6 +245,8 @@ pub fn _products(state: State<'_>) -> PyResult<Products> {
         model: None,
         residual: None,
         image: None,
+        uncertainty: None,
+        realisations: realisations.map(|text| serde_json::from_str(&text)).transpose().map_err(|e| PyValueError::new_err(format!("products state: realisations: {e}")))?,
         header,
         metrics: metrics.iter().map(metrics_from_row).collect::<PyResult<_>>()?,
         stage_seconds,
