@@ -430,6 +430,9 @@ pub(crate) mod tests {
     }
 
     fn run_series(series: &Path, backend: BackendChoice, psf: &[f64], dirty: &[f64], prefetch: bool) -> Vec<Vec<f64>> {
+        if backend != BackendChoice::Tract {
+            runtime::use_onnx_runtime_for_tests();
+        }
         let config = OnnxConfig { series: series.to_path_buf(), backend, threads: 1, networks: None, prefetch, graph_optimization: GraphOptimization::default(), realisation: None, validity: ValidityMode::Warn };
         let mut step = OnnxStep::new(&config, N, 1, &ImagingSetup::default()).unwrap();
         let psf_n = vec![0.0; N * N];

@@ -64,7 +64,10 @@ pub enum Runtime {
 }
 
 /// The ONNX Runtime environment: the library can be loaded only once per process.
-static ORT_ENV: OnceLock<std::result::Result<(PathBuf, ort::environment::Environment), String>> = OnceLock::new();
+static ORT_ENV: OnceLock<(PathBuf, ort::environment::Environment)> = OnceLock::new();
+/// Held while ONNX Runtime is being loaded: only a success is kept, so a run before the library
+/// was given (which falls back to tract, or fails) does not stop a later one from loading it.
+static ORT_LOADING: Mutex<()> = Mutex::new(());
 
 impl Runtime {
     /// Pick the backend. `threads` = intra-op threads for ONNX Runtime (0: its default).
@@ -119,7 +122,7 @@ static ORT_LIBRARY: Mutex<Option<PathBuf>> = Mutex::new(None);
 /// Sets the native ONNX Runtime library `onnx` steps load. A process loads one: another
 /// library after the first was loaded is refused.
 pub fn use_onnx_runtime(library: &Path) -> Result<()> {
-    if let Some(Ok((loaded, _))) = ORT_ENV.get() {
+    if let Some((loaded, _)) = ORT_ENV.get() {
         if loaded != library {
             return Err(Error::parameter(
                 "onnx_runtime",
@@ -135,18 +138,20 @@ pub fn use_onnx_runtime(library: &Path) -> Result<()> {
 }
 
 fn ort_environment() -> std::result::Result<&'static (PathBuf, ort::environment::Environment), String> {
-    ORT_ENV
-        .get_or_init(|| {
-            let chosen = ORT_LIBRARY.lock().expect("ONNX Runtime library").clone();
-            // The library does not search the machine for one: that is the caller's policy
-            // (the command line looks in the usual places and passes what it finds).
-            let library = chosen.ok_or("no ONNX Runtime library given (EngineOptions::onnx_runtime)")?;
-            let builder = ort::init_from(&library).map_err(|e| format!("{}: {e}", library.display()))?;
-            let env = builder.with_name("r2d2").build().map_err(|e| format!("{}: {e}", library.display()))?;
-            Ok((library, env))
-        })
-        .as_ref()
-        .map_err(Clone::clone)
+    if let Some(env) = ORT_ENV.get() {
+        return Ok(env);
+    }
+    let _loading = ORT_LOADING.lock().unwrap_or_else(|poisoned| poisoned.into_inner());
+    if let Some(env) = ORT_ENV.get() {
+        return Ok(env);
+    }
+    let chosen = ORT_LIBRARY.lock().expect("ONNX Runtime library").clone();
+    // The library does not search the machine for one: that is the caller's policy (the
+    // command line looks in the usual places and passes what it finds).
+    let library = chosen.ok_or("no ONNX Runtime library given (EngineOptions::onnx_runtime)")?;
+    let builder = ort::init_from(&library).map_err(|e| format!("{}: {e}", library.display()))?;
+    let env = builder.with_name("r2d2").build().map_err(|e| format!("{}: {e}", library.display()))?;
+    Ok(ORT_ENV.get_or_init(|| (library, env)))
 }
 
 /// The version from the library's file name (`libonnxruntime.so.1.31.1`); ONNX Runtime's build
