@@ -11,11 +11,7 @@ use arrow::record_batch::RecordBatch;
 use pyo3::exceptions::PyTypeError;
 use pyo3::prelude::*;
 use pyo3::types::PyCapsule;
-use r2d2_imaging::ingest::TableReader;
-use r2d2_imaging::vis::ObservationMeta;
-use r2d2_imaging::{Error, Result};
 use std::ffi::CStr;
-use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 const STREAM_CAPSULE: &CStr = c"arrow_array_stream";
@@ -109,43 +105,4 @@ impl RecordBatchReader for ArrowStream {
 /// How a table from Python is named in the engine's messages.
 pub fn table_name() -> &'static str {
     "<arrow table>"
-}
-
-/// A table arriving through an Arrow C stream, read as the engine reads an Arrow IPC table:
-/// the observation's metadata on the schema.
-pub struct StreamTable {
-    source: PathBuf,
-    meta: ObservationMeta,
-    reader: ArrowStream,
-    failed: bool,
-}
-
-impl StreamTable {
-    pub fn new(reader: ArrowStream, source: &str) -> Result<StreamTable> {
-        let schema = reader.schema();
-        let meta = ObservationMeta::from_pairs(schema.metadata().iter().map(|(k, v)| (k.as_str(), Some(v.as_str()))), source)?;
-        Ok(StreamTable { source: PathBuf::from(source), meta, reader, failed: false })
-    }
-}
-
-impl TableReader for StreamTable {
-    fn source(&self) -> &Path {
-        &self.source
-    }
-    fn meta(&self) -> &ObservationMeta {
-        &self.meta
-    }
-    fn schema(&self) -> SchemaRef {
-        self.reader.schema()
-    }
-    fn next_batch(&mut self) -> Option<Result<RecordBatch>> {
-        if self.failed {
-            return None;
-        }
-        let next = self.reader.next()?;
-        Some(next.map_err(|e| {
-            self.failed = true;
-            Error::input(&self.source, format!("reading the table's next batch: {e}"))
-        }))
-    }
 }

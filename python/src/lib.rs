@@ -152,7 +152,7 @@ fn split_rows<'py>(
     split.check().map_err(|m| R2D2Error::new_err(format!("split_by.window: {m}")))?;
     let name = name.to_string();
     let parts = run_released(py, move |cancel| {
-        let mut reader = arrow_in::StreamTable::new(stream, &name)?;
+        let mut reader = r2d2_imaging::ingest::memory_table(r2d2_imaging::MemoryInput::new(name.as_str(), stream), &name)?;
         r2d2_imaging::ingest::split_rows(&mut reader, &split, "split_by", &|| cancel.load(Ordering::SeqCst))
     })?;
     let parts = parts.ok_or_else(|| R2D2Error::new_err("interrupted while splitting"))?;

@@ -7,6 +7,7 @@
 //! `pyarrow.ipc.new_stream(sink, schema.with_metadata({...}))` puts it.
 
 use crate::pipeline::Job;
+pub use super::memory::memory_table;
 use crate::vis::{
     check_no_nulls, contain_panics, record_batch_to_visibilities, record_batch_to_visibilities_keeping_rows,
     validate_schema, IngestStats, ObservationMeta, VisReader, Visibilities, ARROW_IPC,

@@ -64,7 +64,8 @@ impl Source for MemorySource {
     fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()> {
         for input in std::mem::take(&mut self.inputs) {
             self.current_job = Some(input.id.clone());
-            let mut reader = BatchReader::new(input)?;
+            let source = format!("in-memory input '{}'", input.id);
+            let mut reader = BatchReader::new(input, &source)?;
             let Some((parts, stats)) = read_parts(&mut reader, self.split_by.as_ref(), &self.split_key, cancelled)? else {
                 return Ok(());
             };
@@ -93,14 +94,20 @@ struct BatchReader {
 }
 
 impl BatchReader {
-    fn new(input: MemoryInput) -> Result<BatchReader> {
-        let source = PathBuf::from(format!("in-memory input '{}'", input.id));
+    /// `name` names the input in messages.
+    fn new(input: MemoryInput, name: &str) -> Result<BatchReader> {
         let schema = input.batches.schema();
-        let name = source.display().to_string();
-        let meta = ObservationMeta::from_pairs(schema.metadata().iter().map(|(k, v)| (k.as_str(), Some(v.as_str()))), &name)?;
-        validate_schema(&schema, &name)?;
-        Ok(BatchReader { id: input.id.clone(), source, meta, schema, input, failed: false })
+        let meta = ObservationMeta::from_pairs(schema.metadata().iter().map(|(k, v)| (k.as_str(), Some(v.as_str()))), name)?;
+        validate_schema(&schema, name)?;
+        Ok(BatchReader { id: input.id.clone(), source: PathBuf::from(name), meta, schema, input, failed: false })
     }
+}
+
+/// An in-memory input as a visibility table, its metadata and columns checked as a file's are,
+/// for a caller that scans it itself (e.g. with [`crate::ingest::split_rows`]); `name` names
+/// it in messages.
+pub fn memory_table(input: MemoryInput, name: &str) -> Result<impl TableReader> {
+    BatchReader::new(input, name)
 }
 
 impl TableReader for BatchReader {
