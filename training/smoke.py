@@ -74,6 +74,18 @@ def main(argv=None):
         check(refused.returncode != 0 and "--resume" in refused.stderr, "training over an existing series without --resume")
         run(train + ["--max-networks", "3", "--resume"])
         check(len(series.read_manifest(sdir)["networks"]) == 3, "resume added a third network")
+        # A resume reads the replayed estimates from the cache; they equal a fresh replay.
+        cache = f"{d}/work/replay.pt"
+        resumed = subprocess.run(train + ["--max-networks", "3", "--resume"], capture_output=True, text=True, check=True)
+        check("read from the cache" in resumed.stdout + resumed.stderr, "resume did not use the replay cache")
+        cached = torch.load(cache, weights_only=True)
+        os.remove(cache)
+        run(train + ["--max-networks", "3", "--resume"])
+        fresh = torch.load(cache, weights_only=True)
+        check(cached["key"] == fresh["key"] and torch.equal(cached["active"], fresh["active"]), "replay cache key / pruning")
+        for k in ("x_tr", "x_va"):
+            err = float((cached[k] - fresh[k]).abs().max() / fresh[k].abs().max())
+            check(err < 1e-5, f"cached {k} differs from a fresh replay by {err:.2e}")
         # What makes crops valid samples: the bias-free U-Net is local (a crop's interior, beyond
         # the receptive field, gets exactly the full field's output) and positively homogeneous.
         from r2d2train.unet import UNet

@@ -13,6 +13,7 @@ manifest) and every epoch in --work; --resume continues an interrupted network o
 networks to an existing series (the previous networks are replayed to rebuild x and r).
 """
 import argparse
+import hashlib
 import os
 import subprocess
 import sys
@@ -43,6 +44,32 @@ def commit_series(series_dir, message):
         subprocess.run(["git", "commit", "-q", "-m", message, "--", "."], cwd=series_dir, check=True)
     except (OSError, subprocess.CalledProcessError) as e:
         log(f"warning: could not commit {series_dir}: {e}")
+
+
+def replay_key(args, networks):
+    """What the replayed estimates depend on: each network's weights and the data sets."""
+    h = hashlib.sha256()
+    for k in range(1, networks + 1):
+        with open(os.path.join(args.series, series.weights_name(k)), "rb") as f:
+            h.update(hashlib.sha256(f.read()).digest())
+    for d in list(args.train) + [args.val]:
+        h.update(os.path.abspath(d).encode())
+    h.update(repr((args.limit_train, args.limit_val, networks)).encode())
+    return h.hexdigest()
+
+
+def load_replay(work, key):
+    path = os.path.join(work, "replay.pt")
+    if not os.path.exists(path):
+        return None
+    cache = torch.load(path, weights_only=True, map_location="cpu")
+    return cache if cache.get("key") == key else None
+
+
+def save_replay(work, key, x_tr, x_va, active):
+    path = os.path.join(work, "replay.pt")
+    torch.save({"key": key, "x_tr": x_tr.cpu(), "x_va": x_va.cpu(), "active": active.cpu()}, path + ".tmp")
+    os.replace(path + ".tmp", path)
 
 
 def torch_runner(model, device):
@@ -195,14 +222,25 @@ def main(argv=None):
         raise SystemExit(f"{args.series}: the series has {have[0]}, {have[1]} channels / {have[2]} poolings / norm {have[3]}; "
                          f"got --arch {args.arch} --base-channels {args.base_channels} --poolings {args.poolings} --norm {args.norm}")
 
-    # Replay the existing networks: x, r of every sample, the pruned training set.
+    # Replay the existing networks: x, r of every sample, the pruned training set. The replayed
+    # estimates are cached in --work (keyed by the networks' weights and the data), so that a
+    # resumed series does not run every network over the training set again.
     x_tr, r_tr = torch.zeros_like(train.dirty), train.dirty.clone()
     x_va, r_va = torch.zeros_like(val.dirty), val.dirty.clone()
     noise_energy = train.noise_dirty.flatten(1).pow(2).sum(1)
     active = torch.ones(len(train), dtype=torch.bool)
     history = [dict(v) for v in manifest["validation"]]
     model = None
-    for k in range(1, len(manifest["networks"]) + 1):
+    have = len(manifest["networks"])
+    cache = load_replay(args.work, replay_key(args, have))
+    if cache is not None:
+        x_tr, x_va, active = cache["x_tr"], cache["x_va"], cache["active"]
+        r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
+        r_va = common.residual(val.dirty, x_va, val.psf_hat)
+        if have:
+            model = series.load_model(args.series, have, args.base_channels, args.poolings, args.norm, args.arch).to(device)
+        log(f"replay of N1-N{have} read from the cache: validation {common.metrics(x_va, r_va, val)}; {int(active.sum())} training samples active")
+    for k in range(1, have + 1 if cache is None else 1):
         model = series.load_model(args.series, k, args.base_channels, args.poolings, args.norm, args.arch).to(device)
         run = torch_runner(model, device)
         x_tr = common.update(k, run, train.dirty, x_tr, r_tr)
@@ -211,6 +249,8 @@ def main(argv=None):
         x_va = common.update(k, run, val.dirty, x_va, r_va)
         r_va = common.residual(val.dirty, x_va, val.psf_hat)
         log(f"replayed N{k}: validation {common.metrics(x_va, r_va, val)}; {int(active.sum())} training samples active")
+    if cache is None and have:
+        save_replay(args.work, replay_key(args, have), x_tr, x_va, active)
 
     best = {"snr_db": -1e9, "logsnr_db": -1e9}
     for h in history:
@@ -256,6 +296,7 @@ def main(argv=None):
         })
         series.write_manifest(args.series, manifest)
         os.remove(os.path.join(args.work, "current.pt"))
+        save_replay(args.work, replay_key(args, i), x_tr, x_va, active)
         log(f"N{i} added to {args.series}; {int(active.sum())} of {len(train)} training samples remain after pruning")
         if args.commit:
             commit_series(args.series, f"models: {manifest['name']} network {i} (validation SNR {m['snr_db']:.2f} dB, logSNR {m['logsnr_db']:.2f} dB)")
