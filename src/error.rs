@@ -221,3 +221,31 @@ fn crate_relative(file: &str) -> &str {
 }
 
 pub type Result<T> = std::result::Result<T, Error>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A cause whose text its wrapper does not show.
+    #[derive(Debug, thiserror::Error)]
+    #[error("outer")]
+    struct Outer(#[source] std::io::Error);
+
+    #[test]
+    fn report_says_each_cause_once() {
+        // Not shown by the wrapper: added.
+        let outer = Outer(std::io::Error::other("disk on fire"));
+        assert_eq!(Report(&outer).to_string(), "outer: disk on fire");
+        // A stage's error, whose text shows its cause's: said once, and the module error is
+        // found through the stage.
+        let fits = FitsError::Invalid { path: "sky.fits".into(), message: "NAXIS3 = 2".into() };
+        let e = Error::Stage { stage: "source".into(), kind: "parquet".into(), job: "obs".into(), source: Box::new(fits.into()) };
+        let said = "stage 'source' (parquet), job 'obs': sky.fits: NAXIS3 = 2";
+        assert_eq!((e.to_string().as_str(), e.report().to_string().as_str()), (said, said));
+        assert!(e.module_error().and_then(|m| m.downcast_ref::<FitsError>()).is_some());
+        assert_eq!(e.stage(), Some(("source", "parquet", "obs")));
+        // An I/O error with a cause inside: the cause joins the text of `Error` itself.
+        let io = Error::io("out.fits", std::io::Error::other(Outer(std::io::Error::other("quota"))));
+        assert_eq!((io.to_string().as_str(), io.report().to_string().as_str()), ("out.fits: outer: quota", "out.fits: outer: quota"));
+    }
+}

@@ -951,12 +951,54 @@ mod tests {
     }
 
     #[test]
+    fn a_file_that_is_not_fits_is_a_cfitsio_error_keeping_its_status() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("notes.fits");
+        std::fs::write(&path, "these are notes, not an image\n".repeat(200)).unwrap();
+        let err = read_image(&path).unwrap_err();
+        let Error::Fits(FitsError::Cfitsio { path: named, doing, source }) = &err else { panic!("not a cfitsio error: {err:?}") };
+        assert_eq!((named.as_path(), doing.as_str()), (path.as_path(), "cannot open as FITS"));
+        let status = source.status().expect("cfitsio's own status");
+        assert!(status > 0, "{status}");
+        // Error -> FitsError -> Cfitsio, the last holding fitsio's error.
+        let module = std::error::Error::source(&err).expect("the FITS error");
+        assert!(module.downcast_ref::<FitsError>().is_some());
+        let cause = module.source().and_then(|c| c.downcast_ref::<Cfitsio>()).expect("cfitsio's error");
+        assert!(matches!(cause.0, FitsioError::Fits(ref e) if e.status == status));
+        // The message says the file, what failed and cfitsio's words, each once.
+        let text = err.to_string();
+        let cfitsio_text = cause.to_string();
+        assert!(cfitsio_text.contains(&format!("cfitsio status {status}")), "{cfitsio_text}");
+        assert_eq!(text, format!("{}: cannot open as FITS: {cfitsio_text}", path.display()));
+        assert_eq!(crate::error::Report(&err).to_string(), text);
+    }
+
+    #[test]
+    fn a_failed_write_keeps_the_system_reason_and_cfitsio_report() {
+        let dir = tempfile::tempdir().unwrap();
+        // The directory the file would go in does not exist: cfitsio cannot create it, and the
+        // probe of the directory finds why.
+        let path = dir.path().join("missing-dir").join("out.fits");
+        let err = write_image(&path, &pattern(4, 4), 4, 4, &test_wcs(), BrightnessUnit::JyPerBeam, None, &[]).unwrap_err();
+        let Error::Io { path: named, source } = &err else { panic!("not an I/O error: {err:?}") };
+        assert_eq!(named, &path);
+        assert_eq!(source.kind(), std::io::ErrorKind::NotFound, "{source:?}");
+        let failure = source.get_ref().and_then(|e| e.downcast_ref::<WriteFailure>()).expect("cfitsio's report inside");
+        assert!(failure.cfitsio.status().is_some() && failure.disk.is_some(), "{failure:?}");
+        let text = err.to_string();
+        let os = failure.disk.as_ref().unwrap().to_string();
+        assert_eq!(text.matches(&os).count(), 1, "{text}");
+        assert!(text.contains("writing FITS image") && text.contains("cfitsio status"), "{text}");
+    }
+
+    #[test]
     fn cube_with_two_planes_is_rejected_naming_naxis3() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("cube.fits");
         write_raw(&path, &[2, 4, 4], &[0.0; 32], &[]);
         let err = read_image(&path).unwrap_err();
         assert!(err.to_string().contains("NAXIS3 = 2"), "{err}");
+        assert!(matches!(err, Error::Fits(FitsError::Invalid { .. })), "{err:?}");
     }
 
     #[test]

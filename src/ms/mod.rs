@@ -593,6 +593,23 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_damaged_table_is_a_table_error_keeping_casacores() {
+        let dir = tempfile::tempdir().unwrap();
+        let ms = dir.path().join("broken.ms");
+        std::fs::create_dir(&ms).unwrap();
+        std::fs::write(ms.join("table.dat"), b"this is not a casacore table header").unwrap();
+        let err = MsReader::open(&ms, &MsSelection::default(), 1024).err().expect("a damaged table opened");
+        let Error::Ms(MsError::Table { path, what, source }) = &err else { panic!("{err:?}") };
+        assert_eq!((path, what.as_str()), (&ms, "cannot open the MeasurementSet's main table"));
+        // Error -> MsError -> casacore's own error type.
+        let module = std::error::Error::source(&err).expect("the MS error");
+        let cause = module.source().expect("casacore's error");
+        assert!(cause.downcast_ref::<casacure::table::TableDatError>().is_some(), "{cause:?}");
+        let text = err.to_string();
+        assert_eq!(text, format!("{}: cannot open the MeasurementSet's main table: {source}", ms.display()));
+    }
+
+    #[test]
     fn stokes_i_from_correlations() {
         assert_eq!(StokesI::from_codes(&[9, 10, 11, 12]), Some(StokesI::Mean(0, 3)));
         assert_eq!(StokesI::from_codes(&[5, 8]), Some(StokesI::Mean(0, 1)));

@@ -214,3 +214,48 @@ impl NetworkStep for NativeStep {
             .collect())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config(library: PathBuf, isolation: Isolation) -> NativeConfig {
+        NativeConfig { library, iterations: 1, positivity: true, config: None, isolation, timeout: 10.0 }
+    }
+
+    #[test]
+    fn a_library_that_is_not_elf_is_named_with_what_reading_it_found() {
+        let dir = tempfile::tempdir().unwrap();
+        let library = dir.path().join("libnotes.so");
+        std::fs::write(&library, "not a library\n").unwrap();
+        for isolation in [Isolation::None, Isolation::Process] {
+            let err = NativeStep::new(config(library.clone(), isolation), 16, "step").err().expect("a text file accepted as a plugin");
+            let Error::Plugin(PluginError::Library { path, stage, source }) = &err else { panic!("{err:?}") };
+            assert_eq!((path, stage.as_str()), (&library, "step"));
+            assert!(matches!(source, LibraryError::NotElf), "{source:?}");
+            // Error -> PluginError -> LibraryError.
+            let module = std::error::Error::source(&err).expect("the plugin error");
+            assert!(matches!(module.source().and_then(|c| c.downcast_ref::<LibraryError>()), Some(LibraryError::NotElf)));
+            assert_eq!(
+                err.to_string(),
+                format!("{}: stages.step.library: not a shared library: the file does not start with an ELF header", library.display())
+            );
+        }
+    }
+
+    #[test]
+    fn the_loader_error_is_kept_under_the_load_error() {
+        // Past the file check (which the step runs first), the loader's own error is the cause.
+        let dir = tempfile::tempdir().unwrap();
+        let library = dir.path().join("libnotes.so");
+        std::fs::write(&library, "not a library\n").unwrap();
+        let err = Instance::load(&library, "{}", 16, 1).err().expect("a text file loaded");
+        // The kind holds libloading's error, which is also the source.
+        let LoadError::Library(loader) = &err else { panic!("{err:?}") };
+        let source = std::error::Error::source(&err).expect("the loader's error");
+        assert!(std::ptr::addr_eq(source, loader as &dyn std::error::Error));
+        let text = crate::error::Report(&err).to_string();
+        assert_eq!(text, format!("cannot load the plugin library: {}", crate::error::Report(loader)));
+        assert!(text.contains("libnotes.so"), "the loader names the file: {text}");
+    }
+}

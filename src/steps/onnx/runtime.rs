@@ -564,6 +564,32 @@ mod tests {
     use super::*;
 
     #[test]
+    fn a_file_that_is_not_onnx_is_unreadable_keeping_the_decoder_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("net.onnx");
+        std::fs::write(&path, [0xffu8; 64]).unwrap();
+        let err = check_network(&path, 64).unwrap_err();
+        let Error::Onnx(OnnxError::Unreadable { path: named, what, source }) = &err else { panic!("{err:?}") };
+        assert_eq!((named.as_path(), *what), (path.as_path(), "not a readable ONNX model"));
+        let text = err.to_string();
+        assert!(text.starts_with(&format!("{}: not a readable ONNX model: ", path.display())), "{text}");
+        assert_eq!(text.matches(&source.to_string()).count(), 1, "{text}");
+        // tract is told the same file: its error chain is kept whole, each part said once.
+        let err = match TractNetwork::load(&path, 64) {
+            Err(e) => e,
+            Ok(_) => panic!("tract loaded 64 bytes of 0xff"),
+        };
+        let Error::Onnx(OnnxError::Load { runtime: "tract", source, .. }) = &err else { panic!("{err:?}") };
+        let text = err.to_string();
+        assert!(text.contains("tract could not load the network: ") && text.contains(&source.to_string()), "{text}");
+        let mut cause = std::error::Error::source(&err);
+        while let Some(c) = cause {
+            assert_eq!(text.matches(&c.to_string()).count(), 1, "'{c}' in {text}");
+            cause = c.source();
+        }
+    }
+
+    #[test]
     fn onnx_runtime_maps_inline_weights_from_the_file_and_infers_the_same() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("mapped-unet.onnx");

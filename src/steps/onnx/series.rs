@@ -610,8 +610,16 @@ mod tests {
             "format: 1\nname: t\narchitecture: r2d2\nimage_sizes: [64]\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx]\n",
         )
         .unwrap();
-        let e = Series::open(dir.path()).unwrap_err().to_string();
+        let err = Series::open(dir.path()).unwrap_err();
+        let e = err.to_string();
         assert!(e.contains("a.onnx") && e.contains("missing"), "{e}");
+        // The kind, and the system's error beneath it.
+        let Error::Series(SeriesError::MissingNetwork { path, series, .. }) = &err else { panic!("{err:?}") };
+        assert_eq!((path.as_path(), series.as_str()), (dir.path().join("a.onnx").as_path(), "t"));
+        let module = std::error::Error::source(&err).expect("the series error");
+        let io = module.source().and_then(|c| c.downcast_ref::<std::io::Error>()).expect("the system's error");
+        assert_eq!(io.kind(), std::io::ErrorKind::NotFound);
+        assert_eq!(e.matches(&io.to_string()).count(), 1, "{e}");
     }
 
     /// A series `dir/s` whose manifest lists `networks`.
@@ -700,8 +708,11 @@ mod tests {
         assert!(e.contains("manifest.yaml") && e.contains("format 1") && e.contains("got 2"), "{e}");
 
         std::fs::write(dir.path().join("manifest.yaml"), format!("format: 1\n{base}colour: red\n")).unwrap();
-        let e = Series::open(dir.path()).unwrap_err().to_string();
+        let err = Series::open(dir.path()).unwrap_err();
+        let e = err.to_string();
         assert!(e.contains("colour") && e.contains("line 8"), "{e}");
+        let Error::Series(SeriesError::Manifest { source, .. }) = &err else { panic!("{err:?}") };
+        assert_eq!(e.matches(&source.to_string()).count(), 1, "the parser's words once: {e}");
 
         std::fs::write(dir.path().join("manifest.yaml"), format!("format: 1\n{base}any_size: false\n")).unwrap();
         let s = Series::open(dir.path()).unwrap();
