@@ -231,6 +231,19 @@ mod tests {
     #[error("outer")]
     struct Outer(#[source] std::io::Error);
 
+    /// Embedding programs move errors across threads and into `anyhow`/`Box<dyn Error>`.
+    #[test]
+    fn errors_are_send_sync_and_static() {
+        fn check<T: std::error::Error + Send + Sync + 'static>() {}
+        check::<Error>();
+        check::<FitsError>();
+        check::<SeriesError>();
+        check::<OnnxError>();
+        check::<PluginError>();
+        #[cfg(feature = "ms")]
+        check::<MsError>();
+    }
+
     #[test]
     fn report_says_each_cause_once() {
         // Not shown by the wrapper: added.

@@ -57,6 +57,13 @@ pub enum MsError {
     /// windows) matches nothing in it.
     #[error("{}: {message}", path.display())]
     Invalid { path: PathBuf, message: String },
+    /// The Parquet table written from an MS (`r2d2 convert`) could not be written.
+    #[error("{}: writing Parquet", path.display())]
+    Parquet {
+        path: PathBuf,
+        #[source]
+        source: parquet::errors::ParquetError,
+    },
     /// The samples read could not be made into a record batch.
     #[error("{}: {what}", path.display())]
     Arrow {
@@ -71,13 +78,21 @@ impl MsError {
     /// The table (or file) the error is about.
     pub fn path(&self) -> &Path {
         match self {
-            MsError::Table { path, .. } | MsError::DecoderPanic { path, .. } | MsError::Invalid { path, .. } | MsError::Arrow { path, .. } => path,
+            MsError::Table { path, .. }
+            | MsError::DecoderPanic { path, .. }
+            | MsError::Invalid { path, .. }
+            | MsError::Parquet { path, .. }
+            | MsError::Arrow { path, .. } => path,
         }
     }
 
     fn path_mut(&mut self) -> &mut PathBuf {
         match self {
-            MsError::Table { path, .. } | MsError::DecoderPanic { path, .. } | MsError::Invalid { path, .. } | MsError::Arrow { path, .. } => path,
+            MsError::Table { path, .. }
+            | MsError::DecoderPanic { path, .. }
+            | MsError::Invalid { path, .. }
+            | MsError::Parquet { path, .. }
+            | MsError::Arrow { path, .. } => path,
         }
     }
 }
