@@ -1,9 +1,37 @@
-//! The one public error type. Every message names what was wrong (a file, a column, a
-//! parameter) and what was expected, so a user can fix the input without reading code.
+//! The one public error type, [`Error`], and the error types of the modules it wraps.
+//!
+//! Every message names what was wrong (a file, a column, a parameter) and what was expected, so
+//! a user can fix the input without reading code.
+//!
+//! Modules that read and run things keep their own error enums, whose variants a program can
+//! match on, and keep the error underneath (cfitsio's status, ONNX Runtime's or tract's error,
+//! the dynamic loader's, casacore's, the system's) as the [`source`](std::error::Error::source)
+//! instead of flattening it into text:
+//!
+//! - [`FitsError`] (`fits`): FITS images;
+//! - [`SeriesError`] (`steps::series`): model series on disk (manifest, network files);
+//! - [`OnnxError`] (`steps::runtime`): ONNX networks (checking, loading, inference);
+//! - [`PluginError`] (`steps::native`): native plugins (the library, its loading, its host);
+//! - `MsError` (`ms`, with the `ms` feature): MeasurementSets (casacore tables).
+//!
+//! [`Error`] wraps each in a variant of its own (`Error::Fits`, ...), whose `source()` is the
+//! module's error. The module errors' own text says what failed and where, without their cause
+//! (the usual rule: a cause is either a source or in the text, never both); `Error`'s text is
+//! the whole message, causes included, so that `{}` of an `Error` (a log line, a Python
+//! exception, another message) says everything. [`Report`] prints any error followed by the
+//! causes its text does not already show: the command line prints errors through it.
 
 use std::cell::{Cell, RefCell};
+use std::fmt;
 use std::path::PathBuf;
 use std::sync::Once;
+
+pub use crate::fits::FitsError;
+#[cfg(feature = "ms")]
+pub use crate::ms::MsError;
+pub use crate::steps::native::PluginError;
+pub use crate::steps::runtime::OnnxError;
+pub use crate::steps::series::SeriesError;
 
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
@@ -39,12 +67,55 @@ pub enum Error {
     Panic(String),
 
     /// An operating-system error while reading or writing a file.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {}", path.display(), Report(.source))]
     Io {
         path: PathBuf,
         #[source]
         source: std::io::Error,
     },
+
+    /// A FITS image could not be read (its own error says why and keeps cfitsio's).
+    #[error("{}", Report(.0))]
+    Fits(#[from] FitsError),
+
+    /// A model series could not be used.
+    #[error("{}", Report(.0))]
+    Series(#[from] SeriesError),
+
+    /// An ONNX network could not be checked, loaded or run.
+    #[error("{}", Report(.0))]
+    Onnx(#[from] OnnxError),
+
+    /// A native plugin could not be loaded or failed.
+    #[error("{}", Report(.0))]
+    Plugin(#[from] PluginError),
+
+    /// A MeasurementSet could not be read or written.
+    #[cfg(feature = "ms")]
+    #[error("{}", Report(.0))]
+    Ms(#[from] MsError),
+}
+
+/// An error followed by each cause in its [`source`](std::error::Error::source) chain that its
+/// text does not already show, joined by `: ` (`{}`: one line, as the command line prints it).
+pub struct Report<'a>(pub &'a (dyn std::error::Error + 'static));
+
+impl fmt::Display for Report<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let mut text = self.0.to_string();
+        let mut next = self.0.source();
+        while let Some(cause) = next {
+            let said = cause.to_string();
+            // A wrapper that shows its cause (`Error::Stage`, `Error::Io`, third-party errors
+            // that print theirs) would otherwise say it twice; text already there is not lost.
+            if !said.is_empty() && !text.contains(&said) {
+                text.push_str(": ");
+                text.push_str(&said);
+            }
+            next = cause.source();
+        }
+        f.write_str(&text)
+    }
 }
 
 impl Error {
@@ -56,6 +127,26 @@ impl Error {
     }
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Error::Io { path: path.into(), source }
+    }
+
+    /// This error and its causes on one line, each said once ([`Report`]).
+    pub fn report(&self) -> Report<'_> {
+        Report(self)
+    }
+
+    /// The error of the module that failed, through the stage that ran it: `Error::Fits` and
+    /// the others, as such or inside `Error::Stage` (`None` for the generic variants).
+    pub fn module_error(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            Error::Fits(e) => Some(e),
+            Error::Series(e) => Some(e),
+            Error::Onnx(e) => Some(e),
+            Error::Plugin(e) => Some(e),
+            #[cfg(feature = "ms")]
+            Error::Ms(e) => Some(e),
+            Error::Stage { source, .. } => source.module_error(),
+            _ => None,
+        }
     }
 
     /// Where in a pipeline file the error is (file, line, column), for this error or the one
@@ -130,3 +221,44 @@ fn crate_relative(file: &str) -> &str {
 }
 
 pub type Result<T> = std::result::Result<T, Error>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A cause whose text its wrapper does not show.
+    #[derive(Debug, thiserror::Error)]
+    #[error("outer")]
+    struct Outer(#[source] std::io::Error);
+
+    /// Embedding programs move errors across threads and into `anyhow`/`Box<dyn Error>`.
+    #[test]
+    fn errors_are_send_sync_and_static() {
+        fn check<T: std::error::Error + Send + Sync + 'static>() {}
+        check::<Error>();
+        check::<FitsError>();
+        check::<SeriesError>();
+        check::<OnnxError>();
+        check::<PluginError>();
+        #[cfg(feature = "ms")]
+        check::<MsError>();
+    }
+
+    #[test]
+    fn report_says_each_cause_once() {
+        // Not shown by the wrapper: added.
+        let outer = Outer(std::io::Error::other("disk on fire"));
+        assert_eq!(Report(&outer).to_string(), "outer: disk on fire");
+        // A stage's error, whose text shows its cause's: said once, and the module error is
+        // found through the stage.
+        let fits = FitsError::Invalid { path: "sky.fits".into(), message: "NAXIS3 = 2".into() };
+        let e = Error::Stage { stage: "source".into(), kind: "parquet".into(), job: "obs".into(), source: Box::new(fits.into()) };
+        let said = "stage 'source' (parquet), job 'obs': sky.fits: NAXIS3 = 2";
+        assert_eq!((e.to_string().as_str(), e.report().to_string().as_str()), (said, said));
+        assert!(e.module_error().and_then(|m| m.downcast_ref::<FitsError>()).is_some());
+        assert_eq!(e.stage(), Some(("source", "parquet", "obs")));
+        // An I/O error with a cause inside: the cause joins the text of `Error` itself.
+        let io = Error::io("out.fits", std::io::Error::other(Outer(std::io::Error::other("quota"))));
+        assert_eq!((io.to_string().as_str(), io.report().to_string().as_str()), ("out.fits: outer: quota", "out.fits: outer: quota"));
+    }
+}

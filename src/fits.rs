@@ -88,6 +88,88 @@ pub struct FitsImage {
     pub unit: Option<String>,
 }
 
+/// What went wrong with a FITS file. Each variant names the file; cfitsio's own report, where
+/// there is one, is the [`source`](std::error::Error::source) ([`Cfitsio`]).
+///
+/// Failures to write an image are [`Error::Io`] (as other write failures), whose `io::Error`
+/// has the kind of the system's reason (`StorageFull`, `ReadOnlyFilesystem`, ...) when one is
+/// found and carries a [`WriteFailure`] with cfitsio's report.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum FitsError {
+    /// cfitsio could not do what `doing` says (open the file, read its primary HDU, its pixels,
+    /// a header keyword).
+    #[error("{}: {doing}", path.display())]
+    Cfitsio {
+        path: PathBuf,
+        doing: String,
+        #[source]
+        source: Cfitsio,
+    },
+    /// The file is FITS, but not an image this crate reads (the header or the pixels say why).
+    #[error("{}: {message}", path.display())]
+    Invalid { path: PathBuf, message: String },
+    /// A path cfitsio cannot be given (it parses file names), or that is not a regular file.
+    #[error("{}: {message}", path.display())]
+    Unusable { path: PathBuf, message: &'static str },
+}
+
+impl FitsError {
+    /// The file the error is about.
+    pub fn path(&self) -> &Path {
+        match self {
+            FitsError::Cfitsio { path, .. } | FitsError::Invalid { path, .. } | FitsError::Unusable { path, .. } => path,
+        }
+    }
+}
+
+/// An error reported by cfitsio (through `fitsio`), readable: `fitsio`'s own text is a Debug
+/// dump of a struct.
+#[derive(Debug)]
+pub struct Cfitsio(pub FitsioError);
+
+impl Cfitsio {
+    /// cfitsio's status code (104: cannot open the file, 202: no such keyword, ...), when the
+    /// error came from cfitsio itself rather than from `fitsio`'s checks.
+    pub fn status(&self) -> Option<i32> {
+        match &self.0 {
+            FitsioError::Fits(e) => Some(e.status),
+            _ => None,
+        }
+    }
+}
+
+impl std::fmt::Display for Cfitsio {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match &self.0 {
+            FitsioError::Fits(e) => write!(f, "{} (cfitsio status {})", e.message, e.status),
+            other => write!(f, "{other}"),
+        }
+    }
+}
+
+impl std::error::Error for Cfitsio {}
+
+/// Why writing a FITS image failed: cfitsio's report (its status says nothing of the cause)
+/// and, when the directory takes no more data, the system's reason as the source.
+#[derive(Debug, thiserror::Error)]
+#[error("writing FITS image: {cfitsio}{}", if disk.is_some() { ": the directory takes no more data" } else { "" })]
+pub struct WriteFailure {
+    pub cfitsio: Cfitsio,
+    #[source]
+    pub disk: Option<std::io::Error>,
+}
+
+/// A FITS content error as the crate's error.
+fn invalid(path: &Path, message: impl Into<String>) -> Error {
+    FitsError::Invalid { path: path.to_path_buf(), message: message.into() }.into()
+}
+
+/// A cfitsio failure while `doing` something with `path`, as the crate's error.
+fn cfitsio(path: &Path, doing: impl Into<String>, e: FitsioError) -> Error {
+    FitsError::Cfitsio { path: path.to_path_buf(), doing: doing.into(), source: Cfitsio(e) }.into()
+}
+
 /// cfitsio's status code for "keyword does not exist".
 const KEY_NO_EXIST: i32 = 202;
 
@@ -149,8 +231,9 @@ pub fn write_image(
     let tmp_name = fitsio_path(tmp.path())?;
     let header = Header { nx, ny, wcs, unit, beam, extra: &extra };
     write_fits(&tmp_name, &pixels, &header).map_err(|e| {
-        let cause = why_unwritable(path).map(|c| format!(": {c}")).unwrap_or_default();
-        Error::io(path, std::io::Error::other(format!("writing FITS image: {}{cause}", describe(&e))))
+        let disk = why_unwritable(path);
+        let kind = disk.as_ref().map_or(std::io::ErrorKind::Other, std::io::Error::kind);
+        Error::io(path, std::io::Error::new(kind, WriteFailure { cfitsio: Cfitsio(e), disk }))
     })?;
     // cfitsio reports errors of its final flush nowhere (fitsio closes files in Drop),
     // so check that the whole data unit reached the file before publishing it.
@@ -170,26 +253,25 @@ pub fn write_image(
 pub fn read_image(path: &Path) -> Result<FitsImage> {
     let metadata = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
     if !metadata.is_file() {
-        return Err(Error::input(path, "not a regular file (expected a FITS image)"));
+        return Err(FitsError::Unusable { path: path.to_path_buf(), message: "not a regular file (expected a FITS image)" }.into());
     }
-    let fits_error = |what: &str, e: FitsioError| Error::input(path, format!("{what}: {}", describe(&e)));
-    let mut file = FitsFile::open(fitsio_path(path)?).map_err(|e| fits_error("cannot open as FITS", e))?;
-    let hdu = file.primary_hdu().map_err(|e| fits_error("cannot read the primary HDU", e))?;
+    let mut file = FitsFile::open(fitsio_path(path)?).map_err(|e| cfitsio(path, "cannot open as FITS", e))?;
+    let hdu = file.primary_hdu().map_err(|e| cfitsio(path, "cannot read the primary HDU", e))?;
     let (shape, image_type) = match &hdu.info {
         HduInfo::ImageInfo { shape, image_type } => (shape.clone(), *image_type),
-        _ => return Err(Error::input(path, "the primary HDU is not an image")),
+        _ => return Err(invalid(path, "the primary HDU is not an image")),
     };
     // fitsio lists axes slowest first; reverse to FITS numbering (axes[0] is NAXIS1).
     let axes: Vec<usize> = shape.iter().rev().copied().collect();
     if !(2..=4).contains(&axes.len()) {
-        return Err(Error::input(
+        return Err(invalid(
             path,
             format!("the primary HDU has NAXIS = {}; expected an image with 2, 3 or 4 axes", axes.len()),
         ));
     }
     for (k, &len) in axes.iter().enumerate().skip(2) {
         if len != 1 {
-            return Err(Error::input(
+            return Err(invalid(
                 path,
                 format!(
                     "NAXIS{} = {len}: only single-plane images are supported (axes beyond the second must have length 1)",
@@ -200,20 +282,20 @@ pub fn read_image(path: &Path) -> Result<FitsImage> {
     }
     let (nx, ny) = (axes[0], axes[1]);
     if nx == 0 || ny == 0 {
-        return Err(Error::input(path, format!("NAXIS1 = {nx}, NAXIS2 = {ny}: the image is empty")));
+        return Err(invalid(path, format!("NAXIS1 = {nx}, NAXIS2 = {ny}: the image is empty")));
     }
     // A damaged header can declare any size; refuse sizes the file cannot hold before
     // fitsio allocates a buffer for them.
     let data_bytes = nx.checked_mul(ny).and_then(|n| n.checked_mul(bytes_per_pixel(image_type)));
     if data_bytes.is_none_or(|bytes| bytes as u64 > metadata.len()) {
-        return Err(Error::input(
+        return Err(invalid(
             path,
             format!("NAXIS1 x NAXIS2 = {nx} x {ny} pixels do not fit in the file's {} bytes", metadata.len()),
         ));
     }
-    let data: Vec<f64> = hdu.read_image(&mut file).map_err(|e| fits_error("cannot read the pixels", e))?;
+    let data: Vec<f64> = hdu.read_image(&mut file).map_err(|e| cfitsio(path, "cannot read the pixels", e))?;
     if data.len() != nx * ny {
-        return Err(Error::input(
+        return Err(invalid(
             path,
             format!("read {} pixels but NAXIS1 x NAXIS2 = {nx} x {ny}", data.len()),
         ));
@@ -226,7 +308,7 @@ pub fn read_image(path: &Path) -> Result<FitsImage> {
     };
     let bad = data.iter().filter(|v| !v.is_finite() || Some(**v) == blank).count();
     if bad > 0 {
-        return Err(Error::input(
+        return Err(invalid(
             path,
             format!(
                 "{bad} of {} pixels are not finite (NaN, infinite or BLANK); sky images must be finite",
@@ -458,37 +540,25 @@ fn to_float32(image: &[f64]) -> Result<Vec<f32>> {
 /// `http://` select drivers, `[...]` selects extensions. A `./` in front of relative paths
 /// disarms the prefixes; brackets cannot be escaped, so such names are refused.
 fn fitsio_path(path: &Path) -> Result<String> {
-    let name = path
-        .to_str()
-        .ok_or_else(|| Error::input(path, "the file name is not valid UTF-8, which cfitsio requires"))?;
+    let unusable = |message| Error::from(FitsError::Unusable { path: path.to_path_buf(), message });
+    let name = path.to_str().ok_or_else(|| unusable("the file name is not valid UTF-8, which cfitsio requires"))?;
     if name.contains('[') {
-        return Err(Error::input(
-            path,
-            "file names containing '[' are not supported (cfitsio reads them as extension selectors)",
-        ));
+        return Err(unusable("file names containing '[' are not supported (cfitsio reads them as extension selectors)"));
     }
     Ok(if path.is_absolute() { name.to_string() } else { format!("./{name}") })
-}
-
-/// Readable text for a fitsio error (its own Display prints a Debug struct).
-fn describe(e: &FitsioError) -> String {
-    match e {
-        FitsioError::Fits(f) => format!("{} (cfitsio status {})", f.message, f.status),
-        other => other.to_string(),
-    }
 }
 
 /// Why the directory of `path` takes no more data, in the system's words (`No space left on
 /// device`), found by writing a small probe file there: cfitsio reports only its own status
 /// (105, 106), which says nothing of the cause. `None` when the probe goes through.
-fn why_unwritable(path: &Path) -> Option<String> {
+fn why_unwritable(path: &Path) -> Option<std::io::Error> {
     use std::io::Write;
     let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let probe = tempfile::tempfile_in(dir).and_then(|mut f| {
         f.write_all(&[0u8; 4096])?;
         f.sync_all()
     });
-    probe.err().map(|e| format!("the directory takes no more data ({e})"))
+    probe.err()
 }
 
 /// Checks that the file is as long as header plus data unit: one header block at least,
@@ -574,21 +644,16 @@ impl HeaderReader<'_> {
     fn f64(&mut self, name: &str) -> Result<Option<f64>> {
         match self.hdu.read_key::<f64>(self.file, name) {
             Ok(v) if v.is_finite() => Ok(Some(v)),
-            Ok(v) => {
-                Err(Error::input(self.path, format!("header keyword {name} = {v}: expected a finite number")))
-            }
+            Ok(v) => Err(invalid(self.path, format!("header keyword {name} = {v}: expected a finite number"))),
             Err(FitsioError::Fits(e)) if e.status == KEY_NO_EXIST => Ok(None),
-            Err(e) => Err(Error::input(
-                self.path,
-                format!("header keyword {name}: expected a number ({})", describe(&e)),
-            )),
+            Err(e) => Err(cfitsio(self.path, format!("header keyword {name}: expected a number"), e)),
         }
     }
 
     /// A numeric keyword that must be present; `why` says what needs it.
     fn require_f64(&mut self, name: &str, why: &str) -> Result<f64> {
         self.f64(name)?.ok_or_else(|| {
-            Error::input(self.path, format!("header keyword {name} is missing; {why} needs it"))
+            invalid(self.path, format!("header keyword {name} is missing; {why} needs it"))
         })
     }
 
@@ -597,7 +662,7 @@ impl HeaderReader<'_> {
         match self.hdu.read_key::<String>(self.file, name) {
             Ok(v) => Ok(Some(v.trim().to_string())),
             Err(FitsioError::Fits(e)) if e.status == KEY_NO_EXIST => Ok(None),
-            Err(e) => Err(Error::input(self.path, format!("header keyword {name}: {}", describe(&e)))),
+            Err(e) => Err(cfitsio(self.path, format!("header keyword {name}"), e)),
         }
     }
 
@@ -629,7 +694,7 @@ fn read_wcs(h: &mut HeaderReader, nx: usize, ny: usize, naxis: usize) -> Result<
             path.display()
         ),
         _ => {
-            return Err(Error::input(
+            return Err(invalid(
                 path,
                 format!(
                     "CTYPE1 = '{ctype1}', CTYPE2 = '{ctype2}': expected 'RA---SIN' and 'DEC--SIN' \
@@ -640,16 +705,16 @@ fn read_wcs(h: &mut HeaderReader, nx: usize, ny: usize, naxis: usize) -> Result<
     }
     for axis in ["CUNIT1", "CUNIT2"] {
         if let Some(unit) = h.string(axis)?.filter(|u| !u.eq_ignore_ascii_case("deg")) {
-            return Err(Error::input(path, format!("{axis} = '{unit}': expected 'deg'")));
+            return Err(invalid(path, format!("{axis} = '{unit}': expected 'deg'")));
         }
     }
     if let Some(frame) =
         h.string("RADESYS")?.filter(|f| !["FK5", "ICRS"].contains(&f.to_ascii_uppercase().as_str()))
     {
-        return Err(Error::input(path, format!("RADESYS = '{frame}': expected 'FK5' or 'ICRS'")));
+        return Err(invalid(path, format!("RADESYS = '{frame}': expected 'FK5' or 'ICRS'")));
     }
     if let Some(equinox) = h.f64("EQUINOX")?.filter(|e| *e != 2000.0) {
-        return Err(Error::input(path, format!("EQUINOX = {equinox}: expected 2000")));
+        return Err(invalid(path, format!("EQUINOX = {equinox}: expected 2000")));
     }
     // Rotations and generalised projections, which ImageWcs cannot describe.
     for (key, default) in [
@@ -664,7 +729,7 @@ fn read_wcs(h: &mut HeaderReader, nx: usize, ny: usize, naxis: usize) -> Result<
         ("LONPOLE", 180.0),
     ] {
         if let Some(v) = h.f64(key)?.filter(|v| *v != default) {
-            return Err(Error::input(
+            return Err(invalid(
                 path,
                 format!("{key} = {v}: rotated or generalised projections are not supported (expected {default} or absent)"),
             ));
@@ -675,7 +740,7 @@ fn read_wcs(h: &mut HeaderReader, nx: usize, ny: usize, naxis: usize) -> Result<
     let ra_deg = h.require_f64("CRVAL1", wcs_need)?;
     let dec_deg = h.require_f64("CRVAL2", wcs_need)?;
     if !(-90.0..=90.0).contains(&dec_deg) {
-        return Err(Error::input(
+        return Err(invalid(
             path,
             format!("CRVAL2 = {dec_deg}: a declination must be within [-90, 90]"),
         ));
@@ -684,7 +749,7 @@ fn read_wcs(h: &mut HeaderReader, nx: usize, ny: usize, naxis: usize) -> Result<
         let crpix = h.require_f64(key, wcs_need)?;
         let centre = (n / 2 + 1) as f64;
         if (crpix - centre).abs() > 1e-6 {
-            return Err(Error::input(
+            return Err(invalid(
                 path,
                 format!("{key} = {crpix}: the reference pixel must be the image centre, {centre} for an axis of {n} pixels"),
             ));
@@ -700,16 +765,16 @@ fn read_wcs(h: &mut HeaderReader, nx: usize, ny: usize, naxis: usize) -> Result<
         ("CDELT1", "CDELT2", d1, d2)
     };
     if d1 == 0.0 || d2 == 0.0 {
-        return Err(Error::input(path, format!("{k1} = {d1}, {k2} = {d2}: pixel sizes must not be zero")));
+        return Err(invalid(path, format!("{k1} = {d1}, {k2} = {d2}: pixel sizes must not be zero")));
     }
     if (d1.abs() - d2.abs()).abs() > 1e-9 * d2.abs() {
-        return Err(Error::input(
+        return Err(invalid(
             path,
             format!("{k1} = {d1}, {k2} = {d2}: non-square pixels are not supported (expected {k1} = -{k2})"),
         ));
     }
     if !(d1 < 0.0 && d2 > 0.0) {
-        return Err(Error::input(
+        return Err(invalid(
             path,
             format!(
                 "{k1} = {d1}, {k2} = {d2}: flipped axes are not supported \
@@ -734,18 +799,18 @@ fn read_frequency(h: &mut HeaderReader, naxis: usize) -> Result<(Option<f64>, Op
         let crpix = h.f64(&format!("CRPIX{k}"))?.unwrap_or(1.0);
         let cdelt = h.f64(&format!("CDELT{k}"))?;
         if let Some(unit) = h.string(&format!("CUNIT{k}"))?.filter(|u| !u.eq_ignore_ascii_case("Hz")) {
-            return Err(Error::input(h.path, format!("CUNIT{k} = '{unit}': expected 'Hz' on the FREQ axis")));
+            return Err(invalid(h.path, format!("CUNIT{k} = '{unit}': expected 'Hz' on the FREQ axis")));
         }
         // The plane is pixel 1 of the axis, wherever the reference pixel is.
         let freq = crval + (1.0 - crpix) * cdelt.unwrap_or(1.0);
         if freq <= 0.0 {
-            return Err(Error::input(
+            return Err(invalid(
                 h.path,
                 format!("FREQ axis {k}: frequency {freq} Hz of the image plane is not positive"),
             ));
         }
         if cdelt == Some(0.0) {
-            return Err(Error::input(h.path, format!("CDELT{k} = 0: expected a non-zero bandwidth")));
+            return Err(invalid(h.path, format!("CDELT{k} = 0: expected a non-zero bandwidth")));
         }
         return Ok((Some(freq), cdelt.map(f64::abs)));
     }
@@ -886,12 +951,54 @@ mod tests {
     }
 
     #[test]
+    fn a_file_that_is_not_fits_is_a_cfitsio_error_keeping_its_status() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("notes.fits");
+        std::fs::write(&path, "these are notes, not an image\n".repeat(200)).unwrap();
+        let err = read_image(&path).unwrap_err();
+        let Error::Fits(FitsError::Cfitsio { path: named, doing, source }) = &err else { panic!("not a cfitsio error: {err:?}") };
+        assert_eq!((named.as_path(), doing.as_str()), (path.as_path(), "cannot open as FITS"));
+        let status = source.status().expect("cfitsio's own status");
+        assert!(status > 0, "{status}");
+        // Error -> FitsError -> Cfitsio, the last holding fitsio's error.
+        let module = std::error::Error::source(&err).expect("the FITS error");
+        assert!(module.downcast_ref::<FitsError>().is_some());
+        let cause = module.source().and_then(|c| c.downcast_ref::<Cfitsio>()).expect("cfitsio's error");
+        assert!(matches!(cause.0, FitsioError::Fits(ref e) if e.status == status));
+        // The message says the file, what failed and cfitsio's words, each once.
+        let text = err.to_string();
+        let cfitsio_text = cause.to_string();
+        assert!(cfitsio_text.contains(&format!("cfitsio status {status}")), "{cfitsio_text}");
+        assert_eq!(text, format!("{}: cannot open as FITS: {cfitsio_text}", path.display()));
+        assert_eq!(crate::error::Report(&err).to_string(), text);
+    }
+
+    #[test]
+    fn a_failed_write_keeps_the_system_reason_and_cfitsio_report() {
+        let dir = tempfile::tempdir().unwrap();
+        // The directory the file would go in does not exist: cfitsio cannot create it, and the
+        // probe of the directory finds why.
+        let path = dir.path().join("missing-dir").join("out.fits");
+        let err = write_image(&path, &pattern(4, 4), 4, 4, &test_wcs(), BrightnessUnit::JyPerBeam, None, &[]).unwrap_err();
+        let Error::Io { path: named, source } = &err else { panic!("not an I/O error: {err:?}") };
+        assert_eq!(named, &path);
+        assert_eq!(source.kind(), std::io::ErrorKind::NotFound, "{source:?}");
+        let failure = source.get_ref().and_then(|e| e.downcast_ref::<WriteFailure>()).expect("cfitsio's report inside");
+        assert!(failure.cfitsio.status().is_some() && failure.disk.is_some(), "{failure:?}");
+        let text = err.to_string();
+        let os = failure.disk.as_ref().unwrap().to_string();
+        assert_eq!(text.matches(&os).count(), 1, "{text}");
+        assert!(text.contains("writing FITS image") && text.contains("cfitsio status"), "{text}");
+    }
+
+    #[test]
     fn cube_with_two_planes_is_rejected_naming_naxis3() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("cube.fits");
         write_raw(&path, &[2, 4, 4], &[0.0; 32], &[]);
         let err = read_image(&path).unwrap_err();
         assert!(err.to_string().contains("NAXIS3 = 2"), "{err}");
+        assert!(matches!(err, Error::Fits(FitsError::Invalid { .. })), "{err:?}");
     }
 
     #[test]

@@ -177,6 +177,33 @@ fn bad_input_gives_errors_that_name_the_problem() {
     assert!(!out.status.success());
 }
 
+/// An error with a cause beneath it (cfitsio's report, what reading a plugin library found) is
+/// printed on one line naming the file and the cause, each once.
+#[test]
+fn errors_print_the_file_and_their_cause_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::write(d.join("notes.fits"), "not an image\n".repeat(300)).unwrap();
+    let out = r2d2(&["metrics", "--truth", "notes.fits", "--estimate", "notes.fits"], d);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    let line = err.lines().find(|l| l.starts_with("error: ")).unwrap_or_else(|| panic!("no error line: {err}"));
+    assert!(line.starts_with("error: notes.fits: cannot open as FITS: "), "{err}");
+    assert_eq!(line.matches("notes.fits").count(), 1, "the file once: {err}");
+    assert_eq!(line.matches("cfitsio status").count(), 1, "cfitsio's report once: {err}");
+
+    std::fs::write(d.join("libnotes.so"), "not a library\n").unwrap();
+    let pipeline = "image: {size: 16}\nstages:\n  source: {kind: simulate, to: weights}\n  weights: {kind: weighting, scheme: natural, to: grid}\n  grid: {kind: gridder, to: step}\n  step: {kind: native, library: libnotes.so, iterations: 1, to: update}\n  update: {kind: residual, to: step, done: write}\n  write: {kind: writer, prefix: out/x}\n";
+    std::fs::write(d.join("p.yaml"), pipeline).unwrap();
+    let out = r2d2(&["validate", "p.yaml"], d);
+    assert_eq!(out.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&out.stderr);
+    let line = err.lines().find(|l| l.starts_with("error: ")).unwrap_or_else(|| panic!("no error line: {err}"));
+    assert_eq!(line.matches("libnotes.so").count(), 1, "the library once: {err}");
+    assert_eq!(line.matches("does not start with an ELF header").count(), 1, "the cause once: {err}");
+    assert!(line.contains("stages.step.library"), "{err}");
+}
+
 /// parquet 55 panics on some corrupt pages (apache/arrow-rs#9434); the reader contains that,
 /// and the user sees an error naming the file, not the panic hook's "thread ... panicked at".
 #[test]

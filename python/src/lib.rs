@@ -5,7 +5,9 @@
 //! GIL released, taking the GIL back between short waits only to let Python run its signal
 //! handlers: Ctrl-C (KeyboardInterrupt) cancels the run at the engine's next job boundary,
 //! waits for the engine to stop, then raises. Engine errors become `R2D2Error` with the
-//! engine's message (file, line, column, stage, job).
+//! engine's message (file, line, column, stage, job) and its causes; an error of a module that
+//! has its own (FITS, model series, ONNX, native plugin, MeasurementSet) becomes the subclass
+//! of `R2D2Error` for it, so Python can catch that kind alone.
 
 mod arrow_in;
 mod image;
@@ -23,12 +25,34 @@ use std::sync::Arc;
 use std::time::Duration;
 
 create_exception!(r2d2_imaging, R2D2Error, PyRuntimeError, "An error reported by the r2d2 engine; its message names the file, line, column, stage or job.");
+create_exception!(r2d2_imaging, FitsError, R2D2Error, "A FITS image could not be read (cfitsio's report is in the message).");
+create_exception!(r2d2_imaging, SeriesError, R2D2Error, "A model series could not be used: its directory, manifest or network files.");
+create_exception!(r2d2_imaging, OnnxError, R2D2Error, "An ONNX network could not be checked, loaded or run.");
+create_exception!(r2d2_imaging, PluginError, R2D2Error, "A native plugin could not be loaded, or failed.");
+create_exception!(r2d2_imaging, MeasurementSetError, R2D2Error, "A MeasurementSet could not be read or written.");
 
 /// How often a waiting call looks at Python's signals.
 const SIGNAL_POLL: Duration = Duration::from_millis(50);
 
 pub(crate) fn engine_error(e: r2d2_imaging::Error) -> PyErr {
-    R2D2Error::new_err(e.to_string())
+    use r2d2_imaging::error as kinds;
+    let message = e.report().to_string();
+    // The module's error, also when a stage reported it on a job.
+    let module = e.module_error();
+    let is = |check: fn(&(dyn std::error::Error + 'static)) -> bool| module.is_some_and(check);
+    if is(|m| m.is::<kinds::FitsError>()) {
+        FitsError::new_err(message)
+    } else if is(|m| m.is::<kinds::SeriesError>()) {
+        SeriesError::new_err(message)
+    } else if is(|m| m.is::<kinds::OnnxError>()) {
+        OnnxError::new_err(message)
+    } else if is(|m| m.is::<kinds::PluginError>()) {
+        PluginError::new_err(message)
+    } else if is(|m| m.is::<kinds::MsError>()) {
+        MeasurementSetError::new_err(message)
+    } else {
+        R2D2Error::new_err(message)
+    }
 }
 
 /// Runs `work` on a thread of its own with the GIL released, checking Python's signals while
@@ -163,6 +187,11 @@ fn split_rows<'py>(
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("R2D2Error", m.py().get_type::<R2D2Error>())?;
+    m.add("FitsError", m.py().get_type::<FitsError>())?;
+    m.add("SeriesError", m.py().get_type::<SeriesError>())?;
+    m.add("OnnxError", m.py().get_type::<OnnxError>())?;
+    m.add("PluginError", m.py().get_type::<PluginError>())?;
+    m.add("MeasurementSetError", m.py().get_type::<MeasurementSetError>())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add_function(wrap_pyfunction!(validate, m)?)?;
     m.add_function(wrap_pyfunction!(run, m)?)?;

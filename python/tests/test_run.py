@@ -71,6 +71,23 @@ def test_a_failing_stage_names_itself_and_the_job(tmp_path):
     assert "stage 'write' (writer)" in message and "job 'sim-1" in message, message
 
 
+def test_module_errors_raise_their_own_subclass(tmp_path):
+    """An error of a module that has its own kind raises that subclass of R2D2Error, with the
+    file and the cause beneath in its message, each once; it pickles (Dask sends it back)."""
+    import pickle
+
+    library = tmp_path / "libnotes.so"
+    library.write_text("not a library\n")
+    native = PIPELINE.replace("step: {kind: clean, major_cycles: 3, to: update}", f"step: {{kind: native, library: '{library}', iterations: 1, to: update}}")
+    with pytest.raises(r2d2_imaging.PluginError) as error:
+        r2d2_imaging.validate(native)
+    message = str(error.value)
+    assert message.count(str(library)) == 1 and message.count("does not start with an ELF header") == 1, message
+    assert isinstance(error.value, r2d2_imaging.R2D2Error)
+    again = pickle.loads(pickle.dumps(error.value))
+    assert type(again) is r2d2_imaging.PluginError and str(again) == message
+
+
 def test_ctrl_c_stops_the_engine_cleanly(tmp_path):
     """SIGINT while the engine works (GIL released, on its own threads) raises
     KeyboardInterrupt within a job boundary, and leaves no partial products."""

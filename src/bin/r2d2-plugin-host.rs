@@ -68,7 +68,8 @@ fn serve(library: PathBuf, input: &mut impl Read, out: &mut impl Write) -> io::R
     let pixels = size.checked_mul(size).filter(|p| p.checked_mul(32).is_some()).ok_or_else(|| bad(format!("image size {size}")))?;
     let mut instance = match Instance::load(&library, &config, size, iterations) {
         Ok(instance) => instance,
-        Err(message) => return error(out, &message),
+        // The cause crosses the pipe as text: the library's report and the loader's, once.
+        Err(e) => return error(out, &r2d2_imaging::error::Report(&e).to_string()),
     };
     out.write_all(&[wire::OK])?;
     out.flush()?;

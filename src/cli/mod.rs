@@ -96,7 +96,8 @@ pub fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e}");
+            // The error and each of its causes, once.
+            eprintln!("error: {}", e.report());
             ExitCode::FAILURE
         }
     }

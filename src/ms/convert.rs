@@ -30,7 +30,7 @@ pub fn convert_ms_to_parquet(ms: &Path, selection: &MsSelection, out: &Path) -> 
     for column in ["u", "v", "w", "vis_re", "vis_im", "time"] {
         properties = properties.set_column_dictionary_enabled(ColumnPath::from(column), false);
     }
-    let write_error = |e: parquet::errors::ParquetError| Error::io(out, std::io::Error::other(format!("writing Parquet: {e}")));
+    let write_error = |source| Error::from(super::MsError::Parquet { path: out.to_path_buf(), source });
     let tmp = TempSibling::new(out)?;
     let file = File::create(tmp.path()).map_err(|e| Error::io(out, e))?;
     let mut writer = ArrowWriter::try_new(file, reader.schema(), Some(properties.build())).map_err(write_error)?;

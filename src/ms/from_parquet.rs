@@ -8,7 +8,7 @@
 //! The whole table is held in memory (rows are gathered from anywhere in it).
 
 use super::model::exchange;
-use super::{SampleColumns, TempDir};
+use super::{invalid, MsError, SampleColumns, TempDir};
 use crate::vis::{check_no_nulls, VisReader, DEFAULT_BATCH_ROWS};
 use crate::{Error, Result};
 use arrow::array::{Array, BooleanArray, Float64Array, Int32Array, RecordBatch};
@@ -24,7 +24,7 @@ fn cast(batch: &RecordBatch, name: &str, to: &DataType, source: &str, first_row:
     check_no_nulls(array.as_ref(), name, source, first_row)?;
     arrow::compute::cast(array, to)
         .map(Some)
-        .map_err(|e| Error::input(source, format!("column `{name}`: cannot read as {to}: {e}")))
+        .map_err(|e| MsError::Arrow { path: source.into(), what: format!("column `{name}`: cannot read as {to}"), source: e }.into())
 }
 
 fn read_samples(parquet: &Path) -> Result<(SampleColumns, crate::vis::ObservationMeta)> {
@@ -33,7 +33,7 @@ fn read_samples(parquet: &Path) -> Result<(SampleColumns, crate::vis::Observatio
     let source = parquet.display().to_string();
     for name in extra {
         if reader.schema().field_with_name(name).is_err() {
-            return Err(Error::input(
+            return Err(invalid(
                 parquet,
                 format!("column `{name}` is missing; a MeasurementSet's rows need `time`, `antenna1` and `antenna2` (as `r2d2 simulate` writes them)"),
             ));
@@ -47,7 +47,7 @@ fn read_samples(parquet: &Path) -> Result<(SampleColumns, crate::vis::Observatio
             Ok(cast(&batch, name, &DataType::Float64, &source, rows)?
                 .map(|a| a.as_any().downcast_ref::<Float64Array>().expect("cast to Float64").values().to_vec()))
         };
-        let required = |name: &str| -> Result<Vec<f64>> { f64s(name)?.ok_or_else(|| Error::input(&source, format!("column `{name}` is missing"))) };
+        let required = |name: &str| -> Result<Vec<f64>> { f64s(name)?.ok_or_else(|| invalid(&source, format!("column `{name}` is missing"))) };
         let n = batch.num_rows();
         s.u.extend(required("u")?);
         s.v.extend(required("v")?);
@@ -62,7 +62,7 @@ fn read_samples(parquet: &Path) -> Result<(SampleColumns, crate::vis::Observatio
             None => s.flag.extend(vec![false; n]),
         }
         for (name, out) in [("antenna1", &mut s.antenna1), ("antenna2", &mut s.antenna2)] {
-            let a = cast(&batch, name, &DataType::Int32, &source, rows)?.ok_or_else(|| Error::input(&source, format!("column `{name}` is missing")))?;
+            let a = cast(&batch, name, &DataType::Int32, &source, rows)?.ok_or_else(|| invalid(&source, format!("column `{name}` is missing")))?;
             out.extend(a.as_any().downcast_ref::<Int32Array>().expect("cast to Int32").values().iter());
         }
         rows += n as u64;
@@ -83,13 +83,13 @@ pub struct ParquetToMs {
 pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> {
     let (s, meta) = read_samples(parquet)?;
     if s.u.is_empty() {
-        return Err(Error::input(parquet, "no samples: nothing to write"));
+        return Err(invalid(parquet, "no samples: nothing to write"));
     }
     let mut channels: Vec<f64> = s.frequency.clone();
     channels.sort_by(f64::total_cmp);
     channels.dedup();
     if let Some(bad) = channels.iter().find(|f| !(f.is_finite() && **f > 0.0)) {
-        return Err(Error::input(parquet, format!("column `frequency` has {bad} Hz; frequencies must be positive")));
+        return Err(invalid(parquet, format!("column `frequency` has {bad} Hz; frequencies must be positive")));
     }
     let nchan = channels.len();
     // Rows: (time, antenna1, antenna2) in order of first appearance.
@@ -113,7 +113,7 @@ pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> 
         let channel = channels.binary_search_by(|f| f.total_cmp(&s.frequency[i])).expect("every frequency is a channel");
         let cell = row * nchan + channel;
         if std::mem::replace(&mut seen[cell], true) {
-            return Err(Error::input(
+            return Err(invalid(
                 parquet,
                 format!("row {i}: a second sample for time {}, antennas {}-{}, {} Hz; an MS holds one per channel", s.time[i], s.antenna1[i], s.antenna2[i], s.frequency[i]),
             ));
@@ -121,7 +121,7 @@ pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> 
         let j = first[row];
         let same = |a: f64, b: f64| (a - b).abs() <= 1e-9 * (1.0 + a.abs().max(b.abs()));
         if !(same(s.u[i], s.u[j]) && same(s.v[i], s.v[j]) && same(s.w[i], s.w[j])) {
-            return Err(Error::input(parquet, format!("rows {j} and {i}: same time and antennas but different `u`, `v`, `w` (metres)")));
+            return Err(invalid(parquet, format!("rows {j} and {i}: same time and antennas but different `u`, `v`, `w` (metres)")));
         }
         let finite = [s.re[i], s.im[i], s.weight[i]].iter().all(|x| x.is_finite());
         let excluded = s.flag[i] || !finite || s.weight[i] <= 0.0;
@@ -139,7 +139,11 @@ pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> 
     }
     let table = MainTable { s: &s, first: &first, data, wspec, flag, nchan };
     write_ms(&building.path, &table, &channels, &meta).map_err(|e| match e {
-        Error::Input { message, .. } => Error::input(out, message),
+        Error::Input { message, .. } => invalid(out, message),
+        Error::Ms(mut e) => {
+            *e.path_mut() = out.to_path_buf();
+            Error::Ms(e)
+        }
         other => other,
     })?;
     if out.exists() {
@@ -161,8 +165,8 @@ struct MainTable<'a> {
     nchan: usize,
 }
 
-fn casacure_error(path: &Path, what: &str, e: impl std::fmt::Display) -> Error {
-    Error::input(path, format!("{what}: {e}"))
+fn casacure_error<E: std::error::Error + Send + Sync + 'static>(path: &Path, what: &str, e: E) -> Error {
+    MsError::Table { path: path.to_path_buf(), what: what.to_string(), source: Box::new(e) }.into()
 }
 
 /// Sets `values` (one per row, from row 0) into the column `name` of `table`.
@@ -172,7 +176,7 @@ fn put(table: &mut WritableTable, path: &Path, name: &str, values: impl IntoIter
         .columns
         .iter()
         .position(|c| c.name == name)
-        .ok_or_else(|| Error::input(path, format!("column `{name}` is missing from the MS schema")))?;
+        .ok_or_else(|| invalid(path, format!("column `{name}` is missing from the MS schema")))?;
     for (row, value) in values.into_iter().enumerate() {
         table.putcell(column, row as u64, value).map_err(|e| casacure_error(path, &format!("column `{name}`"), e))?;
     }
@@ -201,7 +205,7 @@ fn write_ms(path: &Path, table: &MainTable<'_>, channels: &[f64], meta: &crate::
         )
     };
     let extra = format!(r#"{{"DATA":{},"FLAG":{},"WEIGHT_SPECTRUM":{}}}"#, column("complex"), column("boolean"), column("float"));
-    crate::vis::contain_panics(path, "creating the MeasurementSet", super::CASACORE, || casacure::ms::default_ms(path, Some(&extra), None))?;
+    super::casacore(path, "creating the MeasurementSet", || casacure::ms::default_ms(path, Some(&extra), None))?;
     let s = table.s;
     let rows = table.first.len();
     let shape = [nchan as u32, 2];

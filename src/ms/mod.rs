@@ -36,8 +36,81 @@ use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::path::{Path, PathBuf};
 
-/// Names the decoder in messages about panics contained while reading.
-const CASACORE: &str = "casacore table";
+/// What went wrong with a MeasurementSet (or, converting to one, with its source table). Each
+/// variant names the table; casacore's own error, where there is one, is the
+/// [`source`](std::error::Error::source) (a `casacure` error type).
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum MsError {
+    /// The casacore table library failed on a table: opening, reading cells, writing.
+    #[error("{}: {what}", path.display())]
+    Table {
+        path: PathBuf,
+        what: String,
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// The table decoder panicked on the table's bytes (a damaged table): an error, not a crash.
+    #[error("{}: {what}: the casacore table decoder failed ({message})", path.display())]
+    DecoderPanic { path: PathBuf, what: String, message: String },
+    /// A table, column or cell is not what a MeasurementSet holds, or the selection (field,
+    /// windows) matches nothing in it.
+    #[error("{}: {message}", path.display())]
+    Invalid { path: PathBuf, message: String },
+    /// The Parquet table written from an MS (`r2d2 convert`) could not be written.
+    #[error("{}: writing Parquet", path.display())]
+    Parquet {
+        path: PathBuf,
+        #[source]
+        source: parquet::errors::ParquetError,
+    },
+    /// The samples read could not be made into a record batch.
+    #[error("{}: {what}", path.display())]
+    Arrow {
+        path: PathBuf,
+        what: String,
+        #[source]
+        source: arrow::error::ArrowError,
+    },
+}
+
+impl MsError {
+    /// The table (or file) the error is about.
+    pub fn path(&self) -> &Path {
+        match self {
+            MsError::Table { path, .. }
+            | MsError::DecoderPanic { path, .. }
+            | MsError::Invalid { path, .. }
+            | MsError::Parquet { path, .. }
+            | MsError::Arrow { path, .. } => path,
+        }
+    }
+
+    fn path_mut(&mut self) -> &mut PathBuf {
+        match self {
+            MsError::Table { path, .. }
+            | MsError::DecoderPanic { path, .. }
+            | MsError::Invalid { path, .. }
+            | MsError::Parquet { path, .. }
+            | MsError::Arrow { path, .. } => path,
+        }
+    }
+}
+
+/// An MS content error as the crate's error.
+fn invalid(path: impl AsRef<Path>, message: impl Into<String>) -> Error {
+    MsError::Invalid { path: path.as_ref().to_path_buf(), message: message.into() }.into()
+}
+
+/// Runs a casacore table operation on `path`; its error (kept as the source) and a panic of the
+/// decoder become errors naming the table and `what` was being done.
+fn casacore<T, E: std::error::Error + Send + Sync + 'static>(path: &Path, what: &str, operation: impl FnOnce() -> std::result::Result<T, E>) -> Result<T> {
+    match crate::error::catch_quietly(operation) {
+        Ok(Ok(value)) => Ok(value),
+        Ok(Err(e)) => Err(MsError::Table { path: path.to_path_buf(), what: what.to_string(), source: Box::new(e) }.into()),
+        Err(message) => Err(MsError::DecoderPanic { path: path.to_path_buf(), what: what.to_string(), message }.into()),
+    }
+}
 
 /// Whether `path` looks like a casacore table (an MS): a directory holding `table.dat`.
 pub fn is_measurement_set(path: &Path) -> bool {
@@ -104,16 +177,16 @@ impl Default for MsSelection {
 /// Opens a table read-only; errors (and panics of the decoder) name the table and `what` it is.
 fn open_table(path: &Path, what: &str) -> Result<Table> {
     if !path.join("table.dat").is_file() {
-        return Err(Error::input(path, format!("{what} is missing: no casacore table here (no table.dat)")));
+        return Err(invalid(path, format!("{what} is missing: no casacore table here (no table.dat)")));
     }
-    crate::vis::contain_panics(path, &format!("cannot open {what}"), CASACORE, || Table::open(path, true))
+    casacore(path, &format!("cannot open {what}"), || Table::open(path, true))
 }
 
 /// A subtable of `ms`, e.g. `SPECTRAL_WINDOW`.
 fn open_subtable(ms: &Path, name: &str) -> Result<Table> {
     let path = ms.join(name);
     if !path.join("table.dat").is_file() {
-        return Err(Error::input(ms, format!("the {name} subtable is missing (expected {})", path.display())));
+        return Err(invalid(ms, format!("the {name} subtable is missing (expected {})", path.display())));
     }
     open_table(&path, &format!("the {name} subtable"))
 }
@@ -121,7 +194,7 @@ fn open_subtable(ms: &Path, name: &str) -> Result<Table> {
 /// A column's index, or an error naming the table and the column.
 fn column_index(table: &Table, table_path: &Path, name: &str) -> Result<usize> {
     optional_column(table, name).ok_or_else(|| {
-        Error::input(table_path, format!("column `{name}` is missing (columns: {})", table.colnames().join(", ")))
+        invalid(table_path, format!("column `{name}` is missing (columns: {})", table.colnames().join(", ")))
     })
 }
 
@@ -133,7 +206,7 @@ fn optional_column(table: &Table, name: &str) -> Option<usize> {
 /// table, column and rows.
 fn read_cells(table: &Table, path: &Path, column: usize, name: &str, start: u64, n: u64) -> Result<Vec<RecordValue>> {
     let what = format!("column `{name}`, rows {start}..{}", start + n);
-    crate::vis::contain_panics(path, &what, CASACORE, || table.getcol(column, start, n))
+    casacore(path, &what, || table.getcol(column, start, n))
 }
 
 /// A whole column of a subtable.
@@ -296,7 +369,7 @@ fn field_names(ms: &Path) -> Result<Vec<String>> {
         .into_iter()
         .map(|v| match v {
             RecordValue::String(s) => Ok(s),
-            other => Err(Error::input(&path, format!("column `NAME`: expected strings, found {}", describe(&other)))),
+            other => Err(invalid(&path, format!("column `NAME`: expected strings, found {}", describe(&other)))),
         })
         .collect()
 }
@@ -319,7 +392,7 @@ impl Layout {
                 [] => 0,
                 [only] => *only,
                 several => {
-                    return Err(Error::input(
+                    return Err(invalid(
                         ms,
                         format!(
                             "the MS has rows of {} fields ({}): choose one (`field: ID or NAME`, `--field`)",
@@ -335,13 +408,13 @@ impl Layout {
                     FieldSelector::Name(name) => names.iter().position(|n| n == name),
                 };
                 let id = found.ok_or_else(|| {
-                    Error::input(
+                    invalid(
                         ms.join("FIELD"),
                         format!("field {sel} matches no row of column `NAME` (fields: {})", list_fields(0..names.len(), &names)),
                     )
                 })?;
                 if !used_fields.contains(&id) {
-                    return Err(Error::input(
+                    return Err(invalid(
                         ms,
                         format!(
                             "field {sel} (id {id}) has no rows in column `FIELD_ID` (fields with rows: {})",
@@ -357,7 +430,7 @@ impl Layout {
         let telescope = telescope(ms)?;
         let windows = read_windows(ms, selection, used_dd)?;
         if windows.iter().all(Option::is_none) {
-            return Err(Error::input(ms, "no data description row matches the spectral window selection"));
+            return Err(invalid(ms, "no data description row matches the spectral window selection"));
         }
         Ok(Layout { windows, field_id, field_name, ra_deg, dec_deg, telescope })
     }
@@ -371,13 +444,13 @@ fn phase_centre(ms: &Path, field: usize) -> Result<(f64, f64)> {
     let column = column_index(&table, &path, "PHASE_DIR")?;
     let cell = read_cells(&table, &path, column, "PHASE_DIR", field as u64, 1)?;
     let (_, values) = cell.first().and_then(array_f64).ok_or_else(|| {
-        Error::input(&path, format!("column `PHASE_DIR` at row {field}: expected an array of directions in radians"))
+        invalid(&path, format!("column `PHASE_DIR` at row {field}: expected an array of directions in radians"))
     })?;
     match values[..] {
         [ra, dec, ..] if ra.is_finite() && dec.is_finite() && dec.abs() <= std::f64::consts::FRAC_PI_2 + 1e-12 => {
             Ok((ra.to_degrees().rem_euclid(360.0), dec.to_degrees().clamp(-90.0, 90.0)))
         }
-        _ => Err(Error::input(
+        _ => Err(invalid(
             &path,
             format!("column `PHASE_DIR` at row {field} is {values:?}; expected [RA, Dec] in radians with |Dec| <= pi/2"),
         )),
@@ -401,7 +474,7 @@ fn id_column(table: &Table, path: &Path, name: &str) -> Result<Vec<i64>> {
         .iter()
         .enumerate()
         .map(|(row, v)| {
-            as_i64(v).ok_or_else(|| Error::input(path, format!("column `{name}` at row {row}: expected an integer, found {}", describe(v))))
+            as_i64(v).ok_or_else(|| invalid(path, format!("column `{name}` at row {row}: expected an integer, found {}", describe(v))))
         })
         .collect()
 }
@@ -421,31 +494,31 @@ fn read_windows(ms: &Path, selection: &MsSelection, used_dd: &[usize]) -> Result
     let nspw = spw_table.nrows() as usize;
     if let Some(wanted) = &selection.spw {
         if let Some(bad) = wanted.iter().find(|&&s| s >= nspw) {
-            return Err(Error::input(&spw_path, format!("spectral window {bad} does not exist (the MS has {nspw}: 0..{nspw})")));
+            return Err(invalid(&spw_path, format!("spectral window {bad} does not exist (the MS has {nspw}: 0..{nspw})")));
         }
     }
     let mut windows = vec![None; spw_of.len()];
     for &dd in used_dd {
         let (Some(&spw), Some(&pol)) = (spw_of.get(dd), pol_of.get(dd)) else {
-            return Err(Error::input(
+            return Err(invalid(
                 ms,
                 format!("column `DATA_DESC_ID` refers to row {dd}, but DATA_DESCRIPTION has {} rows", spw_of.len()),
             ));
         };
         let (Ok(spw), Ok(pol)) = (usize::try_from(spw), usize::try_from(pol)) else {
-            return Err(Error::input(&dd_path, format!("row {dd}: negative SPECTRAL_WINDOW_ID or POLARIZATION_ID")));
+            return Err(invalid(&dd_path, format!("row {dd}: negative SPECTRAL_WINDOW_ID or POLARIZATION_ID")));
         };
         if selection.spw.as_ref().is_some_and(|s| !s.contains(&spw)) {
             continue;
         }
         if spw >= nspw {
-            return Err(Error::input(&dd_path, format!("row {dd} refers to spectral window {spw}; SPECTRAL_WINDOW has {nspw} rows")));
+            return Err(invalid(&dd_path, format!("row {dd} refers to spectral window {spw}; SPECTRAL_WINDOW has {nspw} rows")));
         }
         let cell = read_cells(&spw_table, &spw_path, freq_column, "CHAN_FREQ", spw as u64, 1)?;
         let (_, frequencies) = cell
             .first()
             .and_then(array_f64)
-            .ok_or_else(|| Error::input(&spw_path, format!("column `CHAN_FREQ` at row {spw}: expected an array of frequencies in Hz")))?;
+            .ok_or_else(|| invalid(&spw_path, format!("column `CHAN_FREQ` at row {spw}: expected an array of frequencies in Hz")))?;
         let nchan = frequencies.len();
         let channels = match selection.channels {
             None => 0..nchan,
@@ -458,17 +531,17 @@ fn read_windows(ms: &Path, selection: &MsSelection, used_dd: &[usize]) -> Result
             }
         };
         if pol as u64 >= pol_table.nrows() {
-            return Err(Error::input(&dd_path, format!("row {dd} refers to polarization {pol}; POLARIZATION has {} rows", pol_table.nrows())));
+            return Err(invalid(&dd_path, format!("row {dd} refers to polarization {pol}; POLARIZATION has {} rows", pol_table.nrows())));
         }
         let cell = read_cells(&pol_table, &pol_path, corr_column, "CORR_TYPE", pol as u64, 1)?;
         let codes: Vec<i64> = cell
             .first()
             .and_then(array_f64)
             .map(|(_, v)| v.iter().map(|&c| c as i64).collect())
-            .ok_or_else(|| Error::input(&pol_path, format!("column `CORR_TYPE` at row {pol}: expected an array of correlation codes")))?;
+            .ok_or_else(|| invalid(&pol_path, format!("column `CORR_TYPE` at row {pol}: expected an array of correlation codes")))?;
         let stokes = StokesI::from_codes(&codes).ok_or_else(|| {
             let names: Vec<String> = codes.iter().map(|&c| correlation_name(c)).collect();
-            Error::input(
+            invalid(
                 &pol_path,
                 format!(
                     "column `CORR_TYPE` at row {pol} has correlations [{}]: no Stokes I can be formed (it needs I, XX and YY, or RR and LL)",
@@ -533,6 +606,23 @@ pub const ORIGIN_KEY: &str = "r2d2_ms_origin";
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_damaged_table_is_a_table_error_keeping_casacores() {
+        let dir = tempfile::tempdir().unwrap();
+        let ms = dir.path().join("broken.ms");
+        std::fs::create_dir(&ms).unwrap();
+        std::fs::write(ms.join("table.dat"), b"this is not a casacore table header").unwrap();
+        let err = MsReader::open(&ms, &MsSelection::default(), 1024).err().expect("a damaged table opened");
+        let Error::Ms(MsError::Table { path, what, source }) = &err else { panic!("{err:?}") };
+        assert_eq!((path, what.as_str()), (&ms, "cannot open the MeasurementSet's main table"));
+        // Error -> MsError -> casacore's own error type.
+        let module = std::error::Error::source(&err).expect("the MS error");
+        let cause = module.source().expect("casacore's error");
+        assert!(cause.downcast_ref::<casacure::table::TableDatError>().is_some(), "{cause:?}");
+        let text = err.to_string();
+        assert_eq!(text, format!("{}: cannot open the MeasurementSet's main table: {source}", ms.display()));
+    }
 
     #[test]
     fn stokes_i_from_correlations() {

@@ -10,7 +10,7 @@
 //! removed on failure; after a kill, by the next model write to the same MS). The price: free disk
 //! space for one copy of the MS while writing.
 
-use super::{open_table, MsReader, Origin, TempDir, Window};
+use super::{invalid, open_table, MsError, MsReader, Origin, TempDir, Window};
 use crate::nufft::{Nufft2d, NufftParams};
 use crate::operator::ImageGeometry;
 use crate::vis::{DEFAULT_BATCH_ROWS, SPEED_OF_LIGHT};
@@ -43,7 +43,7 @@ pub struct ModelReport {
 
 /// `.NAME.r2d2-model-` beside the MS: the prefix of its staging copies.
 fn staging_prefix(ms: &Path) -> Result<(PathBuf, String)> {
-    let name = ms.file_name().ok_or_else(|| Error::input(ms, "a MeasurementSet path must name a directory"))?;
+    let name = ms.file_name().ok_or_else(|| invalid(ms, "a MeasurementSet path must name a directory"))?;
     let parent = ms.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     Ok((parent.to_path_buf(), format!(".{}.r2d2-model-", name.to_string_lossy())))
 }
@@ -105,7 +105,7 @@ pub(super) fn exchange(a: &Path, b: &Path) -> Result<()> {
     {
         use std::ffi::CString;
         use std::os::unix::ffi::OsStrExt;
-        let c = |p: &Path| CString::new(p.as_os_str().as_bytes()).map_err(|_| Error::input(p, "path contains a NUL byte"));
+        let c = |p: &Path| CString::new(p.as_os_str().as_bytes()).map_err(|_| invalid(p, "path contains a NUL byte"));
         let (ca, cb) = (c(a)?, c(b)?);
         // SAFETY: both pointers are valid NUL-terminated strings that outlive the call, and
         // AT_FDCWD resolves relative paths against the working directory, as std does.
@@ -163,6 +163,11 @@ fn retarget(error: Error, staging: &Path, ms: &Path) -> Error {
     match error {
         Error::Input { path, message } => Error::Input { path: swap_prefix(&path, staging, ms), message },
         Error::Io { path, source } => Error::Io { path: swap_prefix(&path, staging, ms), source },
+        Error::Ms(mut e) => {
+            let path = e.path_mut();
+            *path = swap_prefix(path, staging, ms);
+            Error::Ms(e)
+        }
         other => other,
     }
 }
@@ -171,8 +176,8 @@ fn swap_prefix(path: &Path, from: &Path, to: &Path) -> PathBuf {
     path.strip_prefix(from).map(|rest| to.join(rest)).unwrap_or_else(|_| path.to_path_buf())
 }
 
-fn write_error(ms: &Path, column: &str, e: impl std::fmt::Display) -> Error {
-    Error::input(ms, format!("column `{column}`: writing: {e}"))
+fn write_error<E: std::error::Error + Send + Sync + 'static>(ms: &Path, column: &str, e: E) -> Error {
+    MsError::Table { path: ms.to_path_buf(), what: format!("column `{column}`: writing"), source: Box::new(e) }.into()
 }
 
 fn predict_into(ms: &Path, origin: &Origin, target: &ModelTarget<'_>) -> Result<ModelReport> {
@@ -182,7 +187,7 @@ fn predict_into(ms: &Path, origin: &Origin, target: &ModelTarget<'_>) -> Result<
     let layout = reader.layout.clone();
     drop(reader);
     let column = target.column;
-    let (table, mut writable) = crate::vis::contain_panics(ms, "cannot open the MeasurementSet for writing", super::CASACORE, || {
+    let (table, mut writable) = super::casacore(ms, "cannot open the MeasurementSet for writing", || {
         WritableTable::open_for_update(ms)
     })?;
     let names = table.colnames();
@@ -194,7 +199,7 @@ fn predict_into(ms: &Path, origin: &Origin, target: &ModelTarget<'_>) -> Result<
     let (model_col, existed) = match names.iter().position(|c| c == column) {
         Some(i) => {
             if !matches!(desc[i].kind, ColumnKind::Array) || !matches!(desc[i].data_type, DataType::Complex | DataType::DComplex) {
-                return Err(Error::input(ms, format!("column `{column}` exists but is not a complex array column; cannot write a model into it")));
+                return Err(invalid(ms, format!("column `{column}` exists but is not a complex array column; cannot write a model into it")));
             }
             (i, true)
         }
@@ -235,7 +240,7 @@ fn predict_into(ms: &Path, origin: &Origin, target: &ModelTarget<'_>) -> Result<
             let Some(window) = window else { continue };
             let [u, v, _] = super::array_f64(&uvw[r])
                 .and_then(|(_, values)| <[f64; 3]>::try_from(values).ok())
-                .ok_or_else(|| Error::input(ms, format!("column `UVW` at row {}: expected 3 numbers", start + r as u64)))?;
+                .ok_or_else(|| invalid(ms, format!("column `UVW` at row {}: expected 3 numbers", start + r as u64)))?;
             for channel in window.channels.clone() {
                 let per_metre = window.frequencies[channel] / SPEED_OF_LIGHT;
                 let (u, v) = (u * per_metre, v * per_metre);
@@ -290,10 +295,10 @@ fn predict_into(ms: &Path, origin: &Origin, target: &ModelTarget<'_>) -> Result<
             report.rows += 1;
         }
         // One flush per chunk keeps the write buffer at a chunk, not the column.
-        crate::vis::contain_panics(ms, &format!("column `{column}`: writing"), super::CASACORE, || writable.flush())?;
+        super::casacore(ms, &format!("column `{column}`: writing"), || writable.flush())?;
     }
     if report.rows == 0 {
-        return Err(Error::input(ms, format!("no rows of field {} in the selected windows: nothing to write to `{column}`", layout.field_id)));
+        return Err(invalid(ms, format!("no rows of field {} in the selected windows: nothing to write to `{column}`", layout.field_id)));
     }
     Ok(report)
 }

@@ -1,7 +1,7 @@
 //! The main table, read in row chunks into the Parquet format's record batches.
 
 use super::{
-    array_f64, as_f64, as_i64, column_index, combine_weights, describe, open_table, optional_column, read_cells, Layout,
+    array_f64, invalid, MsError, as_f64, as_i64, column_index, combine_weights, describe, open_table, optional_column, read_cells, Layout,
     MsSelection, Origin, SampleColumns, StokesI, Window, ORIGIN_KEY,
 };
 use crate::ingest::TableReader;
@@ -118,7 +118,7 @@ impl MsReader {
             return Err(Error::parameter("batch_rows", "must be at least 1"));
         }
         if !path.exists() {
-            return Err(Error::input(path, "no such MeasurementSet"));
+            return Err(invalid(path, "no such MeasurementSet"));
         }
         let table = open_table(path, "the MeasurementSet's main table")?;
         let column = |name| column_index(&table, path, name);
@@ -246,7 +246,7 @@ impl MsReader {
                 continue;
             };
             let cell_error = |name: &str, found: &str| {
-                Error::input(
+                invalid(
                     path,
                     format!(
                         "column `{name}` at row {row}: expected {found} for spectral window {} ({} channels, {} correlations)",
@@ -297,7 +297,7 @@ fn scalars<T>(cells: &[RecordValue], name: &str, path: &Path, start: u64, get: i
         .iter()
         .enumerate()
         .map(|(i, v)| {
-            get(v).ok_or_else(|| Error::input(path, format!("column `{name}` at row {}: unexpected {}", start + i as u64, describe(v))))
+            get(v).ok_or_else(|| invalid(path, format!("column `{name}` at row {}: unexpected {}", start + i as u64, describe(v))))
         })
         .collect()
 }
@@ -315,7 +315,7 @@ fn scan_column(table: &Table, path: &Path, column: usize, name: &str) -> Result<
         let n = SCAN_ROWS.min(nrows - start);
         for (i, v) in read_cells(table, path, column, name, start, n)?.iter().enumerate() {
             let id = as_i64(v).and_then(|x| usize::try_from(x).ok()).ok_or_else(|| {
-                Error::input(path, format!("column `{name}` at row {}: expected a non-negative id, found {}", start + i as u64, describe(v)))
+                invalid(path, format!("column `{name}` at row {}: expected a non-negative id, found {}", start + i as u64, describe(v)))
             })?;
             ids.insert(id);
         }
@@ -465,7 +465,7 @@ impl SampleColumns {
             i32s(self.field),
             i32s(self.spw),
         ];
-        RecordBatch::try_new(schema, columns).map_err(|e| Error::input(path, format!("building a record batch: {e}")))
+        RecordBatch::try_new(schema, columns).map_err(|e| MsError::Arrow { path: path.to_path_buf(), what: "building a record batch".into(), source: e }.into())
     }
 }
 

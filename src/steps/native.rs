@@ -26,6 +26,61 @@ use serde::Deserialize;
 use std::path::PathBuf;
 use std::time::Duration;
 
+pub use super::native_file::LibraryError;
+pub use super::native_host::HostError;
+pub use r2d2_plugin::host::LoadError;
+
+/// What went wrong with a native plugin. Each variant names the library (and, while the step is
+/// built, the YAML key `stages.<stage>.library`); the cause, where there is one, is the
+/// [`source`](std::error::Error::source): what reading the file found ([`LibraryError`]), the
+/// loader's error ([`LoadError`], in this process) or the host's ([`HostError`], isolated).
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum PluginError {
+    /// The library file does not exist.
+    #[error(
+        "{}: stages.{stage}.library: no such plugin library (relative paths are relative to the working directory {cwd}; build the example plugins with `cargo build --release`)",
+        path.display()
+    )]
+    NotFound { path: PathBuf, stage: String, cwd: String },
+    /// The file is not a plugin library for this machine (found by reading it, not loading it).
+    #[error("{}: stages.{stage}.library", path.display())]
+    Library {
+        path: PathBuf,
+        stage: String,
+        #[source]
+        source: LibraryError,
+    },
+    /// Loading or creating the plugin in this process failed (`isolation: none`).
+    #[error("{}: stages.{stage}.library", path.display())]
+    Load {
+        path: PathBuf,
+        stage: String,
+        #[source]
+        source: LoadError,
+    },
+    /// Starting the plugin in its host process, or creating it there, failed.
+    #[error("{}: stages.{stage}.library", path.display())]
+    Host {
+        path: PathBuf,
+        stage: String,
+        #[source]
+        source: HostError,
+    },
+    /// A step failed: the plugin's own message, or how its host process ended.
+    #[error("{}: {message}", path.display())]
+    Step { path: PathBuf, message: String },
+    /// A step returned an increment that is not finite everywhere.
+    #[error(
+        "{}: plugin step {iteration} returned a non-finite increment {value} at pixel (x {x}, y {y}) (every one of the {size} x {size} values must be written and finite)",
+        path.display()
+    )]
+    NonFinite { path: PathBuf, iteration: usize, value: f64, x: usize, y: usize, size: usize },
+    /// The job's image size is not the one the plugin was created for.
+    #[error("{}: the plugin was created for {created} x {created} images, the job has {size} x {size}", path.display())]
+    ImageSize { path: PathBuf, created: usize, size: usize },
+}
+
 #[derive(Clone, Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct NativeConfig {
@@ -99,19 +154,20 @@ impl NativeStep {
             Some(_) => return Err(Error::parameter(format!("stages.{stage}.config"), "expected a mapping (key: value, ...)")),
         };
         let path = &config.library;
-        let fail = |message: String| Error::input(path, format!("stages.{stage}.library: {message}"));
+        let (named, key) = (|| path.clone(), || stage.to_string());
         if !path.is_file() {
             let cwd = std::env::current_dir().map(|d| d.display().to_string()).unwrap_or_default();
-            return Err(fail(format!(
-                "no such plugin library (relative paths are relative to the working directory {cwd}; build the example plugins with `cargo build --release`)"
-            )));
+            return Err(PluginError::NotFound { path: named(), stage: key(), cwd }.into());
         }
-        super::native_file::check(path).map_err(fail)?;
+        super::native_file::check(path).map_err(|source| PluginError::Library { path: named(), stage: key(), source })?;
         let backend = match config.isolation {
-            Isolation::None => Backend::InProcess(Instance::load(path, &config_json, image_size, config.iterations).map_err(fail)?),
+            Isolation::None => Backend::InProcess(
+                Instance::load(path, &config_json, image_size, config.iterations)
+                    .map_err(|source| PluginError::Load { path: named(), stage: key(), source })?,
+            ),
             Isolation::Process => Backend::Isolated(
                 HostedInstance::start(path, &config_json, image_size, config.iterations, Duration::from_secs_f64(config.timeout))
-                    .map_err(fail)?,
+                    .map_err(|source| PluginError::Host { path: named(), stage: key(), source })?,
             ),
         };
         Ok(NativeStep {
@@ -134,7 +190,7 @@ impl NetworkStep for NativeStep {
         let n = input.size;
         let path = &self.library;
         if n != self.size {
-            return Err(Error::input(path, format!("the plugin was created for {0} x {0} images, the job has {n} x {n}", self.size)));
+            return Err(PluginError::ImageSize { path: path.clone(), created: self.size, size: n }.into());
         }
         let (residual, model, dirty, psf_2n) = (input.residual, input.model, input.dirty, input.psf_2n);
         match &mut self.backend {
@@ -144,17 +200,10 @@ impl NetworkStep for NativeStep {
             }
             Backend::Isolated(hosted) => hosted.step(iteration, residual, model, dirty, psf_2n).map(|d| self.increment = d),
         }
-        .map_err(|message| Error::input(path, message))?;
+        .map_err(|message| PluginError::Step { path: path.clone(), message })?;
         if let Some(k) = self.increment.iter().position(|v| !v.is_finite()) {
-            return Err(Error::input(
-                path,
-                format!(
-                    "plugin step {iteration} returned a non-finite increment {} at pixel (x {}, y {}) (every one of the {n} x {n} values must be written and finite)",
-                    self.increment[k],
-                    k % n,
-                    k / n
-                ),
-            ));
+            let (value, x, y) = (self.increment[k], k % n, k / n);
+            return Err(PluginError::NonFinite { path: path.clone(), iteration, value, x, y, size: n }.into());
         }
         let project = self.positivity;
         Ok(input
@@ -163,5 +212,50 @@ impl NetworkStep for NativeStep {
             .zip(&self.increment)
             .map(|(x, d)| if project { (x + d).max(0.0) } else { x + d })
             .collect())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn config(library: PathBuf, isolation: Isolation) -> NativeConfig {
+        NativeConfig { library, iterations: 1, positivity: true, config: None, isolation, timeout: 10.0 }
+    }
+
+    #[test]
+    fn a_library_that_is_not_elf_is_named_with_what_reading_it_found() {
+        let dir = tempfile::tempdir().unwrap();
+        let library = dir.path().join("libnotes.so");
+        std::fs::write(&library, "not a library\n").unwrap();
+        for isolation in [Isolation::None, Isolation::Process] {
+            let err = NativeStep::new(config(library.clone(), isolation), 16, "step").err().expect("a text file accepted as a plugin");
+            let Error::Plugin(PluginError::Library { path, stage, source }) = &err else { panic!("{err:?}") };
+            assert_eq!((path, stage.as_str()), (&library, "step"));
+            assert!(matches!(source, LibraryError::NotElf), "{source:?}");
+            // Error -> PluginError -> LibraryError.
+            let module = std::error::Error::source(&err).expect("the plugin error");
+            assert!(matches!(module.source().and_then(|c| c.downcast_ref::<LibraryError>()), Some(LibraryError::NotElf)));
+            assert_eq!(
+                err.to_string(),
+                format!("{}: stages.step.library: not a shared library: the file does not start with an ELF header", library.display())
+            );
+        }
+    }
+
+    #[test]
+    fn the_loader_error_is_kept_under_the_load_error() {
+        // Past the file check (which the step runs first), the loader's own error is the cause.
+        let dir = tempfile::tempdir().unwrap();
+        let library = dir.path().join("libnotes.so");
+        std::fs::write(&library, "not a library\n").unwrap();
+        let err = Instance::load(&library, "{}", 16, 1).err().expect("a text file loaded");
+        // The kind holds libloading's error, which is also the source.
+        let LoadError::Library(loader) = &err else { panic!("{err:?}") };
+        let source = std::error::Error::source(&err).expect("the loader's error");
+        assert!(std::ptr::addr_eq(source, loader as &dyn std::error::Error));
+        let text = crate::error::Report(&err).to_string();
+        assert_eq!(text, format!("cannot load the plugin library: {}", crate::error::Report(loader)));
+        assert!(text.contains("libnotes.so"), "the loader names the file: {text}");
     }
 }

@@ -16,25 +16,49 @@ const ET_DYN: u16 = 3;
 /// Symbol tables larger than this are not read (no plugin comes near).
 const MAX_TABLE: u64 = 256 << 20;
 
-/// Ok, or what is wrong with the file, for a human (the caller names the file).
-pub fn check(path: &Path) -> Result<(), String> {
+/// What is wrong with a plugin library file, found by reading it (the caller names the file).
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum LibraryError {
+    #[error("cannot read the plugin library")]
+    Unreadable(#[source] std::io::Error),
+    #[error("not a shared library: the file does not start with an ELF header")]
+    NotElf,
+    #[error("not a shared library for this machine: not a 64-bit little-endian ELF file")]
+    NotElf64,
+    #[error("not a shared library: ELF type {0} (a shared object is type {ET_DYN})")]
+    NotShared(u16),
+    #[error("built for another machine (ELF machine {machine}), this r2d2 runs on {}", std::env::consts::ARCH)]
+    OtherMachine { machine: u16 },
+    #[error("not a valid shared library: {0}")]
+    Damaged(&'static str),
+    #[error("not an r2d2 plugin: it exports no symbols (no dynamic symbol table)")]
+    NoSymbols,
+    #[error("not an r2d2 plugin: missing symbol {0} (read from the file, not loaded)")]
+    NotAPlugin(String),
+    #[error("an r2d2 plugin missing symbol {0} (read from the file, not loaded)")]
+    MissingSymbol(String),
+}
+
+/// Ok, or what is wrong with the file.
+pub fn check(path: &Path) -> Result<(), LibraryError> {
     if !cfg!(all(target_os = "linux", target_endian = "little", target_pointer_width = "64")) {
         return Ok(());
     }
-    let mut file = File::open(path).map_err(|e| format!("cannot read the plugin library: {e}"))?;
+    let mut file = File::open(path).map_err(LibraryError::Unreadable)?;
     let mut header = [0u8; 64];
-    let got = read_up_to(&mut file, &mut header).map_err(|e| format!("cannot read the plugin library: {e}"))?;
+    let got = read_up_to(&mut file, &mut header).map_err(LibraryError::Unreadable)?;
     if got < 4 || header[..4] != *b"\x7fELF" {
-        return Err("not a shared library: the file does not start with an ELF header".into());
+        return Err(LibraryError::NotElf);
     }
     if got < 64 || header[4] != 2 || header[5] != 1 {
-        return Err("not a shared library for this machine: not a 64-bit little-endian ELF file".into());
+        return Err(LibraryError::NotElf64);
     }
     let u16_at = |b: &[u8], o: usize| u16::from_le_bytes([b[o], b[o + 1]]);
     let u32_at = |b: &[u8], o: usize| u32::from_le_bytes(b[o..o + 4].try_into().expect("4 bytes"));
     let u64_at = |b: &[u8], o: usize| u64::from_le_bytes(b[o..o + 8].try_into().expect("8 bytes"));
     if u16_at(&header, 16) != ET_DYN {
-        return Err(format!("not a shared library: ELF type {} (a shared object is type {ET_DYN})", u16_at(&header, 16)));
+        return Err(LibraryError::NotShared(u16_at(&header, 16)));
     }
     let machine = u16_at(&header, 18);
     let expected = match std::env::consts::ARCH {
@@ -43,17 +67,17 @@ pub fn check(path: &Path) -> Result<(), String> {
         _ => None,
     };
     if expected.is_some_and(|m| m != machine) {
-        return Err(format!("built for another machine (ELF machine {machine}), this r2d2 runs on {}", std::env::consts::ARCH));
+        return Err(LibraryError::OtherMachine { machine });
     }
     let (shoff, shentsize, shnum) = (u64_at(&header, 0x28), u16_at(&header, 0x3a) as u64, u16_at(&header, 0x3c) as u64);
     if shoff == 0 || shnum == 0 || shentsize < 64 {
         return Ok(()); // no section headers (stripped hard): the loader checks the symbols
     }
-    let damaged = |what: &str| format!("not a valid shared library: {what}");
+    let damaged = LibraryError::Damaged;
     let sections = read_at(&mut file, shoff, shentsize * shnum).map_err(|_| damaged("its section headers lie outside the file"))?;
     let section = |i: u64| &sections[(i * shentsize) as usize..(i * shentsize) as usize + 64];
     let Some(dynsym) = (0..shnum).map(section).find(|s| u32_at(s, 4) == SHT_DYNSYM) else {
-        return Err("not an r2d2 plugin: it exports no symbols (no dynamic symbol table)".into());
+        return Err(LibraryError::NoSymbols);
     };
     let strtab_index = u32_at(dynsym, 0x28) as u64;
     if strtab_index >= shnum {
@@ -80,11 +104,11 @@ pub fn check(path: &Path) -> Result<(), String> {
     let name = |s: &[u8]| String::from_utf8_lossy(&s[..s.len() - 1]).into_owned();
     let has = |s: &[u8]| exported.contains(&&s[..s.len() - 1]);
     if !has(symbols::ABI_VERSION) {
-        return Err(format!("not an r2d2 plugin: missing symbol {} (read from the file, not loaded)", name(symbols::ABI_VERSION)));
+        return Err(LibraryError::NotAPlugin(name(symbols::ABI_VERSION)));
     }
     for s in [symbols::CREATE, symbols::STEP, symbols::LAST_ERROR, symbols::DESTROY] {
         if !has(s) {
-            return Err(format!("an r2d2 plugin missing symbol {} (read from the file, not loaded)", name(s)));
+            return Err(LibraryError::MissingSymbol(name(s)));
         }
     }
     Ok(())

@@ -68,6 +68,29 @@ pub fn find_host() -> Result<PathBuf, String> {
     })
 }
 
+/// Why a plugin could not be started in its host process (the caller names the library).
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum HostError {
+    /// The host executable was not found ([`find_host`] says where it looked).
+    #[error("{0}")]
+    NotFound(String),
+    /// The system could not start the host.
+    #[error("cannot start the plugin host {}", host.display())]
+    Spawn {
+        host: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The system could not start the thread that reads the host's replies.
+    #[error("cannot start a thread")]
+    Thread(#[source] std::io::Error),
+    /// The plugin (its creation) or its host process failed: the plugin's message, or how the
+    /// process ended, as text (it crosses a process boundary).
+    #[error("{0}")]
+    Failed(String),
+}
+
 enum Reply {
     Ok,
     Error(String),
@@ -92,15 +115,15 @@ pub struct HostedInstance {
 
 impl HostedInstance {
     /// Start the host for `library` and create the plugin there; `timeout` bounds every call.
-    pub fn start(library: &Path, config_json: &str, size: usize, iterations: usize, timeout: Duration) -> Result<HostedInstance, String> {
-        let host = find_host()?;
+    pub fn start(library: &Path, config_json: &str, size: usize, iterations: usize, timeout: Duration) -> Result<HostedInstance, HostError> {
+        let host = find_host().map_err(HostError::NotFound)?;
         let mut child = Command::new(&host)
             .arg(library)
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
             .spawn()
-            .map_err(|e| format!("cannot start the plugin host {}: {e}", host.display()))?;
+            .map_err(|source| HostError::Spawn { host: host.clone(), source })?;
         LIVE.lock().unwrap_or_else(|e| e.into_inner()).push(child.id());
         let output = child.stdout.take().expect("piped");
         let input = BufWriter::with_capacity(1 << 16, child.stdin.take().expect("piped"));
@@ -129,7 +152,7 @@ impl HostedInstance {
                     }
                 }
             })
-            .map_err(|e| format!("cannot start a thread: {e}"))?;
+            .map_err(HostError::Thread)?;
         let mut hosted = HostedInstance {
             child,
             input: Some(input),
@@ -147,13 +170,13 @@ impl HostedInstance {
             wire::write_text(w, config_json)
         });
         let reply = match sent {
-            Ok(()) => hosted.reply("creating the plugin")?,
-            Err(()) => hosted.gone("creating the plugin")?,
+            Ok(()) => hosted.reply("creating the plugin"),
+            Err(()) => hosted.gone("creating the plugin"),
         };
-        match reply {
+        match reply.map_err(HostError::Failed)? {
             Reply::Ok => Ok(hosted),
-            Reply::Error(message) => Err(message),
-            _ => Err(hosted.fail("creating the plugin", "an unexpected reply from the plugin host".into())),
+            Reply::Error(message) => Err(HostError::Failed(message)),
+            _ => Err(HostError::Failed(hosted.fail("creating the plugin", "an unexpected reply from the plugin host".into()))),
         }
     }
 

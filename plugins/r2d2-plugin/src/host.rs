@@ -53,48 +53,91 @@ unsafe fn plugin_message(p: *const c_char) -> String {
     }
 }
 
+/// Why a plugin library could not be loaded and created ([`Instance::load`]); the dynamic
+/// loader's own error, where there is one, is the [`source`](std::error::Error::source). The
+/// caller names the library.
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum LoadError {
+    /// The dynamic loader refused the file.
+    Library(libloading::Error),
+    /// The library does not export the ABI version symbol.
+    NotAPlugin { symbol: String, source: libloading::Error },
+    /// The library speaks another version of the ABI.
+    AbiVersion { found: u32 },
+    /// A symbol of the ABI version it declares is missing.
+    MissingSymbol { symbol: String, source: libloading::Error },
+    /// The configuration JSON holds a NUL character (it crosses the ABI as a C string).
+    ConfigurationNul,
+    /// More iterations than the ABI's `uint32_t` holds.
+    TooManyIterations(usize),
+    /// The plugin's `create` refused the configuration, with its own message.
+    Refused { configuration: String, message: String },
+}
+
+impl std::fmt::Display for LoadError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            LoadError::Library(_) => write!(f, "cannot load the plugin library"),
+            LoadError::NotAPlugin { symbol, .. } => write!(f, "not an r2d2 plugin: missing symbol {symbol}"),
+            LoadError::AbiVersion { found } => write!(
+                f,
+                "plugin ABI version {found}, but this r2d2 speaks version {ABI_VERSION}: rebuild the plugin against r2d2_plugin.h version {ABI_VERSION}"
+            ),
+            LoadError::MissingSymbol { symbol, .. } => write!(f, "plugin ABI version {ABI_VERSION} but missing symbol {symbol}"),
+            LoadError::ConfigurationNul => write!(f, "the plugin configuration contains a NUL character"),
+            LoadError::TooManyIterations(n) => write!(f, "{n} iterations is too many"),
+            LoadError::Refused { configuration, message } => write!(f, "the plugin refused its configuration {configuration}: {message}"),
+        }
+    }
+}
+
+impl std::error::Error for LoadError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            LoadError::Library(e) | LoadError::NotAPlugin { source: e, .. } | LoadError::MissingSymbol { source: e, .. } => Some(e),
+            _ => None,
+        }
+    }
+}
+
 fn symbol_name(s: &[u8]) -> String {
     String::from_utf8_lossy(&s[..s.len() - 1]).into_owned()
 }
 
 impl Instance {
     /// Load the library, check its ABI version and symbols, and create an instance for
-    /// `image_size` x `image_size` images. Errors are messages for a human (the caller names
-    /// the library).
-    pub fn load(path: &Path, config_json: &str, image_size: usize, iterations: usize) -> Result<Instance, String> {
+    /// `image_size` x `image_size` images. The caller names the library in its messages.
+    pub fn load(path: &Path, config_json: &str, image_size: usize, iterations: usize) -> Result<Instance, LoadError> {
         // SAFETY: loading a library runs its initialisers, arbitrary code the user chose to
         // trust by naming it in the pipeline; nothing more can be checked before loading.
-        let library = unsafe { Library::new(path) }.map_err(|e| format!("cannot load the plugin library: {e}"))?;
+        let library = unsafe { Library::new(path) }.map_err(LoadError::Library)?;
         // SAFETY (each `get`): the type is the header's signature for that symbol, which a
         // library exporting the symbol promises by the ABI version checked first. The copied
         // function pointers are only used while `library` stays loaded (it lives in `Instance`).
         let abi_version: AbiVersionFn = *unsafe { library.get::<AbiVersionFn>(symbols::ABI_VERSION) }
-            .map_err(|e| format!("not an r2d2 plugin: missing symbol {} ({e})", symbol_name(symbols::ABI_VERSION)))?;
+            .map_err(|source| LoadError::NotAPlugin { symbol: symbol_name(symbols::ABI_VERSION), source })?;
         // SAFETY: takes no arguments and, by the ABI, cannot fail.
         let version = unsafe { abi_version() };
         if version != ABI_VERSION {
-            return Err(format!(
-                "plugin ABI version {version}, but this r2d2 speaks version {ABI_VERSION}: rebuild the plugin against r2d2_plugin.h version {ABI_VERSION}"
-            ));
+            return Err(LoadError::AbiVersion { found: version });
         }
-        fn get<T: Copy>(library: &Library, name: &[u8]) -> Result<T, String> {
+        fn get<T: Copy>(library: &Library, name: &[u8]) -> Result<T, LoadError> {
             // SAFETY: see above; T is the header's signature for `name`.
-            unsafe { library.get::<T>(name) }
-                .map(|s| *s)
-                .map_err(|e| format!("plugin ABI version {ABI_VERSION} but missing symbol {} ({e})", symbol_name(name)))
+            unsafe { library.get::<T>(name) }.map(|s| *s).map_err(|source| LoadError::MissingSymbol { symbol: symbol_name(name), source })
         }
         let create: CreateFn = get(&library, symbols::CREATE)?;
         let step: StepFn = get(&library, symbols::STEP)?;
         let last_error: LastErrorFn = get(&library, symbols::LAST_ERROR)?;
         let destroy: DestroyFn = get(&library, symbols::DESTROY)?;
-        let config = CString::new(config_json).map_err(|_| "the plugin configuration contains a NUL character".to_string())?;
-        let iterations = u32::try_from(iterations).map_err(|_| format!("{iterations} iterations is too many"))?;
+        let config = CString::new(config_json).map_err(|_| LoadError::ConfigurationNul)?;
+        let iterations = u32::try_from(iterations).map_err(|_| LoadError::TooManyIterations(iterations))?;
         // SAFETY: a NUL-terminated string that outlives the call, as create requires.
         let handle = unsafe { create(config.as_ptr(), image_size as u64, iterations) };
         let Some(handle) = NonNull::new(handle) else {
             // SAFETY: NULL asks for the calling thread's create error, read right after create.
             let message = unsafe { plugin_message(last_error(std::ptr::null())) };
-            return Err(format!("the plugin refused its configuration {config_json}: {message}"));
+            return Err(LoadError::Refused { configuration: config_json.to_string(), message });
         };
         Ok(Instance { handle, step, last_error, destroy, size: image_size, _library: library })
     }

@@ -242,7 +242,7 @@ impl OnnxStep {
         let output = self.network(job, iteration, layer)?.run(&input)?;
         if let Some(bad) = output.iter().position(|v| !v.is_finite()) {
             let path = self.plan[iteration - 1][layer].clone();
-            return Err(Error::input(path, format!("network output is not finite at pixel {bad} (iteration {iteration})")));
+            return Err(runtime::OnnxError::Output { path, message: format!("network output is not finite at pixel {bad} (iteration {iteration})") }.into());
         }
         Ok(output.into_iter().map(f64::from).collect())
     }

@@ -11,6 +11,77 @@ use serde::Deserialize;
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, OnceLock};
 
+/// What went wrong with an ONNX network or the runtime that runs it. Each variant names the
+/// network file; the runtime's own error (ONNX Runtime's, tract's, the system's), where there is
+/// one, is the [`source`](std::error::Error::source).
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum OnnxError {
+    /// Native ONNX Runtime was asked for (`backend: ort`) but cannot be used.
+    #[error("invalid backend: ort: native ONNX Runtime is not available")]
+    RuntimeUnavailable(#[source] RuntimeUnavailable),
+    /// The network file could not be read, or its bytes are not an ONNX model.
+    #[error("{}: {what}", path.display())]
+    Unreadable {
+        path: PathBuf,
+        what: &'static str,
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// A side file holding the network's weights is missing.
+    #[error("{}: the weights of {} are missing", path.display(), network.display())]
+    MissingWeights {
+        path: PathBuf,
+        network: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    /// The network is not one a step can run: its inputs, outputs, types or weights are not
+    /// what an R2D2 network has (the message says what was expected).
+    #[error("{}: {message}", path.display())]
+    Invalid { path: PathBuf, message: String },
+    /// The runtime (`ONNX Runtime` or `tract`) could not load the network.
+    #[error("{}: {runtime} could not load the network", path.display())]
+    Load {
+        path: PathBuf,
+        runtime: &'static str,
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// Running the network failed.
+    #[error("{}: inference failed", path.display())]
+    Inference {
+        path: PathBuf,
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// The network's output is not what an R2D2 network gives (shape, finite values).
+    #[error("{}: {message}", path.display())]
+    Output { path: PathBuf, message: String },
+}
+
+/// Why native ONNX Runtime cannot be used.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum RuntimeUnavailable {
+    /// The embedding program (the command line) gave no library.
+    #[error("no ONNX Runtime library given (EngineOptions::onnx_runtime)")]
+    NotGiven,
+    /// The library given could not be loaded or initialised (the loader's or ONNX Runtime's
+    /// error: `ort::LoadDynamicError`, `ort::Error`).
+    #[error("{}", library.display())]
+    Load {
+        library: PathBuf,
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+}
+
+/// A network content error as the crate's error.
+fn invalid(path: &Path, message: impl Into<String>) -> Error {
+    OnnxError::Invalid { path: path.to_path_buf(), message: message.into() }.into()
+}
+
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum BackendChoice {
@@ -78,10 +149,10 @@ impl Runtime {
         match ort_environment() {
             Ok((library, _)) => Ok(Runtime::Ort { version: ort_version(library), library: library.clone(), threads, optimization: GraphOptimization::default() }),
             Err(why) if choice == BackendChoice::Auto => {
-                log::info!("native ONNX Runtime not used ({why}); using tract");
+                log::info!("native ONNX Runtime not used ({}); using tract", crate::error::Report(&why));
                 Ok(Runtime::Tract)
             }
-            Err(why) => Err(Error::parameter("backend", format!("ort: native ONNX Runtime is not available: {why}"))),
+            Err(why) => Err(OnnxError::RuntimeUnavailable(why).into()),
         }
     }
 
@@ -137,7 +208,7 @@ pub fn use_onnx_runtime(library: &Path) -> Result<()> {
     Ok(())
 }
 
-fn ort_environment() -> std::result::Result<&'static (PathBuf, ort::environment::Environment), String> {
+fn ort_environment() -> std::result::Result<&'static (PathBuf, ort::environment::Environment), RuntimeUnavailable> {
     if let Some(env) = ORT_ENV.get() {
         return Ok(env);
     }
@@ -148,9 +219,10 @@ fn ort_environment() -> std::result::Result<&'static (PathBuf, ort::environment:
     let chosen = ORT_LIBRARY.lock().expect("ONNX Runtime library").clone();
     // The library does not search the machine for one: that is the caller's policy (the
     // command line looks in the usual places and passes what it finds).
-    let library = chosen.ok_or("no ONNX Runtime library given (EngineOptions::onnx_runtime)")?;
-    let builder = ort::init_from(&library).map_err(|e| format!("{}: {e}", library.display()))?;
-    let env = builder.with_name("r2d2").build().map_err(|e| format!("{}: {e}", library.display()))?;
+    let library = chosen.ok_or(RuntimeUnavailable::NotGiven)?;
+    let failed = |source| RuntimeUnavailable::Load { library: library.clone(), source };
+    let builder = ort::init_from(&library).map_err(|e| failed(e.into()))?;
+    let env = builder.with_name("r2d2").build().map_err(|e| failed(e.into()))?;
     Ok(ORT_ENV.get_or_init(|| (library, env)))
 }
 
@@ -244,7 +316,7 @@ fn check_external_data(path: &Path, initializers: &[TensorName]) -> Result<u64> 
     let mut total = 0;
     for t in initializers.iter().filter(|t| t.data_location == 1) {
         let get = |k: &str| t.external_data.iter().find(|e| e.key == k).map(|e| e.value.as_str());
-        let bad = |what: String| Error::input(path, format!("weight '{}': {what}", t.name));
+        let bad = |what: String| invalid(path, format!("weight '{}': {what}", t.name));
         let location = get("location").ok_or_else(|| bad("external data without a location".into()))?;
         let number = |k: &str| get(k).map(|v| v.parse::<u64>().map_err(|_| bad(format!("external data {k} '{v}' is not a number")))).transpose();
         let (offset, length) = (number("offset")?.unwrap_or(0), number("length")?);
@@ -255,13 +327,14 @@ fn check_external_data(path: &Path, initializers: &[TensorName]) -> Result<u64> 
             Some(s) => *s,
             None => {
                 let file = dir.join(location);
-                let s = std::fs::metadata(&file).map_err(|e| Error::input(&file, format!("the weights of {} are missing: {e}", path.display())))?.len();
+                let missing = |source| OnnxError::MissingWeights { path: file.clone(), network: path.to_path_buf(), source };
+                let s = std::fs::metadata(&file).map_err(missing)?.len();
                 *sizes.entry(location.to_string()).or_insert(s)
             }
         };
         let end = offset.checked_add(length.unwrap_or(size.saturating_sub(offset))).ok_or_else(|| bad(format!("external data offset {offset} is out of range")))?;
         if end > size {
-            return Err(Error::input(dir.join(location), format!("truncated: weight '{}' of {} needs bytes {offset}..{end}, the file has {size}", t.name, path.display())));
+            return Err(invalid(&dir.join(location), format!("truncated: weight '{}' of {} needs bytes {offset}..{end}, the file has {size}", t.name, path.display())));
         }
         total += end - offset;
     }
@@ -271,17 +344,17 @@ fn check_external_data(path: &Path, initializers: &[TensorName]) -> Result<u64> 
 /// The graph's head, read from the model's skeleton (`mapped_weights`: only the small parts of
 /// the file are read), and the skeleton itself when it maps any weight.
 fn read_graph_head(path: &Path) -> Result<(GraphHead, Option<MappedWeights>)> {
-    let unreadable = |e: &dyn std::fmt::Display| Error::input(path, format!("cannot read the network: {e}"));
-    let stamp = file_stamp(path).map_err(|e| unreadable(&e))?;
-    let file = std::fs::File::open(path).map_err(|e| unreadable(&e))?;
+    let unreadable = |what, source: Box<dyn std::error::Error + Send + Sync>| OnnxError::Unreadable { path: path.to_path_buf(), what, source };
+    let stamp = file_stamp(path).map_err(|e| unreadable("cannot read the network", e.into()))?;
+    let file = std::fs::File::open(path).map_err(|e| unreadable("cannot read the network", e.into()))?;
     // A name ONNX Runtime cannot be given exactly (not UTF-8) is loaded the ordinary way: the
     // skeleton keeps every weight (minimum size beyond any file).
     let name = path.file_name().and_then(|n| n.to_str()).filter(|_| path.parent().is_none_or(|d| d.to_str().is_some()));
     let min_bytes = if name.is_some() { super::mapped_weights::MIN_MAPPED_BYTES } else { usize::MAX };
     let skeleton = super::mapped_weights::skeleton(file, stamp.0, name.unwrap_or_default(), min_bytes)
-        .map_err(|e| Error::input(path, format!("not a readable ONNX model: {e}")))?;
-    let head = <ModelHead as prost::Message>::decode(skeleton.bytes.as_slice()).map_err(|e| Error::input(path, format!("not a readable ONNX model: {e}")))?;
-    let graph = head.graph.ok_or_else(|| Error::input(path, "ONNX model without a graph"))?;
+        .map_err(|e| unreadable("not a readable ONNX model", e.into()))?;
+    let head = <ModelHead as prost::Message>::decode(skeleton.bytes.as_slice()).map_err(|e| unreadable("not a readable ONNX model", e.into()))?;
+    let graph = head.graph.ok_or_else(|| invalid(path, "ONNX model without a graph"))?;
     let mapped = (skeleton.weights > 0).then(|| MappedWeights {
         weights: skeleton.weights,
         bytes: skeleton.weight_bytes,
@@ -301,15 +374,15 @@ pub fn check_network(path: &Path, size: usize) -> Result<Signature> {
     let weights: std::collections::HashSet<&str> = graph.initializer.iter().map(|t| t.name.as_str()).collect();
     let inputs: Vec<_> = graph.input.iter().filter(|i| !weights.contains(i.name.as_str())).collect();
     if inputs.len() != 1 || graph.output.len() != 1 {
-        return Err(Error::input(path, format!("expected one input and one output, found {} inputs and {} outputs", inputs.len(), graph.output.len())));
+        return Err(invalid(path, format!("expected one input and one output, found {} inputs and {} outputs", inputs.len(), graph.output.len())));
     }
     let shape_of = |v: &tract_onnx::pb::ValueInfoProto, what: &str| -> Result<Vec<Option<i64>>> {
         let Some(TypeValue::TensorType(t)) = v.r#type.as_ref().and_then(|t| t.value.as_ref()) else {
-            return Err(Error::input(path, format!("{what} '{}' is not a tensor", v.name)));
+            return Err(invalid(path, format!("{what} '{}' is not a tensor", v.name)));
         };
         // 1 = FLOAT in onnx.proto's TensorProto.DataType.
         if t.elem_type != 1 {
-            return Err(Error::input(path, format!("{what} '{}': expected float32 elements, got ONNX data type {}", v.name, t.elem_type)));
+            return Err(invalid(path, format!("{what} '{}': expected float32 elements, got ONNX data type {}", v.name, t.elem_type)));
         }
         let dims = t.shape.as_ref().map(|s| s.dim.iter().map(|d| match d.value {
             Some(Dim::DimValue(n)) => Some(n),
@@ -330,16 +403,16 @@ pub fn check_network(path: &Path, size: usize) -> Result<Signature> {
         let expected = format!("[1, {channels}, H, W]");
         let shown = format!("[{}]", dims.iter().map(|d| d.map_or("?".into(), |n| n.to_string())).collect::<Vec<_>>().join(", "));
         if dims.len() != 4 {
-            return Err(Error::input(path, format!("{what}: expected rank 4 {expected}, got rank {} {shown}", dims.len())));
+            return Err(invalid(path, format!("{what}: expected rank 4 {expected}, got rank {} {shown}", dims.len())));
         }
         let ok = |d: Option<i64>, want: i64| d.is_none() || d == Some(want);
         if !ok(dims[0], 1) || !ok(dims[1], channels) {
-            return Err(Error::input(path, format!("{what}: expected {expected}, got {shown}")));
+            return Err(invalid(path, format!("{what}: expected {expected}, got {shown}")));
         }
         for d in &dims[2..] {
             if let Some(n) = d {
                 if *n != size as i64 {
-                    return Err(Error::input(path, format!("{what}: the network has a fixed image size {shown}, but the pipeline images {size} x {size}")));
+                    return Err(invalid(path, format!("{what}: the network has a fixed image size {shown}, but the pipeline images {size} x {size}")));
                 }
             }
         }
@@ -362,8 +435,8 @@ impl OrtNetwork {
     /// `map_weights`: load the skeleton so the weights are mapped from the file (the default;
     /// false only to compare with ONNX Runtime's own loading).
     fn load(path: &Path, size: usize, threads: usize, optimization: GraphOptimization, signature: &Signature, map_weights: bool) -> Result<OrtNetwork> {
-        let (_, env) = ort_environment().map_err(|e| Error::parameter("backend", e))?;
-        let fail = |e: &dyn std::fmt::Display| Error::input(path, format!("ONNX Runtime could not load the network: {e}"));
+        let (_, env) = ort_environment().map_err(OnnxError::RuntimeUnavailable)?;
+        let fail = |e: ort::Error| OnnxError::Load { path: path.to_path_buf(), runtime: "ONNX Runtime", source: e.into() };
         // No CPU arena: an arena keeps the peak activation memory of every resident session
         // allocated between runs (measured with the reference U-Net at 512^2: 1.95 GB peak with
         // it). Freed buffers go back to the system instead; inference time is unchanged.
@@ -378,47 +451,47 @@ impl OrtNetwork {
             GraphOptimization::All => Level::All,
         };
         let mut builder = ort::session::Session::builder(env)
-            .map_err(|e| fail(&e))?
+            .map_err(|e| fail(e.into()))?
             .with_execution_providers([cpu])
-            .map_err(|e| fail(&e))?
+            .map_err(|e| fail(e.into()))?
             .with_optimization_level(level)
-            .map_err(|e| fail(&e))?
+            .map_err(|e| fail(e.into()))?
             .with_memory_pattern(false)
-            .map_err(|e| fail(&e))?;
+            .map_err(|e| fail(e.into()))?;
         // Symbolic dimensions take the one shape this pipeline feeds: static shapes let ONNX
         // Runtime plan and reuse activation buffers.
         let shape = [1, 2, size as i64, size as i64];
         for (name, value) in signature.input_params.iter().zip(shape) {
             if let Some(name) = name {
-                builder = builder.with_dimension_override(name, value).map_err(|e| fail(&e))?;
+                builder = builder.with_dimension_override(name, value).map_err(|e| fail(e.into()))?;
             }
         }
         if threads > 0 {
-            builder = builder.with_intra_threads(threads).map_err(|e| fail(&e))?;
+            builder = builder.with_intra_threads(threads).map_err(|e| fail(e.into()))?;
         }
         let session = match signature.mapped.as_ref().filter(|_| map_weights) {
             Some(mapped) => {
                 // The skeleton's references are offsets into the file as it was checked.
                 if file_stamp(path).ok() != Some(mapped.stamp) {
-                    return Err(Error::input(path, "the network file changed after it was checked; restart the run"));
+                    return Err(invalid(path, "the network file changed after it was checked; restart the run"));
                 }
                 // External data is looked up in the model's directory (a model from memory has
                 // no directory of its own).
                 let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
                 builder = builder
                     .with_config_entry("session.model_external_initializers_file_folder_path", dir.to_str().unwrap_or("."))
-                    .map_err(|e| fail(&e))?;
+                    .map_err(|e| fail(e.into()))?;
                 match builder.commit_from_memory(&mapped.skeleton) {
                     Ok(session) => session,
                     // An ONNX Runtime without that option (older than this one) looks for the
                     // weights elsewhere: let it read the file whole rather than fail.
                     Err(e) => {
                         log::info!("{}: ONNX Runtime could not map the weights from the file ({e}); reading it whole", path.display());
-                        builder.commit_from_file(path).map_err(|e| fail(&e))?
+                        builder.commit_from_file(path).map_err(|e| fail(e.into()))?
                     }
                 }
             }
-            None => builder.commit_from_file(path).map_err(|e| fail(&e))?,
+            None => builder.commit_from_file(path).map_err(|e| fail(e.into()))?,
         };
         Ok(OrtNetwork { session, path: path.to_path_buf(), size })
     }
@@ -427,13 +500,13 @@ impl OrtNetwork {
 impl Network for OrtNetwork {
     fn run(&mut self, input: &[f32]) -> Result<Vec<f32>> {
         let n = self.size;
-        let fail = |e: &dyn std::fmt::Display| Error::input(&self.path, format!("inference failed: {e}"));
-        let tensor = ort::value::Tensor::from_array(([1usize, 2, n, n], input.to_vec())).map_err(|e| fail(&e))?;
-        let outputs = self.session.run(ort::inputs![tensor]).map_err(|e| fail(&e))?;
-        let (shape, data) = outputs[0].try_extract_tensor::<f32>().map_err(|e| fail(&e))?;
+        let fail = |e: ort::Error| OnnxError::Inference { path: self.path.clone(), source: e.into() };
+        let tensor = ort::value::Tensor::from_array(([1usize, 2, n, n], input.to_vec())).map_err(|e| fail(e.into()))?;
+        let outputs = self.session.run(ort::inputs![tensor]).map_err(|e| fail(e.into()))?;
+        let (shape, data) = outputs[0].try_extract_tensor::<f32>().map_err(|e| fail(e.into()))?;
         let dims: Vec<i64> = shape.iter().copied().collect();
         if dims != [1, 1, n as i64, n as i64] {
-            return Err(Error::input(&self.path, format!("expected an output of shape [1, 1, {n}, {n}], got {dims:?}")));
+            return Err(OnnxError::Output { path: self.path.clone(), message: format!("expected an output of shape [1, 1, {n}, {n}], got {dims:?}") }.into());
         }
         Ok(data.to_vec())
     }
@@ -448,13 +521,13 @@ struct TractNetwork {
 impl TractNetwork {
     fn load(path: &Path, size: usize) -> Result<TractNetwork> {
         use tract_onnx::prelude::*;
-        let fail = |e: &dyn std::fmt::Display| Error::input(path, format!("tract could not load the network: {e:#}"));
+        let fail = |e: TractError| OnnxError::Load { path: path.to_path_buf(), runtime: "tract", source: e.into() };
         let plan = tract_onnx::onnx()
             .model_for_path(path)
             .and_then(|m| m.with_input_fact(0, f32::fact([1, 2, size, size]).into()))
             .and_then(|m| m.into_optimized())
             .and_then(|m| m.into_runnable())
-            .map_err(|e| fail(&e))?;
+            .map_err(|e| fail(e.into()))?;
         Ok(TractNetwork { plan, path: path.to_path_buf(), size })
     }
 }
@@ -463,12 +536,12 @@ impl Network for TractNetwork {
     fn run(&mut self, input: &[f32]) -> Result<Vec<f32>> {
         use tract_onnx::prelude::*;
         let n = self.size;
-        let fail = |e: &dyn std::fmt::Display| Error::input(&self.path, format!("inference failed: {e:#}"));
-        let tensor = Tensor::from_shape(&[1, 2, n, n], input).map_err(|e| fail(&e))?;
-        let out = self.plan.run(tvec!(tensor.into_tvalue())).map_err(|e| fail(&e))?;
-        let view = out[0].to_plain_array_view::<f32>().map_err(|e| fail(&e))?;
+        let fail = |e: TractError| OnnxError::Inference { path: self.path.clone(), source: e.into() };
+        let tensor = Tensor::from_shape(&[1, 2, n, n], input).map_err(|e| fail(e.into()))?;
+        let out = self.plan.run(tvec!(tensor.into_tvalue())).map_err(|e| fail(e.into()))?;
+        let view = out[0].to_plain_array_view::<f32>().map_err(|e| fail(e.into()))?;
         if view.shape() != [1, 1, n, n] {
-            return Err(Error::input(&self.path, format!("expected an output of shape [1, 1, {n}, {n}], got {:?}", view.shape())));
+            return Err(OnnxError::Output { path: self.path.clone(), message: format!("expected an output of shape [1, 1, {n}, {n}], got {:?}", view.shape()) }.into());
         }
         Ok(view.iter().copied().collect())
     }
@@ -489,6 +562,32 @@ pub(crate) fn use_onnx_runtime_for_tests() {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_file_that_is_not_onnx_is_unreadable_keeping_the_decoder_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("net.onnx");
+        std::fs::write(&path, [0xffu8; 64]).unwrap();
+        let err = check_network(&path, 64).unwrap_err();
+        let Error::Onnx(OnnxError::Unreadable { path: named, what, source }) = &err else { panic!("{err:?}") };
+        assert_eq!((named.as_path(), *what), (path.as_path(), "not a readable ONNX model"));
+        let text = err.to_string();
+        assert!(text.starts_with(&format!("{}: not a readable ONNX model: ", path.display())), "{text}");
+        assert_eq!(text.matches(&source.to_string()).count(), 1, "{text}");
+        // tract is told the same file: its error chain is kept whole, each part said once.
+        let err = match TractNetwork::load(&path, 64) {
+            Err(e) => e,
+            Ok(_) => panic!("tract loaded 64 bytes of 0xff"),
+        };
+        let Error::Onnx(OnnxError::Load { runtime: "tract", source, .. }) = &err else { panic!("{err:?}") };
+        let text = err.to_string();
+        assert!(text.contains("tract could not load the network: ") && text.contains(&source.to_string()), "{text}");
+        let mut cause = std::error::Error::source(&err);
+        while let Some(c) = cause {
+            assert_eq!(text.matches(&c.to_string()).count(), 1, "'{c}' in {text}");
+            cause = c.source();
+        }
+    }
 
     #[test]
     fn onnx_runtime_maps_inline_weights_from_the_file_and_infers_the_same() {

@@ -7,6 +7,42 @@ use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
+/// What is wrong with a model series. Each variant names the file or directory; the cause,
+/// where there is one (the YAML parser's error, the system's), is the
+/// [`source`](std::error::Error::source).
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum SeriesError {
+    /// No series of that name (or none for the image size) where series are looked up.
+    #[error("{}: {message}", name.display())]
+    NotFound { name: PathBuf, message: String },
+    /// The manifest is not valid YAML for a manifest: `place` is the line, column and key.
+    #[error("{}{}{place}", path.display(), if place.is_empty() { "" } else { ": " })]
+    Manifest {
+        path: PathBuf,
+        place: String,
+        #[source]
+        source: serde_yaml::Error,
+    },
+    /// A network file the series lists is missing (the system's error is the source).
+    #[error("{}: network file of series '{series}' is missing", path.display())]
+    MissingNetwork {
+        path: PathBuf,
+        series: String,
+        #[source]
+        source: Option<std::io::Error>,
+    },
+    /// The series' directory, manifest or files are not a series this build runs (the message
+    /// says what and what was expected).
+    #[error("{}: {message}", path.display())]
+    Invalid { path: PathBuf, message: String },
+}
+
+/// A series content error as the crate's error.
+fn invalid(path: impl AsRef<Path>, message: impl Into<String>) -> Error {
+    SeriesError::Invalid { path: path.as_ref().to_path_buf(), message: message.into() }.into()
+}
+
 /// The manifest format this build reads.
 pub const MANIFEST_FORMAT: u32 = 1;
 
@@ -117,16 +153,16 @@ fn manifest_entry(dir: &Path, path: &Path, manifest: &Manifest, key: &str, entry
         let inside = name.components().all(|c| matches!(c, std::path::Component::Normal(_) | std::path::Component::CurDir));
         if !inside || name.as_os_str().is_empty() {
             let name = name.display();
-            return Err(Error::input(path, format!("{key}: '{name}' must be a path inside the series directory (no '..', not absolute)")));
+            return Err(invalid(path, format!("{key}: '{name}' must be a path inside the series directory (no '..', not absolute)")));
         }
     }
     let layers = manifest.layers;
     match (entry, manifest.architecture) {
         (NetworkFiles::One(f), Architecture::R2d2) => Ok(vec![dir.join(f)]),
         (NetworkFiles::Layers(fs), Architecture::R3d3) if fs.len() == layers => Ok(fs.iter().map(|f| dir.join(f)).collect()),
-        (NetworkFiles::Layers(fs), Architecture::R3d3) => Err(Error::input(path, format!("{key}: expected {layers} layer files (layers: {layers}), got {}", fs.len()))),
-        (NetworkFiles::One(_), Architecture::R3d3) => Err(Error::input(path, format!("{key}: an r3d3 series lists the {layers} layer files of each component"))),
-        (NetworkFiles::Layers(_), Architecture::R2d2) => Err(Error::input(path, format!("{key}: an r2d2 series lists one file per network"))),
+        (NetworkFiles::Layers(fs), Architecture::R3d3) => Err(invalid(path, format!("{key}: expected {layers} layer files (layers: {layers}), got {}", fs.len()))),
+        (NetworkFiles::One(_), Architecture::R3d3) => Err(invalid(path, format!("{key}: an r3d3 series lists the {layers} layer files of each component"))),
+        (NetworkFiles::Layers(_), Architecture::R2d2) => Err(invalid(path, format!("{key}: an r2d2 series lists one file per network"))),
     }
 }
 
@@ -152,7 +188,7 @@ impl Series {
     /// Read the series in `dir`: its manifest, or else the reference file names.
     pub fn open(dir: &Path) -> Result<Series> {
         if !dir.is_dir() {
-            return Err(Error::input(dir, "expected a model series directory (manifest.yaml and ONNX files, or R2D2_UNet_N{i}.onnx files)"));
+            return Err(invalid(dir, "expected a model series directory (manifest.yaml and ONNX files, or R2D2_UNet_N{i}.onnx files)"));
         }
         let manifest_path = dir.join("manifest.yaml");
         let series = if manifest_path.exists() { Series::from_manifest(dir, &manifest_path)? } else { Series::infer(dir)? };
@@ -161,14 +197,17 @@ impl Series {
         for file in series.files.iter().flatten() {
             let size = match std::fs::metadata(file) {
                 Ok(m) if m.is_file() => m.len(),
-                _ => return Err(Error::input(file, format!("network file of series '{}' is missing", series.name))),
+                found => {
+                    let source = found.err();
+                    return Err(SeriesError::MissingNetwork { path: file.clone(), series: series.name.clone(), source }.into());
+                }
             };
             let canonical = file.canonicalize().map_err(|e| Error::io(file, e))?;
             if !canonical.starts_with(&canonical_dir) {
-                return Err(Error::input(file, format!("network file of series '{}' leads outside the series directory (to {})", series.name, canonical.display())));
+                return Err(invalid(file, format!("network file of series '{}' leads outside the series directory (to {})", series.name, canonical.display())));
             }
             if size == 0 {
-                return Err(Error::input(file, format!("network file of series '{}' is empty (0 bytes): not a network", series.name)));
+                return Err(invalid(file, format!("network file of series '{}' is empty (0 bytes): not a network", series.name)));
             }
         }
         Ok(series)
@@ -179,32 +218,34 @@ impl Series {
         let de = serde_yaml::Deserializer::from_str(&text);
         let manifest: Manifest = serde_path_to_error::deserialize(de).map_err(|e| {
             let at = e.path().to_string();
-            let inner = e.into_inner();
-            let place = inner.location().map(|l| format!("line {}, column {}: ", l.line(), l.column())).unwrap_or_default();
-            Error::input(path, format!("{place}{}{inner}", if at == "." { String::new() } else { format!("{at}: ") }))
+            let source = e.into_inner();
+            let line = source.location().map(|l| format!("line {}, column {}", l.line(), l.column()));
+            let key = (at != ".").then_some(at);
+            let place = line.into_iter().chain(key).collect::<Vec<_>>().join(": ");
+            SeriesError::Manifest { path: path.to_path_buf(), place, source }
         })?;
         if manifest.format != MANIFEST_FORMAT {
-            return Err(Error::input(path, format!("format: expected manifest format {MANIFEST_FORMAT}, got {} (written by a different version of r2d2?)", manifest.format)));
+            return Err(invalid(path, format!("format: expected manifest format {MANIFEST_FORMAT}, got {} (written by a different version of r2d2?)", manifest.format)));
         }
         if manifest.input_convention != "reference" {
-            return Err(Error::input(path, format!("input_convention: expected 'reference', got '{}'", manifest.input_convention)));
+            return Err(invalid(path, format!("input_convention: expected 'reference', got '{}'", manifest.input_convention)));
         }
         if manifest.normalisation != "mean" {
-            return Err(Error::input(path, format!("normalisation: expected 'mean', got '{}'", manifest.normalisation)));
+            return Err(invalid(path, format!("normalisation: expected 'mean', got '{}'", manifest.normalisation)));
         }
         let lists: Vec<(String, &Vec<NetworkFiles>)> = match (manifest.networks.is_empty(), manifest.realisations.is_empty()) {
             (false, true) => vec![("networks".to_string(), &manifest.networks)],
             (true, false) => manifest.realisations.iter().enumerate().map(|(r, list)| (format!("realisations[{r}]"), list)).collect(),
-            (true, true) => return Err(Error::input(path, "networks: expected at least one network file (or realisations: one list per realisation)")),
-            (false, false) => return Err(Error::input(path, "networks and realisations: give one of them (realisations lists the networks of each realisation)")),
+            (true, true) => return Err(invalid(path, "networks: expected at least one network file (or realisations: one list per realisation)")),
+            (false, false) => return Err(invalid(path, "networks and realisations: give one of them (realisations lists the networks of each realisation)")),
         };
         if manifest.layers == 0 {
-            return Err(Error::input(path, "layers: expected at least 1"));
+            return Err(invalid(path, "layers: expected at least 1"));
         }
         let mut files = Vec::new();
         for (key, list) in &lists {
             if list.len() != lists[0].1.len() || list.is_empty() {
-                return Err(Error::input(path, format!("{key}: expected {} networks, as every realisation has, got {}", lists[0].1.len(), list.len())));
+                return Err(invalid(path, format!("{key}: expected {} networks, as every realisation has, got {}", lists[0].1.len(), list.len())));
             }
             for (i, entry) in list.iter().enumerate() {
                 files.push(manifest_entry(dir, path, &manifest, &format!("{key}[{i}]"), entry)?);
@@ -251,7 +292,7 @@ impl Series {
         let contiguous = |ns: &[usize]| ns.iter().enumerate().all(|(k, &n)| n == k + 1);
         if !r2d2.is_empty() {
             if !contiguous(&r2d2) {
-                return Err(Error::input(dir, format!("expected R2D2_UNet_N1.onnx .. N{}.onnx without gaps, found networks {r2d2:?}", r2d2.len())));
+                return Err(invalid(dir, format!("expected R2D2_UNet_N1.onnx .. N{}.onnx without gaps, found networks {r2d2:?}", r2d2.len())));
             }
             let files = r2d2.iter().map(|i| vec![dir.join(format!("R2D2_UNet_N{i}.onnx"))]).collect();
             return Ok(Series {
@@ -269,12 +310,12 @@ impl Series {
         if !r3d3.is_empty() {
             let j = r3d3[0].0;
             if r3d3.iter().any(|&(jj, _)| jj != j) {
-                return Err(Error::input(dir, "expected R3D3 components with one layer count J, found several"));
+                return Err(invalid(dir, "expected R3D3 components with one layer count J, found several"));
             }
             let mut ns: Vec<usize> = r3d3.iter().map(|&(_, n)| n).collect();
             ns.sort_unstable();
             if !contiguous(&ns) {
-                return Err(Error::input(dir, format!("expected R3D3 components N1 .. N{} without gaps, found {ns:?}", ns.len())));
+                return Err(invalid(dir, format!("expected R3D3 components N1 .. N{} without gaps, found {ns:?}", ns.len())));
             }
             let files = ns
                 .iter()
@@ -295,7 +336,7 @@ impl Series {
                 origin: format!("reference file names R3D3_R2D2Net_{j}Layers_N{{i}} (no manifest)"),
             });
         }
-        Err(Error::input(
+        Err(invalid(
             dir,
             "no manifest.yaml and no network files with the reference names (R2D2_UNet_N{i}.onnx or R3D3_R2D2Net_{J}Layers_N{i}/...)",
         ))
@@ -353,7 +394,7 @@ impl Series {
         let poolings = self.manifest.as_ref().and_then(|m| m.network.get("poolings")).and_then(serde_yaml::Value::as_u64);
         if let Some(multiple) = poolings.and_then(|p| u32::try_from(p).ok()).and_then(|p| 1usize.checked_shl(p)) {
             if size % multiple != 0 {
-                return Err(Error::input(
+                return Err(invalid(
                     self.dir.join("manifest.yaml"),
                     format!("series '{}' pools {} times (network.poolings): the image size must be a multiple of {multiple}, got {size}", self.name, multiple.trailing_zeros()),
                 ));
@@ -368,7 +409,7 @@ impl Series {
             format!("{:?}", self.image_sizes)
         };
         if !self.any_size {
-            return Err(Error::input(
+            return Err(invalid(
                 self.dir.join("manifest.yaml"),
                 format!("series '{}' was trained for image sizes {trained} and does not allow others (any_size: false), but the pipeline images {size} x {size}", self.name),
             ));
@@ -420,10 +461,8 @@ fn select_in(roots: &[PathBuf], size: usize) -> Result<(PathBuf, Option<String>)
         )),
         None => {
             let looked: Vec<String> = roots.iter().map(|d| d.display().to_string()).collect();
-            Err(Error::input(
-                Path::new(AUTO_SERIES),
-                format!("no model series for {size} x {size} images in {} (set R2D2_MODELS, or name a series)", looked.join(", ")),
-            ))
+            let message = format!("no model series for {size} x {size} images in {} (set R2D2_MODELS, or name a series)", looked.join(", "));
+            Err(SeriesError::NotFound { name: PathBuf::from(AUTO_SERIES), message }.into())
         }
     }
 }
@@ -468,7 +507,8 @@ pub fn resolve(series: &Path) -> Result<PathBuf> {
         return Ok(found);
     }
     let looked: Vec<String> = dirs.iter().map(|d| d.display().to_string()).collect();
-    Err(Error::input(series, format!("no model series of that name in {} (set R2D2_MODELS, or give the series directory)", looked.join(", "))))
+    let message = format!("no model series of that name in {} (set R2D2_MODELS, or give the series directory)", looked.join(", "));
+    Err(SeriesError::NotFound { name: series.to_path_buf(), message }.into())
 }
 
 pub fn discover(root: &Path) -> Vec<(PathBuf, Result<Series>)> {
@@ -570,8 +610,16 @@ mod tests {
             "format: 1\nname: t\narchitecture: r2d2\nimage_sizes: [64]\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx]\n",
         )
         .unwrap();
-        let e = Series::open(dir.path()).unwrap_err().to_string();
+        let err = Series::open(dir.path()).unwrap_err();
+        let e = err.to_string();
         assert!(e.contains("a.onnx") && e.contains("missing"), "{e}");
+        // The kind, and the system's error beneath it.
+        let Error::Series(SeriesError::MissingNetwork { path, series, .. }) = &err else { panic!("{err:?}") };
+        assert_eq!((path.as_path(), series.as_str()), (dir.path().join("a.onnx").as_path(), "t"));
+        let module = std::error::Error::source(&err).expect("the series error");
+        let io = module.source().and_then(|c| c.downcast_ref::<std::io::Error>()).expect("the system's error");
+        assert_eq!(io.kind(), std::io::ErrorKind::NotFound);
+        assert_eq!(e.matches(&io.to_string()).count(), 1, "{e}");
     }
 
     /// A series `dir/s` whose manifest lists `networks`.
@@ -660,8 +708,11 @@ mod tests {
         assert!(e.contains("manifest.yaml") && e.contains("format 1") && e.contains("got 2"), "{e}");
 
         std::fs::write(dir.path().join("manifest.yaml"), format!("format: 1\n{base}colour: red\n")).unwrap();
-        let e = Series::open(dir.path()).unwrap_err().to_string();
+        let err = Series::open(dir.path()).unwrap_err();
+        let e = err.to_string();
         assert!(e.contains("colour") && e.contains("line 8"), "{e}");
+        let Error::Series(SeriesError::Manifest { source, .. }) = &err else { panic!("{err:?}") };
+        assert_eq!(e.matches(&source.to_string()).count(), 1, "the parser's words once: {e}");
 
         std::fs::write(dir.path().join("manifest.yaml"), format!("format: 1\n{base}any_size: false\n")).unwrap();
         let s = Series::open(dir.path()).unwrap();
