@@ -10,7 +10,7 @@
 //! imaging weight (the reference code's `(nW * nWimag)^2`).
 
 use crate::fft2::Fft2;
-use crate::nufft::{Nufft2d, NufftParams};
+use crate::nufft::{ChunkedAdjoint, Nufft2d, NufftParams};
 use crate::{Error, Result};
 use num_complex::Complex64;
 use rayon::prelude::*;
@@ -99,28 +99,10 @@ impl MeasurementOperator {
         nufft: NufftParams,
         threads: usize,
     ) -> Result<MeasurementOperator> {
-        if u.len() != v.len() || u.len() != weight.len() {
-            return Err(Error::parameter("visibilities", "u, v and weight arrays differ in length"));
-        }
-        let limit = 0.5 / geometry.pixel_rad;
-        let beyond = u.iter().zip(v).filter(|(u, v)| u.abs() >= limit || v.abs() >= limit).count();
-        if beyond > 0 {
-            let max_uv = u.iter().zip(v).map(|(u, v)| u.abs().max(v.abs())).fold(0.0, f64::max);
-            return Err(Error::parameter(
-                "pixel size",
-                format!(
-                    "{beyond} visibilities lie beyond the image's Nyquist limit ({limit:.1} wavelengths for a \
-                     {:.4} arcsec pixel); the pixel must be at most {:.4} arcsec",
-                    geometry.pixel_arcsec(),
-                    (0.5 / max_uv).to_degrees() * 3600.0
-                ),
-            ));
-        }
-        if let Some(bad) = weight.iter().find(|w| !(**w >= 0.0) || !w.is_finite()) {
-            return Err(Error::parameter("weight", format!("weights must be finite and >= 0, found {bad}")));
-        }
+        check_points(geometry, u, v, weight)?;
         let (x, y): (Vec<f64>, Vec<f64>) = u.iter().zip(v).map(|(&u, &v)| geometry.uv_to_phase(u, v)).unzip();
         let plan = Nufft2d::new(geometry.size, geometry.size, &x, &y, nufft, threads)?;
+        drop((x, y));
         let weight: Vec<f64> = plan.order().iter().map(|&k| weight[k as usize]).collect();
         let mut op = MeasurementOperator { geometry, plan, weight, kappa: 1.0 };
         let peak = op.unnormalised_psf_peak();
@@ -203,8 +185,107 @@ impl MeasurementOperator {
     }
 }
 
+/// Checks what [`MeasurementOperator::new`] needs of its points: equal lengths, baselines
+/// within the image's Nyquist limit (`|u| >= 1 / (2 pixel)` would alias), weights finite and
+/// not negative.
+fn check_points(geometry: ImageGeometry, u: &[f64], v: &[f64], weight: &[f64]) -> Result<()> {
+    if u.len() != v.len() || u.len() != weight.len() {
+        return Err(Error::parameter("visibilities", "u, v and weight arrays differ in length"));
+    }
+    let limit = 0.5 / geometry.pixel_rad;
+    let beyond = u.iter().zip(v).filter(|(u, v)| u.abs() >= limit || v.abs() >= limit).count();
+    if beyond > 0 {
+        let max_uv = u.iter().zip(v).map(|(u, v)| u.abs().max(v.abs())).fold(0.0, f64::max);
+        return Err(Error::parameter(
+            "pixel size",
+            format!(
+                "{beyond} visibilities lie beyond the image's Nyquist limit ({limit:.1} wavelengths for a \
+                 {:.4} arcsec pixel); the pixel must be at most {:.4} arcsec",
+                geometry.pixel_arcsec(),
+                (0.5 / max_uv).to_degrees() * 3600.0
+            ),
+        ));
+    }
+    if let Some(bad) = weight.iter().find(|w| !(**w >= 0.0) || !w.is_finite()) {
+        return Err(Error::parameter("weight", format!("weights must be finite and >= 0, found {bad}")));
+    }
+    Ok(())
+}
+
+/// Points per chunk of [`grid_in_chunks`]: a sixteenth of the points, so that the chunk's
+/// sorting and values (about 70 bytes a point) stay small beside the caller's arrays, but no
+/// fewer than 2^16, below which merging the tiles into the grid would cost more than spreading
+/// the points, and no more than 2^20, beyond which larger chunks no longer save time.
+fn chunk_points(n: usize) -> usize {
+    (n / 16).clamp(1 << 16, 1 << 20)
+}
+
+/// `Re{Phi_raw^H c_t}` on `geometry` for each `t < transforms`, `c_t[k] = value(t, k)`, gridded
+/// in chunks of points (see [`crate::nufft::ChunkedAdjoint`]): no plan for all the points is
+/// ever held, so beside the caller's arrays memory is the grids and one chunk.
+fn grid_in_chunks(
+    geometry: ImageGeometry,
+    u: &[f64],
+    v: &[f64],
+    weight: &[f64],
+    transforms: usize,
+    value: impl Fn(usize, usize) -> Complex64 + Sync,
+    nufft: NufftParams,
+    threads: usize,
+) -> Result<Vec<Vec<f64>>> {
+    check_points(geometry, u, v, weight)?;
+    let mut gridder = ChunkedAdjoint::new(geometry.size, geometry.size, transforms, nufft, threads)?;
+    let chunk = chunk_points(u.len());
+    for start in (0..u.len()).step_by(chunk) {
+        let end = (start + chunk).min(u.len());
+        let (x, y): (Vec<f64>, Vec<f64>) =
+            u[start..end].iter().zip(&v[start..end]).map(|(&u, &v)| geometry.uv_to_phase(u, v)).unzip();
+        gridder.add(&x, &y, |t, k| value(t, start + k))?;
+    }
+    Ok(gridder.finish().into_iter().map(|image| image.into_iter().map(|c| c.re).collect()).collect())
+}
+
+/// The dirty image, PSF and `kappa` of [`MeasurementOperator`] (to the NUFFT's accuracy; the
+/// sums run in another order), for callers that need no operator afterwards: the points are
+/// gridded in chunks, so memory beyond the caller's arrays does not grow with their number.
+pub fn dirty_and_psf(
+    geometry: ImageGeometry,
+    u: &[f64],
+    v: &[f64],
+    weight: &[f64],
+    vis: &[Complex64],
+    nufft: NufftParams,
+    threads: usize,
+) -> Result<DirtyAndPsf> {
+    if vis.len() != weight.len() {
+        return Err(Error::parameter("visibilities", "visibility and weight arrays differ in length"));
+    }
+    let value = |t: usize, k: usize| if t == 0 { vis[k] * weight[k] } else { Complex64::new(weight[k], 0.0) };
+    let [mut dirty, mut psf]: [Vec<f64>; 2] = grid_in_chunks(geometry, u, v, weight, 2, value, nufft, threads)?
+        .try_into()
+        .expect("two transforms");
+    let n = geometry.size;
+    let peak = psf[(n / 2) * n + n / 2];
+    if !(peak > 0.0) {
+        return Err(Error::parameter("weight", "all visibilities have zero weight: nothing to image"));
+    }
+    let kappa = 1.0 / peak;
+    dirty.iter_mut().chain(psf.iter_mut()).for_each(|p| *p *= kappa);
+    Ok(DirtyAndPsf { dirty, psf, kappa })
+}
+
+/// What [`dirty_and_psf`] gives.
+pub struct DirtyAndPsf {
+    /// `kappa Re{Phi_raw^H (omega y)}`.
+    pub dirty: Vec<f64>,
+    /// `kappa Re{Phi^H Phi delta}`, peak 1 at `(N/2, N/2)`.
+    pub psf: Vec<f64>,
+    pub kappa: f64,
+}
+
 /// The PSF over twice the field of view (`2N x 2N`, centre at `(N, N)`) for the same
 /// visibilities, scaled by `kappa` of the N x N operator: the kernel of the Toeplitz form of D.
+/// Gridded in chunks (see [`dirty_and_psf`]).
 pub fn doubled_psf(
     geometry: ImageGeometry,
     u: &[f64],
@@ -214,11 +295,10 @@ pub fn doubled_psf(
     nufft: NufftParams,
     threads: usize,
 ) -> Result<Vec<f64>> {
-    let doubled = MeasurementOperator::new(geometry.doubled(), u, v, weight, nufft, threads)?;
-    let mut psf = doubled.psf();
-    // `doubled` normalised its own PSF to peak 1; rescale to the N x N operator's kappa.
-    let scale = kappa / doubled.kappa();
-    psf.iter_mut().for_each(|p| *p *= scale);
+    let value = |_, k: usize| Complex64::new(weight[k] * kappa, 0.0);
+    let [psf]: [Vec<f64>; 1] = grid_in_chunks(geometry.doubled(), u, v, weight, 1, value, nufft, threads)?
+        .try_into()
+        .expect("one transform");
     Ok(psf)
 }
 

@@ -89,14 +89,44 @@ pub fn imaging_weights(
     scheme: Weighting,
     grid_factor: f64,
 ) -> Result<Vec<f64>> {
+    if u.len() != v.len() || u.len() != natural_weight.len() {
+        return Err(Error::parameter("visibilities", "u, v and weight arrays differ in length"));
+    }
+    weigh(|k| (u[k], v[k]), natural_weight, image_size, scheme, grid_factor, |imaging, _| imaging)
+}
+
+/// Total weights (natural x imaging) of visibilities whose operator coordinates (as in
+/// [`imaging_weights`]) `point(k)` gives, without a per-visibility array beside the result:
+/// the coordinates and cells are computed again where they are needed (memory is the limit on
+/// large tables, and this is a small part of the time).
+pub fn total_weights(
+    point: impl Fn(usize) -> (f64, f64),
+    natural_weight: &[f64],
+    image_size: usize,
+    scheme: Weighting,
+    grid_factor: f64,
+) -> Result<Vec<f64>> {
+    weigh(point, natural_weight, image_size, scheme, grid_factor, |imaging, natural| imaging * natural)
+}
+
+/// Imaging weight of each visibility, combined with its natural weight by `combine`.
+fn weigh(
+    point: impl Fn(usize) -> (f64, f64),
+    natural_weight: &[f64],
+    image_size: usize,
+    scheme: Weighting,
+    grid_factor: f64,
+    combine: impl Fn(f64, f64) -> f64,
+) -> Result<Vec<f64>> {
     if scheme == Weighting::Natural {
-        return Ok(vec![1.0; u.len()]);
+        return Ok(natural_weight.iter().map(|&n| combine(1.0, n)).collect());
     }
     if !(grid_factor > 0.0) || !grid_factor.is_finite() {
         return Err(Error::parameter("weighting grid factor", format!("expected a positive number, got {grid_factor}")));
     }
     let cells = ((grid_factor * image_size as f64).floor() as usize).max(1);
-    let cell_of = |u: f64, v: f64| -> usize {
+    let cell_of = |k: usize| -> usize {
+        let (u, v) = point(k);
         let (u, v) = if v < 0.0 { (-u, -v) } else { (u, v) };
         let index = |t: f64| -> usize {
             let c = ((t + std::f64::consts::PI) * cells as f64 / (2.0 * std::f64::consts::PI)).floor();
@@ -105,18 +135,23 @@ pub fn imaging_weights(
         index(v) * cells + index(u)
     };
     let mut density = vec![0.0f64; cells * cells];
-    let index: Vec<usize> = u.iter().zip(v).map(|(&u, &v)| cell_of(u, v)).collect();
-    for (&c, &w) in index.iter().zip(natural_weight) {
-        density[c] += w;
+    for (k, &w) in natural_weight.iter().enumerate() {
+        density[cell_of(k)] += w;
     }
+    let n = natural_weight.iter().enumerate();
     Ok(match scheme {
         Weighting::Natural => unreachable!("handled above"),
-        Weighting::Uniform => index.iter().map(|&c| if density[c] > 0.0 { 1.0 / density[c] } else { 0.0 }).collect(),
+        Weighting::Uniform => n
+            .map(|(k, &w)| {
+                let g = density[cell_of(k)];
+                combine(if g > 0.0 { 1.0 / g } else { 0.0 }, w)
+            })
+            .collect(),
         Weighting::Briggs { robust } => {
             let sum_w: f64 = natural_weight.iter().sum();
             let sum_g2: f64 = density.iter().map(|g| g * g).sum();
             let f2 = if sum_g2 > 0.0 { (5.0 * 10f64.powf(-robust)).powi(2) * sum_w / sum_g2 } else { 0.0 };
-            index.iter().map(|&c| 1.0 / (1.0 + f2 * density[c])).collect()
+            n.map(|(k, &w)| combine(1.0 / (1.0 + f2 * density[cell_of(k)]), w)).collect()
         }
     })
 }
