@@ -223,6 +223,7 @@ fn chunk_points(n: usize) -> usize {
 /// `Re{Phi_raw^H c_t}` on `geometry` for each `t < transforms`, `c_t[k] = value(t, k)`, gridded
 /// in chunks of points (see [`crate::nufft::ChunkedAdjoint`]): no plan for all the points is
 /// ever held, so beside the caller's arrays memory is the grids and one chunk.
+#[allow(clippy::too_many_arguments)]
 fn grid_in_chunks(
     geometry: ImageGeometry,
     u: &[f64],
@@ -232,10 +233,10 @@ fn grid_in_chunks(
     value: impl Fn(usize, usize) -> Complex64 + Sync,
     nufft: NufftParams,
     threads: usize,
+    chunk: usize,
 ) -> Result<Vec<Vec<f64>>> {
     check_points(geometry, u, v, weight)?;
     let mut gridder = ChunkedAdjoint::new(geometry.size, geometry.size, transforms, nufft, threads)?;
-    let chunk = chunk_points(u.len());
     for start in (0..u.len()).step_by(chunk) {
         let end = (start + chunk).min(u.len());
         let (x, y): (Vec<f64>, Vec<f64>) =
@@ -257,11 +258,25 @@ pub fn dirty_and_psf(
     nufft: NufftParams,
     threads: usize,
 ) -> Result<DirtyAndPsf> {
+    dirty_and_psf_in_chunks(geometry, u, v, weight, vis, nufft, threads, chunk_points(u.len()))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn dirty_and_psf_in_chunks(
+    geometry: ImageGeometry,
+    u: &[f64],
+    v: &[f64],
+    weight: &[f64],
+    vis: &[Complex64],
+    nufft: NufftParams,
+    threads: usize,
+    chunk: usize,
+) -> Result<DirtyAndPsf> {
     if vis.len() != weight.len() {
         return Err(Error::parameter("visibilities", "visibility and weight arrays differ in length"));
     }
     let value = |t: usize, k: usize| if t == 0 { vis[k] * weight[k] } else { Complex64::new(weight[k], 0.0) };
-    let [mut dirty, mut psf]: [Vec<f64>; 2] = grid_in_chunks(geometry, u, v, weight, 2, value, nufft, threads)?
+    let [mut dirty, mut psf]: [Vec<f64>; 2] = grid_in_chunks(geometry, u, v, weight, 2, value, nufft, threads, chunk)?
         .try_into()
         .expect("two transforms");
     let n = geometry.size;
@@ -296,7 +311,7 @@ pub fn doubled_psf(
     threads: usize,
 ) -> Result<Vec<f64>> {
     let value = |_, k: usize| Complex64::new(weight[k] * kappa, 0.0);
-    let [psf]: [Vec<f64>; 1] = grid_in_chunks(geometry.doubled(), u, v, weight, 1, value, nufft, threads)?
+    let [psf]: [Vec<f64>; 1] = grid_in_chunks(geometry.doubled(), u, v, weight, 1, value, nufft, threads, chunk_points(u.len()))?
         .try_into()
         .expect("one transform");
     Ok(psf)
@@ -474,6 +489,26 @@ mod tests {
     fn random_image(n: usize, seed: u64) -> Vec<f64> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         (0..n).map(|_| rng.gen_range(0.0..1.0)).collect()
+    }
+
+    #[test]
+    fn dirty_and_psf_in_chunks_match_the_operator() {
+        let (g, u, v, w, op) = setup(1e-9);
+        let vis: Vec<Complex64> = u.iter().zip(&v).map(|(&u, &v)| Complex64::new((u * 1e-3).cos(), (v * 2e-3).sin())).collect();
+        let nufft = NufftParams { epsilon: 1e-9, oversampling: 2.0 };
+        let (dirty, psf) = (op.dirty_image(&vis), op.psf());
+        // One chunk, several of uneven size (the last one short), and one point per chunk.
+        for chunk in [u.len(), 999, 1] {
+            let chunked = dirty_and_psf_in_chunks(g, &u, &v, &w, &vis, nufft, 2, chunk).unwrap();
+            let max_diff = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+            assert!(max_diff(&chunked.dirty, &dirty) < 1e-12, "chunk {chunk}: dirty differs by {}", max_diff(&chunked.dirty, &dirty));
+            assert!(max_diff(&chunked.psf, &psf) < 1e-12, "chunk {chunk}: psf differs by {}", max_diff(&chunked.psf, &psf));
+            assert!((chunked.kappa / op.kappa() - 1.0).abs() < 1e-13);
+        }
+        let err = dirty_and_psf(g, &u, &v, &vec![0.0; w.len()], &vis, nufft, 2).err().unwrap().to_string();
+        assert!(err.contains("zero weight"), "{err}");
+        let err = dirty_and_psf(g, &u, &v, &w, &vis[1..], nufft, 2).err().unwrap().to_string();
+        assert!(err.contains("differ in length"), "{err}");
     }
 
     #[test]

@@ -203,6 +203,19 @@ mod tests {
     }
 
     #[test]
+    fn total_weights_are_imaging_times_natural_weights_bit_for_bit() {
+        let (u, v, _) = sample();
+        let natural: Vec<f64> = (0..u.len()).map(|k| 0.5 + (k % 7) as f64).collect();
+        for scheme in [Weighting::Natural, Weighting::Uniform, Weighting::Briggs { robust: 0.5 }] {
+            let imaging = imaging_weights(&u, &v, &natural, 64, scheme, 2.0).unwrap();
+            let total = total_weights(|k| (u[k], v[k]), &natural, 64, scheme, 2.0).unwrap();
+            let expected: Vec<f64> = imaging.iter().zip(&natural).map(|(i, n)| i * n).collect();
+            assert_eq!(total, expected, "{scheme}");
+        }
+        assert!(imaging_weights(&u, &v[1..], &natural, 64, Weighting::Uniform, 2.0).is_err());
+    }
+
+    #[test]
     fn unknown_scheme_names_the_choices() {
         let err = Weighting::from_name("superuniform", 0.0).unwrap_err().to_string();
         assert!(err.contains("natural, uniform, briggs"), "{err}");
