@@ -12,7 +12,7 @@
 use crate::fft2::Fft2;
 use crate::nufft::{ChunkedAdjoint, Nufft2d, NufftParams};
 use crate::{Error, Result};
-use num_complex::Complex64;
+use num_complex::{Complex32, Complex64};
 use rayon::prelude::*;
 use rustfft::FftDirection;
 
@@ -74,6 +74,24 @@ impl ImageGeometry {
     /// The same geometry with twice the field of view (for the 2N PSF).
     pub fn doubled(&self) -> ImageGeometry {
         ImageGeometry { size: 2 * self.size, pixel_rad: self.pixel_rad }
+    }
+}
+
+/// A visibility value as the operator takes it, in single or double precision; the sums are
+/// in double precision either way.
+pub trait Visibility: Copy + Send + Sync {
+    fn to_c64(self) -> Complex64;
+}
+
+impl Visibility for Complex64 {
+    fn to_c64(self) -> Complex64 {
+        self
+    }
+}
+
+impl Visibility for Complex32 {
+    fn to_c64(self) -> Complex64 {
+        Complex64::new(f64::from(self.re), f64::from(self.im))
     }
 }
 
@@ -161,9 +179,11 @@ impl MeasurementOperator {
     }
 
     /// Dirty image `kappa Re{Phi_raw^H (omega y)}` of visibilities `vis` in the caller's order.
-    pub fn dirty_image(&self, vis: &[Complex64]) -> Vec<f64> {
-        let mut weighted = self.to_plan_order(vis);
-        weighted.par_iter_mut().zip(self.weight.par_iter()).for_each(|(y, &w)| *y *= w);
+    pub fn dirty_image(&self, vis: &[impl Visibility]) -> Vec<f64> {
+        assert_eq!(vis.len(), self.len(), "number of visibilities");
+        let weighted: Vec<Complex64> = self.plan.install(|| {
+            self.plan.order().par_iter().zip(self.weight.par_iter()).map(|(&k, &w)| vis[k as usize].to_c64() * w).collect()
+        });
         let mut img = self.back_project_sorted(&weighted);
         img.iter_mut().for_each(|p| *p *= self.kappa);
         img
@@ -254,7 +274,7 @@ pub fn dirty_and_psf(
     u: &[f64],
     v: &[f64],
     weight: &[f64],
-    vis: &[Complex64],
+    vis: &[impl Visibility],
     nufft: NufftParams,
     threads: usize,
 ) -> Result<DirtyAndPsf> {
@@ -267,7 +287,7 @@ fn dirty_and_psf_in_chunks(
     u: &[f64],
     v: &[f64],
     weight: &[f64],
-    vis: &[Complex64],
+    vis: &[impl Visibility],
     nufft: NufftParams,
     threads: usize,
     chunk: usize,
@@ -275,7 +295,7 @@ fn dirty_and_psf_in_chunks(
     if vis.len() != weight.len() {
         return Err(Error::parameter("visibilities", "visibility and weight arrays differ in length"));
     }
-    let value = |t: usize, k: usize| if t == 0 { vis[k] * weight[k] } else { Complex64::new(weight[k], 0.0) };
+    let value = |t: usize, k: usize| if t == 0 { vis[k].to_c64() * weight[k] } else { Complex64::new(weight[k], 0.0) };
     let [mut dirty, mut psf]: [Vec<f64>; 2] = grid_in_chunks(geometry, u, v, weight, 2, value, nufft, threads, chunk)?
         .try_into()
         .expect("two transforms");
