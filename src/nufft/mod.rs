@@ -13,7 +13,9 @@
 //!
 //! Points are sorted once per plan by grid tile so that gridding and degridding walk memory
 //! in order; gridding accumulates each tile in a small private buffer and adds it to the shared
-//! grid under a lock, so threads never contend per visibility.
+//! grid under a lock, so threads never contend per visibility. [`ChunkedAdjoint`] grids points
+//! given a chunk at a time, for callers that need no plan afterwards: its memory does not grow
+//! with the number of points.
 
 pub mod kernel;
 mod permute;
