@@ -1,12 +1,17 @@
 """Peak memory of `r2d2 image` per visibility row, beside WSClean on the same data.
 
-    python3 benches/memory.py [--rows 1e6,1e7] [--size 512] [--dir bench-out/memory]
+    python3 benches/memory.py [--rows 1e6,1e7] [--size 512] [--steps clean,auto] [--dir bench-out/memory]
 
 Simulates VLA-C observations of about 1e4 (the baseline: the image-size cost) and each of
 --rows samples (`r2d2 simulate`, 8 h at 10 s, channels scale the count), converts each to a
 MeasurementSet (`r2d2 convert`), then images each under /usr/bin/time (peak RSS, wall):
-`r2d2 image OBS.parquet --size N --step clean` and `wsclean -size N N -scale <r2d2's pixel>
--niter 0` on the MS. Bytes per row = (peak - baseline peak) / rows. Build first:
+`r2d2 image OBS.parquet --size N --step S` for each of --steps (`clean`: the built-in
+Hogbom CLEAN; `auto`: the default, the R2D2 series shipped for the size) and `wsclean -size
+N N -scale <r2d2's pixel> -niter 0` on the MS. Bytes per row = (peak - baseline peak) / rows,
+where the baseline is the same command on the small observation: what is left is the cost
+that grows with the rows (a series' networks cost the same at any row count, and where they
+peak above the visibilities this comes out below the visibilities' real cost); peak/row is
+the whole peak over the rows, an upper bound. Build first:
 cargo build --release. Prints a table and one JSON object.
 """
 
@@ -52,9 +57,10 @@ def observation(d, name, hours, channels):
     return parquet, ms, rows
 
 
-def measure(d, name, parquet, ms, size):
-    r2d2 = timed([R2D2, "image", parquet, "--size", str(size), "--step", "clean", "--name", f"{name}-r2d2", "-q"], d)
-    scale_arcsec = abs(fits_header_value(os.path.join(d, f"{name}-r2d2-dirty.fits"), "CDELT2")) * 3600
+def measure(d, name, parquet, ms, size, steps):
+    r2d2 = {step: timed([R2D2, "image", parquet, "--size", str(size), "--step", step, "--name", f"{name}-r2d2-{step}", "-q"], d)
+            for step in steps}
+    scale_arcsec = abs(fits_header_value(os.path.join(d, f"{name}-r2d2-{steps[0]}-dirty.fits"), "CDELT2")) * 3600
     wsclean = timed(["wsclean", "-quiet", "-size", str(size), str(size), "-scale", f"{scale_arcsec}asec", "-niter", "0", "-j", "2",
                      "-name", f"{name}-wsclean", ms], d)
     return r2d2, wsclean
@@ -64,28 +70,38 @@ def main():
     p = argparse.ArgumentParser()
     p.add_argument("--rows", default="1e6,1e7")
     p.add_argument("--size", type=int, default=512)
+    p.add_argument("--steps", default="clean,auto", help="r2d2 --step values to measure, comma-separated")
     p.add_argument("--dir", default="bench-out/memory")
     args = p.parse_args()
     os.makedirs(args.dir, exist_ok=True)
+    steps = args.steps.split(",")
     d = os.path.abspath(args.dir)
     base = observation(d, "base", 0.08, 1)
-    (base_r2d2, base_wsclean) = measure(d, "base", base[0], base[1], args.size)
+    (base_r2d2, base_wsclean) = measure(d, "base", base[0], base[1], args.size, steps)
+    per_row = lambda peak, base_peak, rows: (peak - base_peak) * 2**20 / (rows - base[2])
     results = []
     for target in [float(r) for r in args.rows.split(",")]:
         channels = max(1, round(target / 1e6))
         parquet, ms, rows = observation(d, f"rows{channels}m", 8, channels)
-        (r2d2, wsclean) = measure(d, f"rows{channels}m", parquet, ms, args.size)
+        (r2d2, wsclean) = measure(d, f"rows{channels}m", parquet, ms, args.size, steps)
         results.append({
             "rows": rows,
-            "r2d2": {"seconds": r2d2[0], "peak_mb": r2d2[1], "bytes_per_row": (r2d2[1] - base_r2d2[1]) * 2**20 / (rows - base[2])},
-            "wsclean": {"seconds": wsclean[0], "peak_mb": wsclean[1], "bytes_per_row": (wsclean[1] - base_wsclean[1]) * 2**20 / (rows - base[2])},
+            "r2d2": {step: {"seconds": t, "peak_mb": mb, "bytes_per_row": per_row(mb, base_r2d2[step][1], rows),
+                            "peak_bytes_per_row": mb * 2**20 / rows}
+                     for step, (t, mb) in r2d2.items()},
+            "wsclean": {"seconds": wsclean[0], "peak_mb": wsclean[1], "bytes_per_row": per_row(wsclean[1], base_wsclean[1], rows)},
         })
-    print(f"{args.size} x {args.size}; baseline ({base[2]} rows): r2d2 {base_r2d2[1]:.0f} MB, WSClean {base_wsclean[1]:.0f} MB")
-    print(f"{'rows':>10} {'r2d2 MB':>9} {'r2d2 B/row':>11} {'r2d2 s':>7} {'WSClean MB':>11} {'WSClean B/row':>14} {'WSClean s':>10}")
+    bases = ", ".join(f"r2d2 --step {step} {mb:.0f} MB" for step, (_, mb) in base_r2d2.items())
+    print(f"{args.size} x {args.size}; baseline ({base[2]} rows): {bases}, WSClean {base_wsclean[1]:.0f} MB")
+    print(f"{'rows':>10} {'':>8} {'peak MB':>8} {'B/row':>7} {'peak/row':>9} {'s':>6} {'s / WSClean':>12}")
     for r in results:
-        a, b = r["r2d2"], r["wsclean"]
-        print(f"{r['rows']:>10} {a['peak_mb']:>9.0f} {a['bytes_per_row']:>11.1f} {a['seconds']:>7.1f} {b['peak_mb']:>11.0f} {b['bytes_per_row']:>14.1f} {b['seconds']:>10.1f}")
-    print(json.dumps({"size": args.size, "baseline_rows": base[2], "baseline": {"r2d2_mb": base_r2d2[1], "wsclean_mb": base_wsclean[1]}, "results": results}, indent=2))
+        b = r["wsclean"]
+        for step, a in r["r2d2"].items():
+            print(f"{r['rows']:>10} {step:>8} {a['peak_mb']:>8.0f} {a['bytes_per_row']:>7.1f} {a['peak_bytes_per_row']:>9.1f} {a['seconds']:>6.1f} {a['seconds'] / b['seconds']:>12.2f}")
+        print(f"{r['rows']:>10} {'WSClean':>8} {b['peak_mb']:>8.0f} {b['bytes_per_row']:>7.1f} {b['peak_mb'] * 2**20 / r['rows']:>9.1f} {b['seconds']:>6.1f} {1:>12.2f}")
+    print(json.dumps({"size": args.size, "baseline_rows": base[2],
+                      "baseline": {"r2d2_mb": {step: mb for step, (_, mb) in base_r2d2.items()}, "wsclean_mb": base_wsclean[1]},
+                      "results": results}, indent=2))
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@
 use crate::nufft::NufftParams;
 use crate::operator::{ImageGeometry, MeasurementOperator};
 use crate::vis::Visibilities;
-use crate::weighting::{imaging_weights, Weighting, DEFAULT_GRID_FACTOR};
+use crate::weighting::{Weighting, DEFAULT_GRID_FACTOR};
 use crate::{Error, Result};
 
 /// How the pixel size is chosen.
@@ -69,9 +69,8 @@ pub struct DirtyProducts {
 
 /// Total weights (natural x imaging) of `vis` on `geometry`.
 pub fn total_weights(vis: &Visibilities, geometry: ImageGeometry, weighting: Weighting, grid_factor: f64) -> Result<Vec<f64>> {
-    let (x, y): (Vec<f64>, Vec<f64>) = vis.u.iter().zip(&vis.v).map(|(&u, &v)| geometry.uv_to_phase(u, v)).unzip();
-    let iw = imaging_weights(&x, &y, &vis.weight, geometry.size, weighting, grid_factor)?;
-    Ok(iw.iter().zip(&vis.weight).map(|(i, n)| i * n).collect())
+    let point = |k: usize| geometry.uv_to_phase(vis.u[k], vis.v[k]);
+    crate::weighting::total_weights(point, &vis.weight, geometry.size, weighting, grid_factor)
 }
 
 /// Dirty image and PSF (both N x N, PSF peak 1 at (N/2, N/2)).

@@ -10,9 +10,9 @@
 //! imaging weight (the reference code's `(nW * nWimag)^2`).
 
 use crate::fft2::Fft2;
-use crate::nufft::{Nufft2d, NufftParams};
+use crate::nufft::{ChunkedAdjoint, Nufft2d, NufftParams};
 use crate::{Error, Result};
-use num_complex::Complex64;
+use num_complex::{Complex32, Complex64};
 use rayon::prelude::*;
 use rustfft::FftDirection;
 
@@ -77,6 +77,24 @@ impl ImageGeometry {
     }
 }
 
+/// A visibility value as the operator takes it, in single or double precision; the sums are
+/// in double precision either way.
+pub trait Visibility: Copy + Send + Sync {
+    fn to_c64(self) -> Complex64;
+}
+
+impl Visibility for Complex64 {
+    fn to_c64(self) -> Complex64 {
+        self
+    }
+}
+
+impl Visibility for Complex32 {
+    fn to_c64(self) -> Complex64 {
+        Complex64::new(f64::from(self.re), f64::from(self.im))
+    }
+}
+
 /// `Phi` for fixed baselines and weights: plans the NUFFT once and keeps the weights in the
 /// plan's internal order so every application is a straight pass.
 pub struct MeasurementOperator {
@@ -99,28 +117,10 @@ impl MeasurementOperator {
         nufft: NufftParams,
         threads: usize,
     ) -> Result<MeasurementOperator> {
-        if u.len() != v.len() || u.len() != weight.len() {
-            return Err(Error::parameter("visibilities", "u, v and weight arrays differ in length"));
-        }
-        let limit = 0.5 / geometry.pixel_rad;
-        let beyond = u.iter().zip(v).filter(|(u, v)| u.abs() >= limit || v.abs() >= limit).count();
-        if beyond > 0 {
-            let max_uv = u.iter().zip(v).map(|(u, v)| u.abs().max(v.abs())).fold(0.0, f64::max);
-            return Err(Error::parameter(
-                "pixel size",
-                format!(
-                    "{beyond} visibilities lie beyond the image's Nyquist limit ({limit:.1} wavelengths for a \
-                     {:.4} arcsec pixel); the pixel must be at most {:.4} arcsec",
-                    geometry.pixel_arcsec(),
-                    (0.5 / max_uv).to_degrees() * 3600.0
-                ),
-            ));
-        }
-        if let Some(bad) = weight.iter().find(|w| !(**w >= 0.0) || !w.is_finite()) {
-            return Err(Error::parameter("weight", format!("weights must be finite and >= 0, found {bad}")));
-        }
+        check_points(geometry, u, v, weight)?;
         let (x, y): (Vec<f64>, Vec<f64>) = u.iter().zip(v).map(|(&u, &v)| geometry.uv_to_phase(u, v)).unzip();
         let plan = Nufft2d::new(geometry.size, geometry.size, &x, &y, nufft, threads)?;
+        drop((x, y));
         let weight: Vec<f64> = plan.order().iter().map(|&k| weight[k as usize]).collect();
         let mut op = MeasurementOperator { geometry, plan, weight, kappa: 1.0 };
         let peak = op.unnormalised_psf_peak();
@@ -179,9 +179,11 @@ impl MeasurementOperator {
     }
 
     /// Dirty image `kappa Re{Phi_raw^H (omega y)}` of visibilities `vis` in the caller's order.
-    pub fn dirty_image(&self, vis: &[Complex64]) -> Vec<f64> {
-        let mut weighted = self.to_plan_order(vis);
-        weighted.par_iter_mut().zip(self.weight.par_iter()).for_each(|(y, &w)| *y *= w);
+    pub fn dirty_image(&self, vis: &[impl Visibility]) -> Vec<f64> {
+        assert_eq!(vis.len(), self.len(), "number of visibilities");
+        let weighted: Vec<Complex64> = self.plan.install(|| {
+            self.plan.order().par_iter().zip(self.weight.par_iter()).map(|(&k, &w)| vis[k as usize].to_c64() * w).collect()
+        });
         let mut img = self.back_project_sorted(&weighted);
         img.iter_mut().for_each(|p| *p *= self.kappa);
         img
@@ -203,8 +205,122 @@ impl MeasurementOperator {
     }
 }
 
+/// Checks what [`MeasurementOperator::new`] needs of its points: equal lengths, baselines
+/// within the image's Nyquist limit (`|u| >= 1 / (2 pixel)` would alias), weights finite and
+/// not negative.
+fn check_points(geometry: ImageGeometry, u: &[f64], v: &[f64], weight: &[f64]) -> Result<()> {
+    if u.len() != v.len() || u.len() != weight.len() {
+        return Err(Error::parameter("visibilities", "u, v and weight arrays differ in length"));
+    }
+    let limit = 0.5 / geometry.pixel_rad;
+    let beyond = u.iter().zip(v).filter(|(u, v)| u.abs() >= limit || v.abs() >= limit).count();
+    if beyond > 0 {
+        let max_uv = u.iter().zip(v).map(|(u, v)| u.abs().max(v.abs())).fold(0.0, f64::max);
+        return Err(Error::parameter(
+            "pixel size",
+            format!(
+                "{beyond} visibilities lie beyond the image's Nyquist limit ({limit:.1} wavelengths for a \
+                 {:.4} arcsec pixel); the pixel must be at most {:.4} arcsec",
+                geometry.pixel_arcsec(),
+                (0.5 / max_uv).to_degrees() * 3600.0
+            ),
+        ));
+    }
+    if let Some(bad) = weight.iter().find(|w| !(**w >= 0.0) || !w.is_finite()) {
+        return Err(Error::parameter("weight", format!("weights must be finite and >= 0, found {bad}")));
+    }
+    Ok(())
+}
+
+/// Points per chunk of [`grid_in_chunks`]: a sixteenth of the points, so that the chunk's
+/// sorting and values (about 70 bytes a point) stay small beside the caller's arrays, but no
+/// fewer than 2^16, below which merging the tiles into the grid would cost more than spreading
+/// the points, and no more than 2^20, beyond which larger chunks no longer save time.
+fn chunk_points(n: usize) -> usize {
+    (n / 16).clamp(1 << 16, 1 << 20)
+}
+
+/// `Re{Phi_raw^H c_t}` on `geometry` for each `t < transforms`, `c_t[k] = value(t, k)`, gridded
+/// in chunks of points (see [`crate::nufft::ChunkedAdjoint`]): no plan for all the points is
+/// ever held, so beside the caller's arrays memory is the grids and one chunk.
+#[allow(clippy::too_many_arguments)]
+fn grid_in_chunks(
+    geometry: ImageGeometry,
+    u: &[f64],
+    v: &[f64],
+    weight: &[f64],
+    transforms: usize,
+    value: impl Fn(usize, usize) -> Complex64 + Sync,
+    nufft: NufftParams,
+    threads: usize,
+    chunk: usize,
+) -> Result<Vec<Vec<f64>>> {
+    check_points(geometry, u, v, weight)?;
+    let mut gridder = ChunkedAdjoint::new(geometry.size, geometry.size, transforms, nufft, threads)?;
+    for start in (0..u.len()).step_by(chunk) {
+        let end = (start + chunk).min(u.len());
+        let (x, y): (Vec<f64>, Vec<f64>) =
+            u[start..end].iter().zip(&v[start..end]).map(|(&u, &v)| geometry.uv_to_phase(u, v)).unzip();
+        gridder.add(&x, &y, |t, k| value(t, start + k))?;
+    }
+    Ok(gridder.finish().into_iter().map(|image| image.into_iter().map(|c| c.re).collect()).collect())
+}
+
+/// The dirty image, PSF and `kappa` of [`MeasurementOperator`] (to the NUFFT's accuracy; the
+/// sums run in another order), for callers that need no operator afterwards: the points are
+/// gridded in chunks, so memory beyond the caller's arrays does not grow with their number.
+pub fn dirty_and_psf(
+    geometry: ImageGeometry,
+    u: &[f64],
+    v: &[f64],
+    weight: &[f64],
+    vis: &[impl Visibility],
+    nufft: NufftParams,
+    threads: usize,
+) -> Result<DirtyAndPsf> {
+    dirty_and_psf_in_chunks(geometry, u, v, weight, vis, nufft, threads, chunk_points(u.len()))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn dirty_and_psf_in_chunks(
+    geometry: ImageGeometry,
+    u: &[f64],
+    v: &[f64],
+    weight: &[f64],
+    vis: &[impl Visibility],
+    nufft: NufftParams,
+    threads: usize,
+    chunk: usize,
+) -> Result<DirtyAndPsf> {
+    if vis.len() != weight.len() {
+        return Err(Error::parameter("visibilities", "visibility and weight arrays differ in length"));
+    }
+    let value = |t: usize, k: usize| if t == 0 { vis[k].to_c64() * weight[k] } else { Complex64::new(weight[k], 0.0) };
+    let [mut dirty, mut psf]: [Vec<f64>; 2] = grid_in_chunks(geometry, u, v, weight, 2, value, nufft, threads, chunk)?
+        .try_into()
+        .expect("two transforms");
+    let n = geometry.size;
+    let peak = psf[(n / 2) * n + n / 2];
+    if !(peak > 0.0) {
+        return Err(Error::parameter("weight", "all visibilities have zero weight: nothing to image"));
+    }
+    let kappa = 1.0 / peak;
+    dirty.iter_mut().chain(psf.iter_mut()).for_each(|p| *p *= kappa);
+    Ok(DirtyAndPsf { dirty, psf, kappa })
+}
+
+/// What [`dirty_and_psf`] gives.
+pub struct DirtyAndPsf {
+    /// `kappa Re{Phi_raw^H (omega y)}`.
+    pub dirty: Vec<f64>,
+    /// `kappa Re{Phi^H Phi delta}`, peak 1 at `(N/2, N/2)`.
+    pub psf: Vec<f64>,
+    pub kappa: f64,
+}
+
 /// The PSF over twice the field of view (`2N x 2N`, centre at `(N, N)`) for the same
 /// visibilities, scaled by `kappa` of the N x N operator: the kernel of the Toeplitz form of D.
+/// Gridded in chunks (see [`dirty_and_psf`]).
 pub fn doubled_psf(
     geometry: ImageGeometry,
     u: &[f64],
@@ -214,11 +330,10 @@ pub fn doubled_psf(
     nufft: NufftParams,
     threads: usize,
 ) -> Result<Vec<f64>> {
-    let doubled = MeasurementOperator::new(geometry.doubled(), u, v, weight, nufft, threads)?;
-    let mut psf = doubled.psf();
-    // `doubled` normalised its own PSF to peak 1; rescale to the N x N operator's kappa.
-    let scale = kappa / doubled.kappa();
-    psf.iter_mut().for_each(|p| *p *= scale);
+    let value = |_, k: usize| Complex64::new(weight[k] * kappa, 0.0);
+    let [psf]: [Vec<f64>; 1] = grid_in_chunks(geometry.doubled(), u, v, weight, 1, value, nufft, threads, chunk_points(u.len()))?
+        .try_into()
+        .expect("one transform");
     Ok(psf)
 }
 
@@ -394,6 +509,26 @@ mod tests {
     fn random_image(n: usize, seed: u64) -> Vec<f64> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         (0..n).map(|_| rng.gen_range(0.0..1.0)).collect()
+    }
+
+    #[test]
+    fn dirty_and_psf_in_chunks_match_the_operator() {
+        let (g, u, v, w, op) = setup(1e-9);
+        let vis: Vec<Complex64> = u.iter().zip(&v).map(|(&u, &v)| Complex64::new((u * 1e-3).cos(), (v * 2e-3).sin())).collect();
+        let nufft = NufftParams { epsilon: 1e-9, oversampling: 2.0 };
+        let (dirty, psf) = (op.dirty_image(&vis), op.psf());
+        // One chunk, several of uneven size (the last one short), and one point per chunk.
+        for chunk in [u.len(), 999, 1] {
+            let chunked = dirty_and_psf_in_chunks(g, &u, &v, &w, &vis, nufft, 2, chunk).unwrap();
+            let max_diff = |a: &[f64], b: &[f64]| a.iter().zip(b).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+            assert!(max_diff(&chunked.dirty, &dirty) < 1e-12, "chunk {chunk}: dirty differs by {}", max_diff(&chunked.dirty, &dirty));
+            assert!(max_diff(&chunked.psf, &psf) < 1e-12, "chunk {chunk}: psf differs by {}", max_diff(&chunked.psf, &psf));
+            assert!((chunked.kappa / op.kappa() - 1.0).abs() < 1e-13);
+        }
+        let err = dirty_and_psf(g, &u, &v, &vec![0.0; w.len()], &vis, nufft, 2).err().unwrap().to_string();
+        assert!(err.contains("zero weight"), "{err}");
+        let err = dirty_and_psf(g, &u, &v, &w, &vis[1..], nufft, 2).err().unwrap().to_string();
+        assert!(err.contains("differ in length"), "{err}");
     }
 
     #[test]

@@ -89,14 +89,46 @@ pub fn imaging_weights(
     scheme: Weighting,
     grid_factor: f64,
 ) -> Result<Vec<f64>> {
+    if u.len() != v.len() || u.len() != natural_weight.len() {
+        return Err(Error::parameter("visibilities", "u, v and weight arrays differ in length"));
+    }
+    weigh(|k| (u[k], v[k]), |k| natural_weight[k], u.len(), image_size, scheme, grid_factor, |imaging, _| imaging)
+}
+
+/// Total weights (natural x imaging) of visibilities whose operator coordinates (as in
+/// [`imaging_weights`]) `point(k)` gives, without a per-visibility array beside the result:
+/// the coordinates and cells are computed again where they are needed (memory is the limit on
+/// large tables, and this is a small part of the time).
+pub fn total_weights(
+    point: impl Fn(usize) -> (f64, f64),
+    natural_weight: &[f32],
+    image_size: usize,
+    scheme: Weighting,
+    grid_factor: f64,
+) -> Result<Vec<f64>> {
+    let natural = |k: usize| f64::from(natural_weight[k]);
+    weigh(point, natural, natural_weight.len(), image_size, scheme, grid_factor, |imaging, natural| imaging * natural)
+}
+
+/// Imaging weight of each of `n` visibilities, combined with its natural weight by `combine`.
+fn weigh(
+    point: impl Fn(usize) -> (f64, f64),
+    natural_weight: impl Fn(usize) -> f64,
+    n: usize,
+    image_size: usize,
+    scheme: Weighting,
+    grid_factor: f64,
+    combine: impl Fn(f64, f64) -> f64,
+) -> Result<Vec<f64>> {
     if scheme == Weighting::Natural {
-        return Ok(vec![1.0; u.len()]);
+        return Ok((0..n).map(|k| combine(1.0, natural_weight(k))).collect());
     }
     if !(grid_factor > 0.0) || !grid_factor.is_finite() {
         return Err(Error::parameter("weighting grid factor", format!("expected a positive number, got {grid_factor}")));
     }
     let cells = ((grid_factor * image_size as f64).floor() as usize).max(1);
-    let cell_of = |u: f64, v: f64| -> usize {
+    let cell_of = |k: usize| -> usize {
+        let (u, v) = point(k);
         let (u, v) = if v < 0.0 { (-u, -v) } else { (u, v) };
         let index = |t: f64| -> usize {
             let c = ((t + std::f64::consts::PI) * cells as f64 / (2.0 * std::f64::consts::PI)).floor();
@@ -105,18 +137,22 @@ pub fn imaging_weights(
         index(v) * cells + index(u)
     };
     let mut density = vec![0.0f64; cells * cells];
-    let index: Vec<usize> = u.iter().zip(v).map(|(&u, &v)| cell_of(u, v)).collect();
-    for (&c, &w) in index.iter().zip(natural_weight) {
-        density[c] += w;
+    for k in 0..n {
+        density[cell_of(k)] += natural_weight(k);
     }
     Ok(match scheme {
         Weighting::Natural => unreachable!("handled above"),
-        Weighting::Uniform => index.iter().map(|&c| if density[c] > 0.0 { 1.0 / density[c] } else { 0.0 }).collect(),
+        Weighting::Uniform => (0..n)
+            .map(|k| {
+                let g = density[cell_of(k)];
+                combine(if g > 0.0 { 1.0 / g } else { 0.0 }, natural_weight(k))
+            })
+            .collect(),
         Weighting::Briggs { robust } => {
-            let sum_w: f64 = natural_weight.iter().sum();
+            let sum_w: f64 = (0..n).map(&natural_weight).sum();
             let sum_g2: f64 = density.iter().map(|g| g * g).sum();
             let f2 = if sum_g2 > 0.0 { (5.0 * 10f64.powf(-robust)).powi(2) * sum_w / sum_g2 } else { 0.0 };
-            index.iter().map(|&c| 1.0 / (1.0 + f2 * density[c])).collect()
+            (0..n).map(|k| combine(1.0 / (1.0 + f2 * density[cell_of(k)]), natural_weight(k))).collect()
         }
     })
 }
@@ -165,6 +201,20 @@ mod tests {
         assert!(plus5.iter().all(|x| (x / scale_n - 1.0).abs() < 1e-4));
         let ratio: Vec<f64> = minus5.iter().zip(&uniform).map(|(b, u)| b / u).collect();
         assert!(ratio.iter().all(|r| (r / ratio[0] - 1.0).abs() < 1e-4));
+    }
+
+    #[test]
+    fn total_weights_are_imaging_times_natural_weights_bit_for_bit() {
+        let (u, v, _) = sample();
+        let natural: Vec<f32> = (0..u.len()).map(|k| 0.3 + (k % 7) as f32).collect();
+        for scheme in [Weighting::Natural, Weighting::Uniform, Weighting::Briggs { robust: 0.5 }] {
+            let wide: Vec<f64> = natural.iter().map(|&w| f64::from(w)).collect();
+            let imaging = imaging_weights(&u, &v, &wide, 64, scheme, 2.0).unwrap();
+            let total = total_weights(|k| (u[k], v[k]), &natural, 64, scheme, 2.0).unwrap();
+            let expected: Vec<f64> = imaging.iter().zip(&wide).map(|(i, n)| i * n).collect();
+            assert_eq!(total, expected, "{scheme}");
+        }
+        assert!(imaging_weights(&u, &v[1..], &[1.0; 3], 64, Weighting::Uniform, 2.0).is_err());
     }
 
     #[test]

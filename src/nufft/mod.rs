@@ -13,7 +13,9 @@
 //!
 //! Points are sorted once per plan by grid tile so that gridding and degridding walk memory
 //! in order; gridding accumulates each tile in a small private buffer and adds it to the shared
-//! grid under a lock, so threads never contend per visibility.
+//! grid under a lock, so threads never contend per visibility. [`ChunkedAdjoint`] grids points
+//! given a chunk at a time, for callers that need no plan afterwards: its memory does not grow
+//! with the number of points.
 
 pub mod kernel;
 mod permute;
@@ -267,7 +269,7 @@ impl Nufft2d {
             pool,
             simd: SimdLevel::detect(),
         };
-        plan.sort_points(x, y)?;
+        plan.sort_points(x, y, true)?;
         Ok(plan)
     }
 
@@ -314,7 +316,10 @@ impl Nufft2d {
     /// tile's output range; pass 2 runs one task per group of consecutive tiles (so each task
     /// owns a contiguous part of the output): it scans the tile numbers, recomputes the
     /// positions of its own points and writes them in order.
-    fn sort_points(&mut self, x: &[f64], y: &[f64]) -> Result<()> {
+    ///
+    /// `permutation`: also organise the order for moves to and from the caller's order
+    /// ([`Permutation`]), which only the unsorted transforms need.
+    fn sort_points(&mut self, x: &[f64], y: &[f64], permutation: bool) -> Result<()> {
         let w = self.shape.support;
         let (gx, gy) = (self.grid_nx, self.grid_ny);
         let padded_x = gx + 2 * w;
@@ -439,8 +444,13 @@ impl Nufft2d {
         if !current.tiles.is_empty() {
             tasks.push(current);
         }
-        let ranges: Vec<_> = tasks.iter().map(|t| t.points.clone()).collect();
-        self.perm = self.pool.install(|| Permutation::new(&order, &ranges));
+        drop(tile);
+        self.perm = if permutation {
+            let ranges: Vec<_> = tasks.iter().map(|t| t.points.clone()).collect();
+            self.pool.install(|| Permutation::new(&order, &ranges))
+        } else {
+            Permutation::default()
+        };
         self.positions = positions;
         self.order = order;
         self.tasks = tasks;
@@ -470,8 +480,9 @@ impl Nufft2d {
         self.pool.install(|| {
             let slots = self.perm.gather(c);
             let sources = self.perm.task_segments(&slots).into_iter().map(Source::parts).collect();
-            let grid = dispatch_support!(self.shape.support, W, W2, L => self.grid::<W, W2, L>(sources));
-            self.grid_to_image(grid, out);
+            let mut grid = par_filled(Complex64::default(), self.grid_nx * self.grid_ny);
+            dispatch_support!(self.shape.support, W, W2, L => self.grid::<W, W2, L>(sources, &mut grid));
+            self.grid_to_image(grid, &self.row_used, out);
         });
     }
 
@@ -499,15 +510,16 @@ impl Nufft2d {
         assert_eq!(out.len(), self.nx * self.ny, "image size");
         self.pool.install(|| {
             let sources = self.tasks.iter().map(|task| Source::Sorted(&c[task.points.clone()])).collect();
-            let grid = dispatch_support!(self.shape.support, W, W2, L => self.grid::<W, W2, L>(sources));
-            self.grid_to_image(grid, out);
+            let mut grid = par_filled(Complex64::default(), self.grid_nx * self.grid_ny);
+            dispatch_support!(self.shape.support, W, W2, L => self.grid::<W, W2, L>(sources, &mut grid));
+            self.grid_to_image(grid, &self.row_used, out);
         });
     }
 
     /// The adjoint's grid-to-image step (FFT and correction) alone, on a zero grid (benchmarks).
     pub(crate) fn time_grid_to_image(&self) {
         let mut out = vec![Complex64::default(); self.nx * self.ny];
-        self.pool.install(|| self.grid_to_image(vec![Complex64::default(); self.grid_nx * self.grid_ny], &mut out));
+        self.pool.install(|| self.grid_to_image(vec![Complex64::default(); self.grid_nx * self.grid_ny], &self.row_used, &mut out));
     }
 
     /// The forward transform's image-to-grid step (correction and FFT) alone (benchmarks).
@@ -530,7 +542,7 @@ impl Nufft2d {
     /// kernel duplicated), which vectorises without shuffles.
     ///
     /// `sources[j]` gives the values of task `j`'s points.
-    fn grid<const W: usize, const W2: usize, const L: usize>(&self, sources: Vec<Source>) -> Vec<Complex64> {
+    fn grid<const W: usize, const W2: usize, const L: usize>(&self, sources: Vec<Source>, grid: &mut [Complex64]) {
         let (gx, gy) = (self.grid_nx, self.grid_ny);
         let kernel = self.kernel::<W, W2, L>();
         let bw = TILE + W;
@@ -540,7 +552,7 @@ impl Nufft2d {
         // added to the grid in task and tile order: the floating-point sums, hence the
         // images, do not depend on thread scheduling (simulations are bit-for-bit
         // reproducible from their seed).
-        let mut grid = par_filled(Complex64::default(), gx * gy);
+        assert_eq!(grid.len(), gx * gy, "grid size");
         let batch = 4 * self.pool.current_num_threads().max(1);
         let mut sources: Vec<Option<Source>> = sources.into_iter().map(Some).collect();
         let mut spare: Vec<Vec<f64>> = Vec::new();
@@ -595,7 +607,6 @@ impl Nufft2d {
                 }
             }
         }
-        grid
     }
 
     /// Interpolate the padded grid (interleaved `re, im` reals) at every point (sorted order):
@@ -612,11 +623,11 @@ impl Nufft2d {
         });
     }
 
-    /// Grid -> image: FFT rows (only those with data), FFT the columns holding image modes,
-    /// crop the modes and apply the kernel correction.
-    fn grid_to_image(&self, mut grid: Vec<Complex64>, out: &mut [Complex64]) {
+    /// Grid -> image: FFT rows (only those `row_used`, the others are zero), FFT the columns
+    /// holding image modes, crop the modes and apply the kernel correction.
+    fn grid_to_image(&self, mut grid: Vec<Complex64>, row_used: &[bool], out: &mut [Complex64]) {
         let (gx, gy, nx, ny) = (self.grid_nx, self.grid_ny, self.nx, self.ny);
-        grid.par_chunks_mut(gx).zip(self.row_used.par_iter()).for_each_init(
+        grid.par_chunks_mut(gx).zip(row_used.par_iter()).for_each_init(
             || vec![Complex64::default(); self.fft_x.get_inplace_scratch_len()],
             |scratch, (row, &used)| {
                 if used {
@@ -695,6 +706,62 @@ impl Nufft2d {
     }
 }
 
+
+/// Type 1 transforms ([`Nufft2d::adjoint`]) of several sets of values at the same points, the
+/// points given a chunk at a time: what the caller holds is all that grows with the number of
+/// points, since sorting, positions and values in plan order are only ever held for one chunk.
+/// The grids accumulate over the chunks; the images are the sums over all points, equal to
+/// one transform of all points up to the order of floating-point additions.
+pub struct ChunkedAdjoint {
+    plan: Nufft2d,
+    grids: Vec<Vec<Complex64>>,
+    /// Grid rows touched by any chunk's points.
+    row_used: Vec<bool>,
+}
+
+impl ChunkedAdjoint {
+    /// `transforms` sums on an `nx x ny` image (see [`Nufft2d::new`]).
+    pub fn new(nx: usize, ny: usize, transforms: usize, params: NufftParams, threads: usize) -> Result<ChunkedAdjoint> {
+        let plan = Nufft2d::new(nx, ny, &[], &[], params, threads)?;
+        let cells = plan.grid_nx * plan.grid_ny;
+        let grids = plan.install(|| (0..transforms).map(|_| par_filled(Complex64::default(), cells)).collect());
+        let row_used = vec![false; plan.grid_ny];
+        Ok(ChunkedAdjoint { plan, grids, row_used })
+    }
+
+    /// Adds the points `(x[k], y[k])` (as in [`Nufft2d::new`]) with value `value(t, k)` in
+    /// transform `t`.
+    pub fn add(&mut self, x: &[f64], y: &[f64], value: impl Fn(usize, usize) -> Complex64 + Sync) -> Result<()> {
+        if x.len() > u32::MAX as usize {
+            return Err(Error::parameter("points", "more than 2^32 points in one chunk"));
+        }
+        self.plan.sort_points(x, y, false)?;
+        let plan = &self.plan;
+        for (t, grid) in self.grids.iter_mut().enumerate() {
+            plan.install(|| {
+                let sorted: Vec<Complex64> = plan.order.par_iter().map(|&k| value(t, k as usize)).collect();
+                let sources = plan.tasks.iter().map(|task| Source::Sorted(&sorted[task.points.clone()])).collect();
+                dispatch_support!(plan.shape.support, W, W2, L => plan.grid::<W, W2, L>(sources, grid));
+            });
+        }
+        self.row_used.iter_mut().zip(&self.plan.row_used).for_each(|(all, &chunk)| *all |= chunk);
+        Ok(())
+    }
+
+    /// The transforms' images, in the order of the values' `t`.
+    pub fn finish(self) -> Vec<Vec<Complex64>> {
+        let ChunkedAdjoint { plan, grids, row_used } = self;
+        let pixels = plan.nx * plan.ny;
+        grids
+            .into_iter()
+            .map(|grid| {
+                let mut out = vec![Complex64::default(); pixels];
+                plan.install(|| plan.grid_to_image(grid, &row_used, &mut out));
+                out
+            })
+            .collect()
+    }
+}
 
 multiversion! {
     /// Spread the points of one tile into its buffer: interleaved `re, im` reals in rows of

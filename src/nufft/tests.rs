@@ -152,6 +152,32 @@ fn thread_count_does_not_change_results_beyond_rounding() {
 }
 
 #[test]
+fn chunked_adjoint_matches_direct_dft_and_one_plan() {
+    let (nx, ny, m) = (32, 24, 3000);
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    let (x, y) = random_points(m, &mut rng);
+    let c = random_complex(m, &mut rng);
+    let params = NufftParams { epsilon: 1e-10, oversampling: 2.0 };
+    let mut chunked = ChunkedAdjoint::new(nx, ny, 2, params, 2).unwrap();
+    // Uneven chunks, one of them empty; transform 1 holds the values doubled.
+    for range in [0..1000, 1000..1000, 1000..1001, 1001..m] {
+        let start = range.start;
+        chunked.add(&x[range.clone()], &y[range], |t, k| c[start + k] * (t + 1) as f64).unwrap();
+    }
+    let images = chunked.finish();
+    let direct = direct_adjoint(nx, ny, &x, &y, &c);
+    assert!(relative_error(&images[0], &direct) < 1e-9, "{}", relative_error(&images[0], &direct));
+    let plan = Nufft2d::new(nx, ny, &x, &y, params, 2).unwrap();
+    let mut whole = vec![Complex64::default(); nx * ny];
+    plan.adjoint(&c, &mut whole);
+    assert!(relative_error(&images[0], &whole) < 1e-14, "{}", relative_error(&images[0], &whole));
+    let doubled: Vec<Complex64> = whole.iter().map(|z| z * 2.0).collect();
+    assert!(relative_error(&images[1], &doubled) < 1e-14);
+    let err = ChunkedAdjoint::new(nx, ny, 1, params, 2).unwrap().add(&[f64::NAN], &[0.0], |_, _| c[0]).unwrap_err();
+    assert!(err.to_string().contains("finite point coordinates"), "{err}");
+}
+
+#[test]
 fn empty_point_set_gives_zero_image() {
     let plan = Nufft2d::new(16, 16, &[], &[], NufftParams::default(), 1).unwrap();
     let mut out = vec![Complex64::new(1.0, 1.0); 256];

@@ -2,7 +2,7 @@
 //! visibilities unless the residual update runs a NUFFT round trip.
 
 use crate::nufft::NufftParams;
-use crate::operator::{doubled_psf, MeasurementOperator, PsfConvolution};
+use crate::operator::{dirty_and_psf, doubled_psf, MeasurementOperator, PsfConvolution};
 use crate::pipeline::{Emit, Imaging, Job, Port, Stage};
 use crate::{Error, Result};
 use serde::Deserialize;
@@ -46,26 +46,25 @@ impl Stage for GridderStage {
         let weight = job.weight.take().ok_or_else(missing)?;
         let mut vis = job.vis.take().ok_or_else(|| Error::parameter("gridder", "the job has no visibilities"))?;
         let frequency_hz = vis.band().map(|(centre, _)| centre);
-        // Memory: each column goes as soon as nothing further needs it, so that the two
-        // NUFFT plans below (N x N, then 2N x 2N) never coexist with the whole table. The
-        // residual's NUFFT method keeps everything.
+        // Memory: each column goes as soon as nothing further needs it. The residual's NUFFT
+        // method keeps everything.
         if !self.keep_operator {
             vis.w = Vec::new();
             vis.frequency = Vec::new();
             vis.weight = Vec::new(); // natural weights: `weight` (set by the weighting stage) replaces them
         }
-        let operator = MeasurementOperator::new(geometry, &vis.u, &vis.v, &weight, self.nufft, self.threads)?;
-        let dirty = operator.dirty_image(&vis.vis);
-        crate::sanity::check_image(&dirty, geometry.size, "dirty image", "the visibilities or weights hold values too large to image (check the data column and the weights)")?;
-        let psf = operator.psf();
-        let kappa = operator.kappa();
-        let operator = if self.keep_operator {
-            Some(Arc::new(operator))
+        // Without a NUFFT residual no operator is kept, so the dirty image and PSF are
+        // gridded in chunks and nothing the size of the table is built beside it.
+        let (dirty, psf, kappa, operator) = if self.keep_operator {
+            let operator = MeasurementOperator::new(geometry, &vis.u, &vis.v, &weight, self.nufft, self.threads)?;
+            let dirty = operator.dirty_image(&vis.vis);
+            (dirty, operator.psf(), operator.kappa(), Some(Arc::new(operator)))
         } else {
-            drop(operator);
+            let images = dirty_and_psf(geometry, &vis.u, &vis.v, &weight, &vis.vis, self.nufft, self.threads)?;
             vis.vis = Vec::new();
-            None
+            (images.dirty, images.psf, images.kappa, None)
         };
+        crate::sanity::check_image(&dirty, geometry.size, "dirty image", "the visibilities or weights hold values too large to image (check the data column and the weights)")?;
         let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, kappa, self.nufft, self.threads)?;
         drop(weight);
         let psf_convolution = PsfConvolution::new(geometry.size, &psf_2n)?;

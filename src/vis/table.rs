@@ -33,7 +33,7 @@ use std::sync::Arc;
 
 use arrow::array::{Array, ArrayRef, BooleanArray, Float32Array, Float64Array, Int32Array, RecordBatch};
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
-use num_complex::Complex64;
+use num_complex::{Complex32, Complex64};
 use parquet::arrow::arrow_reader::{ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder};
 use parquet::arrow::{ArrowWriter, ProjectionMask};
 use parquet::basic::{Compression, ZstdLevel};
@@ -62,7 +62,9 @@ const ROW_GROUP_ROWS: usize = 1 << 20;
 /// Each excluded row is counted once, under the first reason that applies, in the order
 /// of the fields: flagged, then non-finite (any of u, v, w, frequency, visibility,
 /// weight), then physically impossible (a baseline coordinate beyond [`MAX_BASELINE_M`],
-/// a frequency outside [`FREQUENCY_RANGE_HZ`]), then non-positive weight.
+/// a frequency outside [`FREQUENCY_RANGE_HZ`], a visibility or weight beyond the single
+/// precision they are kept in, 3.4e38), then non-positive weight (also a weight below
+/// single precision's smallest, 1.4e-45).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct IngestStats {
     pub rows: u64,
@@ -98,9 +100,10 @@ impl IngestStats {
         if self.impossible > 0 {
             let (low, high) = FREQUENCY_RANGE_HZ;
             log::warn!(
-                "{}: {} physically impossible rows excluded (a baseline coordinate beyond {MAX_BASELINE_M:e} m, or a frequency outside {low:e} .. {high:e} Hz): is the file damaged?",
+                "{}: {} physically impossible rows excluded (a baseline coordinate beyond {MAX_BASELINE_M:e} m, a frequency outside {low:e} .. {high:e} Hz, or a visibility or weight beyond {:e}): is the file damaged?",
                 source.display(),
-                self.impossible
+                self.impossible,
+                f32::MAX
             );
         }
     }
@@ -304,11 +307,16 @@ fn convert_batch(
             continue;
         }
         let (low, high) = FREQUENCY_RANGE_HZ;
-        if [u[i], v[i], w[i]].iter().any(|x| x.abs() > MAX_BASELINE_M) || !(low..=high).contains(&frequency[i]) {
+        if [u[i], v[i], w[i]].iter().any(|x| x.abs() > MAX_BASELINE_M)
+            || !(low..=high).contains(&frequency[i])
+            || [re[i], im[i], wt].iter().any(|x| x.abs() > f64::from(f32::MAX))
+        {
             counts.impossible += 1;
             continue;
         }
-        if wt <= 0.0 {
+        // Stored in single precision (see `Visibilities`): a weight too small for it is zero.
+        let stored_weight = wt as f32;
+        if stored_weight <= 0.0 {
             counts.nonpositive_weight += 1;
             continue;
         }
@@ -317,9 +325,10 @@ fn convert_batch(
             rows.push(i);
         }
         out.push(
-            [u[i] * per_metre, v[i] * per_metre, w[i] * per_metre],
-            Complex64::new(re[i], im[i]),
-            wt,
+            [u[i] * per_metre, v[i] * per_metre],
+            (w[i] * per_metre) as f32,
+            Complex32::new(re[i] as f32, im[i] as f32),
+            stored_weight,
             frequency[i],
         );
     }
@@ -761,6 +770,11 @@ mod tests {
         ]
     }
 
+    /// A visibility as [`Visibilities`] keeps it.
+    fn single(z: Complex64) -> Complex32 {
+        Complex32::new(z.re as f32, z.im as f32)
+    }
+
     fn open_error(path: &Path) -> String {
         match VisReader::open(path, 100) {
             Ok(_) => panic!("{} opened without error", path.display()),
@@ -789,9 +803,9 @@ mod tests {
             let per_metre = table.frequency[i] / 299_792_458.0;
             assert_eq!(vis.u[i], table.u_m[i] * per_metre);
             assert_eq!(vis.v[i], table.v_m[i] * per_metre);
-            assert_eq!(vis.w[i], table.w_m[i] * per_metre);
-            assert_eq!(vis.vis[i], table.vis[i]);
-            assert_eq!(vis.weight[i], table.weight[i]);
+            assert_eq!(vis.w[i], (table.w_m[i] * per_metre) as f32);
+            assert_eq!(vis.vis[i], single(table.vis[i]));
+            assert_eq!(vis.weight[i], table.weight[i] as f32);
             assert_eq!(vis.frequency[i], table.frequency[i]);
         }
         let expected_max = (0..5).map(|i| vis.u[i].hypot(vis.v[i])).fold(0.0, f64::max);
@@ -817,7 +831,7 @@ mod tests {
         assert_eq!(stats, IngestStats { rows: 10, flagged: 2, non_finite: 3, impossible: 0, nonpositive_weight: 2 });
         assert_eq!(stats.kept(), 3);
         assert_eq!(vis.len(), 3);
-        assert_eq!(vis.vis, vec![table.vis[7], table.vis[8], table.vis[9]]);
+        assert_eq!(vis.vis, [7, 8, 9].map(|i| single(table.vis[i])));
         assert_eq!(
             stats.to_string(),
             "10 rows read, 3 kept, 7 excluded (2 flagged, 3 non-finite, 0 physically impossible, 2 non-positive weight)"
@@ -839,9 +853,20 @@ mod tests {
         write_parquet(&path, &table, &test_meta()).unwrap();
         let (vis, _, stats) = read_parquet(&path).expect("impossible rows are excluded, not an error");
         assert_eq!((stats.rows, stats.kept()), (10, 3));
-        assert_eq!(vis.vis, vec![table.vis[7], table.vis[8], table.vis[9]]);
+        assert_eq!(vis.vis, [7, 8, 9].map(|i| single(table.vis[i])));
         let text = stats.to_string();
         assert!(text.contains("7 physically impossible"), "{text}");
+        // Beyond what single precision holds (the visibilities' and weights' type), and a
+        // weight it rounds to zero.
+        let mut table = test_table(6);
+        table.vis[0] = Complex64::new(1e39, 0.0);
+        table.vis[1] = Complex64::new(0.0, -4e38);
+        table.weight[2] = 1e300;
+        table.weight[3] = 1e-50;
+        write_parquet(&path, &table, &test_meta()).unwrap();
+        let (vis, _, stats) = read_parquet(&path).unwrap();
+        assert_eq!((stats.impossible, stats.nonpositive_weight, stats.kept()), (3, 1, 2), "{stats}");
+        assert_eq!(vis.weight, [table.weight[4] as f32, table.weight[5] as f32]);
     }
 
     #[test]
@@ -866,7 +891,7 @@ mod tests {
         columns[5] = ("vis_im", f32s(&[-0.5, 0.25]));
         write_custom(&path, columns.clone(), GOOD_METADATA);
         let (vis, meta, stats) = read_parquet(&path).unwrap();
-        assert_eq!(vis.vis, vec![Complex64::new(1.5, -0.5), Complex64::new(2.5, 0.25)]);
+        assert_eq!(vis.vis, vec![Complex32::new(1.5, -0.5), Complex32::new(2.5, 0.25)]);
         assert_eq!(vis.weight, vec![1.0, 1.0]);
         assert_eq!(stats.kept(), 2);
         assert_eq!((meta.phase_centre_dec_deg, meta.telescope.as_str()), (-30.0, "MeerKAT"));
@@ -951,7 +976,7 @@ mod tests {
         assert!(batches >= 10, "{batches} batches");
         assert_eq!(reader.stats().rows, 10_000);
         assert_eq!(all.len(), 10_000);
-        assert_eq!(all.vis[9_999], table.vis[9_999]);
+        assert_eq!(all.vis[9_999], single(table.vis[9_999]));
         assert!(matches!(VisReader::open(&path, 0), Err(Error::Parameter { .. })));
     }
 
@@ -1074,7 +1099,7 @@ mod tests {
         assert_eq!(a.max_uv(), 0.0);
         assert!(a.is_empty());
         let mut b = Visibilities::with_capacity(1);
-        b.push([3.0, -4.0, 1.0], Complex64::new(1.0, 2.0), 0.5, 1.4e9);
+        b.push([3.0, -4.0], 1.0, Complex32::new(1.0, 2.0), 0.5, 1.4e9);
         a.push_batch(b.clone());
         a.push_batch(b);
         assert_eq!(a.len(), 2);
