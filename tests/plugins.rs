@@ -389,6 +389,45 @@ fn ctrl_c_stops_a_hung_isolated_plugin() {
     assert!(processes_mentioning(&needle).is_empty(), "the plugin host outlived r2d2");
 }
 
+/// In an embedding program each run has its own stop: cancelling one whose plugin hangs kills
+/// that run's host at once (not after the plugin's timeout), and the next run in the same
+/// process is not taken for interrupted.
+#[test]
+fn an_embedding_program_cancels_a_run_with_a_hung_plugin_and_runs_again() {
+    use r2d2_imaging::{Engine, EngineOptions};
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::Arc;
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    let library = d.join(library_file("hung_plugin_for_embedding"));
+    std::fs::copy(faulty(), &library).unwrap();
+    let engine = Engine::new(EngineOptions { threads: 2, onnx_runtime: None }).unwrap();
+    let spec = |fault: &str| {
+        let step = native_step(&library, 3, &format!("{{fail: {fault}, at: 2}}")) + "    timeout: 30\n";
+        let text = pipeline(&step).replace("files: obs.parquet", &format!("files: \"{}\"", d.join("obs.parquet").display()));
+        engine.load_yaml(&text, "embedded.yaml", &[format!("write.prefix={}/{{job}}", d.join(format!("out-{fault}")).display())]).unwrap()
+    };
+    let cancel = Arc::new(AtomicBool::new(false));
+    let flag = cancel.clone();
+    // Long enough for the job to reach the step, where the plugin hangs.
+    let canceller = std::thread::spawn(move || {
+        std::thread::sleep(std::time::Duration::from_secs(2));
+        flag.store(true, Ordering::SeqCst);
+    });
+    let began = std::time::Instant::now();
+    let err = engine.run(&spec("hang"), Vec::new(), None, cancel).unwrap_err().to_string();
+    canceller.join().unwrap();
+    assert!(began.elapsed().as_secs() < 15, "the cancelled run took {:?}: the hung plugin was left to its 30 s timeout", began.elapsed());
+    assert!(err.contains("interrupted: its host process was stopped"), "{err}");
+    assert!(!d.join("out-hang").exists(), "products written by a cancelled run");
+    std::thread::sleep(std::time::Duration::from_millis(200));
+    assert!(processes_mentioning(&library.display().to_string()).is_empty(), "the plugin host outlived the cancelled run");
+    // The next run, in the same process: its plugin's crash is reported as such.
+    let err = engine.run(&spec("segfault"), Vec::new(), None, Arc::default()).unwrap_err().to_string();
+    assert!(err.contains("killed by signal 11") && !err.contains("interrupted"), "{err}");
+}
+
 #[test]
 fn shipped_native_pipeline_validates_with_the_example_plugin() {
     // pipelines/native.yaml names target/release/...; point it at the library built here.
