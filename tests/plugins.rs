@@ -191,12 +191,20 @@ fn validate_reads_the_library_without_loading_it() {
         fails_before_imaging(d, &format!("marking-{isolation}"), &step, &["missing symbol r2d2_plugin_abi_version (read from the file, not loaded)"]);
         assert!(!marker.exists(), "checking the library ran its constructor ({isolation})");
     }
-    // A complete plugin is created in the isolated host: its constructor runs there, not in r2d2.
-    let complete = c_plugin_from_text(d, "marking_complete", &format!("{text}uint32_t r2d2_plugin_abi_version(void) {{ return R2D2_PLUGIN_ABI_VERSION; }}\n"));
-    std::fs::write(d.join("complete.yaml"), pipeline(&native_step(&complete, 2, "{}"))).unwrap();
-    let out = r2d2(&["validate", "complete.yaml"], d);
-    assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
-    assert!(stderr(&out).contains("the plugin refused its configuration {}: stub"), "{}", stderr(&out));
+    // A complete plugin is created in the isolated host: its constructor runs there, not in
+    // r2d2, also under `isolation: none` (which only `run` honours). The constructor writes the
+    // name of the process it runs in.
+    let naming = text.replace("if (f) fclose(f);", "if (f) { FILE *c = fopen(\"/proc/self/comm\", \"r\"); int ch; while (c && (ch = fgetc(c)) != EOF) fputc(ch, f); if (c) fclose(c); fclose(f); }");
+    let complete = c_plugin_from_text(d, "marking_complete", &format!("{naming}uint32_t r2d2_plugin_abi_version(void) {{ return R2D2_PLUGIN_ABI_VERSION; }}\n"));
+    for isolation in ["process", "none"] {
+        let _ = std::fs::remove_file(&marker);
+        std::fs::write(d.join("complete.yaml"), pipeline(&(native_step(&complete, 2, "{}") + &format!("    isolation: {isolation}\n")))).unwrap();
+        let out = r2d2(&["validate", "complete.yaml"], d);
+        assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
+        assert!(stderr(&out).contains("the plugin refused its configuration {}: stub"), "{}", stderr(&out));
+        let process = std::fs::read_to_string(&marker).unwrap_or_default();
+        assert!(process.starts_with("r2d2-plugin-ho"), "isolation: {isolation}: validate ran the plugin's constructor in '{}', not in its host", process.trim());
+    }
 }
 
 #[test]
