@@ -13,7 +13,9 @@
 //!   directories left there ([`recover`]): one without a journal (killed before the commit
 //!   began) or with the marker is removed; one whose journal is not marked committed is rolled
 //!   forward if every new file was moved in, else rolled back (new files removed, earlier files
-//!   put back). What it did is logged as a warning.
+//!   put back). What it did is logged as a warning. A process looks once per directory (the
+//!   first time it stages there): a run of many jobs does not list its output directory again
+//!   for each.
 //! - Concurrent processes: each staging directory is held under an exclusive `flock` for its
 //!   whole life (released by the kernel however the process ends), and recovery skips any it
 //!   cannot lock, so it never touches a commit in flight. The target directory is itself
@@ -161,7 +163,13 @@ impl Staging {
     pub fn new(target_dir: &Path) -> Result<Staging> {
         std::fs::create_dir_all(target_dir).map_err(|e| Error::io(target_dir, e))?;
         let held = lock_dir(target_dir)?;
-        recover_locked(target_dir)?;
+        let place = std::fs::canonicalize(target_dir).unwrap_or_else(|_| target_dir.to_path_buf());
+        let mut looked = LOOKED.lock().unwrap_or_else(|e| e.into_inner());
+        if !looked.contains(&place) {
+            recover_locked(target_dir)?;
+            looked.insert(place);
+        }
+        drop(looked);
         let dir = tempfile::Builder::new().prefix(PREFIX).tempdir_in(target_dir).map_err(|e| Error::io(target_dir, e))?;
         let lock = lock_dir(dir.path())?;
         drop(held);
@@ -309,6 +317,9 @@ fn kill_this_process() -> ! {
     }
     std::process::abort()
 }
+
+/// Directories this process has recovered leftovers in (canonical paths).
+static LOOKED: std::sync::Mutex<std::collections::BTreeSet<PathBuf>> = std::sync::Mutex::new(std::collections::BTreeSet::new());
 
 /// Finishes or undoes the commits that killed processes left in `dir` (see the module
 /// documentation); staging directories in use by a live process are left alone.

@@ -263,3 +263,31 @@ fn mutated_inputs_end_in_success_or_a_clean_error() {
     eprintln!("{} mutated cases of {} kinds in {:.1} s", cases as usize * kinds.len(), kinds.len(), began.elapsed().as_secs_f64());
     assert!(failures.is_empty(), "{} of {} mutated cases did not end cleanly:\n{}", failures.len(), cases as usize * kinds.len(), failures.join("\n\n"));
 }
+
+/// Cases the fuzzer found, kept as they were fixed.
+#[test]
+fn damaged_inputs_the_fuzzer_found_fail_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    common::make_test_models(&d.join("models"), 0.5);
+    // Seed 3, onnx-network-tract case 248: the graph's output renamed to a value no node makes
+    // ("y" to "{"); tract panicked while loading it, and the panic's text reached the terminal.
+    let network = d.join("models/landweber/lw3.onnx");
+    let mut bytes = std::fs::read(&network).unwrap();
+    let output = b"b\x1d\n\x01y";
+    let at = bytes.windows(output.len()).position(|w| w == output).expect("the graph output 'y' of tests/make_test_models.py");
+    bytes[at + output.len() - 1] = b'{';
+    std::fs::write(&network, bytes).unwrap();
+    for backend in ["tract", "auto"] {
+        let step = format!("    kind: onnx\n    series: models/landweber\n    backend: {backend}\n");
+        let text = format!(
+            "image:\n  size: {SIZE}\nstages:\n  source:\n    kind: parquet\n    files: obs.parquet\n    to: weights\n  weights:\n    kind: weighting\n    scheme: natural\n    to: grid\n  grid:\n    kind: gridder\n    to: step\n  step:\n{step}    to: update\n  update:\n    kind: residual\n    to: step\n    done: write\n  write:\n    kind: writer\n    prefix: \"out-{backend}/{{job}}\"\n"
+        );
+        std::fs::write(d.join("p.yaml"), text).unwrap();
+        let out = common::r2d2(&["run", "p.yaml"], d);
+        let err = common::assert_fails_with(&out, backend, &["lw3.onnx", "stage 'step' (onnx)"]);
+        assert!(!err.contains("panicked"), "{backend}: {err}");
+        assert!(!d.join(format!("out-{backend}")).exists(), "{backend}: products written");
+    }
+}

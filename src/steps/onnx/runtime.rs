@@ -449,12 +449,17 @@ impl TractNetwork {
     fn load(path: &Path, size: usize) -> Result<TractNetwork> {
         use tract_onnx::prelude::*;
         let fail = |e: &dyn std::fmt::Display| Error::input(path, format!("tract could not load the network: {e:#}"));
-        let plan = tract_onnx::onnx()
-            .model_for_path(path)
-            .and_then(|m| m.with_input_fact(0, f32::fact([1, 2, size, size]).into()))
-            .and_then(|m| m.into_optimized())
-            .and_then(|m| m.into_runnable())
-            .map_err(|e| fail(&e))?;
+        // tract panics on some damaged files (a node naming a value no node makes): an error
+        // naming the file, without the panic's text on the terminal.
+        let plan = crate::error::catch_quietly(|| {
+            tract_onnx::onnx()
+                .model_for_path(path)
+                .and_then(|m| m.with_input_fact(0, f32::fact([1, 2, size, size]).into()))
+                .and_then(|m| m.into_optimized())
+                .and_then(|m| m.into_runnable())
+        })
+        .map_err(|panic| fail(&format!("{panic} (a damaged file?)")))?
+        .map_err(|e| fail(&e))?;
         Ok(TractNetwork { plan, path: path.to_path_buf(), size })
     }
 }
