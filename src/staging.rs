@@ -235,8 +235,8 @@ impl Staging {
             retired: self.retired.iter().map(|t| Name::of(t)).collect(),
         };
         let mut plan = Plan::new(&journal, &self.target_dir, &staging);
-        // Rename the caller's paths (they name the same files; errors then read as the caller
-        // wrote them).
+        // The caller's spelling of the targets (the same files), so that errors name them as
+        // the caller did.
         for ((target, _), (_, to)) in plan.products.iter_mut().zip(&moves) {
             *target = to.clone();
         }
