@@ -67,7 +67,8 @@ impl Engine {
         self
     }
 
-    /// Stops [`Engine::image`] at the next job boundary when `cancel` turns true.
+    /// Stops [`Engine::image`] at the next job boundary when `cancel` turns true. Runs only
+    /// read the flag (a failed run leaves it clear); after a cancel, clear it to image again.
     pub fn with_cancel(mut self, cancel: Arc<AtomicBool>) -> Engine {
         self.cancel = cancel;
         self
@@ -94,7 +95,8 @@ impl Engine {
         runner::validate(&self.registry, &self.with_threads(spec)).map(|_| ())
     }
 
-    /// Runs `spec` to completion (or until `cancel` turns true). An `arrow` source reads
+    /// Runs `spec` to completion (or until `cancel` turns true; the run only reads it, and
+    /// stops its plugin hosts when it does). An `arrow` source reads
     /// `inputs`; a `products` stage delivers each finished job to `sink`.
     pub fn run(
         &self,

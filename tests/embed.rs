@@ -213,3 +213,68 @@ fn a_program_registers_a_stage_kind_of_its_own() {
     // A name taken already is refused.
     assert!(engine.registry_mut().register(CountKind(counted)).is_err());
 }
+
+/// Fails every job, as a stage of the program's own with a bug might.
+struct Fails;
+
+impl Stage for Fails {
+    fn process(&mut self, _: Job, _: &mut Emit<'_>) -> r2d2_imaging::Result<()> {
+        Err(r2d2_imaging::Error::parameter("fails", "failing on purpose"))
+    }
+}
+
+struct FailsKind;
+
+impl StageKind for FailsKind {
+    fn name(&self) -> &str {
+        "fails"
+    }
+    fn role(&self) -> Role {
+        Role::Sink
+    }
+    fn consumes(&self, _: &BuildContext<'_>) -> r2d2_imaging::Result<Vec<Product>> {
+        Ok(vec![Product::Imaging])
+    }
+    fn build(&self, _: &BuildContext<'_>) -> r2d2_imaging::Result<Built> {
+        Ok(Built::Stage(Box::new(Fails)))
+    }
+}
+
+#[test]
+fn a_failed_or_cancelled_run_leaves_the_engine_ready_for_the_next() {
+    let mut engine = engine();
+    engine.registry_mut().register(FailsKind).unwrap();
+    let cancel = engine.cancel_flag();
+    // A stage failing stops that run only: the caller's flag (which `image` uses) stays clear.
+    let failing = engine.load_yaml(&PIPELINE.replace("kind: products", "kind: fails"), "fails.yaml", &[]).unwrap();
+    let err = engine.run(&failing, vec![input("a", &observation(8))], None, cancel.clone()).unwrap_err().to_string();
+    assert!(err.contains("failing on purpose"), "{err}");
+    assert!(!cancel.load(Ordering::SeqCst), "a failed run set the engine's cancel flag: every later image() would stop at once");
+    engine.image(input("after-failure", &observation(9)), &clean_params()).unwrap();
+
+    // Cancelled by the caller once the first job is delivered: an interruption, not every job.
+    let spec = engine.load_yaml(PIPELINE, "embedded.yaml", &[]).unwrap();
+    let delivered = Arc::new(AtomicUsize::new(0));
+    let sink = |delivered: &Arc<AtomicUsize>, cancel: Option<Arc<AtomicBool>>| {
+        let (delivered, cancel) = (delivered.clone(), cancel);
+        move |_: JobProducts| {
+            delivered.fetch_add(1, Ordering::SeqCst);
+            if let Some(cancel) = &cancel {
+                cancel.store(true, Ordering::SeqCst);
+            }
+            Ok(())
+        }
+    };
+    let inputs = |ids: &[&str]| ids.iter().enumerate().map(|(k, id)| input(id, &observation(10 + k as u64))).collect::<Vec<_>>();
+    let err = engine.run(&spec, inputs(&["a", "b", "c", "d"]), Some(Box::new(sink(&delivered, Some(cancel.clone())))), cancel.clone()).unwrap_err();
+    assert!(matches!(err, r2d2_imaging::Error::Interrupted(_)), "{err}");
+    let first = delivered.load(Ordering::SeqCst);
+    assert!((1..4).contains(&first), "{first} of 4 jobs delivered after a cancel at the first");
+
+    // The same engine, its flag cleared by the caller, runs again in full.
+    cancel.store(false, Ordering::SeqCst);
+    let again = Arc::new(AtomicUsize::new(0));
+    let report = engine.run(&spec, inputs(&["e", "f"]), Some(Box::new(sink(&again, None))), cancel.clone()).unwrap();
+    assert_eq!((report.jobs.len(), again.load(Ordering::SeqCst)), (2, 2));
+    engine.image(input("after-cancel", &observation(12)), &clean_params()).unwrap();
+}

@@ -4,6 +4,10 @@
 //! never a mix, and a failure leaves the earlier products as they were. (Plugin faults:
 //! tests/plugins.rs; SIGTERM and Ctrl-C: tests/pipeline.rs and tests/plugins.rs.)
 //!
+//! A kill between the renames of a commit is made exact by a test hook
+//! (`R2D2_TEST_KILL_AFTER_RENAMES=N`: the process kills itself after N renames); the next run
+//! writing into the directory rolls the commit back, or forward if every rename was done.
+//!
 //! The disk faults need a private mount namespace (`unshare -rm`, util-linux); CI machines
 //! allow it, and without one the test fails rather than passing untested.
 
@@ -33,6 +37,35 @@ fn contents(dir: &Path) -> BTreeMap<String, Vec<u8>> {
 /// Products (visible files) only.
 fn products(dir: &Path) -> BTreeMap<String, Vec<u8>> {
     contents(dir).into_iter().filter(|(n, _)| !n.starts_with('.')).collect()
+}
+
+/// Names of the staging directories left in `dir`.
+fn staging_left(dir: &Path) -> Vec<String> {
+    contents(dir).into_keys().filter(|n| n.starts_with(".r2d2-staging")).collect()
+}
+
+/// Replaces whatever is in `dir` by `files`.
+fn restore(dir: &Path, files: &BTreeMap<String, Vec<u8>>) {
+    for entry in std::fs::read_dir(dir).unwrap().flatten() {
+        let _ = std::fs::remove_dir_all(entry.path()).or_else(|_| std::fs::remove_file(entry.path()));
+    }
+    for (name, bytes) in files {
+        std::fs::write(dir.join(name), bytes).unwrap();
+    }
+}
+
+/// A later run writing into `out/` (`r2d2 dirty` under another prefix), which recovers what a
+/// killed commit left there; its standard error.
+fn later_run(d: &Path) -> String {
+    let out = r2d2(&["dirty", "obs.parquet", "--size", &SIZE.to_string(), "--name", "out/later"], d);
+    check(&out);
+    let err = common::stderr(&out);
+    let out_dir = d.join("out");
+    for name in ["later-dirty.fits", "later-psf.fits"] {
+        std::fs::remove_file(out_dir.join(name)).unwrap();
+    }
+    assert!(staging_left(&out_dir).is_empty(), "staging left after the later run: {:?}", staging_left(&out_dir));
+    err
 }
 
 #[test]
@@ -65,6 +98,8 @@ fn a_run_killed_at_any_moment_leaves_the_earlier_products_or_the_new_ones_never_
         std::thread::sleep(full.mul_f64(k as f64 / 6.0));
         let _ = child.kill();
         let _ = child.wait();
+        // What any later run writing there finds, once it has recovered a commit cut short.
+        later_run(d);
         // Products carry run-specific values (timings, dates), so a new set is recognised as
         // one in which no file that differs between the two runs is the earlier one.
         let now = products(&d.join("out"));
@@ -81,6 +116,45 @@ fn a_run_killed_at_any_moment_leaves_the_earlier_products_or_the_new_ones_never_
     }
     // The kills fell both before and after the commit, so both outcomes were checked.
     assert!(saw_old > 0 && saw_new > 0, "old {saw_old}, new {saw_new}: the kill times missed one side");
+}
+
+#[test]
+fn a_commit_killed_between_renames_is_rolled_back_or_forward_by_the_next_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    std::fs::write(d.join("p.yaml"), pipeline()).unwrap();
+    let out_dir = d.join("out");
+    check(&r2d2(&["run", "p.yaml", "-q"], d));
+    let old = products(&out_dir);
+    // Every earlier product is moved aside, then every new one moved in.
+    let renames = 2 * old.len();
+    for n in 0..=renames {
+        restore(&out_dir, &old);
+        let killed = Command::new(env!("CARGO_BIN_EXE_r2d2"))
+            .args(["run", "p.yaml", "-q", "--set", "step.major_cycles=3"])
+            .current_dir(d)
+            .env("R2D2_TEST_KILL_AFTER_RENAMES", n.to_string())
+            .output()
+            .unwrap();
+        assert_eq!(std::os::unix::process::ExitStatusExt::signal(&killed.status), Some(9), "after {n} renames: {}", common::stderr(&killed));
+        let left = products(&out_dir);
+        assert_eq!(staging_left(&out_dir).len(), 1, "after {n} renames");
+        if n > 0 && n < renames {
+            assert_ne!(left, old, "after {n} renames the directory is as before: the hook did not cut the commit");
+        }
+        let said = later_run(d);
+        let now = products(&out_dir);
+        if n < renames {
+            assert!(said.contains("rolled back"), "after {n} renames: {said}");
+            assert!(now == old, "after {n} of {renames} renames and a later run: not the earlier set, byte for byte");
+        } else {
+            // Every file moved in: the new set stands whole, as the kill left it.
+            assert!(said.contains("rolled forward"), "{said}");
+            assert!(now == left, "after all renames and a later run: not the new set, byte for byte");
+            assert_ne!(now["obs-model.fits"], old["obs-model.fits"]);
+        }
+    }
 }
 
 /// Runs `script` in a private mount namespace (as `sh -c`), in `dir`; stdout and stderr.

@@ -1,11 +1,15 @@
 //! A deterministic mutation fuzzer over the inputs r2d2 takes from outside: a Parquet table,
-//! an Arrow IPC stream, a pipeline's YAML, a FITS truth image and a series manifest. Each
-//! valid seed file is mutated (bit flips, interesting bytes, cut, duplicated or deleted
+//! an Arrow IPC stream, a pipeline's YAML, a FITS truth image, a series manifest, a
+//! MeasurementSet's table files (written by python-casacore, tests/make_ms.py) and the
+//! networks and manifest of an ONNX series (tests/make_test_models.py; on ONNX Runtime where
+//! it is found, and on tract). Each valid seed file (for an MS or a series, one of its files
+//! picked at random) is mutated (bit flips, interesting bytes, cut, duplicated or deleted
 //! ranges, truncation) by a seeded generator and given to the release binary; every case must
-//! end with success (exit 0) or a clean error (exit 1, an `error:` line), never a panic (exit
-//! 101, or "panicked" printed), a signal (abort, segfault) or a hang (60 s).
+//! end with success (exit 0) or a clean error (exit 1, an `error:` line naming the input),
+//! never a panic (exit 101, or "panicked" printed), a signal (abort, segfault) or a hang (60 s).
 //!
-//! `cargo test --release --test fuzz` runs 12 cases per input kind (seconds); more by hand:
+//! `cargo test --release --test fuzz` runs 12 cases per input kind (about a minute in all);
+//! more by hand:
 //!
 //!     R2D2_FUZZ_CASES=2000 R2D2_FUZZ_SEED=7 cargo test --release --test fuzz -- --nocapture
 //!
@@ -63,8 +67,9 @@ fn mutate(data: &mut Vec<u8>, rng: &mut ChaCha8Rng) {
     }
 }
 
-/// Runs r2d2 with a time limit; the outcome in words if it is not a clean one.
-fn run_bounded(args: &[&str], dir: &Path) -> Option<String> {
+/// Runs r2d2 with a time limit; the outcome in words if it is not a clean one (an error must
+/// contain `names`, the input's name).
+fn run_bounded(args: &[&str], dir: &Path, names: &str) -> Option<String> {
     let mut child = Command::new(env!("CARGO_BIN_EXE_r2d2"))
         .args(args)
         .current_dir(dir)
@@ -96,17 +101,35 @@ fn run_bounded(args: &[&str], dir: &Path) -> Option<String> {
     match status {
         None => Some("hung (killed after 60 s)".into()),
         Some(s) if s.code() == Some(0) && !err.contains("panicked") => None,
-        Some(s) if s.code() == Some(1) && err.contains("error:") && !err.contains("panicked") => None,
+        Some(s) if s.code() == Some(1) && err.contains("error:") && !err.contains("panicked") && err.contains(names) => None,
         Some(s) => Some(format!("{s}: {}", err.chars().rev().take(1500).collect::<String>().chars().rev().collect::<String>())),
     }
 }
 
 struct Kind {
     name: &'static str,
-    /// The file the mutated bytes are written to (relative to the case directory).
-    file: &'static str,
-    seed: Vec<u8>,
+    /// The input's files (paths relative to the case directory) and their valid bytes.
+    files: Vec<(String, Vec<u8>)>,
+    /// How many of `files`, from the first, may be mutated (one picked per case).
+    mutable: usize,
     args: Vec<String>,
+    /// What an error must name (the input).
+    names: &'static str,
+}
+
+/// Every file under `dir`, as (path relative to `under`, bytes), in name order.
+fn tree(dir: &Path, under: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut files = Vec::new();
+    let mut entries: Vec<_> = std::fs::read_dir(dir).unwrap().flatten().map(|e| e.path()).collect();
+    entries.sort();
+    for path in entries {
+        if path.is_dir() {
+            files.extend(tree(&path, under));
+        } else {
+            files.push((path.strip_prefix(under).unwrap().to_string_lossy().into_owned(), std::fs::read(&path).unwrap()));
+        }
+    }
+    files
 }
 
 /// An Arrow IPC stream of the observation's table (schema metadata included).
@@ -124,18 +147,6 @@ fn ipc_stream(parquet: &Path) -> Vec<u8> {
     out
 }
 
-fn copy_series(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for entry in std::fs::read_dir(from).unwrap().flatten() {
-        if entry.path().extension().is_some_and(|e| e == "onnx") {
-            let target = to.join(entry.file_name());
-            if std::fs::hard_link(entry.path(), &target).is_err() {
-                std::fs::copy(entry.path(), &target).unwrap();
-            }
-        }
-    }
-}
-
 #[test]
 fn mutated_inputs_end_in_success_or_a_clean_error() {
     let cases = env_number("R2D2_FUZZ_CASES", 12);
@@ -144,59 +155,91 @@ fn mutated_inputs_end_in_success_or_a_clean_error() {
     let d = dir.path();
     observation(d);
     let obs = d.join("obs.parquet");
-    let pipeline = |source: &str| {
+    let pipeline = |source: &str, step: &str| {
         format!(
-            "name: fuzz\nimage:\n  size: {SIZE}\nstages:\n  source:\n{source}    to: weights\n  weights:\n    kind: weighting\n    scheme: briggs\n    robust: 0\n    to: grid\n  grid:\n    kind: gridder\n    to: step\n  step:\n    kind: clean\n    major_cycles: 2\n    to: update\n  update:\n    kind: residual\n    to: step\n    done: write\n  write:\n    kind: writer\n    prefix: \"out/{{job}}\"\n"
+            "name: fuzz\nimage:\n  size: {SIZE}\nstages:\n  source:\n{source}    to: weights\n  weights:\n    kind: weighting\n    scheme: briggs\n    robust: 0\n    to: grid\n  grid:\n    kind: gridder\n    to: step\n  step:\n{step}    to: update\n  update:\n    kind: residual\n    to: step\n    done: write\n  write:\n    kind: writer\n    prefix: \"out/{{job}}\"\n"
         )
     };
+    let clean = "    kind: clean\n    major_cycles: 2\n";
+    let from_obs = "    kind: parquet\n    files: ../obs.parquet\n";
     let series = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/vla-r2d2-128");
-    let manifest_pipeline = "name: m\nimage:\n  size: 128\nstages:\n  source:\n    kind: parquet\n    files: ../obs.parquet\n    to: weights\n  weights:\n    kind: weighting\n    scheme: briggs\n    robust: 0\n    to: grid\n  grid:\n    kind: gridder\n    to: step\n  step:\n    kind: onnx\n    series: series\n    to: update\n  update:\n    kind: residual\n    to: step\n    done: write\n  write:\n    kind: writer\n    prefix: \"out/{job}\"\n";
+    let manifest_pipeline = pipeline(from_obs, "    kind: onnx\n    series: series\n").replace(&format!("size: {SIZE}"), "size: 128");
+    // The MS of the observation, and the tiny analytic ONNX series.
+    let ms = std::process::Command::new("python3")
+        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/make_ms.py"))
+        .args(["obs.parquet", "obs.ms"])
+        .current_dir(d)
+        .output()
+        .expect("python3 runs (a test requirement)");
+    assert!(ms.status.success(), "tests/make_ms.py failed (pip install -r tests/requirements.txt): {}", stderr(&ms));
+    common::make_test_models(&d.join("models"), 0.5);
     let s = |v: &[&str]| v.iter().map(|a| a.to_string()).collect::<Vec<_>>();
+    let file = |name: &str, bytes: Vec<u8>| vec![(name.to_string(), bytes)];
     let image = |input: &str| s(&["image", input, "--size", &SIZE.to_string(), "--step", "clean", "--name", "out/x"]);
+    // The series' files with the manifest first, then the pipeline running it on `backend`.
+    let onnx_series = |manifest_first: bool, backend: &str| {
+        let mut files: Vec<(String, Vec<u8>)> = tree(&d.join("models/landweber"), &d.join("models"));
+        files.sort_by_key(|(name, _)| name.ends_with("manifest.yaml") != manifest_first);
+        let step = format!("    kind: onnx\n    series: landweber\n    backend: {backend}\n");
+        files.push(("onnx.yaml".into(), pipeline(from_obs, &step).into_bytes()));
+        files
+    };
+    let mut series_files = vec![("series/manifest.yaml".to_string(), std::fs::read(series.join("manifest.yaml")).unwrap())];
+    series_files.extend(tree(&series, &series).into_iter().filter(|(n, _)| n.ends_with(".onnx")).map(|(n, b)| (format!("series/{n}"), b)));
+    series_files.push(("manifest.yaml".into(), manifest_pipeline.into_bytes()));
+    let ms_files: Vec<(String, Vec<u8>)> = tree(&d.join("obs.ms"), d).into_iter().map(|(n, b)| (n.replacen("obs.ms", "in.ms", 1), b)).collect();
+    let networks = onnx_series(false, "auto").iter().filter(|(n, _)| n.ends_with(".onnx")).count();
     let kinds = [
-        Kind { name: "parquet", file: "in.parquet", seed: std::fs::read(&obs).unwrap(), args: image("in.parquet") },
+        Kind { name: "parquet", files: file("in.parquet", std::fs::read(&obs).unwrap()), mutable: 1, args: image("in.parquet"), names: "in.parquet" },
         Kind {
             name: "arrow-ipc",
-            file: "in.arrows",
-            seed: ipc_stream(&obs),
+            files: [file("in.arrows", ipc_stream(&obs)), file("ipc.yaml", pipeline("    kind: arrow-ipc\n    path: in.arrows\n", clean).into_bytes())].concat(),
+            mutable: 1,
             args: s(&["run", "ipc.yaml"]),
+            names: "in.arrows",
         },
-        Kind { name: "yaml", file: "in.yaml", seed: pipeline("    kind: parquet\n    files: ../obs.parquet\n").into_bytes(), args: s(&["run", "in.yaml"]) },
+        Kind { name: "yaml", files: file("in.yaml", pipeline(from_obs, clean).into_bytes()), mutable: 1, args: s(&["run", "in.yaml"]), names: "" },
         Kind {
             name: "fits-truth",
-            file: "truth.fits",
-            seed: std::fs::read(d.join("obs.sky.fits")).unwrap(),
+            files: file("truth.fits", std::fs::read(d.join("obs.sky.fits")).unwrap()),
+            mutable: 1,
             args: s(&["image", "../obs.parquet", "--size", &SIZE.to_string(), "--step", "clean", "--truth", "truth.fits", "--name", "out/x"]),
+            names: "truth.fits",
         },
+        Kind { name: "manifest", files: series_files, mutable: 1, args: s(&["validate", "manifest.yaml"]), names: "" },
         Kind {
-            name: "manifest",
-            file: "series/manifest.yaml",
-            seed: std::fs::read(series.join("manifest.yaml")).unwrap(),
-            args: s(&["validate", "manifest.yaml"]),
+            name: "measurement-set",
+            mutable: ms_files.len(),
+            files: ms_files,
+            args: s(&["dirty", "in.ms", "--size", &SIZE.to_string(), "--name", "out/x"]),
+            names: "in.ms",
         },
+        Kind { name: "onnx-manifest", files: onnx_series(true, "auto"), mutable: 1, args: s(&["run", "onnx.yaml"]), names: "landweber" },
+        Kind { name: "onnx-network-ort", files: onnx_series(false, "auto"), mutable: networks, args: s(&["run", "onnx.yaml"]), names: "landweber" },
+        Kind { name: "onnx-network-tract", files: onnx_series(false, "tract"), mutable: networks, args: s(&["run", "onnx.yaml"]), names: "landweber" },
     ];
     // The unmutated seeds succeed: the harness starts from valid inputs.
     let mut failures = Vec::new();
     let kept = Path::new(env!("CARGO_TARGET_TMPDIR")).join("fuzz-failures");
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let began = Instant::now();
     for kind in &kinds {
         for case in 0..=cases {
             let case_dir = d.join(format!("{}-{case}", kind.name));
-            std::fs::create_dir_all(&case_dir).unwrap();
-            std::fs::write(case_dir.join("ipc.yaml"), pipeline("    kind: arrow-ipc\n    path: in.arrows\n")).unwrap();
-            if kind.name == "manifest" {
-                copy_series(&series, &case_dir.join("series"));
-                std::fs::write(case_dir.join("manifest.yaml"), manifest_pipeline).unwrap();
-            }
-            let mut data = kind.seed.clone();
+            let mut files = kind.files.clone();
+            let mutated = rng.gen_range(0..kind.mutable);
             if case > 0 {
                 for _ in 0..rng.gen_range(1..=4) {
-                    mutate(&mut data, &mut rng);
+                    mutate(&mut files[mutated].1, &mut rng);
                 }
             }
-            std::fs::write(case_dir.join(kind.file), &data).unwrap();
+            for (name, bytes) in &files {
+                let path = case_dir.join(name);
+                std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+                std::fs::write(path, bytes).unwrap();
+            }
             let args: Vec<&str> = kind.args.iter().map(String::as_str).collect();
-            let outcome = run_bounded(&args, &case_dir);
+            let outcome = run_bounded(&args, &case_dir, kind.names);
             if case == 0 {
                 assert!(outcome.is_none(), "{}: the unmutated seed failed: {outcome:?}", kind.name);
                 let out = Command::new(env!("CARGO_BIN_EXE_r2d2")).args(&args).current_dir(&case_dir).output().unwrap();
@@ -204,13 +247,47 @@ fn mutated_inputs_end_in_success_or_a_clean_error() {
                 assert!(!stderr(&out).contains("panicked"));
             }
             if let Some(outcome) = outcome {
+                // The whole input, the mutated file among the rest, to reproduce the case.
                 let keep = kept.join(format!("seed{seed}-{}-{case}", kind.name));
-                std::fs::create_dir_all(&keep).unwrap();
-                std::fs::write(keep.join(Path::new(kind.file).file_name().unwrap()), &data).unwrap();
-                failures.push(format!("{} case {case} (kept in {}; r2d2 {}): {outcome}", kind.name, keep.display(), kind.args.join(" ")));
+                let _ = std::fs::remove_dir_all(&keep);
+                for (name, bytes) in &files {
+                    let path = keep.join(name);
+                    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+                    std::fs::write(path, bytes).unwrap();
+                }
+                failures.push(format!("{} case {case}, {} mutated (kept in {}; r2d2 {}): {outcome}", kind.name, files[mutated].0, keep.display(), kind.args.join(" ")));
             }
             std::fs::remove_dir_all(&case_dir).unwrap();
         }
     }
+    eprintln!("{} mutated cases of {} kinds in {:.1} s", cases as usize * kinds.len(), kinds.len(), began.elapsed().as_secs_f64());
     assert!(failures.is_empty(), "{} of {} mutated cases did not end cleanly:\n{}", failures.len(), cases as usize * kinds.len(), failures.join("\n\n"));
+}
+
+/// Cases the fuzzer found, kept as they were fixed.
+#[test]
+fn damaged_inputs_the_fuzzer_found_fail_cleanly() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    common::make_test_models(&d.join("models"), 0.5);
+    // Seed 3, onnx-network-tract case 248: the graph's output renamed to a value no node makes
+    // ("y" to "{"); tract panicked while loading it, and the panic's text reached the terminal.
+    let network = d.join("models/landweber/lw3.onnx");
+    let mut bytes = std::fs::read(&network).unwrap();
+    let output = b"b\x1d\n\x01y";
+    let at = bytes.windows(output.len()).position(|w| w == output).expect("the graph output 'y' of tests/make_test_models.py");
+    bytes[at + output.len() - 1] = b'{';
+    std::fs::write(&network, bytes).unwrap();
+    for backend in ["tract", "auto"] {
+        let step = format!("    kind: onnx\n    series: models/landweber\n    backend: {backend}\n");
+        let text = format!(
+            "image:\n  size: {SIZE}\nstages:\n  source:\n    kind: parquet\n    files: obs.parquet\n    to: weights\n  weights:\n    kind: weighting\n    scheme: natural\n    to: grid\n  grid:\n    kind: gridder\n    to: step\n  step:\n{step}    to: update\n  update:\n    kind: residual\n    to: step\n    done: write\n  write:\n    kind: writer\n    prefix: \"out-{backend}/{{job}}\"\n"
+        );
+        std::fs::write(d.join("p.yaml"), text).unwrap();
+        let out = common::r2d2(&["run", "p.yaml"], d);
+        let err = common::assert_fails_with(&out, backend, &["lw3.onnx", "stage 'step' (onnx)"]);
+        assert!(!err.contains("panicked"), "{backend}: {err}");
+        assert!(!d.join(format!("out-{backend}")).exists(), "{backend}: products written");
+    }
 }

@@ -191,12 +191,20 @@ fn validate_reads_the_library_without_loading_it() {
         fails_before_imaging(d, &format!("marking-{isolation}"), &step, &["missing symbol r2d2_plugin_abi_version (read from the file, not loaded)"]);
         assert!(!marker.exists(), "checking the library ran its constructor ({isolation})");
     }
-    // A complete plugin is created in the isolated host: its constructor runs there, not in r2d2.
-    let complete = c_plugin_from_text(d, "marking_complete", &format!("{text}uint32_t r2d2_plugin_abi_version(void) {{ return R2D2_PLUGIN_ABI_VERSION; }}\n"));
-    std::fs::write(d.join("complete.yaml"), pipeline(&native_step(&complete, 2, "{}"))).unwrap();
-    let out = r2d2(&["validate", "complete.yaml"], d);
-    assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
-    assert!(stderr(&out).contains("the plugin refused its configuration {}: stub"), "{}", stderr(&out));
+    // A complete plugin is created in the isolated host: its constructor runs there, not in
+    // r2d2, also under `isolation: none` (which only `run` honours). The constructor writes the
+    // name of the process it runs in.
+    let naming = text.replace("if (f) fclose(f);", "if (f) { FILE *c = fopen(\"/proc/self/comm\", \"r\"); int ch; while (c && (ch = fgetc(c)) != EOF) fputc(ch, f); if (c) fclose(c); fclose(f); }");
+    let complete = c_plugin_from_text(d, "marking_complete", &format!("{naming}uint32_t r2d2_plugin_abi_version(void) {{ return R2D2_PLUGIN_ABI_VERSION; }}\n"));
+    for isolation in ["process", "none"] {
+        let _ = std::fs::remove_file(&marker);
+        std::fs::write(d.join("complete.yaml"), pipeline(&(native_step(&complete, 2, "{}") + &format!("    isolation: {isolation}\n")))).unwrap();
+        let out = r2d2(&["validate", "complete.yaml"], d);
+        assert_eq!(out.status.code(), Some(1), "{}", stderr(&out));
+        assert!(stderr(&out).contains("the plugin refused its configuration {}: stub"), "{}", stderr(&out));
+        let process = std::fs::read_to_string(&marker).unwrap_or_default();
+        assert!(process.starts_with("r2d2-plugin-ho"), "isolation: {isolation}: validate ran the plugin's constructor in '{}', not in its host", process.trim());
+    }
 }
 
 #[test]
@@ -387,6 +395,45 @@ fn ctrl_c_stops_a_hung_isolated_plugin() {
     assert!(!d.join("out").exists(), "products written by an interrupted run");
     std::thread::sleep(std::time::Duration::from_millis(200));
     assert!(processes_mentioning(&needle).is_empty(), "the plugin host outlived r2d2");
+}
+
+/// In an embedding program each run has its own stop: cancelling one whose plugin hangs kills
+/// that run's host at once (not after the plugin's timeout), and the next run in the same
+/// process is not taken for interrupted.
+#[test]
+fn an_embedding_program_cancels_a_run_with_a_hung_plugin_and_runs_again() {
+    use r2d2_imaging::{Engine, EngineOptions};
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::sync::Arc;
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    let library = d.join(library_file("hung_plugin_for_embedding"));
+    std::fs::copy(faulty(), &library).unwrap();
+    let engine = Engine::new(EngineOptions { threads: 2, onnx_runtime: None }).unwrap();
+    let spec = |fault: &str| {
+        let step = native_step(&library, 3, &format!("{{fail: {fault}, at: 2}}")) + "    timeout: 30\n";
+        let text = pipeline(&step).replace("files: obs.parquet", &format!("files: \"{}\"", d.join("obs.parquet").display()));
+        engine.load_yaml(&text, "embedded.yaml", &[format!("write.prefix={}/{{job}}", d.join(format!("out-{fault}")).display())]).unwrap()
+    };
+    let cancel = Arc::new(AtomicBool::new(false));
+    let flag = cancel.clone();
+    // Long enough for the job to reach the step, where the plugin hangs.
+    let canceller = std::thread::spawn(move || {
+        std::thread::sleep(std::time::Duration::from_secs(2));
+        flag.store(true, Ordering::SeqCst);
+    });
+    let began = std::time::Instant::now();
+    let err = engine.run(&spec("hang"), Vec::new(), None, cancel).unwrap_err().to_string();
+    canceller.join().unwrap();
+    assert!(began.elapsed().as_secs() < 15, "the cancelled run took {:?}: the hung plugin was left to its 30 s timeout", began.elapsed());
+    assert!(err.contains("interrupted: its host process was stopped"), "{err}");
+    assert!(!d.join("out-hang").exists(), "products written by a cancelled run");
+    std::thread::sleep(std::time::Duration::from_millis(200));
+    assert!(processes_mentioning(&library.display().to_string()).is_empty(), "the plugin host outlived the cancelled run");
+    // The next run, in the same process: its plugin's crash is reported as such.
+    let err = engine.run(&spec("segfault"), Vec::new(), None, Arc::default()).unwrap_err().to_string();
+    assert!(err.contains("killed by signal 11") && !err.contains("interrupted"), "{err}");
 }
 
 #[test]

@@ -21,16 +21,13 @@ pub struct ValidateArgs {
     set: Vec<String>,
 }
 
-/// Ctrl-C, SIGTERM and SIGHUP set the flag; stages stop at the next job boundary and the run
-/// fails cleanly (a job being written is written whole; nothing half-made stays behind).
+/// Ctrl-C, SIGTERM and SIGHUP set the flag; the run given it stops its stages at the next job
+/// boundary and kills its plugin hosts, and fails cleanly (a job being written is written
+/// whole; nothing half-made stays behind).
 pub fn cancel_on_ctrl_c() -> Arc<AtomicBool> {
     let cancel = Arc::new(AtomicBool::new(false));
     let flag = cancel.clone();
-    let handler = move || {
-        flag.store(true, Ordering::SeqCst);
-        // A plugin hung in its host process would otherwise keep its stage waiting.
-        r2d2_imaging::steps::native_host::interrupt_all();
-    };
+    let handler = move || flag.store(true, Ordering::SeqCst);
     if let Err(e) = ctrlc::set_handler(handler) {
         log::warn!("Ctrl-C will not stop the pipeline cleanly: {e}");
     }

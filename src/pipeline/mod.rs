@@ -7,6 +7,7 @@
 //! owns these contracts: the built-in kinds (`crate::stages`) plug into them, and so can an
 //! embedding program's.
 
+pub(crate) mod cancel;
 pub(crate) mod config;
 pub(crate) mod graph;
 pub(crate) mod io;

@@ -4,10 +4,13 @@
 //! could deadlock if it filled up; admission tokens keep at most `channel_capacity` jobs
 //! inside a loop, so a send inside the loop always finds room. A stage ends when its input is
 //! empty, every stage feeding it from outside the loop has ended, and its loop (if any) holds
-//! no job. The first stage error (or Ctrl-C) cancels every stage; the error names the stage and
-//! job. A source error (an unreadable input) stops the reading but lets the jobs already in
-//! the pipeline finish, since they do not depend on it.
+//! no job. The first stage error (or the caller's cancel flag) stops every stage; the error
+//! names the stage and job. The stop is the run's own (`super::cancel`): the caller's flag is
+//! only read, so a failed or cancelled run leaves nothing set for the next. A source error (an
+//! unreadable input) stops the reading but lets the jobs already in the pipeline finish, since
+//! they do not depend on it.
 
+use super::cancel::RunStop;
 use super::config::PipelineSpec;
 use super::graph::Graph;
 use super::registry::{check_products, BuildContext, Built, Registry, Role, RunIo};
@@ -47,11 +50,14 @@ pub enum Progress {
 /// Check and build every stage without running anything (`r2d2 validate`).
 pub fn validate(registry: &Registry, config: &PipelineSpec) -> Result<Graph> {
     let graph = Graph::build(registry, config)?;
+    let stop = RunStop::new();
+    let _in = stop.enter();
     build_all(registry, config, &graph, &RunIo::validating())?;
     Ok(graph)
 }
 
 /// Run the pipeline to completion, or until `cancel` turns true, reporting to `progress`.
+/// `cancel` is only read: the run stops itself without setting it.
 pub fn run(
     registry: &Registry,
     config: &PipelineSpec,
@@ -60,8 +66,13 @@ pub fn run(
     progress: &(dyn Fn(&Progress) + Sync),
 ) -> Result<RunReport> {
     let graph = Graph::build(registry, config)?;
-    let built = build_all(registry, config, &graph, &io)?;
-    run_built(config, &graph, built, cancel, progress)
+    let stop = RunStop::new();
+    let built = {
+        // Parts built now (a plugin host) register with this run's stop.
+        let _in = stop.enter();
+        build_all(registry, config, &graph, &io)?
+    };
+    run_built(config, &graph, built, &stop, &cancel, progress)
 }
 
 /// Checks what each stage consumes against what the stages before it produce, then builds
@@ -89,9 +100,13 @@ fn run_built(
     config: &PipelineSpec,
     graph: &Graph,
     built: Vec<Built>,
-    cancel: Arc<AtomicBool>,
+    stop: &RunStop,
+    requested: &AtomicBool,
     progress: &(dyn Fn(&Progress) + Sync),
 ) -> Result<RunReport> {
+    if requested.load(Ordering::SeqCst) {
+        stop.stop();
+    }
     let n = built.len();
     let cap = config.channel_capacity;
     let channels: Vec<(Sender<Job>, Receiver<Job>)> = (0..n).map(|_| bounded(cap)).collect();
@@ -129,16 +144,27 @@ fn run_built(
     };
     let fail = |e: Error| {
         record(e);
-        cancel.store(true, Ordering::SeqCst);
+        stop.stop();
     };
+    let stopped = || stop.is_stopped();
 
     std::thread::scope(|scope| {
+        // Turns the caller's request into this run's stop (which kills plugin hosts at once).
+        scope.spawn(|| {
+            while !ended.iter().all(|e| e.load(Ordering::SeqCst)) {
+                if requested.load(Ordering::SeqCst) {
+                    stop.stop();
+                }
+                std::thread::sleep(POLL);
+            }
+        });
         for (i, stage) in built.into_iter().enumerate() {
             let (config, graph, channels, tokens, upstream, ended) = (config, graph, &channels, &tokens, &upstream, &ended);
-            let (cancel, fail, record, finished, totals) = (&cancel, &fail, &record, &finished, &totals);
+            let (stopped, fail, record, finished, totals) = (&stopped, &fail, &record, &finished, &totals);
             scope.spawn(move || {
+                let _in = stop.enter();
                 // However this thread ends, the stages downstream must not wait for it.
-                let _ended = EndedOnExit { ended: &ended[i], cancel };
+                let _ended = EndedOnExit { ended: &ended[i], stop };
                 let name = &config.stages[i].name;
                 let kind = &config.stages[i].kind;
                 // Send on a port, taking a loop token when entering a loop from outside and
@@ -158,7 +184,7 @@ fn run_built(
                             loop {
                                 match rx.recv_timeout(POLL) {
                                     Ok(()) => break,
-                                    Err(RecvTimeoutError::Timeout) if !cancel.load(Ordering::SeqCst) => continue,
+                                    Err(RecvTimeoutError::Timeout) if !stopped() => continue,
                                     Err(_) => return Err(Error::Interrupted("pipeline stopping".into())),
                                 }
                             }
@@ -168,7 +194,7 @@ fn run_built(
                     loop {
                         match channels[target].0.send_timeout(job.take().expect("job"), POLL) {
                             Ok(()) => break,
-                            Err(crossbeam_channel::SendTimeoutError::Timeout(j)) if !cancel.load(Ordering::SeqCst) => job = Some(j),
+                            Err(crossbeam_channel::SendTimeoutError::Timeout(j)) if !stopped() => job = Some(j),
                             Err(_) => return Err(Error::Interrupted("pipeline stopping".into())),
                         }
                     }
@@ -200,13 +226,13 @@ fn run_built(
                             since = Instant::now();
                             sent
                         };
-                        contain_stage_panic(|| source.produce(&mut emit, &|| cancel.load(Ordering::SeqCst))).map_err(|e| {
+                        contain_stage_panic(|| source.produce(&mut emit, stopped)).map_err(|e| {
                             let job = source.current_job().unwrap_or_else(|| "-".into());
                             stage_error(name, kind, &job, e)
                         })
                     }
                     Built::Stage(mut stage) => loop {
-                        if cancel.load(Ordering::SeqCst) {
+                        if stopped() {
                             break Ok(());
                         }
                         let job = match channels[i].1.recv_timeout(POLL) {
@@ -255,7 +281,7 @@ fn run_built(
     if let Some(e) = first_error.into_inner().expect("error slot") {
         return Err(e);
     }
-    if cancel.load(Ordering::SeqCst) {
+    if stop.is_stopped() {
         return Err(Error::Interrupted(format!(
             "{} job(s) finished before the stop",
             finished.lock().expect("finished").len()
@@ -280,13 +306,13 @@ fn contain_stage_panic(work: impl FnOnce() -> Result<()>) -> Result<()> {
 /// (which then stops the run: the scope re-raises the panic once every thread has ended).
 struct EndedOnExit<'a> {
     ended: &'a AtomicBool,
-    cancel: &'a AtomicBool,
+    stop: &'a RunStop,
 }
 
 impl Drop for EndedOnExit<'_> {
     fn drop(&mut self) {
         if std::thread::panicking() {
-            self.cancel.store(true, Ordering::SeqCst);
+            self.stop.stop();
         }
         self.ended.store(true, Ordering::SeqCst);
     }
@@ -332,7 +358,7 @@ mod tests {
             let mut built = build_all(&registry, &config, &graph, &RunIo::default()).unwrap();
             built[0] = Built::Source(source);
             built[1] = Built::Stage(weights);
-            let _ = tx.send(run_built(&config, &graph, built, Arc::new(AtomicBool::new(false)), &|_| {}));
+            let _ = tx.send(run_built(&config, &graph, built, &RunStop::new(), &AtomicBool::new(false), &|_| {}));
         });
         match rx.recv_timeout(Duration::from_secs(60)) {
             Ok(result) => Some(result),

@@ -490,7 +490,7 @@ fn grouping(scan: &Scan, split: &SplitBy, split_key: &str, source: &str) -> Resu
             let windows = if keys.is_empty() { 0.0 } else { ((largest - smallest) / window).floor() + 1.0 };
             if !(windows <= MAX_SPLIT_PARTS as f64) {
                 let column = &split.column;
-                return Err(too_many("window", format!("column `{column}` spans {smallest} to {largest}, {windows:.3e} windows of {window}")));
+                return Err(too_many("window", format!("column `{column}` spans {smallest:e} to {largest:e}, {windows:.3e} windows of {window}")));
             }
             (keys.iter().map(|k| ((k - smallest) / window).floor() as usize).collect(), 3)
         }
@@ -699,7 +699,7 @@ mod tests {
         // 1e300 s wraps a usize window index; 1e13 s asks for ~1.7e10 windows (~133 GB).
         for time in [1e300, 1e13] {
             let err = split_error_with_outlier(time);
-            for expected in ["obs.parquet", "`time`", "window", "stages.source.split_by.window"] {
+            for expected in ["obs.parquet", "`time`", "window", "stages.source.split_by.window", &format!("to {time:e},")] {
                 assert!(err.contains(expected), "{time}: '{expected}' missing from: {err}");
             }
         }

@@ -71,7 +71,15 @@ const BUILTIN: &[KindFn] = &[
         let step = step::StepStage::onnx(c.params()?, c.image().size, c.threads, &imaging_setup(c.pipeline)).map_err(|e| c.error(Some("series"), e))?;
         Ok(Built::Stage(Box::new(step)))
     }),
-    step("native", |c| Ok(Built::Stage(Box::new(step::StepStage::native(c.params()?, c.image().size, c.name())?)))),
+    step("native", |c| {
+        let mut config: crate::steps::native::NativeConfig = c.params()?;
+        // validate never loads a plugin into this process: its create check runs in a host
+        // process even under `isolation: none` (unless no host can be found).
+        if c.validating() && crate::steps::native_host::find_host().is_ok() {
+            config.isolation = crate::steps::native::Isolation::Process;
+        }
+        Ok(Built::Stage(Box::new(step::StepStage::native(config, c.image().size, c.name())?)))
+    }),
     KindFn {
         name: "residual",
         role: Role::Residual,

@@ -8,8 +8,7 @@ pub(crate) mod clean;
 #[doc(hidden)]
 pub mod native;
 pub(crate) mod native_file;
-// The CLI's Ctrl-C handler stops hung plugin hosts (interrupt_all).
-pub mod native_host;
+pub(crate) mod native_host;
 pub(crate) mod onnx;
 
 // The ONNX internals by their former paths (the command line names series and backends).

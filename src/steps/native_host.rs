@@ -13,8 +13,8 @@ use r2d2_plugin::host::wire;
 use std::io::{BufReader, BufWriter, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdin, Command, ExitStatus, Stdio};
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Mutex;
+use crate::pipeline::cancel::{HookGuard, RunStop};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 /// Name of the host executable.
@@ -22,29 +22,20 @@ pub const HOST: &str = "r2d2-plugin-host";
 /// Environment variable naming the host executable.
 pub const HOST_ENV: &str = "R2D2_PLUGIN_HOST";
 
-/// Process ids of running hosts, for [`interrupt_all`].
-static LIVE: Mutex<Vec<u32>> = Mutex::new(Vec::new());
-static INTERRUPTED: AtomicBool = AtomicBool::new(false);
-
-/// Stop every running plugin host now (Ctrl-C): a hung plugin cannot keep the run waiting.
-/// The steps waiting on them fail with "interrupted".
-pub fn interrupt_all() {
-    INTERRUPTED.store(true, Ordering::SeqCst);
-    let live = LIVE.lock().unwrap_or_else(|e| e.into_inner());
-    for &pid in live.iter() {
-        kill(pid);
+/// Kills host `pid` if `alive` still says it has not been reaped.
+#[cfg(unix)]
+fn kill(pid: u32, alive: &Mutex<bool>) {
+    let alive = alive.lock().unwrap_or_else(|e| e.into_inner());
+    if *alive {
+        // SAFETY: kill(2) takes plain integers. The pid is a child of ours that has not been
+        // reaped (`alive` turns false, under this lock, before it is waited for), so it cannot
+        // name another process.
+        unsafe { libc::kill(pid as libc::pid_t, libc::SIGKILL) };
     }
 }
 
-#[cfg(unix)]
-fn kill(pid: u32) {
-    // SAFETY: kill(2) takes plain integers. The pid is a child of ours that has not been reaped
-    // (it leaves LIVE, under this lock, before it is waited for), so it cannot name another process.
-    unsafe { libc::kill(pid as libc::pid_t, libc::SIGKILL) };
-}
-
 #[cfg(not(unix))]
-fn kill(_pid: u32) {}
+fn kill(_pid: u32, _alive: &Mutex<bool>) {}
 
 /// The host executable (see the module documentation for the search order).
 pub fn find_host() -> Result<PathBuf, String> {
@@ -111,6 +102,12 @@ pub struct HostedInstance {
     sent_psf: Vec<f64>,
     /// Set once the host has failed: later calls report that instead of talking to it.
     dead: Option<String>,
+    /// Whether the child is not yet reaped: its pid may be signalled only while this holds.
+    alive: Arc<Mutex<bool>>,
+    /// The run this host works for (its stop kills the host: a hung plugin cannot keep the
+    /// run waiting), and the registration of that kill.
+    run: Option<RunStop>,
+    _kill_on_stop: Option<HookGuard>,
 }
 
 impl HostedInstance {
@@ -124,7 +121,12 @@ impl HostedInstance {
             .stderr(Stdio::inherit())
             .spawn()
             .map_err(|source| HostError::Spawn { host: host.clone(), source })?;
-        LIVE.lock().unwrap_or_else(|e| e.into_inner()).push(child.id());
+        let alive = Arc::new(Mutex::new(true));
+        let run = crate::pipeline::cancel::current();
+        let kill_on_stop = run.as_ref().map(|run| {
+            let (pid, alive) = (child.id(), alive.clone());
+            run.on_stop(move || kill(pid, &alive))
+        });
         let output = child.stdout.take().expect("piped");
         let input = BufWriter::with_capacity(1 << 16, child.stdin.take().expect("piped"));
         let (send, replies) = crossbeam_channel::bounded(1);
@@ -162,6 +164,9 @@ impl HostedInstance {
             sent_dirty: Vec::new(),
             sent_psf: Vec::new(),
             dead: None,
+            alive,
+            run,
+            _kill_on_stop: kill_on_stop,
         };
         let sent = hosted.send(|w| {
             w.write_all(&[wire::CREATE])?;
@@ -204,7 +209,7 @@ impl HostedInstance {
     fn gone<T>(&mut self, doing: &str) -> Result<T, String> {
         let status = self.reap(Duration::from_secs(5));
         let how = match status {
-            _ if INTERRUPTED.load(Ordering::SeqCst) => "interrupted: its host process was stopped".to_string(),
+            _ if self.run.as_ref().is_some_and(RunStop::is_stopped) => "interrupted: its host process was stopped".to_string(),
             Some(status) => describe_end(status),
             None => {
                 self.stop();
@@ -224,12 +229,17 @@ impl HostedInstance {
     fn reap(&mut self, patience: Duration) -> Option<ExitStatus> {
         let began = Instant::now();
         loop {
+            // Under `alive`'s lock: once reaped, the pid must not be signalled.
+            let mut alive = self.alive.lock().unwrap_or_else(|e| e.into_inner());
             match self.child.try_wait() {
                 Ok(Some(status)) => {
-                    self.forget();
+                    *alive = false;
                     return Some(status);
                 }
-                Ok(None) if began.elapsed() < patience => std::thread::sleep(Duration::from_millis(5)),
+                Ok(None) if began.elapsed() < patience => {
+                    drop(alive);
+                    std::thread::sleep(Duration::from_millis(5));
+                }
                 _ => return None,
             }
         }
@@ -238,23 +248,9 @@ impl HostedInstance {
     /// Kill the host and reap it.
     fn stop(&mut self) {
         self.input = None;
-        self.forget_then(|child| {
-            let _ = child.kill();
-            let _ = child.wait();
-        });
-    }
-
-    fn forget(&mut self) {
-        self.forget_then(|_| {});
-    }
-
-    /// Leave LIVE (under its lock, so `interrupt_all` never signals a reaped pid), then act.
-    fn forget_then(&mut self, then: impl FnOnce(&mut Child)) {
-        let mut live = LIVE.lock().unwrap_or_else(|e| e.into_inner());
-        let pid = self.child.id();
-        live.retain(|&p| p != pid);
-        drop(live);
-        then(&mut self.child);
+        let _ = self.child.kill();
+        *self.alive.lock().unwrap_or_else(|e| e.into_inner()) = false;
+        let _ = self.child.wait();
     }
 
     /// One step in the host: the increment (N x N), unchecked.

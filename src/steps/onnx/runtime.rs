@@ -521,13 +521,18 @@ struct TractNetwork {
 impl TractNetwork {
     fn load(path: &Path, size: usize) -> Result<TractNetwork> {
         use tract_onnx::prelude::*;
-        let fail = |e: TractError| OnnxError::Load { path: path.to_path_buf(), runtime: "tract", source: e.into() };
-        let plan = tract_onnx::onnx()
-            .model_for_path(path)
-            .and_then(|m| m.with_input_fact(0, f32::fact([1, 2, size, size]).into()))
-            .and_then(|m| m.into_optimized())
-            .and_then(|m| m.into_runnable())
-            .map_err(|e| fail(e.into()))?;
+        let fail = |source: Box<dyn std::error::Error + Send + Sync>| OnnxError::Load { path: path.to_path_buf(), runtime: "tract", source };
+        // tract panics on some damaged files (a node naming a value no node makes): an error
+        // naming the file, without the panic's text on the terminal.
+        let plan = crate::error::catch_quietly(|| {
+            tract_onnx::onnx()
+                .model_for_path(path)
+                .and_then(|m| m.with_input_fact(0, f32::fact([1, 2, size, size]).into()))
+                .and_then(|m| m.into_optimized())
+                .and_then(|m| m.into_runnable())
+        })
+        .map_err(|panic| fail(format!("{panic} (a damaged file?)").into()))?
+        .map_err(|e: TractError| fail(e.into()))?;
         Ok(TractNetwork { plan, path: path.to_path_buf(), size })
     }
 }
