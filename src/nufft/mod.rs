@@ -17,6 +17,8 @@
 //! given a chunk at a time, for callers that need no plan afterwards: its memory does not grow
 //! with the number of points.
 
+#[doc(hidden)]
+pub mod direct;
 pub mod kernel;
 mod permute;
 pub mod simd;

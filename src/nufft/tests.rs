@@ -1,5 +1,6 @@
 //! NUFFT against a direct (O(N^2 M)) DFT, and adjointness.
 
+use super::direct::{adjoint as direct_adjoint, forward as direct_forward, relative_error};
 use super::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -13,40 +14,6 @@ fn random_points(m: usize, rng: &mut ChaCha8Rng) -> (Vec<f64>, Vec<f64>) {
 
 fn random_complex(n: usize, rng: &mut ChaCha8Rng) -> Vec<Complex64> {
     (0..n).map(|_| Complex64::new(rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0))).collect()
-}
-
-fn direct_forward(nx: usize, ny: usize, x: &[f64], y: &[f64], f: &[Complex64]) -> Vec<Complex64> {
-    x.iter()
-        .zip(y)
-        .map(|(&xk, &yk)| {
-            let mut s = Complex64::default();
-            for iy in 0..ny {
-                for ix in 0..nx {
-                    let ph = xk * (ix as f64 - (nx / 2) as f64) + yk * (iy as f64 - (ny / 2) as f64);
-                    s += f[iy * nx + ix] * Complex64::from_polar(1.0, ph);
-                }
-            }
-            s
-        })
-        .collect()
-}
-
-fn direct_adjoint(nx: usize, ny: usize, x: &[f64], y: &[f64], c: &[Complex64]) -> Vec<Complex64> {
-    let mut out = vec![Complex64::default(); nx * ny];
-    for iy in 0..ny {
-        for ix in 0..nx {
-            let (jx, jy) = (ix as f64 - (nx / 2) as f64, iy as f64 - (ny / 2) as f64);
-            out[iy * nx + ix] =
-                x.iter().zip(y).zip(c).map(|((&xk, &yk), &ck)| ck * Complex64::from_polar(1.0, -(xk * jx + yk * jy))).sum();
-        }
-    }
-    out
-}
-
-fn relative_error(a: &[Complex64], b: &[Complex64]) -> f64 {
-    let num: f64 = a.iter().zip(b).map(|(a, b)| (a - b).norm_sqr()).sum();
-    let den: f64 = b.iter().map(|b| b.norm_sqr()).sum();
-    (num / den).sqrt()
 }
 
 fn check_against_dft(epsilon: f64, oversampling: f64, nx: usize, ny: usize, m: usize, threads: usize) {
@@ -191,38 +158,6 @@ fn odd_image_size_is_rejected() {
     assert!(err.contains("image size"), "{err}");
 }
 
-/// Kernel tuning scan (run by hand: `cargo test --release --lib kernel_scan -- --ignored --nocapture`).
-#[test]
-#[ignore]
-fn kernel_scan() {
-    let sigma: f64 = std::env::var("SIGMA").ok().and_then(|s| s.parse().ok()).unwrap_or(2.0);
-    let mut rng = ChaCha8Rng::seed_from_u64(42);
-    let (nx, ny, m) = (64, 48, 3000);
-    let (x, y) = random_points(m, &mut rng);
-    let f = random_complex(nx * ny, &mut rng);
-    let c = random_complex(m, &mut rng);
-    let ref_fwd = direct_forward(nx, ny, &x, &y, &f);
-    let ref_adj = direct_adjoint(nx, ny, &x, &y, &c);
-    for w in 2..=16usize {
-        let mut line = format!("w {w:2}:");
-        let mut best = (f64::MAX, 0.0);
-        for i in 0..=24 {
-            let bw = std::env::var("B0").ok().and_then(|s| s.parse::<f64>().ok()).unwrap_or(1.6) + std::env::var("DB").ok().and_then(|s| s.parse::<f64>().ok()).unwrap_or(0.05) * i as f64;
-            let shape = KernelShape { support: w, beta: bw * w as f64 };
-            let plan = Nufft2d::with_kernel(nx, ny, &x, &y, shape, NufftParams { epsilon: 1e-14, oversampling: sigma }, 2).unwrap();
-            let mut fwd = vec![Complex64::default(); m];
-            plan.forward(&f, &mut fwd);
-            let mut adj = vec![Complex64::default(); nx * ny];
-            plan.adjoint(&c, &mut adj);
-            let e = relative_error(&fwd, &ref_fwd).max(relative_error(&adj, &ref_adj));
-            if e < best.0 {
-                best = (e, bw);
-            }
-        }
-        line += &format!(" best beta/w {:.2} error {:.2e}", best.1, best.0);
-        eprintln!("{line}");
-    }
-}
 
 #[test]
 fn every_supported_simd_level_gives_the_same_result() {
