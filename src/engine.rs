@@ -7,10 +7,15 @@
 
 use crate::pipeline::registry::RunIo;
 use crate::pipeline::{runner, MemoryInput, PipelineSpec, ProductSink, Progress, Registry, RunReport, StageSpec};
+#[cfg(feature = "ms")]
+use crate::params::MsParams;
+use crate::params::{
+    ArrowIpcParams, ArrowParams, CleanParams, Files, GridderParams, NativeParams, OnnxParams, ParquetParams, ProductsParams, ResidualParams,
+    WeightingParams, WriterParams,
+};
 use crate::products::JobProducts;
 use crate::weighting::Weighting;
 use crate::{Error, Result};
-use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex};
@@ -239,12 +244,12 @@ impl Default for ImageParams {
 
 /// The `r2d2 image` pipeline for `obs` and `params`, and the in-memory inputs it reads.
 fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, Vec<MemoryInput>)> {
-    let value = |v: serde_json::Value| serde_yaml::to_value(v).expect("JSON values are YAML values");
     let mut inputs = Vec::new();
-    let mut read = match obs {
+    let truth = params.truth.clone();
+    let read = match obs {
         Observation::Batches(input) => {
             inputs.push(input);
-            json!({"kind": "arrow"})
+            StageSpec::typed("read", &ArrowParams { truth, ..ArrowParams::default() })?
         }
         Observation::Path(path) if is_ms(&path) => ms_read(&path, params)?,
         Observation::Path(path) => {
@@ -253,33 +258,28 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
             }
             let text = path.to_string_lossy().into_owned();
             let is_ipc = matches!(path.extension().and_then(|e| e.to_str()), Some("arrow" | "arrows" | "ipc" | "feather"));
-            if is_ipc { json!({"kind": "arrow-ipc", "path": text}) } else { json!({"kind": "parquet", "files": text}) }
+            if is_ipc {
+                StageSpec::typed("read", &ArrowIpcParams { truth, ..ArrowIpcParams::new(text) })?
+            } else {
+                StageSpec::typed("read", &ParquetParams { truth, ..ParquetParams::new(Files::One(text)) })?
+            }
         }
     };
-    if let Some(truth) = &params.truth {
-        read["truth"] = json!(truth.to_string_lossy());
-    }
-    let (scheme, robust) = match params.weighting {
-        Weighting::Natural => ("natural", 0.0),
-        Weighting::Uniform => ("uniform", 0.0),
-        Weighting::Briggs { robust } => ("briggs", robust),
-    };
+    let weights = WeightingParams { grid_factor: params.weighting_grid_factor, ..WeightingParams::new(params.weighting) };
+    let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling };
     let mut stages = vec![
-        StageSpec::new("read", value(read)).to("weights"),
-        StageSpec::new("weights", value(json!({"kind": "weighting", "scheme": scheme, "robust": robust, "grid_factor": params.weighting_grid_factor}))).to("grid"),
-        StageSpec::new("grid", value(json!({"kind": "gridder", "epsilon": params.epsilon, "oversampling": params.oversampling}))).to("step"),
-        StageSpec::new("step", value(step_params(params)?)).to("update"),
-        StageSpec::new("update", value(json!({"kind": "residual", "method": "toeplitz"}))).to("step").done("products"),
+        read.to("weights"),
+        StageSpec::typed("weights", &weights)?.to("grid"),
+        StageSpec::typed("grid", &grid)?.to("step"),
+        step_stage(params)?.to("update"),
+        StageSpec::typed("update", &ResidualParams::default())?.to("step").done("products"),
     ];
-    let products = StageSpec::new("products", value(json!({"kind": "products"})));
+    let products = StageSpec::typed("products", &ProductsParams::default())?;
     match &params.write {
         Some(prefix) => {
             stages.push(products.to("write"));
-            let mut write = json!({"kind": "writer", "prefix": prefix});
-            if let Some(column) = &params.model_column {
-                write["model_column"] = json!(column);
-            }
-            stages.push(StageSpec::new("write", value(write)));
+            let write = WriterParams { prefix: prefix.clone(), model_column: params.model_column.clone(), ..WriterParams::default() };
+            stages.push(StageSpec::typed("write", &write)?);
         }
         None => stages.push(products),
     }
@@ -291,42 +291,29 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
     Ok((PipelineSpec::new("image", image, stages)?, inputs))
 }
 
-/// The step stage's parameters for `params.step`.
-fn step_params(params: &ImageParams) -> Result<serde_json::Value> {
-    Ok(match &params.step {
-        StepChoice::Clean => json!({"kind": "clean", "major_cycles": params.iterations.unwrap_or(5)}),
+/// The step stage for `params.step`.
+fn step_stage(params: &ImageParams) -> Result<StageSpec> {
+    match &params.step {
+        StepChoice::Clean => StageSpec::typed("step", &CleanParams { major_cycles: params.iterations.unwrap_or(5), ..CleanParams::default() }),
         StepChoice::Auto | StepChoice::Series(_) => {
             // `auto` is resolved by the step, which knows the image size.
             let series = match &params.step {
                 StepChoice::Series(path) => crate::steps::series::resolve(path)?,
                 _ => PathBuf::from(crate::steps::series::AUTO_SERIES),
             };
-            let backend = match params.backend {
-                BackendChoice::Auto => "auto",
-                BackendChoice::Ort => "ort",
-                BackendChoice::Tract => "tract",
+            let onnx = OnnxParams {
+                backend: params.backend,
+                graph_optimization: params.graph_optimization,
+                networks: params.iterations,
+                prefetch: params.prefetch,
+                ..OnnxParams::new(series)
             };
-            let optimization = match params.graph_optimization {
-                GraphOptimization::Extended => "extended",
-                GraphOptimization::All => "all",
-            };
-            let mut step = json!({"kind": "onnx", "series": series.to_string_lossy(), "backend": backend, "graph_optimization": optimization});
-            if let Some(n) = params.iterations {
-                step["networks"] = json!(n);
-            }
-            if !params.prefetch {
-                step["prefetch"] = json!(false);
-            }
-            step
+            StageSpec::typed("step", &onnx)
         }
         StepChoice::Native { library, config } => {
-            let mut step = json!({"kind": "native", "library": library.to_string_lossy(), "iterations": params.iterations.unwrap_or(10)});
-            if let Some(config) = config {
-                step["config"] = serde_json::to_value(config).map_err(|e| Error::parameter("plugin-config", e.to_string()))?;
-            }
-            step
+            StageSpec::typed("step", &NativeParams { config: config.clone(), ..NativeParams::new(library, params.iterations.unwrap_or(10)) })
         }
-    })
+    }
 }
 
 /// Whether `path` is a MeasurementSet (a directory with a table), else a file.
@@ -338,20 +325,16 @@ pub fn is_ms(path: &Path) -> bool {
 }
 
 #[cfg(feature = "ms")]
-fn ms_read(path: &Path, params: &ImageParams) -> Result<serde_json::Value> {
-    let mut read = match &params.ms {
-        Some(selection) => serde_json::to_value(selection).map_err(|e| Error::parameter("ms", e.to_string()))?,
-        None => json!({}),
-    };
-    if let Some(map) = read.as_object_mut() {
-        map.retain(|_, v| !v.is_null());
+fn ms_read(path: &Path, params: &ImageParams) -> Result<StageSpec> {
+    let mut read = MsParams { truth: params.truth.clone(), ..MsParams::new(path) };
+    if let Some(selection) = &params.ms {
+        let selection = selection.clone();
+        read = MsParams { data_column: selection.data_column, field: selection.field, spw: selection.spw, channels: selection.channels, ..read };
     }
-    read["kind"] = json!("ms");
-    read["path"] = json!(path.to_string_lossy());
-    Ok(read)
+    StageSpec::typed("read", &read)
 }
 
 #[cfg(not(feature = "ms"))]
-fn ms_read(path: &Path, _params: &ImageParams) -> Result<serde_json::Value> {
+fn ms_read(path: &Path, _params: &ImageParams) -> Result<StageSpec> {
     Err(Error::input(path, "a MeasurementSet, but this r2d2 was built without the `ms` feature"))
 }

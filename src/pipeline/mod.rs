@@ -10,11 +10,12 @@
 pub(crate) mod config;
 pub(crate) mod graph;
 pub(crate) mod io;
+pub(crate) mod located;
 pub(crate) mod registry;
 pub(crate) mod runner;
 pub(crate) mod stage;
 
-pub use config::{ImageConfig, PipelineSpec, StageSpec};
+pub use config::{ImageConfig, PipelineSpec, StageParams, StageSpec};
 pub use io::{MemoryInput, ProductSink};
 pub use registry::{BuildContext, Built, KindFn, Product, Registry, Role, StageKind};
 pub use runner::{Progress, RunReport};

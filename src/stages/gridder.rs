@@ -3,26 +3,29 @@
 
 use crate::nufft::NufftParams;
 use crate::operator::{doubled_psf, MeasurementOperator, PsfConvolution};
-use crate::pipeline::{Emit, Imaging, Job, Port, Stage};
+use crate::pipeline::{Emit, Imaging, Job, Port, Stage, StageParams};
 use crate::{Error, Result};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct GridderConfig {
-    /// NUFFT relative accuracy.
-    #[serde(default = "epsilon")]
-    epsilon: f64,
-    #[serde(default = "oversampling")]
-    oversampling: f64,
+/// `kind: gridder`: the NUFFT's accuracy.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GridderParams {
+    /// NUFFT relative accuracy; default 1e-6.
+    pub epsilon: f64,
+    /// Oversampling of the NUFFT's grid; default 2.
+    pub oversampling: f64,
 }
 
-fn epsilon() -> f64 {
-    1e-6
+impl Default for GridderParams {
+    fn default() -> Self {
+        GridderParams { epsilon: 1e-6, oversampling: 2.0 }
+    }
 }
-fn oversampling() -> f64 {
-    2.0
+
+impl StageParams for GridderParams {
+    const KIND: &'static str = "gridder";
 }
 
 pub struct GridderStage {
@@ -32,7 +35,7 @@ pub struct GridderStage {
 }
 
 impl GridderStage {
-    pub fn new(config: GridderConfig, threads: usize, keep_operator: bool) -> Result<GridderStage> {
+    pub fn new(config: GridderParams, threads: usize, keep_operator: bool) -> Result<GridderStage> {
         let nufft = NufftParams { epsilon: config.epsilon, oversampling: config.oversampling };
         crate::nufft::kernel::KernelShape::for_accuracy(nufft.epsilon, nufft.oversampling)?;
         Ok(GridderStage { nufft, threads, keep_operator })
