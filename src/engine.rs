@@ -338,3 +338,85 @@ fn ms_read(path: &Path, params: &ImageParams) -> Result<StageSpec> {
 fn ms_read(path: &Path, _params: &ImageParams) -> Result<StageSpec> {
     Err(Error::input(path, "a MeasurementSet, but this r2d2 was built without the `ms` feature"))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::params::*;
+    use crate::pipeline::StageParams;
+
+    /// Whether stages `a` of `ya` and `b` of `yb` (both of `kind`) have the same parameters once
+    /// read as the kind's typed parameters (so defaults written out or left out compare equal).
+    fn same_params(kind: &str, (ya, a): (&PipelineSpec, &StageSpec), (yb, b): (&PipelineSpec, &StageSpec)) -> bool {
+        fn same<P: StageParams + PartialEq + std::fmt::Debug>(ya: &PipelineSpec, a: &StageSpec, yb: &PipelineSpec, b: &StageSpec) -> bool {
+            let (pa, pb) = (ya.stage_params::<P>(a).unwrap(), yb.stage_params::<P>(b).unwrap());
+            if pa != pb {
+                eprintln!("stage '{}': {pa:?}\n  differs from {pb:?}", a.name);
+            }
+            pa == pb
+        }
+        match kind {
+            "parquet" => same::<ParquetParams>(ya, a, yb, b),
+            "weighting" => same::<WeightingParams>(ya, a, yb, b),
+            "gridder" => same::<GridderParams>(ya, a, yb, b),
+            "onnx" => same::<OnnxParams>(ya, a, yb, b),
+            "residual" => same::<ResidualParams>(ya, a, yb, b),
+            "writer" => same::<WriterParams>(ya, a, yb, b),
+            other => panic!("the test has no typed parameters for kind '{other}'"),
+        }
+    }
+
+    /// The spec without its `products` stages, what pointed at one pointing where it led.
+    fn without_products(spec: &PipelineSpec) -> Vec<StageSpec> {
+        let next = |target: &Option<String>| -> Option<String> {
+            let mut target = target.clone();
+            while let Some(s) = target.as_deref().and_then(|t| spec.stage(t)).filter(|s| s.kind == ProductsParams::KIND) {
+                target = s.to.clone();
+            }
+            target
+        };
+        spec.stages
+            .iter()
+            .filter(|s| s.kind != ProductsParams::KIND)
+            .map(|s| StageSpec { to: next(&s.to), done: next(&s.done), ..s.clone() })
+            .collect()
+    }
+
+    /// pipelines/image.yaml says it is the pipeline `r2d2 image OBS.parquet` runs: it is
+    /// `Engine::image`'s with every option at its default, for `obs.parquet` written at the
+    /// YAML's prefix (`{job}`: `r2d2 image` takes it from `--name`). `Engine::image` adds a
+    /// `products` stage handing the products to its caller, which `r2d2 run` has not.
+    #[test]
+    fn pipelines_image_yaml_is_the_pipeline_of_engine_image() {
+        let yaml = PipelineSpec::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines/image.yaml"), &[]).unwrap();
+        let params = ImageParams { write: Some("{job}".into()), ..ImageParams::default() };
+        let (code, inputs) = image_spec(Observation::Path("obs.parquet".into()), &params).unwrap();
+        assert!(inputs.is_empty());
+        assert_eq!((&yaml.name, &yaml.image, yaml.threads, yaml.channel_capacity), (&code.name, &code.image, code.threads, code.channel_capacity));
+        let code_stages = without_products(&code);
+        let shape = |stages: &[StageSpec]| stages.iter().map(|s| (s.name.clone(), s.kind.clone(), s.to.clone(), s.done.clone())).collect::<Vec<_>>();
+        assert_eq!(shape(&yaml.stages), shape(&code_stages), "stages, kinds and routing");
+        for (a, b) in yaml.stages.iter().zip(&code_stages) {
+            assert!(same_params(&a.kind, (&yaml, a), (&code, b)), "stage '{}': the YAML's parameters differ from Engine::image's", a.name);
+        }
+        assert!(code.stages.iter().any(|s| s.kind == ProductsParams::KIND));
+    }
+
+    /// Each choice of `Engine::image` reaches its stage's parameters (read back typed).
+    #[test]
+    fn engine_image_pipelines_read_back_as_typed_parameters() {
+        let clean = ImageParams { step: StepChoice::Clean, iterations: Some(3), weighting: Weighting::Uniform, write: Some("out/{job}".into()), ..ImageParams::default() };
+        let (spec, _) = image_spec(Observation::Path("a.arrows".into()), &clean).unwrap();
+        assert_eq!(spec.stage_params::<CleanParams>(spec.stage("step").unwrap()).unwrap().major_cycles, 3);
+        assert_eq!(spec.stage_params::<WeightingParams>(spec.stage("weights").unwrap()).unwrap().scheme, WeightingScheme::Uniform);
+        assert_eq!(spec.stage_params::<ArrowIpcParams>(spec.stage("read").unwrap()).unwrap().path, "a.arrows");
+        let native = ImageParams { step: StepChoice::Native { library: "p.so".into(), config: Some(serde_yaml::from_str("{gain: 1}").unwrap()) }, ..ImageParams::default() };
+        let (spec, _) = image_spec(Observation::Path("a.parquet".into()), &native).unwrap();
+        let step = spec.stage_params::<NativeParams>(spec.stage("step").unwrap()).unwrap();
+        assert_eq!((step.iterations, step.config.unwrap()["gain"].as_f64()), (10, Some(1.0)));
+        let onnx = ImageParams { iterations: Some(2), prefetch: false, backend: BackendChoice::Tract, ..ImageParams::default() };
+        let (spec, _) = image_spec(Observation::Path("a.parquet".into()), &onnx).unwrap();
+        let step = spec.stage_params::<OnnxParams>(spec.stage("step").unwrap()).unwrap();
+        assert_eq!((step.networks, step.prefetch, step.backend), (Some(2), false, BackendChoice::Tract));
+    }
+}

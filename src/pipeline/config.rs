@@ -289,14 +289,14 @@ pub(crate) const ROUTING_KEYS: [&str; 3] = ["kind", "to", "done"];
 const TOP_KEYS: [&str; 4] = ["image", "threads", "name", "channel_capacity"];
 
 /// The key a deserialisation error is about, as a path inside the stage's parameters
-/// (`scheme`, `split_by.window`, `hours[1]`): serde names an unknown field in its message
-/// (the path then ends at the mapping holding it), any other error by its path.
+/// (`scheme`, `split_by.window`, `hours[1]`). The path of an unknown field ends with it where
+/// serde_path_to_error could record it; else the field is named in the message only.
 fn failing_key(path: &str, message: &str) -> Option<String> {
     let unknown = message.strip_prefix("unknown field `").and_then(|r| r.split('`').next());
     let key = match (path, unknown) {
         (".", Some(field)) => field.to_string(),
-        (_, Some(field)) => format!("{path}.{field}"),
-        (_, None) => path.to_string(),
+        (_, Some(field)) if path != field && !path.ends_with(&format!(".{field}")) => format!("{path}.{field}"),
+        _ => path.to_string(),
     };
     (!key.is_empty() && key != ".").then_some(key)
 }

@@ -168,8 +168,8 @@ mod tests {
     fn failures_are_marked_at_their_key_or_value() {
         let at = |text: &str, stage| failure_in_text::<P>(text, stage).expect("a failure");
         assert_eq!(at(&TEXT.replace("n: 3", "n: three"), "a"), ("n".into(), Some((5, 8))));
-        assert_eq!(at(&TEXT.replace("n: 3", "m: 3"), "a"), (".".into(), Some((5, 5))));
+        assert_eq!(at(&TEXT.replace("n: 3", "m: 3"), "a"), ("m".into(), Some((5, 5))));
         assert_eq!(at(&TEXT.replace("{x: 1}", "{x: one}"), "b"), ("inner.x".into(), Some((9, 16))));
-        assert_eq!(at(&TEXT.replace("{x: 1}", "{x: 1, y: 2}"), "b"), ("inner".into(), Some((9, 19))));
+        assert_eq!(at(&TEXT.replace("{x: 1}", "{x: 1, y: 2}"), "b"), ("inner.y".into(), Some((9, 19))));
     }
 }

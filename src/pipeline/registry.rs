@@ -44,7 +44,7 @@ pub enum Product {
 
 impl Product {
     /// The product as a user reads it, and the kind of stage that makes it.
-    fn describe(self) -> (&'static str, &'static str) {
+    pub(crate) fn describe(self) -> (&'static str, &'static str) {
         match self {
             Product::Visibilities => ("visibilities", "a source"),
             Product::Weights => ("weights", "a weighting stage"),

@@ -4,7 +4,7 @@
 use crate::nufft::NufftParams;
 use crate::operator::{doubled_psf, MeasurementOperator, PsfConvolution};
 use crate::pipeline::{Emit, Imaging, Job, Port, Stage, StageParams};
-use crate::{Error, Result};
+use crate::Result;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
@@ -44,10 +44,8 @@ impl GridderStage {
 
 impl Stage for GridderStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
-        let missing = || Error::parameter("gridder", "the job has no weights: put a weighting stage before the gridder");
-        let geometry = job.geometry.ok_or_else(missing)?;
-        let weight = job.weight.take().ok_or_else(missing)?;
-        let mut vis = job.vis.take().ok_or_else(|| Error::parameter("gridder", "the job has no visibilities"))?;
+        let (geometry, weight) = job.take_weights("gridder")?;
+        let mut vis = job.take_visibilities("gridder")?;
         let frequency_hz = vis.band().map(|(centre, _)| centre);
         // Memory: each column goes as soon as nothing further needs it, so that the two
         // NUFFT plans below (N x N, then 2N x 2N) never coexist with the whole table. The

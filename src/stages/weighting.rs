@@ -5,7 +5,7 @@ use crate::imaging::{total_weights, DirtyParams};
 use crate::pipeline::config::ImageConfig;
 use crate::pipeline::{Emit, Job, Port, Stage, StageParams};
 use crate::weighting::{Weighting, WeightingScheme, DEFAULT_GRID_FACTOR};
-use crate::{Error, Result};
+use crate::Result;
 use serde::{Deserialize, Serialize};
 
 /// `kind: weighting`: how each visibility is weighted. `scheme` has no default in YAML (a
@@ -69,7 +69,7 @@ impl WeightingStage {
 
 impl Stage for WeightingStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
-        let vis = job.vis.as_ref().ok_or_else(|| Error::parameter("visibilities", "already released by an earlier stage"))?;
+        let vis = job.visibilities("weighting")?;
         let params = DirtyParams { size: self.image.size, pixel: self.image.pixel_scale(), ..DirtyParams::default() };
         let geometry = params.geometry(vis)?;
         job.weight = Some(total_weights(vis, geometry, self.weighting, self.grid_factor)?);
