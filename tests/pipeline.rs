@@ -138,6 +138,18 @@ fn configuration_errors_name_file_line_and_choices() {
     }
 }
 
+/// `r2d2 validate p.yaml --set ...` (`text` written to `d/p.yaml`) fails cleanly with each of
+/// `expected` and the file's name in its message, which is returned.
+fn validate_fails(d: &Path, text: &str, sets: &[&str], what: &str, expected: Vec<&str>) -> String {
+    std::fs::write(d.join("p.yaml"), text).unwrap();
+    let mut args = vec!["validate", "p.yaml"];
+    for set in sets {
+        args.extend(["--set", set]);
+    }
+    let expected: Vec<&str> = expected.into_iter().chain(["p.yaml"]).collect();
+    assert_fails_with(&r2d2(&args, d), what, &expected)
+}
+
 /// A wrong value inside a stage's parameters (an unknown enum value, a wrong type, nested in a
 /// flow collection) is reported at the line and column of the value in the file, an unknown
 /// key at the key's; a value that came from `--set` is reported as the `--set`, not at a line
@@ -163,13 +175,7 @@ fn stage_parameter_errors_point_at_their_yaml_line() {
         ("file, beside a --set", good.replace("robust: 0", "robust: zero"), vec!["weights.scheme=uniform"], vec!["line 16, column 13", "stages.weights.robust"]),
     ];
     for (what, text, sets, expected) in cases {
-        std::fs::write(d.join("p.yaml"), text).unwrap();
-        let mut args = vec!["validate", "p.yaml"];
-        for set in &sets {
-            args.extend(["--set", set]);
-        }
-        let expected: Vec<&str> = expected.into_iter().chain(["p.yaml"]).collect();
-        let err = assert_fails_with(&r2d2(&args, d), what, &expected);
+        let err = validate_fails(d, &text, &sets, what, expected);
         if !sets.is_empty() && what.contains("--set") && !what.starts_with("file") {
             assert!(!err.contains("line "), "{what}: a value of the command line has no line in the file: {err}");
         }
@@ -539,13 +545,7 @@ fn small_configuration_mistakes_are_refused_by_validate() {
         ("size 0", small_pipeline(None), vec!["image.size=0"], vec!["image.size", "at least one pixel"]),
     ];
     for (what, text, sets, expected) in cases {
-        std::fs::write(d.join("p.yaml"), text).unwrap();
-        let mut args = vec!["validate", "p.yaml"];
-        for set in &sets {
-            args.extend(["--set", set]);
-        }
-        let expected: Vec<&str> = expected.into_iter().chain(["p.yaml"]).collect();
-        assert_fails_with(&r2d2(&args, d), what, &expected);
+        validate_fails(d, &text, &sets, what, expected);
     }
     // The series takes multiples of 8 other than its training size.
     std::fs::write(d.join("p.yaml"), onnx).unwrap();

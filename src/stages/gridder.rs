@@ -20,7 +20,8 @@ pub struct GridderParams {
 
 impl Default for GridderParams {
     fn default() -> Self {
-        GridderParams { epsilon: 1e-6, oversampling: 2.0 }
+        let NufftParams { epsilon, oversampling } = NufftParams::default();
+        GridderParams { epsilon, oversampling }
     }
 }
 
