@@ -68,15 +68,9 @@ pub fn run(
 /// every stage (in file order), telling each what the stages after it consume.
 fn build_all(registry: &Registry, config: &PipelineSpec, graph: &Graph, io: &RunIo) -> Result<Vec<Built>> {
     let reach = graph.reach();
-    let n = config.stages.len();
-    let context = |i: usize, downstream| BuildContext {
-        pipeline: config,
-        stage: &config.stages[i],
-        threads: config.threads,
-        downstream,
-        upstream_stages: (0..n).filter(|&j| j != i && reach[j][i]).collect(),
-        downstream_stages: (0..n).filter(|&j| j != i && reach[i][j]).collect(),
-        io,
+    let context = |i: usize, downstream| {
+        let (upstream_stages, downstream_stages) = neighbours(&reach, i);
+        BuildContext { pipeline: config, stage: &config.stages[i], threads: config.threads, downstream, upstream_stages, downstream_stages, io }
     };
     let mut consumes = Vec::new();
     let mut produces = Vec::new();
@@ -93,6 +87,12 @@ fn build_all(registry: &Registry, config: &PipelineSpec, graph: &Graph, io: &Run
         .enumerate()
         .map(|(i, (stage, downstream))| registry.kind_of(config, stage)?.build(&context(i, downstream)))
         .collect()
+}
+
+/// The stages whose jobs reach stage `i`, and those its jobs reach (loop edges included).
+pub(crate) fn neighbours(reach: &[Vec<bool>], i: usize) -> (Vec<usize>, Vec<usize>) {
+    let n = reach.len();
+    ((0..n).filter(|&j| j != i && reach[j][i]).collect(), (0..n).filter(|&j| j != i && reach[i][j]).collect())
 }
 
 /// Runs stages already built (one per stage of `config`, in file order) along `graph`.

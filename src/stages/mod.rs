@@ -142,3 +142,45 @@ pub fn builtin() -> Registry {
     }
     registry
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::graph::Graph;
+    use crate::pipeline::registry::RunIo;
+    use crate::pipeline::runner::neighbours;
+    use crate::pipeline::PipelineSpec;
+    use std::path::Path;
+
+    /// The imaging a series' validity is checked against, as the step at `stages[step]` of
+    /// `text` sees it.
+    fn setup_of(text: &str, step: usize) -> crate::steps::series::ImagingSetup {
+        let spec = PipelineSpec::parse(text, Path::new("p.yaml"), &[]).unwrap();
+        let graph = Graph::build(&builtin(), &spec).unwrap();
+        let (upstream_stages, downstream_stages) = neighbours(&graph.reach(), step);
+        let io = RunIo::default();
+        let ctx = BuildContext { pipeline: &spec, stage: &spec.stages[step], threads: 1, downstream: Vec::new(), upstream_stages, downstream_stages, io: &io };
+        imaging_setup(&ctx).unwrap()
+    }
+
+    const PIPELINE: &str = "image: {size: 16, superresolution: 2}\nstages:\n  source: {kind: simulate, to: weights}\n  weights: {kind: weighting, scheme: robust, robust: -0.5, to: grid}\n  grid: {kind: gridder, to: step}\n  step: {kind: clean, to: update}\n  update: {kind: residual, to: step, done: write}\n  write: {kind: writer}\n";
+
+    #[test]
+    fn a_step_sees_the_weighting_of_the_stage_before_it() {
+        let setup = setup_of(PIPELINE, 3);
+        // `robust` is Briggs' other name: the series' manifest knows it as briggs.
+        assert_eq!((setup.superresolution, setup.weighting.as_deref(), setup.robust), (Some(2.0), Some("briggs"), Some(-0.5)));
+        let arcsec = setup_of(&PIPELINE.replace("superresolution: 2", "pixel_arcsec: 1"), 3);
+        assert_eq!(arcsec.superresolution, None, "the super-resolution depends on each job's baselines");
+    }
+
+    #[test]
+    fn a_weighting_stage_the_step_does_not_follow_is_not_its_weighting() {
+        // A second weighting stage after the loop (before a writer), first in the file,
+        // weights nothing the step sees.
+        let after = PIPELINE
+            .replace("done: write}", "done: again}")
+            .replace("stages:\n", "stages:\n  again: {kind: weighting, scheme: natural, to: write}\n");
+        assert_eq!(setup_of(&after, 4).weighting.as_deref(), Some("briggs"));
+    }
+}
