@@ -297,8 +297,8 @@ impl Drop for ScratchDir {
 }
 
 pub fn run_pipeline_bench(p: &PipelineBenchParams) -> Result<PipelineBenchReport> {
+    use crate::params::{CleanParams, Files, GridderParams, ParquetParams, ResidualParams, WeightingParams, WriterParams};
     use crate::pipeline::{ImageConfig, PipelineSpec, StageSpec};
-    use serde_json::json;
     use crate::simulate::observe::ObservationSpec;
     use crate::simulate::{simulate, SimulationRequest, SkyModel};
     use std::sync::atomic::AtomicBool;
@@ -340,14 +340,13 @@ pub fn run_pipeline_bench(p: &PipelineBenchParams) -> Result<PipelineBenchReport
     let out_prefix = dir.0.join("out").join("{job}").to_string_lossy().into_owned();
     let pipeline = |files: &[String]| -> Result<PipelineSpec> {
         let list: Vec<String> = files.iter().map(|f| dir.0.join(f).to_string_lossy().into_owned()).collect();
-        let stage = |name: &str, params: serde_json::Value| StageSpec::new(name, serde_yaml::to_value(params).expect("JSON is YAML"));
         let stages = vec![
-            stage("read", json!({"kind": "parquet", "files": list})).to("weights"),
-            stage("weights", json!({"kind": "weighting", "scheme": "briggs"})).to("grid"),
-            stage("grid", json!({"kind": "gridder"})).to("step"),
-            stage("step", json!({"kind": "clean", "major_cycles": p.major_cycles})).to("update"),
-            stage("update", json!({"kind": "residual"})).to("step").done("write"),
-            stage("write", json!({"kind": "writer", "prefix": out_prefix})),
+            StageSpec::typed("read", &ParquetParams::new(Files::Many(list)))?.to("weights"),
+            StageSpec::typed("weights", &WeightingParams::default())?.to("grid"),
+            StageSpec::typed("grid", &GridderParams::default())?.to("step"),
+            StageSpec::typed("step", &CleanParams { major_cycles: p.major_cycles, ..CleanParams::default() })?.to("update"),
+            StageSpec::typed("update", &ResidualParams::default())?.to("step").done("write"),
+            StageSpec::typed("write", &WriterParams { prefix: out_prefix.clone(), ..WriterParams::default() })?,
         ];
         let mut spec = PipelineSpec::new("bench", ImageConfig { size: p.size, superresolution: None, pixel_arcsec: None }, stages)?;
         spec.threads = p.threads;

@@ -7,10 +7,15 @@
 
 use crate::pipeline::registry::RunIo;
 use crate::pipeline::{runner, MemoryInput, PipelineSpec, ProductSink, Progress, Registry, RunReport, StageSpec};
+#[cfg(feature = "ms")]
+use crate::params::MsParams;
+use crate::params::{
+    ArrowIpcParams, ArrowParams, CleanParams, Files, GridderParams, NativeParams, OnnxParams, ParquetParams, ProductsParams, ResidualParams,
+    WeightingParams, WriterParams,
+};
 use crate::products::JobProducts;
 use crate::weighting::Weighting;
 use crate::{Error, Result};
-use serde_json::json;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::sync::{Arc, Mutex};
@@ -241,12 +246,12 @@ impl Default for ImageParams {
 
 /// The `r2d2 image` pipeline for `obs` and `params`, and the in-memory inputs it reads.
 fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, Vec<MemoryInput>)> {
-    let value = |v: serde_json::Value| serde_yaml::to_value(v).expect("JSON values are YAML values");
     let mut inputs = Vec::new();
-    let mut read = match obs {
+    let truth = params.truth.clone();
+    let read = match obs {
         Observation::Batches(input) => {
             inputs.push(input);
-            json!({"kind": "arrow"})
+            StageSpec::typed("read", &ArrowParams { truth, ..ArrowParams::default() })?
         }
         Observation::Path(path) if is_ms(&path) => ms_read(&path, params)?,
         Observation::Path(path) => {
@@ -255,33 +260,28 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
             }
             let text = path.to_string_lossy().into_owned();
             let is_ipc = matches!(path.extension().and_then(|e| e.to_str()), Some("arrow" | "arrows" | "ipc" | "feather"));
-            if is_ipc { json!({"kind": "arrow-ipc", "path": text}) } else { json!({"kind": "parquet", "files": text}) }
+            if is_ipc {
+                StageSpec::typed("read", &ArrowIpcParams { truth, ..ArrowIpcParams::new(text) })?
+            } else {
+                StageSpec::typed("read", &ParquetParams { truth, ..ParquetParams::new(Files::One(text)) })?
+            }
         }
     };
-    if let Some(truth) = &params.truth {
-        read["truth"] = json!(truth.to_string_lossy());
-    }
-    let (scheme, robust) = match params.weighting {
-        Weighting::Natural => ("natural", 0.0),
-        Weighting::Uniform => ("uniform", 0.0),
-        Weighting::Briggs { robust } => ("briggs", robust),
-    };
+    let weights = WeightingParams { grid_factor: params.weighting_grid_factor, ..WeightingParams::new(params.weighting) };
+    let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling };
     let mut stages = vec![
-        StageSpec::new("read", value(read)).to("weights"),
-        StageSpec::new("weights", value(json!({"kind": "weighting", "scheme": scheme, "robust": robust, "grid_factor": params.weighting_grid_factor}))).to("grid"),
-        StageSpec::new("grid", value(json!({"kind": "gridder", "epsilon": params.epsilon, "oversampling": params.oversampling}))).to("step"),
-        StageSpec::new("step", value(step_params(params)?)).to("update"),
-        StageSpec::new("update", value(json!({"kind": "residual", "method": "toeplitz"}))).to("step").done("products"),
+        read.to("weights"),
+        StageSpec::typed("weights", &weights)?.to("grid"),
+        StageSpec::typed("grid", &grid)?.to("step"),
+        step_stage(params)?.to("update"),
+        StageSpec::typed("update", &ResidualParams::default())?.to("step").done("products"),
     ];
-    let products = StageSpec::new("products", value(json!({"kind": "products"})));
+    let products = StageSpec::typed("products", &ProductsParams::default())?;
     match &params.write {
         Some(prefix) => {
             stages.push(products.to("write"));
-            let mut write = json!({"kind": "writer", "prefix": prefix});
-            if let Some(column) = &params.model_column {
-                write["model_column"] = json!(column);
-            }
-            stages.push(StageSpec::new("write", value(write)));
+            let write = WriterParams { prefix: prefix.clone(), model_column: params.model_column.clone(), ..WriterParams::default() };
+            stages.push(StageSpec::typed("write", &write)?);
         }
         None => stages.push(products),
     }
@@ -293,42 +293,29 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
     Ok((PipelineSpec::new("image", image, stages)?, inputs))
 }
 
-/// The step stage's parameters for `params.step`.
-fn step_params(params: &ImageParams) -> Result<serde_json::Value> {
-    Ok(match &params.step {
-        StepChoice::Clean => json!({"kind": "clean", "major_cycles": params.iterations.unwrap_or(5)}),
+/// The step stage for `params.step`.
+fn step_stage(params: &ImageParams) -> Result<StageSpec> {
+    match &params.step {
+        StepChoice::Clean => StageSpec::typed("step", &CleanParams { major_cycles: params.iterations.unwrap_or(5), ..CleanParams::default() }),
         StepChoice::Auto | StepChoice::Series(_) => {
             // `auto` is resolved by the step, which knows the image size.
             let series = match &params.step {
                 StepChoice::Series(path) => crate::steps::series::resolve(path)?,
                 _ => PathBuf::from(crate::steps::series::AUTO_SERIES),
             };
-            let backend = match params.backend {
-                BackendChoice::Auto => "auto",
-                BackendChoice::Ort => "ort",
-                BackendChoice::Tract => "tract",
+            let onnx = OnnxParams {
+                backend: params.backend,
+                graph_optimization: params.graph_optimization,
+                networks: params.iterations,
+                prefetch: params.prefetch,
+                ..OnnxParams::new(series)
             };
-            let optimization = match params.graph_optimization {
-                GraphOptimization::Extended => "extended",
-                GraphOptimization::All => "all",
-            };
-            let mut step = json!({"kind": "onnx", "series": series.to_string_lossy(), "backend": backend, "graph_optimization": optimization});
-            if let Some(n) = params.iterations {
-                step["networks"] = json!(n);
-            }
-            if !params.prefetch {
-                step["prefetch"] = json!(false);
-            }
-            step
+            StageSpec::typed("step", &onnx)
         }
         StepChoice::Native { library, config } => {
-            let mut step = json!({"kind": "native", "library": library.to_string_lossy(), "iterations": params.iterations.unwrap_or(10)});
-            if let Some(config) = config {
-                step["config"] = serde_json::to_value(config).map_err(|e| Error::parameter("plugin-config", e.to_string()))?;
-            }
-            step
+            StageSpec::typed("step", &NativeParams { config: config.clone(), ..NativeParams::new(library, params.iterations.unwrap_or(10)) })
         }
-    })
+    }
 }
 
 /// Whether `path` is a MeasurementSet (a directory with a table), else a file.
@@ -340,20 +327,98 @@ pub fn is_ms(path: &Path) -> bool {
 }
 
 #[cfg(feature = "ms")]
-fn ms_read(path: &Path, params: &ImageParams) -> Result<serde_json::Value> {
-    let mut read = match &params.ms {
-        Some(selection) => serde_json::to_value(selection).map_err(|e| Error::parameter("ms", e.to_string()))?,
-        None => json!({}),
-    };
-    if let Some(map) = read.as_object_mut() {
-        map.retain(|_, v| !v.is_null());
+fn ms_read(path: &Path, params: &ImageParams) -> Result<StageSpec> {
+    let mut read = MsParams { truth: params.truth.clone(), ..MsParams::new(path) };
+    if let Some(selection) = &params.ms {
+        let selection = selection.clone();
+        read = MsParams { data_column: selection.data_column, field: selection.field, spw: selection.spw, channels: selection.channels, ..read };
     }
-    read["kind"] = json!("ms");
-    read["path"] = json!(path.to_string_lossy());
-    Ok(read)
+    StageSpec::typed("read", &read)
 }
 
 #[cfg(not(feature = "ms"))]
-fn ms_read(path: &Path, _params: &ImageParams) -> Result<serde_json::Value> {
+fn ms_read(path: &Path, _params: &ImageParams) -> Result<StageSpec> {
     Err(Error::input(path, "a MeasurementSet, but this r2d2 was built without the `ms` feature"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::params::*;
+    use crate::pipeline::StageParams;
+
+    /// Whether stages `a` of `ya` and `b` of `yb` (both of `kind`) have the same parameters once
+    /// read as the kind's typed parameters (so defaults written out or left out compare equal).
+    fn same_params(kind: &str, (ya, a): (&PipelineSpec, &StageSpec), (yb, b): (&PipelineSpec, &StageSpec)) -> bool {
+        fn same<P: StageParams + PartialEq + std::fmt::Debug>(ya: &PipelineSpec, a: &StageSpec, yb: &PipelineSpec, b: &StageSpec) -> bool {
+            let (pa, pb) = (ya.stage_params::<P>(a).unwrap(), yb.stage_params::<P>(b).unwrap());
+            if pa != pb {
+                eprintln!("stage '{}': {pa:?}\n  differs from {pb:?}", a.name);
+            }
+            pa == pb
+        }
+        match kind {
+            "parquet" => same::<ParquetParams>(ya, a, yb, b),
+            "weighting" => same::<WeightingParams>(ya, a, yb, b),
+            "gridder" => same::<GridderParams>(ya, a, yb, b),
+            "onnx" => same::<OnnxParams>(ya, a, yb, b),
+            "residual" => same::<ResidualParams>(ya, a, yb, b),
+            "writer" => same::<WriterParams>(ya, a, yb, b),
+            other => panic!("the test has no typed parameters for kind '{other}'"),
+        }
+    }
+
+    /// The spec without its `products` stages, what pointed at one pointing where it led.
+    fn without_products(spec: &PipelineSpec) -> Vec<StageSpec> {
+        let next = |target: &Option<String>| -> Option<String> {
+            let mut target = target.clone();
+            while let Some(s) = target.as_deref().and_then(|t| spec.stage(t)).filter(|s| s.kind == ProductsParams::KIND) {
+                target = s.to.clone();
+            }
+            target
+        };
+        spec.stages
+            .iter()
+            .filter(|s| s.kind != ProductsParams::KIND)
+            .map(|s| StageSpec { to: next(&s.to), done: next(&s.done), ..s.clone() })
+            .collect()
+    }
+
+    /// pipelines/image.yaml says it is the pipeline `r2d2 image OBS.parquet` runs: it is
+    /// `Engine::image`'s with every option at its default, for `obs.parquet` written at the
+    /// YAML's prefix (`{job}`: `r2d2 image` takes it from `--name`). `Engine::image` adds a
+    /// `products` stage handing the products to its caller, which `r2d2 run` has not.
+    #[test]
+    fn pipelines_image_yaml_is_the_pipeline_of_engine_image() {
+        let yaml = PipelineSpec::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines/image.yaml"), &[]).unwrap();
+        let params = ImageParams { write: Some("{job}".into()), ..ImageParams::default() };
+        let (code, inputs) = image_spec(Observation::Path("obs.parquet".into()), &params).unwrap();
+        assert!(inputs.is_empty());
+        assert_eq!((&yaml.name, &yaml.image, yaml.threads, yaml.channel_capacity), (&code.name, &code.image, code.threads, code.channel_capacity));
+        let code_stages = without_products(&code);
+        let shape = |stages: &[StageSpec]| stages.iter().map(|s| (s.name.clone(), s.kind.clone(), s.to.clone(), s.done.clone())).collect::<Vec<_>>();
+        assert_eq!(shape(&yaml.stages), shape(&code_stages), "stages, kinds and routing");
+        for (a, b) in yaml.stages.iter().zip(&code_stages) {
+            assert!(same_params(&a.kind, (&yaml, a), (&code, b)), "stage '{}': the YAML's parameters differ from Engine::image's", a.name);
+        }
+        assert!(code.stages.iter().any(|s| s.kind == ProductsParams::KIND));
+    }
+
+    /// Each choice of `Engine::image` reaches its stage's parameters (read back typed).
+    #[test]
+    fn engine_image_pipelines_read_back_as_typed_parameters() {
+        let clean = ImageParams { step: StepChoice::Clean, iterations: Some(3), weighting: Weighting::Uniform, write: Some("out/{job}".into()), ..ImageParams::default() };
+        let (spec, _) = image_spec(Observation::Path("a.arrows".into()), &clean).unwrap();
+        assert_eq!(spec.stage_params::<CleanParams>(spec.stage("step").unwrap()).unwrap().major_cycles, 3);
+        assert_eq!(spec.stage_params::<WeightingParams>(spec.stage("weights").unwrap()).unwrap().scheme, WeightingScheme::Uniform);
+        assert_eq!(spec.stage_params::<ArrowIpcParams>(spec.stage("read").unwrap()).unwrap().path, "a.arrows");
+        let native = ImageParams { step: StepChoice::Native { library: "p.so".into(), config: Some(serde_yaml::from_str("{gain: 1}").unwrap()) }, ..ImageParams::default() };
+        let (spec, _) = image_spec(Observation::Path("a.parquet".into()), &native).unwrap();
+        let step = spec.stage_params::<NativeParams>(spec.stage("step").unwrap()).unwrap();
+        assert_eq!((step.iterations, step.config.unwrap()["gain"].as_f64()), (10, Some(1.0)));
+        let onnx = ImageParams { iterations: Some(2), prefetch: false, backend: BackendChoice::Tract, ..ImageParams::default() };
+        let (spec, _) = image_spec(Observation::Path("a.parquet".into()), &onnx).unwrap();
+        let step = spec.stage_params::<OnnxParams>(spec.stage("step").unwrap()).unwrap();
+        assert_eq!((step.networks, step.prefetch, step.backend), (Some(2), false, BackendChoice::Tract));
+    }
 }

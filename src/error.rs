@@ -40,9 +40,17 @@ pub enum Error {
     Input { path: PathBuf, message: String },
 
     /// A problem at a place in a pipeline description (YAML): the file, line and column (both
-    /// from 1), for an editor or a notebook to point at.
+    /// from 1), for an editor or a notebook to point at. `cause` is the error that the value
+    /// there led to (a series that does not load), when there is one; `message` says it too.
     #[error("{}: line {line}, column {column}: {message}", file.display())]
-    Located { file: PathBuf, line: usize, column: usize, message: String },
+    Located {
+        file: PathBuf,
+        line: usize,
+        column: usize,
+        message: String,
+        #[source]
+        cause: Option<Box<Error>>,
+    },
 
     /// A parameter (command-line option or configuration value) out of its allowed range.
     #[error("invalid {name}: {message}")]
@@ -145,6 +153,7 @@ impl Error {
             #[cfg(feature = "ms")]
             Error::Ms(e) => Some(e),
             Error::Stage { source, .. } => source.module_error(),
+            Error::Located { cause: Some(cause), .. } => cause.module_error(),
             _ => None,
         }
     }

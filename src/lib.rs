@@ -3,6 +3,8 @@
 //! The front door is the [`Engine`] (docs/embedding.md): stage kinds in a [`Registry`],
 //! pipelines as [`PipelineSpec`]s (from YAML or built in code), observations in as files or
 //! Arrow record batches ([`MemoryInput`]), products out as files or arrays ([`JobProducts`]).
+//! A pipeline built in code names its stages' parameters with the typed structs of
+//! [`params`] ([`StageSpec::typed`]).
 //!
 //! The numerical modules (`nufft`, `weighting`, `operator`, `simulate`, `metrics`) know
 //! nothing of files, channels or configuration; `vis` holds the visibilities and their table
@@ -48,9 +50,10 @@ pub use engine::{is_ms, BackendChoice, Engine, EngineOptions, GraphOptimization,
 pub use error::{Error, Result};
 pub use pipeline::{
     BuildContext, Built, Emit, ImageConfig, Imaging, IterationMetrics, Job, KindFn, MemoryInput, PipelineSpec, Port, Product,
-    ProductSink, Progress, Registry, Role, RunReport, Source, Stage, StageKind, StageSpec,
+    ProductSink, Progress, Registry, Role, RunReport, Source, Stage, StageKind, StageParams, StageSpec,
 };
 pub use products::{JobProducts, WriteOptions};
 /// Reading visibility tables into jobs (the file and memory sources share it).
 pub use stages::ingest;
+pub use stages::params;
 pub use weighting::{Weighting, WeightingScheme};

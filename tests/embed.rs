@@ -144,6 +144,48 @@ fn a_yaml_pipeline_runs_on_several_inputs_and_delivers_each_job() {
     assert_eq!(report.jobs.len(), 2);
 }
 
+/// Runs `spec` on one input and returns the job's products.
+fn run_one(engine: &Engine, spec: &r2d2_imaging::PipelineSpec, input: MemoryInput) -> JobProducts {
+    let received: Arc<Mutex<Vec<JobProducts>>> = Arc::default();
+    let into = received.clone();
+    let sink = move |p: JobProducts| {
+        into.lock().unwrap().push(p);
+        Ok(())
+    };
+    engine.run(spec, vec![input], Some(Box::new(sink)), Arc::default()).unwrap();
+    let mut received = received.lock().unwrap();
+    assert_eq!(received.len(), 1);
+    received.remove(0)
+}
+
+/// PIPELINE written with the typed parameters instead of YAML text: the same products.
+#[test]
+fn a_pipeline_of_typed_parameters_is_its_yaml() {
+    use r2d2_imaging::params::{ArrowParams, CleanParams, GridderParams, ProductsParams, ResidualParams, WeightingParams, WeightingScheme};
+    use r2d2_imaging::{ImageConfig, PipelineSpec, StageSpec};
+    let engine = engine();
+    let stages = vec![
+        StageSpec::typed("read", &ArrowParams::default()).unwrap().to("weights"),
+        StageSpec::typed("weights", &WeightingParams { scheme: WeightingScheme::Natural, ..Default::default() }).unwrap().to("grid"),
+        StageSpec::typed("grid", &GridderParams::default()).unwrap().to("step"),
+        StageSpec::typed("step", &CleanParams { major_cycles: 1, ..Default::default() }).unwrap().to("update"),
+        StageSpec::typed("update", &ResidualParams::default()).unwrap().to("step").done("deliver"),
+        StageSpec::typed("deliver", &ProductsParams::default()).unwrap(),
+    ];
+    let typed = PipelineSpec::new("typed", ImageConfig { size: SIZE, superresolution: None, pixel_arcsec: None }, stages).unwrap();
+    let yaml = engine.load_yaml(PIPELINE, "embedded.yaml", &[]).unwrap();
+    let obs = observation(3);
+    let (a, b) = (run_one(&engine, &typed, input("a", &obs)), run_one(&engine, &yaml, input("a", &obs)));
+    assert_eq!((a.iterations, &a.dirty, &a.model), (b.iterations, &b.dirty, &b.model));
+    // Typed parameters the kind refuses are still refused when the stage is built, naming it.
+    let bad = StageSpec::typed("weights", &WeightingParams { robust: f64::NAN, ..Default::default() }).unwrap().to("grid");
+    let mut stages = typed.stages.clone();
+    stages[1] = bad;
+    let spec = PipelineSpec::new("typed", typed.image.clone(), stages).unwrap();
+    let err = engine.validate(&spec).unwrap_err().to_string();
+    assert!(err.contains("robust"), "{err}");
+}
+
 #[test]
 fn errors_name_the_file_line_and_stage() {
     let engine = engine();
@@ -277,4 +319,25 @@ fn a_failed_or_cancelled_run_leaves_the_engine_ready_for_the_next() {
     let report = engine.run(&spec, inputs(&["e", "f"]), Some(Box::new(sink(&again, None))), cancel.clone()).unwrap();
     assert_eq!((report.jobs.len(), again.load(Ordering::SeqCst)), (2, 2));
     engine.image(input("after-cancel", &observation(12)), &clean_params()).unwrap();
+}
+
+/// A series that does not load fails validation at the YAML line of `series`, and a caller can
+/// still match on the series error beneath it (`Error::module_error`, `source()`).
+#[test]
+fn a_series_error_keeps_its_yaml_line_and_its_kind() {
+    let d = tempfile::tempdir().unwrap();
+    let missing = d.path().join("no-such-series");
+    let yaml = format!(
+        "image: {{size: 64}}\nstages:\n  source: {{kind: simulate, to: weights}}\n  weights: {{kind: weighting, scheme: natural, to: grid}}\n  grid: {{kind: gridder, to: step}}\n  step:\n    kind: onnx\n    series: '{}'\n    to: update\n  update: {{kind: residual, to: step, done: write}}\n  write: {{kind: writer, prefix: 'out/{{job}}'}}\n",
+        missing.display()
+    );
+    let engine = engine();
+    let spec = engine.load_yaml(&yaml, "series.yaml", &[]).unwrap();
+    let error = engine.validate(&spec).unwrap_err();
+    let (file, line, _) = error.location().expect("a located error");
+    assert_eq!((file.to_str(), line), (Some("series.yaml"), 8), "{error}");
+    let module = error.module_error().expect("the series error beneath");
+    assert!(module.downcast_ref::<r2d2_imaging::steps::series::SeriesError>().is_some(), "{module:?}");
+    assert!(std::error::Error::source(&error).is_some(), "the cause is the located error's source");
+    assert!(error.to_string().contains("no-such-series"), "{error}");
 }

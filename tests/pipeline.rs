@@ -138,6 +138,53 @@ fn configuration_errors_name_file_line_and_choices() {
     }
 }
 
+/// `r2d2 validate p.yaml --set ...` (`text` written to `d/p.yaml`) fails cleanly with each of
+/// `expected` and the file's name in its message, which is returned.
+fn validate_fails(d: &Path, text: &str, sets: &[&str], what: &str, expected: Vec<&str>) -> String {
+    std::fs::write(d.join("p.yaml"), text).unwrap();
+    let mut args = vec!["validate", "p.yaml"];
+    for set in sets {
+        args.extend(["--set", set]);
+    }
+    let expected: Vec<&str> = expected.into_iter().chain(["p.yaml"]).collect();
+    assert_fails_with(&r2d2(&args, d), what, &expected)
+}
+
+/// A wrong value inside a stage's parameters (an unknown enum value, a wrong type, nested in a
+/// flow collection) is reported at the line and column of the value in the file, an unknown
+/// key at the key's; a value that came from `--set` is reported as the `--set`, not at a line
+/// of the file (which does not hold it).
+#[test]
+fn stage_parameter_errors_point_at_their_yaml_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let good = small_pipeline(None);
+    let residual = "    kind: residual\n";
+    let split_source = "  source:\n    kind: parquet\n    files: a.parquet\n    split_by: {column: time, windw: 600}\n    to: weights\n".to_string();
+    let cases: Vec<(&str, String, Vec<&str>, Vec<&str>)> = vec![
+        ("unknown scheme", good.replace("scheme: briggs", "scheme: brigs"), vec![], vec!["line 15, column 13", "stages.weights.scheme", "`brigs`", "`briggs`"]),
+        ("unknown method", good.replace(residual, &format!("{residual}    method: nuft\n")), vec![], vec!["line 28, column 13", "stages.update.method", "`nuft`", "`nufft`"]),
+        ("wrong type in a list", good.replace("hours: [1]", "hours: [1, x]"), vec![], vec!["line 10, column 16", "stages.source.hours[1]", "expected f64"]),
+        ("wrong type", good.replace("robust: 0", "robust: zero"), vec![], vec!["line 16, column 13", "stages.weights.robust", "expected f64"]),
+        ("unknown key", good.replace("    kind: writer\n", "    kind: writer\n    options: {previews: true}\n"), vec![], vec!["line 32, column 5", "stages.write.options", "unknown field"]),
+        ("unknown key in a flow mapping", small_pipeline(Some(&split_source)), vec![], vec!["line 8, column 30", "stages.source.split_by.windw", "`window`"]),
+        // The file is fine: the wrong value is the command line's.
+        ("from --set", good.clone(), vec!["weights.scheme=brigs"], vec!["stages.weights.scheme", "--set weights.scheme=brigs", "`brigs`"]),
+        ("nested from --set", good.clone(), vec!["source.hours=[1, x]"], vec!["stages.source.hours[1]", "--set source.hours=[1, x]"]),
+        // A wrong value of the file is still found at its line when `--set` changed another.
+        ("file, beside a --set", good.replace("robust: 0", "robust: zero"), vec!["weights.scheme=uniform"], vec!["line 16, column 13", "stages.weights.robust"]),
+    ];
+    for (what, text, sets, expected) in cases {
+        let err = validate_fails(d, &text, &sets, what, expected);
+        if !sets.is_empty() && what.contains("--set") && !what.starts_with("file") {
+            assert!(!err.contains("line "), "{what}: a value of the command line has no line in the file: {err}");
+        }
+    }
+    // A wrong value of the file that `--set` replaces is no error.
+    std::fs::write(d.join("p.yaml"), good.replace("scheme: briggs", "scheme: brigs")).unwrap();
+    check(&r2d2(&["validate", "p.yaml", "--set", "weights.scheme=briggs"], d));
+}
+
 /// A corrupt file mid-stream: the first job is finished and its products are intact, the
 /// failed job leaves nothing behind, the error names the stage and job, and the exit code is non-zero.
 #[test]
@@ -498,13 +545,7 @@ fn small_configuration_mistakes_are_refused_by_validate() {
         ("size 0", small_pipeline(None), vec!["image.size=0"], vec!["image.size", "at least one pixel"]),
     ];
     for (what, text, sets, expected) in cases {
-        std::fs::write(d.join("p.yaml"), text).unwrap();
-        let mut args = vec!["validate", "p.yaml"];
-        for set in &sets {
-            args.extend(["--set", set]);
-        }
-        let expected: Vec<&str> = expected.into_iter().chain(["p.yaml"]).collect();
-        assert_fails_with(&r2d2(&args, d), what, &expected);
+        validate_fails(d, &text, &sets, what, expected);
     }
     // The series takes multiples of 8 other than its training size.
     std::fs::write(d.join("p.yaml"), onnx).unwrap();

@@ -16,9 +16,10 @@
 //! The image geometry is pipeline-wide rather than a gridder option: weighting, gridder and
 //! a trained network series must all agree on it, so it is stated once.
 
+use super::located;
 use crate::{Error, Result};
 use serde::de::DeserializeOwned;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use serde_yaml::{Mapping, Value};
 use std::path::{Path, PathBuf};
 
@@ -60,7 +61,23 @@ struct RawPipeline {
     stages: Mapping,
 }
 
+/// The typed parameters of a stage kind: what a Rust program writes instead of a stage's YAML
+/// mapping ([`StageSpec::typed`]), and what the kind reads back (`BuildContext::params`).
+/// Serialised, they are the mapping the YAML would hold (without `kind`, `to`, `done`, which
+/// belong to the engine and are no parameter's name).
+///
+/// The built-in kinds' parameters are in `r2d2_imaging::params`; a kind of an embedding
+/// program's own implements this for its parameters the same way.
+pub trait StageParams: Serialize + DeserializeOwned {
+    /// The YAML `kind` these parameters are for.
+    const KIND: &'static str;
+}
+
 /// One stage as written in the YAML: its name, kind, routing and its own parameters.
+///
+/// The parameters stay a YAML mapping here, whatever the kind: the registry is open to kinds
+/// the engine does not know, so the spec carries any kind's; [`StageSpec::typed`] is the
+/// checked way to write a known kind's.
 #[derive(Clone, Debug)]
 pub struct StageSpec {
     pub name: String,
@@ -82,9 +99,28 @@ pub struct PipelineSpec {
     pub image: ImageConfig,
     /// Stages in file order.
     pub stages: Vec<StageSpec>,
+    /// The `--set` overrides applied to the text, to tell a value of the file from one of the
+    /// command line in errors.
+    overrides: Vec<String>,
 }
 
 impl StageSpec {
+    /// A stage of `P`'s kind with typed parameters, e.g.
+    /// `StageSpec::typed("weights", &WeightingParams::default())?.to("grid")`. An error only if
+    /// the parameters do not serialise to a mapping (which the built-in kinds' always do).
+    pub fn typed<P: StageParams>(name: impl Into<String>, params: &P) -> Result<StageSpec> {
+        let name = name.into();
+        let what = || format!("stage '{name}' ({})", P::KIND);
+        let params = serde_yaml::to_value(params).map_err(|e| Error::parameter(what(), format!("its parameters do not serialise: {e}")))?;
+        match &params {
+            Value::Mapping(map) if ROUTING_KEYS.iter().any(|k| map.contains_key(*k)) => {
+                Err(Error::parameter(what(), format!("its parameters use a name the engine keeps for routing ({})", ROUTING_KEYS.join(", "))))
+            }
+            Value::Mapping(_) => Ok(StageSpec { name, kind: P::KIND.to_string(), to: None, done: None, params }),
+            _ => Err(Error::parameter(what(), "its parameters serialise to something other than a mapping")),
+        }
+    }
+
     /// A stage from its parameters, a mapping with its `kind` (as it would be written in YAML).
     pub fn new(name: impl Into<String>, params: Value) -> StageSpec {
         let mut params = params;
@@ -116,7 +152,7 @@ impl PipelineSpec {
             }
         }
         crate::limits::check_image_size(image.size).map_err(|m| located(&file, None, &format!("image.size = {}: {m}", image.size)))?;
-        Ok(PipelineSpec { file, text: String::new(), name, threads: 0, channel_capacity: 2, image, stages })
+        Ok(PipelineSpec { file, text: String::new(), name, threads: 0, channel_capacity: 2, image, stages, overrides: Vec::new() })
     }
 
     /// Read `path` and apply `overrides` (`stage.key=value`, `image.key=value`, `threads=N`).
@@ -184,27 +220,55 @@ impl PipelineSpec {
             channel_capacity: capacity,
             image: raw.image,
             stages,
+            overrides: overrides.to_vec(),
         })
     }
 
     /// Deserialize a stage's parameters into its kind's config struct; errors name the file,
-    /// line, column and key.
+    /// line, column and key (a nested key by its path: `stages.source.split_by.window`), or the
+    /// `--set` override the wrong value came from.
     pub fn stage_params<T: DeserializeOwned>(&self, stage: &StageSpec) -> Result<T> {
-        serde_path_to_error::deserialize(stage.params.clone()).map_err(|e| {
-            let message = e.inner().to_string();
-            // serde names an unknown field in backticks; a type error has a path instead.
-            let key = message
-                .strip_prefix("unknown field `")
-                .and_then(|r| r.split('`').next())
-                .map(str::to_string)
-                .or_else(|| e.path().iter().next().map(|s| s.to_string()));
-            let key = key.filter(|k| !k.is_empty() && k != ".");
-            let location = locate(&self.text, &stage.name, key.as_deref());
-            let path = match &key {
-                Some(k) => format!("stages.{}.{k}", stage.name),
-                None => format!("stages.{}", stage.name),
-            };
-            located(&self.file, location, &format!("{path} ({} stage): {message}", stage.kind))
+        let e = match serde_path_to_error::deserialize(stage.params.clone()) {
+            Ok(params) => return Ok(params),
+            Err(e) => e,
+        };
+        let message = e.inner().to_string();
+        let path = e.path().to_string();
+        let key = failing_key(&path, &message);
+        let what = match &key {
+            Some(k) => format!("stages.{}.{k} ({} stage)", stage.name, stage.kind),
+            None => format!("stages.{} ({} stage)", stage.name, stage.kind),
+        };
+        if let Some(set) = self.override_of(&stage.name, key.as_deref()) {
+            // The file has no line for a value of the command line.
+            return Err(Error::input(&self.file, format!("{what}, as given by --set {set}: {message}")));
+        }
+        // The values came from the file: read them again from its text, which knows where
+        // each one is (a `Value` does not). The same failure at the same key is this one.
+        let location = located::failure_in_text::<T>(&self.text, &stage.name)
+            .filter(|(p, _)| *p == path)
+            .and_then(|(_, at)| at)
+            .or_else(|| locate(&self.text, &stage.name, key.as_deref().map(|k| k.split(['.', '[']).next().unwrap_or(k))));
+        Err(located(&self.file, location, &format!("{what}: {message}")))
+    }
+
+    /// The `--set` override that gave stage `stage`'s `key` (a path inside its parameters) its
+    /// value, or a value around it.
+    fn override_of(&self, stage: &str, key: Option<&str>) -> Option<&str> {
+        let key = key?;
+        self.overrides.iter().map(String::as_str).find(|spec| {
+            let path = spec.split_once('=').map_or(*spec, |(p, _)| p);
+            let mut parts = path.splitn(2, '.');
+            if parts.next() != Some(stage) || TOP_KEYS.contains(&stage) {
+                return false;
+            }
+            match parts.next() {
+                None => true,
+                Some(set) => {
+                    let within = |outer: &str, inner: &str| inner == outer || inner.starts_with(&format!("{outer}.")) || inner.starts_with(&format!("{outer}["));
+                    within(set, key) || within(key, set)
+                }
+            }
         })
     }
 
@@ -213,9 +277,38 @@ impl PipelineSpec {
         located(&self.file, locate(&self.text, stage, key), message)
     }
 
+    /// [`stage_error`](Self::stage_error) for an error that a stage's value led to, kept as the
+    /// located error's cause (a caller matching on the module error still finds it).
+    pub fn stage_error_caused(&self, stage: &str, key: Option<&str>, message: &str, cause: Error) -> Error {
+        match located(&self.file, locate(&self.text, stage, key), message) {
+            Error::Located { file, line, column, message, .. } => Error::Located { file, line, column, message, cause: Some(Box::new(cause)) },
+            // No line to point at (a pipeline built in code): the cause itself, which names its file.
+            _ => cause,
+        }
+    }
+
     pub fn stage(&self, name: &str) -> Option<&StageSpec> {
         self.stages.iter().find(|s| s.name == name)
     }
+}
+
+/// Keys of a stage's mapping that the engine reads (its kind and routing), not the kind.
+pub(crate) const ROUTING_KEYS: [&str; 3] = ["kind", "to", "done"];
+
+/// The top-level keys a `--set` may name (any other first part is a stage).
+const TOP_KEYS: [&str; 4] = ["image", "threads", "name", "channel_capacity"];
+
+/// The key a deserialisation error is about, as a path inside the stage's parameters
+/// (`scheme`, `split_by.window`, `hours[1]`). The path of an unknown field ends with it where
+/// serde_path_to_error could record it; else the field is named in the message only.
+fn failing_key(path: &str, message: &str) -> Option<String> {
+    let unknown = message.strip_prefix("unknown field `").and_then(|r| r.split('`').next());
+    let key = match (path, unknown) {
+        (".", Some(field)) => field.to_string(),
+        (_, Some(field)) if path != field && !path.ends_with(&format!(".{field}")) => format!("{path}.{field}"),
+        _ => path.to_string(),
+    };
+    (!key.is_empty() && key != ".").then_some(key)
 }
 
 /// Deepest nesting of flow collections (`[...]`, `{...}`) accepted: a pipeline needs four or
@@ -278,7 +371,7 @@ fn yaml_error(file: &Path, e: &serde_yaml::Error) -> Error {
 
 fn located(file: &Path, location: Option<(usize, usize)>, message: &str) -> Error {
     match location {
-        Some((line, column)) => Error::Located { file: file.to_path_buf(), line, column, message: message.to_string() },
+        Some((line, column)) => Error::Located { file: file.to_path_buf(), line, column, message: message.to_string(), cause: None },
         None => Error::input(file, message.to_string()),
     }
 }
@@ -322,9 +415,8 @@ fn apply_override(root: &mut Value, spec: &str) -> Result<()> {
         .map_err(|e| Error::parameter("--set", format!("'{spec}': value is not valid YAML: {e}")))?;
     let parts: Vec<&str> = path.split('.').collect();
     // Stage names are looked up under `stages`; `image.*`, `threads`, `name` at the top.
-    let top = ["image", "threads", "name", "channel_capacity"];
     let mut node = root;
-    let full: Vec<&str> = if top.contains(&parts[0]) { parts.clone() } else { [&["stages"][..], &parts[..]].concat() };
+    let full: Vec<&str> = if TOP_KEYS.contains(&parts[0]) { parts.clone() } else { [&["stages"][..], &parts[..]].concat() };
     for (i, part) in full.iter().enumerate() {
         let map = node
             .as_mapping_mut()

@@ -11,11 +11,12 @@ pub(crate) mod cancel;
 pub(crate) mod config;
 pub(crate) mod graph;
 pub(crate) mod io;
+pub(crate) mod located;
 pub(crate) mod registry;
 pub(crate) mod runner;
 pub(crate) mod stage;
 
-pub use config::{ImageConfig, PipelineSpec, StageSpec};
+pub use config::{ImageConfig, PipelineSpec, StageParams, StageSpec};
 pub use io::{MemoryInput, ProductSink};
 pub use registry::{BuildContext, Built, KindFn, Product, Registry, Role, StageKind};
 pub use runner::{Progress, RunReport};
@@ -57,9 +58,12 @@ pub struct Imaging {
     pub beam: Option<crate::fits::Beam>,
 }
 
-/// The error of a stage reached by a job not gridded yet (the graph check makes it a bug).
-pub(crate) fn not_gridded(stage: &str, job: &str) -> crate::Error {
-    crate::Error::parameter(format!("stage '{stage}'"), format!("job '{job}' reached it before being gridded: put a gridder stage upstream"))
+/// The error of a stage given a job without `product`. The products check before the run
+/// guarantees every product a stage kind declares it consumes: this is a kind that consumes
+/// more than it declares, or one upstream that declares more than it makes.
+pub(crate) fn missing(stage: &str, job: &str, product: Product) -> crate::Error {
+    let (what, maker) = product.describe();
+    crate::Error::parameter(format!("stage '{stage}'"), format!("job '{job}' reached it without {what}: put {maker} upstream"))
 }
 
 /// One iteration's figures, as written to `<prefix>-metrics.json`.
@@ -134,7 +138,29 @@ impl Job {
     /// The gridded state, or an error naming the stage that needed it.
     pub fn imaging_mut(&mut self, stage: &str) -> Result<&mut Imaging> {
         let id = &self.id;
-        self.imaging.as_mut().ok_or_else(|| not_gridded(stage, id))
+        self.imaging.as_mut().ok_or_else(|| missing(stage, id, Product::Imaging))
+    }
+
+    /// The visibilities, or an error naming the stage that needed them (released by the
+    /// gridder unless a stage after it consumes the operator).
+    pub fn visibilities(&self, stage: &str) -> Result<&Visibilities> {
+        self.vis.as_ref().ok_or_else(|| missing(stage, &self.id, Product::Visibilities))
+    }
+
+    /// Takes the visibilities out of the job (the gridder's: it releases them).
+    pub fn take_visibilities(&mut self, stage: &str) -> Result<Visibilities> {
+        self.vis.take().ok_or_else(|| missing(stage, &self.id, Product::Visibilities))
+    }
+
+    /// Takes the weights out of the job, with the geometry they were made for (the gridder's).
+    pub fn take_weights(&mut self, stage: &str) -> Result<(ImageGeometry, Vec<f64>)> {
+        match (self.geometry, self.weight.take()) {
+            (Some(geometry), Some(weight)) => Ok((geometry, weight)),
+            (_, weight) => {
+                self.weight = weight;
+                Err(missing(stage, &self.id, Product::Weights))
+            }
+        }
     }
 
     /// Record iteration figures after a residual update.

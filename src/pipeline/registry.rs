@@ -3,7 +3,7 @@
 //! and adds to it, and builds the stage from its parameters. The built-in kinds register
 //! themselves in `crate::stages::builtin`; an embedding program adds its own the same way.
 
-use super::config::{ImageConfig, PipelineSpec, StageSpec};
+use super::config::{ImageConfig, PipelineSpec, StageParams, StageSpec};
 use super::io::{MemoryInput, ProductSink};
 use super::stage::{Source, Stage};
 use crate::{Error, Result};
@@ -44,7 +44,7 @@ pub enum Product {
 
 impl Product {
     /// The product as a user reads it, and the kind of stage that makes it.
-    fn describe(self) -> (&'static str, &'static str) {
+    pub(crate) fn describe(self) -> (&'static str, &'static str) {
         match self {
             Product::Visibilities => ("visibilities", "a source"),
             Product::Weights => ("weights", "a weighting stage"),
@@ -194,8 +194,12 @@ pub struct BuildContext<'a> {
     pub stage: &'a StageSpec,
     /// Threads for the stage's numerical work (the shared pool's size; 0: all cores).
     pub threads: usize,
-    /// Products consumed by the stages this one's jobs reach.
+    /// Products consumed by the stages this one's jobs reach (empty while the products are
+    /// being checked, before any stage is built).
     pub(crate) downstream: Vec<Product>,
+    /// The stages (indices in file order) whose jobs reach this one, and those its jobs reach.
+    pub(crate) upstream_stages: Vec<usize>,
+    pub(crate) downstream_stages: Vec<usize>,
     pub(crate) io: &'a RunIo,
 }
 
@@ -215,6 +219,22 @@ impl BuildContext<'_> {
         self.pipeline.stage_params(self.stage)
     }
 
+    /// The parameters of the stages of `P`'s kind whose jobs reach this one, in file order:
+    /// what a kind may know of the stages before it (the weighting a network series will see),
+    /// typed, without reading their YAML. Errors are about those stages' keys.
+    pub fn upstream_params<P: StageParams>(&self) -> Result<Vec<P>> {
+        self.params_of(&self.upstream_stages)
+    }
+
+    /// The parameters of the stages of `P`'s kind that this one's jobs reach, in file order.
+    pub fn downstream_params<P: StageParams>(&self) -> Result<Vec<P>> {
+        self.params_of(&self.downstream_stages)
+    }
+
+    fn params_of<P: StageParams>(&self, stages: &[usize]) -> Result<Vec<P>> {
+        stages.iter().map(|&i| &self.pipeline.stages[i]).filter(|s| s.kind == P::KIND).map(|s| self.pipeline.stage_params(s)).collect()
+    }
+
     /// An error about the stage's `key` (or the stage), at its line when the spec came from a
     /// file: `stages.<name>.<key>: <message>`.
     pub fn error(&self, key: Option<&str>, message: impl std::fmt::Display) -> Error {
@@ -224,6 +244,13 @@ impl BuildContext<'_> {
             None => format!("stages.{name}"),
         };
         self.pipeline.stage_error(name, key, &format!("{path}: {message}"))
+    }
+
+    /// [`error`](Self::error) for an error that the stage's `key` led to (a series that does
+    /// not load), kept as the cause so that callers can still match on its kind.
+    pub fn error_caused(&self, key: &str, cause: Error) -> Error {
+        let name = &self.stage.name;
+        self.pipeline.stage_error_caused(name, Some(key), &format!("stages.{name}.{key}: {cause}"), cause)
     }
 
     /// Whether a stage downstream of this one consumes `product`.

@@ -78,21 +78,32 @@ pub fn run(
 /// Checks what each stage consumes against what the stages before it produce, then builds
 /// every stage (in file order), telling each what the stages after it consume.
 fn build_all(registry: &Registry, config: &PipelineSpec, graph: &Graph, io: &RunIo) -> Result<Vec<Built>> {
-    let context = |stage, downstream| BuildContext { pipeline: config, stage, threads: config.threads, downstream, io };
+    let reach = graph.reach();
+    let context = |i: usize, downstream| {
+        let (upstream_stages, downstream_stages) = neighbours(&reach, i);
+        BuildContext { pipeline: config, stage: &config.stages[i], threads: config.threads, downstream, upstream_stages, downstream_stages, io }
+    };
     let mut consumes = Vec::new();
     let mut produces = Vec::new();
-    for stage in &config.stages {
+    for (i, stage) in config.stages.iter().enumerate() {
         let kind = registry.kind_of(config, stage)?;
-        consumes.push(kind.consumes(&context(stage, Vec::new()))?);
+        consumes.push(kind.consumes(&context(i, Vec::new()))?);
         produces.push(kind.produces());
     }
-    let downstream = check_products(config, &graph.reach(), &consumes, &produces)?;
+    let downstream = check_products(config, &reach, &consumes, &produces)?;
     config
         .stages
         .iter()
         .zip(downstream)
-        .map(|(stage, downstream)| registry.kind_of(config, stage)?.build(&context(stage, downstream)))
+        .enumerate()
+        .map(|(i, (stage, downstream))| registry.kind_of(config, stage)?.build(&context(i, downstream)))
         .collect()
+}
+
+/// The stages whose jobs reach stage `i`, and those its jobs reach (loop edges included).
+pub(crate) fn neighbours(reach: &[Vec<bool>], i: usize) -> (Vec<usize>, Vec<usize>) {
+    let n = reach.len();
+    ((0..n).filter(|&j| j != i && reach[j][i]).collect(), (0..n).filter(|&j| j != i && reach[i][j]).collect())
 }
 
 /// Runs stages already built (one per stage of `config`, in file order) along `graph`.

@@ -4,29 +4,41 @@
 
 use crate::ingest::{emit_parts, read_parts, stem_id, IpcReader, SplitBy, Truth, STDIN};
 use crate::pipeline::config::{PipelineSpec, StageSpec};
-use crate::pipeline::{Job, Source};
+use crate::pipeline::{Job, Source, StageParams};
 use crate::Result;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
-#[derive(Deserialize)]
+/// `kind: arrow-ipc`: an Arrow IPC stream or file.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
-pub struct ArrowIpcConfig {
+pub struct ArrowIpcParams {
     /// An IPC stream or file, or `-` for standard input (stream format).
-    path: String,
+    pub path: String,
     /// Job id (default: the file name without extension; `stdin` for standard input).
     #[serde(default)]
-    id: Option<String>,
+    pub id: Option<String>,
     /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
     #[serde(default)]
-    truth: Option<PathBuf>,
+    pub truth: Option<PathBuf>,
     /// Split the table into several jobs by a column.
     #[serde(default)]
-    split_by: Option<SplitBy>,
+    pub split_by: Option<SplitBy>,
     /// Image a stream that ends without its end-of-stream marker (a sender that stopped
     /// between batches), with a warning, instead of failing.
     #[serde(default)]
-    allow_truncated: bool,
+    pub allow_truncated: bool,
+}
+
+impl ArrowIpcParams {
+    /// `path` with the defaults of the other keys.
+    pub fn new(path: impl Into<String>) -> ArrowIpcParams {
+        ArrowIpcParams { path: path.into(), id: None, truth: None, split_by: None, allow_truncated: false }
+    }
+}
+
+impl StageParams for ArrowIpcParams {
+    const KIND: &'static str = "arrow-ipc";
 }
 
 pub struct ArrowIpcSource {
@@ -40,7 +52,7 @@ pub struct ArrowIpcSource {
 }
 
 impl ArrowIpcSource {
-    pub fn new(config: ArrowIpcConfig, pipeline: &PipelineSpec, stage: &StageSpec) -> Result<ArrowIpcSource> {
+    pub fn new(config: ArrowIpcParams, pipeline: &PipelineSpec, stage: &StageSpec) -> Result<ArrowIpcSource> {
         let name = &stage.name;
         if config.path != STDIN && !Path::new(&config.path).exists() {
             return Err(pipeline.stage_error(

@@ -3,26 +3,30 @@
 
 use crate::nufft::NufftParams;
 use crate::operator::{dirty_and_psf, doubled_psf, MeasurementOperator, PsfConvolution};
-use crate::pipeline::{Emit, Imaging, Job, Port, Stage};
-use crate::{Error, Result};
-use serde::Deserialize;
+use crate::pipeline::{Emit, Imaging, Job, Port, Stage, StageParams};
+use crate::Result;
+use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct GridderConfig {
-    /// NUFFT relative accuracy.
-    #[serde(default = "epsilon")]
-    epsilon: f64,
-    #[serde(default = "oversampling")]
-    oversampling: f64,
+/// `kind: gridder`: the NUFFT's accuracy.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GridderParams {
+    /// NUFFT relative accuracy; default 1e-6.
+    pub epsilon: f64,
+    /// Oversampling of the NUFFT's grid; default 2.
+    pub oversampling: f64,
 }
 
-fn epsilon() -> f64 {
-    1e-6
+impl Default for GridderParams {
+    fn default() -> Self {
+        let NufftParams { epsilon, oversampling } = NufftParams::default();
+        GridderParams { epsilon, oversampling }
+    }
 }
-fn oversampling() -> f64 {
-    2.0
+
+impl StageParams for GridderParams {
+    const KIND: &'static str = "gridder";
 }
 
 pub struct GridderStage {
@@ -32,7 +36,7 @@ pub struct GridderStage {
 }
 
 impl GridderStage {
-    pub fn new(config: GridderConfig, threads: usize, keep_operator: bool) -> Result<GridderStage> {
+    pub fn new(config: GridderParams, threads: usize, keep_operator: bool) -> Result<GridderStage> {
         let nufft = NufftParams { epsilon: config.epsilon, oversampling: config.oversampling };
         crate::nufft::kernel::KernelShape::for_accuracy(nufft.epsilon, nufft.oversampling)?;
         Ok(GridderStage { nufft, threads, keep_operator })
@@ -41,10 +45,8 @@ impl GridderStage {
 
 impl Stage for GridderStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
-        let missing = || Error::parameter("gridder", "the job has no weights: put a weighting stage before the gridder");
-        let geometry = job.geometry.ok_or_else(missing)?;
-        let weight = job.weight.take().ok_or_else(missing)?;
-        let mut vis = job.vis.take().ok_or_else(|| Error::parameter("gridder", "the job has no visibilities"))?;
+        let (geometry, weight) = job.take_weights("gridder")?;
+        let mut vis = job.take_visibilities("gridder")?;
         let frequency_hz = vis.band().map(|(centre, _)| centre);
         // Memory: each column goes as soon as nothing further needs it. The residual's NUFFT
         // method keeps everything.

@@ -17,7 +17,7 @@ use arrow::array::{Array, Float64Array, RecordBatch};
 use arrow::datatypes::{DataType, Schema, SchemaRef};
 use arrow::ipc::reader::{read_dictionary, read_record_batch};
 use arrow::ipc::MessageHeader;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::io::{BufRead, BufReader, Read};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -29,7 +29,7 @@ use std::sync::Arc;
 /// `{column: frequency}`: one job per distinct value (one per channel). Job ids are the
 /// table's id, then `-t003` (time), `-ch01` (frequency) or `-<column>NN`, numbered from 0
 /// by window (so an empty window leaves a gap) or by rank of the value.
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct SplitBy {
     pub column: String,

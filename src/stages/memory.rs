@@ -5,23 +5,26 @@
 
 use crate::ingest::{emit_parts, read_parts, SplitBy, TableReader, Truth};
 use crate::pipeline::registry::BuildContext;
-use crate::pipeline::{Job, MemoryInput, Source};
+use crate::pipeline::{Job, MemoryInput, Source, StageParams};
 use crate::vis::{validate_schema, ObservationMeta};
 use crate::{Error, Result};
 use arrow::array::RecordBatch;
 use arrow::datatypes::SchemaRef;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct MemoryConfig {
+/// `kind: arrow`: the run's in-memory inputs.
+#[derive(Clone, Debug, Default, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ArrowParams {
     /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
-    #[serde(default)]
-    truth: Option<PathBuf>,
+    pub truth: Option<PathBuf>,
     /// Split each input into several jobs by a column.
-    #[serde(default)]
-    split_by: Option<SplitBy>,
+    pub split_by: Option<SplitBy>,
+}
+
+impl StageParams for ArrowParams {
+    const KIND: &'static str = "arrow";
 }
 
 pub struct MemorySource {
@@ -33,7 +36,7 @@ pub struct MemorySource {
 }
 
 impl MemorySource {
-    pub fn new(config: MemoryConfig, ctx: &BuildContext<'_>) -> Result<MemorySource> {
+    pub fn new(config: ArrowParams, ctx: &BuildContext<'_>) -> Result<MemorySource> {
         let inputs = match ctx.take_inputs() {
             Some(inputs) => inputs,
             None if ctx.validating() => Vec::new(),

@@ -1,6 +1,6 @@
 //! The built-in stage kinds, registered by their YAML `kind` in [`builtin`]. Each kind is one
-//! module with a config struct that rejects unknown keys; the engine's contracts
-//! (`crate::pipeline::registry`) say what a kind declares and how it is built.
+//! module with its typed parameters (`params`: what the YAML holds, unknown keys refused); the
+//! engine's contracts (`crate::pipeline::registry`) say what a kind declares and how it is built.
 
 mod arrow_ipc;
 mod gridder;
@@ -8,6 +8,7 @@ pub mod ingest;
 mod memory;
 #[cfg(feature = "ms")]
 mod ms;
+pub mod params;
 mod parquet;
 mod products;
 mod residual;
@@ -16,7 +17,6 @@ mod step;
 mod weighting;
 mod writer;
 
-use crate::pipeline::config::PipelineSpec;
 use crate::pipeline::registry::{BuildContext, Built, KindFn, Product, Registry, Role};
 use crate::Result;
 
@@ -40,7 +40,11 @@ const BUILTIN: &[KindFn] = &[
     source("arrow-ipc", |c| Ok(Built::Source(Box::new(arrow_ipc::ArrowIpcSource::new(c.params()?, c.pipeline, c.stage)?)))),
     source("arrow", |c| Ok(Built::Source(Box::new(memory::MemorySource::new(c.params()?, c)?)))),
     #[cfg(feature = "ms")]
-    source("ms", |c| Ok(Built::Source(Box::new(ms::MsSource::new(c.params()?, c.pipeline, c.stage)?)))),
+    source("ms", |c| {
+        // A writer that predicts the model into the MS needs one job per field, checked now.
+        let writes_model = c.downstream_params::<params::WriterParams>()?.iter().any(|w| w.model_column.is_some());
+        Ok(Built::Source(Box::new(ms::MsSource::new(c.params()?, c.pipeline, c.stage, writes_model)?)))
+    }),
     #[cfg(not(feature = "ms"))]
     source("ms", |c| Err(c.error(Some("kind"), "kind 'ms': this r2d2 was built without the `ms` feature"))),
     KindFn {
@@ -68,7 +72,8 @@ const BUILTIN: &[KindFn] = &[
     step("clean", |c| Ok(Built::Stage(Box::new(step::StepStage::clean(c.params()?)?)))),
     // The series is checked against the pipeline (image size, network shapes): say where.
     step("onnx", |c| {
-        let step = step::StepStage::onnx(c.params()?, c.image().size, c.threads, &imaging_setup(c.pipeline)).map_err(|e| c.error(Some("series"), e))?;
+        let setup = imaging_setup(c)?;
+        let step = step::StepStage::onnx(c.params()?, c.image().size, c.threads, &setup).map_err(|e| c.error_caused("series", e))?;
         Ok(Built::Stage(Box::new(step)))
     }),
     step("native", |c| {
@@ -109,15 +114,31 @@ const BUILTIN: &[KindFn] = &[
     },
 ];
 
-/// The job's imaging as a series' validity sees it: the super-resolution (unknown when the
+/// The jobs' imaging as a series' validity sees it: the super-resolution (unknown when the
 /// pixel size is given in arcsec: it then depends on each job's longest baseline) and the
-/// weighting of the pipeline's first weighting stage.
-fn imaging_setup(pipeline: &PipelineSpec) -> crate::steps::series::ImagingSetup {
-    let weighting = pipeline.stages.iter().find(|s| s.kind == "weighting").map(|s| &s.params);
-    crate::steps::series::ImagingSetup {
-        superresolution: pipeline.image.pixel_arcsec.is_none().then(|| pipeline.image.superresolution.unwrap_or(1.5)),
-        weighting: weighting.and_then(|p| p.get("scheme")).and_then(serde_yaml::Value::as_str).map(str::to_string),
-        robust: weighting.map(|p| p.get("robust").and_then(serde_yaml::Value::as_f64).unwrap_or(0.0)),
+/// weighting of the weighting stage before the step (unknown if there are several that
+/// disagree, or none of the built-in kind).
+fn imaging_setup(ctx: &BuildContext<'_>) -> Result<crate::steps::series::ImagingSetup> {
+    let image = ctx.image();
+    let mut weightings = ctx.upstream_params::<params::WeightingParams>()?;
+    weightings.dedup();
+    let weighting = match weightings.as_slice() {
+        [one] => Some(one),
+        _ => None,
+    };
+    Ok(crate::steps::series::ImagingSetup {
+        superresolution: image.pixel_arcsec.is_none().then(|| image.superresolution.unwrap_or(1.5)),
+        weighting: weighting.map(|w| scheme_name(w.scheme).to_string()),
+        robust: weighting.map(|w| w.robust),
+    })
+}
+
+/// A scheme as a series' manifest names it.
+fn scheme_name(scheme: crate::weighting::WeightingScheme) -> &'static str {
+    match scheme {
+        crate::weighting::WeightingScheme::Natural => "natural",
+        crate::weighting::WeightingScheme::Uniform => "uniform",
+        crate::weighting::WeightingScheme::Briggs => "briggs",
     }
 }
 
@@ -128,4 +149,46 @@ pub fn builtin() -> Registry {
         registry.register(KindFn { ..*kind }).expect("built-in kinds have distinct names");
     }
     registry
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::graph::Graph;
+    use crate::pipeline::registry::RunIo;
+    use crate::pipeline::runner::neighbours;
+    use crate::pipeline::PipelineSpec;
+    use std::path::Path;
+
+    /// The imaging a series' validity is checked against, as the step at `stages[step]` of
+    /// `text` sees it.
+    fn setup_of(text: &str, step: usize) -> crate::steps::series::ImagingSetup {
+        let spec = PipelineSpec::parse(text, Path::new("p.yaml"), &[]).unwrap();
+        let graph = Graph::build(&builtin(), &spec).unwrap();
+        let (upstream_stages, downstream_stages) = neighbours(&graph.reach(), step);
+        let io = RunIo::default();
+        let ctx = BuildContext { pipeline: &spec, stage: &spec.stages[step], threads: 1, downstream: Vec::new(), upstream_stages, downstream_stages, io: &io };
+        imaging_setup(&ctx).unwrap()
+    }
+
+    const PIPELINE: &str = "image: {size: 16, superresolution: 2}\nstages:\n  source: {kind: simulate, to: weights}\n  weights: {kind: weighting, scheme: robust, robust: -0.5, to: grid}\n  grid: {kind: gridder, to: step}\n  step: {kind: clean, to: update}\n  update: {kind: residual, to: step, done: write}\n  write: {kind: writer}\n";
+
+    #[test]
+    fn a_step_sees_the_weighting_of_the_stage_before_it() {
+        let setup = setup_of(PIPELINE, 3);
+        // `robust` is Briggs' other name: the series' manifest knows it as briggs.
+        assert_eq!((setup.superresolution, setup.weighting.as_deref(), setup.robust), (Some(2.0), Some("briggs"), Some(-0.5)));
+        let arcsec = setup_of(&PIPELINE.replace("superresolution: 2", "pixel_arcsec: 1"), 3);
+        assert_eq!(arcsec.superresolution, None, "the super-resolution depends on each job's baselines");
+    }
+
+    #[test]
+    fn a_weighting_stage_the_step_does_not_follow_is_not_its_weighting() {
+        // A second weighting stage after the loop (before a writer), first in the file,
+        // weights nothing the step sees.
+        let after = PIPELINE
+            .replace("done: write}", "done: again}")
+            .replace("stages:\n", "stages:\n  again: {kind: weighting, scheme: natural, to: write}\n");
+        assert_eq!(setup_of(&after, 4).weighting.as_deref(), Some("briggs"));
+    }
 }

@@ -5,41 +5,63 @@
 use crate::ingest::{emit_parts, read_parts, stem_id, SplitBy, TableReader, Truth};
 use crate::ms::{FieldSelector, MsReader, MsSelection};
 use crate::pipeline::config::{PipelineSpec, StageSpec};
-use crate::pipeline::{Job, Source};
+use crate::pipeline::{Job, Source, StageParams};
 use crate::Result;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
-#[derive(Deserialize)]
+/// `kind: ms`: a MeasurementSet.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
-pub struct MsConfig {
+pub struct MsParams {
     /// The MeasurementSet (a directory).
-    path: PathBuf,
+    pub path: PathBuf,
     /// Job id (default: the MS name without its extension).
     #[serde(default)]
-    id: Option<String>,
+    pub id: Option<String>,
     /// The complex column to image (default DATA; CORRECTED_DATA, MODEL_DATA, ...).
     #[serde(default = "crate::ms::default_data_column")]
-    data_column: String,
+    pub data_column: String,
     /// Field id or name; required when the MS holds several fields (unless split by field).
     #[serde(default)]
-    field: Option<FieldSelector>,
+    pub field: Option<FieldSelector>,
     /// Spectral windows to read (default: all).
     #[serde(default)]
-    spw: Option<Vec<usize>>,
+    pub spw: Option<Vec<usize>>,
     /// Channel range `[start, end)` of every window.
     #[serde(default)]
-    channels: Option<[usize; 2]>,
+    pub channels: Option<[usize; 2]>,
     /// Samples per batch (a chunk of rows).
     #[serde(default = "crate::vis::default_batch_rows")]
-    batch_rows: usize,
+    pub batch_rows: usize,
     /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
     #[serde(default)]
-    truth: Option<PathBuf>,
+    pub truth: Option<PathBuf>,
     /// Split into several jobs: `{column: time, window: S}`, `{column: frequency}`,
     /// `{column: spw}`, `{column: field}`, or another numeric column of the batches.
     #[serde(default)]
-    split_by: Option<SplitBy>,
+    pub split_by: Option<SplitBy>,
+}
+
+impl MsParams {
+    /// `path` with the defaults of the other keys.
+    pub fn new(path: impl Into<PathBuf>) -> MsParams {
+        MsParams {
+            path: path.into(),
+            id: None,
+            data_column: crate::ms::default_data_column(),
+            field: None,
+            spw: None,
+            channels: None,
+            batch_rows: crate::vis::default_batch_rows(),
+            truth: None,
+            split_by: None,
+        }
+    }
+}
+
+impl StageParams for MsParams {
+    const KIND: &'static str = "ms";
 }
 
 /// The column that makes one job per field (each needs its own phase centre and metadata).
@@ -57,7 +79,8 @@ pub struct MsSource {
 }
 
 impl MsSource {
-    pub fn new(config: MsConfig, pipeline: &PipelineSpec, stage: &StageSpec) -> Result<MsSource> {
+    /// `writes_model`: a writer downstream predicts the model into the MS (`model_column`).
+    pub fn new(config: MsParams, pipeline: &PipelineSpec, stage: &StageSpec, writes_model: bool) -> Result<MsSource> {
         let name = &stage.name;
         let error = |key: &str, message: String| pipeline.stage_error(name, Some(key), &format!("stages.{name}.{key}: {message}"));
         if !crate::ms::is_measurement_set(&config.path) {
@@ -83,7 +106,6 @@ impl MsSource {
         // with Stokes I, channels in range).
         let by_field = matches!(&config.split_by, Some(s) if s.column == FIELD_SPLIT);
         // Checked here, before any work, though the writer would refuse such jobs too.
-        let writes_model = pipeline.stages.iter().any(|s| s.kind == "writer" && s.params.get("model_column").is_some_and(|v| !v.is_null()));
         if let Some(split) = config.split_by.as_ref().filter(|_| !by_field && writes_model) {
             return Err(error(
                 "split_by",

@@ -4,32 +4,46 @@
 
 use crate::ingest::{emit_parts, read_parts, stem_id, SplitBy, Truth};
 use crate::pipeline::config::{PipelineSpec, StageSpec};
-use crate::pipeline::{Job, Source};
+use crate::pipeline::{Job, Source, StageParams};
 use crate::vis::VisReader;
 use crate::Result;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
-#[derive(Deserialize)]
+/// One file (or glob pattern) or a list of them.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(untagged)]
 pub enum Files {
     One(String),
     Many(Vec<String>),
 }
 
-#[derive(Deserialize)]
+/// `kind: parquet`: Parquet visibility tables, one job per file.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
-pub struct ParquetConfig {
+pub struct ParquetParams {
     /// A file, a list of files, or glob patterns (relative to the working directory).
-    files: Files,
+    pub files: Files,
+    /// Rows per record batch read.
     #[serde(default = "crate::vis::default_batch_rows")]
-    batch_rows: usize,
+    pub batch_rows: usize,
     /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
     #[serde(default)]
-    truth: Option<PathBuf>,
+    pub truth: Option<PathBuf>,
     /// Split each file into several jobs by a column.
     #[serde(default)]
-    split_by: Option<SplitBy>,
+    pub split_by: Option<SplitBy>,
+}
+
+impl ParquetParams {
+    /// `files` with the defaults of the other keys.
+    pub fn new(files: Files) -> ParquetParams {
+        ParquetParams { files, batch_rows: crate::vis::default_batch_rows(), truth: None, split_by: None }
+    }
+}
+
+impl StageParams for ParquetParams {
+    const KIND: &'static str = "parquet";
 }
 
 pub struct ParquetSource {
@@ -42,7 +56,7 @@ pub struct ParquetSource {
 }
 
 impl ParquetSource {
-    pub fn new(config: ParquetConfig, pipeline: &PipelineSpec, stage: &StageSpec) -> Result<ParquetSource> {
+    pub fn new(config: ParquetParams, pipeline: &PipelineSpec, stage: &StageSpec) -> Result<ParquetSource> {
         let name = &stage.name;
         let patterns = match config.files {
             Files::One(f) => vec![f],

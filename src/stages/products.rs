@@ -2,14 +2,19 @@
 //! product sink (`Engine::run`), then, with a `to`, passes the job on (to a writer, say).
 
 use crate::pipeline::registry::BuildContext;
-use crate::pipeline::{Emit, Job, Port, ProductSink, Stage};
+use crate::pipeline::{Emit, Job, Port, ProductSink, Stage, StageParams};
 use crate::products::JobProducts;
 use crate::Result;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
-#[derive(Deserialize)]
+/// `kind: products`: no parameters (the sink is the run's).
+#[derive(Clone, Debug, Default, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
-pub struct ProductsConfig {}
+pub struct ProductsParams {}
+
+impl StageParams for ProductsParams {
+    const KIND: &'static str = "products";
+}
 
 pub struct ProductsStage {
     sink: Option<Box<dyn ProductSink>>,
@@ -17,7 +22,7 @@ pub struct ProductsStage {
 }
 
 impl ProductsStage {
-    pub fn new(_config: ProductsConfig, ctx: &BuildContext<'_>) -> Result<ProductsStage> {
+    pub fn new(_config: ProductsParams, ctx: &BuildContext<'_>) -> Result<ProductsStage> {
         let sink = ctx.take_sink();
         if sink.is_none() && !ctx.validating() {
             return Err(ctx.error(Some("kind"), "kind 'products' delivers to the run's product sink (Engine::run), and the run has none"));

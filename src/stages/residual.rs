@@ -6,49 +6,58 @@
 //! through the kept visibilities (the reference's choice).
 
 use crate::pipeline::registry::{BuildContext, Product};
-use crate::pipeline::{Emit, Job, Port, Stage};
+use crate::pipeline::{Emit, Job, Port, Stage, StageParams};
 use crate::{Error, Result};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::time::Instant;
 
-#[derive(Deserialize, Clone, Copy, PartialEq, Debug, Default)]
+/// How the residual update computes `D x`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(rename_all = "lowercase")]
-pub enum Method {
+pub enum ResidualMethod {
+    /// A convolution with the 2N PSF: memory no longer grows with the visibilities.
     #[default]
     Toeplitz,
+    /// The exact NUFFT round trip through the visibilities, which the gridder then keeps.
     Nufft,
 }
 
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ResidualConfig {
-    #[serde(default)]
-    method: Method,
+/// `kind: residual`: the residual update and the loop's exit.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ResidualParams {
+    /// Default `toeplitz`.
+    pub method: ResidualMethod,
     /// Stop early (reference v2 criterion) instead of running the whole series.
-    #[serde(default)]
-    early_stop: bool,
-    /// Relative change of the residual ratio below which the loop stops (early_stop).
-    #[serde(default = "tolerance")]
-    tolerance: f64,
+    pub early_stop: bool,
+    /// Relative change of the residual ratio below which the loop stops (`early_stop`);
+    /// default 1e-4.
+    pub tolerance: f64,
 }
 
-fn tolerance() -> f64 {
-    1e-4
+impl Default for ResidualParams {
+    fn default() -> Self {
+        ResidualParams { method: ResidualMethod::Toeplitz, early_stop: false, tolerance: 1e-4 }
+    }
+}
+
+impl StageParams for ResidualParams {
+    const KIND: &'static str = "residual";
 }
 
 /// What the stage needs besides the imaging state: the NUFFT method runs the measurement
 /// operator, which the gridder then keeps.
 pub fn consumes(ctx: &BuildContext<'_>) -> Result<Vec<Product>> {
-    let config: ResidualConfig = ctx.params()?;
-    Ok(if config.method == Method::Nufft { vec![Product::Operator] } else { Vec::new() })
+    let config: ResidualParams = ctx.params()?;
+    Ok(if config.method == ResidualMethod::Nufft { vec![Product::Operator] } else { Vec::new() })
 }
 
 pub struct ResidualStage {
-    config: ResidualConfig,
+    config: ResidualParams,
 }
 
 impl ResidualStage {
-    pub fn new(config: ResidualConfig) -> Result<ResidualStage> {
+    pub fn new(config: ResidualParams) -> Result<ResidualStage> {
         if !(config.tolerance > 0.0) {
             return Err(Error::parameter("tolerance", format!("expected a positive tolerance, got {}", config.tolerance)));
         }
@@ -74,8 +83,8 @@ impl Stage for ResidualStage {
         let iteration = job.iteration;
         let im = job.imaging_mut("residual")?;
         let d_x = match method {
-            Method::Toeplitz => im.psf_convolution.apply(&im.model),
-            Method::Nufft => match &im.operator {
+            ResidualMethod::Toeplitz => im.psf_convolution.apply(&im.model),
+            ResidualMethod::Nufft => match &im.operator {
                 Some(op) => op.apply_normal(&im.model),
                 None => return Err(Error::parameter("method", "nufft needs the visibilities, which the gridder released")),
             },

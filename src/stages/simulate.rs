@@ -3,71 +3,78 @@
 
 use crate::nufft::NufftParams;
 use crate::pipeline::config::ImageConfig;
-use crate::pipeline::{Job, Source};
+use crate::pipeline::{Job, Source, StageParams};
 use crate::simulate::observe::{frequency_channels, ObservationSpec};
 use crate::simulate::{simulate, SimulationRequest, SkyModel};
 use crate::weighting::{Weighting, WeightingScheme};
 use crate::{Error, Result};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct SimulateConfig {
-    /// Number of jobs (seeds `seed`, `seed + 1`, ...).
-    #[serde(default = "one")]
-    jobs: usize,
-    #[serde(default = "seven")]
-    seed: u64,
-    #[serde(default = "dynamic_range")]
-    dynamic_range: f64,
-    /// VLA configurations, e.g. [a, c].
-    #[serde(default = "configurations")]
-    configurations: Vec<char>,
-    /// Hours per configuration.
-    #[serde(default = "hours")]
-    hours: Vec<f64>,
-    #[serde(default = "dec")]
-    dec_deg: f64,
-    #[serde(default = "ra")]
-    ra_deg: f64,
-    #[serde(default = "integration")]
-    integration_s: f64,
-    #[serde(default = "one")]
-    channels: usize,
-    #[serde(default = "frequency")]
-    frequency_mhz: f64,
-    #[serde(default = "ratio")]
-    frequency_ratio: f64,
-    #[serde(default)]
-    flag_fraction: f64,
-    /// Weighting the noise level is defined for.
-    #[serde(default = "briggs")]
-    noise_weighting: WeightingScheme,
-    #[serde(default)]
-    robust: f64,
+/// `kind: simulate`: simulated VLA observations of procedural skies.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SimulateParams {
+    /// Number of jobs (seeds `seed`, `seed + 1`, ...); default 1.
+    pub jobs: usize,
+    /// Default 7.
+    pub seed: u64,
+    /// Of the procedural sky; default 1e4.
+    pub dynamic_range: f64,
+    /// VLA configurations; default `[a, c]`.
+    pub configurations: Vec<char>,
+    /// Hours per configuration; default `[6, 2]`.
+    pub hours: Vec<f64>,
+    /// Phase centre; default (180, 40) degrees.
+    pub dec_deg: f64,
+    pub ra_deg: f64,
+    /// Seconds per sample; default 30.
+    pub integration_s: f64,
+    /// Frequency channels; default 1, at 1400 MHz.
+    pub channels: usize,
+    pub frequency_mhz: f64,
+    /// Highest to lowest channel frequency; default 1.
+    pub frequency_ratio: f64,
+    /// Fraction of the samples flagged; default 0.
+    pub flag_fraction: f64,
+    /// Weighting the noise level is defined for; default Briggs, robust 0.
+    pub noise_weighting: WeightingScheme,
+    pub robust: f64,
 }
 
-fn one() -> usize { 1 }
-fn seven() -> u64 { 7 }
-fn dynamic_range() -> f64 { 1e4 }
-fn configurations() -> Vec<char> { vec!['a', 'c'] }
-fn hours() -> Vec<f64> { vec![6.0, 2.0] }
-fn dec() -> f64 { 40.0 }
-fn ra() -> f64 { 180.0 }
-fn integration() -> f64 { 30.0 }
-fn frequency() -> f64 { 1400.0 }
-fn ratio() -> f64 { 1.0 }
-fn briggs() -> WeightingScheme { WeightingScheme::Briggs }
+impl Default for SimulateParams {
+    fn default() -> Self {
+        SimulateParams {
+            jobs: 1,
+            seed: 7,
+            dynamic_range: 1e4,
+            configurations: vec!['a', 'c'],
+            hours: vec![6.0, 2.0],
+            dec_deg: 40.0,
+            ra_deg: 180.0,
+            integration_s: 30.0,
+            channels: 1,
+            frequency_mhz: 1400.0,
+            frequency_ratio: 1.0,
+            flag_fraction: 0.0,
+            noise_weighting: WeightingScheme::Briggs,
+            robust: 0.0,
+        }
+    }
+}
+
+impl StageParams for SimulateParams {
+    const KIND: &'static str = "simulate";
+}
 
 pub struct SimulateSource {
-    config: SimulateConfig,
+    config: SimulateParams,
     image: ImageConfig,
     weighting: Weighting,
     threads: usize,
 }
 
 impl SimulateSource {
-    pub fn new(config: SimulateConfig, image: &ImageConfig, threads: usize) -> Result<SimulateSource> {
+    pub fn new(config: SimulateParams, image: &ImageConfig, threads: usize) -> Result<SimulateSource> {
         if config.configurations.len() != config.hours.len() {
             return Err(Error::parameter(
                 "hours",

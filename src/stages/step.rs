@@ -56,7 +56,7 @@ impl Stage for StepStage {
         if realisations > 1 && self.next_realisation(&mut job, iteration, realisations)? {
             // Every realisation is done: the image is their mean, whose residual comes next.
             let mean = crate::metrics::pixel_mean(&job.realisation_models);
-            job.imaging.as_mut().ok_or_else(|| crate::pipeline::not_gridded(self.kind, &job.id))?.model = mean;
+            job.imaging_mut(self.kind)?.model = mean;
             job.realisation = 0;
             job.iteration = iteration;
             job.series_finished = true;
@@ -64,7 +64,7 @@ impl Stage for StepStage {
             return emit(Port::Next, job);
         }
         let Job { id, imaging, .. } = &mut job;
-        let im = imaging.as_mut().ok_or_else(|| crate::pipeline::not_gridded(self.kind, id))?;
+        let im = imaging.as_mut().ok_or_else(|| crate::pipeline::missing(self.kind, id, crate::pipeline::Product::Imaging))?;
         let input = StepInput {
             job: id,
             size: im.geometry.size,

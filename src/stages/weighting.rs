@@ -3,20 +3,48 @@
 
 use crate::imaging::{total_weights, DirtyParams};
 use crate::pipeline::config::ImageConfig;
-use crate::pipeline::{Emit, Job, Port, Stage};
+use crate::pipeline::{Emit, Job, Port, Stage, StageParams};
 use crate::weighting::{Weighting, WeightingScheme, DEFAULT_GRID_FACTOR};
-use crate::{Error, Result};
-use serde::Deserialize;
+use crate::Result;
+use serde::{Deserialize, Serialize};
 
-#[derive(Deserialize)]
+/// `kind: weighting`: how each visibility is weighted. `scheme` has no default in YAML (a
+/// pipeline says which it uses); `WeightingParams::default()` is `r2d2 image`'s, Briggs with
+/// robust 0.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
-pub struct WeightingConfig {
+pub struct WeightingParams {
     /// natural, uniform or briggs.
-    scheme: WeightingScheme,
+    pub scheme: WeightingScheme,
+    /// Briggs robustness (-2: close to uniform, 2: close to natural); default 0.
     #[serde(default)]
-    robust: f64,
+    pub robust: f64,
+    /// Uniform and Briggs weights count the visibilities in a uv grid of `grid_factor x size`
+    /// cells per axis.
     #[serde(default = "grid_factor")]
-    grid_factor: f64,
+    pub grid_factor: f64,
+}
+
+impl StageParams for WeightingParams {
+    const KIND: &'static str = "weighting";
+}
+
+impl Default for WeightingParams {
+    fn default() -> Self {
+        WeightingParams::new(Weighting::Briggs { robust: 0.0 })
+    }
+}
+
+impl WeightingParams {
+    /// The stage for `weighting`, with the default grid factor.
+    pub fn new(weighting: Weighting) -> WeightingParams {
+        let (scheme, robust) = match weighting {
+            Weighting::Natural => (WeightingScheme::Natural, 0.0),
+            Weighting::Uniform => (WeightingScheme::Uniform, 0.0),
+            Weighting::Briggs { robust } => (WeightingScheme::Briggs, robust),
+        };
+        WeightingParams { scheme, robust, grid_factor: grid_factor() }
+    }
 }
 
 fn grid_factor() -> f64 {
@@ -30,7 +58,7 @@ pub struct WeightingStage {
 }
 
 impl WeightingStage {
-    pub fn new(config: WeightingConfig, image: &ImageConfig) -> Result<WeightingStage> {
+    pub fn new(config: WeightingParams, image: &ImageConfig) -> Result<WeightingStage> {
         Ok(WeightingStage {
             weighting: config.scheme.with_robust(config.robust)?,
             grid_factor: config.grid_factor,
@@ -41,7 +69,7 @@ impl WeightingStage {
 
 impl Stage for WeightingStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
-        let vis = job.vis.as_ref().ok_or_else(|| Error::parameter("visibilities", "already released by an earlier stage"))?;
+        let vis = job.visibilities("weighting")?;
         let params = DirtyParams { size: self.image.size, pixel: self.image.pixel_scale(), ..DirtyParams::default() };
         let geometry = params.geometry(vis)?;
         job.weight = Some(total_weights(vis, geometry, self.weighting, self.grid_factor)?);

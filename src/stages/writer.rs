@@ -6,40 +6,39 @@
 //! directory and moved into place only when all are complete (`crate::staging`).
 
 use crate::pipeline::config::{PipelineSpec, StageSpec};
-use crate::pipeline::{Emit, Job, Stage};
+use crate::pipeline::{Emit, Job, Stage, StageParams};
 use crate::products::{JobProducts, WriteOptions};
 use crate::{Error, Result};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct WriterConfig {
-    /// Output prefix; `{job}` is replaced by the job id.
-    #[serde(default = "prefix")]
-    prefix: String,
-    /// A PNG preview (log scale, colour bar) beside each FITS product.
-    #[serde(default = "yes")]
-    previews: bool,
+/// `kind: writer`: where and what a job's products are written.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct WriterParams {
+    /// Output prefix; `{job}` is replaced by the job id. Default `{job}`.
+    pub prefix: String,
+    /// A PNG preview (log scale, colour bar) beside each FITS product; default true.
+    pub previews: bool,
     /// Decades shown by the previews' log scale; default: the dynamic range of the truth
     /// or of the simulated sky when known, else 1e3.
-    #[serde(default)]
-    preview_dynamic_range: Option<f64>,
+    pub preview_dynamic_range: Option<f64>,
     /// Predict the final model's visibilities into this column of the input MeasurementSet
     /// (`kind: ms` jobs), e.g. MODEL_DATA; created when missing.
-    #[serde(default)]
-    model_column: Option<String>,
+    pub model_column: Option<String>,
+}
+
+impl Default for WriterParams {
+    fn default() -> Self {
+        WriterParams { prefix: "{job}".into(), previews: true, preview_dynamic_range: None, model_column: None }
+    }
+}
+
+impl StageParams for WriterParams {
+    const KIND: &'static str = "writer";
 }
 
 /// What a writer prefix may contain besides text.
 const PLACEHOLDERS: &[&str] = &["{job}"];
-
-fn prefix() -> String {
-    "{job}".into()
-}
-
-fn yes() -> bool {
-    true
-}
 
 pub struct WriterStage {
     prefix: String,
@@ -48,7 +47,7 @@ pub struct WriterStage {
 }
 
 impl WriterStage {
-    pub fn new(config: WriterConfig, pipeline: &PipelineSpec, stage: &StageSpec) -> Result<WriterStage> {
+    pub fn new(config: WriterParams, pipeline: &PipelineSpec, stage: &StageSpec) -> Result<WriterStage> {
         let name = &stage.name;
         let prefix_error = |m: String| pipeline.stage_error(name, Some("prefix"), &format!("stages.{name}.prefix: {m}"));
         // Placeholders first: a typo would otherwise be written literally into file names.

@@ -4,9 +4,9 @@
 use super::{NetworkStep, StepInput};
 use crate::deconv::{hogbom, HogbomParams};
 use crate::{Error, Result};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct CleanConfig {
     /// Loop gain.
@@ -24,6 +24,12 @@ pub struct CleanConfig {
     /// Only positive components (intensity).
     #[serde(default)]
     pub positive_only: bool,
+}
+
+impl Default for CleanConfig {
+    fn default() -> Self {
+        CleanConfig { gain: gain(), threshold: 0.0, components_per_cycle: components(), major_cycles: cycles(), positive_only: false }
+    }
 }
 
 fn gain() -> f64 {

@@ -22,7 +22,7 @@ use super::native_host::HostedInstance;
 use super::{NetworkStep, StepInput};
 use crate::{Error, Result};
 use r2d2_plugin::host::Instance;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::time::Duration;
 
@@ -81,7 +81,7 @@ pub enum PluginError {
     ImageSize { path: PathBuf, created: usize, size: usize },
 }
 
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct NativeConfig {
     /// The shared library; a relative path is relative to the working directory, like every
@@ -103,7 +103,7 @@ pub struct NativeConfig {
     pub timeout: f64,
 }
 
-#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, Deserialize, Serialize, PartialEq, Eq)]
 #[serde(rename_all = "lowercase")]
 pub enum Isolation {
     /// In `r2d2-plugin-host`, a child process: a crash, exit or hang is an error of the run.

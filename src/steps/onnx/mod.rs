@@ -23,10 +23,10 @@ use super::{NetworkStep, StepInput};
 use runtime::{check_network, BackendChoice, GraphOptimization, Network, Runtime, Signature};
 use series::{Architecture, ImagingSetup, Series};
 use crate::{Error, Result};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
-#[derive(Clone, Debug, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct OnnxConfig {
     /// Series directory (`models/<name>`: a manifest and ONNX files, or the reference names),
@@ -59,7 +59,7 @@ pub struct OnnxConfig {
     pub validity: ValidityMode,
 }
 
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum ValidityMode {
     #[default]

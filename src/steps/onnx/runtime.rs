@@ -7,7 +7,7 @@
 //! symbolic H and W), which `ort`'s session API has no way to say.
 
 use crate::{Error, Result};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, OnceLock};
 
@@ -82,7 +82,7 @@ fn invalid(path: &Path, message: impl Into<String>) -> Error {
     OnnxError::Invalid { path: path.to_path_buf(), message: message.into() }.into()
 }
 
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum BackendChoice {
     /// Native ONNX Runtime if found, else tract.
@@ -111,7 +111,7 @@ impl std::str::FromStr for BackendChoice {
 /// against 2.03 s) but copies every weight into its blocked layout at load (0.31 s against
 /// 0.03 s; 136 MB resident against 21 MB before the first run) and needs 130 MB more at the
 /// inference peak (528 MB against 396 MB).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum GraphOptimization {
     /// Node fusions, no layout change: weights stay as they are in the file (mapped). The
