@@ -46,16 +46,27 @@ pub enum TableError {
         #[source]
         source: arrow::error::ArrowError,
     },
+    /// Writing a table failed (`doing` says at what); carried by the `io::Error` of
+    /// `Error::Io`, whose path is the file written, as its inner error
+    /// ([`get_ref`](std::io::Error::get_ref)), with parquet's or arrow's error as its source.
+    #[error("{doing}")]
+    Write {
+        doing: &'static str,
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
 }
 
 impl TableError {
-    /// The table the error is about: its path, or the name it was given.
+    /// The table the error is about: its path, or the name it was given (empty for `Write`,
+    /// whose `Error::Io` names the file).
     pub fn table(&self) -> std::borrow::Cow<'_, str> {
         match self {
             TableError::Decode { path, .. } | TableError::DecoderPanic { path, .. } => path.display().to_string().into(),
             TableError::Column { table, .. } | TableError::Metadata { table, .. } | TableError::Build { table, .. } => {
                 table.as_str().into()
             }
+            TableError::Write { .. } => "".into(),
         }
     }
 

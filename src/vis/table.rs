@@ -696,9 +696,10 @@ pub fn write_parquet(path: &Path, table: &VisTable, meta: &ObservationMeta) -> R
     }
     let properties = properties.build();
     let schema = Arc::new(table.schema());
-    let write_error = |e: parquet::errors::ParquetError| {
-        Error::io(path, std::io::Error::other(format!("writing Parquet: {e}")))
+    let failed = |doing, source: Box<dyn std::error::Error + Send + Sync>| {
+        Error::io(path, std::io::Error::other(TableError::Write { doing, source }))
     };
+    let write_error = |e: parquet::errors::ParquetError| failed("writing Parquet", e.into());
 
     let tmp = TempSibling::new(path)?;
     let file = File::create(tmp.path()).map_err(|e| Error::io(path, e))?;
@@ -707,7 +708,7 @@ pub fn write_parquet(path: &Path, table: &VisTable, meta: &ObservationMeta) -> R
     for start in (0..n).step_by(ROW_GROUP_ROWS) {
         let rows = start..(start + ROW_GROUP_ROWS).min(n);
         let batch = RecordBatch::try_new(schema.clone(), table.columns(rows))
-            .map_err(|e| Error::io(path, std::io::Error::other(format!("building a record batch: {e}"))))?;
+            .map_err(|e| failed("building a record batch", e.into()))?;
         writer.write(&batch).map_err(write_error)?;
     }
     let file = writer.into_inner().map_err(write_error)?;
