@@ -12,6 +12,8 @@
 //! - [`SeriesError`] (`steps::series`): model series on disk (manifest, network files);
 //! - [`OnnxError`] (`steps::runtime`): ONNX networks (checking, loading, inference);
 //! - [`PluginError`] (`steps::native`): native plugins (the library, its loading, its host);
+//! - [`TableError`] (`vis`): visibility tables (Parquet, Arrow IPC, in-memory Arrow): the
+//!   decoder's error, a missing or mistyped column, bad metadata;
 //! - `MsError` (`ms`, with the `ms` feature): MeasurementSets (casacore tables).
 //!
 //! [`Error`] wraps each in a variant of its own (`Error::Fits`, ...), whose `source()` is the
@@ -32,6 +34,7 @@ pub use crate::ms::MsError;
 pub use crate::steps::native::PluginError;
 pub use crate::steps::runtime::OnnxError;
 pub use crate::steps::series::SeriesError;
+pub use crate::vis::TableError;
 
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
@@ -98,6 +101,10 @@ pub enum Error {
     #[error("{}", Report(.0))]
     Plugin(#[from] PluginError),
 
+    /// A visibility table could not be read or built.
+    #[error("{}", Report(.0))]
+    Table(#[from] TableError),
+
     /// A MeasurementSet could not be read or written.
     #[cfg(feature = "ms")]
     #[error("{}", Report(.0))]
@@ -150,6 +157,7 @@ impl Error {
             Error::Series(e) => Some(e),
             Error::Onnx(e) => Some(e),
             Error::Plugin(e) => Some(e),
+            Error::Table(e) => Some(e),
             #[cfg(feature = "ms")]
             Error::Ms(e) => Some(e),
             Error::Stage { source, .. } => source.module_error(),
@@ -249,6 +257,7 @@ mod tests {
         check::<SeriesError>();
         check::<OnnxError>();
         check::<PluginError>();
+        check::<TableError>();
         #[cfg(feature = "ms")]
         check::<MsError>();
     }

@@ -3,9 +3,10 @@
 A thin layer over the Rust engine (the same one the ``r2d2`` command runs): the engine works
 with the GIL released on its own threads, Ctrl-C stops it at the next job boundary, and its
 errors are raised as :class:`R2D2Error` carrying the engine's message and its causes. Errors of
-a FITS image, a model series, an ONNX network, a native plugin or a MeasurementSet raise the
-subclass for that kind (:class:`FitsError`, :class:`SeriesError`, :class:`OnnxError`,
-:class:`PluginError`, :class:`MeasurementSetError`).
+a FITS image, a model series, an ONNX network, a native plugin, a MeasurementSet or a
+visibility table (Parquet, Arrow) raise the subclass for that kind (:class:`FitsError`,
+:class:`SeriesError`, :class:`OnnxError`, :class:`PluginError`, :class:`MeasurementSetError`,
+:class:`TableError`).
 
 - :func:`run` / :func:`validate`: a YAML pipeline, as ``r2d2 run`` / ``r2d2 validate``.
 - :func:`image`: one observation through the default imaging pipeline, as ``r2d2 image``.
@@ -21,7 +22,16 @@ import os
 from typing import Any, Mapping, Optional, Union
 
 from . import _native
-from ._native import FitsError, MeasurementSetError, OnnxError, PluginError, Products, R2D2Error, SeriesError
+from ._native import (
+    FitsError,
+    MeasurementSetError,
+    OnnxError,
+    PluginError,
+    Products,
+    R2D2Error,
+    SeriesError,
+    TableError,
+)
 
 __version__ = _native.__version__
 __all__ = [
@@ -31,6 +41,7 @@ __all__ = [
     "OnnxError",
     "PluginError",
     "MeasurementSetError",
+    "TableError",
     "Products",
     "image",
     "run",

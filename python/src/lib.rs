@@ -30,6 +30,7 @@ create_exception!(r2d2_imaging, SeriesError, R2D2Error, "A model series could no
 create_exception!(r2d2_imaging, OnnxError, R2D2Error, "An ONNX network could not be checked, loaded or run.");
 create_exception!(r2d2_imaging, PluginError, R2D2Error, "A native plugin could not be loaded, or failed.");
 create_exception!(r2d2_imaging, MeasurementSetError, R2D2Error, "A MeasurementSet could not be read or written.");
+create_exception!(r2d2_imaging, TableError, R2D2Error, "A visibility table (Parquet, Arrow) could not be read: not that format, a column missing or mistyped, bad metadata.");
 
 /// How often a waiting call looks at Python's signals.
 const SIGNAL_POLL: Duration = Duration::from_millis(50);
@@ -50,6 +51,8 @@ pub(crate) fn engine_error(e: r2d2_imaging::Error) -> PyErr {
         PluginError::new_err(message)
     } else if is(|m| m.is::<kinds::MsError>()) {
         MeasurementSetError::new_err(message)
+    } else if is(|m| m.is::<kinds::TableError>()) {
+        TableError::new_err(message)
     } else {
         R2D2Error::new_err(message)
     }
@@ -192,6 +195,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add("OnnxError", m.py().get_type::<OnnxError>())?;
     m.add("PluginError", m.py().get_type::<PluginError>())?;
     m.add("MeasurementSetError", m.py().get_type::<MeasurementSetError>())?;
+    m.add("TableError", m.py().get_type::<TableError>())?;
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add_function(wrap_pyfunction!(validate, m)?)?;
     m.add_function(wrap_pyfunction!(run, m)?)?;

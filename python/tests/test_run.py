@@ -88,6 +88,22 @@ def test_module_errors_raise_their_own_subclass(tmp_path):
     assert type(again) is r2d2_imaging.PluginError and str(again) == message
 
 
+def test_an_unreadable_table_raises_table_error(tmp_path):
+    """A file that is not Parquet raises TableError (an R2D2Error) naming the file once, with
+    the decoder's reason beneath; it pickles like the others."""
+    import pickle
+
+    obs = tmp_path / "obs.parquet"
+    obs.write_text("u,v,w\n1,2,3\n")
+    with pytest.raises(r2d2_imaging.TableError) as error:
+        r2d2_imaging.image(str(obs), size=64, step="clean")
+    message = str(error.value)
+    assert message.count(str(obs)) == 1 and "not a readable Parquet file: " in message, message
+    assert isinstance(error.value, r2d2_imaging.R2D2Error)
+    again = pickle.loads(pickle.dumps(error.value))
+    assert type(again) is r2d2_imaging.TableError and str(again) == message
+
+
 def test_ctrl_c_stops_the_engine_cleanly(tmp_path):
     """SIGINT while the engine works (GIL released, on its own threads) raises
     KeyboardInterrupt within a job boundary, and leaves no partial products."""

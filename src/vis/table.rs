@@ -171,24 +171,28 @@ pub(crate) fn validate_schema(schema: &Schema, source: &str) -> Result<()> {
         let mut matching = schema.fields().iter().filter(|f| f.name() == name);
         match (matching.next(), matching.next()) {
             (None, _) if required => {
-                return Err(Error::input(
+                return Err(TableError::column(
                     source,
+                    name,
                     format!("missing required column `{name}` ({})", column_type.describe()),
-                ))
+                )
+                .into())
             }
             (None, _) => {}
             (Some(_), Some(_)) => {
-                return Err(Error::input(source, format!("column `{name}` appears more than once")))
+                return Err(TableError::column(source, name, format!("column `{name}` appears more than once")).into())
             }
             (Some(field), None) if !column_type.accepts(field.data_type()) => {
-                return Err(Error::input(
+                return Err(TableError::column(
                     source,
+                    name,
                     format!(
                         "column `{name}` has type {}; accepted types: {}",
                         field.data_type(),
                         column_type.describe()
                     ),
-                ))
+                )
+                .into())
             }
             (Some(_), None) => {}
         }
@@ -202,14 +206,16 @@ pub(crate) fn check_no_nulls(array: &dyn Array, name: &str, source: &str, first_
         return Ok(());
     }
     let first = (0..array.len()).find(|&i| array.is_null(i)).unwrap_or(0);
-    Err(Error::input(
+    Err(TableError::column(
         source,
+        name,
         format!(
             "column `{name}` has {} null values (first at row {}); nulls are not allowed",
             array.null_count(),
             first_row + first as u64
         ),
-    ))
+    )
+    .into())
 }
 
 /// A float column as f64, borrowed when it already is f64; `None` if the batch lacks it.
@@ -226,10 +232,12 @@ fn float_column<'a>(
     } else if let Some(a) = array.as_any().downcast_ref::<Float32Array>() {
         Ok(Some(Cow::Owned(a.values().iter().map(|&x| f64::from(x)).collect())))
     } else {
-        Err(Error::input(
+        Err(TableError::column(
             source,
+            name,
             format!("column `{name}` has type {}; expected Float32 or Float64", array.data_type()),
-        ))
+        )
+        .into())
     }
 }
 
@@ -240,7 +248,7 @@ fn required_float_column<'a>(
     first_row: u64,
 ) -> Result<Cow<'a, [f64]>> {
     float_column(batch, name, source, first_row)?
-        .ok_or_else(|| Error::input(source, format!("missing required column `{name}`")))
+        .ok_or_else(|| TableError::column(source, name, format!("missing required column `{name}`")).into())
 }
 
 /// Converts one Arrow batch in the visibility format to imaging input: baselines to
@@ -282,10 +290,7 @@ fn convert_batch(
         Some(array) => {
             check_no_nulls(array.as_ref(), "flag", source, first_row)?;
             let flags = array.as_any().downcast_ref::<BooleanArray>().ok_or_else(|| {
-                Error::input(
-                    source,
-                    format!("column `flag` has type {}; expected Boolean", array.data_type()),
-                )
+                TableError::column(source, "flag", format!("column `flag` has type {}; expected Boolean", array.data_type()))
             })?;
             Some(flags)
         }
@@ -395,7 +400,7 @@ impl VisReader {
             .with_batch_size(batch_rows)
             .with_projection(projection)
             .build()
-            .map_err(|e| Error::input(path, format!("cannot set up reading: {e}")))?;
+            .map_err(|e| TableError::decode(path, "cannot set up reading", e))?;
         Ok(VisReader {
             path: path.to_path_buf(),
             source,
@@ -469,7 +474,7 @@ pub(crate) struct GuardedBatches<I> {
 impl<I, E> GuardedBatches<I>
 where
     I: Iterator<Item = std::result::Result<RecordBatch, E>>,
-    E: fmt::Display,
+    E: Into<Box<dyn std::error::Error + Send + Sync>>,
 {
     pub(crate) fn new(path: &Path, decoder: &'static str, batches: I) -> Self {
         GuardedBatches { path: path.to_path_buf(), decoder, batches, rows_decoded: 0, finished: false }
@@ -496,7 +501,7 @@ pub(crate) const PARQUET: &str = "Parquet";
 pub(crate) const ARROW_IPC: &str = "Arrow IPC";
 
 /// Runs decoding of untrusted bytes (Parquet, Arrow IPC: `decoder` names it), turning errors
-/// and panics alike into an `Error` naming the file.
+/// and panics alike into a [`TableError`] naming the file (the decoder's error its source).
 ///
 /// parquet 55 panics on some corrupt pages instead of returning an error (dictionary
 /// indices are not bounds-checked: apache/arrow-rs#9434, fixed in later releases), and a
@@ -504,16 +509,22 @@ pub(crate) const ARROW_IPC: &str = "Arrow IPC";
 /// callers stop using the decoder after any failure (`VisReader` ends its iteration), so
 /// no state it may have left half-updated is observed. The panic is not printed: the error
 /// says it all, with the decoder's source location.
-pub(crate) fn contain_panics<T, E: fmt::Display>(
+pub(crate) fn contain_panics<T, E: Into<Box<dyn std::error::Error + Send + Sync>>>(
     path: &Path,
     what: &str,
-    decoder: &str,
+    decoder: &'static str,
     decode: impl FnOnce() -> std::result::Result<T, E>,
 ) -> Result<T> {
     match crate::error::catch_quietly(decode) {
         Ok(Ok(value)) => Ok(value),
-        Ok(Err(e)) => Err(Error::input(path, format!("{what}: {e}"))),
-        Err(message) => Err(Error::input(path, format!("{what}: the {decoder} decoder failed ({message})"))),
+        Ok(Err(e)) => Err(TableError::decode(path, what, e).into()),
+        Err(message) => Err(TableError::DecoderPanic {
+            path: path.to_path_buf(),
+            doing: what.to_string(),
+            decoder,
+            message,
+        }
+        .into()),
     }
 }
 
@@ -592,7 +603,7 @@ impl VisTable {
     pub fn to_visibilities(&self, source: &str) -> Result<(Visibilities, IngestStats)> {
         let n = self.check_lengths()?;
         let batch = RecordBatch::try_new(Arc::new(self.schema()), self.columns(0..n))
-            .map_err(|e| Error::parameter("table", format!("{source}: building a record batch: {e}")))?;
+            .map_err(|e| TableError::Build { table: source.to_string(), source: e })?;
         let mut stats = IngestStats::default();
         let vis = record_batch_to_visibilities(&batch, &mut stats, source)?;
         Ok((vis, stats))
@@ -662,7 +673,7 @@ pub fn to_record_batches(table: &VisTable, meta: &ObservationMeta, batch_rows: u
         .map(|start| {
             let rows = start..(start + batch_rows.max(1)).min(n);
             RecordBatch::try_new(schema.clone(), table.columns(rows))
-                .map_err(|e| Error::parameter("table", format!("building a record batch: {e}")))
+                .map_err(|e| TableError::Build { table: String::new(), source: e }.into())
         })
         .collect::<Result<Vec<_>>>()?;
     Ok((schema, batches))
@@ -685,9 +696,10 @@ pub fn write_parquet(path: &Path, table: &VisTable, meta: &ObservationMeta) -> R
     }
     let properties = properties.build();
     let schema = Arc::new(table.schema());
-    let write_error = |e: parquet::errors::ParquetError| {
-        Error::io(path, std::io::Error::other(format!("writing Parquet: {e}")))
+    let failed = |doing, source: Box<dyn std::error::Error + Send + Sync>| {
+        Error::io(path, std::io::Error::other(TableError::Write { doing, source }))
     };
+    let write_error = |e: parquet::errors::ParquetError| failed("writing Parquet", e.into());
 
     let tmp = TempSibling::new(path)?;
     let file = File::create(tmp.path()).map_err(|e| Error::io(path, e))?;
@@ -696,7 +708,7 @@ pub fn write_parquet(path: &Path, table: &VisTable, meta: &ObservationMeta) -> R
     for start in (0..n).step_by(ROW_GROUP_ROWS) {
         let rows = start..(start + ROW_GROUP_ROWS).min(n);
         let batch = RecordBatch::try_new(schema.clone(), table.columns(rows))
-            .map_err(|e| Error::io(path, std::io::Error::other(format!("building a record batch: {e}"))))?;
+            .map_err(|e| failed("building a record batch", e.into()))?;
         writer.write(&batch).map_err(write_error)?;
     }
     let file = writer.into_inner().map_err(write_error)?;
@@ -913,6 +925,36 @@ mod tests {
         write_custom(&path, columns, GOOD_METADATA);
         let err = open_error(&path);
         assert!(err.contains("no-im.parquet") && err.contains("`vis_im`"), "{err}");
+    }
+
+    /// A program can tell what went wrong from the error's kind, not its text, and reach the
+    /// decoder's own error through `source()`.
+    #[test]
+    fn table_errors_are_typed_and_keep_the_decoder_error() {
+        let dir = tempfile::tempdir().unwrap();
+        let not_parquet = dir.path().join("text.parquet");
+        std::fs::write(&not_parquet, "u,v,w\n1,2,3\n").unwrap();
+        let Err(err) = VisReader::open(&not_parquet, 100) else { panic!("a text file opened as Parquet") };
+        let Error::Table(TableError::Decode { path, doing, .. }) = &err else { panic!("not a decoding error: {err:?}") };
+        assert_eq!((path.as_path(), doing.as_str()), (not_parquet.as_path(), "not a readable Parquet file"));
+        let module = err.module_error().expect("a module error");
+        assert!(module.is::<TableError>());
+        let chain: Vec<&(dyn std::error::Error + 'static)> =
+            std::iter::successors(Some(&err as &(dyn std::error::Error + 'static)), |e| e.source()).collect();
+        let parquet = chain.iter().find_map(|e| e.downcast_ref::<parquet::errors::ParquetError>());
+        let parquet = parquet.unwrap_or_else(|| panic!("no ParquetError in the chain of {err:?}"));
+        // Said once, after what was being done: the cause is the source, not also the text.
+        let said = err.to_string();
+        assert_eq!(said, format!("{}: not a readable Parquet file: {parquet}", not_parquet.display()));
+        assert!(!module.to_string().contains(&parquet.to_string()), "{module}");
+
+        let path = dir.path().join("no-u.parquet");
+        let columns = basic_columns().into_iter().filter(|(name, _)| *name != "u").collect();
+        write_custom(&path, columns, GOOD_METADATA);
+        let Err(err) = VisReader::open(&path, 100) else { panic!("a table without `u` opened") };
+        let Error::Table(TableError::Column { column, table, .. }) = &err else { panic!("not a column error: {err:?}") };
+        assert_eq!((column.as_str(), table.as_str()), ("u", path.display().to_string().as_str()));
+        assert!(std::error::Error::source(&err).is_some_and(|e| e.is::<TableError>()));
     }
 
     #[test]
