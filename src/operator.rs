@@ -236,7 +236,8 @@ fn check_points(geometry: ImageGeometry, u: &[f64], v: &[f64], weight: &[f64]) -
 /// sorting and values (about 70 bytes a point) stay small beside the caller's arrays, but no
 /// fewer than 2^16, below which merging the tiles into the grid would cost more than spreading
 /// the points, and no more than 2^20, beyond which larger chunks no longer save time.
-fn chunk_points(n: usize) -> usize {
+/// Points per chunk when `n` points are gridded in chunks (also what the gridder bench times).
+pub(crate) fn chunk_points(n: usize) -> usize {
     (n / 16).clamp(1 << 16, 1 << 20)
 }
 
