@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Rebuild a shipped series from nothing, seeded end to end:
-#   training/reproduce.sh [vla-r2d2-512|vla-r2d2-128] [DATA_DIR]   (default vla-r2d2-512, training/data)
+#   training/reproduce.sh [vla-r2d2-512|vla-r2d2-512-broad|vla-r2d2-128] [DATA_DIR]   (default vla-r2d2-512, training/data)
 # Steps whose output exists are skipped, so rerunning the script resumes it; training itself
 # resumes from its per-epoch checkpoint and adds networks to the series (--resume).
 # Environment: R2D2 (the engine binary, default target/release/r2d2), SERIES (default
@@ -42,7 +42,27 @@ vla-r2d2-512)
     TRAIN=("$D/train-radio" "$D/train-images")
     ARGS="--norm none --crop 128 --crops-per-sample 4 --epochs-first 10 --epochs 4 --batch 8 --max-networks 15"
     ;;
-*) echo "unknown recipe $RECIPE (vla-r2d2-512 or vla-r2d2-128)" >&2; exit 2 ;;
+vla-r2d2-512-broad)
+    # The reference v2's range of settings in one series: SR 1.5..2.5, Briggs -1..1 and
+    # integration times drawn per sample (tracks and DR as in vla-r2d2-512), and skies with
+    # extended emission (textured lobes, spiral disks, halos and relics) beside the classic
+    # procedural ones and the reworked images. Seeds: training 1000.. (images), 100000..
+    # (classic), 200000.. (extended); validation 510000.. (extended skies); test 900000.. and
+    # 910000..: disjoint from each other.
+    D="$DATA/512-broad"
+    SIM="--size 512 --epsilon 1e-5 --superresolution 1.5..2.5 --robust=-1..1 --integration-s 200..450"
+    mkdir -p "$D"
+    make_once "$D/truths-train" python3 training/prepare_truths.py --count 80 --size 512 --seed 2 --source-dr 50
+    make_once "$D/train-images" "$R2D2" trainset --truths "$D/truths-train" --source-dr 50 --seed 1000 $SIM
+    make_once "$D/train-radio" "$R2D2" trainset --procedural 80 --seed 100000 $SIM
+    make_once "$D/train-extended" "$R2D2" trainset --procedural 120 --sky extended --seed 200000 $SIM
+    make_once "$D/val" "$R2D2" trainset --procedural 16 --sky extended --seed 510000 $SIM
+    make_once "$D/test" "$R2D2" trainset --procedural 12 --seed 900000 $SIM --parquet
+    make_once "$D/test-extended" "$R2D2" trainset --procedural 12 --sky extended --seed 910000 $SIM --parquet
+    TRAIN=("$D/train-radio" "$D/train-extended" "$D/train-images")
+    ARGS="--norm none --crop 128 --crops-per-sample 4 --epochs-first 10 --epochs 4 --batch 8 --max-networks 15"
+    ;;
+*) echo "unknown recipe $RECIPE (vla-r2d2-512, vla-r2d2-512-broad or vla-r2d2-128)" >&2; exit 2 ;;
 esac
 RESUME=""
 [ -f "$SERIES/manifest.yaml" ] && RESUME="--resume"

@@ -213,9 +213,13 @@ def main(argv=None):
             "validation_data": {"path": common.repo_relative(args.val), "samples": len(val), **common.portable(val.meta)},
             "networks": [],
         }
-        desc = (f"R2D2 {args.arch} series ({args.base_channels} channels, {args.poolings} poolings, norm {args.norm}) for VLA A+C, "
-                f"Briggs 0, SR 1.5, trained at {size}x{size}; H and W must be multiples of {2 ** args.poolings}")
-        manifest = series.new_manifest(name, series.make_network(args.arch, args.base_channels, args.poolings, args.norm), size, desc, provenance)
+        validity = series.domain(train.meta, size)
+        fmt = lambda r: f"{r[0]:g}" if r[0] == r[1] else f"{r[0]:g}..{r[1]:g}"
+        desc = (f"R2D2 {args.arch} series ({args.base_channels} channels, {args.poolings} poolings, norm {args.norm}) for "
+                f"{'/'.join(t.upper() for t in validity['telescopes'])}, Briggs {fmt(validity['robust'])}, "
+                f"SR {fmt(validity['superresolution'])}, trained at {size}x{size}; H and W must be multiples of {2 ** args.poolings}")
+        model = series.make_network(args.arch, args.base_channels, args.poolings, args.norm)
+        manifest = series.new_manifest(name, model, size, desc, provenance, validity)
     net_cfg = manifest["network"]
     have = (series.network_kind(manifest), net_cfg["base_channels"], net_cfg["poolings"], series.network_norm(manifest))
     if have != (args.arch, args.base_channels, args.poolings, args.norm):

@@ -24,6 +24,11 @@ pub struct Args {
     /// Instead of --truths: this many procedural radio skies (sky seed = sample seed).
     #[arg(long)]
     procedural: Option<usize>,
+    /// Kind of procedural sky: `classic` (compact sources, Gaussian complexes, double-lobed
+    /// galaxies, thresholded diffuse patches) or `extended` (textured lobes, spiral disks,
+    /// halos and relics: emission over decades of brightness across large areas).
+    #[arg(long, value_enum, default_value_t = SkyKind::Classic)]
+    sky: SkyKind,
     /// Image size N.
     #[arg(long, default_value_t = 128)]
     size: usize,
@@ -35,13 +40,16 @@ pub struct Args {
     dr_min: f64,
     #[arg(long, default_value_t = 1e5)]
     dr_max: f64,
-    /// Integration time in seconds (longer: fewer points, faster).
-    #[arg(long, default_value_t = 120.0)]
-    integration_s: f64,
-    #[arg(long, default_value_t = 1.5)]
-    superresolution: f64,
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    robust: f64,
+    /// Integration time in seconds (longer: fewer points, faster); `LOW..HIGH` draws one per
+    /// sample.
+    #[arg(long, default_value = "120", value_parser = parse_range)]
+    integration_s: (f64, f64),
+    /// Super-resolution factor, or `LOW..HIGH` drawn per sample.
+    #[arg(long, default_value = "1.5", value_parser = parse_range)]
+    superresolution: (f64, f64),
+    /// Briggs robustness, or `LOW..HIGH` drawn per sample (e.g. `-1..1`).
+    #[arg(long, default_value = "0", allow_hyphen_values = true, value_parser = parse_range)]
+    robust: (f64, f64),
     /// NUFFT accuracy.
     #[arg(long, default_value_t = 1e-6)]
     epsilon: f64,
@@ -55,6 +63,34 @@ pub struct Args {
     /// Output directory (replaced as a whole once every sample is done).
     #[arg(long)]
     out: PathBuf,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum SkyKind {
+    Classic,
+    Extended,
+}
+
+/// `X` (a fixed value) or `LOW..HIGH` (a range drawn from per sample).
+fn parse_range(text: &str) -> std::result::Result<(f64, f64), String> {
+    let number = |t: &str| t.trim().parse::<f64>().map_err(|_| format!("expected a number or LOW..HIGH, got '{text}'"));
+    let (lo, hi) = match text.split_once("..") {
+        Some((lo, hi)) => (number(lo)?, number(hi)?),
+        None => (number(text)?, number(text)?),
+    };
+    if !(lo <= hi) {
+        return Err(format!("expected LOW <= HIGH, got '{text}'"));
+    }
+    Ok((lo, hi))
+}
+
+/// A range as the set's description records it: a number when fixed, `[low, high]` otherwise.
+fn range_json((lo, hi): (f64, f64)) -> serde_json::Value {
+    if lo == hi {
+        serde_json::json!(lo)
+    } else {
+        serde_json::json!([lo, hi])
+    }
 }
 
 #[derive(Serialize)]
@@ -166,7 +202,13 @@ pub fn run(args: Args) -> Result<()> {
             }
             (files.iter().map(|f| f.file_name().unwrap_or_default().to_string_lossy().into_owned()).collect(), truths)
         }
-        (None, Some(count)) if count > 0 => ((0..count).map(|k| format!("procedural:{}", args.seed + k as u64)).collect(), vec![None; count]),
+        (None, Some(count)) if count > 0 => {
+            let kind = match args.sky {
+                SkyKind::Classic => "procedural",
+                SkyKind::Extended => "extended",
+            };
+            ((0..count).map(|k| format!("{kind}:{}", args.seed + k as u64)).collect(), vec![None; count])
+        }
         _ => return Err(Error::parameter("procedural", "expected --truths DIR or --procedural COUNT > 0")),
     };
     let total = truths.len();
@@ -184,6 +226,7 @@ pub fn run(args: Args) -> Result<()> {
                 let seed = args.seed + k as u64;
                 let source = match truth {
                     Some(data) => TruthSource::Image { data, source_dr: args.source_dr },
+                    None if args.sky == SkyKind::Extended => TruthSource::Extended { seed },
                     None => TruthSource::Procedural { seed },
                 };
                 let sample = make_sample(source, &params, seed, 1, args.parquet)
@@ -232,10 +275,13 @@ pub fn run(args: Args) -> Result<()> {
             "truths": args.truths.as_ref().map(|p| p.display().to_string()),
             "source_dr": args.truths.as_ref().map(|_| args.source_dr),
             "procedural": args.procedural,
+            "sky": args.procedural.map(|_| format!("{:?}", args.sky).to_lowercase()),
+            "telescope": "vla",
+            "track_hours": {"a": [5.0, 10.0], "c": [1.0, 3.0]},
             "dynamic_range": [args.dr_min, args.dr_max],
-            "integration_s": args.integration_s,
-            "superresolution": args.superresolution,
-            "weighting": {"scheme": "briggs", "robust": args.robust},
+            "integration_s": range_json(args.integration_s),
+            "superresolution": range_json(args.superresolution),
+            "weighting": {"scheme": "briggs", "robust": range_json(args.robust)},
             "epsilon": args.epsilon,
             "points_min": points.iter().min(),
             "points_max": points.iter().max(),

@@ -5,6 +5,7 @@
 //! antenna tables are compiled into the binary, and every random choice comes from a
 //! caller-supplied seed so a data set can be regenerated bit for bit.
 
+pub mod extended;
 pub mod observe;
 pub mod sky;
 pub mod telescope;

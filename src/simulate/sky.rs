@@ -281,14 +281,14 @@ pub fn solve_exponent_base(source_dr: f64, target_dr: f64) -> Result<f64> {
 
 /// Accumulates Gaussian and point components into an image, evaluating each Gaussian only
 /// over the window where it exceeds `cut` (at least ±4 sigma).
-struct Canvas {
+pub(super) struct Canvas {
     n: usize,
-    data: Vec<f64>,
+    pub(super) data: Vec<f64>,
     cut: f64,
 }
 
 impl Canvas {
-    fn new(n: usize, cut: f64) -> Self {
+    pub(super) fn new(n: usize, cut: f64) -> Self {
         Canvas {
             n,
             data: vec![0.0; n * n],
@@ -297,7 +297,7 @@ impl Canvas {
     }
 
     /// A single-pixel source at the pixel nearest (x, y); pixel centres are at integers.
-    fn add_point(&mut self, x: f64, y: f64, amp: f64) {
+    pub(super) fn add_point(&mut self, x: f64, y: f64, amp: f64) {
         let (ix, iy) = (x.round(), y.round());
         if ix >= 0.0 && iy >= 0.0 && (ix as usize) < self.n && (iy as usize) < self.n {
             self.data[iy as usize * self.n + ix as usize] += amp;
@@ -307,7 +307,7 @@ impl Canvas {
     /// An elliptical Gaussian of peak `amp` centred at (x, y) with standard deviations
     /// `sig_major` along the direction `theta` (radians from the x axis) and `sig_minor`
     /// across it.
-    fn add_gaussian(
+    pub(super) fn add_gaussian(
         &mut self,
         x: f64,
         y: f64,
@@ -348,7 +348,7 @@ impl Canvas {
 }
 
 /// Uniform draw in [a, b); if the interval is empty (tiny images, huge sources) the midpoint.
-fn uniform_in(rng: &mut ChaCha8Rng, a: f64, b: f64) -> f64 {
+pub(super) fn uniform_in(rng: &mut ChaCha8Rng, a: f64, b: f64) -> f64 {
     if b > a {
         rng.gen_range(a..b)
     } else {
@@ -529,7 +529,7 @@ fn diffuse_emission(
 /// a periodic running-box mean along each axis. Four boxes of half-width r have variance
 /// `4 r (r + 1) / 3`, so r is chosen to match sigma^2. The cost is O(n^2) whatever sigma,
 /// and the arithmetic is plain additions, so results are reproducible bit for bit.
-fn box_blur_periodic(field: &mut [f64], n: usize, sigma: f64) {
+pub(super) fn box_blur_periodic(field: &mut [f64], n: usize, sigma: f64) {
     let r = (((1.0 + 3.0 * sigma * sigma).sqrt() - 1.0) * 0.5)
         .round()
         .max(1.0) as usize;
@@ -573,7 +573,7 @@ fn box_pass(inp: &[f64], out: &mut [f64], r: usize) {
 
 /// Separable taper: 1 on [lo + taper, hi - taper], cos^2 down to exactly 0 at lo and hi,
 /// 0 outside.
-fn taper_window(n: usize, lo: f64, hi: f64, taper: f64) -> Vec<f64> {
+pub(super) fn taper_window(n: usize, lo: f64, hi: f64, taper: f64) -> Vec<f64> {
     (0..n)
         .map(|i| {
             let x = i as f64;

@@ -3,9 +3,10 @@
 //!
 //! Each sample is a randomised VLA A+C observation as in the paper (declination 5..60 deg,
 //! A 5..10 h, C 1..3 h, 1..4 frequencies with highest/lowest 1..2, random rotation, up to 20%
-//! flagged), super-resolution 1.5, Briggs 0, noise for a target dynamic range drawn
-//! log-uniformly, and a ground truth exponentiated to that dynamic range (or a procedural
-//! radio sky made at it). A sample holds what sequential training needs: the truth, the
+//! flagged), a super-resolution, Briggs robustness and integration time drawn per sample from
+//! the set's ranges (a single value each by default: SR 1.5, Briggs 0, 300 s), noise for a
+//! target dynamic range drawn log-uniformly, and a ground truth exponentiated to that dynamic
+//! range (or a procedural radio sky made at it). A sample holds what sequential training needs: the truth, the
 //! dirty image `x_d = kappa Re{Phi^H y_w}`, the 2N PSF (the kernel of `D`, peak at (N, N)) and
 //! the back-projected noise `b = kappa Re{Phi^H n_w}` (pruning compares residuals with it).
 //!
@@ -13,6 +14,7 @@
 //! inputs and can be regenerated alone.
 
 use super::observe::{frequency_channels, sample_coverage, simulate_visibilities, NoiseModel, ObservationSpec};
+use super::extended::extended_sky;
 use super::sky::{exponentiate, procedural_sky, SkyParams};
 use crate::imaging::{dirty_image, DirtyParams, PixelScale};
 use crate::nufft::NufftParams;
@@ -31,17 +33,24 @@ const STREAM_PARAMETERS: u64 = 11;
 /// Lowest observing frequency: the VLA L band (only ratios matter once the pixel follows SR).
 const LOWEST_FREQUENCY_HZ: f64 = 1.0e9;
 
-/// What is fixed across a training set.
+/// What is fixed across a training set. Each `(low, high)` range is drawn from per sample
+/// (uniformly; the dynamic range log-uniformly); `low == high` fixes the value.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TrainsetParams {
     pub size: usize,
-    pub superresolution: f64,
-    pub robust: f64,
+    pub superresolution: (f64, f64),
+    /// Briggs robustness.
+    pub robust: (f64, f64),
     /// Target dynamic ranges, drawn log-uniformly in `[low, high]`.
     pub dynamic_range: (f64, f64),
     /// Integration time, seconds: sets the number of points per observation.
-    pub integration_s: f64,
+    pub integration_s: (f64, f64),
     pub nufft: NufftParams,
+}
+
+/// Whether `(low, high)` is a usable range of finite values within `[min, max]`.
+fn range_ok((lo, hi): (f64, f64), min: f64, max: f64) -> bool {
+    lo.is_finite() && hi.is_finite() && lo <= hi && lo >= min && hi <= max
 }
 
 impl TrainsetParams {
@@ -50,8 +59,17 @@ impl TrainsetParams {
         if !(lo > 1.0 && hi >= lo && hi.is_finite()) {
             return Err(Error::parameter("dr", format!("expected 1 < low <= high, got {lo}..{hi}")));
         }
-        if !(self.integration_s > 0.0) || !self.integration_s.is_finite() {
-            return Err(Error::parameter("integration-s", format!("expected a positive time, got {}", self.integration_s)));
+        let (t0, t1) = self.integration_s;
+        if !range_ok(self.integration_s, f64::MIN_POSITIVE, 86_400.0) {
+            return Err(Error::parameter("integration-s", format!("expected positive times up to a day, low <= high, got {t0}..{t1}")));
+        }
+        let (s0, s1) = self.superresolution;
+        if !range_ok(self.superresolution, 1.0, 10.0) {
+            return Err(Error::parameter("superresolution", format!("expected 1 <= low <= high <= 10, got {s0}..{s1}")));
+        }
+        let (r0, r1) = self.robust;
+        if !range_ok(self.robust, -5.0, 5.0) {
+            return Err(Error::parameter("robust", format!("expected -5 <= low <= high <= 5, got {r0}..{r1}")));
         }
         ImageGeometry::new(self.size, 1e-6).map(|_| ())
     }
@@ -67,15 +85,20 @@ pub struct ObservationDraw {
     pub frequency_ratio: f64,
     pub flag_fraction: f64,
     pub dynamic_range: f64,
+    pub superresolution: f64,
+    pub robust: f64,
+    pub integration_s: f64,
 }
 
 impl ObservationDraw {
-    /// The paper's VLA A+C ranges, drawn from `seed`.
-    pub fn random(seed: u64, dynamic_range: (f64, f64)) -> ObservationDraw {
+    /// The paper's VLA A+C ranges and the set's ranges, drawn from `seed`. The imaging
+    /// settings are drawn after the observation, so a set of fixed settings draws the same
+    /// observations as before they could vary.
+    pub fn random(seed: u64, params: &TrainsetParams) -> ObservationDraw {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         rng.set_stream(STREAM_PARAMETERS);
-        let (lo, hi) = dynamic_range;
-        ObservationDraw {
+        let (lo, hi) = params.dynamic_range;
+        let mut draw = ObservationDraw {
             dec_deg: rng.gen_range(5.0..=60.0),
             hours_a: rng.gen_range(5.0..=10.0),
             hours_c: rng.gen_range(1.0..=3.0),
@@ -83,14 +106,22 @@ impl ObservationDraw {
             frequency_ratio: rng.gen_range(1.0..=2.0),
             flag_fraction: rng.gen_range(0.0..0.2),
             dynamic_range: (lo.ln() + (hi.ln() - lo.ln()) * rng.gen::<f64>()).exp(),
-        }
+            superresolution: params.superresolution.0,
+            robust: params.robust.0,
+            integration_s: params.integration_s.0,
+        };
+        let mut within = |(a, b): (f64, f64)| if b > a { rng.gen_range(a..=b) } else { a };
+        draw.superresolution = within(params.superresolution);
+        draw.robust = within(params.robust);
+        draw.integration_s = within(params.integration_s);
+        draw
     }
 
-    pub fn spec(&self, integration_s: f64, seed: u64) -> Result<ObservationSpec> {
+    pub fn spec(&self, seed: u64) -> Result<ObservationSpec> {
         Ok(ObservationSpec {
             configurations: vec![('a', self.hours_a), ('c', self.hours_c)],
             dec_deg: self.dec_deg,
-            integration_s,
+            integration_s: self.integration_s,
             frequencies_hz: frequency_channels(LOWEST_FREQUENCY_HZ, self.frequencies, self.frequency_ratio)?,
             flag_fraction: self.flag_fraction,
             random_rotation: true,
@@ -107,6 +138,8 @@ pub enum TruthSource<'a> {
     Image { data: &'a [f64], source_dr: f64 },
     /// A procedural radio sky made at the sample's dynamic range from this seed.
     Procedural { seed: u64 },
+    /// A sky of extended emission (`simulate::extended`) made at the sample's dynamic range.
+    Extended { seed: u64 },
 }
 
 /// One training sample (images row-major, `N x N` except the `2N x 2N` PSF).
@@ -143,7 +176,7 @@ pub struct SampleInfo {
 pub fn make_sample(truth: TruthSource, params: &TrainsetParams, seed: u64, threads: usize, keep_table: bool) -> Result<TrainSample> {
     params.validate()?;
     let n = params.size;
-    let draw = ObservationDraw::random(seed, params.dynamic_range);
+    let draw = ObservationDraw::random(seed, params);
     let dr = draw.dynamic_range;
     let sky = match truth {
         TruthSource::Image { data, source_dr } => {
@@ -158,10 +191,11 @@ pub fn make_sample(truth: TruthSource, params: &TrainsetParams, seed: u64, threa
             sky
         }
         TruthSource::Procedural { seed } => procedural_sky(&SkyParams::new(n, dr, seed))?,
+        TruthSource::Extended { seed } => extended_sky(&SkyParams::new(n, dr, seed))?,
     };
-    let coverage = sample_coverage(&draw.spec(params.integration_s, seed)?)?;
-    let geometry = ImageGeometry::from_superresolution(n, params.superresolution, coverage.max_uv())?;
-    let weighting = Weighting::Briggs { robust: params.robust };
+    let coverage = sample_coverage(&draw.spec(seed)?)?;
+    let geometry = ImageGeometry::from_superresolution(n, draw.superresolution, coverage.max_uv())?;
+    let weighting = Weighting::Briggs { robust: draw.robust };
     let model = NoiseModel { dynamic_range: dr, weighting, grid_factor: DEFAULT_GRID_FACTOR };
     let sim = simulate_visibilities(&sky, geometry, &coverage, &model, params.nufft, threads, seed)?;
 
@@ -184,7 +218,7 @@ pub fn make_sample(truth: TruthSource, params: &TrainsetParams, seed: u64, threa
     let (noise, _) = table(sim.noise.clone()).to_visibilities("simulated noise")?;
     let dirty_params = DirtyParams {
         size: n,
-        pixel: PixelScale::SuperResolution(params.superresolution),
+        pixel: PixelScale::SuperResolution(draw.superresolution),
         weighting,
         grid_factor: DEFAULT_GRID_FACTOR,
         nufft: params.nufft,
@@ -220,24 +254,30 @@ mod tests {
     fn params() -> TrainsetParams {
         TrainsetParams {
             size: 32,
-            superresolution: 1.5,
-            robust: 0.0,
+            superresolution: (1.5, 1.5),
+            robust: (0.0, 0.0),
             dynamic_range: (1e3, 1e5),
-            integration_s: 1800.0,
+            integration_s: (1800.0, 1800.0),
             nufft: NufftParams { epsilon: 1e-8, oversampling: 2.0 },
         }
     }
 
     #[test]
     fn draws_stay_in_the_papers_ranges_and_follow_the_seed() {
+        let ranged = TrainsetParams { superresolution: (1.5, 2.5), robust: (-1.0, 1.0), integration_s: (100.0, 400.0), ..params() };
         for seed in 0..200 {
-            let d = ObservationDraw::random(seed, (1e3, 1e5));
+            let d = ObservationDraw::random(seed, &params());
+            let r = ObservationDraw::random(seed, &ranged);
+            // The observation itself does not depend on the imaging ranges.
+            assert_eq!((d.dec_deg, d.hours_a, d.dynamic_range), (r.dec_deg, r.hours_a, r.dynamic_range));
+            assert_eq!((d.superresolution, d.robust, d.integration_s), (1.5, 0.0, 1800.0));
+            assert!((1.5..=2.5).contains(&r.superresolution) && (-1.0..=1.0).contains(&r.robust) && (100.0..=400.0).contains(&r.integration_s));
             assert!((5.0..=60.0).contains(&d.dec_deg) && (5.0..=10.0).contains(&d.hours_a) && (1.0..=3.0).contains(&d.hours_c));
             assert!((1..=4).contains(&d.frequencies) && (1.0..=2.0).contains(&d.frequency_ratio));
             assert!((0.0..0.2).contains(&d.flag_fraction) && (1e3..=1e5).contains(&d.dynamic_range));
-            assert_eq!(d, ObservationDraw::random(seed, (1e3, 1e5)));
+            assert_eq!(d, ObservationDraw::random(seed, &params()));
         }
-        assert_ne!(ObservationDraw::random(1, (1e3, 1e5)), ObservationDraw::random(2, (1e3, 1e5)));
+        assert_ne!(ObservationDraw::random(1, &params()), ObservationDraw::random(2, &params()));
     }
 
     /// The dirty image is the PSF convolution of the truth plus the back-projected noise:

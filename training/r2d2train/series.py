@@ -59,7 +59,39 @@ def write_manifest(series_dir, manifest):
             os.remove(tmp)
 
 
-def new_manifest(name, model, size, description, provenance):
+def _span(values):
+    """[low, high] of values that are numbers or [low, high] pairs."""
+    flat = [float(x) for v in values for x in (v if isinstance(v, (list, tuple)) else [v])]
+    return [min(flat), max(flat)]
+
+
+def domain(train_meta, size):
+    """The manifest's `validity:` from what the series was trained on: the union of the
+    training sets' settings (`trainset.json` of each set). Sets written before a setting was
+    recorded had the then-fixed value: VLA, A 5..10 h + C 1..3 h, Briggs."""
+    sets = train_meta.get("sets", [train_meta])
+    tracks = [s.get("track_hours", {"a": [5.0, 10.0], "c": [1.0, 3.0]}) for s in sets]
+    return {
+        "telescopes": sorted({s.get("telescope", "vla") for s in sets}),
+        "image_sizes": [size],
+        "superresolution": _span(s["superresolution"] for s in sets),
+        "weighting": sorted({s["weighting"]["scheme"] for s in sets}),
+        "robust": _span(s["weighting"]["robust"] for s in sets),
+        "dynamic_range": _span(s["dynamic_range"] for s in sets),
+        "track_hours": [min(t["a"][0] + t["c"][0] for t in tracks), max(t["a"][1] + t["c"][1] for t in tracks)],
+        "integration_s": _span(s["integration_s"] for s in sets),
+    }
+
+
+def central(validity):
+    """The series' own setting (what a job that sets none uses): the middle of each range,
+    rounded to the reference's usual values (SR 1.5 and Briggs 0 where the range holds them)."""
+    sr, robust = validity["superresolution"], validity["robust"]
+    return (1.5 if sr[0] <= 1.5 <= sr[1] else sr[0]), (0.0 if robust[0] <= 0.0 <= robust[1] else robust[0])
+
+
+def new_manifest(name, model, size, description, provenance, validity):
+    sr, robust = central(validity)
     return {
         "format": 1,
         "name": name,
@@ -70,9 +102,10 @@ def new_manifest(name, model, size, description, provenance):
                     "poolings": model.poolings, "norm": getattr(model, "norm", "none"), "parameters": parameter_count(model)},
         "image_sizes": [size],
         "any_size": True,
-        "superresolution": 1.5,
-        "weighting": {"scheme": "briggs", "robust": 0},
-        "dynamic_range": [1.0e3, 1.0e5],
+        "superresolution": sr,
+        "weighting": {"scheme": validity["weighting"][0], "robust": robust},
+        "dynamic_range": validity["dynamic_range"],
+        "validity": validity,
         "input_convention": "reference",
         "normalisation": "mean",
         "networks": [],
