@@ -132,6 +132,12 @@ impl Engine {
     /// `r2d2 image` does.
     pub fn image(&self, obs: impl Into<Observation>, params: &ImageParams) -> Result<JobProducts> {
         let obs = obs.into();
+        if let (Observation::Path(path), Some(prefix)) = (&obs, &params.write) {
+            // Before imaging: products that would replace the observation or the truth.
+            let mut inputs = vec![path.as_path()];
+            inputs.extend(params.truth.as_deref());
+            crate::products::check_spares_inputs(prefix, &crate::ingest::stem_id(path), &inputs)?;
+        }
         let (spec, inputs) = image_spec(obs, params)?;
         let delivered: Arc<Mutex<Vec<JobProducts>>> = Arc::default();
         let into = delivered.clone();
@@ -193,10 +199,12 @@ pub use crate::steps::runtime::{BackendChoice, GraphOptimization};
 pub struct ImageParams {
     /// Pixels per side.
     pub size: usize,
-    /// Pixel = 1 / (superresolution x 2 max_uv), unless `pixel_arcsec` is given.
-    pub superresolution: f64,
+    /// Pixel = 1 / (superresolution x 2 max_uv), unless `pixel_arcsec` is given. `None`: the
+    /// series' own (its manifest's `superresolution`) for a series step, else 1.5.
+    pub superresolution: Option<f64>,
     pub pixel_arcsec: Option<f64>,
-    pub weighting: Weighting,
+    /// `None`: the series' own (its manifest's `weighting`) for a series step, else Briggs 0.
+    pub weighting: Option<Weighting>,
     pub weighting_grid_factor: f64,
     /// NUFFT accuracy and oversampling.
     pub epsilon: f64,
@@ -224,9 +232,9 @@ impl Default for ImageParams {
     fn default() -> Self {
         ImageParams {
             size: 512,
-            superresolution: 1.5,
+            superresolution: None,
             pixel_arcsec: None,
-            weighting: Weighting::Briggs { robust: 0.0 },
+            weighting: None,
             weighting_grid_factor: crate::weighting::DEFAULT_GRID_FACTOR,
             epsilon: 1e-6,
             oversampling: 2.0,
@@ -267,7 +275,8 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
             }
         }
     };
-    let weights = WeightingParams { grid_factor: params.weighting_grid_factor, ..WeightingParams::new(params.weighting) };
+    let (weighting, superresolution) = imaging_setting(params)?;
+    let weights = WeightingParams { grid_factor: params.weighting_grid_factor, ..WeightingParams::new(weighting) };
     let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling };
     let mut stages = vec![
         read.to("weights"),
@@ -287,10 +296,51 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
     }
     let image = crate::pipeline::ImageConfig {
         size: params.size,
-        superresolution: params.pixel_arcsec.is_none().then_some(params.superresolution),
+        superresolution: params.pixel_arcsec.is_none().then_some(superresolution),
         pixel_arcsec: params.pixel_arcsec,
     };
     Ok((PipelineSpec::new("image", image, stages)?, inputs))
+}
+
+/// Weighting and super-resolution of an image: what `params` asks for; where it asks for none,
+/// a series step's own (its manifest's, as it was trained), else Briggs 0 and SR 1.5. The log
+/// says when the series' setting is used.
+fn imaging_setting(params: &ImageParams) -> Result<(Weighting, f64)> {
+    const DEFAULT: (Weighting, f64) = (Weighting::Briggs { robust: 0.0 }, 1.5);
+    let needs_series = params.weighting.is_none() || (params.superresolution.is_none() && params.pixel_arcsec.is_none());
+    let own = match &params.step {
+        StepChoice::Auto | StepChoice::Series(_) if needs_series => {
+            let name = match &params.step {
+                StepChoice::Series(path) => path.clone(),
+                _ => PathBuf::from(crate::steps::series::AUTO_SERIES),
+            };
+            // A series that does not resolve or open is reported by the step itself.
+            let dir = crate::steps::series::resolve_for_size(&name, params.size).ok();
+            dir.and_then(|d| crate::steps::series::Series::open(&d).ok()).and_then(|s| s.manifest.map(|m| (s.name, m)))
+        }
+        _ => None,
+    };
+    let own_weighting = own.as_ref().and_then(|(_, m)| {
+        let scheme = m.weighting.get("scheme")?.as_str()?;
+        let robust = m.weighting.get("robust").and_then(serde_yaml::Value::as_f64).unwrap_or(0.0);
+        Weighting::from_name(scheme, robust).ok()
+    });
+    let own_superresolution = own.as_ref().and_then(|(_, m)| m.superresolution);
+    let weighting = params.weighting.or(own_weighting).unwrap_or(DEFAULT.0);
+    let superresolution = params.superresolution.or(own_superresolution).unwrap_or(DEFAULT.1);
+    if let Some((name, _)) = &own {
+        let mut used = Vec::new();
+        if params.weighting.is_none() && own_weighting.is_some() {
+            used.push(format!("weighting {weighting}"));
+        }
+        if params.superresolution.is_none() && params.pixel_arcsec.is_none() && own_superresolution.is_some() {
+            used.push(format!("super-resolution {superresolution}"));
+        }
+        if !used.is_empty() {
+            log::info!("imaging with series '{name}''s own setting: {} (the options set none)", used.join(", "));
+        }
+    }
+    Ok((weighting, superresolution))
 }
 
 /// The step stage for `params.step`.
@@ -407,7 +457,7 @@ mod tests {
     /// Each choice of `Engine::image` reaches its stage's parameters (read back typed).
     #[test]
     fn engine_image_pipelines_read_back_as_typed_parameters() {
-        let clean = ImageParams { step: StepChoice::Clean, iterations: Some(3), weighting: Weighting::Uniform, write: Some("out/{job}".into()), ..ImageParams::default() };
+        let clean = ImageParams { step: StepChoice::Clean, iterations: Some(3), weighting: Some(Weighting::Uniform), write: Some("out/{job}".into()), ..ImageParams::default() };
         let (spec, _) = image_spec(Observation::Path("a.arrows".into()), &clean).unwrap();
         assert_eq!(spec.stage_params::<CleanParams>(spec.stage("step").unwrap()).unwrap().major_cycles, 3);
         assert_eq!(spec.stage_params::<WeightingParams>(spec.stage("weights").unwrap()).unwrap().scheme, WeightingScheme::Uniform);

@@ -49,8 +49,8 @@ pub mod staging;
 pub use engine::{is_ms, BackendChoice, Engine, EngineOptions, GraphOptimization, ImageParams, Observation, ProgressObserver, StepChoice};
 pub use error::{Error, Result};
 pub use pipeline::{
-    BuildContext, Built, Emit, ImageConfig, Imaging, IterationMetrics, Job, KindFn, MemoryInput, PipelineSpec, Port, Product,
-    ProductSink, Progress, Registry, Role, RunReport, Source, Stage, StageKind, StageParams, StageSpec,
+    BuildContext, Built, Emit, ImageConfig, Imaging, Iterate, IterationMetrics, Job, KindFn, LoopStop, MemoryInput, PipelineSpec, Port, Product,
+    ProductSink, Progress, Registry, Role, RunReport, Source, Stage, StageKind, StageParams, StageSpec, StopReason,
 };
 pub use products::{JobProducts, WriteOptions};
 /// Reading visibility tables into jobs (the file and memory sources share it).

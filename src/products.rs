@@ -53,6 +53,15 @@ pub struct JobProducts {
     pub telescope: String,
     /// Dynamic range of the truth or of the simulated sky, when known (previews' scale).
     pub dynamic_range: Option<f64>,
+    /// Warnings raised about the job (outside a series' domain, a diverging series).
+    pub warnings: Vec<String>,
+    /// Where the imaging loop stopped before the end of its series, and what it kept.
+    pub stop: Option<crate::pipeline::LoopStop>,
+    /// The settings the job was imaged with (weighting, pixel, series) and their origin.
+    pub settings: BTreeMap<String, serde_json::Value>,
+    /// The files the job was read from: writing refuses a prefix whose products would replace
+    /// (or retire) one of them.
+    pub inputs: Vec<PathBuf>,
 }
 
 /// How [`JobProducts::write_with`] writes.
@@ -143,6 +152,10 @@ impl JobProducts {
             beam: im.beam,
             telescope: job.meta.telescope.clone(),
             dynamic_range: dynamic_range_known,
+            warnings: job.warnings.clone(),
+            stop: job.stop.clone(),
+            settings: job.settings.clone(),
+            inputs: job.inputs.clone(),
         };
         products.header = products.header_cards();
         Ok(products)
@@ -199,6 +212,8 @@ impl JobProducts {
 
     /// Writes every product into a staging directory beside the prefix.
     pub(crate) fn stage(&self, prefix: &str, options: &WriteOptions) -> Result<Staged> {
+        let inputs: Vec<&Path> = self.inputs.iter().map(PathBuf::as_path).collect();
+        check_spares_inputs(prefix, &self.id, &inputs)?;
         let prefix = PathBuf::from(prefix.replace("{job}", &self.id));
         let dir = prefix.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).to_path_buf();
         let stem = prefix.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| self.id.clone());
@@ -236,7 +251,12 @@ impl JobProducts {
             "stage_seconds": self.stage_seconds,
             "image_size": n,
             "pixel_arcsec": self.pixel_arcsec,
+            "settings": self.settings,
+            "warnings": self.warnings,
         });
+        if let Some(stop) = &self.stop {
+            metrics["stop"] = serde_json::json!(stop);
+        }
         if let Some(summary) = &self.realisations {
             metrics["realisations"] = summary.clone();
         }
@@ -301,6 +321,24 @@ impl JobProducts {
 
 /// Every product a writer makes for a prefix (`<prefix>-<suffix>`), to retire those of an
 /// earlier run that this one does not make.
+/// Refuses a prefix at which the products of job `id` (any the writer makes or retires) would
+/// replace one of `inputs` (its visibilities, truth, MeasurementSet).
+pub(crate) fn check_spares_inputs(prefix: &str, id: &str, inputs: &[&Path]) -> Result<()> {
+    let prefix = PathBuf::from(prefix.replace("{job}", id));
+    let dir = prefix.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let stem = prefix.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| id.to_string());
+    for suffix in product_suffixes() {
+        let target = dir.join(format!("{stem}-{suffix}"));
+        if let Some(input) = crate::staging::destroys_input(&target, inputs) {
+            return Err(Error::parameter(
+                "prefix",
+                format!("job '{id}': the product {} would replace the input {}: choose another output name (--name / the writer's prefix)", target.display(), input.display()),
+            ));
+        }
+    }
+    Ok(())
+}
+
 fn product_suffixes() -> Vec<String> {
     let images = ["dirty", "psf", "model", "residual", "image", "uncertainty"];
     let mut suffixes: Vec<String> = images.iter().flat_map(|i| [format!("{i}.fits"), format!("{i}.png")]).collect();

@@ -27,6 +27,43 @@ use serde::{Deserialize, Serialize};
 use std::fs::File;
 use std::path::{Path, PathBuf};
 
+/// Whether two paths name the same file or directory (links followed); false when either
+/// does not exist.
+pub fn same_file(a: &Path, b: &Path) -> bool {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        match (std::fs::metadata(a), std::fs::metadata(b)) {
+            (Ok(x), Ok(y)) => x.dev() == y.dev() && x.ino() == y.ino(),
+            _ => false,
+        }
+    }
+    #[cfg(not(unix))]
+    match (a.canonicalize(), b.canonicalize()) {
+        (Ok(x), Ok(y)) => x == y,
+        _ => false,
+    }
+}
+
+/// Whether writing (or replacing) `output` would destroy one of `inputs`: the same file, an
+/// input inside it (an output directory holding the input), or it inside an input (a file
+/// written into an input MeasurementSet). Returns the input it would destroy.
+pub fn destroys_input<'a>(output: &Path, inputs: &[&'a Path]) -> Option<&'a Path> {
+    let canonical = |p: &Path| p.canonicalize().ok();
+    // The output may not exist yet: its parent's canonical path and its name.
+    let out = canonical(output).or_else(|| {
+        let parent = output.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        Some(canonical(parent)?.join(output.file_name()?))
+    });
+    inputs.iter().copied().find(|input| {
+        same_file(output, input)
+            || match (&out, canonical(input)) {
+                (Some(out), Some(input)) => input.starts_with(out) || out.starts_with(&input),
+                _ => false,
+            }
+    })
+}
+
 /// Name prefix of staging directories.
 const PREFIX: &str = ".r2d2-staging-";
 /// The commit journal, and the name it is written under before being renamed into place.

@@ -64,6 +64,17 @@ impl Weighting {
             )),
         }
     }
+
+    /// The weighting a user's options ask for, where each may be absent: `None` when neither is
+    /// given (the caller's default applies: a series' own), a robustness alone means Briggs,
+    /// a scheme alone takes robustness 0. The command line and Python share this reading.
+    pub fn from_options(name: Option<&str>, robust: Option<f64>) -> Result<Option<Weighting>> {
+        match (name, robust) {
+            (None, None) => Ok(None),
+            (None, Some(robust)) => Weighting::from_name("briggs", robust).map(Some),
+            (Some(name), robust) => Weighting::from_name(name, robust.unwrap_or(0.0)).map(Some),
+        }
+    }
 }
 
 impl std::fmt::Display for Weighting {
@@ -111,6 +122,18 @@ pub fn total_weights(
 }
 
 /// Imaging weight of each of `n` visibilities, combined with its natural weight by `combine`.
+/// Refuses a weighting grid factor that is not a positive number, or whose grid of
+/// `(grid_factor N)^2` cells does not fit in the memory available (checked in f64 before
+/// anything is allocated: 1e4 asked for terabytes, 1e9 overflowed).
+pub fn check_grid(grid_factor: f64, image_size: usize) -> Result<()> {
+    if !(grid_factor > 0.0) || !grid_factor.is_finite() {
+        return Err(Error::parameter("weighting grid factor", format!("expected a positive number, got {grid_factor}")));
+    }
+    let cells = (grid_factor * image_size as f64).floor().max(1.0);
+    crate::limits::check_memory(cells * cells * 8.0, &format!("a weighting grid of {cells:.0} x {cells:.0} cells (grid factor {grid_factor} x {image_size} pixels)"))
+        .map_err(|m| Error::parameter("weighting grid factor", m))
+}
+
 fn weigh(
     point: impl Fn(usize) -> (f64, f64),
     natural_weight: impl Fn(usize) -> f64,
@@ -123,9 +146,7 @@ fn weigh(
     if scheme == Weighting::Natural {
         return Ok((0..n).map(|k| combine(1.0, natural_weight(k))).collect());
     }
-    if !(grid_factor > 0.0) || !grid_factor.is_finite() {
-        return Err(Error::parameter("weighting grid factor", format!("expected a positive number, got {grid_factor}")));
-    }
+    check_grid(grid_factor, image_size)?;
     let cells = ((grid_factor * image_size as f64).floor() as usize).max(1);
     let cell_of = |k: usize| -> usize {
         let (u, v) = point(k);
@@ -160,6 +181,18 @@ fn weigh(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn grids_beyond_memory_are_refused() {
+        check_grid(2.0, 512).unwrap();
+        for factor in [1e4, 1e9, 1e300] {
+            let e = check_grid(factor, 512).unwrap_err().to_string();
+            assert!(e.contains("weighting grid") && e.contains("memory"), "{factor}: {e}");
+        }
+        for factor in [0.0, -1.0, f64::NAN, f64::INFINITY] {
+            assert!(check_grid(factor, 512).unwrap_err().to_string().contains("positive"), "{factor}");
+        }
+    }
 
     fn sample() -> (Vec<f64>, Vec<f64>, Vec<f64>) {
         // A dense core and a sparse outer region, like real uv coverage.

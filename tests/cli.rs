@@ -382,3 +382,27 @@ fn dirty_products_are_all_or_nothing_and_a_full_disk_is_named() {
     assert_eq!(stdout.trim_end(), "rc=1", "files left on the full disk: {stdout}");
     assert!(err.contains("x-psf.fits") && err.contains("No space left on device"), "{err}");
 }
+
+/// Commands whose output is their result: a closed pipe, a full device or a closed standard
+/// output is an error naming standard output (exit 1), never a panic or an exit 0 with the
+/// figures lost.
+#[test]
+fn a_closed_or_full_standard_output_is_an_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let shell = |script: &str| Command::new("sh").arg("-c").arg(script).env("R2D2", env!("CARGO_BIN_EXE_r2d2")).current_dir(d).output().unwrap();
+    // `head -c 0` closes the pipe at once; the exit status of r2d2 is what the script prints.
+    for (script, words) in [
+        ("\"$R2D2\" info > /dev/full; echo status $?", &["standard output", "No space left"][..]),
+        ("\"$R2D2\" info >&-; echo status $?", &["standard output", "closed"][..]),
+        ("(sleep 0.5; \"$R2D2\" info; echo status $? >&2) | head -c 0", &["standard output", "Broken pipe"][..]),
+    ] {
+        let out = shell(script);
+        let all = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        assert!(all.contains("status 1"), "{script}: {all}");
+        assert!(!all.contains("panicked"), "{script}: {all}");
+        for w in words {
+            assert!(all.contains(w), "{script}: '{w}' missing: {all}");
+        }
+    }
+}

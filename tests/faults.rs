@@ -199,3 +199,55 @@ fn a_full_disk_or_a_read_only_directory_fails_cleanly_and_keeps_the_earlier_prod
     assert!(std::fs::read_to_string(d.join("file")).unwrap() == "a file", "{err}");
     check(&r2d2(&["run", "p.yaml", "--set", "write.prefix=dir/{job}"], d));
 }
+
+/// Every file of `dir` and below, and its bytes.
+fn tree(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+    let mut files = BTreeMap::new();
+    for entry in std::fs::read_dir(dir).unwrap().flatten() {
+        let path = entry.path();
+        if path.is_dir() {
+            files.extend(tree(&path).into_iter().map(|(k, v)| (format!("{}/{k}", entry.file_name().to_string_lossy()), v)));
+        } else {
+            files.insert(entry.file_name().to_string_lossy().into_owned(), std::fs::read(&path).unwrap());
+        }
+    }
+    files
+}
+
+/// Outputs that would land on inputs (issue 23): each is refused with an error naming both,
+/// before any work, and every file the user had is left byte for byte.
+#[test]
+fn outputs_never_replace_or_delete_inputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    std::fs::create_dir(d.join("keep")).unwrap();
+    std::fs::copy(d.join("obs.parquet"), d.join("keep/obs.parquet")).unwrap();
+    std::fs::write(d.join("keep/notes.txt"), "the user's notes").unwrap();
+    std::fs::copy(d.join("obs.sky.fits"), d.join("t-model.fits")).unwrap();
+    std::fs::copy(d.join("obs.parquet"), d.join("x-metrics.parquet")).unwrap();
+    let before = tree(d);
+    let refused = |args: &[&str], words: &[&str]| {
+        let out = r2d2(args, d);
+        common::assert_fails_with(&out, &args.join(" "), words);
+        assert_eq!(tree(d), before, "{}: the files changed", args.join(" "));
+    };
+    // `convert` onto a directory that is not an MS (with the input inside it), onto itself,
+    // and to a Parquet path that is a directory.
+    refused(&["convert", "keep/obs.parquet", "keep/"], &["keep", "input"]);
+    refused(&["convert", "obs.parquet", "keep"], &["keep", "not a MeasurementSet"]);
+    refused(&["convert", "obs.parquet", "obs.parquet"], &["obs.parquet", "input"]);
+    // Products over the truth, or over the visibility table.
+    let image = ["image", "--size", "64", "--step", "clean", "--iterations", "1"];
+    refused(&[&image[..], &["obs.parquet", "--truth", "t-model.fits", "--name", "t"]].concat(), &["t-model.fits", "would replace the input"]);
+    refused(&[&image[..], &["x-metrics.parquet", "--name", "x"]].concat(), &["x-metrics.parquet", "would replace the input"]);
+    // Several jobs and a prefix without {job}: `validate` and `run` refuse it.
+    let text = pipeline().replace("    files: obs.parquet\n", "    files: obs.parquet\n    split_by: {column: time, window: 600}\n").replace("out/{job}", "out/all");
+    std::fs::write(d.join("p.yaml"), text).unwrap();
+    let before = tree(d);
+    for command in ["validate", "run"] {
+        let out = r2d2(&[command, "p.yaml"], d);
+        common::assert_fails_with(&out, command, &["p.yaml", "out/all", "{job}", "split_by"]);
+        assert_eq!(tree(d), before);
+    }
+}

@@ -282,8 +282,10 @@ fn damaged_inputs_the_fuzzer_found_fail_cleanly() {
     for backend in ["tract", "auto"] {
         let step = format!("    kind: onnx\n    series: models/landweber\n    backend: {backend}\n");
         let text = format!(
-            "image:\n  size: {SIZE}\nstages:\n  source:\n    kind: parquet\n    files: obs.parquet\n    to: weights\n  weights:\n    kind: weighting\n    scheme: natural\n    to: grid\n  grid:\n    kind: gridder\n    to: step\n  step:\n{step}    to: update\n  update:\n    kind: residual\n    to: step\n    done: write\n  write:\n    kind: writer\n    prefix: \"out-{backend}/{{job}}\"\n"
+            "image:\n  size: {SIZE}\nstages:\n  source:\n    kind: parquet\n    files: obs.parquet\n    to: weights\n  weights:\n    kind: weighting\n    scheme: natural\n    to: grid\n  grid:\n    kind: gridder\n    to: step\n  step:\n{step}    to: update\n  update:\n    kind: residual\n    to: step\n    done: write\n    divergence_guard: false\n    early_stop: false\n  write:\n    kind: writer\n    prefix: \"out-{backend}/{{job}}\"\n"
         );
+        // The whole series runs (this Landweber diverges, and the guard would stop it before
+        // network 3, the damaged one).
         std::fs::write(d.join("p.yaml"), text).unwrap();
         let out = common::r2d2(&["run", "p.yaml"], d);
         let err = common::assert_fails_with(&out, backend, &["lw3.onnx", "stage 'step' (onnx)"]);

@@ -359,3 +359,88 @@ fn parquet_converts_to_an_ms_that_images_as_the_table() {
     assert!(err.contains("plain.parquet") && err.contains("`time`"), "{err}");
     assert!(!dir.path().join("plain.ms").exists());
 }
+
+/// Column names of an MS's main table, read by python-casacore (an independent reader).
+fn colnames(dir: &Path, ms: &str) -> Vec<String> {
+    let script = "import sys\nfrom casacore.tables import table\nprint(' '.join(table(sys.argv[1], ack=False).colnames()))";
+    let out = Command::new("python3").args(["-c", script, ms]).current_dir(dir).output().expect("python3 runs");
+    assert!(out.status.success(), "{}", text(&out));
+    String::from_utf8_lossy(&out.stdout).split_whitespace().map(str::to_string).collect()
+}
+
+/// What `r2d2 image --model-column` must never do to what the user has (issue 23): replace the
+/// observed data, replace a link by a copy, lose a column written by another r2d2 at the same
+/// time, or write under a program that has the MS open. Each refusal comes before imaging
+/// and leaves the MS as it was, byte for byte.
+#[test]
+fn model_writes_keep_what_the_user_and_other_programs_hold() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d, 1);
+    make_ms(d, "obs.ms", &["--fields", "2"]);
+    let image = |ms: &str, column: &str, name: &str| {
+        let args = ["image", ms, "--field", "0", "--size", "64", "--step", "clean", "--iterations", "1", "--name", name, "--model-column", column];
+        r2d2(&args, d)
+    };
+    let no_products = |name: &str| !std::fs::read_dir(d).unwrap().any(|e| e.unwrap().file_name().to_string_lossy().starts_with(name));
+
+    // The observed and calibrated data, and the column imaged, never take a model.
+    let before = tree_digest(&d.join("obs.ms"));
+    for column in ["DATA", "data", "CORRECTED_DATA"] {
+        let out = image("obs.ms", column, "refused");
+        let err = stderr(&out);
+        assert!(!out.status.success() && err.contains("obs.ms") && err.contains("cannot write the model") && err.contains("MODEL_DATA"), "{column}: {err}");
+        assert!(no_products("refused"), "{column}: products written");
+    }
+    assert!(tree_digest(&d.join("obs.ms")) == before, "the MS is unchanged");
+
+    // A program holding the table open (python-casacore with a permanent lock, as CASA holds
+    // one): refused before imaging, naming the process.
+    let holder = "import sys, time\nfrom casacore.tables import table\nt = table(sys.argv[1], readonly=False, lockoptions='permanent', ack=False)\nprint('locked', flush=True)\ntime.sleep(120)";
+    let mut child = Command::new("python3").args(["-c", holder, "obs.ms"]).current_dir(d).stdout(std::process::Stdio::piped()).spawn().unwrap();
+    let mut line = String::new();
+    std::io::BufRead::read_line(&mut std::io::BufReader::new(child.stdout.take().unwrap()), &mut line).unwrap();
+    assert_eq!(line.trim(), "locked");
+    let out = image("obs.ms", "MODEL_DATA", "locked");
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let err = stderr(&out);
+    assert!(!out.status.success() && err.contains("obs.ms") && err.contains(&format!("process {}", child.id())), "{err}");
+    assert!(no_products("locked"));
+    assert!(tree_digest(&d.join("obs.ms")) == before, "the MS is unchanged");
+
+    // Through a link: the MS the link names is updated, the link stays a link; the MS's
+    // directories keep their modes.
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(d.join("obs.ms/FIELD"), std::fs::Permissions::from_mode(0o750)).unwrap();
+        std::os::unix::fs::symlink("obs.ms", d.join("link.ms")).unwrap();
+        check(&image("link.ms", "MODEL_DATA", "linked"));
+        assert!(std::fs::symlink_metadata(d.join("link.ms")).unwrap().file_type().is_symlink(), "the link is still a link");
+        assert!(colnames(d, "obs.ms").contains(&"MODEL_DATA".to_string()));
+        let mode = std::fs::metadata(d.join("obs.ms/FIELD")).unwrap().permissions().mode() & 0o777;
+        assert_eq!(mode, 0o750, "a subtable directory keeps its mode");
+    }
+
+    // Two r2d2 writing two columns at once: both columns are there after both end.
+    let spawn = |column: &str, name: &str| {
+        let args = ["image", "obs.ms", "--field", "0", "--size", "64", "--step", "clean", "--iterations", "1", "--name", name, "--model-column", column];
+        Command::new(env!("CARGO_BIN_EXE_r2d2")).args(args).current_dir(d).output()
+    };
+    for round in 0..3 {
+        let (a, b) = std::thread::scope(|s| {
+            let a = s.spawn(|| spawn(&format!("MODEL_A{round}"), "a"));
+            let b = s.spawn(|| spawn(&format!("MODEL_B{round}"), "b"));
+            (a.join().unwrap().unwrap(), b.join().unwrap().unwrap())
+        });
+        check(&a);
+        check(&b);
+        let names = colnames(d, "obs.ms");
+        for column in [format!("MODEL_A{round}"), format!("MODEL_B{round}")] {
+            assert!(names.contains(&column), "round {round}: {column} lost: {names:?}");
+        }
+    }
+    let left: Vec<String> = std::fs::read_dir(d).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).filter(|n| n.contains(".r2d2-")).collect();
+    assert!(left.is_empty(), "no lock or staging files left beside the MS: {left:?}");
+}

@@ -88,8 +88,9 @@ fn a_series_with_external_weights_images_the_same() {
 fn image_command_takes_a_series_and_models_lists_them() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    make_models(&d.join("models"), 0.5);
-    check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64", "--out", "obs.parquet"], d));
+    observation(d);
+    // A convergent gain: with a larger one the divergence guard stops the series at once.
+    make_models(&d.join("models"), ReferenceOperator::new(&d.join("obs.parquet")).landweber_gain());
     check(&r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/landweber-ref", "--iterations", "2", "--name", "lw"], d));
     let model = read_image(&d.join("lw-model.fits")).unwrap();
     assert_eq!((model.nx, model.ny), (64, 64));
@@ -131,4 +132,49 @@ fn broken_series_fail_before_imaging_and_leave_no_files() {
         let out = r2d2(&["validate", "p.yaml"], d);
         assert!(!out.status.success() && text(&out).contains(needle), "validate checks the series too: {}", text(&out));
     }
+    // Inference threads are bounded as the pipeline's are (1000 hung the machine).
+    std::fs::write(d.join("p.yaml"), pipeline("models/landweber", "auto")).unwrap();
+    for command in ["validate", "run"] {
+        let out = r2d2(&[command, "p.yaml", "--set", "step.threads=1000"], d);
+        let msg = text(&out);
+        assert!(!out.status.success() && msg.contains("threads") && msg.contains("per core"), "{command}: {msg}");
+    }
+    assert!(!d.join("out-auto").exists(), "nothing written");
+}
+
+/// A series that makes the model explain the data worse than an empty image (Landweber with a
+/// gain far above 2 / ||D||) is stopped by the residual update's divergence guard: exit 0, a
+/// warning with the figures, the empty model kept (residual ratio 1), and the metrics file
+/// says where and why. With the guard off, the same series runs to its end and diverges.
+#[test]
+fn a_diverging_series_is_stopped_and_its_best_iterate_kept() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    let reference = ReferenceOperator::new(&d.join("obs.parquet"));
+    make_models(&d.join("models"), 40.0 * reference.landweber_gain());
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/landweber", "--name", "div"], d);
+    check(&out);
+    let log = text(&out);
+    assert!(log.contains("diverged") && log.contains("above 1") && log.contains("kept the empty model"), "{log}");
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("div-metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["stop"]["reason"], "diverged", "{metrics}");
+    assert_eq!(metrics["stop"]["after_iteration"], 1, "{metrics}");
+    assert_eq!(metrics["stop"]["kept_iteration"], 0, "{metrics}");
+    assert!(metrics["iterations"][0]["residual_ratio"].as_f64().unwrap() > 1.0, "{metrics}");
+    assert!(metrics["warnings"][0].as_str().unwrap().contains("diverged"), "{metrics}");
+    // The products are the empty model's: model 0, residual = dirty image.
+    let model = read(&d.join("div-model.fits"));
+    assert!(model.iter().all(|&x| x == 0.0));
+    assert_eq!(read(&d.join("div-residual.fits")), read(&d.join("div-dirty.fits")));
+
+    // The guard off (and no early stop): all four networks run, and the ratio grows.
+    let yaml = pipeline("models/landweber", "tract").replace("    kind: residual\n", "    kind: residual\n    divergence_guard: false\n    early_stop: false\n");
+    std::fs::write(d.join("unguarded.yaml"), yaml).unwrap();
+    check(&r2d2(&["run", "unguarded.yaml"], d));
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("out-tract/obs-metrics.json")).unwrap()).unwrap();
+    let ratios: Vec<f64> = metrics["iterations"].as_array().unwrap().iter().map(|m| m["residual_ratio"].as_f64().unwrap()).collect();
+    assert_eq!(ratios.len(), 4, "{metrics}");
+    assert!(ratios[3] > ratios[0] && ratios[0] > 1.0, "{ratios:?}");
+    assert!(metrics.get("stop").is_none(), "{metrics}");
 }

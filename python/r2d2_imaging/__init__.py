@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import warnings
 from typing import Any, Mapping, Optional, Union
 
 from . import _native
@@ -34,7 +35,14 @@ from ._native import (
 )
 
 __version__ = _native.__version__
+
+
+class R2D2Warning(UserWarning):
+    """A warning the engine raised about a job (outside its series' domain, a diverging
+    series stopped and its best iterate kept), as the command line logs it: it is also in the
+    products' ``metrics["warnings"]``."""
 __all__ = [
+    "R2D2Warning",
     "R2D2Error",
     "FitsError",
     "SeriesError",
@@ -116,8 +124,8 @@ def _onnx_runtime() -> Optional[str]:
     return os.path.join(capi, names[-1]) if names else None
 
 
-def image(obs, size: int = 512, step: Optional[str] = None, weighting: str = "briggs", robust: float = 0.0,
-          superresolution: float = 1.5, pixel_arcsec: Optional[float] = None, truth: Optional[PathLike] = None, *,
+def image(obs, size: int = 512, step: Optional[str] = None, weighting: Optional[str] = None, robust: Optional[float] = None,
+          superresolution: Optional[float] = None, pixel_arcsec: Optional[float] = None, truth: Optional[PathLike] = None, *,
           iterations: Optional[int] = None, threads: int = 0, id: Optional[str] = None, backend: str = "auto",
           prefetch: bool = True, plugin_config: Optional[str] = None, epsilon: float = 1e-6, oversampling: float = 2.0,
           weighting_grid_factor: Optional[float] = None, onnx_runtime: Optional[PathLike] = None) -> Products:
@@ -130,7 +138,9 @@ def image(obs, size: int = 512, step: Optional[str] = None, weighting: str = "br
     for ``size``), ``"clean"``, a series name or directory, or a plugin library;
     ``iterations``: CLEAN major cycles, the first networks of a series, or a plugin's steps.
     ``threads``: the engine's threads (0: every core). ``id`` names the job (default: the
-    file name without its extension, or ``table``).
+    file name without its extension, or ``table``). ``weighting`` (``natural``, ``uniform``,
+    ``briggs``), ``robust`` and ``superresolution``: ``None`` takes the series' own (as it was
+    trained; Briggs 0 and 1.5 for other steps); ``robust`` alone means Briggs.
 
     Returns :class:`Products`: ``dirty``, ``psf``, ``model``, ``residual`` (and ``image`` for
     CLEAN) as float32 arrays (N, N) in FITS orientation (row 0 at the bottom, as astropy reads
@@ -141,10 +151,13 @@ def image(obs, size: int = 512, step: Optional[str] = None, weighting: str = "br
         weighting_grid_factor = _native.DEFAULT_WEIGHTING_GRID_FACTOR
     if not isinstance(obs, (str, os.PathLike)) and not hasattr(obs, "__arrow_c_stream__"):
         raise TypeError(f"obs: expected a path or an Arrow table (pyarrow.Table, RecordBatchReader), got {type(obs).__name__}")
-    return _native.image(
+    products = _native.image(
         os.fspath(obs) if isinstance(obs, os.PathLike) else obs,
         id=id, size=size, step=step or "auto", weighting=weighting, robust=robust, superresolution=superresolution,
         pixel_arcsec=pixel_arcsec, truth=os.fspath(truth) if truth is not None else None, iterations=iterations,
         threads=threads, backend=backend, prefetch=prefetch, plugin_config=plugin_config, epsilon=epsilon,
         oversampling=oversampling, weighting_grid_factor=weighting_grid_factor,
         onnx_runtime=os.fspath(onnx_runtime) if onnx_runtime is not None else _onnx_runtime())
+    for message in products.metrics.get("warnings", []):
+        warnings.warn(f"job {products.id}: {message}", R2D2Warning, stacklevel=2)
+    return products

@@ -175,9 +175,15 @@ impl Products {
         }
         out.set_item("iterations", rows)?;
         out.set_item("stage_seconds", &self.job.stage_seconds)?;
+        let json = py.import("json")?;
         if let Some(summary) = &self.job.realisations {
-            let json = py.import("json")?;
             out.set_item("realisations", json.call_method1("loads", (summary.to_string(),))?)?;
+        }
+        let loads = |value: serde_json::Value| json.call_method1("loads", (value.to_string(),));
+        out.set_item("settings", loads(serde_json::json!(self.job.settings))?)?;
+        out.set_item("warnings", &self.job.warnings)?;
+        if let Some(stop) = &self.job.stop {
+            out.set_item("stop", loads(serde_json::json!(stop))?)?;
         }
         Ok(out)
     }
@@ -209,6 +215,7 @@ impl Products {
         let state = (
             (j.id.clone(), j.size, images, j.header.clone(), metrics, j.stage_seconds.clone()),
             (j.iterations, j.pixel_arcsec, wcs, beam, j.telescope.clone(), j.dynamic_range, j.realisations.as_ref().map(|v| v.to_string())),
+            serde_json::json!({"warnings": j.warnings, "stop": j.stop, "settings": j.settings}).to_string(),
         );
         let restore = py.import("r2d2_imaging._native")?.getattr("_products")?.unbind();
         Ok((restore, PyTuple::new(py, [state.into_pyobject(py)?.into_any()])?))
@@ -219,12 +226,22 @@ type Wcs = (f64, f64, f64, Option<f64>, Option<f64>);
 type State<'py> = (
     (String, usize, Vec<Option<Bound<'py, PyArray2<f32>>>>, Vec<(String, String)>, Vec<Bound<'py, PyDict>>, BTreeMap<String, f64>),
     (usize, f64, Wcs, Option<(f64, f64, f64)>, String, Option<f64>, Option<String>),
+    String,
 );
+
+/// The job's notes in the pickled state (a JSON object: warnings, stop, settings).
+#[derive(serde::Deserialize)]
+struct Notes {
+    warnings: Vec<String>,
+    stop: Option<r2d2_imaging::LoopStop>,
+    settings: BTreeMap<String, serde_json::Value>,
+}
 
 /// Products from their pickled state.
 #[pyfunction]
 pub fn _products(state: State<'_>) -> PyResult<Products> {
-    let ((id, size, images, header, metrics, stage_seconds), (iterations, pixel_arcsec, wcs, beam, telescope, dynamic_range, realisations)) = state;
+    let ((id, size, images, header, metrics, stage_seconds), (iterations, pixel_arcsec, wcs, beam, telescope, dynamic_range, realisations), notes) = state;
+    let notes: Notes = serde_json::from_str(&notes).map_err(|e| PyValueError::new_err(format!("products state: notes: {e}")))?;
     if images.len() != IMAGES.len() {
         return Err(PyValueError::new_err("products state with the wrong number of images"));
     }
@@ -256,6 +273,10 @@ pub fn _products(state: State<'_>) -> PyResult<Products> {
         beam: beam.map(|(major_deg, minor_deg, pa_deg)| Beam { major_deg, minor_deg, pa_deg }),
         telescope,
         dynamic_range,
+        warnings: notes.warnings,
+        stop: notes.stop,
+        settings: notes.settings,
+        inputs: Vec::new(),
     };
     Ok(Products { job, images: slots })
 }

@@ -54,13 +54,13 @@ pub fn run(cmd: Command) -> Result<()> {
     match cmd {
         Command::Gridder { visibilities, size, epsilon, threads, repeats, seed } => {
             let report = run_gridder_bench(&GridderBenchParams { visibilities, size, epsilon, threads, repeats, seed })?;
-            println!("{}", serde_json::to_string_pretty(&report).expect("report serialises"));
+            out!("{}", serde_json::to_string_pretty(&report).expect("report serialises"))?;
             Ok(())
         }
         Command::Pipeline { jobs, size, configuration, hours, integration_s, major_cycles, threads, channel_capacity, seed } => {
             let params = PipelineBenchParams { jobs, size, configuration, hours, integration_s, major_cycles, threads, channel_capacity, seed };
             let report = run_pipeline_bench(&params)?;
-            println!("{}", serde_json::to_string_pretty(&report).expect("report serialises"));
+            out!("{}", serde_json::to_string_pretty(&report).expect("report serialises"))?;
             Ok(())
         }
     }

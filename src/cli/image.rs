@@ -3,7 +3,7 @@
 
 use super::ImageOptions;
 use r2d2_imaging::steps::series::AUTO_SERIES;
-use r2d2_imaging::{BackendChoice, Error, GraphOptimization, ImageParams, Result, StepChoice, Weighting};
+use r2d2_imaging::{BackendChoice, Error, GraphOptimization, ImageParams, Result, StepChoice};
 use std::path::{Path, PathBuf};
 
 #[derive(clap::Args)]
@@ -79,7 +79,7 @@ fn image_params(args: &Args) -> Result<ImageParams> {
         size: image.size,
         superresolution: image.superresolution,
         pixel_arcsec: image.pixel_arcsec,
-        weighting: Weighting::from_name(&image.weighting, image.robust)?,
+        weighting: image.weighting()?,
         weighting_grid_factor: image.weighting_grid_factor,
         epsilon: image.epsilon,
         oversampling: image.oversampling,

@@ -8,17 +8,17 @@ use r2d2_imaging::Result;
 pub struct Args {}
 
 pub fn run(_args: Args) -> Result<()> {
-    println!("r2d2 {}", env!("CARGO_PKG_VERSION"));
-    println!("gridder SIMD: {:?}", r2d2_imaging::nufft::simd::SimdLevel::detect());
-    println!("threads: {} available", std::thread::available_parallelism().map_or(1, |n| n.get()));
+    out!("r2d2 {}", env!("CARGO_PKG_VERSION"))?;
+    out!("gridder SIMD: {:?}", r2d2_imaging::nufft::simd::SimdLevel::detect())?;
+    out!("threads: {} available", std::thread::available_parallelism().map_or(1, |n| n.get()))?;
     match find_onnxruntime() {
         Ok(lib) => {
-            println!("ONNX Runtime library: {}", lib.display());
+            out!("ONNX Runtime library: {}", lib.display())?;
             use_onnx_runtime(&lib)?;
         }
-        Err(why) => println!("ONNX Runtime library: not found ({why})"),
+        Err(why) => out!("ONNX Runtime library: not found ({why})")?,
     }
     let runtime = Runtime::select(BackendChoice::Auto, 0)?;
-    println!("ONNX inference (backend: auto): {}", runtime.describe());
+    out!("ONNX inference (backend: auto): {}", runtime.describe())?;
     Ok(())
 }

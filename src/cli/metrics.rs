@@ -39,6 +39,6 @@ pub fn run(args: Args) -> Result<()> {
         "logsnr": log_snr(&estimate.data, &truth.data, dr),
         "dynamic_range": dr,
     });
-    println!("{report}");
+    out!("{report}")?;
     Ok(())
 }

@@ -1,5 +1,45 @@
 //! Command-line interface: option parsing (clap) and dispatch to one module per command.
 
+/// `println!` for the commands whose output is their result (`models`, `info`, `metrics`,
+/// `validate`, `bench`): a closed or full standard output is an error naming it (exit 1), not a
+/// panic, and not an exit 0 with the figures lost.
+macro_rules! out {
+    ($($arg:tt)*) => {
+        crate::cli::write_stdout(format_args!($($arg)*))
+    };
+}
+
+
+/// Whether descriptor 1 was closed when the process started. The standard library then puts
+/// /dev/null there before `main` (so that no file opened later lands on it), after which a
+/// closed standard output cannot be told from `> /dev/null`: it is looked at earlier, by a
+/// constructor the loader runs before the runtime starts.
+static STDOUT_CLOSED_AT_START: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+#[cfg(target_os = "linux")]
+#[used]
+#[link_section = ".init_array"]
+static RECORD_STDOUT_AT_START: extern "C" fn() = record_stdout_at_start;
+
+#[cfg(target_os = "linux")]
+extern "C" fn record_stdout_at_start() {
+    // SAFETY: F_GETFD only queries the flags of a descriptor number; it touches no memory.
+    if unsafe { libc::fcntl(1, libc::F_GETFD) } == -1 {
+        STDOUT_CLOSED_AT_START.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+}
+
+/// One line to standard output, flushed, its failure an error.
+pub(crate) fn write_stdout(line: std::fmt::Arguments<'_>) -> r2d2_imaging::Result<()> {
+    use std::io::Write;
+    let error = |e| r2d2_imaging::Error::io("standard output", e);
+    if STDOUT_CLOSED_AT_START.load(std::sync::atomic::Ordering::Relaxed) {
+        return Err(error(std::io::Error::other("closed: the output would be lost")));
+    }
+    let mut stdout = std::io::stdout().lock();
+    writeln!(stdout, "{line}").and_then(|()| stdout.flush()).map_err(error)
+}
+
 mod bench;
 mod convert;
 mod dirty;
@@ -109,18 +149,20 @@ pub struct ImageOptions {
     /// Image size in pixels (N x N).
     #[arg(long, default_value_t = 512)]
     pub size: usize,
-    /// Super-resolution factor: pixel = 1 / (SR * 2 * max_uv).
-    #[arg(long, default_value_t = 1.5, conflicts_with = "pixel_arcsec")]
-    pub superresolution: f64,
+    /// Super-resolution factor: pixel = 1 / (SR * 2 * max_uv). Default: the series' own
+    /// (`r2d2 image` with a series), else 1.5.
+    #[arg(long, conflicts_with = "pixel_arcsec")]
+    pub superresolution: Option<f64>,
     /// Pixel size in arcseconds (instead of --superresolution).
     #[arg(long)]
     pub pixel_arcsec: Option<f64>,
-    /// natural, uniform or briggs.
-    #[arg(long, default_value = "briggs")]
-    pub weighting: String,
-    /// Briggs robustness R.
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub robust: f64,
+    /// natural, uniform or briggs. Default: the series' own (`r2d2 image` with a series), else
+    /// briggs.
+    #[arg(long)]
+    pub weighting: Option<String>,
+    /// Briggs robustness R (implies briggs). Default: the series' own, else 0.
+    #[arg(long, allow_hyphen_values = true)]
+    pub robust: Option<f64>,
     /// Weighting grid: cells per axis / image size.
     #[arg(long, default_value_t = r2d2_imaging::weighting::DEFAULT_GRID_FACTOR)]
     pub weighting_grid_factor: f64,
@@ -135,7 +177,15 @@ pub struct ImageOptions {
     pub threads: usize,
 }
 
+/// The super-resolution factor when neither the options nor a series give one.
+const DEFAULT_SUPERRESOLUTION: f64 = 1.5;
+
 impl ImageOptions {
+    /// The weighting the options ask for (`None`: none asked; `--robust` alone means Briggs).
+    pub fn weighting(&self) -> r2d2_imaging::Result<Option<r2d2_imaging::Weighting>> {
+        r2d2_imaging::Weighting::from_options(self.weighting.as_deref(), self.robust)
+    }
+
     pub fn dirty_params(&self) -> r2d2_imaging::Result<r2d2_imaging::imaging::DirtyParams> {
         use r2d2_imaging::imaging::{DirtyParams, PixelScale};
         use r2d2_imaging::{limits, Error};
@@ -145,9 +195,9 @@ impl ImageOptions {
             size: self.size,
             pixel: match self.pixel_arcsec {
                 Some(p) => PixelScale::Arcsec(p),
-                None => PixelScale::SuperResolution(self.superresolution),
+                None => PixelScale::SuperResolution(self.superresolution.unwrap_or(DEFAULT_SUPERRESOLUTION)),
             },
-            weighting: r2d2_imaging::weighting::Weighting::from_name(&self.weighting, self.robust)?,
+            weighting: self.weighting()?.unwrap_or(r2d2_imaging::Weighting::Briggs { robust: 0.0 }),
             grid_factor: self.weighting_grid_factor,
             nufft: r2d2_imaging::nufft::NufftParams { epsilon: self.epsilon, oversampling: self.oversampling },
             threads: self.threads,

@@ -19,32 +19,36 @@ pub fn run(args: Args) -> Result<()> {
     });
     let found = discover(&dir);
     if found.is_empty() {
-        println!("no model series under {}", dir.display());
+        out!("no model series under {}", dir.display())?;
         return Ok(());
     }
     for (dir, series) in found {
         match series {
-            Err(e) => println!("{}: unusable: {e}", dir.display()),
+            Err(e) => out!("{}: unusable: {e}", dir.display())?,
             Ok(s) => {
                 let arch = match s.architecture {
                     Architecture::R2d2 => "R2D2".to_string(),
                     Architecture::R3d3 => format!("R3D3, {} layers", s.layers()),
                 };
-                println!("{}  ({})", dir.display(), s.name);
+                out!("{}  ({})", dir.display(), s.name)?;
                 let realisations = if s.realisations > 1 { format!(" x {} realisations", s.realisations) } else { String::new() };
-                println!("  {} iterations{realisations}, {arch}; {}", s.len(), s.origin);
+                out!("  {} iterations{realisations}, {arch}; {}", s.len(), s.origin)?;
                 let sizes = if s.image_sizes.is_empty() { "unknown".to_string() } else { format!("{:?}", s.image_sizes) };
-                println!("  trained for image sizes {sizes}{}", if s.any_size { ", runs at any size" } else { " only" });
+                out!("  trained for image sizes {sizes}{}", if s.any_size { ", runs at any size" } else { " only" })?;
                 if let Some(m) = &s.manifest {
                     if !m.description.is_empty() {
-                        println!("  {}", m.description);
+                        out!("  {}", m.description)?;
+                    }
+                    match &m.validity {
+                        Some(v) => out!("  domain: {}", v.summary())?,
+                        None => out!("  domain: not declared (jobs are not checked against it)")?,
                     }
                     let mut facts = Vec::new();
                     if !m.telescope.is_empty() {
                         facts.push(format!("telescope {}", m.telescope));
                     }
                     if let Some(sr) = m.superresolution {
-                        facts.push(format!("super-resolution {sr}"));
+                        facts.push(format!("own setting: super-resolution {sr}"));
                     }
                     if let Some([lo, hi]) = m.dynamic_range {
                         facts.push(format!("dynamic range {lo:.0e}..{hi:.0e}"));
@@ -53,10 +57,10 @@ pub fn run(args: Args) -> Result<()> {
                         facts.push(format!("weighting {}", serde_json::to_string(&m.weighting).unwrap_or_default()));
                     }
                     if !facts.is_empty() {
-                        println!("  {}", facts.join(", "));
+                        out!("  {}", facts.join(", "))?;
                     }
                     if let Some(last) = m.test.as_sequence().and_then(|t| t.last()).or_else(|| m.validation.as_sequence().and_then(|v| v.last())) {
-                        println!("  last iteration metrics: {}", serde_json::to_string(last).unwrap_or_default());
+                        out!("  last iteration metrics: {}", serde_json::to_string(last).unwrap_or_default())?;
                     }
                 }
             }

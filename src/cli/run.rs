@@ -55,6 +55,6 @@ pub fn validate(args: ValidateArgs) -> Result<()> {
     let spec = PipelineSpec::load(&args.pipeline, &args.set)?;
     let (engine, _bar) = super::engine::engine(spec.threads, uses_onnx(&spec))?;
     engine.validate(&spec)?;
-    println!("{}: valid ({} stages)", args.pipeline.display(), spec.stages.len());
+    out!("{}: valid ({} stages)", args.pipeline.display(), spec.stages.len())?;
     Ok(())
 }

@@ -17,6 +17,7 @@ use std::path::Path;
 /// sample, flagged ones with `flag` set; the `field` and `spw` columns besides the format's),
 /// replacing `out` atomically. Returns the MS row counts and the samples written.
 pub fn convert_ms_to_parquet(ms: &Path, selection: &MsSelection, out: &Path) -> Result<(MsCounts, u64)> {
+    super::lock::check_conversion_output(ms, out, false)?;
     let mut reader = MsReader::open(ms, selection, DEFAULT_BATCH_ROWS)?;
     // The origin names this MS for the writer's model column; a Parquet copy is no longer it.
     let mut meta = reader.meta().clone();

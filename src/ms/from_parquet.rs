@@ -81,6 +81,7 @@ pub struct ParquetToMs {
 /// Writes the Parquet table at `parquet` as a MeasurementSet at `out` (built in a hidden
 /// sibling directory and moved into place whole; an existing `out` is replaced).
 pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> {
+    super::lock::check_conversion_output(parquet, out, true)?;
     let (s, meta) = read_samples(parquet)?;
     if s.u.is_empty() {
         return Err(invalid(parquet, "no samples: nothing to write"));

@@ -21,11 +21,13 @@
 
 mod convert;
 mod from_parquet;
+mod lock;
 mod model;
 mod reader;
 
 pub use convert::convert_ms_to_parquet;
 pub use from_parquet::{convert_parquet_to_ms, ParquetToMs};
+pub use lock::{check_conversion_output, check_model_write, real_path};
 pub use model::{write_job_model, write_model_column, ModelReport, ModelTarget};
 pub use reader::{batch_schema, fields_with_rows, MsCounts, MsReader};
 

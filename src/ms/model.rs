@@ -8,7 +8,9 @@
 //! the MS path holds either the untouched MS or the complete new one; a failure or an
 //! interruption before the exchange leaves the original as it was (and at most the hidden copy,
 //! removed on failure; after a kill, by the next model write to the same MS). The price: free disk
-//! space for one copy of the MS while writing.
+//! space for one copy of the MS while writing. A linked MS is updated where it lies (the link
+//! stays a link), its directories keep their modes, and other writers of the MS are waited
+//! for or refused (`lock.rs`).
 
 use super::{invalid, open_table, MsError, MsReader, Origin, TempDir, Window};
 use crate::nufft::{Nufft2d, NufftParams};
@@ -86,6 +88,19 @@ fn copy_tree(from: &Path, to: &Path) -> Result<()> {
     Ok(())
 }
 
+/// Gives the directories of the copy the modes of the original's (files keep theirs through
+/// the copy), so that a rewritten MS is shared as the original was.
+fn copy_modes(from: &Path, to: &Path) -> Result<()> {
+    for entry in std::fs::read_dir(from).map_err(|e| Error::io(from, e))? {
+        let entry = entry.map_err(|e| Error::io(from, e))?;
+        if entry.file_type().map_err(|e| Error::io(entry.path(), e))?.is_dir() && to.join(entry.file_name()).is_dir() {
+            copy_modes(&entry.path(), &to.join(entry.file_name()))?;
+        }
+    }
+    let mode = std::fs::metadata(from).map_err(|e| Error::io(from, e))?.permissions();
+    std::fs::set_permissions(to, mode).map_err(|e| Error::io(to, e))
+}
+
 /// fsync of every file and directory of a tree, so the exchange publishes complete data.
 fn sync_tree(dir: &Path) -> Result<()> {
     for entry in std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))? {
@@ -143,17 +158,23 @@ pub fn write_model_column(origin: &Origin, target: &ModelTarget<'_>) -> Result<M
     if target.model.len() != target.geometry.pixels() {
         return Err(Error::parameter("model", format!("{} pixels for a {} x {} image", target.model.len(), target.geometry.size, target.geometry.size)));
     }
-    remove_stale_staging(ms);
-    let staging = TempDir { path: staging_path(ms)? };
+    super::lock::check_model_column_name(ms, target.column, &origin.selection.data_column)?;
+    // From here until the exchange, no other writer of this MS starts (or the write is refused).
+    let lock = super::lock::lock_for_model_write(ms, target.column)?;
+    let real = lock.ms.as_path();
+    remove_stale_staging(real);
+    let staging = TempDir { path: staging_path(real)? };
     if staging.path.exists() {
         std::fs::remove_dir_all(&staging.path).map_err(|e| Error::io(&staging.path, e))?;
     }
-    copy_tree(ms, &staging.path)?;
+    copy_tree(real, &staging.path)?;
     let report = predict_into(&staging.path, origin, target).map_err(|e| retarget(e, &staging.path, ms))?;
+    copy_modes(real, &staging.path)?;
     sync_tree(&staging.path)?;
     // Checks the written copy opens as a table before it replaces the original.
     open_table(&staging.path, "the MeasurementSet with the new model column").map_err(|e| retarget(e, &staging.path, ms))?;
-    exchange(&staging.path, ms)?;
+    exchange(&staging.path, real)?;
+    drop(lock);
     // `staging` now names the old MS: dropping it removes that.
     Ok(report)
 }

@@ -209,8 +209,9 @@ impl PipelineSpec {
             .map_err(|m| located(file, locate_top(text, "image"), &format!("image.size = {}: {m}", raw.image.size)))?;
         crate::limits::check_threads(raw.threads).map_err(|m| located(file, locate_top(text, "threads"), &format!("threads: {m}")))?;
         let capacity = raw.channel_capacity.unwrap_or(2);
-        if capacity == 0 {
-            return Err(located(file, None, "channel_capacity must be at least 1"));
+        if !(1..=MAX_CHANNEL_CAPACITY).contains(&capacity) {
+            let at = locate_top(text, "channel_capacity");
+            return Err(located(file, at, &format!("channel_capacity: {capacity}: expected 1 to {MAX_CHANNEL_CAPACITY} (jobs waiting between two stages, each holding its images and perhaps its visibilities; the default is 2)")));
         }
         Ok(PipelineSpec {
             file: file.to_path_buf(),
@@ -296,6 +297,9 @@ impl PipelineSpec {
 pub(crate) const ROUTING_KEYS: [&str; 3] = ["kind", "to", "done"];
 
 /// The top-level keys a `--set` may name (any other first part is a stage).
+/// The most jobs a channel between two stages may hold: each slot holds a whole job.
+pub const MAX_CHANNEL_CAPACITY: usize = 64;
+
 const TOP_KEYS: [&str; 4] = ["image", "threads", "name", "channel_capacity"];
 
 /// The key a deserialisation error is about, as a path inside the stage's parameters
@@ -442,6 +446,16 @@ fn apply_override(root: &mut Value, spec: &str) -> Result<()> {
 mod tests {
     use super::*;
     use std::time::Instant;
+
+    #[test]
+    fn channel_capacity_is_bounded() {
+        let text = |c: &str| format!("channel_capacity: {c}\nimage: {{size: 16}}\nstages:\n  source: {{kind: simulate}}\n");
+        for bad in ["0", "65", "1000000000000", "18446744073709551615"] {
+            let err = PipelineSpec::parse(&text(bad), Path::new("c.yaml"), &[]).unwrap_err().to_string();
+            assert!(err.contains("c.yaml") && err.contains("line 1") && err.contains("expected 1 to 64"), "{bad}: {err}");
+        }
+        assert!(PipelineSpec::parse(&text("64"), Path::new("c.yaml"), &[]).is_ok());
+    }
 
     #[test]
     fn deep_nesting_is_refused_fast_naming_file_and_line() {

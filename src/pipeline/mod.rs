@@ -26,7 +26,7 @@ use crate::metrics;
 use crate::operator::{ImageGeometry, MeasurementOperator, PsfConvolution};
 use crate::vis::{ObservationMeta, Visibilities};
 use crate::Result;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
@@ -56,6 +56,41 @@ pub struct Imaging {
     pub frequency_hz: Option<f64>,
     /// Restoring beam fitted to the PSF main lobe (FWHM degrees, PA degrees east of north).
     pub beam: Option<crate::fits::Beam>,
+    /// The iterate of lowest residual ratio so far, kept by the residual update's divergence
+    /// guard (`None`: the empty model, ratio 1, is the best so far).
+    pub best: Option<Iterate>,
+}
+
+/// One iterate of the imaging loop, kept so that a diverging series can fall back to it.
+#[derive(Clone, Debug)]
+pub struct Iterate {
+    pub iteration: usize,
+    pub residual_ratio: f64,
+    pub model: Vec<f64>,
+    pub residual: Vec<f64>,
+}
+
+/// Why the imaging loop of a job ended before its series did (the metrics file's `stop`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StopReason {
+    /// The residual ratio rose above 1: the model explained the data worse than an empty one.
+    Diverged,
+    /// The residual ratio rose at two consecutive iterations.
+    Rising,
+    /// The residual ratio changed by less than the tolerance (reference v2).
+    Converged,
+}
+
+/// How and where the loop stopped early, and which iterate became the model.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LoopStop {
+    pub reason: StopReason,
+    /// The iteration after which the loop stopped.
+    pub after_iteration: usize,
+    /// The iterate kept as the model (0: the empty model) and its residual ratio.
+    pub kept_iteration: usize,
+    pub kept_residual_ratio: f64,
 }
 
 /// The error of a stage given a job without `product`. The products check before the run
@@ -111,6 +146,19 @@ pub struct Job {
     pub metrics: Vec<IterationMetrics>,
     /// Seconds spent per stage (summed over iterations).
     pub stage_seconds: BTreeMap<String, f64>,
+    /// Set when the imaging loop stopped before the end of its series.
+    pub stop: Option<LoopStop>,
+    /// Warnings about this job (outside a series' domain, a diverging series, ...): logged
+    /// when raised and kept for the metrics file.
+    pub warnings: Vec<String>,
+    /// The imaging settings the job ran with and where each came from (weighting, pixel,
+    /// series), for the metrics file.
+    pub settings: BTreeMap<String, serde_json::Value>,
+    /// The super-resolution of the job's pixel: its longest baseline is sampled this many
+    /// times finer than Nyquist (set with the geometry).
+    pub superresolution: Option<f64>,
+    /// The files the job was read from (visibilities, truth): its products never replace them.
+    pub inputs: Vec<std::path::PathBuf>,
 }
 
 impl Job {
@@ -132,7 +180,19 @@ impl Job {
             last_step_seconds: 0.0,
             metrics: Vec::new(),
             stage_seconds: BTreeMap::new(),
+            stop: None,
+            warnings: Vec::new(),
+            settings: BTreeMap::new(),
+            superresolution: None,
+            inputs: Vec::new(),
         }
+    }
+
+    /// Log a warning about this job and keep it for the metrics file.
+    pub fn warn(&mut self, message: impl Into<String>) {
+        let message = message.into();
+        log::warn!("job {}: {message}", self.id);
+        self.warnings.push(message);
     }
 
     /// The gridded state, or an error naming the stage that needed it.

@@ -87,7 +87,8 @@ impl Source for ArrowIpcSource {
         };
         stats.log(crate::ingest::TableReader::source(&reader));
         self.reading = false;
-        emit_parts(&self.id, crate::ingest::TableReader::meta(&reader), parts, self.truth.as_ref(), emit)
+        let source = (self.path != STDIN).then(|| Path::new(&self.path));
+        emit_parts(&self.id, crate::ingest::TableReader::meta(&reader), parts, self.truth.as_ref(), source, emit)
     }
 
     fn current_job(&self) -> Option<String> {

@@ -89,6 +89,7 @@ impl Stage for GridderStage {
             model: vec![0.0; n],
             beam,
             frequency_hz,
+            best: None,
         });
         if self.keep_operator {
             job.vis = Some(vis);

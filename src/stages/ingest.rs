@@ -526,6 +526,7 @@ fn split_values(batch: &RecordBatch, column: &str, source: &str, first_row: u64)
 pub struct Truth {
     image: Vec<f64>,
     dynamic_range: Option<f64>,
+    path: PathBuf,
 }
 
 impl Truth {
@@ -540,16 +541,19 @@ impl Truth {
                 format!("the truth is {} x {} pixels, but the pipeline images {size} x {size} (image.size): it must be on the image's grid", image.nx, image.ny),
             ));
         }
-        Ok(Some(Truth { dynamic_range: crate::metrics::dynamic_range(&image.data), image: image.data }))
+        Ok(Some(Truth { dynamic_range: crate::metrics::dynamic_range(&image.data), image: image.data, path: path.to_path_buf() }))
     }
 }
 
 /// Emits one job per part, ids `<id>` or `<id>-<suffix>`.
+/// `source` is the file the parts were read from (none for memory and standard input): with the
+/// truth's file it is the job's inputs, which its products never replace.
 pub fn emit_parts(
     id: &str,
     meta: &ObservationMeta,
     parts: Vec<Part>,
     truth: Option<&Truth>,
+    source: Option<&Path>,
     emit: &mut dyn FnMut(Job) -> Result<()>,
 ) -> Result<()> {
     for part in parts {
@@ -562,7 +566,9 @@ pub fn emit_parts(
         if let Some(t) = truth {
             job.truth = Some(t.image.clone());
             job.truth_dynamic_range = t.dynamic_range;
+            job.inputs.push(t.path.clone());
         }
+        job.inputs.extend(source.map(Path::to_path_buf));
         emit(job)?;
     }
     Ok(())

@@ -73,7 +73,7 @@ impl Source for MemorySource {
                 return Ok(());
             };
             stats.log(&reader.source);
-            emit_parts(&reader.id, &reader.meta, parts, self.truth.as_ref(), emit)?;
+            emit_parts(&reader.id, &reader.meta, parts, self.truth.as_ref(), None, emit)?;
         }
         self.current_job = None;
         Ok(())

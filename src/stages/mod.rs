@@ -42,8 +42,8 @@ const BUILTIN: &[KindFn] = &[
     #[cfg(feature = "ms")]
     source("ms", |c| {
         // A writer that predicts the model into the MS needs one job per field, checked now.
-        let writes_model = c.downstream_params::<params::WriterParams>()?.iter().any(|w| w.model_column.is_some());
-        Ok(Built::Source(Box::new(ms::MsSource::new(c.params()?, c.pipeline, c.stage, writes_model)?)))
+        let model_columns: Vec<String> = c.downstream_params::<params::WriterParams>()?.into_iter().filter_map(|w| w.model_column).collect();
+        Ok(Built::Source(Box::new(ms::MsSource::new(c.params()?, c.pipeline, c.stage, &model_columns)?)))
     }),
     #[cfg(not(feature = "ms"))]
     source("ms", |c| Err(c.error(Some("kind"), "kind 'ms': this r2d2 was built without the `ms` feature"))),
@@ -101,7 +101,7 @@ const BUILTIN: &[KindFn] = &[
         produces: &[],
         consumes_also: None,
         passes_on: false,
-        build: |c| Ok(Built::Stage(Box::new(writer::WriterStage::new(c.params()?, c.pipeline, c.stage)?))),
+        build: |c| Ok(Built::Stage(Box::new(writer::WriterStage::new(c.params()?, c.pipeline, c.stage, several_jobs(c)?)?))),
     },
     KindFn {
         name: "products",
@@ -113,6 +113,29 @@ const BUILTIN: &[KindFn] = &[
         build: |c| Ok(Built::Stage(Box::new(products::ProductsStage::new(c.params()?, c)?))),
     },
 ];
+
+/// Why the sources before stage `c` may make several jobs (a list or pattern of files, a
+/// `split_by`, several sources), if they may.
+fn several_jobs(c: &BuildContext<'_>) -> Result<Option<String>> {
+    let mut why = Vec::new();
+    for p in c.upstream_params::<params::ParquetParams>()? {
+        let files: Vec<&String> = match &p.files {
+            params::Files::One(f) => vec![f],
+            params::Files::Many(fs) => fs.iter().collect(),
+        };
+        if files.len() > 1 {
+            why.push("a parquet source lists several files".to_string());
+        } else if let Some(pattern) = files.iter().find(|f| f.contains(['*', '?', '['])) {
+            why.push(format!("a parquet source's files are a pattern ({pattern})"));
+        }
+        why.extend(p.split_by.map(|_| "a parquet source has split_by".to_string()));
+    }
+    why.extend(c.upstream_params::<params::ArrowIpcParams>()?.into_iter().filter_map(|p| p.split_by).map(|_| "an arrow-ipc source has split_by".to_string()));
+    why.extend(c.upstream_params::<params::ArrowParams>()?.into_iter().filter_map(|p| p.split_by).map(|_| "an arrow source has split_by".to_string()));
+    #[cfg(feature = "ms")]
+    why.extend(c.upstream_params::<params::MsParams>()?.into_iter().filter_map(|p| p.split_by).map(|_| "an ms source has split_by".to_string()));
+    Ok((!why.is_empty()).then(|| why.join("; ")))
+}
 
 /// The jobs' imaging as a series' validity sees it: the super-resolution (unknown when the
 /// pixel size is given in arcsec: it then depends on each job's longest baseline) and the
@@ -130,6 +153,7 @@ fn imaging_setup(ctx: &BuildContext<'_>) -> Result<crate::steps::series::Imaging
         superresolution: image.pixel_arcsec.is_none().then(|| image.superresolution.unwrap_or(1.5)),
         weighting: weighting.map(|w| scheme_name(w.scheme).to_string()),
         robust: weighting.map(|w| w.robust),
+        telescope: None,
     })
 }
 

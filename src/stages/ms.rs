@@ -79,8 +79,10 @@ pub struct MsSource {
 }
 
 impl MsSource {
-    /// `writes_model`: a writer downstream predicts the model into the MS (`model_column`).
-    pub fn new(config: MsParams, pipeline: &PipelineSpec, stage: &StageSpec, writes_model: bool) -> Result<MsSource> {
+    /// `model_columns`: the columns writers downstream predict the model into (`model_column`),
+    /// checked now to be writable, so that a write that cannot succeed fails before imaging.
+    pub fn new(config: MsParams, pipeline: &PipelineSpec, stage: &StageSpec, model_columns: &[String]) -> Result<MsSource> {
+        let writes_model = !model_columns.is_empty();
         let name = &stage.name;
         let error = |key: &str, message: String| pipeline.stage_error(name, Some(key), &format!("stages.{name}.{key}: {message}"));
         if !crate::ms::is_measurement_set(&config.path) {
@@ -118,6 +120,9 @@ impl MsSource {
         if !by_field {
             MsReader::open(&config.path, &selection, config.batch_rows)?;
         }
+        for column in model_columns {
+            crate::ms::check_model_write(&config.path, column, &selection.data_column)?;
+        }
         let truth = Truth::load(config.truth.as_deref(), pipeline.image.size).map_err(|e| error("truth", e.to_string()))?;
         Ok(MsSource { path: config.path, id, selection, batch_rows: config.batch_rows, truth, split_by: config.split_by, split_key, reading: false })
     }
@@ -136,7 +141,7 @@ impl MsSource {
             return Ok(false);
         };
         log::info!("{} (field {} '{}'): {stats}; {}", self.path.display(), reader.field().0, reader.field().1, reader.counts());
-        emit_parts(id, reader.meta(), parts, self.truth.as_ref(), emit)?;
+        emit_parts(id, reader.meta(), parts, self.truth.as_ref(), Some(&self.path), emit)?;
         Ok(true)
     }
 }

@@ -118,7 +118,7 @@ impl Source for ParquetSource {
                 return Ok(());
             };
             stats.log(path);
-            emit_parts(&id, reader.meta(), parts, self.truth.as_ref(), emit)?;
+            emit_parts(&id, reader.meta(), parts, self.truth.as_ref(), Some(path), emit)?;
         }
         self.current_job = None;
         Ok(())

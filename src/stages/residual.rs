@@ -6,7 +6,7 @@
 //! through the kept visibilities (the reference's choice).
 
 use crate::pipeline::registry::{BuildContext, Product};
-use crate::pipeline::{Emit, Job, Port, Stage, StageParams};
+use crate::pipeline::{Emit, Iterate, Job, LoopStop, Port, Stage, StageParams, StopReason};
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
@@ -28,16 +28,23 @@ pub enum ResidualMethod {
 pub struct ResidualParams {
     /// Default `toeplitz`.
     pub method: ResidualMethod,
-    /// Stop early (reference v2 criterion) instead of running the whole series.
+    /// Stop early by the reference v2 criterion (the residual ratio changes by less than
+    /// `tolerance`, or rises at two consecutive iterations) instead of running the whole
+    /// series; default true.
     pub early_stop: bool,
     /// Relative change of the residual ratio below which the loop stops (`early_stop`);
     /// default 1e-4.
     pub tolerance: f64,
+    /// Stop a series whose residual ratio rises above 1 (its model explains the data worse
+    /// than an empty image) or rises at two consecutive iterations, keep the iterate of lowest
+    /// residual ratio as the model (the empty model if none is below 1), and warn; default
+    /// true.
+    pub divergence_guard: bool,
 }
 
 impl Default for ResidualParams {
     fn default() -> Self {
-        ResidualParams { method: ResidualMethod::Toeplitz, early_stop: false, tolerance: 1e-4 }
+        ResidualParams { method: ResidualMethod::Toeplitz, early_stop: true, tolerance: 1e-4, divergence_guard: true }
     }
 }
 
@@ -64,16 +71,54 @@ impl ResidualStage {
         Ok(ResidualStage { config })
     }
 
-    /// Reference v2: stop when the residual ratio changes by less than `tolerance` or has
-    /// risen at two consecutive iterations.
-    fn should_stop(&self, job: &Job) -> bool {
-        let r: Vec<f64> = job.metrics.iter().map(|m| m.residual_ratio).collect();
-        let n = r.len();
-        if n >= 2 && ((r[n - 1] - r[n - 2]).abs() / r[n - 2] < self.config.tolerance) {
-            return true;
+    /// Whether the loop stops after the latest iteration, and why: divergence first (the
+    /// guard), then the reference v2 criterion.
+    fn stop_reason(&self, ratios: &[f64]) -> Option<StopReason> {
+        let n = ratios.len();
+        let last = *ratios.last()?;
+        let rising = n >= 3 && ratios[n - 1] > ratios[n - 2] && ratios[n - 2] > ratios[n - 3];
+        if self.config.divergence_guard && (last > 1.0 || rising) {
+            return Some(if last > 1.0 { StopReason::Diverged } else { StopReason::Rising });
         }
-        n >= 3 && r[n - 1] > r[n - 2] && r[n - 2] > r[n - 3]
+        if !self.config.early_stop {
+            return None;
+        }
+        if rising {
+            return Some(StopReason::Rising);
+        }
+        (n >= 2 && (ratios[n - 1] - ratios[n - 2]).abs() / ratios[n - 2] < self.config.tolerance).then_some(StopReason::Converged)
     }
+}
+
+/// After the divergence guard stopped a job: its model and residual become the best iterate's
+/// (the empty model when no iterate did better than ratio 1), and a warning says so.
+fn fall_back(job: &mut Job, reason: StopReason) -> Result<()> {
+    let iteration = job.iteration;
+    let ratio = job.metrics.last().map_or(f64::NAN, |m| m.residual_ratio);
+    let step = job.step_kind.clone().unwrap_or_else(|| "network".into());
+    let im = job.imaging_mut("residual")?;
+    let (kept, kept_ratio) = match im.best.take() {
+        Some(best) => {
+            im.model = best.model;
+            im.residual = best.residual;
+            (best.iteration, best.residual_ratio)
+        }
+        None => {
+            im.model = vec![0.0; im.dirty.len()];
+            im.residual = im.dirty.clone();
+            (0, 1.0)
+        }
+    };
+    let what = match reason {
+        StopReason::Diverged => format!("residual ratio {ratio:.4} after iteration {iteration}, above 1: its model explains the data worse than an empty image"),
+        _ => format!("residual ratio rose at two consecutive iterations, to {ratio:.4} after iteration {iteration}"),
+    };
+    let kept_what = if kept == 0 { "the empty model (residual ratio 1)".to_string() } else { format!("the model of iteration {kept} (residual ratio {kept_ratio:.4})") };
+    job.warn(format!(
+        "the {step} step diverged ({what}); stopped and kept {kept_what}. The data are probably outside what the series was trained for (see the domain warnings and `r2d2 models`)"
+    ));
+    job.stop = Some(LoopStop { reason, after_iteration: iteration, kept_iteration: kept, kept_residual_ratio: kept_ratio });
+    Ok(())
 }
 
 impl Stage for ResidualStage {
@@ -104,8 +149,67 @@ impl Stage for ResidualStage {
         }
         // Realisations run their whole series: stopping one early would end the job (the
         // ratios of several realisations' iterations are not one sequence either).
-        let several = job.realisation > 0;
-        let finished = job.series_finished || (self.config.early_stop && !several && self.should_stop(&job));
+        let several = job.realisation > 0 || !job.realisation_models.is_empty();
+        let ratios: Vec<f64> = job.metrics.iter().map(|m| m.residual_ratio).collect();
+        let reason = if several { None } else { self.stop_reason(&ratios) };
+        match reason {
+            Some(reason @ (StopReason::Diverged | StopReason::Rising)) if self.config.divergence_guard => fall_back(&mut job, reason)?,
+            Some(reason) => {
+                let ratio = ratios.last().copied().unwrap_or(f64::NAN);
+                log::info!("job {}: stopped after iteration {iteration} ({reason:?}, residual ratio {ratio:.4e})", job.id);
+                job.stop = Some(LoopStop { reason, after_iteration: iteration, kept_iteration: iteration, kept_residual_ratio: ratio });
+            }
+            None if self.config.divergence_guard && !several => {
+                // Keep the best iterate for a later fall-back (the empty model has ratio 1).
+                let ratio = ratios.last().copied().unwrap_or(f64::INFINITY);
+                let im = job.imaging_mut("residual")?;
+                if ratio < im.best.as_ref().map_or(1.0, |b| b.residual_ratio) {
+                    im.best = Some(Iterate { iteration, residual_ratio: ratio, model: im.model.clone(), residual: im.residual.clone() });
+                }
+            }
+            None => {}
+        }
+        let finished = job.series_finished || reason.is_some();
+        if finished {
+            if let Some(im) = job.imaging.as_mut() {
+                im.best = None;
+            }
+        }
         emit(if finished { Port::Done } else { Port::Next }, job)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn stage(early_stop: bool, divergence_guard: bool) -> ResidualStage {
+        ResidualStage::new(ResidualParams { early_stop, divergence_guard, ..ResidualParams::default() }).unwrap()
+    }
+
+    #[test]
+    fn the_guard_stops_above_one_and_on_a_second_rise_and_the_v2_rule_on_convergence() {
+        let guarded = stage(true, true);
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3]), None);
+        assert_eq!(guarded.stop_reason(&[1.2]), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 1.01]), Some(StopReason::Diverged));
+        // One rise is allowed (a network may trade residual for precision), two in a row are not.
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.31]), None);
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.31, 0.32]), Some(StopReason::Rising));
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.3 * (1.0 + 5e-5)]), Some(StopReason::Converged));
+        // Without the guard and the early stop, nothing stops the series.
+        let plain = stage(false, false);
+        assert_eq!(plain.stop_reason(&[3.0, 4.0, 5.0]), None);
+        // The v2 rule alone stops a rising series too (and keeps the last iterate, as the
+        // reference does), but not one above 1 that has not risen twice.
+        let v2 = stage(true, false);
+        assert_eq!(v2.stop_reason(&[3.0]), None);
+        assert_eq!(v2.stop_reason(&[0.5, 0.6, 0.7]), Some(StopReason::Rising));
+    }
+
+    #[test]
+    fn the_defaults_are_the_v2_rule_and_the_guard() {
+        let p = ResidualParams::default();
+        assert!(p.early_stop && p.divergence_guard && p.tolerance == 1e-4);
     }
 }

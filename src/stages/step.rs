@@ -6,7 +6,7 @@ use crate::steps::clean::{CleanConfig, CleanStep};
 use crate::steps::onnx::{OnnxConfig, OnnxStep};
 use crate::steps::series::ImagingSetup;
 use crate::steps::native::{NativeConfig, NativeStep};
-use crate::steps::{NetworkStep, StepInput};
+use crate::steps::{JobDomain, NetworkStep, StepInput};
 use crate::Result;
 use std::time::Instant;
 
@@ -62,6 +62,16 @@ impl Stage for StepStage {
             job.series_finished = true;
             job.last_step_seconds = began.elapsed().as_secs_f64();
             return emit(Port::Next, job);
+        }
+        if iteration == 1 {
+            // Before a job's first step: is it inside what the step was made for?
+            let domain = JobDomain { telescope: &job.meta.telescope, superresolution: job.superresolution };
+            for problem in self.step.domain_problems(&domain)? {
+                job.warn(problem);
+            }
+            if let Some(described) = self.step.describe() {
+                job.settings.insert("step".into(), described);
+            }
         }
         let Job { id, imaging, .. } = &mut job;
         let im = imaging.as_mut().ok_or_else(|| crate::pipeline::missing(self.kind, id, crate::pipeline::Product::Imaging))?;

@@ -47,6 +47,15 @@ impl WeightingParams {
     }
 }
 
+/// A weighting as the metrics file records it.
+fn weighting_json(weighting: Weighting, grid_factor: f64) -> serde_json::Value {
+    match weighting {
+        Weighting::Natural => serde_json::json!({"scheme": "natural"}),
+        Weighting::Uniform => serde_json::json!({"scheme": "uniform", "grid_factor": grid_factor}),
+        Weighting::Briggs { robust } => serde_json::json!({"scheme": "briggs", "robust": robust, "grid_factor": grid_factor}),
+    }
+}
+
 fn grid_factor() -> f64 {
     DEFAULT_GRID_FACTOR
 }
@@ -59,6 +68,10 @@ pub struct WeightingStage {
 
 impl WeightingStage {
     pub fn new(config: WeightingParams, image: &ImageConfig) -> Result<WeightingStage> {
+        // Before any data are read (and in `validate`): a grid this machine cannot hold.
+        if !matches!(config.scheme, WeightingScheme::Natural) {
+            crate::weighting::check_grid(config.grid_factor, image.size)?;
+        }
         Ok(WeightingStage {
             weighting: config.scheme.with_robust(config.robust)?,
             grid_factor: config.grid_factor,
@@ -72,8 +85,15 @@ impl Stage for WeightingStage {
         let vis = job.visibilities("weighting")?;
         let params = DirtyParams { size: self.image.size, pixel: self.image.pixel_scale(), ..DirtyParams::default() };
         let geometry = params.geometry(vis)?;
+        let max_uv = vis.max_uv();
         job.weight = Some(total_weights(vis, geometry, self.weighting, self.grid_factor)?);
         job.geometry = Some(geometry);
+        job.superresolution = (max_uv > 0.0).then(|| 1.0 / (2.0 * max_uv * geometry.pixel_rad));
+        job.settings.insert("weighting".into(), weighting_json(self.weighting, self.grid_factor));
+        job.settings.insert("pixel_arcsec".into(), serde_json::json!(geometry.pixel_arcsec()));
+        if let Some(sr) = job.superresolution {
+            job.settings.insert("superresolution".into(), serde_json::json!(sr));
+        }
         emit(Port::Next, job)
     }
 }

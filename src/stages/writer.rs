@@ -44,10 +44,15 @@ pub struct WriterStage {
     prefix: String,
     options: WriteOptions,
     model_column: Option<String>,
+    /// The prefixes written in this run and the job written to each: a prefix without `{job}`
+    /// given several jobs would otherwise keep only the last one's products.
+    written: std::collections::HashMap<String, String>,
 }
 
 impl WriterStage {
-    pub fn new(config: WriterParams, pipeline: &PipelineSpec, stage: &StageSpec) -> Result<WriterStage> {
+    /// `several_jobs`: why the sources may make several jobs, if they may (a prefix without
+    /// `{job}` is then refused: each job would replace the last one's products).
+    pub fn new(config: WriterParams, pipeline: &PipelineSpec, stage: &StageSpec, several_jobs: Option<String>) -> Result<WriterStage> {
         let name = &stage.name;
         let prefix_error = |m: String| pipeline.stage_error(name, Some("prefix"), &format!("stages.{name}.prefix: {m}"));
         // Placeholders first: a typo would otherwise be written literally into file names.
@@ -60,6 +65,12 @@ impl WriterStage {
             rest = &rest[open + placeholder.len()..];
         }
         crate::fits::check_output_prefix(&config.prefix).map_err(prefix_error)?;
+        if let (Some(why), false) = (&several_jobs, config.prefix.contains("{job}")) {
+            return Err(prefix_error(format!(
+                "\"{}\" has no {{job}}, but the jobs reaching this writer may be several ({why}): each would replace the last one's products; put {{job}} in it",
+                config.prefix
+            )));
+        }
         if let Some(dr) = config.preview_dynamic_range {
             if !(dr > 1.0 && dr.is_finite()) {
                 return Err(Error::parameter("preview_dynamic_range", format!("expected a finite number above 1, got {dr}")));
@@ -72,12 +83,24 @@ impl WriterStage {
             prefix: config.prefix,
             options: WriteOptions { previews: config.previews, preview_dynamic_range: config.preview_dynamic_range },
             model_column: config.model_column,
+            written: Default::default(),
         })
     }
 }
 
 impl Stage for WriterStage {
     fn process(&mut self, job: Job, _emit: &mut Emit<'_>) -> Result<()> {
+        let resolved = self.prefix.replace("{job}", &job.id);
+        if let Some(earlier) = self.written.get(&resolved) {
+            return Err(Error::parameter(
+                "prefix",
+                format!(
+                    "job '{}' would replace the products job '{earlier}' wrote at \"{resolved}\" in this run: put {{job}} in the writer's prefix (\"{}\") so that each job has its own",
+                    job.id, self.prefix
+                ),
+            ));
+        }
+        self.written.insert(resolved, job.id.clone());
         let staged = JobProducts::from_job(&job, self.options.preview_dynamic_range)?.stage(&self.prefix, &self.options)?;
         // Before the products move into place: a failed model write leaves neither.
         if let Some(column) = &self.model_column {

@@ -34,7 +34,24 @@ pub struct StepInput<'a> {
     pub psf_convolution: &'a crate::operator::PsfConvolution,
 }
 
+/// What a step may check about a job before its first iteration: where the data come from
+/// and how finely its pixel samples the longest baseline.
+#[derive(Clone, Copy, Debug)]
+pub struct JobDomain<'a> {
+    pub telescope: &'a str,
+    pub superresolution: Option<f64>,
+}
+
 pub trait NetworkStep: Send {
+    /// Where `job` lies outside what the step was made for (a series' domain), one sentence
+    /// per problem; an error where the step refuses such jobs (`validity: error`).
+    fn domain_problems(&self, _job: &JobDomain<'_>) -> Result<Vec<String>> {
+        Ok(Vec::new())
+    }
+    /// What ran, for the metrics file's `settings.step` (a series' name and domain).
+    fn describe(&self) -> Option<serde_json::Value> {
+        None
+    }
     /// Number of iterations the series runs (networks in an R2D2 series, major cycles for CLEAN),
     /// over all its realisations.
     fn series_length(&self) -> usize;

@@ -19,7 +19,7 @@ mod mapped_weights;
 pub mod runtime;
 pub mod series;
 
-use super::{NetworkStep, StepInput};
+use super::{JobDomain, NetworkStep, StepInput};
 use runtime::{check_network, BackendChoice, GraphOptimization, Network, Runtime, Signature};
 use series::{Architecture, ImagingSetup, Series};
 use crate::{Error, Result};
@@ -96,6 +96,9 @@ pub struct OnnxStep {
     /// back after another one's call means jobs interleave.
     last_job: Option<String>,
     walking: std::collections::HashSet<String>,
+    /// The imaging the pipeline fixes (weighting), completed per job for the domain check.
+    setup: ImagingSetup,
+    validity: ValidityMode,
 }
 
 type Key = (usize, usize);
@@ -108,13 +111,12 @@ impl OnnxStep {
         if let Some(warning) = series.check_size(size)? {
             log::warn!("{warning}");
         }
+        // What the pipeline fixes (weighting, a super-resolution factor) is refused here, before
+        // any data are read, under `validity: error`; each job is checked with what only its
+        // data tell (telescope, the pixel's super-resolution) before its first network.
         let problems = series.validity_problems(setup);
-        if !problems.is_empty() {
-            let message = format!("series '{}' was not trained for this job: {}", series.name, problems.join("; "));
-            match config.validity {
-                ValidityMode::Warn => log::warn!("{message} (its image may be less precise; `validity: error` refuses such jobs)"),
-                ValidityMode::Error => return Err(Error::parameter("validity", message)),
-            }
+        if !problems.is_empty() && config.validity == ValidityMode::Error {
+            return Err(Error::parameter("validity", format!("series '{}' was not trained for this pipeline: {}", series.name, problems.join("; "))));
         }
         let per_realisation = match config.networks {
             None => series.len(),
@@ -135,6 +137,7 @@ impl OnnxStep {
             .iter()
             .map(|layers| layers.iter().map(|file| check_network(file, size)).collect::<Result<Vec<_>>>())
             .collect::<Result<Vec<_>>>()?;
+        crate::limits::check_threads(config.threads).map_err(|m| Error::parameter("threads", m))?;
         let threads = if config.threads > 0 { config.threads } else { pipeline_threads };
         let runtime = Runtime::select(config.backend, threads)?.with_graph_optimization(config.graph_optimization);
         log::info!(
@@ -150,7 +153,23 @@ impl OnnxStep {
             let mb = mapped.iter().map(|m| m.bytes).sum::<u64>() as f64 / 1e6;
             log::debug!("weights mapped from the files, not copied: {} of {} networks ({mb:.0} MB)", mapped.len(), signatures.iter().flatten().count());
         }
-        Ok(OnnxStep { series, runtime, size, iterations, per_realisation, plan, resident: Vec::new(), signatures, prefetch: config.prefetch, interleaved: false, pending: None, last_job: None, walking: Default::default() })
+        Ok(OnnxStep {
+            series,
+            runtime,
+            size,
+            iterations,
+            per_realisation,
+            plan,
+            resident: Vec::new(),
+            signatures,
+            prefetch: config.prefetch,
+            interleaved: false,
+            pending: None,
+            last_job: None,
+            walking: Default::default(),
+            setup: setup.clone(),
+            validity: config.validity,
+        })
     }
 
     fn network(&mut self, job: &str, iteration: usize, layer: usize) -> Result<&mut Box<dyn Network>> {
@@ -291,6 +310,29 @@ fn normalisation(image: &[f64], what: &str, iteration: usize, path: &Path) -> Re
 impl NetworkStep for OnnxStep {
     fn series_length(&self) -> usize {
         self.iterations
+    }
+
+    fn domain_problems(&self, job: &JobDomain<'_>) -> Result<Vec<String>> {
+        let setup = ImagingSetup {
+            telescope: (!job.telescope.trim().is_empty()).then(|| job.telescope.to_string()),
+            superresolution: job.superresolution.or(self.setup.superresolution),
+            ..self.setup.clone()
+        };
+        let problems = self.series.validity_problems(&setup);
+        if problems.is_empty() {
+            return Ok(problems);
+        }
+        let domain = self.series.manifest.as_ref().and_then(|m| m.validity.as_ref()).map(|v| v.summary()).unwrap_or_default();
+        let message = format!("series '{}' was not trained for this job: {} (its domain: {domain})", self.series.name, problems.join("; "));
+        match self.validity {
+            ValidityMode::Error => Err(Error::parameter("validity", message)),
+            ValidityMode::Warn => Ok(vec![format!("{message}; its image may be wrong, `validity: error` refuses such jobs")]),
+        }
+    }
+
+    fn describe(&self) -> Option<serde_json::Value> {
+        let domain = self.series.manifest.as_ref().and_then(|m| m.validity.as_ref());
+        Some(serde_json::json!({"series": self.series.name, "networks": self.iterations, "domain": domain}))
     }
 
     fn realisations(&self) -> usize {

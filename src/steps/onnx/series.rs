@@ -110,20 +110,43 @@ fn one() -> usize {
     1
 }
 
-/// The observations a series was trained for (`validity:` in the manifest).
+/// The observations a series was trained for (`validity:` in the manifest: its domain).
+/// The trainer writes it from the training sets, the importer from the reference's published
+/// ranges. Telescope, super-resolution, weighting and robustness are checked against each
+/// job; the image sizes by [`Series::check_size`]; the rest is recorded for `r2d2 models`.
 #[derive(Clone, Debug, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct Validity {
+    /// Telescopes whose observations it was trained on (`vla`, `meerkat`, ...).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub telescopes: Option<Vec<String>>,
+    /// Image sizes it was trained at (as the manifest's `image_sizes`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub image_sizes: Option<Vec<usize>>,
     /// Super-resolution factors `[min, max]`.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub superresolution: Option<[f64; 2]>,
     /// Briggs robustness `[min, max]`.
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub robust: Option<[f64; 2]>,
     /// Weighting schemes (`briggs`, `uniform`, `natural`).
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub weighting: Option<Vec<String>>,
+    /// Target dynamic ranges of the training skies `[min, max]`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dynamic_range: Option<[f64; 2]>,
+    /// Total track lengths, hours `[min, max]`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub track_hours: Option<[f64; 2]>,
+    /// Integration times, seconds `[min, max]`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub integration_s: Option<[f64; 2]>,
 }
+
+/// Relative tolerance on the super-resolution range: a pixel chosen in arcseconds rarely gives
+/// exactly the trained factor, and a few per cent finer or coarser sampling of the longest
+/// baseline is not a different problem for the networks.
+pub const SUPERRESOLUTION_TOLERANCE: f64 = 0.05;
 
 /// What a job's imaging is, as far as a series' validity goes (unknown parts are not checked).
 #[derive(Clone, Debug, Default)]
@@ -131,6 +154,53 @@ pub struct ImagingSetup {
     pub superresolution: Option<f64>,
     pub weighting: Option<String>,
     pub robust: Option<f64>,
+    /// The telescope the data come from (an MS's `OBSERVATION::TELESCOPE_NAME`, a table's
+    /// `telescope` metadata).
+    pub telescope: Option<String>,
+}
+
+/// A telescope name as series compare them: lower case, the VLA's other names folded
+/// (CASA writes `EVLA`; `JVLA` is also seen).
+pub fn telescope_key(name: &str) -> String {
+    let key = name.trim().to_ascii_lowercase();
+    match key.as_str() {
+        "evla" | "jvla" | "karl g. jansky very large array" => "vla".into(),
+        "mkat" | "meerkat+" => "meerkat".into(),
+        _ => key,
+    }
+}
+
+impl Validity {
+    /// The domain in one line, for `r2d2 models` and warnings.
+    pub fn summary(&self) -> String {
+        let range = |r: [f64; 2]| if r[0] == r[1] { format!("{}", r[0]) } else { format!("{}..{}", r[0], r[1]) };
+        let mut parts = Vec::new();
+        if let Some(t) = &self.telescopes {
+            parts.push(format!("telescope {}", t.join("/")));
+        }
+        if let Some(s) = &self.image_sizes {
+            parts.push(format!("size {}", s.iter().map(|s| s.to_string()).collect::<Vec<_>>().join("/")));
+        }
+        if let Some(r) = self.superresolution {
+            parts.push(format!("SR {}", range(r)));
+        }
+        match (&self.weighting, self.robust) {
+            (Some(w), Some(r)) if w.iter().any(|w| w == "briggs") => parts.push(format!("{} robust {}", w.join("/"), range(r))),
+            (Some(w), _) => parts.push(w.join("/")),
+            (None, Some(r)) => parts.push(format!("robust {}", range(r))),
+            _ => {}
+        }
+        if let Some([lo, hi]) = self.dynamic_range {
+            parts.push(format!("DR {lo:.0e}..{hi:.0e}"));
+        }
+        if let Some(r) = self.track_hours {
+            parts.push(format!("tracks {} h", range(r)));
+        }
+        if let Some(r) = self.integration_s {
+            parts.push(format!("integration {} s", range(r)));
+        }
+        parts.join(", ")
+    }
 }
 
 #[derive(Clone, Debug, Deserialize, Serialize)]
@@ -358,9 +428,16 @@ impl Series {
         let Some(v) = self.manifest.as_ref().and_then(|m| m.validity.as_ref()) else { return Vec::new() };
         let mut problems = Vec::new();
         let outside = |x: f64, [lo, hi]: [f64; 2]| x < lo - 1e-9 || x > hi + 1e-9;
+        if let (Some(telescopes), Some(telescope)) = (&v.telescopes, &job.telescope) {
+            let key = telescope_key(telescope);
+            if !key.is_empty() && !telescopes.iter().any(|t| telescope_key(t) == key) {
+                problems.push(format!("the data come from the telescope '{telescope}', and the series was trained for {}", telescopes.join(", ")));
+            }
+        }
         if let (Some(range), Some(sr)) = (v.superresolution, job.superresolution) {
-            if outside(sr, range) {
-                problems.push(format!("super-resolution {sr} is outside the series' range {range:?}"));
+            let [lo, hi] = range;
+            if outside(sr, [lo * (1.0 - SUPERRESOLUTION_TOLERANCE), hi * (1.0 + SUPERRESOLUTION_TOLERANCE)]) {
+                problems.push(format!("super-resolution {sr:.3} (the pixel samples the longest baseline {sr:.3} times finer than Nyquist) is outside the series' range {lo}..{hi}"));
             }
         }
         if let (Some(schemes), Some(scheme)) = (&v.weighting, &job.weighting) {
@@ -371,7 +448,7 @@ impl Series {
         let briggs = job.weighting.as_deref().is_some_and(|s| s.eq_ignore_ascii_case("briggs"));
         if let (Some(range), Some(robust), true) = (v.robust, job.robust, briggs) {
             if outside(robust, range) {
-                problems.push(format!("Briggs robust {robust} is outside the series' range {range:?}"));
+                problems.push(format!("Briggs robust {robust} is outside the series' range {}..{}", range[0], range[1]));
             }
         }
         problems
@@ -685,11 +762,16 @@ mod tests {
     fn validity_ranges_report_each_problem() {
         let dir = tempfile::tempdir().unwrap();
         touch(&dir.path().join("a.onnx"));
-        let manifest = "format: 1\nname: t\narchitecture: r2d2\nimage_sizes: [64]\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx]\nvalidity: {superresolution: [1.5, 2.5], robust: [-1, 1], weighting: [briggs]}\n";
+        let manifest = "format: 1\nname: t\narchitecture: r2d2\nimage_sizes: [64]\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx]\nvalidity: {telescopes: [vla], superresolution: [1.5, 2.5], robust: [-1, 1], weighting: [briggs]}\n";
         std::fs::write(dir.path().join("manifest.yaml"), manifest).unwrap();
         let s = Series::open(dir.path()).unwrap();
-        let setup = |sr, scheme: &str, robust| ImagingSetup { superresolution: sr, weighting: Some(scheme.to_string()), robust: Some(robust) };
+        let setup = |sr, scheme: &str, robust| ImagingSetup { superresolution: sr, weighting: Some(scheme.to_string()), robust: Some(robust), telescope: None };
         assert!(s.validity_problems(&setup(Some(2.5), "briggs", -1.0)).is_empty());
+        // Within the tolerance of the SR range; CASA's name of the VLA is the VLA.
+        assert!(s.validity_problems(&ImagingSetup { telescope: Some("EVLA".into()), ..setup(Some(2.6), "briggs", 0.0) }).is_empty());
+        let p = s.validity_problems(&ImagingSetup { telescope: Some("MeerKAT".into()), ..setup(Some(1.45), "briggs", 0.0) });
+        assert_eq!(p.len(), 1, "{p:?}");
+        assert!(p[0].contains("'MeerKAT'") && p[0].contains("vla"), "{p:?}");
         let p = s.validity_problems(&setup(Some(3.0), "briggs", 1.5));
         assert_eq!(p.len(), 2, "{p:?}");
         assert!(p[0].contains("super-resolution 3") && p[1].contains("robust 1.5"), "{p:?}");

@@ -1,0 +1,288 @@
+//! Sharing a MeasurementSet with other programs while a model column is written into it.
+//!
+//! The model write replaces the MS directory by an updated copy (`model.rs`), so two guards
+//! keep what others hold:
+//!
+//! - r2d2's own writers of one MS take turns on an exclusive `flock` of a sibling file
+//!   `.NAME.r2d2-lock` (a lock inside the MS would not outlive the exchange of directories),
+//!   and each copies the MS only once it has its turn, so it starts from the other's result;
+//! - other casacore programs (CASA, python-casacore, DP3, WSClean) announce an open table by
+//!   `fcntl` locks on its `table.lock`. While one holds any, the table is in use and a rewrite
+//!   would be lost when that program writes its view back: the write is refused, naming the
+//!   process. For the length of the write r2d2 holds a write lock there itself (an
+//!   open-file-description lock, which casacore's locks see and which the copy's own reading
+//!   of the file does not release), so they wait for it in turn.
+//!
+//! Which column may take a model is decided here too: never the data the image was made from
+//! nor the observed or calibrated data.
+
+use super::invalid;
+use crate::{Error, Result};
+use std::fs::File;
+use std::path::{Path, PathBuf};
+
+/// Columns that hold what was observed or calibrated: a model must never replace them.
+const DATA_COLUMNS: [&str; 2] = ["DATA", "CORRECTED_DATA"];
+
+/// Held while a model column is written: r2d2's turn on the MS and a write lock on its
+/// `table.lock`. Dropping it releases both.
+pub struct ModelWriteLock {
+    /// The MS itself, links resolved: the directory that is exchanged.
+    pub ms: PathBuf,
+    // Field order is drop order: the table lock goes first, then the turn (its file removed).
+    _table_lock: Option<File>,
+    _turn: Turn,
+}
+
+/// The directory an MS path names, links resolved: a model write replaces that directory,
+/// not the link to it.
+pub fn real_path(ms: &Path) -> Result<PathBuf> {
+    ms.canonicalize().map_err(|e| Error::io(ms, e))
+}
+
+/// Whether `column` may receive a model of an MS imaged from `data_column`.
+pub fn check_model_column_name(ms: &Path, column: &str, data_column: &str) -> Result<()> {
+    let upper = column.trim().to_ascii_uppercase();
+    if upper == data_column.trim().to_ascii_uppercase() {
+        return Err(invalid(ms, format!("cannot write the model into `{column}`: it is the data column the image is made from (choose MODEL_DATA)")));
+    }
+    if DATA_COLUMNS.contains(&upper.as_str()) {
+        return Err(invalid(ms, format!("cannot write the model into `{column}`: it holds observed or calibrated visibilities, which the model would replace (choose MODEL_DATA)")));
+    }
+    Ok(())
+}
+
+/// Everything about a model write that can be checked before imaging: the column, that the MS
+/// and the directory holding it are writable, and that no other program has the MS open.
+pub fn check_model_write(ms: &Path, column: &str, data_column: &str) -> Result<()> {
+    check_model_column_name(ms, column, data_column)?;
+    let real = real_path(ms)?;
+    let parent = real.parent().unwrap_or(Path::new("/"));
+    for dir in [real.as_path(), parent] {
+        if !writable(dir) {
+            let role = if dir == real { "the MeasurementSet" } else { "the directory holding the MeasurementSet (the updated copy is made there)" };
+            return Err(invalid(ms, format!("cannot write `{column}`: {role} ({}) is not writable", dir.display())));
+        }
+    }
+    if let Some(pid) = foreign_lock(&real)? {
+        return Err(in_use(ms, column, pid));
+    }
+    Ok(())
+}
+
+/// Takes r2d2's turn on the MS (waiting for another r2d2 writing it), then the write lock on
+/// its `table.lock` (refused while another program holds a lock there).
+pub fn lock_for_model_write(ms: &Path, column: &str) -> Result<ModelWriteLock> {
+    let real = real_path(ms)?;
+    let name = real.file_name().ok_or_else(|| invalid(ms, "a MeasurementSet path must name a directory"))?;
+    let turn_path = real.with_file_name(format!(".{}.r2d2-lock", name.to_string_lossy()));
+    // The turn file is removed by its holder when done (no litter beside the MS): a waiter
+    // that wakes holding a removed file's lock tries again on the current one.
+    let turn = loop {
+        let turn = File::options().create(true).truncate(false).read(true).write(true).open(&turn_path).map_err(|e| Error::io(&turn_path, e))?;
+        if !flock(&turn, false).map_err(|e| Error::io(&turn_path, e))? {
+            log::info!("{}: another r2d2 is writing a model into this MeasurementSet; waiting for it", ms.display());
+            flock(&turn, true).map_err(|e| Error::io(&turn_path, e))?;
+        }
+        if same_open_file(&turn, &turn_path) {
+            break turn;
+        }
+    };
+    let turn = Turn { file: turn, path: turn_path };
+    let table_lock = lock_table(&real).map_err(|e| match e {
+        LockRefused::Held(pid) => in_use(ms, column, pid),
+        LockRefused::Io(path, e) => Error::io(path, e),
+    })?;
+    Ok(ModelWriteLock { ms: real, _table_lock: table_lock, _turn: turn })
+}
+
+/// r2d2's turn on an MS: the locked turn file, removed (before the lock goes) when done.
+struct Turn {
+    file: File,
+    path: PathBuf,
+}
+
+impl Drop for Turn {
+    fn drop(&mut self) {
+        if same_open_file(&self.file, &self.path) {
+            let _ = std::fs::remove_file(&self.path);
+        }
+    }
+}
+
+/// Whether `path` still names the open `file`.
+#[cfg(unix)]
+fn same_open_file(file: &File, path: &Path) -> bool {
+    use std::os::unix::fs::MetadataExt;
+    match (file.metadata(), std::fs::metadata(path)) {
+        (Ok(a), Ok(b)) => a.dev() == b.dev() && a.ino() == b.ino(),
+        _ => false,
+    }
+}
+
+#[cfg(not(unix))]
+fn same_open_file(_file: &File, path: &Path) -> bool {
+    path.exists()
+}
+
+fn in_use(ms: &Path, column: &str, pid: i32) -> Error {
+    let who = if pid > 0 { format!("process {pid}") } else { "another program".to_string() };
+    invalid(
+        ms,
+        format!("cannot write `{column}`: the MeasurementSet is open in {who} (it holds a lock on table.lock, as CASA, python-casacore and DP3 do while a table is open); close it there and run again"),
+    )
+}
+
+/// What a conversion may replace at `out`: nothing that is an input, and only what it would
+/// write itself (an MS for an MS, a file for a file), so that a directory or another kind of
+/// file given by mistake is never deleted.
+pub fn check_conversion_output(input: &Path, out: &Path, writes_ms: bool) -> Result<()> {
+    if let Some(input) = crate::staging::destroys_input(out, &[input]) {
+        return Err(invalid(out, format!("the output would replace or lie inside the input {}: choose another output path", input.display())));
+    }
+    let Ok(meta) = std::fs::symlink_metadata(out) else { return Ok(()) };
+    let is_ms = super::is_measurement_set(out);
+    let what = if meta.is_dir() { "a directory" } else if meta.file_type().is_symlink() { "a link" } else { "a file" };
+    let inside = |name: &str| if meta.is_dir() { format!(", such as {}", out.join(name).display()) } else { String::new() };
+    match (writes_ms, is_ms, meta.is_file()) {
+        (true, true, _) | (false, _, true) => Ok(()),
+        (true, false, _) => Err(invalid(out, format!("exists and is {what}, not a MeasurementSet: converting replaces only a MeasurementSet (give a new path{})", inside("obs.ms")))),
+        (false, _, false) => Err(invalid(out, format!("exists and is {what}: the Parquet table is written as a file, replacing only a file (give a new path{})", inside("obs.parquet")))),
+    }
+}
+
+#[cfg(unix)]
+fn writable(dir: &Path) -> bool {
+    use std::os::unix::ffi::OsStrExt;
+    let Ok(c) = std::ffi::CString::new(dir.as_os_str().as_bytes()) else { return false };
+    // SAFETY: `c` is a valid NUL-terminated path that outlives the call.
+    unsafe { libc::access(c.as_ptr(), libc::W_OK) == 0 }
+}
+
+#[cfg(not(unix))]
+fn writable(dir: &Path) -> bool {
+    std::fs::metadata(dir).is_ok_and(|m| !m.permissions().readonly())
+}
+
+/// An exclusive `flock`: `Ok(false)` when not waiting and another holds it.
+#[cfg(unix)]
+fn flock(file: &File, wait: bool) -> std::io::Result<bool> {
+    use std::os::fd::AsRawFd;
+    let op = libc::LOCK_EX | if wait { 0 } else { libc::LOCK_NB };
+    // SAFETY: the descriptor is open for the call's duration (borrowed from `file`).
+    let rc = unsafe { libc::flock(file.as_raw_fd(), op) };
+    if rc == 0 {
+        return Ok(true);
+    }
+    let e = std::io::Error::last_os_error();
+    if !wait && e.raw_os_error() == Some(libc::EWOULDBLOCK) {
+        return Ok(false);
+    }
+    Err(e)
+}
+
+#[cfg(not(unix))]
+fn flock(_file: &File, _wait: bool) -> std::io::Result<bool> {
+    Ok(true)
+}
+
+enum LockRefused {
+    /// Another process holds a lock on `table.lock` (its pid, or -1 for an open-file lock).
+    Held(i32),
+    Io(PathBuf, std::io::Error),
+}
+
+/// A `struct flock` over the whole file.
+#[cfg(target_os = "linux")]
+fn whole_file(kind: i32) -> libc::flock {
+    // SAFETY: `flock` is plain old data; all-zero is a valid value before the fields are set.
+    let mut l: libc::flock = unsafe { std::mem::zeroed() };
+    l.l_type = kind as libc::c_short;
+    l.l_whence = libc::SEEK_SET as libc::c_short;
+    l.l_start = 0;
+    l.l_len = 0;
+    l
+}
+
+/// The process holding a lock on the MS's `table.lock` that a write lock would conflict
+/// with, if any (`None` also when the table has no lock file: nobody ever locked it).
+#[cfg(target_os = "linux")]
+pub fn foreign_lock(ms: &Path) -> Result<Option<i32>> {
+    use std::os::fd::AsRawFd;
+    let path = ms.join("table.lock");
+    let file = match File::open(&path) {
+        Ok(f) => f,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(Error::io(&path, e)),
+    };
+    let mut l = whole_file(libc::F_WRLCK);
+    // SAFETY: valid descriptor and a valid, exclusively borrowed `flock` for F_OFD_GETLK.
+    let rc = unsafe { libc::fcntl(file.as_raw_fd(), libc::F_OFD_GETLK, &mut l) };
+    if rc != 0 {
+        return Err(Error::io(&path, std::io::Error::last_os_error()));
+    }
+    Ok((l.l_type != libc::F_UNLCK as libc::c_short).then_some(l.l_pid))
+}
+
+#[cfg(not(target_os = "linux"))]
+pub fn foreign_lock(_ms: &Path) -> Result<Option<i32>> {
+    Ok(None)
+}
+
+/// A write lock over the whole `table.lock` (created when missing, as casacore does), held
+/// by the returned file's open description.
+#[cfg(target_os = "linux")]
+fn lock_table(ms: &Path) -> std::result::Result<Option<File>, LockRefused> {
+    use std::os::fd::AsRawFd;
+    let path = ms.join("table.lock");
+    let file = File::options().create(true).truncate(false).read(true).write(true).open(&path).map_err(|e| LockRefused::Io(path.clone(), e))?;
+    let mut l = whole_file(libc::F_WRLCK);
+    // SAFETY: valid descriptor and a valid `flock` for F_OFD_SETLK.
+    let rc = unsafe { libc::fcntl(file.as_raw_fd(), libc::F_OFD_SETLK, &l) };
+    if rc == 0 {
+        return Ok(Some(file));
+    }
+    let e = std::io::Error::last_os_error();
+    if matches!(e.raw_os_error(), Some(libc::EAGAIN) | Some(libc::EACCES)) {
+        // SAFETY: as above, F_OFD_GETLK fills `l` with the conflicting lock.
+        let _ = unsafe { libc::fcntl(file.as_raw_fd(), libc::F_OFD_GETLK, &mut l) };
+        return Err(LockRefused::Held(l.l_pid));
+    }
+    Err(LockRefused::Io(path, e))
+}
+
+#[cfg(not(target_os = "linux"))]
+fn lock_table(_ms: &Path) -> std::result::Result<Option<File>, LockRefused> {
+    Ok(None)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn data_columns_never_take_a_model() {
+        let ms = Path::new("obs.ms");
+        for (column, data) in [("DATA", "DATA"), ("data", "DATA"), ("CORRECTED_DATA", "DATA"), ("MY_DATA", "my_data")] {
+            let e = check_model_column_name(ms, column, data).unwrap_err().to_string();
+            assert!(e.contains("cannot write the model") && e.contains("MODEL_DATA"), "{column}: {e}");
+        }
+        check_model_column_name(ms, "MODEL_DATA", "DATA").unwrap();
+        check_model_column_name(ms, "MODEL_DATA", "CORRECTED_DATA").unwrap();
+    }
+
+    #[test]
+    fn a_lock_held_elsewhere_on_table_lock_is_seen_and_refuses_the_write() {
+        let dir = tempfile::tempdir().unwrap();
+        let ms = dir.path().join("t.ms");
+        std::fs::create_dir(&ms).unwrap();
+        assert_eq!(foreign_lock(&ms).unwrap(), None, "no table.lock: nobody holds it");
+        let held = lock_for_model_write(&ms, "MODEL_DATA").unwrap();
+        // Another open description (as another process would have) sees the write lock.
+        assert!(foreign_lock(&ms).unwrap().is_some());
+        let e = lock_table(&ms).err().expect("a second write lock is refused");
+        assert!(matches!(e, LockRefused::Held(_)));
+        drop(held);
+        assert_eq!(foreign_lock(&ms).unwrap(), None);
+    }
+}
