@@ -3,6 +3,14 @@
     python3 benches/vs_wsclean.py [--skies 8] [--out bench-out/vs_wsclean] [--seed 900000]
                                   [--integration-s 300] [--series SERIES] [--threads 2]
                                   [--keep-data DIR] [--r2d2 target/release/r2d2] [--wsclean wsclean]
+                                  [--robust R] [--superresolution SR] [--dr LOW HIGH]
+                                  [--sky classic|extended]
+
+Settings a user chooses (issue 21's table): `--robust -1` / `--robust 1` (Briggs), `--superresolution
+2` / `2.5`, `--dr 1e5 1e5`, `--size 1024`, and `--sky extended` (skies of extended emission:
+textured lobes, spiral disks, halos and relics; test seeds 910000..). The observations are
+simulated at that setting (noise for its weighting, pixel from its SR) and every imager uses it:
+WSClean `-weight briggs R` at the engine's pixel, `r2d2 image --robust R --superresolution SR`.
 
 Needs `wsclean` (Debian: apt-get install -y wsclean), GNU time at /usr/bin/time (apt package
 `time`) and the Python packages in benches/requirements.txt (python-casacore, pyarrow, astropy,
@@ -59,8 +67,9 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(HERE)
 
 # The paper's WSClean command (footnote in "Benchmark algorithms & parameter choice"), without
-# -j (set from --threads), -size, -scale and -name (set per observation).
-PAPER_WSCLEAN = ["-niter", "2000000", "-weight", "briggs", "0", "-multiscale", "-mgain", "0.8", "-gain", "0.1",
+# -j (set from --threads), -size, -scale, -name (set per observation) and the robustness
+# (`-weight briggs R`, R from --robust; the paper's is 0).
+PAPER_WSCLEAN = ["-niter", "2000000", "-multiscale", "-mgain", "0.8", "-gain", "0.1",
                  "-auto-threshold", "0.5", "-auto-mask", "1.5", "-padding", "2"]
 MJD_OFFSET_S = 58849.0 * 86400.0  # 2020-01-01: the tables' times are seconds from the start
 SPEED_OF_LIGHT = 299792458.0
@@ -353,15 +362,18 @@ def make_data(args, r2d2, data_dir):
     if os.path.exists(info):
         with open(info) as f:
             have = json.load(f)
-        if (have.get("seed"), have.get("size"), have.get("integration_s")) == (args.seed, args.size, args.integration_s) \
-                and have.get("samples", 0) >= args.skies and os.path.isdir(os.path.join(data_dir, "vis")):
+        wanted = (args.seed, args.size, args.integration_s, args.superresolution, args.robust, list(args.dr), args.sky)
+        found = (have.get("seed"), have.get("size"), have.get("integration_s"), have.get("superresolution"),
+                 have.get("weighting", {}).get("robust"), have.get("dynamic_range"), have.get("sky") or "classic")
+        if found == wanted and have.get("samples", 0) >= args.skies and os.path.isdir(os.path.join(data_dir, "vis")):
             log(f"reusing {have['samples']} observations in {data_dir}")
             return
     log(f"simulating {args.skies} observations into {data_dir} ...")
     os.makedirs(os.path.dirname(os.path.abspath(data_dir)), exist_ok=True)
-    _, wall, _ = run([r2d2, "trainset", "--procedural", args.skies, "--seed", args.seed, "--size", args.size,
-                      "--integration-s", args.integration_s, "--epsilon", "1e-5", "--threads", args.threads,
-                      "--parquet", "--out", data_dir])
+    _, wall, _ = run([r2d2, "trainset", "--procedural", args.skies, "--sky", args.sky, "--seed", args.seed,
+                      "--size", args.size, "--integration-s", args.integration_s, "--superresolution", args.superresolution,
+                      f"--robust={args.robust:g}", "--dr-min", args.dr[0], "--dr-max", args.dr[1], "--epsilon", "1e-5",
+                      "--threads", args.threads, "--parquet", "--out", data_dir])
     log(f"  {wall:.1f} s")
 
 
@@ -372,13 +384,14 @@ def fits_pixel_arcsec(path):
 
 def image_wsclean(args, ms, work, scale_arcsec):
     cmd = [args.wsclean, "-size", args.size, args.size, "-scale", f"{scale_arcsec:.10g}asec", "-j", args.threads,
-           *PAPER_WSCLEAN, "-name", "ws", ms]
+           "-weight", "briggs", f"{args.robust:g}", *PAPER_WSCLEAN, "-name", "ws", ms]
     text, wall, peak = run(cmd, cwd=work, timed=True, logfile=os.path.join(work, "ws.log"))
     return cmd, wall, peak, text
 
 
 def image_r2d2(args, r2d2, obs, sky, work, name, step):
-    cmd = [r2d2, "image", obs, "--size", args.size, "--name", name, "--truth", sky, "--threads", args.threads]
+    cmd = [r2d2, "image", obs, "--size", args.size, "--name", name, "--truth", sky, "--threads", args.threads,
+           f"--robust={args.robust:g}", "--superresolution", args.superresolution]
     if step:
         cmd += ["--step", step]
     text, wall, peak = run(cmd, cwd=work, timed=True, logfile=os.path.join(work, name + ".log"))
@@ -493,12 +506,19 @@ def one_sky(args, r2d2, data_dir, k, sample, out):
 
 
 def _final_metrics(m):
-    """The last iteration's snr/logsnr from an engine -metrics.json (best effort)."""
+    """The snr/logsnr of the model an engine -metrics.json describes: the last iteration's, or
+    where the divergence guard stopped the series, the kept iterate's (none for the empty
+    model), with the stop recorded."""
     its = m.get("iterations") if isinstance(m, dict) else None
-    if isinstance(its, list) and its:
-        last = its[-1]
-        return {k: last.get(k) for k in ("iteration", "snr", "logsnr", "residual_ratio") if k in last}
-    return {}
+    if not (isinstance(its, list) and its):
+        return {}
+    stop = m.get("stop")
+    kept = stop["kept_iteration"] if stop else its[-1].get("iteration")
+    rows = [r for r in its if r.get("iteration") == kept]
+    final = {k: rows[-1].get(k) for k in ("iteration", "snr", "logsnr", "residual_ratio") if k in rows[-1]} if rows else {"iteration": kept}
+    if stop:
+        final["stop"] = stop
+    return final
 
 
 def table_md(means, n):
@@ -575,7 +595,15 @@ def main():
     ap.add_argument("--plot-skies", type=int, default=3)
     ap.add_argument("--keep-ms", action="store_true", help="keep each sky's MeasurementSet (OUT/work/NNNNN/obs.ms)")
     ap.add_argument("--out", default="bench-out/vs_wsclean")
+    ap.add_argument("--robust", type=float, default=0.0, help="Briggs robustness of the data's noise and of every imager")
+    ap.add_argument("--superresolution", type=float, default=1.5, help="pixel = 1 / (SR 2 max_uv), for every imager")
+    ap.add_argument("--dr", type=float, nargs=2, default=[1e3, 1e5], metavar=("LOW", "HIGH"),
+                    help="target dynamic ranges of the skies (log-uniform)")
+    ap.add_argument("--sky", choices=["classic", "extended"], default="classic",
+                    help="procedural skies (classic) or extended emission (test seeds 910000.. by default)")
     args = ap.parse_args()
+    if args.sky == "extended" and args.seed == 900000:
+        args.seed = 910000
 
     r2d2 = os.path.abspath(args.r2d2)
     if not os.path.exists(r2d2):
@@ -613,8 +641,10 @@ def main():
     result = {
         "skies": args.skies, "seed": args.seed, "size": args.size, "integration_s": args.integration_s,
         "threads": args.threads, "data": data_dir,
-        "trainset_command": f"r2d2 trainset --procedural {args.skies} --seed {args.seed} --size {args.size} "
-                            f"--integration-s {args.integration_s:g} --epsilon 1e-5 --parquet --out {data_dir}",
+        "setting": {"robust": args.robust, "superresolution": args.superresolution, "dynamic_range": args.dr, "sky": args.sky},
+        "trainset_command": f"r2d2 trainset --procedural {args.skies} --sky {args.sky} --seed {args.seed} --size {args.size} "
+                            f"--integration-s {args.integration_s:g} --superresolution {args.superresolution:g} "
+                            f"--robust={args.robust:g} --dr-min {args.dr[0]:g} --dr-max {args.dr[1]:g} --epsilon 1e-5 --parquet --out {data_dir}",
         "wsclean_paper_command": "wsclean -niter 2000000 -weight briggs 0 -j 1 -multiscale -mgain 0.8 -gain 0.1 "
                                  "-auto-threshold 0.5 -auto-mask 1.5 -padding 2",
         "wsclean_command": records[0]["runs"]["wsclean"]["command"],
@@ -629,9 +659,9 @@ def main():
         "per_sky": records,
     }
     md = table_md(means, args.skies)
-    header = (f"Held-out 512 x 512 VLA A+C observations, seeds {args.seed}..{args.seed + args.skies - 1} "
-              f"(`r2d2 trainset --procedural`, integration {args.integration_s:g} s), means over {args.skies} skies, "
-              f"{args.threads} threads each.\n\n")
+    header = (f"Held-out {args.size} x {args.size} VLA A+C observations, {args.sky} skies, seeds {args.seed}..{args.seed + args.skies - 1} "
+              f"(`r2d2 trainset --procedural`, integration {args.integration_s:g} s), Briggs {args.robust:g}, SR {args.superresolution:g}, "
+              f"DR {args.dr[0]:g}..{args.dr[1]:g}; means over {args.skies} skies, {args.threads} threads each.\n\n")
     warned = [l for l in series_log if "WARN" in l]
     footer = (f"\n\nR2D2 series: {', '.join(series_used)}{' (' + warned[0].split('] ', 1)[-1] + ')' if warned else ''}. "
               f"MS round trip (WSClean natural dirty of the MS vs `r2d2 dirty` of the Parquet): relative difference "
