@@ -235,6 +235,41 @@ pub fn fit_beam(psf: &[f64], size: usize, pixel_rad: f64) -> Result<Beam> {
     })
 }
 
+/// The restoring beam of a PSF: [`fit_beam`], checked against the PSF's main lobe. A fit that
+/// fails, is wider than the field, or whose area at the main lobe's level differs from the
+/// lobe's by more than a factor 3 (a sparse snapshot's PSF gave a beam of 882 335 deg) is
+/// replaced by a circular beam of the main lobe's area; the warning says so.
+pub fn restoring_beam(psf: &[f64], size: usize, pixel_rad: f64) -> Result<(Beam, Option<String>)> {
+    let fitted = fit_beam(psf, size, pixel_rad);
+    let peak = psf.get((size / 2) * size + size / 2).copied().unwrap_or(0.0);
+    if !(peak > 0.0) {
+        return fitted.map(|b| (b, None));
+    }
+    let lobe = main_lobe(psf, size, peak);
+    let lobe_area = lobe.iter().filter(|p| p.2 >= MAIN_LOBE_LEVEL).count().max(1) as f64;
+    let level_area = |beam: &Beam| {
+        let q = quadratic_from_beam(beam, pixel_rad);
+        let det = q[0] * q[2] - q[1] * q[1];
+        2.0 * std::f64::consts::PI * (1.0 / MAIN_LOBE_LEVEL).ln() / det.sqrt()
+    };
+    let field_deg = (size as f64 * pixel_rad).to_degrees();
+    let problem = match &fitted {
+        Ok(beam) if beam.major_deg > field_deg => Some(format!("the fitted beam ({:.4} deg) is wider than the field ({field_deg:.4} deg)", beam.major_deg)),
+        Ok(beam) => {
+            let ratio = level_area(beam) / lobe_area;
+            (!(1.0 / 3.0..=3.0).contains(&ratio)).then(|| format!("the fitted beam ({:.4} x {:.4} deg) covers {ratio:.2} times the PSF's main lobe", beam.major_deg, beam.minor_deg))
+        }
+        Err(e) => Some(format!("no elliptical Gaussian fits the PSF's main lobe ({e})")),
+    };
+    let Some(problem) = problem else { return fitted.map(|b| (b, None)) };
+    // A circle of the lobe's area at MAIN_LOBE_LEVEL: pi r^2 = lobe_area, FWHM from sigma.
+    let sigma_pix = (lobe_area / (2.0 * std::f64::consts::PI * (1.0 / MAIN_LOBE_LEVEL).ln())).sqrt();
+    let fwhm_deg = (sigma_pix * pixel_rad * FWHM_PER_SIGMA).to_degrees();
+    let beam = Beam { major_deg: fwhm_deg, minor_deg: fwhm_deg, pa_deg: 0.0 };
+    let warning = format!("{problem}: restoring with a circular beam of the main lobe's area instead ({fwhm_deg:.4} deg FWHM)");
+    Ok((beam, Some(warning)))
+}
+
 /// `(x, y, psf / peak)` over the main lobe, coordinates in pixels from the centre.
 fn main_lobe(psf: &[f64], n: usize, peak: f64) -> Vec<(f64, f64, f64)> {
     let (cx, cy) = (n / 2, n / 2);
@@ -470,6 +505,23 @@ pub fn restore(model: &[f64], size: usize, beam: &Beam, pixel_rad: f64) -> Vec<f
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_absurd_beam_fit_is_replaced_by_the_main_lobes_circle_with_a_warning() {
+        let (n, pixel_rad) = (64, 1e-4);
+        // A Gaussian PSF: the fit stands, no warning.
+        let (beam, warning) = restoring_beam(&sky_gaussian(n, 6.0, 3.0, 30.0), n, pixel_rad).unwrap();
+        assert!(warning.is_none(), "{warning:?}");
+        assert!((beam.major_deg - fit_beam(&sky_gaussian(n, 6.0, 3.0, 30.0), n, pixel_rad).unwrap().major_deg).abs() < 1e-12);
+        // One baseline's fringes (a snapshot of two antennas): the main lobe is a stripe across
+        // the whole field, which no beam narrower than the field fits.
+        let psf: Vec<f64> = (0..n * n).map(|k| (2.0 * std::f64::consts::PI * ((k % n) as f64 - (n / 2) as f64) / 16.0).cos()).collect();
+        let (beam, warning) = restoring_beam(&psf, n, pixel_rad).unwrap();
+        let warning = warning.expect("a warning");
+        assert!(warning.contains("circular beam"), "{warning}");
+        let field_deg = (n as f64 * pixel_rad).to_degrees();
+        assert!(beam.major_deg == beam.minor_deg && beam.major_deg < field_deg, "{beam:?} field {field_deg}");
+    }
     use crate::nufft::NufftParams;
     use crate::operator::{doubled_psf, ImageGeometry, MeasurementOperator};
     use rand::{Rng, SeedableRng};

@@ -189,6 +189,14 @@ const RESERVED_PREFIXES: &[&str] = &["NAXIS", "CTYPE", "CRPIX", "CRVAL", "CDELT"
 /// Refuses an output prefix that names no file (`out/`, `.`, `..`): products are named
 /// `<prefix>-dirty.fits`, ..., so the prefix must end in a file-name part (`out/obs`).
 pub fn check_output_prefix(prefix: &str) -> std::result::Result<(), String> {
+    // A `~` or `$VAR` the shell did not expand (quoted, or from a YAML file) would make a
+    // directory literally named `~` or `$HOME`, which a later `rm -rf ~` turns into a disaster.
+    let unexpanded = prefix.starts_with('~') || prefix.split(['/', std::path::MAIN_SEPARATOR]).any(|part| {
+        part.strip_prefix('$').is_some_and(|rest| rest.starts_with(|c: char| c.is_ascii_alphabetic() || c == '_' || c == '{'))
+    });
+    if unexpanded {
+        return Err(format!("\"{prefix}\" holds a `~` or `$VARIABLE` that no shell expanded (r2d2 does not expand them): give the path as it is, e.g. /home/me/out/obs"));
+    }
     let last = prefix.rsplit(['/', std::path::MAIN_SEPARATOR]).next().unwrap_or_default();
     if last.trim().is_empty() || last == "." || last == ".." {
         return Err(format!("\"{prefix}\" names a directory, not a file name: products are named <prefix>-dirty.fits, ..., so end the prefix with a name (out/obs, say)"));
@@ -381,10 +389,11 @@ fn write_fits(file_name: &str, pixels: &[f32], h: &Header) -> fitsio::errors::Re
             hdu.write_key(f, "CTYPE3", "FREQ")?;
             hdu.write_key(f, "CRPIX3", 1.0f64)?;
             hdu.write_key(f, "CRVAL3", freq)?;
-            // An unknown bandwidth is left to the FITS default (1); writing 1 explicitly
-            // would read back as a real 1 Hz bandwidth.
-            if let Some(bandwidth) = h.wcs.bandwidth_hz {
-                hdu.write_key(f, "CDELT3", (bandwidth, "[Hz] bandwidth"))?;
+            // WSClean (its -predict) requires CDELT3: an unknown bandwidth is written as the
+            // FITS default, 1, which this module reads back as unknown.
+            match h.wcs.bandwidth_hz {
+                Some(bandwidth) => hdu.write_key(f, "CDELT3", (bandwidth, "[Hz] bandwidth"))?,
+                None => hdu.write_key(f, "CDELT3", (UNKNOWN_BANDWIDTH, "bandwidth unknown (the FITS default)"))?,
             }
             hdu.write_key(f, "CUNIT3", "Hz")?;
             4
@@ -787,6 +796,10 @@ fn read_wcs(h: &mut HeaderReader, nx: usize, ny: usize, naxis: usize) -> Result<
     Ok(Some(ImageWcs { ra_deg, dec_deg, pixel_deg: d2, freq_hz, bandwidth_hz }))
 }
 
+/// CDELT of a FREQ axis whose bandwidth is not known: the FITS default, read back as unknown
+/// (a real bandwidth of 1 Hz does not occur).
+const UNKNOWN_BANDWIDTH: f64 = 1.0;
+
 /// Frequency of the single plane and the bandwidth it covers, from a FREQ axis if any.
 fn read_frequency(h: &mut HeaderReader, naxis: usize) -> Result<(Option<f64>, Option<f64>)> {
     for k in 3..=naxis {
@@ -812,7 +825,7 @@ fn read_frequency(h: &mut HeaderReader, naxis: usize) -> Result<(Option<f64>, Op
         if cdelt == Some(0.0) {
             return Err(invalid(h.path, format!("CDELT{k} = 0: expected a non-zero bandwidth")));
         }
-        return Ok((Some(freq), cdelt.map(f64::abs)));
+        return Ok((Some(freq), cdelt.filter(|&c| c != UNKNOWN_BANDWIDTH).map(f64::abs)));
     }
     Ok((None, None))
 }
@@ -820,6 +833,17 @@ fn read_frequency(h: &mut HeaderReader, naxis: usize) -> Result<(Option<f64>, Op
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn output_prefixes_the_shell_did_not_expand_are_refused() {
+        for prefix in ["~/x", "~", "$HOME/x", "out/${USER}/obs", "$TMPDIR"] {
+            let e = check_output_prefix(prefix).unwrap_err();
+            assert!(e.contains("no shell expanded"), "{prefix}: {e}");
+        }
+        for prefix in ["out/obs", "a$b/obs", "out/$5", "/home/me/obs", "x~/obs"] {
+            assert!(check_output_prefix(prefix).is_ok(), "{prefix}");
+        }
+    }
 
     fn test_wcs() -> ImageWcs {
         ImageWcs {

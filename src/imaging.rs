@@ -85,3 +85,58 @@ pub fn dirty_image(vis: &Visibilities, params: &DirtyParams) -> Result<DirtyProd
     let psf = operator.psf();
     Ok(DirtyProducts { operator, dirty, psf, weight })
 }
+
+/// What coplanar imaging leaves out of a field: the w-term's phase `2 pi |w| (1 - n)` at the
+/// image's corners (l = m = N/2 pixels) for the largest |w| of the data.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct WTerm {
+    pub max_abs_w: f64,
+    pub max_phase_rad: f64,
+}
+
+impl WTerm {
+    /// Phase (radians) beyond which the uncorrected w-term is warned about: the largest |w|
+    /// turns a corner sample's phase by this much (a loss of about 1 % of a corner source's
+    /// peak for a phase spread this wide; the error grows as the square of the field).
+    pub const WARN_PHASE_RAD: f64 = 0.3;
+
+    pub fn of(vis: &Visibilities, geometry: ImageGeometry) -> WTerm {
+        let max_abs_w = vis.w.iter().fold(0.0f64, |m, &w| m.max(f64::from(w).abs()));
+        let half = 0.5 * geometry.size as f64 * geometry.pixel_rad;
+        let n = (1.0 - 2.0 * half * half).max(0.0).sqrt();
+        WTerm { max_abs_w, max_phase_rad: 2.0 * std::f64::consts::PI * max_abs_w * (1.0 - n) }
+    }
+
+    /// The warning for a field where the w-term matters (none where it does not).
+    pub fn warning(&self, geometry: ImageGeometry) -> Option<String> {
+        (self.max_phase_rad > Self::WARN_PHASE_RAD).then(|| {
+            format!(
+                "the w-term is not corrected (coplanar imaging): over this {:.2} deg field the largest |w| ({:.3e} wavelengths) turns the phase by up to {:.2} rad at the image's corners, so emission away from the centre is blurred and dimmed against a w-corrected image (WSClean's); image a smaller field, or expect errors growing towards the edges",
+                geometry.pixel_rad.to_degrees() * geometry.size as f64,
+                self.max_abs_w,
+                self.max_phase_rad
+            )
+        })
+    }
+}
+
+#[cfg(test)]
+mod w_term_tests {
+    use super::*;
+
+    #[test]
+    fn the_w_term_warning_follows_field_and_w() {
+        let vis = |w: f32| Visibilities { u: vec![1.0], v: vec![1.0], w: vec![w, -2.0 * w], vis: vec![Default::default(); 2], weight: vec![1.0; 2], frequency: vec![1e8; 2] };
+        // LOFAR-like: |w| 2e3 wavelengths, 3.2 deg field: n - 1 ~ -1.6e-3 at the corners.
+        let wide = ImageGeometry::new(512, 3.2f64.to_radians() / 512.0).unwrap();
+        let t = WTerm::of(&vis(1e3), wide);
+        assert_eq!(t.max_abs_w, 2e3);
+        let half = 1.6f64.to_radians();
+        let expected = 2.0 * std::f64::consts::PI * 2e3 * (1.0 - (1.0 - 2.0 * half * half).sqrt());
+        assert!((t.max_phase_rad - expected).abs() < 1e-9 * expected && t.max_phase_rad > 1.0);
+        assert!(t.warning(wide).unwrap().contains("w-term is not corrected"));
+        // A VLA-like narrow field: nothing to say.
+        let narrow = ImageGeometry::new(512, 0.1f64.to_radians() / 3600.0).unwrap();
+        assert!(WTerm::of(&vis(1.7e5), narrow).warning(narrow).is_none());
+    }
+}

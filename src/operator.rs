@@ -50,8 +50,22 @@ impl ImageGeometry {
         if size < 8 || size % 2 != 0 {
             return Err(Error::parameter("size", format!("expected an even image size of at least 8 pixels, got {size}")));
         }
-        if !(pixel_rad > 0.0) || !pixel_rad.is_finite() || pixel_rad * size as f64 >= 1.0 {
-            return Err(Error::parameter("pixel size", format!("expected a positive pixel size with a field under 1 rad, got {pixel_rad} rad")));
+        if !(pixel_rad > 0.0) || !pixel_rad.is_finite() {
+            return Err(Error::parameter("pixel size", format!("expected a positive pixel size, got {pixel_rad} rad")));
+        }
+        // The sine projection holds where l^2 + m^2 < 1: at the image's corners, a field
+        // (N x pixel) under sqrt(2) rad, about 81 deg.
+        let field = pixel_rad * size as f64;
+        if 2.0 * (0.5 * field).powi(2) >= 1.0 {
+            return Err(Error::parameter(
+                "pixel size",
+                format!(
+                    "a field of {size} x {:.4} deg = {:.1} deg is wider than the sine projection allows (l^2 + m^2 < 1 at the corners: under {:.1} deg): use fewer or smaller pixels",
+                    pixel_rad.to_degrees(),
+                    field.to_degrees(),
+                    std::f64::consts::SQRT_2.to_degrees()
+                ),
+            ));
         }
         Ok(ImageGeometry { size, pixel_rad })
     }

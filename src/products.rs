@@ -123,7 +123,7 @@ impl JobProducts {
             dec_deg: job.meta.phase_centre_dec_deg,
             pixel_deg: im.geometry.pixel_rad.to_degrees(),
             freq_hz: im.frequency_hz,
-            bandwidth_hz: None,
+            bandwidth_hz: im.bandwidth_hz,
         };
         let dynamic_range_known = job.truth_dynamic_range.or(job.meta.dynamic_range);
         let (uncertainty, realisations) = match job.realisation_models.is_empty() {
@@ -154,7 +154,13 @@ impl JobProducts {
             dynamic_range: dynamic_range_known,
             warnings: job.warnings.clone(),
             stop: job.stop.clone(),
-            settings: job.settings.clone(),
+            settings: {
+                let mut settings = job.settings.clone();
+                if let Some(column) = job.meta.extra.get("ms_data_column") {
+                    settings.insert("data_column".into(), serde_json::json!(column));
+                }
+                settings
+            },
             inputs: job.inputs.clone(),
         };
         products.header = products.header_cards();
@@ -191,9 +197,13 @@ impl JobProducts {
         cards.into_iter().map(|(k, v)| (k.to_string(), v)).collect()
     }
 
-    /// The keywords beside the WCS that every product carries.
-    fn extra_keywords(&self) -> [(&'static str, String); 2] {
-        [("TELESCOP", self.telescope.clone()), ("R2D2ITER", self.iterations.to_string())]
+    /// The keywords beside the WCS that every product carries (and the MS column imaged).
+    fn extra_keywords(&self) -> Vec<(&'static str, String)> {
+        let mut cards = vec![("TELESCOP", self.telescope.clone()), ("R2D2ITER", self.iterations.to_string())];
+        if let Some(column) = self.settings.get("data_column").and_then(|c| c.as_str()) {
+            cards.push(("DATACOL", column.to_string()));
+        }
+        cards
     }
 
     /// Writes the products as `r2d2 image` does (`<prefix>-dirty.fits`, `-psf`, `-model`,

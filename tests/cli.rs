@@ -406,3 +406,28 @@ fn a_closed_or_full_standard_output_is_an_error() {
         }
     }
 }
+
+/// A truth on another grid than the image (another pixel size or centre, the right size) is
+/// warned about, not scored silently; on the image's own grid, nothing is said.
+#[test]
+fn a_truth_on_another_grid_is_warned_about() {
+    use r2d2_imaging::fits::{write_image, BrightnessUnit};
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64", "--seed", "3", "--out", "obs.parquet"], d));
+    let truth = read_image(&d.join("obs.sky.fits")).unwrap();
+    let wcs = truth.wcs.unwrap();
+    for (name, other) in [
+        ("pixel.fits", r2d2_imaging::fits::ImageWcs { pixel_deg: wcs.pixel_deg * 1.5, ..wcs }),
+        ("centre.fits", r2d2_imaging::fits::ImageWcs { dec_deg: wcs.dec_deg + 0.1, ..wcs }),
+    ] {
+        write_image(&d.join(name), &truth.data, 64, 64, &other, BrightnessUnit::JyPerPixel, None, &[]).unwrap();
+        let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "clean", "--iterations", "1", "--truth", name, "--name", "t"], d);
+        check(&out);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains("the truth is on another grid"), "{name}: {err}");
+    }
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "clean", "--iterations", "1", "--truth", "obs.sky.fits", "--name", "t"], d);
+    check(&out);
+    assert!(!String::from_utf8_lossy(&out.stderr).contains("another grid"));
+}

@@ -85,6 +85,28 @@ fn ms_weights_from_sigma_and_a_data_column_image_as_parquet() {
     assert_same_dirty_image(2, &["--weights", "sigma", "--data-column", "CORRECTED_DATA"], &["--data-column", "CORRECTED_DATA"]);
 }
 
+/// Without `--data-column`, `CORRECTED_DATA` is imaged when the MS has it (DATA holds junk
+/// here), as WSClean does; the column is named in the log, `-metrics.json` and the headers.
+#[test]
+fn the_calibrated_column_is_imaged_by_default_as_wsclean_does() {
+    assert_same_dirty_image(1, &["--data-column", "CORRECTED_DATA"], &[]);
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d, 1);
+    for (options, column) in [(&["--data-column", "CORRECTED_DATA"][..], "CORRECTED_DATA"), (&[][..], "DATA")] {
+        make_ms(d, "obs.ms", options);
+        let out = r2d2(&["image", "obs.ms", "--size", "64", "--step", "clean", "--iterations", "1", "--name", column], d);
+        check(&out);
+        assert!(stderr(&out).contains(&format!("column {column})")), "{}", stderr(&out));
+        let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join(format!("{column}-metrics.json"))).unwrap()).unwrap();
+        assert_eq!(metrics["settings"]["data_column"], column);
+        let header = std::fs::read(d.join(format!("{column}-model.fits"))).unwrap();
+        let card = format!("DATACOL = '{column}");
+        assert!(header.windows(card.len()).any(|w| w == card.as_bytes()), "{card} in the header");
+        std::fs::remove_dir_all(d.join("obs.ms")).unwrap();
+    }
+}
+
 #[test]
 fn ms_weight_stands_in_for_an_unwritten_weight_spectrum() {
     assert_same_dirty_image(2, &["--weights", "empty-spectrum"], &[]);
@@ -443,4 +465,27 @@ fn model_writes_keep_what_the_user_and_other_programs_hold() {
     }
     let left: Vec<String> = std::fs::read_dir(d).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).filter(|n| n.contains(".r2d2-")).collect();
     assert!(left.is_empty(), "no lock or staging files left beside the MS: {left:?}");
+}
+
+/// WSClean reads the engine's model back (its frequency and Stokes axes, CDELT3 included):
+/// `wsclean -predict` of `-model.fits` into MODEL_DATA agrees with the engine's own prediction
+/// of the same model (MODEL_R2D2) to WSClean's gridding accuracy.
+#[test]
+fn wsclean_predicts_from_the_engines_model() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d, 2);
+    make_ms(d, "obs.ms", &[]);
+    check(&r2d2(&["image", "obs.ms", "--size", "64", "--step", "clean", "--iterations", "2", "--name", "img", "--model-column", "MODEL_R2D2"], d));
+    let wcs = r2d2_imaging::fits::read_image(&d.join("img-model.fits")).unwrap().wcs.unwrap();
+    let scale = format!("{:.12}asec", wcs.pixel_deg * 3600.0);
+    let out = Command::new("wsclean").args(["-predict", "-name", "img", "-size", "64", "64", "-scale", &scale, "-j", "2", "obs.ms"]).current_dir(d).output();
+    let out = out.expect("wsclean runs (apt-get install wsclean; .ci/run installs it)");
+    assert!(out.status.success(), "wsclean -predict failed: {}", text(&out));
+    let compare = "import sys, numpy as np\nfrom casacore.tables import table\nt = table('obs.ms', ack=False)\nws, ours, flag = t.getcol('MODEL_DATA'), t.getcol('MODEL_R2D2'), t.getcol('FLAG')\nkeep = ~flag\nprint(np.linalg.norm(ws[keep] - ours[keep]) / np.linalg.norm(ours[keep]), np.abs(ours[keep]).max())";
+    let out = Command::new("python3").args(["-c", compare]).current_dir(d).output().expect("python3 runs");
+    assert!(out.status.success(), "{}", text(&out));
+    let figures: Vec<f64> = String::from_utf8_lossy(&out.stdout).split_whitespace().map(|s| s.parse().unwrap()).collect();
+    assert!(figures[1] > 0.0, "the model predicts something");
+    assert!(figures[0] < 1e-2, "WSClean's prediction of the engine's model differs from the engine's by {} (relative)", figures[0]);
 }

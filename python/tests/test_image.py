@@ -135,3 +135,13 @@ def test_engine_warnings_reach_pythons_warnings(observations):
     assert any(str(w.message) in f"job {p.id}: {m}" for w in caught for m in p.metrics["warnings"])
     assert p.metrics["settings"]["weighting"] == {"scheme": "briggs", "robust": 1.0, "grid_factor": 2.0}
     assert p.metrics["settings"]["step"]["series"] == "vla-r2d2-128"
+
+
+def test_a_table_read_by_pyarrow_keeps_its_phase_centre(observations, clean_products):
+    """pyarrow's read_table takes the metadata of the stored Arrow schema: the engine writes it
+    there too, so what a Python user writes first images as the file does."""
+    import pyarrow.parquet as pq
+    table = pq.read_table(observations[0])
+    assert b"phase_centre_ra_deg" in table.schema.metadata
+    p = r2d2_imaging.image(table, id=observations[0].stem, **CLEAN)
+    np.testing.assert_array_equal(p.dirty, clean_products.dirty)

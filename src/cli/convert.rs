@@ -9,8 +9,9 @@ use std::path::{Path, PathBuf};
 /// What of a MeasurementSet to read (ignored for Parquet input).
 #[derive(clap::Args, Clone, Debug, Default)]
 pub struct MsOptions {
-    /// MS input: the complex column to image (as WSClean's -data-column).
-    #[arg(long, default_value = "DATA")]
+    /// MS input: the complex column to image (as WSClean's -data-column); default: CORRECTED_DATA
+    /// when the MS has it, else DATA (as WSClean).
+    #[arg(long, default_value = "auto")]
     pub data_column: String,
     /// MS input: field id or name (needed when the MS has several fields).
     #[arg(long)]

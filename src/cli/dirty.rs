@@ -27,6 +27,9 @@ pub fn run(args: Args) -> Result<()> {
     stats.log(&args.input);
     let products = dirty_image(&vis, &params)?;
     let geometry = products.operator.geometry();
+    if let Some(warning) = r2d2_imaging::imaging::WTerm::of(&vis, geometry).warning(geometry) {
+        log::warn!("{}: {warning}", args.input.display());
+    }
     log::info!(
         "{} x {} image, {:.4} arcsec pixels, {} weighting",
         geometry.size,

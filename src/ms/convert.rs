@@ -34,7 +34,9 @@ pub fn convert_ms_to_parquet(ms: &Path, selection: &MsSelection, out: &Path) -> 
     let write_error = |source| Error::from(super::MsError::Parquet { path: out.to_path_buf(), source });
     let tmp = TempSibling::new(out)?;
     let file = File::create(tmp.path()).map_err(|e| Error::io(out, e))?;
-    let mut writer = ArrowWriter::try_new(file, reader.schema(), Some(properties.build())).map_err(write_error)?;
+    // As `vis::write_parquet`: the metadata on the stored Arrow schema too (pyarrow reads it).
+    let schema = std::sync::Arc::new(reader.schema().as_ref().clone().with_metadata(meta.to_pairs()?.into_iter().collect()));
+    let mut writer = ArrowWriter::try_new(file, schema, Some(properties.build())).map_err(write_error)?;
     let mut samples = 0u64;
     while let Some(batch) = reader.next_batch() {
         let batch = batch?;

@@ -6,7 +6,8 @@
 //! counting, `split_by`, conversion to Parquet) is shared with the other sources:
 //!
 //! - samples: one per (main-table row, selected channel); the visibility is the data column
-//!   (`DATA` unless `data_column` says otherwise) combined into Stokes I from the correlations
+//!   (as WSClean: `CORRECTED_DATA` when present, else `DATA`, unless `data_column` names one)
+//!   combined into Stokes I from the correlations
 //!   the `POLARIZATION` table declares: `I` itself, or `(XX + YY) / 2`, or `(RR + LL) / 2`;
 //! - a sample is flagged when `FLAG_ROW` or either hand's `FLAG` is set;
 //! - its weight is that of I from the hands' weights (`WEIGHT_SPECTRUM`, else `WEIGHT`, else
@@ -152,7 +153,8 @@ impl std::str::FromStr for FieldSelector {
 #[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct MsSelection {
-    /// The complex column holding the visibilities (WSClean's `-data-column`).
+    /// The complex column holding the visibilities (WSClean's `-data-column`); `auto` (the
+    /// default) takes `CORRECTED_DATA` when the MS has it, else `DATA`, as WSClean does.
     #[serde(default = "default_data_column")]
     pub data_column: String,
     /// The field to image; required when the MS has rows of several fields.
@@ -166,8 +168,11 @@ pub struct MsSelection {
     pub channels: Option<[usize; 2]>,
 }
 
+/// The data column chosen as WSClean chooses it ([`MsSelection::data_column`]).
+pub const AUTO_DATA_COLUMN: &str = "auto";
+
 pub fn default_data_column() -> String {
-    "DATA".into()
+    AUTO_DATA_COLUMN.into()
 }
 
 impl Default for MsSelection {
@@ -378,10 +383,14 @@ fn field_names(ms: &Path) -> Result<Vec<String>> {
 
 /// "0 'TARGET', 1 'OTHER'".
 fn list_fields(ids: impl IntoIterator<Item = usize>, names: &[String]) -> String {
-    ids.into_iter()
-        .map(|id| format!("{id} '{}'", names.get(id).map_or("?", String::as_str)))
-        .collect::<Vec<_>>()
-        .join(", ")
+    // An error stays readable for an MS of a thousand fields: the first few, then a count.
+    const SHOWN: usize = 12;
+    let ids: Vec<usize> = ids.into_iter().collect();
+    let mut text = ids.iter().take(SHOWN).map(|&id| format!("{id} '{}'", names.get(id).map_or("?", String::as_str))).collect::<Vec<_>>().join(", ");
+    if ids.len() > SHOWN {
+        text.push_str(&format!(", ... and {} more", ids.len() - SHOWN));
+    }
+    text
 }
 
 impl Layout {
@@ -407,7 +416,16 @@ impl Layout {
             Some(sel) => {
                 let found = match sel {
                     FieldSelector::Id(id) => (*id < names.len()).then_some(*id),
-                    FieldSelector::Name(name) => names.iter().position(|n| n == name),
+                    FieldSelector::Name(name) => {
+                        let ids: Vec<usize> = names.iter().enumerate().filter(|(_, n)| *n == name).map(|(i, _)| i).collect();
+                        if ids.len() > 1 {
+                            return Err(invalid(
+                                ms.join("FIELD"),
+                                format!("field {sel} names {} rows of column `NAME` ({}): choose one by its id", ids.len(), list_fields(ids.iter().copied(), &names)),
+                            ));
+                        }
+                        ids.first().copied()
+                    }
                 };
                 let id = found.ok_or_else(|| {
                     invalid(

@@ -122,6 +122,14 @@ impl MsReader {
         }
         let table = open_table(path, "the MeasurementSet's main table")?;
         let column = |name| column_index(&table, path, name);
+        // The column as WSClean chooses it when none is named: the calibrated data if present.
+        let mut selection = selection.clone();
+        if selection.data_column.eq_ignore_ascii_case(super::AUTO_DATA_COLUMN) {
+            let calibrated = optional_column(&table, "CORRECTED_DATA").is_some();
+            selection.data_column = if calibrated { "CORRECTED_DATA" } else { "DATA" }.to_string();
+            log::debug!("{}: imaging {} ({})", path.display(), selection.data_column, if calibrated { "the calibrated data" } else { "no CORRECTED_DATA column" });
+        }
+        let selection = &selection;
         let data = column(&selection.data_column)?;
         let weight = match (optional_column(&table, "WEIGHT_SPECTRUM"), optional_column(&table, "WEIGHT"), optional_column(&table, "SIGMA")) {
             (Some(c), _, _) => WeightSource::Spectrum(c),

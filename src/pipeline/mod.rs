@@ -52,8 +52,10 @@ pub struct Imaging {
     /// Current estimate `x_i` (Jy/pixel) and residual dirty image `r_i = x_d - D x_i`.
     pub model: Vec<f64>,
     pub residual: Vec<f64>,
-    /// Centre of the observed band, Hz (for the FITS FREQ axis).
+    /// Centre of the observed band, Hz (for the FITS FREQ axis), and its width when the
+    /// samples span more than one frequency.
     pub frequency_hz: Option<f64>,
+    pub bandwidth_hz: Option<f64>,
     /// Restoring beam fitted to the PSF main lobe (FWHM degrees, PA degrees east of north).
     pub beam: Option<crate::fits::Beam>,
     /// The iterate of lowest residual ratio so far, kept by the residual update's divergence
@@ -127,6 +129,8 @@ pub struct Job {
     pub truth: Option<Vec<f64>>,
     /// Dynamic range of the truth, for logSNR.
     pub truth_dynamic_range: Option<f64>,
+    /// The truth's grid (from its FITS header), checked against the job's.
+    pub truth_wcs: Option<crate::fits::ImageWcs>,
     /// Image geometry and total weights per visibility, set by the weighting stage.
     pub geometry: Option<ImageGeometry>,
     pub weight: Option<Vec<f64>>,
@@ -169,6 +173,7 @@ impl Job {
             vis: Some(vis),
             truth: None,
             truth_dynamic_range: None,
+            truth_wcs: None,
             geometry: None,
             weight: None,
             imaging: None,

@@ -62,8 +62,9 @@ impl ArrowIpcSource {
             ));
         }
         let id = match config.id {
-            Some(id) if id.trim().is_empty() => {
-                return Err(pipeline.stage_error(name, Some("id"), &format!("stages.{name}.id: expected a non-empty job id")));
+            Some(id) if crate::ingest::job_id_problem(&id).is_some() => {
+                let problem = crate::ingest::job_id_problem(&id).unwrap_or_default();
+                return Err(pipeline.stage_error(name, Some("id"), &format!("stages.{name}.id: {problem}")));
             }
             Some(id) => id,
             None if config.path == STDIN => "stdin".into(),

@@ -47,7 +47,7 @@ impl Stage for GridderStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
         let (geometry, weight) = job.take_weights("gridder")?;
         let mut vis = job.take_visibilities("gridder")?;
-        let frequency_hz = vis.band().map(|(centre, _)| centre);
+        let (frequency_hz, bandwidth_hz) = vis.band().map_or((None, None), |(centre, width)| (Some(centre), width));
         // Memory: each column goes as soon as nothing further needs it. The residual's NUFFT
         // method keeps everything.
         if !self.keep_operator {
@@ -70,10 +70,15 @@ impl Stage for GridderStage {
         let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, kappa, self.nufft, self.threads)?;
         drop(weight);
         let psf_convolution = PsfConvolution::new(geometry.size, &psf_2n)?;
-        let beam = match crate::deconv::fit_beam(&psf, geometry.size, geometry.pixel_rad) {
-            Ok(b) => Some(b),
+        let beam = match crate::deconv::restoring_beam(&psf, geometry.size, geometry.pixel_rad) {
+            Ok((b, warning)) => {
+                if let Some(w) = warning {
+                    job.warn(w);
+                }
+                Some(b)
+            }
             Err(e) => {
-                log::warn!("job {}: no restoring beam: {e}", job.id);
+                job.warn(format!("no restoring beam: {e}"));
                 None
             }
         };
@@ -89,6 +94,7 @@ impl Stage for GridderStage {
             model: vec![0.0; n],
             beam,
             frequency_hz,
+            bandwidth_hz,
             best: None,
         });
         if self.keep_operator {

@@ -527,6 +527,7 @@ pub struct Truth {
     image: Vec<f64>,
     dynamic_range: Option<f64>,
     path: PathBuf,
+    wcs: Option<crate::fits::ImageWcs>,
 }
 
 impl Truth {
@@ -541,7 +542,7 @@ impl Truth {
                 format!("the truth is {} x {} pixels, but the pipeline images {size} x {size} (image.size): it must be on the image's grid", image.nx, image.ny),
             ));
         }
-        Ok(Some(Truth { dynamic_range: crate::metrics::dynamic_range(&image.data), image: image.data, path: path.to_path_buf() }))
+        Ok(Some(Truth { dynamic_range: crate::metrics::dynamic_range(&image.data), image: image.data, path: path.to_path_buf(), wcs: image.wcs }))
     }
 }
 
@@ -566,12 +567,25 @@ pub fn emit_parts(
         if let Some(t) = truth {
             job.truth = Some(t.image.clone());
             job.truth_dynamic_range = t.dynamic_range;
+            job.truth_wcs = t.wcs;
             job.inputs.push(t.path.clone());
         }
         job.inputs.extend(source.map(Path::to_path_buf));
         emit(job)?;
     }
     Ok(())
+}
+
+/// Why `id` cannot name a job, if it cannot: it becomes a file name inside the writer's
+/// prefix (`{job}`), so it must be one name, neither empty nor a path.
+pub fn job_id_problem(id: &str) -> Option<String> {
+    if id.trim().is_empty() {
+        return Some("expected a non-empty job id".into());
+    }
+    if id.contains(['/', '\\']) || id == "." || id == ".." {
+        return Some(format!("job id '{id}' is a path: a job id is one file name (it replaces {{job}} in the writer's prefix, and must not lead out of its directory)"));
+    }
+    None
 }
 
 /// A table's job id: the file name without its extension.
@@ -582,6 +596,14 @@ pub fn stem_id(path: &Path) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn job_ids_are_one_file_name() {
+        assert_eq!(job_id_problem("obs-field01"), None);
+        for bad in ["", "  ", "a/b", "../x", "..", ".", "a\\b"] {
+            assert!(job_id_problem(bad).is_some(), "{bad:?}");
+        }
+    }
     use crate::vis::{write_parquet, VisTable};
     use num_complex::Complex64;
 

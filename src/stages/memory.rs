@@ -47,8 +47,8 @@ impl MemorySource {
         }
         let mut ids = std::collections::HashSet::new();
         for input in &inputs {
-            if input.id.trim().is_empty() {
-                return Err(ctx.error(None, "an in-memory input has an empty job id"));
+            if let Some(problem) = crate::ingest::job_id_problem(&input.id) {
+                return Err(ctx.error(None, format!("an in-memory input: {problem}")));
             }
             if !ids.insert(input.id.as_str()) {
                 return Err(ctx.error(None, format!("two in-memory inputs are both job '{}': the second's products would overwrite the first's", input.id)));

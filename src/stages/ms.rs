@@ -89,7 +89,7 @@ impl MsSource {
             return Err(error("path", format!("'{}' is not a MeasurementSet (a directory with table.dat)", config.path.display())));
         }
         let id = match config.id {
-            Some(id) if id.trim().is_empty() => return Err(error("id", "expected a non-empty job id".into())),
+            Some(id) if crate::ingest::job_id_problem(&id).is_some() => return Err(error("id", crate::ingest::job_id_problem(&id).unwrap_or_default())),
             Some(id) => id,
             None => stem_id(&config.path),
         };
@@ -140,7 +140,8 @@ impl MsSource {
         let Some((parts, stats)) = read_parts(&mut reader, split, &self.split_key, cancelled)? else {
             return Ok(false);
         };
-        log::info!("{} (field {} '{}'): {stats}; {}", self.path.display(), reader.field().0, reader.field().1, reader.counts());
+        let column = reader.meta().extra.get("ms_data_column").cloned().unwrap_or_default();
+        log::info!("{} (field {} '{}', column {column}): {stats}; {}", self.path.display(), reader.field().0, reader.field().1, reader.counts());
         emit_parts(id, reader.meta(), parts, self.truth.as_ref(), Some(&self.path), emit)?;
         Ok(true)
     }

@@ -47,6 +47,26 @@ impl WeightingParams {
     }
 }
 
+/// Where the truth's FITS grid is not the job's (another pixel size or centre), what differs:
+/// its SNR and logSNR would compare images of different skies.
+fn truth_grid_problem(job: &Job, geometry: crate::operator::ImageGeometry) -> Option<String> {
+    let wcs = job.truth_wcs.as_ref()?;
+    let pixel_deg = geometry.pixel_rad.to_degrees();
+    let close = |a: f64, b: f64, scale: f64| (a - b).abs() <= 1e-3 * scale;
+    let mut problems = Vec::new();
+    if !close(wcs.pixel_deg, pixel_deg, pixel_deg) {
+        problems.push(format!("its pixel is {:.6e} deg, the image's {pixel_deg:.6e} deg", wcs.pixel_deg));
+    }
+    let dra = (wcs.ra_deg - job.meta.phase_centre_ra_deg + 540.0).rem_euclid(360.0) - 180.0;
+    if !close(dra * job.meta.phase_centre_dec_deg.to_radians().cos(), 0.0, pixel_deg) || !close(wcs.dec_deg, job.meta.phase_centre_dec_deg, pixel_deg) {
+        problems.push(format!(
+            "its centre is RA {:.6} Dec {:.6} deg, the phase centre RA {:.6} Dec {:.6} deg",
+            wcs.ra_deg, wcs.dec_deg, job.meta.phase_centre_ra_deg, job.meta.phase_centre_dec_deg
+        ));
+    }
+    (!problems.is_empty()).then(|| format!("the truth is on another grid than the image ({}): its SNR and logSNR compare different pixels", problems.join("; ")))
+}
+
 /// A weighting as the metrics file records it.
 fn weighting_json(weighting: Weighting, grid_factor: f64) -> serde_json::Value {
     match weighting {
@@ -86,9 +106,17 @@ impl Stage for WeightingStage {
         let params = DirtyParams { size: self.image.size, pixel: self.image.pixel_scale(), ..DirtyParams::default() };
         let geometry = params.geometry(vis)?;
         let max_uv = vis.max_uv();
+        let w_term = crate::imaging::WTerm::of(vis, geometry);
         job.weight = Some(total_weights(vis, geometry, self.weighting, self.grid_factor)?);
         job.geometry = Some(geometry);
         job.superresolution = (max_uv > 0.0).then(|| 1.0 / (2.0 * max_uv * geometry.pixel_rad));
+        job.settings.insert("w_term".into(), serde_json::json!({"corrected": false, "max_abs_w": w_term.max_abs_w, "max_phase_rad": w_term.max_phase_rad}));
+        if let Some(warning) = w_term.warning(geometry) {
+            job.warn(warning);
+        }
+        if let Some(problem) = truth_grid_problem(&job, geometry) {
+            job.warn(problem);
+        }
         job.settings.insert("weighting".into(), weighting_json(self.weighting, self.grid_factor));
         job.settings.insert("pixel_arcsec".into(), serde_json::json!(geometry.pixel_arcsec()));
         if let Some(sr) = job.superresolution {

@@ -113,7 +113,7 @@ impl fmt::Display for IngestStats {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         write!(
             f,
-            "{} rows read, {} kept, {} excluded ({} flagged, {} non-finite, {} physically impossible, {} non-positive weight)",
+            "{} samples read, {} kept, {} excluded ({} flagged, {} non-finite, {} physically impossible, {} non-positive weight)",
             self.rows,
             self.kept(),
             self.excluded(),
@@ -695,7 +695,9 @@ pub fn write_parquet(path: &Path, table: &VisTable, meta: &ObservationMeta) -> R
         properties = properties.set_column_dictionary_enabled(ColumnPath::from(column), false);
     }
     let properties = properties.build();
-    let schema = Arc::new(table.schema());
+    // The metadata also on the stored Arrow schema, which pyarrow's `read_table` prefers to the
+    // file's key-value metadata: a table read back in Python keeps its phase centre.
+    let schema = Arc::new(table.schema().with_metadata(meta.to_pairs()?.into_iter().collect()));
     let failed = |doing, source: Box<dyn std::error::Error + Send + Sync>| {
         Error::io(path, std::io::Error::other(TableError::Write { doing, source }))
     };
@@ -846,7 +848,7 @@ mod tests {
         assert_eq!(vis.vis, [7, 8, 9].map(|i| single(table.vis[i])));
         assert_eq!(
             stats.to_string(),
-            "10 rows read, 3 kept, 7 excluded (2 flagged, 3 non-finite, 0 physically impossible, 2 non-positive weight)"
+            "10 samples read, 3 kept, 7 excluded (2 flagged, 3 non-finite, 0 physically impossible, 2 non-positive weight)"
         );
     }
 
