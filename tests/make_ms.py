@@ -19,7 +19,9 @@ of it is exactly the table's samples:
 - `--flag-hands one` flags a flagged sample in one hand only (alternating), the other hand
   keeping valid data: the reader must still exclude it. Channels a row lacks are flagged.
 - `--stman mixed` stores DATA, FLAG and WEIGHT_SPECTRUM with TiledColumnStMan and the
-  scalar columns with IncrementalStMan (default: StandardStMan, as default_ms).
+  scalar columns with IncrementalStMan (default: StandardStMan, as default_ms); `--stman dp3`
+  as DP3 writes an MS: the same, with the array column FLAG_CATEGORY in the scalars'
+  IncrementalStMan.
 - `--fields 2` adds a second field (named `OTHER`) with junk rows; the first is `TARGET`.
 - `--autocorrelations` adds antenna i-i rows with junk, which must be excluded.
 - `--data-column NAME` puts the table's visibilities in NAME (e.g. CORRECTED_DATA) and junk
@@ -54,7 +56,7 @@ def parse_args():
     p.add_argument("--spw", type=int, default=1)
     p.add_argument("--weights", choices=["spectrum", "row", "sigma", "empty-spectrum"], default="spectrum")
     p.add_argument("--flag-hands", choices=["both", "one"], default="both")
-    p.add_argument("--stman", choices=["ssm", "mixed"], default="ssm")
+    p.add_argument("--stman", choices=["ssm", "mixed", "dp3"], default="ssm")
     p.add_argument("--fields", type=int, choices=[1, 2], default=1)
     p.add_argument("--autocorrelations", action="store_true")
     p.add_argument("--data-column", default="DATA")
@@ -166,12 +168,16 @@ def main():
     elif args.weights == "empty-spectrum":
         columns.append(makearrcoldesc("WEIGHT_SPECTRUM", 0.0, valuetype="float", ndim=2))
     desc = maketabdesc(columns)
+    if args.stman == "dp3":
+        columns.append(makearrcoldesc("FLAG_CATEGORY", False, valuetype="boolean", ndim=3))
+        desc = maketabdesc(columns)
     dminfo = None
-    if args.stman == "mixed":
+    if args.stman in ("mixed", "dp3"):
         tiled = [c for c in ("DATA", args.data_column, "FLAG", "WEIGHT_SPECTRUM")
                  if c == "FLAG" or c in [d["name"] for d in columns]]
         dminfo = {"*1": {"TYPE": "IncrementalStMan", "NAME": "ISM", "SPEC": {"BUCKETSIZE": 32768},
-                         "COLUMNS": ["TIME", "ANTENNA1", "ANTENNA2", "FIELD_ID", "DATA_DESC_ID"]}}
+                         "COLUMNS": ["TIME", "ANTENNA1", "ANTENNA2", "FIELD_ID", "DATA_DESC_ID"]
+                         + (["FLAG_CATEGORY"] if args.stman == "dp3" else [])}}
         for i, c in enumerate(dict.fromkeys(tiled)):
             dminfo[f"*{i + 2}"] = {"TYPE": "TiledColumnStMan", "NAME": f"Tiled{c}",
                                    "SPEC": {"DEFAULTTILESHAPE": np.array([ncorr, wchan, 64], np.int32)},
@@ -191,6 +197,9 @@ def main():
     else:
         ms.putcol("DATA", m_data)
     ms.putcol("FLAG", m_flag)
+    if args.stman == "dp3":
+        # As DP3 writes it: one category, every cell defined, in the scalars' ISM.
+        ms.putcol("FLAG_CATEGORY", np.zeros((nrow, 1, wchan, ncorr), bool))
     ms.putcol("FLAG_ROW", m_flag.all(axis=(1, 2)))
     if args.weights == "spectrum":
         ms.putcol("WEIGHT_SPECTRUM", m_wspec)

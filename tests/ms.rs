@@ -489,3 +489,27 @@ fn wsclean_predicts_from_the_engines_model() {
     assert!(figures[1] > 0.0, "the model predicts something");
     assert!(figures[0] < 1e-2, "WSClean's prediction of the engine's model differs from the engine's by {} (relative)", figures[0]);
 }
+
+/// An MS laid out as DP3 writes it (the array column FLAG_CATEGORY in the scalar columns'
+/// IncrementalStMan, the data tiled) takes a model column, twice, and keeps its data and
+/// FLAG_CATEGORY; python-casacore reads the result.
+#[test]
+fn a_dp3_layout_takes_a_model_column() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d, 2);
+    make_ms(d, "dp3.ms", &["--stman", "dp3", "--corr", "XX,XY,YX,YY"]);
+    let before = dirty(d, "dp3.ms", "before", &[]);
+    for round in 0..2 {
+        let out = r2d2(&["image", "dp3.ms", "--size", "64", "--step", "clean", "--iterations", "1", "--name", "img", "--model-column", "MODEL_DATA"], d);
+        check(&out);
+        assert!(stderr(&out).contains("wrote `MODEL_DATA`"), "round {round}: {}", stderr(&out));
+    }
+    let check_script = "import numpy as np\nfrom casacore.tables import table\nt = table('dp3.ms', ack=False)\nassert t.getdminfo('FLAG_CATEGORY')['TYPE'] == 'IncrementalStMan'\nfc = t.getcol('FLAG_CATEGORY')\nm = t.getcol('MODEL_DATA')\nprint(fc.shape[1], int(fc.any()), float(np.abs(m).max()))";
+    let out = Command::new("python3").args(["-c", check_script]).current_dir(d).output().expect("python3 runs");
+    assert!(out.status.success(), "{}", text(&out));
+    let figures: Vec<f64> = String::from_utf8_lossy(&out.stdout).split_whitespace().map(|s| s.parse().unwrap()).collect();
+    assert_eq!((figures[0], figures[1]), (1.0, 0.0), "FLAG_CATEGORY kept: one category, nothing flagged");
+    assert!(figures[2] > 0.0, "MODEL_DATA holds the model");
+    assert!(relative(&dirty(d, "dp3.ms", "after", &[]), &before) < 1e-7, "DATA unchanged");
+}

@@ -67,7 +67,21 @@ pub fn check_model_write(ms: &Path, column: &str, data_column: &str) -> Result<(
     if let Some(pid) = foreign_lock(&real)? {
         return Err(in_use(ms, column, pid));
     }
-    Ok(())
+    check_existing_column(ms, column)
+}
+
+/// An existing column of that name must be a complex array column to take a model.
+fn check_existing_column(ms: &Path, column: &str) -> Result<()> {
+    use casacure::record::DataType;
+    use casacure::tabledesc::ColumnKind;
+    let table = super::open_table(ms, "the MeasurementSet's main table")?;
+    let desc = &table.dat.desc.columns;
+    match desc.iter().find(|c| c.name == column) {
+        Some(c) if !matches!(c.kind, ColumnKind::Array) || !matches!(c.data_type, DataType::Complex | DataType::DComplex) => {
+            Err(invalid(ms, format!("column `{column}` exists but is not a complex array column; cannot write a model into it")))
+        }
+        _ => Ok(()),
+    }
 }
 
 /// Takes r2d2's turn on the MS (waiting for another r2d2 writing it), then the write lock on

@@ -102,11 +102,15 @@ impl Stage for WriterStage {
         }
         self.written.insert(resolved, job.id.clone());
         let staged = JobProducts::from_job(&job, self.options.preview_dynamic_range)?.stage(&self.prefix, &self.options)?;
-        // Before the products move into place: a failed model write leaves neither.
+        staged.commit(&job.id)?;
+        // After the products: they are right whatever becomes of the model column (checked
+        // writable before imaging), and a write that still fails says what it left.
         if let Some(column) = &self.model_column {
-            write_model(&job, column)?;
+            write_model(&job, column).inspect_err(|_| {
+                log::error!("job {}: the products were written at \"{prefix}\", but `{column}` was not (the MS is as it was)", job.id, prefix = self.prefix.replace("{job}", &job.id));
+            })?;
         }
-        staged.commit(&job.id)
+        Ok(())
     }
 }
 
