@@ -78,8 +78,11 @@ pub struct Iterate {
 pub enum StopReason {
     /// The residual ratio rose above 1: the model explained the data worse than an empty one.
     Diverged,
-    /// The residual ratio rose at two consecutive iterations.
+    /// The residual ratio rose at two consecutive iterations, by more than 10 % in all.
     Rising,
+    /// The residual ratio rose slightly at two consecutive iterations (reference v2): the
+    /// series is at its noise floor; the last iterate is kept.
+    Stalled,
     /// The residual ratio changed by less than the tolerance (reference v2).
     Converged,
 }
