@@ -130,7 +130,7 @@ def test_the_gil_is_released_while_the_engine_works(observations):
 def test_engine_warnings_reach_pythons_warnings(observations):
     """A job outside the series' domain (Briggs +1 against a series trained at 0) is warned
     about through `warnings`, as the command line logs it, and recorded in the metrics."""
-    with pytest.warns(r2d2_imaging.R2D2Warning, match=r"Briggs robust 1 is outside the series' range") as caught:
+    with pytest.warns(r2d2_imaging.R2D2Warning, match=r"Briggs robust 1 is outside the series' setting 0") as caught:
         p = r2d2_imaging.image(observations[2], size=128, robust=1.0, threads=1)
     assert any(str(w.message) in f"job {p.id}: {m}" for w in caught for m in p.metrics["warnings"])
     assert p.metrics["settings"]["weighting"] == {"scheme": "briggs", "robust": 1.0, "grid_factor": 2.0}

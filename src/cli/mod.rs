@@ -52,6 +52,7 @@ mod onnx_runtime;
 mod run;
 mod simulate;
 mod trainset;
+mod wsclean_args;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -98,7 +99,19 @@ enum Command {
 
 pub fn main() -> ExitCode {
     r2d2_imaging::allocator::release_large_blocks_promptly();
-    let cli = Cli::parse();
+    // WSClean's spellings (`-size 512 512`, `-weight briggs 0`, ...) read as this engine's, or
+    // named with their counterpart; arguments that are not UTF-8 go to clap as they are.
+    let args: Vec<std::ffi::OsString> = std::env::args_os().collect();
+    let cli = match args.iter().map(|a| a.to_str().map(str::to_string)).collect::<Option<Vec<String>>>() {
+        Some(text) => match wsclean_args::rewrite(text) {
+            Ok(rewritten) => Cli::parse_from(rewritten),
+            Err(e) => {
+                eprintln!("error: {e}");
+                return ExitCode::FAILURE;
+            }
+        },
+        None => Cli::parse_from(args),
+    };
     let level = match (cli.quiet, cli.verbose) {
         (true, _) => log::LevelFilter::Error,
         (false, 0) => log::LevelFilter::Info,

@@ -159,6 +159,15 @@ pub struct ImagingSetup {
     pub telescope: Option<String>,
 }
 
+/// A trained range in words: `range 1.5..2.5`, or `setting 0` where it is one value.
+fn span([lo, hi]: [f64; 2]) -> String {
+    if lo == hi {
+        format!("setting {lo} (the only one it was trained at)")
+    } else {
+        format!("range {lo}..{hi}")
+    }
+}
+
 /// A telescope name as series compare them: lower case, the VLA's other names folded
 /// (CASA writes `EVLA`; `JVLA` is also seen).
 pub fn telescope_key(name: &str) -> String {
@@ -437,7 +446,7 @@ impl Series {
         if let (Some(range), Some(sr)) = (v.superresolution, job.superresolution) {
             let [lo, hi] = range;
             if outside(sr, [lo * (1.0 - SUPERRESOLUTION_TOLERANCE), hi * (1.0 + SUPERRESOLUTION_TOLERANCE)]) {
-                problems.push(format!("super-resolution {sr:.3} (the pixel samples the longest baseline {sr:.3} times finer than Nyquist) is outside the series' range {lo}..{hi}"));
+                problems.push(format!("super-resolution {sr:.3} (the pixel samples the longest baseline {sr:.3} times finer than Nyquist) is outside the series' {}", span(range)));
             }
         }
         if let (Some(schemes), Some(scheme)) = (&v.weighting, &job.weighting) {
@@ -448,7 +457,7 @@ impl Series {
         let briggs = job.weighting.as_deref().is_some_and(|s| s.eq_ignore_ascii_case("briggs"));
         if let (Some(range), Some(robust), true) = (v.robust, job.robust, briggs) {
             if outside(robust, range) {
-                problems.push(format!("Briggs robust {robust} is outside the series' range {}..{}", range[0], range[1]));
+                problems.push(format!("Briggs robust {robust} is outside the series' {}", span(range)));
             }
         }
         problems

@@ -1,0 +1,155 @@
+//! WSClean's spelling of the options `r2d2 image` and `r2d2 dirty` share with it, read before
+//! the command line is parsed: an option with the same meaning is rewritten to this engine's
+//! (`-size 512 512` to `--size 512`), and one without a counterpart here is an error that names
+//! what to use instead, rather than clap's "unexpected argument" blaming the input path.
+
+/// How a WSClean option maps onto this engine's.
+enum Spelling {
+    /// The same meaning: rewritten.
+    Same,
+    /// No counterpart here: the error's advice.
+    Counterpart(&'static str),
+}
+
+/// WSClean's options this engine knows of, and how many values each takes.
+const OPTIONS: &[(&str, usize, Spelling)] = &[
+    ("size", 2, Spelling::Same),
+    ("scale", 1, Spelling::Same),
+    ("weight", 1, Spelling::Same),
+    ("data-column", 1, Spelling::Same),
+    ("name", 1, Spelling::Same),
+    ("j", 1, Spelling::Same),
+    (
+        "niter",
+        1,
+        Spelling::Counterpart(
+            "WSClean's -niter counts CLEAN components; here --iterations counts a series' networks or CLEAN's major cycles, and CLEAN's minor-cycle limits are the keys `gain`, `threshold` and `components_per_cycle` of a pipeline's `clean` stage (r2d2 run, README: Pipelines)",
+        ),
+    ),
+    ("auto-threshold", 1, Spelling::Counterpart("CLEAN's threshold is the `threshold` key of a pipeline's `clean` stage (r2d2 run); a network series needs none")),
+    ("auto-mask", 1, Spelling::Counterpart("there is no CLEAN mask here; a network series needs none")),
+    ("mgain", 1, Spelling::Counterpart("CLEAN's major-cycle depth is `components_per_cycle` (and `major_cycles`) of a pipeline's `clean` stage (r2d2 run); a network series needs none")),
+    ("gain", 1, Spelling::Counterpart("CLEAN's loop gain is the `gain` key of a pipeline's `clean` stage (r2d2 run); a network series needs none")),
+    ("multiscale", 0, Spelling::Counterpart("there is no multiscale CLEAN here; a network series images extended emission itself (the default step)")),
+    ("padding", 1, Spelling::Counterpart("the gridder's padding is fixed by --oversampling (default 2, as -padding 2)")),
+];
+
+/// `args` (the whole command line) with WSClean's spellings rewritten, for `image` and `dirty`
+/// only; `Err` names the option and its counterpart.
+pub fn rewrite(args: Vec<String>) -> Result<Vec<String>, String> {
+    let command = match args.iter().skip(1).find(|a| !a.starts_with('-')) {
+        Some(c) if c == "image" || c == "dirty" => c.clone(),
+        _ => return Ok(args),
+    };
+    let mut out = Vec::with_capacity(args.len());
+    let mut rest = args.into_iter().peekable();
+    while let Some(arg) = rest.next() {
+        // `--size N N`: WSClean's two numbers with this engine's dashes.
+        if arg == "--size" {
+            let n = rest.next().ok_or("--size: expected the image size in pixels")?;
+            if rest.peek().is_some_and(|m| m.parse::<usize>().is_ok()) {
+                let m = rest.next().unwrap_or_default();
+                if m != n {
+                    return Err(format!("--size {n} {m}: images here are square: give one size (--size {n})"));
+                }
+            }
+            out.extend(["--size".to_string(), n]);
+            continue;
+        }
+        let Some(name) = arg.strip_prefix('-').filter(|n| !n.starts_with('-')) else {
+            out.push(arg);
+            continue;
+        };
+        let Some((_, count, spelling)) = OPTIONS.iter().find(|(o, _, _)| *o == name) else {
+            out.push(arg);
+            continue;
+        };
+        let mut values = Vec::new();
+        for _ in 0..*count {
+            values.push(rest.next().ok_or_else(|| format!("-{name}: expected {count} value(s), as in WSClean"))?);
+        }
+        match spelling {
+            Spelling::Counterpart(advice) => return Err(format!("-{name} (WSClean's option) has no counterpart in r2d2 {command}: {advice}")),
+            Spelling::Same => out.extend(translate(name, &values, &mut rest)?),
+        }
+    }
+    Ok(out)
+}
+
+/// This engine's options for WSClean's `-name values...`.
+fn translate(name: &str, values: &[String], rest: &mut std::iter::Peekable<std::vec::IntoIter<String>>) -> Result<Vec<String>, String> {
+    let pair = |option: &str, value: &str| vec![option.to_string(), value.to_string()];
+    Ok(match name {
+        "size" => {
+            if values[0] != values[1] {
+                return Err(format!("-size {} {}: images here are square: give one size (--size {})", values[0], values[1], values[0]));
+            }
+            pair("--size", &values[0])
+        }
+        "scale" => pair("--pixel-arcsec", &arcsec(&values[0])?.to_string()),
+        "weight" => match values[0].to_ascii_lowercase().as_str() {
+            "briggs" => {
+                let robust = rest.next().ok_or("-weight briggs: expected the robustness, as in WSClean (-weight briggs 0)")?;
+                robust.parse::<f64>().map_err(|_| format!("-weight briggs {robust}: expected a number"))?;
+                vec!["--weighting".into(), "briggs".into(), format!("--robust={robust}")]
+            }
+            scheme @ ("natural" | "uniform") => pair("--weighting", scheme),
+            other => return Err(format!("-weight {other}: expected briggs R, natural or uniform")),
+        },
+        "data-column" => pair("--data-column", &values[0]),
+        "name" => pair("--name", &values[0]),
+        "j" => pair("--threads", &values[0]),
+        _ => unreachable!("every Same option is translated"),
+    })
+}
+
+/// WSClean's angle (`1.2asec`, `0.5amin`, `0.01deg`, `10mas`; a bare number is degrees, as in
+/// WSClean) in arcseconds.
+fn arcsec(text: &str) -> Result<f64, String> {
+    let units = [("masec", 1e-3), ("mas", 1e-3), ("asec", 1.0), ("arcsec", 1.0), ("amin", 60.0), ("arcmin", 60.0), ("deg", 3600.0)];
+    let (number, scale) = units.iter().find_map(|(u, s)| text.strip_suffix(u).map(|n| (n, *s))).unwrap_or((text, 3600.0));
+    let value: f64 = number.trim().parse().map_err(|_| format!("-scale {text}: expected an angle such as 1.2asec, 0.5amin or 0.01deg"))?;
+    if !(value > 0.0 && value.is_finite()) {
+        return Err(format!("-scale {text}: expected a positive angle"));
+    }
+    Ok(value * scale)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn words(text: &str) -> Vec<String> {
+        text.split_whitespace().map(str::to_string).collect()
+    }
+
+    #[test]
+    fn wsclean_spellings_become_this_engines() {
+        let got = rewrite(words("r2d2 image -size 512 512 -scale 1.5asec -weight briggs -0.5 -data-column CORRECTED_DATA -name out -j 2 obs.ms")).unwrap();
+        assert_eq!(got, words("r2d2 image --size 512 --pixel-arcsec 1.5 --weighting briggs --robust=-0.5 --data-column CORRECTED_DATA --name out --threads 2 obs.ms"));
+        assert_eq!(rewrite(words("r2d2 dirty obs.ms --size 256 256 -weight natural")).unwrap(), words("r2d2 dirty obs.ms --size 256 --weighting natural"));
+        assert_eq!(rewrite(words("r2d2 image obs.ms -scale 0.01deg")).unwrap()[4], "36");
+        // Other commands, and this engine's own spellings, pass untouched.
+        assert_eq!(rewrite(words("r2d2 simulate -size 4 4")).unwrap(), words("r2d2 simulate -size 4 4"));
+        assert_eq!(rewrite(words("r2d2 -q image obs.ms --size 64 -v")).unwrap(), words("r2d2 -q image obs.ms --size 64 -v"));
+    }
+
+    #[test]
+    fn wsclean_options_without_counterpart_name_what_to_use() {
+        for (line, words_expected) in [
+            ("r2d2 image obs.ms -niter 10000", &["-niter", "--iterations", "clean"][..]),
+            ("r2d2 image obs.ms -auto-threshold 3", &["-auto-threshold", "threshold"][..]),
+            ("r2d2 image obs.ms -mgain 0.8", &["-mgain", "clean"][..]),
+            ("r2d2 image obs.ms -multiscale", &["-multiscale"][..]),
+            ("r2d2 image -size 512 256 obs.ms", &["square"][..]),
+            ("r2d2 image --size 512 256 obs.ms", &["square"][..]),
+            ("r2d2 image -weight briggs", &["robustness"][..]),
+            ("r2d2 image -scale 1.2parsec obs.ms", &["1.2parsec", "asec"][..]),
+        ] {
+            let e = rewrite(words(line)).unwrap_err();
+            for w in words_expected {
+                assert!(e.contains(w), "{line}: '{w}' missing from: {e}");
+            }
+        }
+    }
+}
