@@ -439,8 +439,8 @@ def one_sky(args, r2d2, data_dir, k, sample, out):
     rec["ms"]["seconds"] = time.time() - t
 
     # Round trip: natural-weighted dirty images of the Parquet table (engine) and the MS (WSClean).
-    run([r2d2, "dirty", obs, "--size", args.size, "--weighting", "natural", "--name", "nat", "--threads", args.threads],
-        cwd=work)
+    run([r2d2, "dirty", obs, "--size", args.size, "--weighting", "natural", "--superresolution", args.superresolution,
+         "--name", "nat", "--threads", args.threads], cwd=work)
     scale, dh = fits_pixel_arcsec(os.path.join(work, "nat-dirty.fits"))
     assert abs(scale - abs(th["CDELT2"]) * 3600) < 1e-9 * scale, "engine dirty and truth differ in pixel size"
     # -padding 2 as in the paper's command (WSClean's default 1.2 is 4 % off at the image edges).
