@@ -487,7 +487,9 @@ def one_sky(args, r2d2, data_dir, k, sample, out):
     rec["scores"] = {}
     for key, (est, res, dirt) in images.items():
         assert est.shape == truth.shape, f"{key}: {est.shape} vs truth {truth.shape}"
-        shift = check_orientation(truth, est, f"sky {k} {key}")
+        # A CLEAN model is a set of components: a poor one of a sparse sky can peak a few pixels
+        # off in cross-correlation without being flipped; images are held to one pixel.
+        shift = xcorr_shift(truth, est) if key.endswith("_model") else check_orientation(truth, est, f"sky {k} {key}")
         s = score(est, truth, a, res, dirt)
         s["xcorr_shift"] = shift
         s.update({"wall_s": runs[TIMED[key]]["wall_s"], "peak_mb": runs[TIMED[key]]["peak_mb"]})
