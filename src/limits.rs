@@ -35,10 +35,34 @@ pub fn memory_budget() -> MemoryBudget {
             None => log::warn!("{MEMORY_LIMIT_VAR}={text:?} ignored: expected bytes, or a number with K, M, G or T"),
         }
     }
-    match std::fs::read_to_string("/proc/meminfo").ok().and_then(|t| mem_available(&t)) {
+    let available = match std::fs::read_to_string("/proc/meminfo").ok().and_then(|t| mem_available(&t)) {
         Some(bytes) => MemoryBudget { bytes, origin: "MemAvailable in /proc/meminfo" },
         None => MemoryBudget { bytes: DEFAULT_MEMORY_CAP, origin: "the default cap; set R2D2_MEMORY_LIMIT to change it" },
+    };
+    // An address-space limit (`ulimit -v`) below that: what is left of it is the budget, so
+    // that a size it cannot hold is an error about memory, not an aborted allocation.
+    match address_space_left() {
+        Some(left) if left < available.bytes => MemoryBudget { bytes: left, origin: "the address-space limit (ulimit -v) less what the process maps" },
+        _ => available,
     }
+}
+
+/// `RLIMIT_AS` less the process's current virtual size, when a limit is set.
+#[cfg(target_os = "linux")]
+fn address_space_left() -> Option<u64> {
+    // SAFETY: getrlimit writes one `rlimit` into the valid, exclusively borrowed struct.
+    let mut limit = libc::rlimit { rlim_cur: 0, rlim_max: 0 };
+    if unsafe { libc::getrlimit(libc::RLIMIT_AS, &mut limit) } != 0 || limit.rlim_cur == libc::RLIM_INFINITY {
+        return None;
+    }
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let kib: u64 = status.lines().find(|l| l.starts_with("VmSize:"))?.split_whitespace().nth(1)?.parse().ok()?;
+    Some((limit.rlim_cur as u64).saturating_sub(kib.saturating_mul(1024)))
+}
+
+#[cfg(not(target_os = "linux"))]
+fn address_space_left() -> Option<u64> {
+    None
 }
 
 /// `MemAvailable` of a `/proc/meminfo` text, in bytes.

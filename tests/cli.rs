@@ -431,3 +431,17 @@ fn a_truth_on_another_grid_is_warned_about() {
     check(&out);
     assert!(!String::from_utf8_lossy(&out.stderr).contains("another grid"));
 }
+
+/// Under an address-space limit (`ulimit -v`), what is left of it is the memory budget: a size
+/// it cannot hold is a clear error about memory, not an aborted allocation or a blamed input.
+#[test]
+fn an_address_space_limit_is_the_memory_budget() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64", "--seed", "3", "--out", "obs.parquet"], d));
+    let script = "ulimit -v 1000000; \"$R2D2\" image obs.parquet --size 4096 --step clean --name big; echo status $?";
+    let out = Command::new("sh").arg("-c").arg(script).env("R2D2", env!("CARGO_BIN_EXE_r2d2")).current_dir(d).output().unwrap();
+    let all = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+    assert!(all.contains("status 1") && all.contains("4096 x 4096") && all.contains("address-space limit"), "{all}");
+    assert!(!all.contains("panicked") && !all.contains("memory allocation"), "{all}");
+}
