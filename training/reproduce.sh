@@ -60,7 +60,9 @@ vla-r2d2-512-broad)
     make_once "$D/test" "$R2D2" trainset --procedural 12 --seed 900000 $SIM --parquet
     make_once "$D/test-extended" "$R2D2" trainset --procedural 12 --sky extended --seed 910000 $SIM --parquet
     TRAIN=("$D/train-radio" "$D/train-extended" "$D/train-images")
-    ARGS="--norm none --crop 128 --crops-per-sample 4 --epochs-first 10 --epochs 4 --batch 8 --max-networks 15"
+    # --loss-projection none: with the reference's clipped loss network 1 died on these data
+    # (outputs negative everywhere after the first epochs, no gradient, validation 0 dB).
+    ARGS="--norm none --crop 128 --crops-per-sample 4 --epochs-first 10 --epochs 4 --batch 8 --max-networks 15 --loss-projection none"
     ;;
 *) echo "unknown recipe $RECIPE (vla-r2d2-512, vla-r2d2-512-broad or vla-r2d2-128)" >&2; exit 2 ;;
 esac

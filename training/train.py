@@ -129,7 +129,11 @@ def train_network(i, model, train, x, r, active, args, work, device):
             inp = gather_crops(inp_all, b, rows, cols, crop).to(device)
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.bf16):
                 out = model(inp)
-            pred = torch.clamp(gather_crops(prev, b, rows, cols, crop).to(device) + out.float(), min=0.0)
+            pred = gather_crops(prev, b, rows, cols, crop).to(device) + out.float()
+            if args.loss_projection == "clip":
+                # The reference's loss: the positivity projection inside it. Where a network's
+                # output is negative everywhere it passes no gradient (a dead network 1).
+                pred = torch.clamp(pred, min=0.0)
             loss = torch.nn.functional.l1_loss(pred, gather_crops(target, b, rows, cols, crop).to(device))
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -158,6 +162,10 @@ def main(argv=None):
     p.add_argument("--epochs", type=int, default=8, help="epochs of networks 2, 3, ...")
     p.add_argument("--batch", type=int, default=4)
     p.add_argument("--lr", type=float, default=1e-4)
+    p.add_argument("--loss-projection", choices=["clip", "none"], default="clip",
+                   help="clip: L1 to max(0, x + N), the reference's loss; none: L1 to x + N (positivity at inference "
+                        "only), which keeps a gradient where the output is negative (a network 1 that outputs only "
+                        "negatives under `clip` never recovers)")
     p.add_argument("--base-channels", type=int, default=16)
     p.add_argument("--poolings", type=int, default=3)
     p.add_argument("--arch", choices=series.KINDS, default="unet",
@@ -207,6 +215,7 @@ def main(argv=None):
             "torch": str(torch.__version__),
             "seed": args.seed,
             "optimizer": {"kind": "rmsprop", "lr": args.lr, "batch": args.batch, "bf16_autocast": args.bf16},
+            "loss": {"kind": "l1", "projection": args.loss_projection},
             "crops": {"side": args.crop, "per_sample_and_epoch": args.crops_per_sample} if args.crop else None,
             "device": device.type,
             "train_data": {"path": [common.repo_relative(t) for t in args.train], "samples": len(train), **common.portable(train.meta)},
