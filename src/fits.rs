@@ -195,7 +195,7 @@ pub fn check_output_prefix(prefix: &str) -> std::result::Result<(), String> {
         part.strip_prefix('$').is_some_and(|rest| rest.starts_with(|c: char| c.is_ascii_alphabetic() || c == '_' || c == '{'))
     });
     if unexpanded {
-        return Err(format!("\"{prefix}\" holds a `~` or `$VARIABLE` that no shell expanded (r2d2 does not expand them): give the path as it is, e.g. /home/me/out/obs"));
+        return Err(format!("\"{prefix}\" holds a `~` or `$VARIABLE` that no shell expanded (r2d2 does not expand them): give the path as it is, e.g. /data/out/obs"));
     }
     let last = prefix.rsplit(['/', std::path::MAIN_SEPARATOR]).next().unwrap_or_default();
     if last.trim().is_empty() || last == "." || last == ".." {
@@ -840,7 +840,7 @@ mod tests {
             let e = check_output_prefix(prefix).unwrap_err();
             assert!(e.contains("no shell expanded"), "{prefix}: {e}");
         }
-        for prefix in ["out/obs", "a$b/obs", "out/$5", "/home/me/obs", "x~/obs"] {
+        for prefix in ["out/obs", "a$b/obs", "out/$5", "/data/obs", "x~/obs"] {
             assert!(check_output_prefix(prefix).is_ok(), "{prefix}");
         }
     }
