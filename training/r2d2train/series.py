@@ -46,13 +46,20 @@ def read_manifest(series_dir):
     return m
 
 
+class _PlainDumper(yaml.SafeDumper):
+    """Writes a value shared by two keys twice, never as a YAML anchor and alias."""
+
+    def ignore_aliases(self, data):
+        return True
+
+
 def write_manifest(series_dir, manifest):
     path = os.path.join(series_dir, MANIFEST)
     tmp = path + ".tmp"
     try:
         with open(tmp, "w") as f:
             f.write("# R2D2 series manifest (format 1). Written by training/train.py; test metrics by training/evaluate.py.\n")
-            yaml.safe_dump(manifest, f, sort_keys=False, default_flow_style=None, width=120)
+            yaml.dump(manifest, f, Dumper=_PlainDumper, sort_keys=False, default_flow_style=None, width=120)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
