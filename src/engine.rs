@@ -310,12 +310,12 @@ fn imaging_setting(params: &ImageParams) -> Result<(Weighting, f64)> {
     let needs_series = params.weighting.is_none() || (params.superresolution.is_none() && params.pixel_arcsec.is_none());
     let own = match &params.step {
         StepChoice::Auto | StepChoice::Series(_) if needs_series => {
-            let name = match &params.step {
-                StepChoice::Series(path) => path.clone(),
-                _ => PathBuf::from(crate::steps::series::AUTO_SERIES),
+            // A series that does not resolve or open is reported by the step itself, as is
+            // `auto`'s off-size warning (not repeated here).
+            let dir = match &params.step {
+                StepChoice::Series(path) => crate::steps::series::resolve(path).ok(),
+                _ => crate::steps::series::select_for_size(params.size).ok().map(|(dir, _)| dir),
             };
-            // A series that does not resolve or open is reported by the step itself.
-            let dir = crate::steps::series::resolve_for_size(&name, params.size).ok();
             dir.and_then(|d| crate::steps::series::Series::open(&d).ok()).and_then(|s| s.manifest.map(|m| (s.name, m)))
         }
         _ => None,

@@ -224,9 +224,7 @@ impl JobProducts {
     pub(crate) fn stage(&self, prefix: &str, options: &WriteOptions) -> Result<Staged> {
         let inputs: Vec<&Path> = self.inputs.iter().map(PathBuf::as_path).collect();
         check_spares_inputs(prefix, &self.id, &inputs)?;
-        let prefix = PathBuf::from(prefix.replace("{job}", &self.id));
-        let dir = prefix.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).to_path_buf();
-        let stem = prefix.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| self.id.clone());
+        let (dir, stem) = prefix_parts(prefix, &self.id);
         let target = |suffix: &str| dir.join(format!("{stem}-{suffix}"));
         let mut staging = Staging::new(&dir)?;
         let n = self.size;
@@ -329,14 +327,18 @@ impl JobProducts {
     }
 }
 
-/// Every product a writer makes for a prefix (`<prefix>-<suffix>`), to retire those of an
-/// earlier run that this one does not make.
+/// The directory and file-name part of job `id`'s products at `prefix` (`{job}` replaced).
+fn prefix_parts(prefix: &str, id: &str) -> (PathBuf, String) {
+    let prefix = PathBuf::from(prefix.replace("{job}", id));
+    let dir = prefix.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).to_path_buf();
+    let stem = prefix.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| id.to_string());
+    (dir, stem)
+}
+
 /// Refuses a prefix at which the products of job `id` (any the writer makes or retires) would
 /// replace one of `inputs` (its visibilities, truth, MeasurementSet).
 pub(crate) fn check_spares_inputs(prefix: &str, id: &str, inputs: &[&Path]) -> Result<()> {
-    let prefix = PathBuf::from(prefix.replace("{job}", id));
-    let dir = prefix.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let stem = prefix.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| id.to_string());
+    let (dir, stem) = prefix_parts(prefix, id);
     for suffix in product_suffixes() {
         let target = dir.join(format!("{stem}-{suffix}"));
         if let Some(input) = crate::staging::destroys_input(&target, inputs) {
@@ -349,6 +351,8 @@ pub(crate) fn check_spares_inputs(prefix: &str, id: &str, inputs: &[&Path]) -> R
     Ok(())
 }
 
+/// Every product a writer makes for a prefix (`<prefix>-<suffix>`), to retire those of an
+/// earlier run that this one does not make.
 fn product_suffixes() -> Vec<String> {
     let images = ["dirty", "psf", "model", "residual", "image", "uncertainty"];
     let mut suffixes: Vec<String> = images.iter().flat_map(|i| [format!("{i}.fits"), format!("{i}.png")]).collect();

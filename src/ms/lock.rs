@@ -72,16 +72,22 @@ pub fn check_model_write(ms: &Path, column: &str, data_column: &str) -> Result<(
 
 /// An existing column of that name must be a complex array column to take a model.
 fn check_existing_column(ms: &Path, column: &str) -> Result<()> {
+    let table = super::open_table(ms, "the MeasurementSet's main table")?;
+    match table.dat.desc.columns.iter().find(|c| c.name == column) {
+        Some(desc) => check_takes_a_model(ms, desc),
+        None => Ok(()),
+    }
+}
+
+/// An existing column takes a model only if it is a complex array column (checked before
+/// imaging and again by the write itself).
+pub(super) fn check_takes_a_model(ms: &Path, desc: &casacure::tabledesc::ColumnDesc) -> Result<()> {
     use casacure::record::DataType;
     use casacure::tabledesc::ColumnKind;
-    let table = super::open_table(ms, "the MeasurementSet's main table")?;
-    let desc = &table.dat.desc.columns;
-    match desc.iter().find(|c| c.name == column) {
-        Some(c) if !matches!(c.kind, ColumnKind::Array) || !matches!(c.data_type, DataType::Complex | DataType::DComplex) => {
-            Err(invalid(ms, format!("column `{column}` exists but is not a complex array column; cannot write a model into it")))
-        }
-        _ => Ok(()),
+    if matches!(desc.kind, ColumnKind::Array) && matches!(desc.data_type, DataType::Complex | DataType::DComplex) {
+        return Ok(());
     }
+    Err(invalid(ms, format!("column `{}` exists but is not a complex array column; cannot write a model into it", desc.name)))
 }
 
 /// Takes r2d2's turn on the MS (waiting for another r2d2 writing it), then the write lock on

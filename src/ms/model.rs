@@ -18,7 +18,6 @@ use crate::operator::ImageGeometry;
 use crate::vis::{DEFAULT_BATCH_ROWS, SPEED_OF_LIGHT};
 use crate::{Error, Result};
 use casacure::record::{ArrayData, ArrayValue, DataType, RecordValue};
-use casacure::tabledesc::ColumnKind;
 use casacure::WritableTable;
 use num_complex::Complex64;
 use std::path::{Path, PathBuf};
@@ -219,9 +218,7 @@ fn predict_into(ms: &Path, origin: &Origin, target: &ModelTarget<'_>) -> Result<
     let desc = &table.dat.desc.columns;
     let (model_col, existed) = match names.iter().position(|c| c == column) {
         Some(i) => {
-            if !matches!(desc[i].kind, ColumnKind::Array) || !matches!(desc[i].data_type, DataType::Complex | DataType::DComplex) {
-                return Err(invalid(ms, format!("column `{column}` exists but is not a complex array column; cannot write a model into it")));
-            }
+            super::lock::check_takes_a_model(ms, &desc[i])?;
             (i, true)
         }
         None => {

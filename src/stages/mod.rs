@@ -115,7 +115,8 @@ const BUILTIN: &[KindFn] = &[
 ];
 
 /// Why the sources before stage `c` may make several jobs (a list or pattern of files, a
-/// `split_by`, several sources), if they may.
+/// `split_by`), if they may. Several sources feeding one writer are caught
+/// by the writer at run time, when a second job reaches a prefix already written.
 fn several_jobs(c: &BuildContext<'_>) -> Result<Option<String>> {
     let mut why = Vec::new();
     for p in c.upstream_params::<params::ParquetParams>()? {
