@@ -3,7 +3,7 @@
 //!
 //!     cargo run --release --example ms_read -- OBS.ms [DATA_COLUMN]
 
-use r2d2_imaging::ingest::TableReader;
+use r2d2_imaging::vis::TableReader;
 use r2d2_imaging::ms::{MsReader, MsSelection};
 use r2d2_imaging::vis::{record_batch_to_visibilities, IngestStats};
 use std::path::PathBuf;

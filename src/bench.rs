@@ -319,7 +319,8 @@ impl Drop for ScratchDir {
 
 pub fn run_pipeline_bench(p: &PipelineBenchParams) -> Result<PipelineBenchReport> {
     use crate::params::{CleanParams, Files, GridderParams, ParquetParams, ResidualParams, WeightingParams, WriterParams};
-    use crate::pipeline::{ImageConfig, PipelineSpec, StageSpec};
+    use crate::imaging::ImageConfig;
+    use crate::pipeline::{PipelineSpec, StageSpec};
     use crate::simulate::observe::ObservationSpec;
     use crate::simulate::{simulate, SimulationRequest, SkyModel};
     use std::sync::atomic::AtomicBool;
@@ -369,7 +370,7 @@ pub fn run_pipeline_bench(p: &PipelineBenchParams) -> Result<PipelineBenchReport
             StageSpec::typed("update", &ResidualParams::default())?.to("step").done("write"),
             StageSpec::typed("write", &WriterParams { prefix: out_prefix.clone(), ..WriterParams::default() })?,
         ];
-        let mut spec = PipelineSpec::new("bench", ImageConfig { size: p.size, superresolution: None, pixel_arcsec: None }, stages)?;
+        let mut spec = PipelineSpec::new("bench", &ImageConfig { size: p.size, superresolution: None, pixel_arcsec: None }, stages)?;
         spec.threads = p.threads;
         spec.channel_capacity = p.channel_capacity;
         Ok(spec)

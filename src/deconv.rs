@@ -6,11 +6,21 @@
 //! and north `+y`, so a position angle (east of north) turns from `+y` towards `-x`.
 
 use crate::fft2::Fft2;
-use crate::fits::Beam;
 use crate::{Error, Result};
 use num_complex::Complex64;
 use rayon::prelude::*;
 use rustfft::FftDirection;
+
+/// Restoring beam (Gaussian), written as BMAJ, BMIN, BPA.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Beam {
+    /// Full width at half maximum along the major axis, degrees.
+    pub major_deg: f64,
+    /// Full width at half maximum along the minor axis, degrees.
+    pub minor_deg: f64,
+    /// Position angle of the major axis, degrees east of north.
+    pub pa_deg: f64,
+}
 
 /// `FWHM = FWHM_PER_SIGMA * sigma` for a Gaussian.
 const FWHM_PER_SIGMA: f64 = 2.354_820_045_030_949_3; // 2 sqrt(2 ln 2)

@@ -5,15 +5,16 @@
 //!
 #![doc = include_str!("../docs/embedding.md")]
 
-use crate::pipeline::registry::RunIo;
-use crate::pipeline::{runner, MemoryInput, PipelineSpec, ProductSink, Progress, Registry, RunReport, StageSpec};
+use crate::job::{ProductSink, Registry, RunContext};
+use crate::pipeline::{runner, PipelineSpec, Progress, RunReport, StageSpec};
+use crate::vis::{MemoryInput, TableFormat};
 #[cfg(feature = "ms")]
 use crate::params::MsParams;
 use crate::params::{
     ArrowIpcParams, ArrowParams, CleanParams, Files, GridderParams, NativeParams, OnnxParams, ParquetParams, ProductsParams, ResidualParams,
     WeightingParams, WriterParams,
 };
-use crate::products::JobProducts;
+use crate::job::JobProducts;
 use crate::weighting::Weighting;
 use crate::{Error, Result};
 use std::path::{Path, PathBuf};
@@ -97,7 +98,8 @@ impl Engine {
 
     /// Checks the graph and builds every stage without running anything.
     pub fn validate(&self, spec: &PipelineSpec) -> Result<()> {
-        runner::validate(&self.registry, &self.with_threads(spec)).map(|_| ())
+        let spec = self.with_threads(spec);
+        runner::validate(&self.registry, &spec, &RunContext::new(&spec, Vec::new(), None)?).map(|_| ())
     }
 
     /// Runs `spec` to completion (or until `cancel` turns true; the run only reads it, and
@@ -115,7 +117,8 @@ impl Engine {
             Some(observer) => observer.as_ref(),
             None => &|_| {},
         };
-        runner::run(&self.registry, &spec, RunIo::new(inputs, sink), cancel, progress)
+        let context = RunContext::new(&spec, inputs, sink)?;
+        runner::run(&self.registry, &spec, &context, cancel, progress)
     }
 
     /// The spec with the engine's thread count where it sets none.
@@ -136,7 +139,7 @@ impl Engine {
             // Before imaging: products that would replace the observation or the truth.
             let mut inputs = vec![path.as_path()];
             inputs.extend(params.truth.as_deref());
-            crate::products::check_spares_inputs(prefix, &crate::ingest::stem_id(path), &inputs)?;
+            crate::job::check_spares_inputs(prefix, &crate::job::stem_id(path), &inputs)?;
         }
         let (spec, inputs) = image_spec(obs, params)?;
         let delivered: Arc<Mutex<Vec<JobProducts>>> = Arc::default();
@@ -261,17 +264,19 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
             inputs.push(input);
             StageSpec::typed("read", &ArrowParams { truth, ..ArrowParams::default() })?
         }
-        Observation::Path(path) if is_ms(&path) => ms_read(&path, params)?,
         Observation::Path(path) => {
-            if params.model_column.is_some() {
-                return Err(Error::parameter("model-column", format!("{}: only a MeasurementSet input has a column to write the model into", path.display())));
-            }
-            let text = path.to_string_lossy().into_owned();
-            let is_ipc = matches!(path.extension().and_then(|e| e.to_str()), Some("arrow" | "arrows" | "ipc" | "feather"));
-            if is_ipc {
-                StageSpec::typed("read", &ArrowIpcParams { truth, ..ArrowIpcParams::new(text) })?
+            let format = crate::vis::format_of(&path)?;
+            if format == TableFormat::MeasurementSet {
+                ms_read(&path, params)?
             } else {
-                StageSpec::typed("read", &ParquetParams { truth, ..ParquetParams::new(Files::One(text)) })?
+                if params.model_column.is_some() {
+                    return Err(Error::parameter("model-column", format!("{}: only a MeasurementSet input has a column to write the model into", path.display())));
+                }
+                let text = path.to_string_lossy().into_owned();
+                match format {
+                    TableFormat::ArrowIpc => StageSpec::typed("read", &ArrowIpcParams { truth, ..ArrowIpcParams::new(text) })?,
+                    _ => StageSpec::typed("read", &ParquetParams { truth, ..ParquetParams::new(Files::One(text)) })?,
+                }
             }
         }
     };
@@ -294,12 +299,12 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
         }
         None => stages.push(products),
     }
-    let image = crate::pipeline::ImageConfig {
+    let image = crate::imaging::ImageConfig {
         size: params.size,
         superresolution: params.pixel_arcsec.is_none().then_some(superresolution),
         pixel_arcsec: params.pixel_arcsec,
     };
-    Ok((PipelineSpec::new("image", image, stages)?, inputs))
+    Ok((PipelineSpec::new("image", &image, stages)?, inputs))
 }
 
 /// Weighting and super-resolution of an image: what `params` asks for; where it asks for none,
@@ -370,10 +375,7 @@ fn step_stage(params: &ImageParams) -> Result<StageSpec> {
 
 /// Whether `path` is a MeasurementSet (a directory with a table), else a file.
 pub fn is_ms(path: &Path) -> bool {
-    #[cfg(feature = "ms")]
-    return crate::ms::is_measurement_set(path);
-    #[cfg(not(feature = "ms"))]
-    return path.join("table.dat").is_file();
+    crate::vis::format_of(path).is_ok_and(|f| f == TableFormat::MeasurementSet)
 }
 
 #[cfg(feature = "ms")]
@@ -434,6 +436,16 @@ mod tests {
             .collect()
     }
 
+    /// A file named `name` in a fresh directory that starts as a table of its format does
+    /// (`image_spec` tells formats by content).
+    fn table_file(name: &str, head: &[u8]) -> std::path::PathBuf {
+        let dir = std::env::temp_dir().join(format!("r2d2-engine-test-{}-{name}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join(name);
+        std::fs::write(&path, head).unwrap();
+        path
+    }
+
     /// pipelines/image.yaml says it is the pipeline `r2d2 image OBS.parquet` runs: it is
     /// `Engine::image`'s with every option at its default, for `obs.parquet` written at the
     /// YAML's prefix (`{job}`: `r2d2 image` takes it from `--name`). `Engine::image` adds a
@@ -442,8 +454,10 @@ mod tests {
     fn pipelines_image_yaml_is_the_pipeline_of_engine_image() {
         let yaml = PipelineSpec::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines/image.yaml"), &[]).unwrap();
         let params = ImageParams { write: Some("{job}".into()), ..ImageParams::default() };
-        let (code, inputs) = image_spec(Observation::Path("obs.parquet".into()), &params).unwrap();
+        let (mut code, inputs) = image_spec(Observation::Path(table_file("obs.parquet", b"PAR1")), &params).unwrap();
         assert!(inputs.is_empty());
+        // The YAML names the observation as the command line would: by its name.
+        code.stages[0].params["files"] = "obs.parquet".into();
         assert_eq!((&yaml.name, &yaml.image, yaml.threads, yaml.channel_capacity), (&code.name, &code.image, code.threads, code.channel_capacity));
         let code_stages = without_products(&code);
         let shape = |stages: &[StageSpec]| stages.iter().map(|s| (s.name.clone(), s.kind.clone(), s.to.clone(), s.done.clone())).collect::<Vec<_>>();
@@ -458,16 +472,17 @@ mod tests {
     #[test]
     fn engine_image_pipelines_read_back_as_typed_parameters() {
         let clean = ImageParams { step: StepChoice::Clean, iterations: Some(3), weighting: Some(Weighting::Uniform), write: Some("out/{job}".into()), ..ImageParams::default() };
-        let (spec, _) = image_spec(Observation::Path("a.arrows".into()), &clean).unwrap();
+        let arrows = table_file("a.arrows", &[0xff; 8]);
+        let (spec, _) = image_spec(Observation::Path(arrows.clone()), &clean).unwrap();
         assert_eq!(spec.stage_params::<CleanParams>(spec.stage("step").unwrap()).unwrap().major_cycles, 3);
         assert_eq!(spec.stage_params::<WeightingParams>(spec.stage("weights").unwrap()).unwrap().scheme, WeightingScheme::Uniform);
-        assert_eq!(spec.stage_params::<ArrowIpcParams>(spec.stage("read").unwrap()).unwrap().path, "a.arrows");
+        assert_eq!(spec.stage_params::<ArrowIpcParams>(spec.stage("read").unwrap()).unwrap().path, arrows.to_string_lossy());
         let native = ImageParams { step: StepChoice::Native { library: "p.so".into(), config: Some(serde_yaml::from_str("{gain: 1}").unwrap()) }, ..ImageParams::default() };
-        let (spec, _) = image_spec(Observation::Path("a.parquet".into()), &native).unwrap();
+        let (spec, _) = image_spec(Observation::Path(table_file("a.parquet", b"PAR1")), &native).unwrap();
         let step = spec.stage_params::<NativeParams>(spec.stage("step").unwrap()).unwrap();
         assert_eq!((step.iterations, step.config.unwrap()["gain"].as_f64()), (10, Some(1.0)));
         let onnx = ImageParams { iterations: Some(2), prefetch: false, backend: BackendChoice::Tract, ..ImageParams::default() };
-        let (spec, _) = image_spec(Observation::Path("a.parquet".into()), &onnx).unwrap();
+        let (spec, _) = image_spec(Observation::Path(table_file("a.parquet", b"PAR1")), &onnx).unwrap();
         let step = spec.stage_params::<OnnxParams>(spec.stage("step").unwrap()).unwrap();
         assert_eq!((step.networks, step.prefetch, step.backend), (Some(2), false, BackendChoice::Tract));
     }

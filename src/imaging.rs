@@ -24,6 +24,31 @@ impl Default for PixelScale {
     }
 }
 
+/// The image every stage of a pipeline shares (its `image` section): weighting, gridder and
+/// a trained network series must all agree on it, so it is stated once.
+#[derive(Clone, Debug, serde::Deserialize, serde::Serialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ImageConfig {
+    /// Pixels per side.
+    pub size: usize,
+    /// Super-resolution factor (see [`PixelScale::SuperResolution`]); 1.5 when neither it nor
+    /// `pixel_arcsec` is given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub superresolution: Option<f64>,
+    /// A fixed pixel size (arcsec), instead of the super-resolution factor.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pixel_arcsec: Option<f64>,
+}
+
+impl ImageConfig {
+    pub fn pixel_scale(&self) -> PixelScale {
+        match self.pixel_arcsec {
+            Some(p) => PixelScale::Arcsec(p),
+            None => PixelScale::SuperResolution(self.superresolution.unwrap_or(1.5)),
+        }
+    }
+}
+
 /// Parameters of a dirty image.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct DirtyParams {

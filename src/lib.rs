@@ -18,15 +18,15 @@ pub mod error;
 mod fft2;
 pub mod fits;
 pub mod imaging;
+pub mod job;
 pub mod metrics;
 #[cfg(feature = "ms")]
 pub mod ms;
 pub mod nufft;
 pub mod operator;
 mod parallel;
-mod pipeline;
+pub mod pipeline;
 pub mod preview;
-mod products;
 mod sanity;
 pub mod simulate;
 mod stages;
@@ -48,12 +48,13 @@ pub mod staging;
 
 pub use engine::{is_ms, BackendChoice, Engine, EngineOptions, GraphOptimization, ImageParams, Observation, ProgressObserver, StepChoice};
 pub use error::{Error, Result};
-pub use pipeline::{
-    BuildContext, Built, Emit, ImageConfig, Imaging, Iterate, IterationMetrics, Job, KindFn, LoopStop, MemoryInput, PipelineSpec, Port, Product,
-    ProductSink, Progress, Registry, Role, RunReport, Source, Stage, StageKind, StageParams, StageSpec, StopReason,
+pub use imaging::ImageConfig;
+pub use job::{
+    BuildContext, Built, Emit, ImageContext, Imaging, Iterate, IterationMetrics, Job, JobProducts, KindFn, LoopStop, Product, ProductSink, Registry,
+    RunContext, StopReason, WriteOptions,
 };
-pub use products::{JobProducts, WriteOptions};
+pub use pipeline::{Payload, PipelineSpec, Port, Progress, Role, RunReport, Source, Stage, StageKind, StageParams, StageSpec};
+pub use vis::MemoryInput;
 /// Reading visibility tables into jobs (the file and memory sources share it).
-pub use stages::ingest;
 pub use stages::params;
 pub use weighting::{Weighting, WeightingScheme};

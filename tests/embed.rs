@@ -172,7 +172,7 @@ fn a_pipeline_of_typed_parameters_is_its_yaml() {
         StageSpec::typed("update", &ResidualParams::default()).unwrap().to("step").done("deliver"),
         StageSpec::typed("deliver", &ProductsParams::default()).unwrap(),
     ];
-    let typed = PipelineSpec::new("typed", ImageConfig { size: SIZE, superresolution: None, pixel_arcsec: None }, stages).unwrap();
+    let typed = PipelineSpec::new("typed", &ImageConfig { size: SIZE, superresolution: None, pixel_arcsec: None }, stages).unwrap();
     let yaml = engine.load_yaml(PIPELINE, "embedded.yaml", &[]).unwrap();
     let obs = observation(3);
     let (a, b) = (run_one(&engine, &typed, input("a", &obs)), run_one(&engine, &yaml, input("a", &obs)));
@@ -181,7 +181,7 @@ fn a_pipeline_of_typed_parameters_is_its_yaml() {
     let bad = StageSpec::typed("weights", &WeightingParams { robust: f64::NAN, ..Default::default() }).unwrap().to("grid");
     let mut stages = typed.stages.clone();
     stages[1] = bad;
-    let spec = PipelineSpec::new("typed", typed.image.clone(), stages).unwrap();
+    let spec = PipelineSpec::new("typed", &typed.image, stages).unwrap();
     let err = engine.validate(&spec).unwrap_err().to_string();
     assert!(err.contains("robust"), "{err}");
 }
@@ -217,7 +217,7 @@ fn errors_name_the_file_line_and_stage() {
 /// Counts the jobs it receives: a sink of the embedding program's own.
 struct Count(Arc<AtomicUsize>);
 
-impl Stage for Count {
+impl Stage<Job> for Count {
     fn process(&mut self, job: Job, _emit: &mut Emit<'_>) -> r2d2_imaging::Result<()> {
         assert!(job.imaging.is_some());
         self.0.fetch_add(1, Ordering::SeqCst);
@@ -228,7 +228,7 @@ impl Stage for Count {
 /// The kind building [`Count`] stages, all adding to one counter.
 struct CountKind(Arc<AtomicUsize>);
 
-impl StageKind for CountKind {
+impl StageKind<Job> for CountKind {
     fn name(&self) -> &str {
         "count"
     }
@@ -259,7 +259,7 @@ fn a_program_registers_a_stage_kind_of_its_own() {
 /// Fails every job, as a stage of the program's own with a bug might.
 struct Fails;
 
-impl Stage for Fails {
+impl Stage<Job> for Fails {
     fn process(&mut self, _: Job, _: &mut Emit<'_>) -> r2d2_imaging::Result<()> {
         Err(r2d2_imaging::Error::parameter("fails", "failing on purpose"))
     }
@@ -267,7 +267,7 @@ impl Stage for Fails {
 
 struct FailsKind;
 
-impl StageKind for FailsKind {
+impl StageKind<Job> for FailsKind {
     fn name(&self) -> &str {
         "fails"
     }

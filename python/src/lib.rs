@@ -175,12 +175,12 @@ fn split_rows<'py>(
     window: Option<f64>,
 ) -> PyResult<Vec<(String, Bound<'py, PyArray1<u64>>)>> {
     let stream = arrow_in::stream_of(table)?;
-    let split = r2d2_imaging::ingest::SplitBy { column, window };
+    let split = r2d2_imaging::vis::SplitBy { column, window };
     split.check().map_err(|m| R2D2Error::new_err(format!("split_by.window: {m}")))?;
     let name = name.to_string();
     let parts = run_released(py, move |cancel| {
-        let mut reader = r2d2_imaging::ingest::memory_table(r2d2_imaging::MemoryInput::new(name.as_str(), stream), &name)?;
-        r2d2_imaging::ingest::split_rows(&mut reader, &split, "split_by", &|| cancel.load(Ordering::SeqCst))
+        let mut reader = r2d2_imaging::vis::memory_table(r2d2_imaging::MemoryInput::new(name.as_str(), stream), &name)?;
+        r2d2_imaging::vis::split_rows(&mut reader, &split, "split_by", &|| cancel.load(Ordering::SeqCst))
     })?;
     let parts = parts.ok_or_else(|| R2D2Error::new_err("interrupted while splitting"))?;
     // The row vectors become the arrays' buffers: moved, not copied.

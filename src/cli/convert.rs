@@ -36,33 +36,16 @@ impl MsOptions {
     }
 }
 
-/// Whether `path` is a MeasurementSet (else it is taken as Parquet).
-pub fn is_ms(path: &Path) -> bool {
-    #[cfg(feature = "ms")]
-    return r2d2_imaging::ms::is_measurement_set(path);
-    #[cfg(not(feature = "ms"))]
-    return path.join("table.dat").is_file();
-}
-
-/// Reads a Parquet table or a MeasurementSet whole.
+/// Reads a table of any format whole.
 pub fn read_input(path: &Path, ms: &MsOptions) -> Result<(Visibilities, ObservationMeta, IngestStats)> {
-    if !is_ms(path) {
-        return r2d2_imaging::vis::read_parquet(path);
-    }
-    #[cfg(feature = "ms")]
-    {
-        use r2d2_imaging::ingest::{read_parts, TableReader};
-        let mut reader = r2d2_imaging::ms::MsReader::open_default(path, &ms.selection())?;
-        let (mut parts, stats) = read_parts(&mut reader, None, "split_by", &|| false)?.expect("never cancelled");
-        log::info!("{}: {}", path.display(), reader.counts());
-        let vis = parts.pop().map(|p| p.vis).unwrap_or_default();
-        Ok((vis, reader.meta().clone(), stats))
-    }
     #[cfg(not(feature = "ms"))]
-    {
-        let _ = ms;
-        Err(r2d2_imaging::Error::input(path, "a MeasurementSet, but this r2d2 was built without the `ms` feature"))
-    }
+    let _ = ms;
+    let options = r2d2_imaging::vis::OpenOptions {
+        #[cfg(feature = "ms")]
+        ms: ms.selection(),
+        ..Default::default()
+    };
+    r2d2_imaging::vis::read_table(path, &options)
 }
 
 #[derive(clap::Args)]
@@ -78,7 +61,7 @@ pub struct Args {
 pub fn run(args: Args) -> Result<()> {
     #[cfg(feature = "ms")]
     {
-        if is_ms(&args.input) {
+        if r2d2_imaging::is_ms(&args.input) {
             let (counts, samples) = r2d2_imaging::ms::convert_ms_to_parquet(&args.input, &args.ms.selection(), &args.output)?;
             log::info!("{}: {counts}; wrote {samples} samples to {}", args.input.display(), args.output.display());
         } else {

@@ -2,7 +2,7 @@
 
 use super::{MsCounts, MsReader, MsSelection, ORIGIN_KEY};
 use crate::fits::TempSibling;
-use crate::ingest::TableReader;
+use crate::vis::TableReader;
 use crate::vis::DEFAULT_BATCH_ROWS;
 use crate::{Error, Result};
 use parquet::arrow::ArrowWriter;

@@ -4,7 +4,7 @@ use super::{
     array_f64, invalid, MsError, as_f64, as_i64, column_index, combine_weights, describe, open_table, optional_column, read_cells, Layout,
     MsSelection, Origin, SampleColumns, StokesI, Window, ORIGIN_KEY,
 };
-use crate::ingest::TableReader;
+use crate::vis::TableReader;
 use crate::vis::{ObservationMeta, DEFAULT_BATCH_ROWS};
 use crate::{Error, Result};
 use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, RecordBatch};
@@ -480,6 +480,10 @@ impl SampleColumns {
 impl TableReader for MsReader {
     fn source(&self) -> &Path {
         &self.path
+    }
+
+    fn summary(&self) -> Option<String> {
+        Some(self.counts.to_string())
     }
 
     fn meta(&self) -> &ObservationMeta {

@@ -16,36 +16,12 @@
 //! The image geometry is pipeline-wide rather than a gridder option: weighting, gridder and
 //! a trained network series must all agree on it, so it is stated once.
 
-use super::located;
+use super::located::{self, ROUTING_KEYS};
 use crate::{Error, Result};
 use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 use serde_yaml::{Mapping, Value};
 use std::path::{Path, PathBuf};
-
-/// Image geometry shared by all stages.
-#[derive(Clone, Debug, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields)]
-pub struct ImageConfig {
-    /// Pixels per side.
-    pub size: usize,
-    /// Super-resolution factor (pixel = 1 / (SR 2 max_uv)); default 1.5.
-    #[serde(default)]
-    pub superresolution: Option<f64>,
-    /// Pixel size in arcsec (instead of superresolution).
-    #[serde(default)]
-    pub pixel_arcsec: Option<f64>,
-}
-
-impl ImageConfig {
-    pub fn pixel_scale(&self) -> crate::imaging::PixelScale {
-        match self.pixel_arcsec {
-            Some(p) => crate::imaging::PixelScale::Arcsec(p),
-            None => crate::imaging::PixelScale::SuperResolution(self.superresolution.unwrap_or(1.5)),
-        }
-    }
-}
-
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
 struct RawPipeline {
@@ -57,7 +33,8 @@ struct RawPipeline {
     /// Capacity of the channels between stages (jobs in flight per edge).
     #[serde(default)]
     channel_capacity: Option<usize>,
-    image: ImageConfig,
+    #[serde(default)]
+    image: Value,
     stages: Mapping,
 }
 
@@ -96,7 +73,7 @@ pub struct PipelineSpec {
     pub name: String,
     pub threads: usize,
     pub channel_capacity: usize,
-    pub image: ImageConfig,
+    pub image: Value,
     /// Stages in file order.
     pub stages: Vec<StageSpec>,
     /// The `--set` overrides applied to the text, to tell a value of the file from one of the
@@ -143,15 +120,15 @@ impl StageSpec {
 
 impl PipelineSpec {
     /// A pipeline built in code (no file: errors name the stage and key, without a line).
-    pub fn new(name: impl Into<String>, image: ImageConfig, stages: Vec<StageSpec>) -> Result<PipelineSpec> {
+    pub fn new(name: impl Into<String>, image: &impl Serialize, stages: Vec<StageSpec>) -> Result<PipelineSpec> {
         let name = name.into();
+        let image = serde_yaml::to_value(image).map_err(|e| Error::parameter(format!("pipeline '{name}'"), format!("its image settings do not serialise: {e}")))?;
         let file = PathBuf::from(format!("pipeline '{name}'"));
         for stage in &stages {
             if stage.kind.is_empty() {
                 return Err(located(&file, None, &format!("stage '{}' has no `kind`", stage.name)));
             }
         }
-        crate::limits::check_image_size(image.size).map_err(|m| located(&file, None, &format!("image.size = {}: {m}", image.size)))?;
         Ok(PipelineSpec { file, text: String::new(), name, threads: 0, channel_capacity: 2, image, stages, overrides: Vec::new() })
     }
 
@@ -205,8 +182,6 @@ impl PipelineSpec {
         }
         // Before any stage is built: a size or thread count this machine cannot take would
         // otherwise surface as an aborted allocation or a hang, not as an error about the key.
-        crate::limits::check_image_size(raw.image.size)
-            .map_err(|m| located(file, locate_top(text, "image"), &format!("image.size = {}: {m}", raw.image.size)))?;
         crate::limits::check_threads(raw.threads).map_err(|m| located(file, locate_top(text, "threads"), &format!("threads: {m}")))?;
         let capacity = raw.channel_capacity.unwrap_or(2);
         if !(1..=MAX_CHANNEL_CAPACITY).contains(&capacity) {
@@ -223,6 +198,21 @@ impl PipelineSpec {
             stages,
             overrides: overrides.to_vec(),
         })
+    }
+
+    /// The `image` section as `T`; errors name the file, the section's line and the key.
+    pub fn shared<T: DeserializeOwned>(&self) -> Result<T> {
+        serde_path_to_error::deserialize(self.image.clone()).map_err(|e| {
+            let path = e.path().to_string();
+            let key = if path == "." { "image".to_string() } else { format!("image.{path}") };
+            self.top_error("image", &format!("{key}: {}", e.inner()))
+        })
+    }
+
+    /// An error about a top-level key (`image`), at its line when the spec came from a file.
+    pub fn top_error(&self, key: &str, message: &str) -> Error {
+        let at = if self.text.is_empty() { None } else { locate_top(&self.text, key) };
+        located(&self.file, at, message)
     }
 
     /// Deserialize a stage's parameters into its kind's config struct; errors name the file,
@@ -292,9 +282,6 @@ impl PipelineSpec {
         self.stages.iter().find(|s| s.name == name)
     }
 }
-
-/// Keys of a stage's mapping that the engine reads (its kind and routing), not the kind.
-pub(crate) const ROUTING_KEYS: [&str; 3] = ["kind", "to", "done"];
 
 /// The top-level keys a `--set` may name (any other first part is a stage).
 /// The most jobs a channel between two stages may hold: each slot holds a whole job.

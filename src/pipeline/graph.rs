@@ -4,6 +4,7 @@
 
 use super::config::PipelineSpec;
 use super::registry::{Registry, Role};
+use super::stage::Payload;
 use crate::Result;
 
 /// Edges of the checked graph, by stage index in file order.
@@ -16,7 +17,7 @@ pub struct Graph {
 }
 
 impl Graph {
-    pub fn build(registry: &Registry, config: &PipelineSpec) -> Result<Graph> {
+    pub fn build<J: Payload>(registry: &Registry<J>, config: &PipelineSpec) -> Result<Graph> {
         let names: Vec<&str> = config.stages.iter().map(|s| s.name.as_str()).collect();
         let mut roles = Vec::new();
         let mut passes_on = Vec::new();

@@ -5,11 +5,13 @@
 //! into the same type: serde_yaml then marks the failure with its line and column (the value's
 //! for a wrong value, the key's for an unknown key, nested ones included).
 
-use super::config::ROUTING_KEYS;
 use serde::de::{self, DeserializeOwned, DeserializeSeed, IgnoredAny, IntoDeserializer, MapAccess, Visitor};
 use std::cell::RefCell;
 use std::fmt;
 use std::marker::PhantomData;
+
+/// Keys of a stage's mapping that the engine reads (its kind and routing), not the kind.
+pub(crate) const ROUTING_KEYS: [&str; 3] = ["kind", "to", "done"];
 
 /// Deserialises stage `stage`'s parameters (its mapping under `stages:`, less `kind`, `to` and
 /// `done`) from `text` as `T`. On failure: the failing path inside the parameters (as

@@ -1,14 +1,14 @@
-//! The contract between the engine and its stage kinds: a [`Registry`] maps a YAML `kind` to a
-//! [`StageKind`], which says what role the stage plays in the graph, what it needs from a job
-//! and adds to it, and builds the stage from its parameters. The built-in kinds register
-//! themselves in `crate::stages::builtin`; an embedding program adds its own the same way.
+//! How stage kinds plug in: a [`Registry`] maps a YAML `kind` to a [`StageKind`], which says
+//! what role the stage plays in the graph, what it needs from an item and adds to it
+//! ([`ProductKind`]s of the payload), and builds the stage from its parameters. The imaging
+//! engine's built-in kinds register themselves in `crate::stages::builtin`; an embedding
+//! program adds its own the same way.
 
-use super::config::{ImageConfig, PipelineSpec, StageParams, StageSpec};
-use super::io::{MemoryInput, ProductSink};
-use super::stage::{Source, Stage};
+use super::config::{PipelineSpec, StageParams, StageSpec};
+use super::stage::{Payload, Source, Stage};
 use crate::{Error, Result};
 use serde::de::DeserializeOwned;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 /// What a stage does in the graph.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -25,53 +25,23 @@ pub enum Role {
     Sink,
 }
 
-/// What a stage needs a job to carry, or adds to it: checked along the graph before anything
-/// runs, so that a missing stage is an error about the pipeline, not about a job.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
-pub enum Product {
-    /// The visibilities and their metadata (sources).
-    Visibilities,
-    /// Image geometry and the total weight of each visibility (weighting).
-    Weights,
-    /// Dirty image, PSF and the estimate being improved (gridder).
-    Imaging,
-    /// The measurement operator and the visibilities, kept past gridding for an exact
-    /// residual update (asked for by a `residual` stage with `method: nufft`).
-    Operator,
-    /// An estimate made by a network step.
-    Model,
-}
-
-impl Product {
-    /// The product as a user reads it, and the kind of stage that makes it.
-    pub(crate) fn describe(self) -> (&'static str, &'static str) {
-        match self {
-            Product::Visibilities => ("visibilities", "a source"),
-            Product::Weights => ("weights", "a weighting stage"),
-            Product::Imaging => ("a dirty image and PSF", "a gridder stage"),
-            Product::Operator => ("the measurement operator", "a gridder stage"),
-            Product::Model => ("a model", "a network step (clean, onnx, native)"),
-        }
-    }
-}
-
 /// A constructed stage, ready to run on its thread.
-pub enum Built {
-    Source(Box<dyn Source>),
-    Stage(Box<dyn Stage>),
+pub enum Built<J> {
+    Source(Box<dyn Source<J>>),
+    Stage(Box<dyn Stage<J>>),
 }
 
 /// A stage kind: the builder of the stages of one YAML `kind`.
-pub trait StageKind: Send + Sync {
+pub trait StageKind<J: Payload>: Send + Sync {
     /// The YAML `kind`.
     fn name(&self) -> &str;
     fn role(&self) -> Role;
     /// What a job must carry when it reaches the stage (may depend on the parameters).
-    fn consumes(&self, _ctx: &BuildContext<'_>) -> Result<Vec<Product>> {
+    fn consumes(&self, _ctx: &BuildContext<'_, J>) -> Result<Vec<J::Product>> {
         Ok(Vec::new())
     }
     /// What the stage adds to a job.
-    fn produces(&self) -> Vec<Product> {
+    fn produces(&self) -> Vec<J::Product> {
         Vec::new()
     }
     /// A sink that may pass its jobs on (`to`) instead of ending the pipeline.
@@ -79,61 +49,79 @@ pub trait StageKind: Send + Sync {
         false
     }
     /// Parse the parameters and construct the stage (cheap: heavy work happens per job).
-    fn build(&self, ctx: &BuildContext<'_>) -> Result<Built>;
+    fn build(&self, ctx: &BuildContext<'_, J>) -> Result<Built<J>>;
 }
 
 /// A stage kind made of plain functions: how the built-in kinds are declared.
-#[derive(Clone, Copy)]
-pub struct KindFn {
+pub struct KindFn<J: Payload> {
     pub name: &'static str,
     pub role: Role,
-    pub consumes: &'static [Product],
-    pub produces: &'static [Product],
+    pub consumes: &'static [J::Product],
+    pub produces: &'static [J::Product],
     /// Products needed besides `consumes`, read from the parameters.
-    pub consumes_also: Option<fn(&BuildContext<'_>) -> Result<Vec<Product>>>,
+    pub consumes_also: Option<fn(&BuildContext<'_, J>) -> Result<Vec<J::Product>>>,
     pub passes_on: bool,
-    pub build: fn(&BuildContext<'_>) -> Result<Built>,
+    pub build: fn(&BuildContext<'_, J>) -> Result<Built<J>>,
 }
 
-impl StageKind for KindFn {
+impl<J: Payload> Clone for KindFn<J> {
+    fn clone(&self) -> Self {
+        *self
+    }
+}
+
+impl<J: Payload> Copy for KindFn<J> {}
+
+impl<J: Payload> StageKind<J> for KindFn<J> {
     fn name(&self) -> &str {
         self.name
     }
     fn role(&self) -> Role {
         self.role
     }
-    fn consumes(&self, ctx: &BuildContext<'_>) -> Result<Vec<Product>> {
+    fn consumes(&self, ctx: &BuildContext<'_, J>) -> Result<Vec<J::Product>> {
         let mut all = self.consumes.to_vec();
         if let Some(more) = self.consumes_also {
             all.extend(more(ctx)?);
         }
         Ok(all)
     }
-    fn produces(&self) -> Vec<Product> {
+    fn produces(&self) -> Vec<J::Product> {
         self.produces.to_vec()
     }
     fn passes_on(&self) -> bool {
         self.passes_on
     }
-    fn build(&self, ctx: &BuildContext<'_>) -> Result<Built> {
+    fn build(&self, ctx: &BuildContext<'_, J>) -> Result<Built<J>> {
         (self.build)(ctx)
     }
 }
 
 /// The stage kinds a pipeline may use, by name.
-#[derive(Clone, Default)]
-pub struct Registry {
-    kinds: Vec<Arc<dyn StageKind>>,
+pub struct Registry<J: Payload> {
+    kinds: Vec<Arc<dyn StageKind<J>>>,
 }
 
-impl Registry {
+impl<J: Payload> Clone for Registry<J> {
+    fn clone(&self) -> Self {
+        Registry { kinds: self.kinds.clone() }
+    }
+}
+
+impl<J: Payload> Default for Registry<J> {
+    fn default() -> Self {
+        Registry { kinds: Vec::new() }
+    }
+}
+
+impl<J: Payload> Registry<J> {
     /// An empty registry (`crate::stages::builtin()` gives one with the built-in kinds).
-    pub fn new() -> Registry {
+    pub fn new() -> Registry<J> {
         Registry::default()
     }
 
     /// Adds a kind; a name already taken is refused.
-    pub fn register(&mut self, kind: impl StageKind + 'static) -> Result<()> {
+    pub fn register(&mut self, kind: impl StageKind<J> + 'static) -> Result<()> {
         if self.get(kind.name()).is_some() {
             return Err(Error::parameter("stage kind", format!("'{}' is registered already", kind.name())));
         }
@@ -141,7 +129,7 @@ impl Registry {
         Ok(())
     }
 
-    pub fn get(&self, name: &str) -> Option<&dyn StageKind> {
+    pub fn get(&self, name: &str) -> Option<&dyn StageKind<J>> {
         self.kinds.iter().find(|k| k.name() == name).map(|k| k.as_ref())
     }
 
@@ -156,7 +144,7 @@ impl Registry {
     }
 
     /// The kind of `stage`, or an error at its `kind:` line listing the known kinds.
-    pub fn kind_of(&self, spec: &PipelineSpec, stage: &StageSpec) -> Result<&dyn StageKind> {
+    pub fn kind_of(&self, spec: &PipelineSpec, stage: &StageSpec) -> Result<&dyn StageKind<J>> {
         self.get(&stage.kind).ok_or_else(|| {
             spec.stage_error(
                 &stage.name,
@@ -167,51 +155,28 @@ impl Registry {
     }
 }
 
-/// What a run hands to the stages that are not files: in-memory inputs and the product sink.
-/// Each is taken by the one stage that uses it.
-#[derive(Default)]
-pub struct RunIo {
-    inputs: Mutex<Option<Vec<MemoryInput>>>,
-    sink: Mutex<Option<Box<dyn ProductSink>>>,
-    /// Building to check the pipeline only (`validate`): nothing will run.
-    validating: bool,
-}
-
-impl RunIo {
-    pub fn new(inputs: Vec<MemoryInput>, sink: Option<Box<dyn ProductSink>>) -> RunIo {
-        RunIo { inputs: Mutex::new(Some(inputs)), sink: Mutex::new(sink), validating: false }
-    }
-
-    /// For `validate`: stages build as they would for a run, with nothing to read or deliver.
-    pub fn validating() -> RunIo {
-        RunIo { validating: true, ..RunIo::default() }
-    }
-}
-
 /// Everything a stage kind may look at while building a stage.
-pub struct BuildContext<'a> {
+pub struct BuildContext<'a, J: Payload> {
     pub pipeline: &'a PipelineSpec,
     pub stage: &'a StageSpec,
     /// Threads for the stage's numerical work (the shared pool's size; 0: all cores).
     pub threads: usize,
     /// Products consumed by the stages this one's jobs reach (empty while the products are
     /// being checked, before any stage is built).
-    pub(crate) downstream: Vec<Product>,
+    pub(crate) downstream: Vec<J::Product>,
     /// The stages (indices in file order) whose jobs reach this one, and those its jobs reach.
     pub(crate) upstream_stages: Vec<usize>,
     pub(crate) downstream_stages: Vec<usize>,
-    pub(crate) io: &'a RunIo,
+    /// What the domain hands every build (see [`Payload::Context`]).
+    pub context: &'a J::Context,
+    /// Building to check the pipeline only (`validate`): nothing will run.
+    pub(crate) validating: bool,
 }
 
-impl BuildContext<'_> {
+impl<J: Payload> BuildContext<'_, J> {
     /// The stage's name.
     pub fn name(&self) -> &str {
         &self.stage.name
-    }
-
-    /// The pipeline's image geometry.
-    pub fn image(&self) -> &ImageConfig {
-        &self.pipeline.image
     }
 
     /// The stage's parameters as the kind's config struct; errors name the file, line and key.
@@ -254,35 +219,24 @@ impl BuildContext<'_> {
     }
 
     /// Whether a stage downstream of this one consumes `product`.
-    pub fn consumed_downstream(&self, product: Product) -> bool {
+    pub fn consumed_downstream(&self, product: J::Product) -> bool {
         self.downstream.contains(&product)
     }
 
     /// Whether the pipeline is being checked only (`validate`): nothing will run.
     pub fn validating(&self) -> bool {
-        self.io.validating
-    }
-
-    /// The run's in-memory inputs (for the one source that reads them); `None` once taken.
-    pub fn take_inputs(&self) -> Option<Vec<MemoryInput>> {
-        self.io.inputs.lock().expect("run inputs").take()
-    }
-
-    /// The run's product sink (for the one stage that delivers to it); `None` once taken or
-    /// when the run has none.
-    pub fn take_sink(&self) -> Option<Box<dyn ProductSink>> {
-        self.io.sink.lock().expect("run sink").take()
+        self.validating
     }
 }
 
 /// Checks that every stage finds what it consumes made by a stage upstream of it, and
 /// returns, per stage, what the stages its jobs reach consume.
-pub(crate) fn check_products(
+pub(crate) fn check_products<P: super::stage::ProductKind>(
     spec: &PipelineSpec,
     reach: &[Vec<bool>],
-    consumes: &[Vec<Product>],
-    produces: &[Vec<Product>],
-) -> Result<Vec<Vec<Product>>> {
+    consumes: &[Vec<P>],
+    produces: &[Vec<P>],
+) -> Result<Vec<Vec<P>>> {
     let n = spec.stages.len();
     for j in 0..n {
         for &p in &consumes[j] {
@@ -300,7 +254,7 @@ pub(crate) fn check_products(
     }
     Ok((0..n)
         .map(|i| {
-            let mut wanted: Vec<Product> = (0..n).filter(|&j| j != i && reach[i][j]).flat_map(|j| consumes[j].iter().copied()).collect();
+            let mut wanted: Vec<P> = (0..n).filter(|&j| j != i && reach[i][j]).flat_map(|j| consumes[j].iter().copied()).collect();
             wanted.dedup();
             wanted
         })

@@ -13,8 +13,8 @@
 use super::cancel::RunStop;
 use super::config::PipelineSpec;
 use super::graph::Graph;
-use super::registry::{check_products, BuildContext, Built, Registry, Role, RunIo};
-use super::{Job, Port};
+use super::registry::{check_products, BuildContext, Built, Registry, Role};
+use super::stage::{Payload, Port};
 use crate::{Error, Result};
 use crossbeam_channel::{bounded, Receiver, RecvTimeoutError, Sender};
 use std::collections::BTreeMap;
@@ -48,20 +48,20 @@ pub enum Progress {
 }
 
 /// Check and build every stage without running anything (`r2d2 validate`).
-pub fn validate(registry: &Registry, config: &PipelineSpec) -> Result<Graph> {
+pub fn validate<J: Payload>(registry: &Registry<J>, config: &PipelineSpec, context: &J::Context) -> Result<Graph> {
     let graph = Graph::build(registry, config)?;
     let stop = RunStop::new();
     let _in = stop.enter();
-    build_all(registry, config, &graph, &RunIo::validating())?;
+    build_all(registry, config, &graph, context, true)?;
     Ok(graph)
 }
 
 /// Run the pipeline to completion, or until `cancel` turns true, reporting to `progress`.
 /// `cancel` is only read: the run stops itself without setting it.
-pub fn run(
-    registry: &Registry,
+pub fn run<J: Payload>(
+    registry: &Registry<J>,
     config: &PipelineSpec,
-    io: RunIo,
+    context: &J::Context,
     cancel: Arc<AtomicBool>,
     progress: &(dyn Fn(&Progress) + Sync),
 ) -> Result<RunReport> {
@@ -70,18 +70,18 @@ pub fn run(
     let built = {
         // Parts built now (a plugin host) register with this run's stop.
         let _in = stop.enter();
-        build_all(registry, config, &graph, &io)?
+        build_all(registry, config, &graph, context, false)?
     };
     run_built(config, &graph, built, &stop, &cancel, progress)
 }
 
 /// Checks what each stage consumes against what the stages before it produce, then builds
 /// every stage (in file order), telling each what the stages after it consume.
-fn build_all(registry: &Registry, config: &PipelineSpec, graph: &Graph, io: &RunIo) -> Result<Vec<Built>> {
+fn build_all<J: Payload>(registry: &Registry<J>, config: &PipelineSpec, graph: &Graph, context: &J::Context, validating: bool) -> Result<Vec<Built<J>>> {
     let reach = graph.reach();
     let context = |i: usize, downstream| {
         let (upstream_stages, downstream_stages) = neighbours(&reach, i);
-        BuildContext { pipeline: config, stage: &config.stages[i], threads: config.threads, downstream, upstream_stages, downstream_stages, io }
+        BuildContext { pipeline: config, stage: &config.stages[i], threads: config.threads, downstream, upstream_stages, downstream_stages, context, validating }
     };
     let mut consumes = Vec::new();
     let mut produces = Vec::new();
@@ -107,10 +107,10 @@ pub(crate) fn neighbours(reach: &[Vec<bool>], i: usize) -> (Vec<usize>, Vec<usiz
 }
 
 /// Runs stages already built (one per stage of `config`, in file order) along `graph`.
-fn run_built(
+fn run_built<J: Payload>(
     config: &PipelineSpec,
     graph: &Graph,
-    built: Vec<Built>,
+    built: Vec<Built<J>>,
     stop: &RunStop,
     requested: &AtomicBool,
     progress: &(dyn Fn(&Progress) + Sync),
@@ -120,7 +120,7 @@ fn run_built(
     }
     let n = built.len();
     let cap = config.channel_capacity;
-    let channels: Vec<(Sender<Job>, Receiver<Job>)> = (0..n).map(|_| bounded(cap)).collect();
+    let channels: Vec<(Sender<J>, Receiver<J>)> = (0..n).map(|_| bounded(cap)).collect();
     // Loop tokens, per step stage that heads a loop.
     let tokens: Vec<Option<(Sender<()>, Receiver<()>)>> = (0..n)
         .map(|i| {
@@ -180,10 +180,10 @@ fn run_built(
                 let kind = &config.stages[i].kind;
                 // Send on a port, taking a loop token when entering a loop from outside and
                 // giving it back when leaving the loop through `done`.
-                let send = |port: Port, mut job: Job, began: Instant| -> Result<()> {
+                let send = |port: Port, mut job: J, began: Instant| -> Result<()> {
                     // Work time only: waiting below for room downstream is not this stage's.
                     let spent = began.elapsed().as_secs_f64();
-                    *job.stage_seconds.entry(name.clone()).or_insert(0.0) += spent;
+                    job.add_stage_seconds(name, spent);
                     *totals.lock().expect("totals").entry(name.clone()).or_insert(0.0) += spent;
                     let target = match port {
                         Port::Next => graph.next[i],
@@ -226,11 +226,11 @@ fn run_built(
                         // Products are named after job ids: a repeated one would overwrite
                         // another job's (a split part named like a file, say).
                         let mut ids = std::collections::HashSet::new();
-                        let mut emit = |job: Job| {
-                            if !ids.insert(job.id.clone()) {
+                        let mut emit = |job: J| {
+                            if !ids.insert(job.id().to_string()) {
                                 return Err(Error::parameter(
                                     "job id",
-                                    format!("'{}' comes twice from this source: the second job's products would overwrite the first's", job.id),
+                                    format!("'{}' comes twice from this source: the second job's products would overwrite the first's", job.id()),
                                 ));
                             }
                             let sent = send(Port::Next, job, since);
@@ -257,12 +257,12 @@ fn run_built(
                                 continue;
                             }
                         };
-                        let id = job.id.clone();
-                        progress(&Progress::Working { stage: name.clone(), job: id.clone(), iteration: job.iteration });
+                        let id = job.id().to_string();
+                        progress(&Progress::Working { stage: name.clone(), job: id.clone(), iteration: job.iteration() });
                         let began = Instant::now();
                         // A sink passing its jobs on (the product sink before a writer) ends nothing.
                         let sink = graph.roles[i] == Role::Sink && graph.next[i].is_none();
-                        let mut emit = |port: Port, job: Job| send(port, job, began);
+                        let mut emit = |port: Port, job: J| send(port, job, began);
                         if let Err(e) = contain_stage_panic(|| stage.process(job, &mut emit)) {
                             break Err(stage_error(name, kind, &id, e));
                         }
@@ -336,37 +336,84 @@ fn stage_error(stage: &str, kind: &str, job: &str, e: Error) -> Error {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::pipeline::{Emit, Source, Stage};
-    use crate::vis::{ObservationMeta, Visibilities};
+    use crate::pipeline::{Emit, KindFn, ProductKind, Source, Stage};
     use std::path::Path;
 
-    const PIPELINE: &str = "image: {size: 16}\nstages:\n  source: {kind: simulate, to: weights}\n  weights: {kind: weighting, scheme: natural, to: grid}\n  grid: {kind: gridder, to: step}\n  step: {kind: clean, to: update}\n  update: {kind: residual, to: step, done: write}\n  write: {kind: writer}\n";
+    /// A payload of the machinery's own: an id and nothing else.
+    struct Item(String);
 
-    /// Emits one empty job named `j1`.
-    struct OneJob;
-    impl Source for OneJob {
-        fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, _: &dyn Fn() -> bool) -> Result<()> {
-            emit(Job::new("j1", ObservationMeta::new(0.0, 0.0, "test"), Visibilities::default()))
+    #[derive(Clone, Copy, Debug, PartialEq, Eq)]
+    enum Nothing {}
+    impl ProductKind for Nothing {
+        fn describe(self) -> (&'static str, &'static str) {
+            match self {}
         }
     }
 
-    /// Panics on every job, as a stage with a bug would.
+    impl Payload for Item {
+        type Product = Nothing;
+        type Context = ();
+        fn id(&self) -> &str {
+            &self.0
+        }
+        fn iteration(&self) -> usize {
+            0
+        }
+        fn add_stage_seconds(&mut self, _: &str, _: f64) {}
+    }
+
+    const PIPELINE: &str = "stages:\n  source: {kind: emit, to: weights}\n  weights: {kind: pass, to: write}\n  write: {kind: sink}\n";
+
+    /// Emits one item named `j1`.
+    struct OneJob;
+    impl Source<Item> for OneJob {
+        fn produce(&mut self, emit: &mut dyn FnMut(Item) -> Result<()>, _: &dyn Fn() -> bool) -> Result<()> {
+            emit(Item("j1".into()))
+        }
+    }
+
+    /// Panics on every item, as a stage with a bug would.
     struct Panics;
-    impl Stage for Panics {
-        fn process(&mut self, _: Job, _: &mut Emit<'_>) -> Result<()> {
+    impl Stage<Item> for Panics {
+        fn process(&mut self, _: Item, _: &mut Emit<'_, Item>) -> Result<()> {
             panic!("boom")
         }
     }
 
-    /// Runs PIPELINE with `source` and the weighting stage replaced; `None` if it has not
-    /// ended after a minute.
-    fn run_with(source: Box<dyn Source>, weights: Box<dyn Stage>) -> Option<Result<RunReport>> {
+    /// Passes items on.
+    struct Passes;
+    impl Stage<Item> for Passes {
+        fn process(&mut self, item: Item, emit: &mut Emit<'_, Item>) -> Result<()> {
+            emit(Port::Next, item)
+        }
+    }
+
+    /// Takes items and emits nothing.
+    struct Swallows;
+    impl Stage<Item> for Swallows {
+        fn process(&mut self, _: Item, _: &mut Emit<'_, Item>) -> Result<()> {
+            Ok(())
+        }
+    }
+
+    fn registry() -> Registry<Item> {
+        let kind = |name, role, build| KindFn { name, role, consumes: &[], produces: &[], consumes_also: None, passes_on: false, build };
+        let mut registry = Registry::new();
+        registry.register(kind("emit", Role::Source, |_| Ok(Built::Source(Box::new(OneJob))))).unwrap();
+        registry.register(kind("pass", Role::Transform, |_| Ok(Built::Stage(Box::new(Passes))))).unwrap();
+        registry.register(kind("sink", Role::Sink, |_| Ok(Built::Stage(Box::new(Swallows))))).unwrap();
+        registry
+    }
+
+    /// Runs PIPELINE with `source` and the middle stage replaced; `None` if it has not ended
+    /// after a minute.
+    fn run_with(source: Box<dyn Source<Item>>, weights: Box<dyn Stage<Item>>) -> Option<Result<RunReport>> {
         let config = PipelineSpec::parse(PIPELINE, Path::new("p.yaml"), &[]).unwrap();
         let (tx, rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
-            let registry = crate::stages::builtin();
+            let registry = registry();
             let graph = Graph::build(&registry, &config).unwrap();
-            let mut built = build_all(&registry, &config, &graph, &RunIo::default()).unwrap();
+            let mut built = build_all(&registry, &config, &graph, &(), false).unwrap();
             built[0] = Built::Source(source);
             built[1] = Built::Stage(weights);
             let _ = tx.send(run_built(&config, &graph, built, &RunStop::new(), &AtomicBool::new(false), &|_| {}));
@@ -379,36 +426,34 @@ mod tests {
     }
 
     #[test]
+    fn items_flow_to_the_sink() {
+        let report = run_with(Box::new(OneJob), Box::new(Passes)).expect("the run ended").expect("the run succeeded");
+        assert_eq!(report.jobs, vec!["j1".to_string()]);
+    }
+
+    #[test]
     fn a_panicking_stage_fails_the_run_naming_it_instead_of_hanging() {
         let result = run_with(Box::new(OneJob), Box::new(Panics)).expect("the run hung after a stage panicked");
         let err = result.err().expect("a panicking stage failed the run").to_string();
-        for expected in ["stage 'weights' (weighting)", "job 'j1'", "boom"] {
+        for expected in ["stage 'weights' (pass)", "job 'j1'", "boom"] {
             assert!(err.contains(expected), "'{expected}' missing from: {err}");
         }
     }
 
-    /// Panics while producing, before any job.
+    /// Panics while producing, before any item.
     struct PanickingSource;
-    impl Source for PanickingSource {
-        fn produce(&mut self, _: &mut dyn FnMut(Job) -> Result<()>, _: &dyn Fn() -> bool) -> Result<()> {
+    impl Source<Item> for PanickingSource {
+        fn produce(&mut self, _: &mut dyn FnMut(Item) -> Result<()>, _: &dyn Fn() -> bool) -> Result<()> {
             panic!("source boom")
         }
     }
 
-    /// Emits two jobs with the same id, as a split whose part ids collide with a file's would.
+    /// Emits two items with the same id, as a split whose part ids collide with a file's would.
     struct SameIdTwice;
-    impl Source for SameIdTwice {
-        fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()> {
+    impl Source<Item> for SameIdTwice {
+        fn produce(&mut self, emit: &mut dyn FnMut(Item) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()> {
             OneJob.produce(emit, cancelled)?;
             OneJob.produce(emit, cancelled)
-        }
-    }
-
-    /// Takes jobs and emits nothing.
-    struct Swallows;
-    impl Stage for Swallows {
-        fn process(&mut self, _: Job, _: &mut Emit<'_>) -> Result<()> {
-            Ok(())
         }
     }
 
@@ -423,6 +468,6 @@ mod tests {
     fn a_panicking_source_fails_the_run_naming_it() {
         let result = run_with(Box::new(PanickingSource), Box::new(Panics)).expect("the run hung after the source panicked");
         let err = result.err().expect("a panicking source failed the run").to_string();
-        assert!(err.contains("stage 'source' (simulate)") && err.contains("source boom"), "{err}");
+        assert!(err.contains("stage 'source' (emit)") && err.contains("source boom"), "{err}");
     }
 }

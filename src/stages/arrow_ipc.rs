@@ -2,44 +2,13 @@
 //! columns and metadata, from a file or from standard input (`path: -`): how a calibration
 //! process upstream streams batches in. One job, or several with `split_by`.
 
-use crate::ingest::{emit_parts, read_parts, stem_id, IpcReader, SplitBy, Truth, STDIN};
-use crate::pipeline::config::{PipelineSpec, StageSpec};
-use crate::pipeline::{Job, Source, StageParams};
+use super::params::ArrowIpcParams;
+use crate::job::{emit_parts, job_id_problem, stem_id, Truth};
+use crate::vis::{read_parts, IpcReader, SplitBy, TableReader, STDIN};
+use crate::job::Job;
+use crate::pipeline::{PipelineSpec, Source, StageSpec};
 use crate::Result;
-use serde::{Deserialize, Serialize};
-use std::path::{Path, PathBuf};
-
-/// `kind: arrow-ipc`: an Arrow IPC stream or file.
-#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
-#[serde(deny_unknown_fields)]
-pub struct ArrowIpcParams {
-    /// An IPC stream or file, or `-` for standard input (stream format).
-    pub path: String,
-    /// Job id (default: the file name without extension; `stdin` for standard input).
-    #[serde(default)]
-    pub id: Option<String>,
-    /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
-    #[serde(default)]
-    pub truth: Option<PathBuf>,
-    /// Split the table into several jobs by a column.
-    #[serde(default)]
-    pub split_by: Option<SplitBy>,
-    /// Image a stream that ends without its end-of-stream marker (a sender that stopped
-    /// between batches), with a warning, instead of failing.
-    #[serde(default)]
-    pub allow_truncated: bool,
-}
-
-impl ArrowIpcParams {
-    /// `path` with the defaults of the other keys.
-    pub fn new(path: impl Into<String>) -> ArrowIpcParams {
-        ArrowIpcParams { path: path.into(), id: None, truth: None, split_by: None, allow_truncated: false }
-    }
-}
-
-impl StageParams for ArrowIpcParams {
-    const KIND: &'static str = "arrow-ipc";
-}
+use std::path::Path;
 
 pub struct ArrowIpcSource {
     path: String,
@@ -52,7 +21,7 @@ pub struct ArrowIpcSource {
 }
 
 impl ArrowIpcSource {
-    pub fn new(config: ArrowIpcParams, pipeline: &PipelineSpec, stage: &StageSpec) -> Result<ArrowIpcSource> {
+    pub fn new(config: ArrowIpcParams, pipeline: &PipelineSpec, stage: &StageSpec, image_size: usize) -> Result<ArrowIpcSource> {
         let name = &stage.name;
         if config.path != STDIN && !Path::new(&config.path).exists() {
             return Err(pipeline.stage_error(
@@ -62,8 +31,8 @@ impl ArrowIpcSource {
             ));
         }
         let id = match config.id {
-            Some(id) if crate::ingest::job_id_problem(&id).is_some() => {
-                let problem = crate::ingest::job_id_problem(&id).unwrap_or_default();
+            Some(id) if job_id_problem(&id).is_some() => {
+                let problem = job_id_problem(&id).unwrap_or_default();
                 return Err(pipeline.stage_error(name, Some("id"), &format!("stages.{name}.id: {problem}")));
             }
             Some(id) => id,
@@ -73,23 +42,23 @@ impl ArrowIpcSource {
         if let Some(split) = &config.split_by {
             split.check().map_err(|m| pipeline.stage_error(name, Some("split_by"), &format!("stages.{name}.split_by.window: {m}")))?;
         }
-        let truth = Truth::load(config.truth.as_deref(), pipeline.image.size)
+        let truth = Truth::load(config.truth.as_deref(), image_size)
             .map_err(|e| pipeline.stage_error(name, Some("truth"), &format!("stages.{name}.truth: {e}")))?;
         Ok(ArrowIpcSource { path: config.path, id, truth, split_by: config.split_by, split_key: format!("stages.{name}.split_by"), allow_truncated: config.allow_truncated, reading: false })
     }
 }
 
-impl Source for ArrowIpcSource {
+impl Source<Job> for ArrowIpcSource {
     fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()> {
         self.reading = true;
         let mut reader = IpcReader::open(&self.path, self.allow_truncated)?;
         let Some((parts, stats)) = read_parts(&mut reader, self.split_by.as_ref(), &self.split_key, cancelled)? else {
             return Ok(());
         };
-        stats.log(crate::ingest::TableReader::source(&reader));
+        stats.log(TableReader::source(&reader));
         self.reading = false;
         let source = (self.path != STDIN).then(|| Path::new(&self.path));
-        emit_parts(&self.id, crate::ingest::TableReader::meta(&reader), parts, self.truth.as_ref(), source, emit)
+        emit_parts(&self.id, TableReader::meta(&reader), parts, self.truth.as_ref(), source, emit)
     }
 
     fn current_job(&self) -> Option<String> {

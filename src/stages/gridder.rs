@@ -1,33 +1,13 @@
 //! `kind: gridder`: dirty image, PSF (N and 2N), kappa and the restoring beam. Releases the
 //! visibilities unless the residual update runs a NUFFT round trip.
 
+use super::params::GridderParams;
 use crate::nufft::NufftParams;
 use crate::operator::{dirty_and_psf, doubled_psf, MeasurementOperator, PsfConvolution};
-use crate::pipeline::{Emit, Imaging, Job, Port, Stage, StageParams};
+use crate::job::{Emit, Imaging, Job};
+use crate::pipeline::{Port, Stage};
 use crate::Result;
-use serde::{Deserialize, Serialize};
 use std::sync::Arc;
-
-/// `kind: gridder`: the NUFFT's accuracy.
-#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct GridderParams {
-    /// NUFFT relative accuracy; default 1e-6.
-    pub epsilon: f64,
-    /// Oversampling of the NUFFT's grid; default 2.
-    pub oversampling: f64,
-}
-
-impl Default for GridderParams {
-    fn default() -> Self {
-        let NufftParams { epsilon, oversampling } = NufftParams::default();
-        GridderParams { epsilon, oversampling }
-    }
-}
-
-impl StageParams for GridderParams {
-    const KIND: &'static str = "gridder";
-}
 
 pub struct GridderStage {
     nufft: NufftParams,
@@ -43,7 +23,7 @@ impl GridderStage {
     }
 }
 
-impl Stage for GridderStage {
+impl Stage<Job> for GridderStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
         let (geometry, weight) = job.take_weights("gridder")?;
         let mut vis = job.take_visibilities("gridder")?;

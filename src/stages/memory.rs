@@ -3,29 +3,12 @@
 //! the Parquet format's columns and its observation metadata in the schema's metadata, and
 //! are checked exactly as an Arrow IPC stream's are.
 
-use crate::ingest::{emit_parts, read_parts, SplitBy, TableReader, Truth};
-use crate::pipeline::registry::BuildContext;
-use crate::pipeline::{Job, MemoryInput, Source, StageParams};
-use crate::vis::{validate_schema, ObservationMeta};
-use crate::{Error, Result};
-use arrow::array::RecordBatch;
-use arrow::datatypes::SchemaRef;
-use serde::{Deserialize, Serialize};
-use std::path::{Path, PathBuf};
-
-/// `kind: arrow`: the run's in-memory inputs.
-#[derive(Clone, Debug, Default, PartialEq, Deserialize, Serialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ArrowParams {
-    /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
-    pub truth: Option<PathBuf>,
-    /// Split each input into several jobs by a column.
-    pub split_by: Option<SplitBy>,
-}
-
-impl StageParams for ArrowParams {
-    const KIND: &'static str = "arrow";
-}
+use super::params::ArrowParams;
+use crate::job::{emit_parts, job_id_problem, Truth};
+use crate::job::{BuildContext, ImageContext, Job};
+use crate::pipeline::Source;
+use crate::vis::{read_parts, MemoryInput, MemoryTable, SplitBy, TableReader};
+use crate::Result;
 
 pub struct MemorySource {
     inputs: Vec<MemoryInput>,
@@ -47,7 +30,7 @@ impl MemorySource {
         }
         let mut ids = std::collections::HashSet::new();
         for input in &inputs {
-            if let Some(problem) = crate::ingest::job_id_problem(&input.id) {
+            if let Some(problem) = job_id_problem(&input.id) {
                 return Err(ctx.error(None, format!("an in-memory input: {problem}")));
             }
             if !ids.insert(input.id.as_str()) {
@@ -63,17 +46,17 @@ impl MemorySource {
     }
 }
 
-impl Source for MemorySource {
+impl Source<Job> for MemorySource {
     fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()> {
         for input in std::mem::take(&mut self.inputs) {
             self.current_job = Some(input.id.clone());
             let source = format!("in-memory input '{}'", input.id);
-            let mut reader = BatchReader::new(input, &source)?;
+            let mut reader = MemoryTable::new(input, &source)?;
             let Some((parts, stats)) = read_parts(&mut reader, self.split_by.as_ref(), &self.split_key, cancelled)? else {
                 return Ok(());
             };
-            stats.log(&reader.source);
-            emit_parts(&reader.id, &reader.meta, parts, self.truth.as_ref(), None, emit)?;
+            stats.log(reader.source());
+            emit_parts(reader.id(), reader.meta(), parts, self.truth.as_ref(), None, emit)?;
         }
         self.current_job = None;
         Ok(())
@@ -84,59 +67,3 @@ impl Source for MemorySource {
     }
 }
 
-/// An in-memory input read as a visibility table: the metadata and columns are checked when
-/// it is opened, as for a file.
-struct BatchReader {
-    id: String,
-    /// Names the input in messages.
-    source: PathBuf,
-    meta: ObservationMeta,
-    schema: SchemaRef,
-    input: MemoryInput,
-    failed: bool,
-}
-
-impl BatchReader {
-    /// `name` names the input in messages.
-    fn new(input: MemoryInput, name: &str) -> Result<BatchReader> {
-        let schema = input.batches.schema();
-        let meta = ObservationMeta::from_pairs(schema.metadata().iter().map(|(k, v)| (k.as_str(), Some(v.as_str()))), name)?;
-        validate_schema(&schema, name)?;
-        Ok(BatchReader { id: input.id.clone(), source: PathBuf::from(name), meta, schema, input, failed: false })
-    }
-}
-
-/// An in-memory input as a visibility table, its metadata and columns checked as a file's are,
-/// for a caller that scans it itself (e.g. with [`crate::ingest::split_rows`]); `name` names
-/// it in messages.
-pub fn memory_table(input: MemoryInput, name: &str) -> Result<impl TableReader> {
-    BatchReader::new(input, name)
-}
-
-impl TableReader for BatchReader {
-    fn source(&self) -> &Path {
-        &self.source
-    }
-    fn meta(&self) -> &ObservationMeta {
-        &self.meta
-    }
-    fn schema(&self) -> SchemaRef {
-        self.schema.clone()
-    }
-    fn next_batch(&mut self) -> Option<Result<RecordBatch>> {
-        if self.failed {
-            return None;
-        }
-        match self.input.batches.next()? {
-            Ok(batch) if batch.schema().fields() != self.schema.fields() => {
-                self.failed = true;
-                Some(Err(Error::input(&self.source, "a record batch's columns differ from the input's schema")))
-            }
-            Ok(batch) => Some(Ok(batch)),
-            Err(e) => {
-                self.failed = true;
-                Some(Err(Error::input(&self.source, format!("reading a record batch: {e}"))))
-            }
-        }
-    }
-}

@@ -4,7 +4,6 @@
 
 mod arrow_ipc;
 mod gridder;
-pub mod ingest;
 mod memory;
 #[cfg(feature = "ms")]
 mod ms;
@@ -17,7 +16,8 @@ mod step;
 mod weighting;
 mod writer;
 
-use crate::pipeline::registry::{BuildContext, Built, KindFn, Product, Registry, Role};
+use crate::job::{BuildContext, Built, ImageContext, KindFn, Product, Registry};
+use crate::pipeline::Role;
 use crate::Result;
 
 const VISIBILITIES: &[Product] = &[Product::Visibilities];
@@ -36,14 +36,14 @@ const fn step(name: &'static str, build: fn(&BuildContext<'_>) -> Result<Built>)
 /// Every built-in kind.
 const BUILTIN: &[KindFn] = &[
     source("simulate", |c| Ok(Built::Source(Box::new(simulate::SimulateSource::new(c.params()?, c.image(), c.threads)?)))),
-    source("parquet", |c| Ok(Built::Source(Box::new(parquet::ParquetSource::new(c.params()?, c.pipeline, c.stage)?)))),
-    source("arrow-ipc", |c| Ok(Built::Source(Box::new(arrow_ipc::ArrowIpcSource::new(c.params()?, c.pipeline, c.stage)?)))),
+    source("parquet", |c| Ok(Built::Source(Box::new(parquet::ParquetSource::new(c.params()?, c.pipeline, c.stage, c.image().size)?)))),
+    source("arrow-ipc", |c| Ok(Built::Source(Box::new(arrow_ipc::ArrowIpcSource::new(c.params()?, c.pipeline, c.stage, c.image().size)?)))),
     source("arrow", |c| Ok(Built::Source(Box::new(memory::MemorySource::new(c.params()?, c)?)))),
     #[cfg(feature = "ms")]
     source("ms", |c| {
         // A writer that predicts the model into the MS needs one job per field, checked now.
         let model_columns: Vec<String> = c.downstream_params::<params::WriterParams>()?.into_iter().filter_map(|w| w.model_column).collect();
-        Ok(Built::Source(Box::new(ms::MsSource::new(c.params()?, c.pipeline, c.stage, &model_columns)?)))
+        Ok(Built::Source(Box::new(ms::MsSource::new(c.params()?, c.pipeline, c.stage, c.image().size, &model_columns)?)))
     }),
     #[cfg(not(feature = "ms"))]
     source("ms", |c| Err(c.error(Some("kind"), "kind 'ms': this r2d2 was built without the `ms` feature"))),
@@ -180,7 +180,7 @@ pub fn builtin() -> Registry {
 mod tests {
     use super::*;
     use crate::pipeline::graph::Graph;
-    use crate::pipeline::registry::RunIo;
+    use crate::job::RunContext;
     use crate::pipeline::runner::neighbours;
     use crate::pipeline::PipelineSpec;
     use std::path::Path;
@@ -191,8 +191,17 @@ mod tests {
         let spec = PipelineSpec::parse(text, Path::new("p.yaml"), &[]).unwrap();
         let graph = Graph::build(&builtin(), &spec).unwrap();
         let (upstream_stages, downstream_stages) = neighbours(&graph.reach(), step);
-        let io = RunIo::default();
-        let ctx = BuildContext { pipeline: &spec, stage: &spec.stages[step], threads: 1, downstream: Vec::new(), upstream_stages, downstream_stages, io: &io };
+        let context = RunContext::new(&spec, Vec::new(), None).unwrap();
+        let ctx = BuildContext {
+            pipeline: &spec,
+            stage: &spec.stages[step],
+            threads: 1,
+            downstream: Vec::new(),
+            upstream_stages,
+            downstream_stages,
+            context: &context,
+            validating: false,
+        };
         imaging_setup(&ctx).unwrap()
     }
 

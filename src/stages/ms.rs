@@ -2,67 +2,14 @@
 //! selected windows and channels), or several with `split_by` (time windows, channels,
 //! `spw`, or `field`: one job per field, each with its own phase centre), read in row chunks.
 
-use crate::ingest::{emit_parts, read_parts, stem_id, SplitBy, TableReader, Truth};
+use super::params::MsParams;
+use crate::job::{emit_parts, job_id_problem, stem_id, Truth};
+use crate::vis::{read_parts, SplitBy, TableReader};
 use crate::ms::{FieldSelector, MsReader, MsSelection};
-use crate::pipeline::config::{PipelineSpec, StageSpec};
-use crate::pipeline::{Job, Source, StageParams};
+use crate::job::Job;
+use crate::pipeline::{PipelineSpec, Source, StageSpec};
 use crate::Result;
-use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
-
-/// `kind: ms`: a MeasurementSet.
-#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
-#[serde(deny_unknown_fields)]
-pub struct MsParams {
-    /// The MeasurementSet (a directory).
-    pub path: PathBuf,
-    /// Job id (default: the MS name without its extension).
-    #[serde(default)]
-    pub id: Option<String>,
-    /// The complex column to image (default DATA; CORRECTED_DATA, MODEL_DATA, ...).
-    #[serde(default = "crate::ms::default_data_column")]
-    pub data_column: String,
-    /// Field id or name; required when the MS holds several fields (unless split by field).
-    #[serde(default)]
-    pub field: Option<FieldSelector>,
-    /// Spectral windows to read (default: all).
-    #[serde(default)]
-    pub spw: Option<Vec<usize>>,
-    /// Channel range `[start, end)` of every window.
-    #[serde(default)]
-    pub channels: Option<[usize; 2]>,
-    /// Samples per batch (a chunk of rows).
-    #[serde(default = "crate::vis::default_batch_rows")]
-    pub batch_rows: usize,
-    /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
-    #[serde(default)]
-    pub truth: Option<PathBuf>,
-    /// Split into several jobs: `{column: time, window: S}`, `{column: frequency}`,
-    /// `{column: spw}`, `{column: field}`, or another numeric column of the batches.
-    #[serde(default)]
-    pub split_by: Option<SplitBy>,
-}
-
-impl MsParams {
-    /// `path` with the defaults of the other keys.
-    pub fn new(path: impl Into<PathBuf>) -> MsParams {
-        MsParams {
-            path: path.into(),
-            id: None,
-            data_column: crate::ms::default_data_column(),
-            field: None,
-            spw: None,
-            channels: None,
-            batch_rows: crate::vis::default_batch_rows(),
-            truth: None,
-            split_by: None,
-        }
-    }
-}
-
-impl StageParams for MsParams {
-    const KIND: &'static str = "ms";
-}
 
 /// The column that makes one job per field (each needs its own phase centre and metadata).
 const FIELD_SPLIT: &str = "field";
@@ -81,7 +28,7 @@ pub struct MsSource {
 impl MsSource {
     /// `model_columns`: the columns writers downstream predict the model into (`model_column`),
     /// checked now to be writable, so that a write that cannot succeed fails before imaging.
-    pub fn new(config: MsParams, pipeline: &PipelineSpec, stage: &StageSpec, model_columns: &[String]) -> Result<MsSource> {
+    pub fn new(config: MsParams, pipeline: &PipelineSpec, stage: &StageSpec, image_size: usize, model_columns: &[String]) -> Result<MsSource> {
         let writes_model = !model_columns.is_empty();
         let name = &stage.name;
         let error = |key: &str, message: String| pipeline.stage_error(name, Some(key), &format!("stages.{name}.{key}: {message}"));
@@ -89,7 +36,7 @@ impl MsSource {
             return Err(error("path", format!("'{}' is not a MeasurementSet (a directory with table.dat)", config.path.display())));
         }
         let id = match config.id {
-            Some(id) if crate::ingest::job_id_problem(&id).is_some() => return Err(error("id", crate::ingest::job_id_problem(&id).unwrap_or_default())),
+            Some(id) if job_id_problem(&id).is_some() => return Err(error("id", job_id_problem(&id).unwrap_or_default())),
             Some(id) => id,
             None => stem_id(&config.path),
         };
@@ -123,7 +70,7 @@ impl MsSource {
         for column in model_columns {
             crate::ms::check_model_write(&config.path, column, &selection.data_column)?;
         }
-        let truth = Truth::load(config.truth.as_deref(), pipeline.image.size).map_err(|e| error("truth", e.to_string()))?;
+        let truth = Truth::load(config.truth.as_deref(), image_size).map_err(|e| error("truth", e.to_string()))?;
         Ok(MsSource { path: config.path, id, selection, batch_rows: config.batch_rows, truth, split_by: config.split_by, split_key, reading: false })
     }
 
@@ -147,7 +94,7 @@ impl MsSource {
     }
 }
 
-impl Source for MsSource {
+impl Source<Job> for MsSource {
     fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()> {
         self.reading = true;
         if self.split_by.as_ref().is_some_and(|s| s.column == FIELD_SPLIT) {

@@ -22,27 +22,19 @@
 //! registry, could not hold an embedding program's kinds, and serde reads an internally tagged
 //! enum through a buffer that loses the YAML's line and column in errors.
 
-pub use super::arrow_ipc::ArrowIpcParams;
-pub use super::gridder::GridderParams;
-pub use super::ingest::SplitBy;
-pub use super::memory::ArrowParams;
-#[cfg(feature = "ms")]
-pub use super::ms::MsParams;
+pub use crate::vis::SplitBy;
 #[cfg(feature = "ms")]
 pub use crate::ms::FieldSelector;
-pub use super::parquet::{Files, ParquetParams};
-pub use super::products::ProductsParams;
-pub use super::residual::{ResidualMethod, ResidualParams};
-pub use super::simulate::SimulateParams;
-pub use super::weighting::WeightingParams;
-pub use super::writer::WriterParams;
 pub use crate::steps::clean::CleanConfig as CleanParams;
 pub use crate::steps::native::{Isolation, NativeConfig as NativeParams};
 pub use crate::steps::onnx::runtime::{BackendChoice, GraphOptimization};
 pub use crate::steps::onnx::{OnnxConfig as OnnxParams, ValidityMode};
 pub use crate::weighting::WeightingScheme;
 
+use crate::nufft::NufftParams;
 use crate::pipeline::StageParams;
+use crate::weighting::{Weighting, DEFAULT_GRID_FACTOR};
+use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
 impl StageParams for CleanParams {
@@ -149,4 +141,360 @@ mod tests {
         assert_eq!((w.scheme, w.robust), (WeightingScheme::Briggs, -0.5));
         assert_eq!(WeightingParams::new(crate::Weighting::Natural).scheme, WeightingScheme::Natural);
     }
+}
+
+// ---- kind: arrow-ipc
+
+/// `kind: arrow-ipc`: an Arrow IPC stream or file.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct ArrowIpcParams {
+    /// An IPC stream or file, or `-` for standard input (stream format).
+    pub path: String,
+    /// Job id (default: the file name without extension; `stdin` for standard input).
+    #[serde(default)]
+    pub id: Option<String>,
+    /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
+    #[serde(default)]
+    pub truth: Option<PathBuf>,
+    /// Split the table into several jobs by a column.
+    #[serde(default)]
+    pub split_by: Option<SplitBy>,
+    /// Image a stream that ends without its end-of-stream marker (a sender that stopped
+    /// between batches), with a warning, instead of failing.
+    #[serde(default)]
+    pub allow_truncated: bool,
+}
+
+impl ArrowIpcParams {
+    /// `path` with the defaults of the other keys.
+    pub fn new(path: impl Into<String>) -> ArrowIpcParams {
+        ArrowIpcParams { path: path.into(), id: None, truth: None, split_by: None, allow_truncated: false }
+    }
+}
+
+impl StageParams for ArrowIpcParams {
+    const KIND: &'static str = "arrow-ipc";
+}
+
+// ---- kind: gridder
+
+/// `kind: gridder`: the NUFFT's accuracy.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GridderParams {
+    /// NUFFT relative accuracy; default 1e-6.
+    pub epsilon: f64,
+    /// Oversampling of the NUFFT's grid; default 2.
+    pub oversampling: f64,
+}
+
+impl Default for GridderParams {
+    fn default() -> Self {
+        let NufftParams { epsilon, oversampling } = NufftParams::default();
+        GridderParams { epsilon, oversampling }
+    }
+}
+
+impl StageParams for GridderParams {
+    const KIND: &'static str = "gridder";
+}
+
+// ---- kind: arrow
+
+/// `kind: arrow`: the run's in-memory inputs.
+#[derive(Clone, Debug, Default, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ArrowParams {
+    /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
+    pub truth: Option<PathBuf>,
+    /// Split each input into several jobs by a column.
+    pub split_by: Option<SplitBy>,
+}
+
+impl StageParams for ArrowParams {
+    const KIND: &'static str = "arrow";
+}
+
+// ---- kind: ms
+
+#[cfg(feature = "ms")]
+/// `kind: ms`: a MeasurementSet.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct MsParams {
+    /// The MeasurementSet (a directory).
+    pub path: PathBuf,
+    /// Job id (default: the MS name without its extension).
+    #[serde(default)]
+    pub id: Option<String>,
+    /// The complex column to image (default `auto`: CORRECTED_DATA when the MS has it, else
+    /// DATA, as WSClean chooses; or a name: DATA, CORRECTED_DATA, MODEL_DATA, ...).
+    #[serde(default = "crate::ms::default_data_column")]
+    pub data_column: String,
+    /// Field id or name; required when the MS holds several fields (unless split by field).
+    #[serde(default)]
+    pub field: Option<FieldSelector>,
+    /// Spectral windows to read (default: all).
+    #[serde(default)]
+    pub spw: Option<Vec<usize>>,
+    /// Channel range `[start, end)` of every window.
+    #[serde(default)]
+    pub channels: Option<[usize; 2]>,
+    /// Samples per batch (a chunk of rows).
+    #[serde(default = "crate::vis::default_batch_rows")]
+    pub batch_rows: usize,
+    /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
+    #[serde(default)]
+    pub truth: Option<PathBuf>,
+    /// Split into several jobs: `{column: time, window: S}`, `{column: frequency}`,
+    /// `{column: spw}`, `{column: field}`, or another numeric column of the batches.
+    #[serde(default)]
+    pub split_by: Option<SplitBy>,
+}
+
+#[cfg(feature = "ms")]
+impl MsParams {
+    /// `path` with the defaults of the other keys.
+    pub fn new(path: impl Into<PathBuf>) -> MsParams {
+        MsParams {
+            path: path.into(),
+            id: None,
+            data_column: crate::ms::default_data_column(),
+            field: None,
+            spw: None,
+            channels: None,
+            batch_rows: crate::vis::default_batch_rows(),
+            truth: None,
+            split_by: None,
+        }
+    }
+}
+
+#[cfg(feature = "ms")]
+impl StageParams for MsParams {
+    const KIND: &'static str = "ms";
+}
+
+// ---- kind: parquet
+
+/// One file (or glob pattern) or a list of them.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(untagged)]
+pub enum Files {
+    One(String),
+    Many(Vec<String>),
+}
+
+/// `kind: parquet`: Parquet visibility tables, one job per file.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct ParquetParams {
+    /// A file, a list of files, or glob patterns (relative to the working directory).
+    pub files: Files,
+    /// Rows per record batch read.
+    #[serde(default = "crate::vis::default_batch_rows")]
+    pub batch_rows: usize,
+    /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
+    #[serde(default)]
+    pub truth: Option<PathBuf>,
+    /// Split each file into several jobs by a column.
+    #[serde(default)]
+    pub split_by: Option<SplitBy>,
+}
+
+impl ParquetParams {
+    /// `files` with the defaults of the other keys.
+    pub fn new(files: Files) -> ParquetParams {
+        ParquetParams { files, batch_rows: crate::vis::default_batch_rows(), truth: None, split_by: None }
+    }
+}
+
+impl StageParams for ParquetParams {
+    const KIND: &'static str = "parquet";
+}
+
+// ---- kind: products
+
+/// `kind: products`: no parameters (the sink is the run's).
+#[derive(Clone, Debug, Default, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct ProductsParams {}
+
+impl StageParams for ProductsParams {
+    const KIND: &'static str = "products";
+}
+
+// ---- kind: residual
+
+/// How the residual update computes `D x`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ResidualMethod {
+    /// A convolution with the 2N PSF: memory no longer grows with the visibilities.
+    #[default]
+    Toeplitz,
+    /// The exact NUFFT round trip through the visibilities, which the gridder then keeps.
+    Nufft,
+}
+
+/// `kind: residual`: the residual update and the loop's exit.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ResidualParams {
+    /// Default `toeplitz`.
+    pub method: ResidualMethod,
+    /// Stop early by the reference v2 criterion (the residual ratio changes by less than
+    /// `tolerance`, or rises at two consecutive iterations) instead of running the whole
+    /// series; default true.
+    pub early_stop: bool,
+    /// Relative change of the residual ratio below which the loop stops (`early_stop`);
+    /// default 1e-4.
+    pub tolerance: f64,
+    /// Stop a series whose residual ratio rises above 1 (its model explains the data worse
+    /// than an empty image) or rises at two consecutive iterations, keep the iterate of lowest
+    /// residual ratio as the model (the empty model if none is below 1), and warn; default
+    /// true.
+    pub divergence_guard: bool,
+}
+
+impl Default for ResidualParams {
+    fn default() -> Self {
+        ResidualParams { method: ResidualMethod::Toeplitz, early_stop: true, tolerance: 1e-4, divergence_guard: true }
+    }
+}
+
+impl StageParams for ResidualParams {
+    const KIND: &'static str = "residual";
+}
+
+// ---- kind: simulate
+
+/// `kind: simulate`: simulated VLA observations of procedural skies.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SimulateParams {
+    /// Number of jobs (seeds `seed`, `seed + 1`, ...); default 1.
+    pub jobs: usize,
+    /// Default 7.
+    pub seed: u64,
+    /// Of the procedural sky; default 1e4.
+    pub dynamic_range: f64,
+    /// VLA configurations; default `[a, c]`.
+    pub configurations: Vec<char>,
+    /// Hours per configuration; default `[6, 2]`.
+    pub hours: Vec<f64>,
+    /// Phase centre; default (180, 40) degrees.
+    pub dec_deg: f64,
+    pub ra_deg: f64,
+    /// Seconds per sample; default 30.
+    pub integration_s: f64,
+    /// Frequency channels; default 1, at 1400 MHz.
+    pub channels: usize,
+    pub frequency_mhz: f64,
+    /// Highest to lowest channel frequency; default 1.
+    pub frequency_ratio: f64,
+    /// Fraction of the samples flagged; default 0.
+    pub flag_fraction: f64,
+    /// Weighting the noise level is defined for; default Briggs, robust 0.
+    pub noise_weighting: WeightingScheme,
+    pub robust: f64,
+}
+
+impl Default for SimulateParams {
+    fn default() -> Self {
+        SimulateParams {
+            jobs: 1,
+            seed: 7,
+            dynamic_range: 1e4,
+            configurations: vec!['a', 'c'],
+            hours: vec![6.0, 2.0],
+            dec_deg: 40.0,
+            ra_deg: 180.0,
+            integration_s: 30.0,
+            channels: 1,
+            frequency_mhz: 1400.0,
+            frequency_ratio: 1.0,
+            flag_fraction: 0.0,
+            noise_weighting: WeightingScheme::Briggs,
+            robust: 0.0,
+        }
+    }
+}
+
+impl StageParams for SimulateParams {
+    const KIND: &'static str = "simulate";
+}
+
+// ---- kind: weighting
+
+/// `kind: weighting`: how each visibility is weighted. `scheme` has no default in YAML (a
+/// pipeline says which it uses); `WeightingParams::default()` is `r2d2 image`'s, Briggs with
+/// robust 0.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct WeightingParams {
+    /// natural, uniform or briggs.
+    pub scheme: WeightingScheme,
+    /// Briggs robustness (-2: close to uniform, 2: close to natural); default 0.
+    #[serde(default)]
+    pub robust: f64,
+    /// Uniform and Briggs weights count the visibilities in a uv grid of `grid_factor x size`
+    /// cells per axis.
+    #[serde(default = "grid_factor")]
+    pub grid_factor: f64,
+}
+
+impl StageParams for WeightingParams {
+    const KIND: &'static str = "weighting";
+}
+
+impl Default for WeightingParams {
+    fn default() -> Self {
+        WeightingParams::new(Weighting::Briggs { robust: 0.0 })
+    }
+}
+
+impl WeightingParams {
+    /// The stage for `weighting`, with the default grid factor.
+    pub fn new(weighting: Weighting) -> WeightingParams {
+        let (scheme, robust) = match weighting {
+            Weighting::Natural => (WeightingScheme::Natural, 0.0),
+            Weighting::Uniform => (WeightingScheme::Uniform, 0.0),
+            Weighting::Briggs { robust } => (WeightingScheme::Briggs, robust),
+        };
+        WeightingParams { scheme, robust, grid_factor: grid_factor() }
+    }
+}
+
+fn grid_factor() -> f64 {
+    DEFAULT_GRID_FACTOR
+}
+
+// ---- kind: writer
+
+/// `kind: writer`: where and what a job's products are written.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct WriterParams {
+    /// Output prefix; `{job}` is replaced by the job id. Default `{job}`.
+    pub prefix: String,
+    /// A PNG preview (log scale, colour bar) beside each FITS product; default true.
+    pub previews: bool,
+    /// Decades shown by the previews' log scale; default: the dynamic range of the truth
+    /// or of the simulated sky when known, else 1e3.
+    pub preview_dynamic_range: Option<f64>,
+    /// Predict the final model's visibilities into this column of the input MeasurementSet
+    /// (`kind: ms` jobs), e.g. MODEL_DATA; created when missing.
+    pub model_column: Option<String>,
+}
+
+impl Default for WriterParams {
+    fn default() -> Self {
+        WriterParams { prefix: "{job}".into(), previews: true, preview_dynamic_range: None, model_column: None }
+    }
+}
+
+impl StageParams for WriterParams {
+    const KIND: &'static str = "writer";
 }

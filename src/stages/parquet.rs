@@ -2,49 +2,14 @@
 //! several per file with `split_by` (time windows, frequency channels), read one record
 //! batch at a time.
 
-use crate::ingest::{emit_parts, read_parts, stem_id, SplitBy, Truth};
-use crate::pipeline::config::{PipelineSpec, StageSpec};
-use crate::pipeline::{Job, Source, StageParams};
+use super::params::{Files, ParquetParams};
+use crate::job::{emit_parts, stem_id, Truth};
+use crate::vis::{read_parts, SplitBy};
+use crate::job::Job;
+use crate::pipeline::{PipelineSpec, Source, StageSpec};
 use crate::vis::VisReader;
 use crate::Result;
-use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
-
-/// One file (or glob pattern) or a list of them.
-#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
-#[serde(untagged)]
-pub enum Files {
-    One(String),
-    Many(Vec<String>),
-}
-
-/// `kind: parquet`: Parquet visibility tables, one job per file.
-#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
-#[serde(deny_unknown_fields)]
-pub struct ParquetParams {
-    /// A file, a list of files, or glob patterns (relative to the working directory).
-    pub files: Files,
-    /// Rows per record batch read.
-    #[serde(default = "crate::vis::default_batch_rows")]
-    pub batch_rows: usize,
-    /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
-    #[serde(default)]
-    pub truth: Option<PathBuf>,
-    /// Split each file into several jobs by a column.
-    #[serde(default)]
-    pub split_by: Option<SplitBy>,
-}
-
-impl ParquetParams {
-    /// `files` with the defaults of the other keys.
-    pub fn new(files: Files) -> ParquetParams {
-        ParquetParams { files, batch_rows: crate::vis::default_batch_rows(), truth: None, split_by: None }
-    }
-}
-
-impl StageParams for ParquetParams {
-    const KIND: &'static str = "parquet";
-}
 
 pub struct ParquetSource {
     paths: Vec<PathBuf>,
@@ -56,7 +21,7 @@ pub struct ParquetSource {
 }
 
 impl ParquetSource {
-    pub fn new(config: ParquetParams, pipeline: &PipelineSpec, stage: &StageSpec) -> Result<ParquetSource> {
+    pub fn new(config: ParquetParams, pipeline: &PipelineSpec, stage: &StageSpec, image_size: usize) -> Result<ParquetSource> {
         let name = &stage.name;
         let patterns = match config.files {
             Files::One(f) => vec![f],
@@ -101,13 +66,13 @@ impl ParquetSource {
                 })?;
             }
         }
-        let truth = Truth::load(config.truth.as_deref(), pipeline.image.size)
+        let truth = Truth::load(config.truth.as_deref(), image_size)
             .map_err(|e| pipeline.stage_error(name, Some("truth"), &format!("stages.{name}.truth: {e}")))?;
         Ok(ParquetSource { paths, batch_rows: config.batch_rows.max(1), truth, split_by: config.split_by, split_key, current_job: None })
     }
 }
 
-impl Source for ParquetSource {
+impl Source<Job> for ParquetSource {
     fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()> {
         for path in &self.paths {
             let id = stem_id(path);

@@ -1,20 +1,11 @@
 //! `kind: products`: hands each finished job's products (arrays, header, metrics) to the run's
 //! product sink (`Engine::run`), then, with a `to`, passes the job on (to a writer, say).
 
-use crate::pipeline::registry::BuildContext;
-use crate::pipeline::{Emit, Job, Port, ProductSink, Stage, StageParams};
-use crate::products::JobProducts;
+use super::params::ProductsParams;
+use crate::job::{BuildContext, Emit, ImageContext, Job, ProductSink};
+use crate::pipeline::{Port, Stage};
+use crate::job::JobProducts;
 use crate::Result;
-use serde::{Deserialize, Serialize};
-
-/// `kind: products`: no parameters (the sink is the run's).
-#[derive(Clone, Debug, Default, PartialEq, Deserialize, Serialize)]
-#[serde(deny_unknown_fields)]
-pub struct ProductsParams {}
-
-impl StageParams for ProductsParams {
-    const KIND: &'static str = "products";
-}
 
 pub struct ProductsStage {
     sink: Option<Box<dyn ProductSink>>,
@@ -31,7 +22,7 @@ impl ProductsStage {
     }
 }
 
-impl Stage for ProductsStage {
+impl Stage<Job> for ProductsStage {
     fn process(&mut self, job: Job, emit: &mut Emit<'_>) -> Result<()> {
         if let Some(sink) = &mut self.sink {
             sink.deliver(JobProducts::from_job(&job, None)?)?;

@@ -1,70 +1,15 @@
 //! `kind: simulate`: simulated VLA observations of procedural skies (one job per seed), with
 //! the true sky attached so the run reports SNR and logSNR.
 
+use super::params::SimulateParams;
 use crate::nufft::NufftParams;
-use crate::pipeline::config::ImageConfig;
-use crate::pipeline::{Job, Source, StageParams};
+use crate::imaging::ImageConfig;
+use crate::job::Job;
+use crate::pipeline::Source;
 use crate::simulate::observe::{frequency_channels, ObservationSpec};
 use crate::simulate::{simulate, SimulationRequest, SkyModel};
-use crate::weighting::{Weighting, WeightingScheme};
+use crate::weighting::Weighting;
 use crate::{Error, Result};
-use serde::{Deserialize, Serialize};
-
-/// `kind: simulate`: simulated VLA observations of procedural skies.
-#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct SimulateParams {
-    /// Number of jobs (seeds `seed`, `seed + 1`, ...); default 1.
-    pub jobs: usize,
-    /// Default 7.
-    pub seed: u64,
-    /// Of the procedural sky; default 1e4.
-    pub dynamic_range: f64,
-    /// VLA configurations; default `[a, c]`.
-    pub configurations: Vec<char>,
-    /// Hours per configuration; default `[6, 2]`.
-    pub hours: Vec<f64>,
-    /// Phase centre; default (180, 40) degrees.
-    pub dec_deg: f64,
-    pub ra_deg: f64,
-    /// Seconds per sample; default 30.
-    pub integration_s: f64,
-    /// Frequency channels; default 1, at 1400 MHz.
-    pub channels: usize,
-    pub frequency_mhz: f64,
-    /// Highest to lowest channel frequency; default 1.
-    pub frequency_ratio: f64,
-    /// Fraction of the samples flagged; default 0.
-    pub flag_fraction: f64,
-    /// Weighting the noise level is defined for; default Briggs, robust 0.
-    pub noise_weighting: WeightingScheme,
-    pub robust: f64,
-}
-
-impl Default for SimulateParams {
-    fn default() -> Self {
-        SimulateParams {
-            jobs: 1,
-            seed: 7,
-            dynamic_range: 1e4,
-            configurations: vec!['a', 'c'],
-            hours: vec![6.0, 2.0],
-            dec_deg: 40.0,
-            ra_deg: 180.0,
-            integration_s: 30.0,
-            channels: 1,
-            frequency_mhz: 1400.0,
-            frequency_ratio: 1.0,
-            flag_fraction: 0.0,
-            noise_weighting: WeightingScheme::Briggs,
-            robust: 0.0,
-        }
-    }
-}
-
-impl StageParams for SimulateParams {
-    const KIND: &'static str = "simulate";
-}
 
 pub struct SimulateSource {
     config: SimulateParams,
@@ -91,7 +36,7 @@ impl SimulateSource {
     }
 }
 
-impl Source for SimulateSource {
+impl Source<Job> for SimulateSource {
     fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()> {
         let c = &self.config;
         for k in 0..c.jobs as u64 {

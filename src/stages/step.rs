@@ -1,7 +1,8 @@
 //! Network-step stages (`kind: clean`, `onnx`, `native`): run the job's next step of
 //! the series and pass it to the residual update.
 
-use crate::pipeline::{Emit, Job, Port, Stage};
+use crate::job::{Emit, Job};
+use crate::pipeline::{Port, Stage};
 use crate::steps::clean::{CleanConfig, CleanStep};
 use crate::steps::onnx::{OnnxConfig, OnnxStep};
 use crate::steps::series::ImagingSetup;
@@ -48,7 +49,7 @@ impl StepStage {
     }
 }
 
-impl Stage for StepStage {
+impl Stage<Job> for StepStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
         let began = Instant::now();
         let iteration = job.iteration + 1;
@@ -74,7 +75,7 @@ impl Stage for StepStage {
             }
         }
         let Job { id, imaging, .. } = &mut job;
-        let im = imaging.as_mut().ok_or_else(|| crate::pipeline::missing(self.kind, id, crate::pipeline::Product::Imaging))?;
+        let im = imaging.as_mut().ok_or_else(|| crate::job::missing(self.kind, id, crate::job::Product::Imaging))?;
         let input = StepInput {
             job: id,
             size: im.geometry.size,

@@ -5,37 +5,11 @@
 //! A job's products appear together or not at all: they are written into a staging
 //! directory and moved into place only when all are complete (`crate::staging`).
 
-use crate::pipeline::config::{PipelineSpec, StageSpec};
-use crate::pipeline::{Emit, Job, Stage, StageParams};
-use crate::products::{JobProducts, WriteOptions};
+use super::params::WriterParams;
+use crate::job::{Emit, Job};
+use crate::pipeline::{PipelineSpec, Stage, StageSpec};
+use crate::job::{JobProducts, WriteOptions};
 use crate::{Error, Result};
-use serde::{Deserialize, Serialize};
-
-/// `kind: writer`: where and what a job's products are written.
-#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct WriterParams {
-    /// Output prefix; `{job}` is replaced by the job id. Default `{job}`.
-    pub prefix: String,
-    /// A PNG preview (log scale, colour bar) beside each FITS product; default true.
-    pub previews: bool,
-    /// Decades shown by the previews' log scale; default: the dynamic range of the truth
-    /// or of the simulated sky when known, else 1e3.
-    pub preview_dynamic_range: Option<f64>,
-    /// Predict the final model's visibilities into this column of the input MeasurementSet
-    /// (`kind: ms` jobs), e.g. MODEL_DATA; created when missing.
-    pub model_column: Option<String>,
-}
-
-impl Default for WriterParams {
-    fn default() -> Self {
-        WriterParams { prefix: "{job}".into(), previews: true, preview_dynamic_range: None, model_column: None }
-    }
-}
-
-impl StageParams for WriterParams {
-    const KIND: &'static str = "writer";
-}
 
 /// What a writer prefix may contain besides text.
 const PLACEHOLDERS: &[&str] = &["{job}"];
@@ -88,7 +62,7 @@ impl WriterStage {
     }
 }
 
-impl Stage for WriterStage {
+impl Stage<Job> for WriterStage {
     fn process(&mut self, job: Job, _emit: &mut Emit<'_>) -> Result<()> {
         let resolved = self.prefix.replace("{job}", &job.id);
         if let Some(earlier) = self.written.get(&resolved) {
@@ -116,7 +90,7 @@ impl Stage for WriterStage {
 
 #[cfg(feature = "ms")]
 fn write_model(job: &Job, column: &str) -> Result<()> {
-    crate::ms::write_job_model(job, column).map(|_| ())
+    crate::job::write_job_model(job, column).map(|_| ())
 }
 
 #[cfg(not(feature = "ms"))]

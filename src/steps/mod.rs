@@ -4,6 +4,7 @@
 //! versioned C ABI) and ONNX series implement the same trait.
 
 pub(crate) mod clean;
+mod error;
 // Public for examples/native_isolation (the per-step cost of isolation), not the interface.
 #[doc(hidden)]
 pub mod native;
@@ -13,6 +14,8 @@ pub(crate) mod onnx;
 
 // The ONNX internals by their former paths (the command line names series and backends).
 pub use onnx::{runtime, series};
+
+pub use error::{HostError, LibraryError, LoadError, OnnxError, PluginError, RuntimeUnavailable, SeriesError};
 
 use crate::Result;
 

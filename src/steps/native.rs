@@ -26,60 +26,7 @@ use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::time::Duration;
 
-pub use super::native_file::LibraryError;
-pub use super::native_host::HostError;
-pub use r2d2_plugin::host::LoadError;
-
-/// What went wrong with a native plugin. Each variant names the library (and, while the step is
-/// built, the YAML key `stages.<stage>.library`); the cause, where there is one, is the
-/// [`source`](std::error::Error::source): what reading the file found ([`LibraryError`]), the
-/// loader's error ([`LoadError`], in this process) or the host's ([`HostError`], isolated).
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum PluginError {
-    /// The library file does not exist.
-    #[error(
-        "{}: stages.{stage}.library: no such plugin library (relative paths are relative to the working directory {cwd}; build the example plugins with `cargo build --release`)",
-        path.display()
-    )]
-    NotFound { path: PathBuf, stage: String, cwd: String },
-    /// The file is not a plugin library for this machine (found by reading it, not loading it).
-    #[error("{}: stages.{stage}.library", path.display())]
-    Library {
-        path: PathBuf,
-        stage: String,
-        #[source]
-        source: LibraryError,
-    },
-    /// Loading or creating the plugin in this process failed (`isolation: none`).
-    #[error("{}: stages.{stage}.library", path.display())]
-    Load {
-        path: PathBuf,
-        stage: String,
-        #[source]
-        source: LoadError,
-    },
-    /// Starting the plugin in its host process, or creating it there, failed.
-    #[error("{}: stages.{stage}.library", path.display())]
-    Host {
-        path: PathBuf,
-        stage: String,
-        #[source]
-        source: HostError,
-    },
-    /// A step failed: the plugin's own message, or how its host process ended.
-    #[error("{}: {message}", path.display())]
-    Step { path: PathBuf, message: String },
-    /// A step returned an increment that is not finite everywhere.
-    #[error(
-        "{}: plugin step {iteration} returned a non-finite increment {value} at pixel (x {x}, y {y}) (every one of the {size} x {size} values must be written and finite)",
-        path.display()
-    )]
-    NonFinite { path: PathBuf, iteration: usize, value: f64, x: usize, y: usize, size: usize },
-    /// The job's image size is not the one the plugin was created for.
-    #[error("{}: the plugin was created for {created} x {created} images, the job has {size} x {size}", path.display())]
-    ImageSize { path: PathBuf, created: usize, size: usize },
-}
+pub use super::error::{HostError, LibraryError, LoadError, PluginError};
 
 #[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]

@@ -6,6 +6,7 @@
 //! Only 64-bit little-endian ELF (Linux on x86-64 and AArch64) is read; on other systems, or
 //! a library without section headers, the check passes and the loader's own checks remain.
 
+pub use super::error::LibraryError;
 use r2d2_plugin::symbols;
 use std::fs::File;
 use std::io::{Read, Seek, SeekFrom};
@@ -15,30 +16,6 @@ const SHT_DYNSYM: u32 = 11;
 const ET_DYN: u16 = 3;
 /// Symbol tables larger than this are not read (no plugin comes near).
 const MAX_TABLE: u64 = 256 << 20;
-
-/// What is wrong with a plugin library file, found by reading it (the caller names the file).
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum LibraryError {
-    #[error("cannot read the plugin library")]
-    Unreadable(#[source] std::io::Error),
-    #[error("not a shared library: the file does not start with an ELF header")]
-    NotElf,
-    #[error("not a shared library for this machine: not a 64-bit little-endian ELF file")]
-    NotElf64,
-    #[error("not a shared library: ELF type {0} (a shared object is type {ET_DYN})")]
-    NotShared(u16),
-    #[error("built for another machine (ELF machine {machine}), this r2d2 runs on {}", std::env::consts::ARCH)]
-    OtherMachine { machine: u16 },
-    #[error("not a valid shared library: {0}")]
-    Damaged(&'static str),
-    #[error("not an r2d2 plugin: it exports no symbols (no dynamic symbol table)")]
-    NoSymbols,
-    #[error("not an r2d2 plugin: missing symbol {0} (read from the file, not loaded)")]
-    NotAPlugin(String),
-    #[error("an r2d2 plugin missing symbol {0} (read from the file, not loaded)")]
-    MissingSymbol(String),
-}
 
 /// Ok, or what is wrong with the file.
 pub fn check(path: &Path) -> Result<(), LibraryError> {

@@ -9,6 +9,7 @@
 //! directory (test and example binaries); then on `PATH`. An embedding program whose
 //! executable is not `r2d2` (Python, say) sets `R2D2_PLUGIN_HOST` or puts the host on `PATH`.
 
+pub use super::error::HostError;
 use r2d2_plugin::host::wire;
 use std::io::{BufReader, BufWriter, Write};
 use std::path::{Path, PathBuf};
@@ -57,29 +58,6 @@ pub fn find_host() -> Result<PathBuf, String> {
             "the plugin host `{name}` was not found beside this executable nor on PATH: build it (`cargo build --release` puts it beside r2d2), point {HOST_ENV} at it, or set `isolation: none` to load the plugin into this process"
         )
     })
-}
-
-/// Why a plugin could not be started in its host process (the caller names the library).
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum HostError {
-    /// The host executable was not found ([`find_host`] says where it looked).
-    #[error("{0}")]
-    NotFound(String),
-    /// The system could not start the host.
-    #[error("cannot start the plugin host {}", host.display())]
-    Spawn {
-        host: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    /// The system could not start the thread that reads the host's replies.
-    #[error("cannot start a thread")]
-    Thread(#[source] std::io::Error),
-    /// The plugin (its creation) or its host process failed: the plugin's message, or how the
-    /// process ended, as text (it crosses a process boundary).
-    #[error("{0}")]
-    Failed(String),
 }
 
 enum Reply {

@@ -23,7 +23,8 @@
 //! operators work in, and drops rows that must not be imaged (flagged, non-finite,
 //! physically impossible, non-positive weight), counting each reason in [`IngestStats`].
 
-use super::*;
+use super::data::{ObservationMeta, Visibilities, FREQUENCY_RANGE_HZ, MAX_BASELINE_M, SPEED_OF_LIGHT};
+use super::error::TableError;
 use std::borrow::Cow;
 use std::fmt;
 use std::fs::File;
@@ -722,6 +723,7 @@ pub fn write_parquet(path: &Path, table: &VisTable, meta: &ObservationMeta) -> R
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::collections::BTreeMap;
 
     fn test_meta() -> ObservationMeta {
         ObservationMeta {

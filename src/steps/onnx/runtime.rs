@@ -6,76 +6,11 @@
 //! input shape pinned before optimisation (tract cannot type a transposed convolution over
 //! symbolic H and W), which `ort`'s session API has no way to say.
 
+pub use crate::steps::error::{OnnxError, RuntimeUnavailable};
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, OnceLock};
-
-/// What went wrong with an ONNX network or the runtime that runs it. Each variant names the
-/// network file; the runtime's own error (ONNX Runtime's, tract's, the system's), where there is
-/// one, is the [`source`](std::error::Error::source).
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum OnnxError {
-    /// Native ONNX Runtime was asked for (`backend: ort`) but cannot be used.
-    #[error("invalid backend: ort: native ONNX Runtime is not available")]
-    RuntimeUnavailable(#[source] RuntimeUnavailable),
-    /// The network file could not be read, or its bytes are not an ONNX model.
-    #[error("{}: {what}", path.display())]
-    Unreadable {
-        path: PathBuf,
-        what: &'static str,
-        #[source]
-        source: Box<dyn std::error::Error + Send + Sync>,
-    },
-    /// A side file holding the network's weights is missing.
-    #[error("{}: the weights of {} are missing", path.display(), network.display())]
-    MissingWeights {
-        path: PathBuf,
-        network: PathBuf,
-        #[source]
-        source: std::io::Error,
-    },
-    /// The network is not one a step can run: its inputs, outputs, types or weights are not
-    /// what an R2D2 network has (the message says what was expected).
-    #[error("{}: {message}", path.display())]
-    Invalid { path: PathBuf, message: String },
-    /// The runtime (`ONNX Runtime` or `tract`) could not load the network.
-    #[error("{}: {runtime} could not load the network", path.display())]
-    Load {
-        path: PathBuf,
-        runtime: &'static str,
-        #[source]
-        source: Box<dyn std::error::Error + Send + Sync>,
-    },
-    /// Running the network failed.
-    #[error("{}: inference failed", path.display())]
-    Inference {
-        path: PathBuf,
-        #[source]
-        source: Box<dyn std::error::Error + Send + Sync>,
-    },
-    /// The network's output is not what an R2D2 network gives (shape, finite values).
-    #[error("{}: {message}", path.display())]
-    Output { path: PathBuf, message: String },
-}
-
-/// Why native ONNX Runtime cannot be used.
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum RuntimeUnavailable {
-    /// The embedding program (the command line) gave no library.
-    #[error("no ONNX Runtime library given (EngineOptions::onnx_runtime)")]
-    NotGiven,
-    /// The library given could not be loaded or initialised (the loader's or ONNX Runtime's
-    /// error: `ort::LoadDynamicError`, `ort::Error`).
-    #[error("{}", library.display())]
-    Load {
-        library: PathBuf,
-        #[source]
-        source: Box<dyn std::error::Error + Send + Sync>,
-    },
-}
 
 /// A network content error as the crate's error.
 fn invalid(path: &Path, message: impl Into<String>) -> Error {

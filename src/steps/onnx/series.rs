@@ -3,40 +3,10 @@
 //! then inferred. Reading a series checks everything that can be checked without running a
 //! network, so a broken series fails before imaging starts.
 
+pub use crate::steps::error::SeriesError;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
-
-/// What is wrong with a model series. Each variant names the file or directory; the cause,
-/// where there is one (the YAML parser's error, the system's), is the
-/// [`source`](std::error::Error::source).
-#[derive(Debug, thiserror::Error)]
-#[non_exhaustive]
-pub enum SeriesError {
-    /// No series of that name (or none for the image size) where series are looked up.
-    #[error("{}: {message}", name.display())]
-    NotFound { name: PathBuf, message: String },
-    /// The manifest is not valid YAML for a manifest: `place` is the line, column and key.
-    #[error("{}{}{place}", path.display(), if place.is_empty() { "" } else { ": " })]
-    Manifest {
-        path: PathBuf,
-        place: String,
-        #[source]
-        source: serde_yaml::Error,
-    },
-    /// A network file the series lists is missing (the system's error is the source).
-    #[error("{}: network file of series '{series}' is missing", path.display())]
-    MissingNetwork {
-        path: PathBuf,
-        series: String,
-        #[source]
-        source: Option<std::io::Error>,
-    },
-    /// The series' directory, manifest or files are not a series this build runs (the message
-    /// says what and what was expected).
-    #[error("{}: {message}", path.display())]
-    Invalid { path: PathBuf, message: String },
-}
 
 /// A series content error as the crate's error.
 fn invalid(path: impl AsRef<Path>, message: impl Into<String>) -> Error {

@@ -3,7 +3,7 @@
 //! preview beside each, the per-iteration metrics as JSON and Parquet), all or nothing.
 
 use crate::fits::{write_image, Beam, BrightnessUnit, ImageWcs};
-use crate::pipeline::{IterationMetrics, Job};
+use super::state::{IterationMetrics, Job, LoopStop};
 use crate::preview::{write_png, PreviewScale};
 use crate::staging::Staging;
 use crate::{Error, Result};
@@ -56,7 +56,7 @@ pub struct JobProducts {
     /// Warnings raised about the job (outside a series' domain, a diverging series).
     pub warnings: Vec<String>,
     /// Where the imaging loop stopped before the end of its series, and what it kept.
-    pub stop: Option<crate::pipeline::LoopStop>,
+    pub stop: Option<LoopStop>,
     /// The settings the job was imaged with (weighting, pixel, series) and their origin.
     pub settings: BTreeMap<String, serde_json::Value>,
     /// The files the job was read from: writing refuses a prefix whose products would replace
@@ -337,7 +337,7 @@ fn prefix_parts(prefix: &str, id: &str) -> (PathBuf, String) {
 
 /// Refuses a prefix at which the products of job `id` (any the writer makes or retires) would
 /// replace one of `inputs` (its visibilities, truth, MeasurementSet).
-pub(crate) fn check_spares_inputs(prefix: &str, id: &str, inputs: &[&Path]) -> Result<()> {
+pub fn check_spares_inputs(prefix: &str, id: &str, inputs: &[&Path]) -> Result<()> {
     let (dir, stem) = prefix_parts(prefix, id);
     for suffix in product_suffixes() {
         let target = dir.join(format!("{stem}-{suffix}"));

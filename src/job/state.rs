@@ -1,0 +1,229 @@
+//! A job's state as it flows through the stages: the visibilities, the imaging set-up and
+//! images, the loop's iterates, figures and warnings.
+
+use super::product::Product;
+use crate::pipeline::ProductKind;
+use crate::fits::{Beam, ImageWcs};
+use crate::metrics;
+use crate::operator::{ImageGeometry, MeasurementOperator, PsfConvolution};
+use crate::vis::{ObservationMeta, Visibilities};
+use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+/// Images and operators of a job once it is gridded.
+pub struct Imaging {
+    pub geometry: ImageGeometry,
+    pub dirty: Vec<f64>,
+    pub psf: Vec<f64>,
+    /// `D x` as a convolution with the 2N PSF.
+    pub psf_convolution: Arc<PsfConvolution>,
+    /// The doubled PSF itself (2N x 2N), for steps that subtract shifted PSFs.
+    pub psf_2n: Arc<Vec<f64>>,
+    /// Kept only when the residual update runs a NUFFT round trip.
+    pub operator: Option<Arc<MeasurementOperator>>,
+    /// Current estimate `x_i` (Jy/pixel) and residual dirty image `r_i = x_d - D x_i`.
+    pub model: Vec<f64>,
+    pub residual: Vec<f64>,
+    /// Centre of the observed band, Hz (for the FITS FREQ axis), and its width when the
+    /// samples span more than one frequency.
+    pub frequency_hz: Option<f64>,
+    pub bandwidth_hz: Option<f64>,
+    /// Restoring beam fitted to the PSF main lobe (FWHM degrees, PA degrees east of north).
+    pub beam: Option<Beam>,
+    /// The iterate of lowest residual ratio so far, kept by the residual update's divergence
+    /// guard (`None`: the empty model, ratio 1, is the best so far).
+    pub best: Option<Iterate>,
+}
+
+/// One iterate of the imaging loop, kept so that a diverging series can fall back to it.
+#[derive(Clone, Debug)]
+pub struct Iterate {
+    pub iteration: usize,
+    pub residual_ratio: f64,
+    pub model: Vec<f64>,
+    pub residual: Vec<f64>,
+}
+
+/// Why the imaging loop of a job ended before its series did (the metrics file's `stop`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StopReason {
+    /// The residual ratio rose above 1: the model explained the data worse than an empty one.
+    Diverged,
+    /// The residual ratio rose at two consecutive iterations, by more than 10 % in all.
+    Rising,
+    /// The residual ratio rose slightly at two consecutive iterations (reference v2): the
+    /// series is at its noise floor; the last iterate is kept.
+    Stalled,
+    /// The residual ratio changed by less than the tolerance (reference v2).
+    Converged,
+}
+
+/// How and where the loop stopped early, and which iterate became the model.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LoopStop {
+    pub reason: StopReason,
+    /// The iteration after which the loop stopped.
+    pub after_iteration: usize,
+    /// The iterate kept as the model (0: the empty model) and its residual ratio.
+    pub kept_iteration: usize,
+    pub kept_residual_ratio: f64,
+}
+
+/// The error of a stage given a job without `product`. The products check before the run
+/// guarantees every product a stage kind declares it consumes: this is a kind that consumes
+/// more than it declares, or one upstream that declares more than it makes.
+pub(crate) fn missing(stage: &str, job: &str, product: Product) -> Error {
+    let (what, maker) = product.describe();
+    Error::parameter(format!("stage '{stage}'"), format!("job '{job}' reached it without {what}: put {maker} upstream"))
+}
+
+/// One iteration's figures, as written to `<prefix>-metrics.json`.
+#[derive(Clone, Debug, Serialize)]
+pub struct IterationMetrics {
+    pub iteration: usize,
+    /// The realisation this iteration belongs to (steps of several realisations only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub realisation: Option<usize>,
+    pub residual_ratio: f64,
+    pub step_seconds: f64,
+    pub residual_seconds: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub snr: Option<f64>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub logsnr: Option<f64>,
+}
+
+/// A dataset being imaged, with everything the stages have made of it so far.
+pub struct Job {
+    pub id: String,
+    pub meta: ObservationMeta,
+    /// Visibilities; released by the gridder unless the residual update needs them.
+    pub vis: Option<Visibilities>,
+    /// Ground truth on the image grid, when known (simulated data), for SNR/logSNR.
+    pub truth: Option<Vec<f64>>,
+    /// Dynamic range of the truth, for logSNR.
+    pub truth_dynamic_range: Option<f64>,
+    /// The truth's grid (from its FITS header), checked against the job's.
+    pub truth_wcs: Option<ImageWcs>,
+    /// Image geometry and total weights per visibility, set by the weighting stage.
+    pub geometry: Option<ImageGeometry>,
+    pub weight: Option<Vec<f64>>,
+    pub imaging: Option<Imaging>,
+    /// Network steps done so far.
+    pub iteration: usize,
+    /// Set by the network step when it ran the last network of its series.
+    pub series_finished: bool,
+    /// Name of the step that made the model (products are named after what made them).
+    pub step_kind: Option<String>,
+    /// A step of several realisations: the realisation running (1-based; 0 otherwise, and for
+    /// the final step that images their mean) and the final models of those done.
+    pub realisation: usize,
+    pub realisation_models: Vec<Vec<f64>>,
+    /// Seconds of the last step, recorded into the next metrics row.
+    pub last_step_seconds: f64,
+    pub metrics: Vec<IterationMetrics>,
+    /// Seconds spent per stage (summed over iterations).
+    pub stage_seconds: BTreeMap<String, f64>,
+    /// Set when the imaging loop stopped before the end of its series.
+    pub stop: Option<LoopStop>,
+    /// Warnings about this job (outside a series' domain, a diverging series, ...): logged
+    /// when raised and kept for the metrics file.
+    pub warnings: Vec<String>,
+    /// The imaging settings the job ran with and where each came from (weighting, pixel,
+    /// series), for the metrics file.
+    pub settings: BTreeMap<String, serde_json::Value>,
+    /// The super-resolution of the job's pixel: its longest baseline is sampled this many
+    /// times finer than Nyquist (set with the geometry).
+    pub superresolution: Option<f64>,
+    /// The files the job was read from (visibilities, truth): its products never replace them.
+    pub inputs: Vec<std::path::PathBuf>,
+}
+
+impl Job {
+    pub fn new(id: impl Into<String>, meta: ObservationMeta, vis: Visibilities) -> Job {
+        Job {
+            id: id.into(),
+            meta,
+            vis: Some(vis),
+            truth: None,
+            truth_dynamic_range: None,
+            truth_wcs: None,
+            geometry: None,
+            weight: None,
+            imaging: None,
+            iteration: 0,
+            series_finished: false,
+            step_kind: None,
+            realisation: 0,
+            realisation_models: Vec::new(),
+            last_step_seconds: 0.0,
+            metrics: Vec::new(),
+            stage_seconds: BTreeMap::new(),
+            stop: None,
+            warnings: Vec::new(),
+            settings: BTreeMap::new(),
+            superresolution: None,
+            inputs: Vec::new(),
+        }
+    }
+
+    /// Log a warning about this job and keep it for the metrics file.
+    pub fn warn(&mut self, message: impl Into<String>) {
+        let message = message.into();
+        log::warn!("job {}: {message}", self.id);
+        self.warnings.push(message);
+    }
+
+    /// The gridded state, or an error naming the stage that needed it.
+    pub fn imaging_mut(&mut self, stage: &str) -> Result<&mut Imaging> {
+        let id = &self.id;
+        self.imaging.as_mut().ok_or_else(|| missing(stage, id, Product::Imaging))
+    }
+
+    /// The visibilities, or an error naming the stage that needed them (released by the
+    /// gridder unless a stage after it consumes the operator).
+    pub fn visibilities(&self, stage: &str) -> Result<&Visibilities> {
+        self.vis.as_ref().ok_or_else(|| missing(stage, &self.id, Product::Visibilities))
+    }
+
+    /// Takes the visibilities out of the job (the gridder's: it releases them).
+    pub fn take_visibilities(&mut self, stage: &str) -> Result<Visibilities> {
+        self.vis.take().ok_or_else(|| missing(stage, &self.id, Product::Visibilities))
+    }
+
+    /// Takes the weights out of the job, with the geometry they were made for (the gridder's).
+    pub fn take_weights(&mut self, stage: &str) -> Result<(ImageGeometry, Vec<f64>)> {
+        match (self.geometry, self.weight.take()) {
+            (Some(geometry), Some(weight)) => Ok((geometry, weight)),
+            (_, weight) => {
+                self.weight = weight;
+                Err(missing(stage, &self.id, Product::Weights))
+            }
+        }
+    }
+
+    /// Record iteration figures after a residual update.
+    pub fn record_iteration(&mut self, residual_seconds: f64) {
+        let Some(im) = &self.imaging else { return };
+        let (snr, logsnr) = match &self.truth {
+            Some(t) if t.len() == im.model.len() => (
+                Some(metrics::snr(&im.model, t)),
+                self.truth_dynamic_range.map(|dr| metrics::log_snr(&im.model, t, dr)),
+            ),
+            _ => (None, None),
+        };
+        self.metrics.push(IterationMetrics {
+            iteration: self.iteration,
+            realisation: (self.realisation > 0).then_some(self.realisation),
+            residual_ratio: metrics::residual_ratio(&im.residual, &im.dirty),
+            step_seconds: self.last_step_seconds,
+            residual_seconds,
+            snr,
+            logsnr,
+        });
+    }
+}
+

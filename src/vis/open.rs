@@ -1,0 +1,117 @@
+//! One way in for every table format: [`format_of`] tells a path's format by its content (a
+//! file's leading bytes, a MeasurementSet's directory), [`open`] gives its reader, and
+//! [`read_table`] reads it whole. The command line, the engine and the Python package all go
+//! through here, so a format added here is one every entry point reads.
+
+use super::reader::{TableReader, STDIN};
+use super::error::TableError;
+use super::split::read_parts;
+use super::{IngestStats, IpcReader, ObservationMeta, VisReader, Visibilities, DEFAULT_BATCH_ROWS};
+use crate::{Error, Result};
+use std::io::Read;
+use std::path::Path;
+
+/// A visibility table's format.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TableFormat {
+    /// Parquet with the columns of `docs/formats.md` (the engine's own format).
+    Parquet,
+    /// An Arrow IPC stream or file with the same columns.
+    ArrowIpc,
+    /// A casacore MeasurementSet (a directory).
+    MeasurementSet,
+}
+
+impl TableFormat {
+    pub fn name(self) -> &'static str {
+        match self {
+            TableFormat::Parquet => "Parquet",
+            TableFormat::ArrowIpc => "Arrow IPC",
+            TableFormat::MeasurementSet => "MeasurementSet",
+        }
+    }
+}
+
+/// What a table is read with beyond its path.
+#[derive(Clone, Debug, Default)]
+pub struct OpenOptions {
+    /// Rows per record batch (0: the default).
+    pub batch_rows: usize,
+    /// Which part of a MeasurementSet (field, windows, channels, data column).
+    #[cfg(feature = "ms")]
+    pub ms: crate::ms::MsSelection,
+    /// Accept an Arrow IPC stream that ends without its end-of-stream marker (with a warning).
+    pub allow_truncated: bool,
+}
+
+/// The format of the table at `path`, by content: a directory holding `table.dat` is a
+/// MeasurementSet; a file starting with `PAR1` is Parquet; one starting with `ARROW1` (the
+/// IPC file format) or with an IPC message (a continuation marker or a message length) is
+/// Arrow IPC. `-` (standard input) is an Arrow IPC stream.
+pub fn format_of(path: &Path) -> Result<TableFormat> {
+    if path.as_os_str() == STDIN {
+        return Ok(TableFormat::ArrowIpc);
+    }
+    let metadata = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
+    if metadata.is_dir() {
+        if path.join("table.dat").is_file() {
+            return Ok(TableFormat::MeasurementSet);
+        }
+        return Err(Error::input(path, "a directory, but not a MeasurementSet (no table.dat): expected a MeasurementSet, a Parquet or an Arrow IPC file"));
+    }
+    let mut head = [0u8; 8];
+    let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut got = 0;
+    while got < head.len() {
+        match file.read(&mut head[got..]) {
+            Ok(0) => break,
+            Ok(n) => got += n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(Error::io(path, e)),
+        }
+    }
+    let head = &head[..got];
+    if head.starts_with(b"PAR1") {
+        return Ok(TableFormat::Parquet);
+    }
+    // The IPC file format's magic, or a stream's first message: the continuation marker
+    // 0xFFFFFFFF (current streams) or a little-endian metadata length (pre-1.0 streams).
+    if head.starts_with(b"ARROW1") || head.starts_with(&[0xff; 4]) {
+        return Ok(TableFormat::ArrowIpc);
+    }
+    let what = if head.is_empty() { "the file is empty".to_string() } else { format!("the file starts with bytes {}", hex(head)) };
+    Err(TableError::decode(
+        path,
+        "not a visibility table (expected a Parquet file, which starts with PAR1, an Arrow IPC stream or file, or a MeasurementSet directory)",
+        what,
+    )
+    .into())
+}
+
+fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect::<Vec<_>>().join(" ")
+}
+
+/// Opens `path` as a visibility table of whatever format it holds.
+pub fn open(path: &Path, options: &OpenOptions) -> Result<Box<dyn TableReader>> {
+    let batch_rows = if options.batch_rows == 0 { DEFAULT_BATCH_ROWS } else { options.batch_rows };
+    Ok(match format_of(path)? {
+        TableFormat::Parquet => Box::new(VisReader::open(path, batch_rows)?),
+        TableFormat::ArrowIpc => Box::new(IpcReader::open(&path.to_string_lossy(), options.allow_truncated)?),
+        #[cfg(feature = "ms")]
+        TableFormat::MeasurementSet => Box::new(crate::ms::MsReader::open(path, &options.ms, batch_rows)?),
+        #[cfg(not(feature = "ms"))]
+        TableFormat::MeasurementSet => return Err(Error::input(path, "a MeasurementSet, but this r2d2 was built without the `ms` feature")),
+    })
+}
+
+/// Reads a whole table of any format: the kept samples, the metadata and the counts.
+pub fn read_table(path: &Path, options: &OpenOptions) -> Result<(Visibilities, ObservationMeta, IngestStats)> {
+    let mut reader = open(path, options)?;
+    let (mut parts, stats) = read_parts(reader.as_mut(), None, "split_by", &|| false)?.expect("never cancelled");
+    if let Some(summary) = reader.summary() {
+        log::info!("{}: {summary}", path.display());
+    }
+    let vis = parts.pop().map(|p| p.vis).unwrap_or_default();
+    Ok((vis, reader.meta().clone(), stats))
+}
