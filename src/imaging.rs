@@ -94,6 +94,15 @@ pub struct DirtyProducts {
 
 /// Total weights (natural x imaging) of `vis` on `geometry`.
 pub fn total_weights(vis: &Visibilities, geometry: ImageGeometry, weighting: Weighting, grid_factor: f64) -> Result<Vec<f64>> {
+    if weighting == Weighting::Given {
+        if vis.imaging_weight.len() != vis.len() {
+            return Err(Error::parameter(
+                "weighting",
+                "`given` uses the imaging weights given with the data (a table's `imaging_weight` column, a .mat file's `nWimag`), and these visibilities carry none: choose natural, uniform or briggs",
+            ));
+        }
+        return Ok(vis.weight.iter().zip(&vis.imaging_weight).map(|(&n, &i)| f64::from(n) * f64::from(i)).collect());
+    }
     let point = |k: usize| geometry.uv_to_phase(vis.u[k], vis.v[k]);
     crate::weighting::total_weights(point, &vis.weight, geometry.size, weighting, grid_factor)
 }
@@ -151,7 +160,7 @@ mod w_term_tests {
 
     #[test]
     fn the_w_term_warning_follows_field_and_w() {
-        let vis = |w: f32| Visibilities { u: vec![1.0], v: vec![1.0], w: vec![w, -2.0 * w], vis: vec![Default::default(); 2], weight: vec![1.0; 2], frequency: vec![1e8; 2] };
+        let vis = |w: f32| Visibilities { u: vec![1.0], v: vec![1.0], w: vec![w, -2.0 * w], vis: vec![Default::default(); 2], weight: vec![1.0; 2], frequency: vec![1e8; 2], imaging_weight: Vec::new() };
         // LOFAR-like: |w| 2e3 wavelengths, 3.2 deg field: n - 1 ~ -1.6e-3 at the corners.
         let wide = ImageGeometry::new(512, 3.2f64.to_radians() / 512.0).unwrap();
         let t = WTerm::of(&vis(1e3), wide);

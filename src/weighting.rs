@@ -20,6 +20,9 @@ pub enum Weighting {
     Uniform,
     /// Briggs robust weighting with robustness R (-2: near uniform, +2: near natural).
     Briggs { robust: f64 },
+    /// The imaging weights given with the data (a table's `imaging_weight` column, the square
+    /// of a .mat file's `nWimag`), as the reference uses a file's `nWimag` when told to.
+    Given,
 }
 
 /// A weighting scheme as a configuration names it (`scheme: briggs`); Briggs takes its
@@ -33,6 +36,8 @@ pub enum WeightingScheme {
     Uniform,
     #[serde(alias = "Briggs", alias = "robust")]
     Briggs,
+    #[serde(alias = "Given")]
+    Given,
 }
 
 impl WeightingScheme {
@@ -42,6 +47,7 @@ impl WeightingScheme {
             WeightingScheme::Natural => Ok(Weighting::Natural),
             WeightingScheme::Uniform => Ok(Weighting::Uniform),
             WeightingScheme::Briggs => Weighting::from_name("briggs", robust),
+            WeightingScheme::Given => Ok(Weighting::Given),
         }
     }
 }
@@ -52,6 +58,7 @@ impl Weighting {
         match name.to_ascii_lowercase().as_str() {
             "natural" => Ok(Weighting::Natural),
             "uniform" => Ok(Weighting::Uniform),
+            "given" => Ok(Weighting::Given),
             "briggs" | "robust" => {
                 if !robust.is_finite() {
                     return Err(Error::parameter("robust", format!("expected a finite number, got {robust}")));
@@ -60,7 +67,7 @@ impl Weighting {
             }
             other => Err(Error::parameter(
                 "weighting",
-                format!("expected one of natural, uniform, briggs, got '{other}'"),
+                format!("expected one of natural, uniform, briggs, given (the imaging weights given with the data), got '{other}'"),
             )),
         }
     }
@@ -83,6 +90,7 @@ impl std::fmt::Display for Weighting {
             Weighting::Natural => write!(f, "natural"),
             Weighting::Uniform => write!(f, "uniform"),
             Weighting::Briggs { robust } => write!(f, "briggs {robust}"),
+            Weighting::Given => write!(f, "given"),
         }
     }
 }
@@ -146,6 +154,9 @@ fn weigh(
     if scheme == Weighting::Natural {
         return Ok((0..n).map(|k| combine(1.0, natural_weight(k))).collect());
     }
+    if scheme == Weighting::Given {
+        return Err(Error::parameter("weighting", "`given` takes the imaging weights given with the visibilities, which these have none of"));
+    }
     check_grid(grid_factor, image_size)?;
     let cells = ((grid_factor * image_size as f64).floor() as usize).max(1);
     let cell_of = |k: usize| -> usize {
@@ -162,7 +173,7 @@ fn weigh(
         density[cell_of(k)] += natural_weight(k);
     }
     Ok(match scheme {
-        Weighting::Natural => unreachable!("handled above"),
+        Weighting::Natural | Weighting::Given => unreachable!("handled above"),
         Weighting::Uniform => (0..n)
             .map(|k| {
                 let g = density[cell_of(k)];

@@ -16,7 +16,9 @@ N x 1 columns (--rows: 1 x N, as the pyxis variant writes them).
 dataset with a MATLAB_class attribute, complex as a compound of `real` and `imag`, arrays
 transposed (MATLAB is column-major). --unit-m stores u, v, w in metres with `unit = 'm'`.
 --drop removes a field (to make bad input). --single stores y as complex64 and u, v, w as
-float32.
+float32. --folded PATH also writes the same samples as a Parquet table whose natural weights are
+the .mat's natural times imaging weights: imaged with natural weighting it is what the .mat is
+with the `given` weighting.
 """
 
 import argparse
@@ -111,10 +113,24 @@ def main():
     p.add_argument("--unit-m", action="store_true")
     p.add_argument("--single", action="store_true")
     p.add_argument("--drop", nargs="*", default=[])
+    p.add_argument("--folded", help="also write this Parquet table: the .mat's samples with the imaging weights folded into the natural weights")
     args = p.parse_args()
     t = pq.read_table(args.input)
     table = {name: t.column(name).to_numpy(zero_copy_only=False) for name in t.column_names}
     data = {k: shaped(v, args.rows) for k, v in fields(table, args).items()}
+    if args.folded:
+        import pyarrow as pa
+
+        d = fields(table, args)
+        scale = 1.0 if args.unit_m else C / float(d["frequency"])
+        iw = d["nWimag"] ** 2 if d["nWimag"].size else 1.0
+        out = pa.table({
+            "u": np.asarray(d["u"], np.float64) * scale, "v": np.asarray(d["v"], np.float64) * scale, "w": np.asarray(d["w"], np.float64) * scale,
+            "frequency": np.full(len(d["u"]), float(d["frequency"])),
+            "vis_re": d["y"].real.astype(np.float64), "vis_im": d["y"].imag.astype(np.float64),
+            "weight": d["nW"] ** 2 * iw,
+        }).replace_schema_metadata(t.schema.metadata)
+        pq.write_table(out, args.folded)
     if args.version == "7.3":
         write_v73(args.output, data)
     else:

@@ -50,7 +50,8 @@ pub fn read_input(path: &Path, ms: &MsOptions) -> Result<(Visibilities, Observat
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// A MeasurementSet (written as Parquet) or a Parquet table (written as an MS).
+    /// A MeasurementSet (written as Parquet), a Parquet table (written as an MS), or another
+    /// table (Arrow IPC, a MATLAB .mat observation; written as Parquet).
     input: PathBuf,
     /// The Parquet table or MeasurementSet to write (replaced whole).
     output: PathBuf,
@@ -59,12 +60,15 @@ pub struct Args {
 }
 
 pub fn run(args: Args) -> Result<()> {
-    #[cfg(feature = "ms")]
-    {
-        if r2d2_imaging::is_ms(&args.input) {
+    use r2d2_imaging::vis::TableFormat;
+    match r2d2_imaging::vis::format_of(&args.input)? {
+        #[cfg(feature = "ms")]
+        TableFormat::MeasurementSet => {
             let (counts, samples) = r2d2_imaging::ms::convert_ms_to_parquet(&args.input, &args.ms.selection(), &args.output)?;
             log::info!("{}: {counts}; wrote {samples} samples to {}", args.input.display(), args.output.display());
-        } else {
+        }
+        #[cfg(feature = "ms")]
+        TableFormat::Parquet => {
             let made = r2d2_imaging::ms::convert_parquet_to_ms(&args.input, &args.output)?;
             log::info!(
                 "{}: wrote {} samples as {} rows x {} channels (XX, YY) to {}",
@@ -75,8 +79,24 @@ pub fn run(args: Args) -> Result<()> {
                 args.output.display()
             );
         }
-        Ok(())
+        #[cfg(not(feature = "ms"))]
+        TableFormat::MeasurementSet | TableFormat::Parquet => {
+            return Err(r2d2_imaging::Error::input(&args.input, "converting to or from a MeasurementSet needs the `ms` feature, which this r2d2 was built without"));
+        }
+        // Every other format becomes the Parquet format, batch by batch.
+        format => {
+            #[cfg(feature = "ms")]
+            r2d2_imaging::ms::check_conversion_output(&args.input, &args.output, false)?;
+            #[cfg(not(feature = "ms"))]
+            if let Some(input) = r2d2_imaging::staging::destroys_input(&args.output, &[args.input.as_path()]) {
+                return Err(r2d2_imaging::Error::input(&args.output, format!("the output would replace or lie inside the input {}: choose another output path", input.display())));
+            }
+            let mut reader = r2d2_imaging::vis::open(&args.input, &r2d2_imaging::vis::OpenOptions::default())?;
+            let mut meta = reader.meta().clone();
+            meta.extra.insert("converted_from".to_string(), args.input.display().to_string());
+            let samples = r2d2_imaging::vis::write_parquet_from(reader.as_mut(), &meta, &args.output)?;
+            log::info!("{} ({}): wrote {samples} samples to {}", args.input.display(), format.name(), args.output.display());
+        }
     }
-    #[cfg(not(feature = "ms"))]
-    Err(r2d2_imaging::Error::input(&args.input, "this r2d2 was built without the `ms` feature"))
+    Ok(())
 }

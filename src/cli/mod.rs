@@ -169,8 +169,9 @@ pub struct ImageOptions {
     /// Pixel size in arcseconds (instead of --superresolution).
     #[arg(long)]
     pub pixel_arcsec: Option<f64>,
-    /// natural, uniform or briggs. Default: the series' own (`r2d2 image` with a series), else
-    /// briggs.
+    /// natural, uniform, briggs, or given (the imaging weights that come with the data: a
+    /// table's `imaging_weight` column, a .mat file's `nWimag`). Default: the series' own
+    /// (`r2d2 image` with a series), else briggs.
     #[arg(long)]
     pub weighting: Option<String>,
     /// Briggs robustness R (implies briggs). Default: the series' own, else 0.

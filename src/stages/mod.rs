@@ -164,6 +164,7 @@ fn scheme_name(scheme: crate::weighting::WeightingScheme) -> &'static str {
         crate::weighting::WeightingScheme::Natural => "natural",
         crate::weighting::WeightingScheme::Uniform => "uniform",
         crate::weighting::WeightingScheme::Briggs => "briggs",
+        crate::weighting::WeightingScheme::Given => "given",
     }
 }
 

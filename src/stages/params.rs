@@ -462,6 +462,7 @@ impl WeightingParams {
             Weighting::Natural => (WeightingScheme::Natural, 0.0),
             Weighting::Uniform => (WeightingScheme::Uniform, 0.0),
             Weighting::Briggs { robust } => (WeightingScheme::Briggs, robust),
+            Weighting::Given => (WeightingScheme::Given, 0.0),
         };
         WeightingParams { scheme, robust, grid_factor: grid_factor() }
     }

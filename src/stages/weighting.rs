@@ -35,6 +35,7 @@ fn weighting_json(weighting: Weighting, grid_factor: f64) -> serde_json::Value {
         Weighting::Natural => serde_json::json!({"scheme": "natural"}),
         Weighting::Uniform => serde_json::json!({"scheme": "uniform", "grid_factor": grid_factor}),
         Weighting::Briggs { robust } => serde_json::json!({"scheme": "briggs", "robust": robust, "grid_factor": grid_factor}),
+        Weighting::Given => serde_json::json!({"scheme": "given"}),
     }
 }
 
@@ -65,7 +66,12 @@ impl Stage<Job> for WeightingStage {
         let geometry = params.geometry(vis)?;
         let max_uv = vis.max_uv();
         let w_term = crate::imaging::WTerm::of(vis, geometry);
+        let given_unused = !vis.imaging_weight.is_empty() && self.weighting != Weighting::Given;
         job.weight = Some(total_weights(vis, geometry, self.weighting, self.grid_factor)?);
+        if given_unused {
+            // As the reference's current imager: weights given with the data are used when asked.
+            log::info!("job {}: the data carry imaging weights (`imaging_weight`, a .mat file's `nWimag`), not used: the weighting is {} (`given` uses them)", job.id, self.weighting);
+        }
         job.geometry = Some(geometry);
         job.superresolution = (max_uv > 0.0).then(|| 1.0 / (2.0 * max_uv * geometry.pixel_rad));
         job.settings.insert("w_term".into(), serde_json::json!({"corrected": false, "max_abs_w": w_term.max_abs_w, "max_phase_rad": w_term.max_phase_rad}));

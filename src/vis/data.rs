@@ -176,6 +176,9 @@ pub struct Visibilities {
     /// Frequency of each sample, Hz. Double precision: the band written to the products'
     /// headers comes from it.
     pub frequency: Vec<f64>,
+    /// Imaging weights given with the data (a table's `imaging_weight` column, a .mat file's
+    /// `nWimag` squared), one per sample, used by the `given` weighting; empty when none were.
+    pub imaging_weight: Vec<f32>,
 }
 
 impl Visibilities {
@@ -188,6 +191,7 @@ impl Visibilities {
             vis: Vec::with_capacity(n),
             weight: Vec::with_capacity(n),
             frequency: Vec::with_capacity(n),
+            imaging_weight: Vec::new(),
         }
     }
 
@@ -220,6 +224,7 @@ impl Visibilities {
         self.vis.append(&mut other.vis);
         self.weight.append(&mut other.weight);
         self.frequency.append(&mut other.frequency);
+        self.imaging_weight.append(&mut other.imaging_weight);
     }
 
     /// Splits the samples into `groups` parts: sample `i` goes to part `group[i]` (< `groups`),
@@ -233,6 +238,9 @@ impl Visibilities {
         let mut parts: Vec<Visibilities> = counts.iter().map(|&n| Visibilities::with_capacity(n)).collect();
         for (i, &g) in group.iter().enumerate() {
             parts[g].push([self.u[i], self.v[i]], self.w[i], self.vis[i], self.weight[i], self.frequency[i]);
+            if let Some(&x) = self.imaging_weight.get(i) {
+                parts[g].imaging_weight.push(x);
+            }
         }
         parts
     }

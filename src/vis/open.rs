@@ -6,8 +6,16 @@
 use super::reader::{TableReader, STDIN};
 use super::error::TableError;
 use super::split::read_parts;
+use super::mat::MatReader;
 use super::{IngestStats, IpcReader, ObservationMeta, VisReader, Visibilities, DEFAULT_BATCH_ROWS};
 use crate::{Error, Result};
+use crate::fits::TempSibling;
+use parquet::arrow::ArrowWriter;
+use parquet::basic::{Compression, ZstdLevel};
+use parquet::file::metadata::KeyValue;
+use parquet::file::properties::WriterProperties;
+use parquet::schema::types::ColumnPath;
+use std::fs::File;
 use std::io::Read;
 use std::path::Path;
 
@@ -20,6 +28,8 @@ pub enum TableFormat {
     ArrowIpc,
     /// A casacore MeasurementSet (a directory).
     MeasurementSet,
+    /// A MATLAB .mat file as the reference implementation keeps observations (v5 or v7.3).
+    Mat,
 }
 
 impl TableFormat {
@@ -28,6 +38,7 @@ impl TableFormat {
             TableFormat::Parquet => "Parquet",
             TableFormat::ArrowIpc => "Arrow IPC",
             TableFormat::MeasurementSet => "MeasurementSet",
+            TableFormat::Mat => "MATLAB .mat",
         }
     }
 }
@@ -47,7 +58,8 @@ pub struct OpenOptions {
 /// The format of the table at `path`, by content: a directory holding `table.dat` is a
 /// MeasurementSet; a file starting with `PAR1` is Parquet; one starting with `ARROW1` (the
 /// IPC file format) or with an IPC message (a continuation marker or a message length) is
-/// Arrow IPC. `-` (standard input) is an Arrow IPC stream.
+/// Arrow IPC; one starting with a MAT header is a MATLAB .mat file. `-` (standard input) is
+/// an Arrow IPC stream.
 pub fn format_of(path: &Path) -> Result<TableFormat> {
     if path.as_os_str() == STDIN {
         return Ok(TableFormat::ArrowIpc);
@@ -59,7 +71,7 @@ pub fn format_of(path: &Path) -> Result<TableFormat> {
         }
         return Err(Error::input(path, "a directory, but not a MeasurementSet (no table.dat): expected a MeasurementSet, a Parquet or an Arrow IPC file"));
     }
-    let mut head = [0u8; 8];
+    let mut head = [0u8; 20];
     let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
     let mut got = 0;
     while got < head.len() {
@@ -74,6 +86,9 @@ pub fn format_of(path: &Path) -> Result<TableFormat> {
     if head.starts_with(b"PAR1") {
         return Ok(TableFormat::Parquet);
     }
+    if super::mat::is_mat(head) {
+        return Ok(TableFormat::Mat);
+    }
     // The IPC file format's magic, or a stream's first message: the continuation marker
     // 0xFFFFFFFF (current streams) or a little-endian metadata length (pre-1.0 streams).
     if head.starts_with(b"ARROW1") || head.starts_with(&[0xff; 4]) {
@@ -82,7 +97,7 @@ pub fn format_of(path: &Path) -> Result<TableFormat> {
     let what = if head.is_empty() { "the file is empty".to_string() } else { format!("the file starts with bytes {}", hex(head)) };
     Err(TableError::decode(
         path,
-        "not a visibility table (expected a Parquet file, which starts with PAR1, an Arrow IPC stream or file, or a MeasurementSet directory)",
+        "not a visibility table (expected a Parquet file, which starts with PAR1, an Arrow IPC stream or file, a MATLAB .mat file or a MeasurementSet directory)",
         what,
     )
     .into())
@@ -98,6 +113,7 @@ pub fn open(path: &Path, options: &OpenOptions) -> Result<Box<dyn TableReader>> 
     Ok(match format_of(path)? {
         TableFormat::Parquet => Box::new(VisReader::open(path, batch_rows)?),
         TableFormat::ArrowIpc => Box::new(IpcReader::open(&path.to_string_lossy(), options.allow_truncated)?),
+        TableFormat::Mat => Box::new(MatReader::open(path, batch_rows)?),
         #[cfg(feature = "ms")]
         TableFormat::MeasurementSet => Box::new(crate::ms::MsReader::open(path, &options.ms, batch_rows)?),
         #[cfg(not(feature = "ms"))]
@@ -114,4 +130,34 @@ pub fn read_table(path: &Path, options: &OpenOptions) -> Result<(Visibilities, O
     }
     let vis = parts.pop().map(|p| p.vis).unwrap_or_default();
     Ok((vis, reader.meta().clone(), stats))
+}
+
+/// Streams every batch of `reader` into a Parquet table at `out` with `meta` as its metadata
+/// (on the file and on the stored Arrow schema, where pyarrow reads it), replacing `out`
+/// atomically. Returns the samples written.
+pub fn write_parquet_from(reader: &mut dyn TableReader, meta: &ObservationMeta, out: &Path) -> Result<u64> {
+    let metadata: Vec<KeyValue> = meta.to_pairs()?.into_iter().map(|(k, v)| KeyValue::new(k, v)).collect();
+    let mut properties = WriterProperties::builder()
+        .set_compression(Compression::ZSTD(ZstdLevel::default()))
+        .set_key_value_metadata(Some(metadata));
+    // As `vis::write_parquet`: nearly all values distinct, a dictionary would be abandoned.
+    for column in ["u", "v", "w", "vis_re", "vis_im", "time"] {
+        properties = properties.set_column_dictionary_enabled(ColumnPath::from(column), false);
+    }
+    let write_error = |source: parquet::errors::ParquetError| -> Error { TableError::Write { doing: "writing Parquet", source: Box::new(source) }.into() };
+    let tmp = TempSibling::new(out)?;
+    let file = File::create(tmp.path()).map_err(|e| Error::io(out, e))?;
+    let schema = std::sync::Arc::new(reader.schema().as_ref().clone().with_metadata(meta.to_pairs()?.into_iter().collect()));
+    let mut writer = ArrowWriter::try_new(file, schema, Some(properties.build())).map_err(write_error)?;
+    let mut samples = 0u64;
+    while let Some(batch) = reader.next_batch() {
+        let batch = batch?;
+        samples += batch.num_rows() as u64;
+        writer.write(&batch).map_err(write_error)?;
+    }
+    let file = writer.into_inner().map_err(write_error)?;
+    file.sync_all().map_err(|e| Error::io(out, e))?;
+    drop(file);
+    tmp.persist()?;
+    Ok(samples)
 }

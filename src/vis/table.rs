@@ -154,7 +154,7 @@ impl ColumnType {
 }
 
 /// The columns the reader uses, with their accepted types; others are ignored.
-const READ_COLUMNS: [(&str, ColumnType, bool); 8] = [
+const READ_COLUMNS: [(&str, ColumnType, bool); 9] = [
     ("u", ColumnType::Float64, true),
     ("v", ColumnType::Float64, true),
     ("w", ColumnType::Float64, true),
@@ -163,6 +163,7 @@ const READ_COLUMNS: [(&str, ColumnType, bool); 8] = [
     ("vis_im", ColumnType::AnyFloat, true),
     ("weight", ColumnType::AnyFloat, false),
     ("flag", ColumnType::Boolean, false),
+    ("imaging_weight", ColumnType::AnyFloat, false),
 ];
 
 /// Checks that the columns the reader uses exist (when required), once, with an
@@ -287,6 +288,7 @@ fn convert_batch(
     let (u, v, w, frequency) = (column("u")?, column("v")?, column("w")?, column("frequency")?);
     let (re, im) = (column("vis_re")?, column("vis_im")?);
     let weight = float_column(batch, "weight", source, first_row)?;
+    let imaging_weight = float_column(batch, "imaging_weight", source, first_row)?;
     let flag = match batch.column_by_name("flag") {
         Some(array) => {
             check_no_nulls(array.as_ref(), "flag", source, first_row)?;
@@ -307,7 +309,8 @@ fn convert_batch(
             continue;
         }
         let wt = weight.as_ref().map_or(1.0, |w| w[i]);
-        let values = [u[i], v[i], w[i], frequency[i], re[i], im[i], wt];
+        let imaging = imaging_weight.as_ref().map_or(1.0, |w| w[i]);
+        let values = [u[i], v[i], w[i], frequency[i], re[i], im[i], wt, imaging];
         if !values.iter().all(|x| x.is_finite()) {
             counts.non_finite += 1;
             continue;
@@ -315,7 +318,8 @@ fn convert_batch(
         let (low, high) = FREQUENCY_RANGE_HZ;
         if [u[i], v[i], w[i]].iter().any(|x| x.abs() > MAX_BASELINE_M)
             || !(low..=high).contains(&frequency[i])
-            || [re[i], im[i], wt].iter().any(|x| x.abs() > f64::from(f32::MAX))
+            || [re[i], im[i], wt, imaging].iter().any(|x| x.abs() > f64::from(f32::MAX))
+            || imaging < 0.0
         {
             counts.impossible += 1;
             continue;
@@ -337,6 +341,9 @@ fn convert_batch(
             stored_weight,
             frequency[i],
         );
+        if imaging_weight.is_some() {
+            out.imaging_weight.push(imaging as f32);
+        }
     }
     stats.add(&counts);
     Ok(out)

@@ -1,0 +1,137 @@
+//! Every table format through the one reader (`vis::open`): the same observation as Parquet,
+//! Arrow IPC (stream and file) and MATLAB .mat files as the reference implementation keeps
+//! them (v5, v5 compressed, v7.3/HDF5; made with scipy and h5py by tests/make_mat.py) images
+//! the same, by `r2d2 dirty`, after `r2d2 convert`, and by `r2d2 image`; the .mat's `nWimag`
+//! is honoured by the `given` weighting (checked against the same samples with the imaging
+//! weights folded into the natural ones); bad files are errors naming the file and variable.
+
+use r2d2_imaging::fits::read_image;
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn r2d2(args: &[&str], dir: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_r2d2")).args(args).current_dir(dir).output().expect("r2d2 runs")
+}
+
+fn check(out: &Output) {
+    assert!(out.status.success(), "r2d2 failed: {}\nstderr: {}", out.status, String::from_utf8_lossy(&out.stderr));
+}
+
+fn python(args: &[&str], dir: &Path) {
+    let out = Command::new("python3").args(args).current_dir(dir).output().expect("python3 runs (a test requirement)");
+    assert!(out.status.success(), "python3 {args:?} failed:\n{}", String::from_utf8_lossy(&out.stderr));
+}
+
+fn make_mat(dir: &Path, out: &str, options: &[&str]) {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/make_mat.py");
+    let mut args = vec![script.to_str().unwrap(), "obs.parquet", out];
+    args.extend_from_slice(options);
+    python(&args, dir);
+}
+
+/// A one-channel observation (the reference's .mat holds one), its dirty image and PSF.
+fn observation(dir: &Path) {
+    check(&r2d2(
+        &[
+            "simulate", "--sky", "procedural:5", "--configs", "c", "--hours", "2", "--dec", "35", "--dr", "1000", "--size", "64",
+            "--integration-s", "300", "--flag-fraction", "0.1", "--seed", "5", "--out", "obs.parquet",
+        ],
+        dir,
+    ));
+}
+
+fn dirty(dir: &Path, input: &str, name: &str, weighting: &str) -> (Vec<f64>, Vec<f64>) {
+    check(&r2d2(&["dirty", input, "--size", "64", "--weighting", weighting, "--name", name], dir));
+    let read = |suffix: &str| read_image(&dir.join(format!("{name}-{suffix}.fits"))).unwrap().data;
+    (read("dirty"), read("psf"))
+}
+
+/// Largest difference relative to the largest value of `b`.
+fn relative(a: &[f64], b: &[f64]) -> f64 {
+    let peak = b.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    a.iter().zip(b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs())) / peak
+}
+
+#[test]
+fn every_format_images_as_the_parquet_table_it_was_made_from() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    python(
+        &[
+            "-c",
+            "import pyarrow as pa, pyarrow.parquet as pq\nt = pq.read_table('obs.parquet')\nwith pa.ipc.new_stream('obs.arrows', t.schema) as w: w.write_table(t)\nwith pa.ipc.new_file('obs.arrow', t.schema) as w: w.write_table(t)\n",
+        ],
+        d,
+    );
+    make_mat(d, "v5.mat", &["--version", "5"]);
+    make_mat(d, "v5z.mat", &["--version", "5z", "--rows"]);
+    make_mat(d, "v73.mat", &["--version", "7.3"]);
+    make_mat(d, "v73m.mat", &["--version", "7.3", "--unit-m", "--single"]);
+    let (reference, psf) = dirty(d, "obs.parquet", "ref", "briggs");
+    // Parquet and Arrow carry the same values; the .mat files carry them in double precision
+    // through a change of units (v73m: visibilities and baselines rounded to single).
+    for (input, tolerance) in [("obs.arrows", 0.0), ("obs.arrow", 0.0), ("v5.mat", 1e-6), ("v5z.mat", 1e-6), ("v73.mat", 1e-6), ("v73m.mat", 1e-5)] {
+        let name = input.replace('.', "-");
+        let (image, p) = dirty(d, input, &name, "briggs");
+        assert!(relative(&image, &reference) <= tolerance, "{input}: dirty image {} off the Parquet table's", relative(&image, &reference));
+        assert!(relative(&p, &psf) <= tolerance, "{input}: PSF {} off", relative(&p, &psf));
+    }
+    // `r2d2 convert` makes the Parquet format of each; `r2d2 image` reads a .mat directly.
+    check(&r2d2(&["convert", "v73.mat", "from-mat.parquet"], d));
+    let (converted, _) = dirty(d, "from-mat.parquet", "conv", "briggs");
+    assert!(relative(&converted, &reference) <= 1e-6);
+    check(&r2d2(&["image", "v5z.mat", "--size", "64", "--step", "clean", "--iterations", "2", "--name", "img"], d));
+    assert!(d.join("img-model.fits").exists() && d.join("img-image.fits").exists());
+}
+
+#[test]
+fn a_mats_imaging_weights_are_used_by_the_given_weighting() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    make_mat(d, "iw.mat", &["--version", "5", "--imaging-weights", "--folded", "folded.parquet"]);
+    make_mat(d, "iw73.mat", &["--version", "7.3", "--imaging-weights"]);
+    let (folded, folded_psf) = dirty(d, "folded.parquet", "folded", "natural");
+    for input in ["iw.mat", "iw73.mat"] {
+        let name = input.replace('.', "-");
+        let (given, psf) = dirty(d, input, &name, "given");
+        assert!(relative(&given, &folded) < 1e-6 && relative(&psf, &folded_psf) < 1e-6, "{input}: {}", relative(&given, &folded));
+        // They are weights, not ignored: natural weighting of the .mat is another image.
+        let (natural, _) = dirty(d, input, &format!("{name}-nat"), "natural");
+        assert!(relative(&natural, &folded) > 1e-3, "{input}: the given weights changed nothing");
+    }
+    // A table without imaging weights cannot be weighted `given`.
+    let out = r2d2(&["dirty", "obs.parquet", "--size", "64", "--weighting", "given"], d);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("given") && err.contains("carry none"), "{err}");
+}
+
+#[test]
+fn bad_mat_files_are_errors_naming_the_file_and_variable() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    make_mat(d, "no-y.mat", &["--version", "5", "--drop", "y"]);
+    make_mat(d, "no-freq.mat", &["--version", "7.3", "--drop", "frequency"]);
+    make_mat(d, "good.mat", &["--version", "5z"]);
+    let bytes = std::fs::read(d.join("good.mat")).unwrap();
+    std::fs::write(d.join("cut.mat"), &bytes[..bytes.len() / 2]).unwrap();
+    let mut header_only = bytes[..128].to_vec();
+    // An element declaring far more bytes than the file holds.
+    header_only.extend_from_slice(&[14, 0, 0, 0, 0xff, 0xff, 0xff, 0x7f]);
+    std::fs::write(d.join("huge.mat"), header_only).unwrap();
+    for (file, words) in [
+        ("no-y.mat", vec!["no-y.mat", "`y`"]),
+        ("no-freq.mat", vec!["no-freq.mat", "`frequency`"]),
+        ("cut.mat", vec!["cut.mat"]),
+        ("huge.mat", vec!["huge.mat", "past the end"]),
+    ] {
+        let out = r2d2(&["dirty", file, "--size", "64"], d);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && !err.contains("panicked"), "{file}: {err}");
+        for w in words {
+            assert!(err.contains(w), "{file}: '{w}' missing from: {err}");
+        }
+    }
+}
