@@ -134,8 +134,10 @@ pub struct WGridPlan {
     /// `order[k]`: caller's index of plan point `k`; `rank` its inverse.
     order: Vec<u32>,
     rank: Vec<u32>,
-    /// `w` of each point, plan order.
+    /// `w` of each point, and the first plane it reaches (see [`WGridPlan::first_plane_of`]),
+    /// plan order.
     w: Vec<f64>,
+    first_plane: Vec<u32>,
     /// Non-empty tiles in tile order; their point ranges cover the plan order.
     tiles: Vec<TileSpan>,
     /// Grid rows touched by some point's kernel.
@@ -254,6 +256,7 @@ impl WGridPlan {
             order: Vec::new(),
             rank: Vec::new(),
             w: Vec::new(),
+            first_plane: Vec::new(),
             tiles: Vec::new(),
             row_used: Vec::new(),
             tc,
@@ -340,6 +343,7 @@ impl WGridPlan {
 
         self.positions = order.par_iter().map(|&k| positions[k as usize]).collect();
         self.w = order.par_iter().map(|&k| w[k as usize]).collect();
+        self.first_plane = self.w.par_iter().map(|&w| self.first_plane_of(w) as u32).collect();
         let mut rank = vec![0u32; m];
         for (i, &k) in order.iter().enumerate() {
             rank[k as usize] = i as u32;
@@ -357,24 +361,40 @@ impl WGridPlan {
         self.row_used = row_used;
     }
 
-    /// First plane `p0` a point at `w` contributes to, and its kernel variable `z`: the point
-    /// reaches planes `p0 .. p0 + support` with weights `psi` of cell `p - p0` at `z`.
+    /// Where a point at `w` sits between the planes: `s - support / 2` with `s` its plane
+    /// coordinate, so that it reaches planes `ceil` of that onwards.
     #[inline(always)]
-    fn w_position(&self, wk: &WKernel, w: f64) -> (usize, f64) {
-        let s = (w - self.w_first) / self.dw - 0.5 * wk.support as f64;
-        let p0 = s.ceil().clamp(0.0, (self.planes - wk.support) as f64);
-        (p0 as usize, 2.0 * (p0 - s) - 1.0)
+    fn plane_offset(&self, wk: &WKernel, w: f64) -> f64 {
+        (w - self.w_first) / self.dw - 0.5 * wk.support as f64
     }
 
-    /// The plan-order range of a tile's points that reach plane `p`.
-    fn plane_range(&self, tile: &TileSpan, p: usize) -> Range<usize> {
-        let Some(wk) = &self.wkernel else { return tile.points.clone() };
-        let ws = &self.w[tile.points.clone()];
-        // p0 is non-decreasing along the tile's points (sorted by w).
-        let lo = p.saturating_sub(wk.support - 1);
-        let start = ws.partition_point(|&w| self.w_position(wk, w).0 < lo);
-        let end = start + ws[start..].partition_point(|&w| self.w_position(wk, w).0 <= p);
-        tile.points.start + start..tile.points.start + end
+    /// First plane `p0` a point at `w` reaches: it contributes to planes `p0 .. p0 +
+    /// support`, with weights `psi` of cell `p - p0` (non-decreasing in `w`).
+    fn first_plane_of(&self, w: f64) -> usize {
+        match &self.wkernel {
+            None => 0,
+            Some(wk) => self.plane_offset(wk, w).ceil().clamp(0.0, (self.planes - wk.support) as f64) as usize,
+        }
+    }
+
+    /// The tiles' point ranges on plane `p`, from those on plane `p - 1` (or, for plane 0,
+    /// from empty ranges at the tiles' starts): points are sorted by first plane inside a
+    /// tile, so both ends only move forward.
+    fn advance_ranges(&self, ranges: &mut [Range<usize>], p: usize) {
+        let Some(wk) = &self.wkernel else {
+            ranges.iter_mut().zip(&self.tiles).for_each(|(r, t)| *r = t.points.clone());
+            return;
+        };
+        let lo = (p + 1).saturating_sub(wk.support) as u32;
+        let fp = &self.first_plane;
+        ranges.par_iter_mut().zip(self.tiles.par_iter()).for_each(|(r, tile)| {
+            while r.end < tile.points.end && fp[r.end] <= p as u32 {
+                r.end += 1;
+            }
+            while r.start < r.end && fp[r.start] < lo {
+                r.start += 1;
+            }
+        });
     }
 
     /// Weight of plan point `k` on plane `p`.
@@ -383,7 +403,8 @@ impl WGridPlan {
         match &self.wkernel {
             None => 1.0,
             Some(wk) => {
-                let (p0, z) = self.w_position(wk, self.w[k]);
+                let p0 = self.first_plane[k] as usize;
+                let z = 2.0 * (p0 as f64 - self.plane_offset(wk, self.w[k])) - 1.0;
                 wk.cell(p - p0, z)
             }
         }
@@ -456,12 +477,11 @@ impl WGridPlan {
         let mut acc = par_filled(Complex64::default(), n * n);
         let mut screen = self.phase_screen(0);
         let step = if self.planes > 1 { self.step_screen() } else { Vec::new() };
+        let mut ranges: Vec<Range<usize>> = self.tiles.iter().map(|t| t.points.start..t.points.start).collect();
         for p in 0..self.planes {
-            let spans: Vec<(usize, Range<usize>)> = (0..self.tiles.len())
-                .into_par_iter()
-                .map(|i| (i, self.plane_range(&self.tiles[i], p)))
-                .filter(|(_, r)| !r.is_empty())
-                .collect();
+            self.advance_ranges(&mut ranges, p);
+            let spans: Vec<(usize, Range<usize>)> =
+                ranges.iter().enumerate().filter(|(_, r)| !r.is_empty()).map(|(i, r)| (i, r.clone())).collect();
             if !spans.is_empty() {
                 self.spread_plane::<W, W2, L>(&kernel, p, &spans, values, &mut grid);
                 self.grid_to_accumulator(&mut grid, &screen, &mut acc);
@@ -560,27 +580,34 @@ impl WGridPlan {
                 }
             },
         );
-        const B: usize = 8;
+        // Image columns ix sit at grid columns gcol[ix]: the upper half of the image at the
+        // start of the grid, the lower half at its end.
+        const B: usize = 16;
+        let half = n / 2;
+        let gcol: Vec<usize> = (0..n).map(|ix| if ix < half { gx - half + ix } else { ix - half }).collect();
         let grid_ref: &[Complex64] = grid;
         acc.par_chunks_mut(n * B).enumerate().for_each_init(
             || (vec![Complex64::default(); gy * B], vec![Complex64::default(); e.fft_y.get_inplace_scratch_len()]),
             |(block, scratch), (bi, dst)| {
                 let ncols = dst.len() / n;
-                let gcol = |ix: usize| (ix + gx - n / 2) % gx;
-                for r in 0..gy {
-                    let row = &grid_ref[r * gx..(r + 1) * gx];
-                    for c in 0..ncols {
-                        block[c * gy + r] = row[gcol(bi * B + c)];
+                let gcols = &gcol[bi * B..bi * B + ncols];
+                for (r, row) in grid_ref.chunks_exact(gx).enumerate() {
+                    for (c, &g) in gcols.iter().enumerate() {
+                        block[c * gy + r] = row[g];
                     }
                 }
                 for c in 0..ncols {
                     let col = &mut block[c * gy..(c + 1) * gy];
                     e.fft_y.process_with_scratch(col, scratch);
                     let ix = bi * B + c;
-                    let ph = &screen[ix.abs_diff(n / 2) * h..][..h];
-                    let out = &mut dst[c * n..(c + 1) * n];
-                    for (iy, o) in out.iter_mut().enumerate() {
-                        *o += col[(iy + gy - n / 2) % gy] * ph[iy.abs_diff(n / 2)];
+                    let ph = &screen[ix.abs_diff(half) * h..][..h];
+                    let (lower, upper) = dst[c * n..(c + 1) * n].split_at_mut(half);
+                    // iy = j < n/2 at grid row gy - n/2 + j, |jy| = n/2 - j; iy = n/2 + j at row j.
+                    for (j, o) in lower.iter_mut().enumerate() {
+                        *o += col[gy - half + j] * ph[half - j];
+                    }
+                    for ((o, v), q) in upper.iter_mut().zip(&col[..half]).zip(&ph[..half]) {
+                        *o += v * q;
                     }
                 }
             },
@@ -620,10 +647,12 @@ impl WGridPlan {
         let mut screen = self.phase_screen(0);
         let step = if self.planes > 1 { self.step_screen() } else { Vec::new() };
         let pw2 = 2 * pw;
+        let mut rows = par_filled(Complex64::default(), n * gy);
+        let mut ranges: Vec<Range<usize>> = self.tiles.iter().map(|t| t.points.start..t.points.start).collect();
         for p in 0..self.planes {
-            let ranges: Vec<Range<usize>> = self.tiles.par_iter().map(|t| self.plane_range(t, p)).collect();
+            self.advance_ranges(&mut ranges, p);
             if ranges.iter().any(|r| !r.is_empty()) {
-                self.image_to_padded(&f, &screen, &mut cols, &mut padded);
+                self.image_to_padded(&f, &screen, &mut cols, &mut rows, &mut padded);
                 tile_out.par_iter_mut().zip(ranges.par_iter()).zip(self.tiles.par_iter()).for_each_init(
                     Vec::new,
                     |interp, ((dst, range), tile)| {
@@ -653,24 +682,39 @@ impl WGridPlan {
     /// The plane's image (corrected image `f` times the conjugate phase screen) onto the
     /// padded grid: inverse FFT the image columns, then the rows used, each written with
     /// periodic margins of width `support` (see [`Nufft2d`]'s forward transform).
-    fn image_to_padded(&self, f: &[Complex64], screen: &[Complex64], cols: &mut [Complex64], padded: &mut [f64]) {
+    ///
+    /// `cols` (`n x gy`) and `rows` (`gy x n`) are scratch space.
+    fn image_to_padded(
+        &self,
+        f: &[Complex64],
+        screen: &[Complex64],
+        cols: &mut [Complex64],
+        rows: &mut [Complex64],
+        padded: &mut [f64],
+    ) {
         let e = &self.engine;
         let (gx, gy, n) = (e.grid_nx, e.grid_ny, self.size);
         let w = e.shape.support;
-        let h = n / 2 + 1;
+        let (h, half) = (n / 2 + 1, n / 2);
         cols.par_chunks_mut(gy).enumerate().for_each_init(
             || vec![Complex64::default(); e.ifft_y.get_inplace_scratch_len()],
             |scratch, (ix, col)| {
-                col.fill(Complex64::default());
-                let ph = &screen[ix.abs_diff(n / 2) * h..][..h];
-                let src = &f[ix * n..(ix + 1) * n];
-                for (iy, v) in src.iter().enumerate() {
-                    col[(iy + gy - n / 2) % gy] = v * ph[iy.abs_diff(n / 2)].conj();
+                let ph = &screen[ix.abs_diff(half) * h..][..h];
+                let (lower, upper) = f[ix * n..(ix + 1) * n].split_at(half);
+                // iy = n/2 + j at grid row j, iy = j < n/2 at row gy - n/2 + j (|jy| = n/2 - j).
+                for ((c, v), q) in col[..half].iter_mut().zip(upper).zip(&ph[..half]) {
+                    *c = v * q.conj();
+                }
+                col[half..gy - half].fill(Complex64::default());
+                for (j, (c, v)) in col[gy - half..].iter_mut().zip(lower).enumerate() {
+                    *c = v * ph[half - j].conj();
                 }
                 e.ifft_y.process_with_scratch(col, scratch);
             },
         );
-        let cols: &[Complex64] = cols;
+        // Grid rows, contiguous (the columns' transpose), then the row transforms.
+        crate::fft2::transpose(cols, rows, n, gy);
+        let rows: &[Complex64] = rows;
         let pw = gx + 2 * w;
         padded.par_chunks_mut(2 * pw).enumerate().for_each_init(
             || (vec![Complex64::default(); gx], vec![Complex64::default(); e.ifft_x.get_inplace_scratch_len()]),
@@ -679,13 +723,14 @@ impl WGridPlan {
                 if !self.row_used[r] {
                     return;
                 }
-                row.fill(Complex64::default());
-                for ix in 0..n {
-                    row[(ix + gx - n / 2) % gx] = cols[ix * gy + r];
-                }
+                let src = &rows[r * n..(r + 1) * n];
+                row[..half].copy_from_slice(&src[half..]);
+                row[half..gx - half].fill(Complex64::default());
+                row[gx - half..].copy_from_slice(&src[..half]);
                 e.ifft_x.process_with_scratch(row, scratch);
-                for (i, d) in dst.chunks_exact_mut(2).enumerate() {
-                    let v = row[(i + gx - w) % gx];
+                // Padded column i holds grid column (i - w) mod gx.
+                let wrapped = row[gx - w..].iter().chain(row.iter()).chain(&row[..w]);
+                for (d, v) in dst.chunks_exact_mut(2).zip(wrapped) {
                     d[0] = v.re;
                     d[1] = v.im;
                 }
