@@ -7,8 +7,10 @@
 //! radians-per-pixel coordinates `|(x, y)| <= pi / 1.5`, with random complex values. The
 //! report also estimates the achieved accuracy against a direct DFT on a sample of outputs,
 //! so a comparison with another gridder can check that neither side bought speed with
-//! accuracy.
+//! accuracy. [`run_wgridder_bench`] does the same for the transforms with the w-term
+//! (`nufft::wgrid`) on a wide field.
 
+use crate::nufft::wgrid::{max_w_phase, WGridPlan};
 use crate::nufft::{ChunkedAdjoint, Nufft2d, NufftParams};
 use crate::{Error, Result};
 use num_complex::Complex64;
@@ -244,6 +246,188 @@ fn sampled_errors(
         (num / den).sqrt()
     };
     (rel(&grid_pairs), rel(&degrid_pairs))
+}
+
+/// What to benchmark in `r2d2 bench wgridder`: the w-term transforms ([`WGridPlan`]) on a
+/// field where the w-term matters.
+#[derive(Clone, Debug)]
+pub struct WGridderBenchParams {
+    pub visibilities: usize,
+    /// Image edge in pixels.
+    pub size: usize,
+    /// Field of view (the image edge) in degrees.
+    pub fov_deg: f64,
+    /// `|w|` up to this times the largest `|(u, v)|`.
+    pub w_factor: f64,
+    pub epsilon: f64,
+    /// Oversampling of the uv grid (and of the w-planes).
+    pub oversampling: f64,
+    /// Worker threads (0: all cores).
+    pub threads: usize,
+    pub repeats: usize,
+    pub seed: u64,
+}
+
+impl Default for WGridderBenchParams {
+    fn default() -> Self {
+        WGridderBenchParams {
+            visibilities: 1_000_000,
+            size: 1024,
+            fov_deg: 15.0,
+            w_factor: 1.0,
+            epsilon: 1e-5,
+            oversampling: NufftParams::default().oversampling,
+            threads: 1,
+            repeats: 3,
+            seed: 1,
+        }
+    }
+}
+
+/// Timings (seconds, best of `repeats`), throughputs (million visibilities per second) and
+/// sampled accuracies of the w-term transforms.
+#[derive(Clone, Debug, Serialize)]
+pub struct WGridderReport {
+    pub visibilities: usize,
+    pub size: usize,
+    pub fov_deg: f64,
+    pub pixel_rad: f64,
+    /// Largest `|(u, v)|` and `|w|` of the data, in wavelengths.
+    pub uv_max: f64,
+    pub w_max: f64,
+    /// [`max_w_phase`] of the data: the largest phase the w-term adds, radians.
+    pub max_w_phase: f64,
+    pub epsilon: f64,
+    pub threads: usize,
+    pub support: usize,
+    pub grid_size: usize,
+    pub oversampling: f64,
+    pub planes: usize,
+    pub plan_seconds: f64,
+    pub grid_seconds: f64,
+    pub degrid_seconds: f64,
+    /// Including the plan (sorting), as a gridder that sorts in every call.
+    pub grid_mvis_per_s: f64,
+    pub degrid_mvis_per_s: f64,
+    /// With a reused plan.
+    pub grid_mvis_per_s_planned: f64,
+    pub degrid_mvis_per_s_planned: f64,
+    /// Relative L2 error against the direct sum with the w-term, on 16 random pixels
+    /// (gridding) and 64 random visibilities (degridding).
+    pub grid_rel_error: f64,
+    pub degrid_rel_error: f64,
+}
+
+/// uv uniform in the disc whose radius makes the pixel 1/1.5 of the Nyquist size, `w`
+/// uniform in `[-w_factor, w_factor]` times that radius, random complex values.
+#[allow(clippy::type_complexity)]
+pub fn synthetic_uvw(n: usize, pixel_rad: f64, w_factor: f64, seed: u64) -> (Vec<f64>, Vec<f64>, Vec<f64>, Vec<Complex64>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let uv_max = 1.0 / (1.5 * 2.0 * pixel_rad);
+    let (mut u, mut v, mut w, mut c) = (Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n));
+    for _ in 0..n {
+        let r = uv_max * rng.gen::<f64>().sqrt();
+        let theta = 2.0 * std::f64::consts::PI * rng.gen::<f64>();
+        u.push(r * theta.cos());
+        v.push(r * theta.sin());
+        w.push(uv_max * w_factor * rng.gen_range(-1.0..=1.0));
+        c.push(Complex64::new(rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0)));
+    }
+    (u, v, w, c)
+}
+
+/// Run the w-gridding benchmark.
+pub fn run_wgridder_bench(p: &WGridderBenchParams) -> Result<WGridderReport> {
+    if p.visibilities == 0 {
+        return Err(Error::parameter("visibilities", "expected at least one visibility"));
+    }
+    if !(p.fov_deg > 0.0 && p.fov_deg < 180.0) {
+        return Err(Error::parameter("fov", format!("expected a field between 0 and 180 degrees, got {}", p.fov_deg)));
+    }
+    let n = p.size;
+    let pixel = p.fov_deg.to_radians() / n as f64;
+    let (u, v, w, vis) = synthetic_uvw(p.visibilities, pixel, p.w_factor, p.seed);
+    let params = NufftParams { epsilon: p.epsilon, oversampling: p.oversampling };
+    let mut image_rng = ChaCha8Rng::seed_from_u64(p.seed ^ 0x5eed);
+    let image: Vec<Complex64> =
+        (0..n * n).map(|_| Complex64::new(image_rng.gen_range(-1.0..1.0), image_rng.gen_range(-1.0..1.0))).collect();
+    let make = || WGridPlan::new(n, pixel, &u, &v, &w, params, p.threads);
+    drop(make()?);
+    let (plan_seconds, plan) = best_of(p.repeats, || make().expect("checked above"));
+    let (grid_seconds, dirty) = best_of(p.repeats, || plan.adjoint(&vis));
+    let (degrid_seconds, model_vis) = best_of(p.repeats, || plan.forward(&image));
+
+    let mut rng = ChaCha8Rng::seed_from_u64(p.seed ^ 0xe770);
+    let pixels: Vec<usize> = (0..16).map(|_| rng.gen_range(0..n * n)).collect();
+    let points: Vec<usize> = (0..64).map(|_| rng.gen_range(0..p.visibilities)).collect();
+    let tau = 2.0 * std::f64::consts::PI;
+    let lmt = |j: usize| {
+        let l = -pixel * ((j % n) as f64 - (n / 2) as f64);
+        let m = pixel * ((j / n) as f64 - (n / 2) as f64);
+        (l, m, crate::nufft::wgrid::n_minus_one(l * l + m * m))
+    };
+    let rel = |pairs: Vec<(Complex64, Complex64)>| {
+        let num: f64 = pairs.iter().map(|(a, b)| (a - b).norm_sqr()).sum();
+        let den: f64 = pairs.iter().map(|(_, b)| b.norm_sqr()).sum();
+        (num / den).sqrt()
+    };
+    let (grid_rel_error, degrid_rel_error) = plan_pool(p.threads)?.install(|| {
+        let grid = pixels
+            .par_iter()
+            .map(|&j| {
+                let (l, m, t) = lmt(j);
+                let exact: Complex64 =
+                    (0..u.len()).map(|k| vis[k] * Complex64::from_polar(1.0, -tau * (u[k] * l + v[k] * m + w[k] * t))).sum();
+                (dirty[j], exact)
+            })
+            .collect();
+        let degrid = points
+            .par_iter()
+            .map(|&k| {
+                let exact: Complex64 = (0..n * n)
+                    .map(|j| {
+                        let (l, m, t) = lmt(j);
+                        image[j] * Complex64::from_polar(1.0, tau * (u[k] * l + v[k] * m + w[k] * t))
+                    })
+                    .sum();
+                (model_vis[k], exact)
+            })
+            .collect();
+        (rel(grid), rel(degrid))
+    });
+
+    let uv_max = u.iter().zip(&v).fold(0.0f64, |a, (u, v)| a.max(u.hypot(*v)));
+    let w_max = w.iter().fold(0.0f64, |a, w| a.max(w.abs()));
+    let mvis = p.visibilities as f64 / 1e6;
+    let (grid_size, _) = plan.grid_size();
+    Ok(WGridderReport {
+        visibilities: p.visibilities,
+        size: n,
+        fov_deg: p.fov_deg,
+        pixel_rad: pixel,
+        uv_max,
+        w_max,
+        max_w_phase: max_w_phase(n, pixel, w_max),
+        epsilon: p.epsilon,
+        threads: plan_pool(p.threads)?.current_num_threads(),
+        support: plan.kernel_support(),
+        grid_size,
+        oversampling: grid_size as f64 / n as f64,
+        planes: plan.planes(),
+        plan_seconds,
+        grid_seconds,
+        degrid_seconds,
+        grid_mvis_per_s: mvis / (plan_seconds + grid_seconds),
+        degrid_mvis_per_s: mvis / (plan_seconds + degrid_seconds),
+        grid_mvis_per_s_planned: mvis / grid_seconds,
+        degrid_mvis_per_s_planned: mvis / degrid_seconds,
+        grid_rel_error,
+        degrid_rel_error,
+    })
+}
+
+fn plan_pool(threads: usize) -> Result<std::sync::Arc<rayon::ThreadPool>> {
+    crate::parallel::shared_pool(threads)
 }
 
 /// `r2d2 bench pipeline`: the same jobs through one pipeline run (stages concurrently on

@@ -1,7 +1,9 @@
 //! `r2d2 bench`: hot-path benchmarks printing JSON, to compare side by side with peers
 //! (`benches/gridder_vs_ducc0.py` runs ducc0 on the same data).
 
-use r2d2_imaging::bench::{run_gridder_bench, run_pipeline_bench, GridderBenchParams, PipelineBenchParams};
+use r2d2_imaging::bench::{
+    run_gridder_bench, run_pipeline_bench, run_wgridder_bench, GridderBenchParams, PipelineBenchParams, WGridderBenchParams,
+};
 use r2d2_imaging::Result;
 
 #[derive(clap::Subcommand)]
@@ -14,6 +16,31 @@ pub enum Command {
         size: usize,
         #[arg(long, default_value_t = 1e-5)]
         epsilon: f64,
+        /// Threads (0: all cores).
+        #[arg(long, default_value_t = 1)]
+        threads: usize,
+        /// Best of this many runs.
+        #[arg(long, default_value_t = 3)]
+        repeats: usize,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
+    /// W-gridding and w-degridding throughput (the w-term on a wide field; points uniform in
+    /// the uv disc, w uniform up to w-factor times the disc radius).
+    Wgridder {
+        #[arg(long, default_value_t = 1_000_000)]
+        visibilities: usize,
+        #[arg(long, default_value_t = 1024)]
+        size: usize,
+        /// Field of view (image edge) in degrees.
+        #[arg(long, default_value_t = 15.0)]
+        fov: f64,
+        #[arg(long, default_value_t = 1.0)]
+        w_factor: f64,
+        #[arg(long, default_value_t = 1e-5)]
+        epsilon: f64,
+        #[arg(long, default_value_t = 2.0)]
+        oversampling: f64,
         /// Threads (0: all cores).
         #[arg(long, default_value_t = 1)]
         threads: usize,
@@ -54,6 +81,22 @@ pub fn run(cmd: Command) -> Result<()> {
     match cmd {
         Command::Gridder { visibilities, size, epsilon, threads, repeats, seed } => {
             let report = run_gridder_bench(&GridderBenchParams { visibilities, size, epsilon, threads, repeats, seed })?;
+            out!("{}", serde_json::to_string_pretty(&report).expect("report serialises"))?;
+            Ok(())
+        }
+        Command::Wgridder { visibilities, size, fov, w_factor, epsilon, oversampling, threads, repeats, seed } => {
+            let params = WGridderBenchParams {
+                visibilities,
+                size,
+                fov_deg: fov,
+                w_factor,
+                epsilon,
+                oversampling,
+                threads,
+                repeats,
+                seed,
+            };
+            let report = run_wgridder_bench(&params)?;
             out!("{}", serde_json::to_string_pretty(&report).expect("report serialises"))?;
             Ok(())
         }

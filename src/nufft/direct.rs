@@ -40,3 +40,43 @@ pub fn relative_error(a: &[Complex64], b: &[Complex64]) -> f64 {
     let den: f64 = b.iter().map(|b| b.norm_sqr()).sum();
     (num / den).sqrt()
 }
+
+/// `n - 1` and the phase `2 pi (u l + v m + w (n - 1))` conventions of [`super::wgrid`]: pixel
+/// `(ix, iy)` of a `size x size` image at `l = -pixel (ix - size/2)`, `m = pixel (iy - size/2)`.
+fn lmt(size: usize, pixel: f64, ix: usize, iy: usize) -> (f64, f64, f64) {
+    let l = -pixel * (ix as f64 - (size / 2) as f64);
+    let m = pixel * (iy as f64 - (size / 2) as f64);
+    (l, m, super::wgrid::n_minus_one(l * l + m * m))
+}
+
+/// Image to visibilities with the w-term: `V_k = sum f exp(+2 pi i (u_k l + v_k m + w_k (n - 1)))`
+/// (`u, v, w` in wavelengths; see [`super::wgrid`]).
+pub fn forward_w(size: usize, pixel: f64, u: &[f64], v: &[f64], w: &[f64], f: &[Complex64]) -> Vec<Complex64> {
+    (0..u.len())
+        .map(|k| {
+            let mut s = Complex64::default();
+            for iy in 0..size {
+                for ix in 0..size {
+                    let (l, m, t) = lmt(size, pixel, ix, iy);
+                    let ph = 2.0 * std::f64::consts::PI * (u[k] * l + v[k] * m + w[k] * t);
+                    s += f[iy * size + ix] * Complex64::from_polar(1.0, ph);
+                }
+            }
+            s
+        })
+        .collect()
+}
+
+/// Visibilities to image with the w-term, the adjoint of [`forward_w`].
+pub fn adjoint_w(size: usize, pixel: f64, u: &[f64], v: &[f64], w: &[f64], c: &[Complex64]) -> Vec<Complex64> {
+    let mut out = vec![Complex64::default(); size * size];
+    for iy in 0..size {
+        for ix in 0..size {
+            let (l, m, t) = lmt(size, pixel, ix, iy);
+            out[iy * size + ix] = (0..u.len())
+                .map(|k| c[k] * Complex64::from_polar(1.0, -2.0 * std::f64::consts::PI * (u[k] * l + v[k] * m + w[k] * t)))
+                .sum();
+        }
+    }
+    out
+}

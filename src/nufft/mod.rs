@@ -963,5 +963,8 @@ fn fit_kernel(shape: &KernelShape, tolerance: f64) -> Vec<f64> {
     })
 }
 
+// After `dispatch_support!`, which it uses.
+pub mod wgrid;
+
 #[cfg(test)]
 mod tests;

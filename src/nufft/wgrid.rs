@@ -1,0 +1,795 @@
+//! The measurement equation with the w-term, by w-gridding (the improved w-stacking of
+//! Arras, Reinecke, Westermann & Enßlin 2021, as in ducc0's `wgridder`).
+//!
+//! On an `N x N` image of pixel `pixel_rad` (conventions of `crate::operator`: pixel
+//! `x[iy * N + ix]` at `l = -pixel (ix - N/2)`, `m = pixel (iy - N/2)`):
+//!
+//! * forward (degridding, prediction), [`WGridPlan::forward`]:
+//!   `V_k = sum_{ix, iy} f[iy * N + ix] exp(+2 pi i (u_k l + v_k m + w_k (n - 1)))`
+//! * adjoint (gridding, dirty image), [`WGridPlan::adjoint`], its exact adjoint:
+//!   `f[iy * N + ix] = sum_k c_k exp(-2 pi i (u_k l + v_k m + w_k (n - 1)))`
+//!
+//! with `n = sqrt(1 - l^2 - m^2)` and `u, v, w` in wavelengths. There is no `1 / n` factor:
+//! whether the image is brightness or brightness over `n` is the caller's choice (a factor
+//! per pixel it can apply itself), and without it the pair stays a plain Fourier sum whose
+//! adjoint is the same expression conjugated.
+//!
+//! Algorithm. With `t = n - 1` in `[t_min, 0]` over the image, centred as `t = t0 + tc`
+//! (`|tc| <= dt = -t_min / 2`), the factor `exp(-2 pi i w tc)` is written as a sum over
+//! w-planes `w_p = w_first + p dw` of a kernel in `w` (the ES kernel `psi`, in plane units)
+//! times the planes' phases, divided by the kernel's Fourier transform at `dw tc`:
+//!
+//! `exp(-2 pi i w tc) ~= sum_p psi((w - w_p) / dw) exp(-2 pi i w_p tc) / psi_hat(dw tc)`,
+//!
+//! exact up to aliasing terms `psi_hat(dw tc + j)`, `j != 0`, which the plane spacing
+//! `dw = 1 / (2 sigma dt)` keeps as small as the uv kernel's aliasing on a grid oversampled
+//! by `sigma`. Gridding therefore spreads each visibility (times `exp(-2 pi i w t0)`) onto
+//! the `support` planes nearest its `w`, weighted by `psi`; each plane is a 2D NUFFT onto the
+//! image, multiplied by its phase screen `exp(-2 pi i w_p tc)` and accumulated; the sum is
+//! divided by `psi_hat(dw tc)` pixel by pixel. Degridding is the same steps transposed.
+//!
+//! One kernel shape serves both the uv grid and the w direction, chosen for a slightly
+//! tighter accuracy than asked since three dimensions now contribute error. Where the w-term
+//! is too small to matter at the requested accuracy (all `w` equal, or a tiny field) the
+//! plan uses a single plane at the mean `w` with no w-kernel: the 2D NUFFT and a phase
+//! screen, exact up to the neglected `|2 pi (w - w_mean) tc|`.
+//!
+//! Points are sorted once, by uv tile and within a tile by `w`, so that the points of a tile
+//! on a given plane are a contiguous run. Planes are processed one after the other, each
+//! with all the plan's threads, so only one oversampled grid is held at a time. Results do
+//! not depend on the number of threads or their scheduling: tiles are added to the grid row
+//! by row in a fixed order.
+
+use super::kernel::{gauss_legendre, KernelShape, SymKernel};
+use super::{
+    fit_kernel, grid_position, interp_points, par_filled, spread_tile, GridPosition, Nufft2d, NufftParams, Sink,
+    Source, MAX_COORDINATE, TILE,
+};
+use crate::{Error, Result};
+use num_complex::Complex64;
+use rayon::prelude::*;
+use std::f64::consts::PI;
+use std::ops::Range;
+
+/// Most w-planes a plan may use (each costs an FFT of the oversampled grid).
+const MAX_PLANES: usize = 1 << 20;
+
+/// Tile buffers spread per batch and thread before they are added to the grid: bounds the
+/// buffer memory (`(TILE + support)^2` complex each) while giving every thread enough work.
+const TILES_PER_THREAD: usize = 64;
+
+/// Planes whose phase screens are advanced by one multiplication each, between exact
+/// evaluations (the rounding of repeated products stays near `1e-15`).
+const PHASE_RESEED: usize = 16;
+
+/// Chebyshev nodes of the interpolant of `psi_hat` over `|eta| <= 1 / (2 sigma)`: the
+/// transform of a kernel of support 16 at most is entire of exponential type `16 pi`, and
+/// 64 terms reach rounding on that interval.
+const PSI_HAT_NODES: usize = 64;
+
+/// `2 pi max|w| max|n - 1|` over an `size x size` image of pixel `pixel_rad`: the largest
+/// phase (radians) the w-term adds to any visibility. Infinite when the image reaches the
+/// edge of the sine projection (`l^2 + m^2 >= 1` at a corner), where `n` is not defined.
+pub fn max_w_phase(size: usize, pixel_rad: f64, w_max_abs: f64) -> f64 {
+    match t_min(size, pixel_rad) {
+        Some(t) => 2.0 * PI * w_max_abs.abs() * (-t),
+        None => f64::INFINITY,
+    }
+}
+
+/// `n - 1` at the image corner (the minimum over the image), if the corner is inside the
+/// unit circle.
+fn t_min(size: usize, pixel_rad: f64) -> Option<f64> {
+    let half = (size / 2) as f64 * pixel_rad;
+    let r2 = 2.0 * half * half;
+    (r2 < 1.0).then(|| n_minus_one(r2))
+}
+
+/// `sqrt(1 - r2) - 1` without cancellation for small `r2 = l^2 + m^2`.
+pub(crate) fn n_minus_one(r2: f64) -> f64 {
+    -r2 / (1.0 + (1.0 - r2).sqrt())
+}
+
+/// The w-direction kernel: one polynomial per covered plane, as [`super::kernel::PolynomialKernel`].
+struct WKernel {
+    support: usize,
+    /// `(degree + 1) * support` coefficients, highest degree first.
+    coeffs: Vec<f64>,
+}
+
+impl WKernel {
+    /// The kernel value for cell `b` (plane `p0 + b`) at sub-cell variable `z`.
+    #[inline(always)]
+    fn cell(&self, b: usize, z: f64) -> f64 {
+        let mut acc = 0.0;
+        for c in self.coeffs.chunks_exact(self.support) {
+            acc = acc * z + c[b];
+        }
+        acc
+    }
+}
+
+/// The points of one uv tile, in the plan's order (sorted by `w` inside the tile).
+#[derive(Clone, Debug)]
+struct TileSpan {
+    tx: usize,
+    ty: usize,
+    points: Range<usize>,
+}
+
+/// A w-gridding plan: image geometry, the uv NUFFT machinery, the w-planes, and the points
+/// sorted by tile and `w`.
+pub struct WGridPlan {
+    size: usize,
+    /// The 2D NUFFT without points: kernel, grid, FFTs, corrections and thread pool.
+    engine: Nufft2d,
+    /// `None`: a single plane and no w-kernel (the w-term reduced to a phase screen).
+    wkernel: Option<WKernel>,
+    planes: usize,
+    w_first: f64,
+    dw: f64,
+    /// Centre of `t = n - 1` over the image.
+    t0: f64,
+    positions: Vec<GridPosition>,
+    /// `order[k]`: caller's index of plan point `k`; `rank` its inverse.
+    order: Vec<u32>,
+    rank: Vec<u32>,
+    /// `w` of each point, and the first plane it reaches (see [`WGridPlan::first_plane_of`]),
+    /// plan order.
+    w: Vec<f64>,
+    first_plane: Vec<u32>,
+    /// Non-empty tiles in tile order; their point ranges cover the plan order.
+    tiles: Vec<TileSpan>,
+    /// Grid rows touched by some point's kernel.
+    row_used: Vec<bool>,
+    /// Per pixel of one quadrant, `[|jx| * (N/2 + 1) + |jy|]` (`j` from the centre; the
+    /// image is symmetric in `l -> -l` and `m -> -m`): `tc`, and the final correction
+    /// `1 / psi_hat(dw tc)` times nothing else.
+    tc: Vec<f64>,
+    w_correction: Vec<f64>,
+}
+
+impl WGridPlan {
+    /// Plan transforms between a `size x size` image of pixel `pixel_rad` (radians) and the
+    /// visibilities at `(u[k], v[k], w[k])` (wavelengths), run on `threads` threads (0: all
+    /// cores). `params.epsilon` is the requested relative accuracy of the whole transform.
+    pub fn new(
+        size: usize,
+        pixel_rad: f64,
+        u: &[f64],
+        v: &[f64],
+        w: &[f64],
+        params: NufftParams,
+        threads: usize,
+    ) -> Result<WGridPlan> {
+        if u.len() != v.len() || u.len() != w.len() {
+            return Err(Error::parameter(
+                "uvw",
+                format!("u, v and w differ in length ({}, {}, {})", u.len(), v.len(), w.len()),
+            ));
+        }
+        if u.len() > u32::MAX as usize {
+            return Err(Error::parameter("uvw", "more than 2^32 visibilities in one plan"));
+        }
+        if size < 2 || size % 2 != 0 {
+            return Err(Error::parameter("image size", format!("expected an even size >= 2, got {size}")));
+        }
+        if !(pixel_rad.is_finite() && pixel_rad > 0.0) {
+            return Err(Error::parameter("pixel size", format!("expected a positive pixel size, got {pixel_rad} rad")));
+        }
+        let t_min = t_min(size, pixel_rad).ok_or_else(|| {
+            Error::parameter(
+                "pixel size",
+                format!(
+                    "a {size} x {size} image of {pixel_rad:e} rad pixels reaches beyond the sine projection \
+                     (l^2 + m^2 >= 1 at its corners)"
+                ),
+            )
+        })?;
+        let limit = MAX_COORDINATE / (2.0 * PI * pixel_rad);
+        if let Some(k) = (0..u.len()).find(|&k| !(u[k].abs() <= limit && v[k].abs() <= limit && w[k].is_finite())) {
+            return Err(Error::parameter(
+                "uvw",
+                format!(
+                    "visibility {k} has u, v, w = {}, {}, {}: expected finite values, |u| and |v| at most {limit:e}",
+                    u[k], v[k], w[k]
+                ),
+            ));
+        }
+
+        let (w_lo, w_hi) = w.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| (a.min(x), b.max(x)));
+        let (w_lo, w_hi) = if w.is_empty() { (0.0, 0.0) } else { (w_lo, w_hi) };
+        let w_mid = 0.5 * (w_lo + w_hi);
+        let t0 = 0.5 * t_min;
+        let dt = -0.5 * t_min;
+        // The phase the single-plane reduction would neglect, against the accuracy asked.
+        let single = 2.0 * PI * 0.5 * (w_hi - w_lo) * dt <= 0.05 * params.epsilon;
+        // Three dimensions' errors add up where two were tabulated.
+        let uv_epsilon = if single { params.epsilon } else { params.epsilon / 1.25 };
+        let shape = KernelShape::for_accuracy(uv_epsilon, params.oversampling)?;
+        let engine = Nufft2d::with_kernel(size, size, &[], &[], shape.clone(), NufftParams { epsilon: uv_epsilon, ..params }, threads)?;
+
+        let (wkernel, planes, w_first, dw) = if single {
+            (None, 1, w_mid, 1.0)
+        } else {
+            let dw = 1.0 / (2.0 * params.oversampling * dt);
+            let planes = ((w_hi - w_lo) / dw).ceil() + shape.support as f64;
+            if planes > MAX_PLANES as f64 {
+                return Err(Error::parameter(
+                    "uvw",
+                    format!(
+                        "w from {w_lo} to {w_hi} needs {planes} w-planes on this field (at most {MAX_PLANES} are supported)"
+                    ),
+                ));
+            }
+            let planes = planes as usize;
+            let w_first = w_mid - 0.5 * (planes - 1) as f64 * dw;
+            let coeffs = fit_kernel(&shape, uv_epsilon / 20.0);
+            (Some(WKernel { support: shape.support, coeffs }), planes, w_first, dw)
+        };
+
+        let h = size / 2 + 1;
+        let mut tc = vec![0.0; h * h];
+        for a in 0..h {
+            for b in 0..h {
+                let (l, m) = (a as f64 * pixel_rad, b as f64 * pixel_rad);
+                tc[a * h + b] = n_minus_one(l * l + m * m) - t0;
+            }
+        }
+        let w_correction = match &wkernel {
+            None => vec![1.0; h * h],
+            Some(_) => {
+                let fit = Chebyshev::fit(|eta| psi_hat(&shape, eta), 0.5 / params.oversampling, PSI_HAT_NODES);
+                tc.iter().map(|&t| 1.0 / fit.eval(dw * t)).collect()
+            }
+        };
+
+        let mut plan = WGridPlan {
+            size,
+            engine,
+            wkernel,
+            planes,
+            w_first,
+            dw,
+            t0,
+            positions: Vec::new(),
+            order: Vec::new(),
+            rank: Vec::new(),
+            w: Vec::new(),
+            first_plane: Vec::new(),
+            tiles: Vec::new(),
+            row_used: Vec::new(),
+            tc,
+            w_correction,
+        };
+        let x: Vec<f64> = u.iter().map(|&u| -2.0 * PI * pixel_rad * u).collect();
+        let y: Vec<f64> = v.iter().map(|&v| 2.0 * PI * pixel_rad * v).collect();
+        let pool = plan.engine.pool.clone();
+        pool.install(|| plan.sort_points(&x, &y, w));
+        Ok(plan)
+    }
+
+    /// Image edge in pixels.
+    pub fn size(&self) -> usize {
+        self.size
+    }
+    /// Number of visibilities.
+    pub fn len(&self) -> usize {
+        self.order.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.order.is_empty()
+    }
+    /// How many w-planes a transform runs (1 where the w-term is negligible).
+    pub fn planes(&self) -> usize {
+        self.planes
+    }
+    /// Kernel support (uv and w) and oversampled grid edge, for logging.
+    pub fn kernel_support(&self) -> usize {
+        self.engine.shape.support
+    }
+    pub fn grid_size(&self) -> (usize, usize) {
+        self.engine.grid_size()
+    }
+
+    /// Sort the points by tile, and inside a tile by `w` (then caller index, so the order is
+    /// reproducible); record each point's grid position.
+    fn sort_points(&mut self, x: &[f64], y: &[f64], w: &[f64]) {
+        let support = self.engine.shape.support;
+        let (gx, gy) = (self.engine.grid_nx, self.engine.grid_ny);
+        let tiles_x = (gx + 2 * support).div_ceil(TILE);
+        let tiles_y = (gy + 2 * support).div_ceil(TILE);
+        let (sx, sy) = (gx as f64 / (2.0 * PI), gy as f64 / (2.0 * PI));
+        let (inv_gx, inv_gy) = (1.0 / gx as f64, 1.0 / gy as f64);
+        let m = x.len();
+        let positions: Vec<GridPosition> = x
+            .par_iter()
+            .zip(y.par_iter())
+            .map(|(&xk, &yk)| GridPosition {
+                x: grid_position(xk * sx, gx, inv_gx, support),
+                y: grid_position(yk * sy, gy, inv_gy, support),
+            })
+            .collect();
+        let tile_of = |p: &GridPosition| (p.py() / TILE) * tiles_x + p.px() / TILE;
+        let mut starts = vec![0usize; tiles_x * tiles_y + 1];
+        for p in &positions {
+            starts[tile_of(p) + 1] += 1;
+        }
+        for t in 0..tiles_x * tiles_y {
+            starts[t + 1] += starts[t];
+        }
+        let mut order = vec![0u32; m];
+        let mut cursor = starts.clone();
+        for (k, p) in positions.iter().enumerate() {
+            let c = &mut cursor[tile_of(p)];
+            order[*c] = k as u32;
+            *c += 1;
+        }
+        let mut tiles = Vec::new();
+        for t in 0..tiles_x * tiles_y {
+            if starts[t + 1] > starts[t] {
+                tiles.push(TileSpan { tx: t % tiles_x, ty: t / tiles_x, points: starts[t]..starts[t + 1] });
+            }
+        }
+        // Inside each tile, by w.
+        let mut slices = Vec::with_capacity(tiles.len());
+        let mut rest = order.as_mut_slice();
+        for tile in &tiles {
+            let (head, tail) = std::mem::take(&mut rest).split_at_mut(tile.points.len());
+            slices.push(head);
+            rest = tail;
+        }
+        slices.into_par_iter().for_each(|s| s.sort_unstable_by(|&a, &b| w[a as usize].total_cmp(&w[b as usize]).then(a.cmp(&b))));
+
+        self.positions = order.par_iter().map(|&k| positions[k as usize]).collect();
+        self.w = order.par_iter().map(|&k| w[k as usize]).collect();
+        self.first_plane = self.w.par_iter().map(|&w| self.first_plane_of(w) as u32).collect();
+        let mut rank = vec![0u32; m];
+        for (i, &k) in order.iter().enumerate() {
+            rank[k as usize] = i as u32;
+        }
+        let mut row_used = vec![false; gy];
+        let padded_y = gy + 2 * support;
+        for tile in &tiles {
+            for q in tile.ty * TILE..((tile.ty + 1) * TILE + support).min(padded_y) {
+                row_used[(q + gy - support) % gy] = true;
+            }
+        }
+        self.order = order;
+        self.rank = rank;
+        self.tiles = tiles;
+        self.row_used = row_used;
+    }
+
+    /// Where a point at `w` sits between the planes: `s - support / 2` with `s` its plane
+    /// coordinate, so that it reaches planes `ceil` of that onwards.
+    #[inline(always)]
+    fn plane_offset(&self, wk: &WKernel, w: f64) -> f64 {
+        (w - self.w_first) / self.dw - 0.5 * wk.support as f64
+    }
+
+    /// First plane `p0` a point at `w` reaches: it contributes to planes `p0 .. p0 +
+    /// support`, with weights `psi` of cell `p - p0` (non-decreasing in `w`).
+    fn first_plane_of(&self, w: f64) -> usize {
+        match &self.wkernel {
+            None => 0,
+            Some(wk) => self.plane_offset(wk, w).ceil().clamp(0.0, (self.planes - wk.support) as f64) as usize,
+        }
+    }
+
+    /// The tiles' point ranges on plane `p`, from those on plane `p - 1` (or, for plane 0,
+    /// from empty ranges at the tiles' starts): points are sorted by first plane inside a
+    /// tile, so both ends only move forward.
+    fn advance_ranges(&self, ranges: &mut [Range<usize>], p: usize) {
+        let Some(wk) = &self.wkernel else {
+            ranges.iter_mut().zip(&self.tiles).for_each(|(r, t)| *r = t.points.clone());
+            return;
+        };
+        let lo = (p + 1).saturating_sub(wk.support) as u32;
+        let fp = &self.first_plane;
+        ranges.par_iter_mut().zip(self.tiles.par_iter()).for_each(|(r, tile)| {
+            while r.end < tile.points.end && fp[r.end] <= p as u32 {
+                r.end += 1;
+            }
+            while r.start < r.end && fp[r.start] < lo {
+                r.start += 1;
+            }
+        });
+    }
+
+    /// Weight of plan point `k` on plane `p`.
+    #[inline(always)]
+    fn weight(&self, k: usize, p: usize) -> f64 {
+        match &self.wkernel {
+            None => 1.0,
+            Some(wk) => {
+                let p0 = self.first_plane[k] as usize;
+                let z = 2.0 * (p0 as f64 - self.plane_offset(wk, self.w[k])) - 1.0;
+                wk.cell(p - p0, z)
+            }
+        }
+    }
+
+    /// Phase screens `exp(-2 pi i w_p tc)` over the quadrant, exactly, for plane `p`.
+    fn phase_screen(&self, p: usize) -> Vec<Complex64> {
+        let wp = self.w_first + p as f64 * self.dw;
+        self.tc.par_iter().map(|&t| Complex64::from_polar(1.0, -2.0 * PI * wp * t)).collect()
+    }
+
+    /// The screen of plane `p + 1` from that of plane `p` (exactly every few planes).
+    fn advance_screen(&self, screen: &mut Vec<Complex64>, step: &[Complex64], next: usize) {
+        if next % PHASE_RESEED == 0 {
+            *screen = self.phase_screen(next);
+        } else {
+            screen.par_iter_mut().zip(step.par_iter()).for_each(|(s, d)| *s *= d);
+        }
+    }
+
+    fn step_screen(&self) -> Vec<Complex64> {
+        self.tc.par_iter().map(|&t| Complex64::from_polar(1.0, -2.0 * PI * self.dw * t)).collect()
+    }
+
+    /// Adjoint (gridding): the dirty image `f[iy * N + ix] = sum_k c_k exp(-2 pi i (u_k l +
+    /// v_k m + w_k (n - 1)))`, visibilities in the caller's order.
+    pub fn adjoint(&self, vis: &[Complex64]) -> Vec<Complex64> {
+        assert_eq!(vis.len(), self.len(), "number of visibilities");
+        self.engine.install(|| {
+            let values: Vec<Complex64> = self
+                .order
+                .par_iter()
+                .zip(self.w.par_iter())
+                .map(|(&k, &w)| vis[k as usize] * Complex64::from_polar(1.0, -2.0 * PI * w * self.t0))
+                .collect();
+            dispatch_support!(self.engine.shape.support, W, W2, L => self.adjoint_impl::<W, W2, L>(&values))
+        })
+    }
+
+    /// Forward (degridding): `V_k = sum f[iy * N + ix] exp(+2 pi i (u_k l + v_k m + w_k (n -
+    /// 1)))`, visibilities in the caller's order.
+    pub fn forward(&self, image: &[Complex64]) -> Vec<Complex64> {
+        assert_eq!(image.len(), self.size * self.size, "image size");
+        self.engine.install(|| {
+            let sorted = dispatch_support!(self.engine.shape.support, W, W2, L => self.forward_impl::<W, W2, L>(image));
+            self.rank
+                .par_iter()
+                .map(|&i| {
+                    let i = i as usize;
+                    sorted[i] * Complex64::from_polar(1.0, 2.0 * PI * self.w[i] * self.t0)
+                })
+                .collect()
+        })
+    }
+
+    /// The per-pixel factor both directions apply once: the uv grid correction times the
+    /// w correction, in the column-major layout `[ix * N + iy]`.
+    fn total_correction(&self, ix: usize, iy: usize) -> f64 {
+        let (n, h) = (self.size, self.size / 2 + 1);
+        let (a, b) = (ix.abs_diff(n / 2), iy.abs_diff(n / 2));
+        self.engine.correction_x[ix] * self.engine.correction_y[iy] * self.w_correction[a * h + b]
+    }
+
+    fn adjoint_impl<const W: usize, const W2: usize, const L: usize>(&self, values: &[Complex64]) -> Vec<Complex64> {
+        let n = self.size;
+        let (gx, gy) = (self.engine.grid_nx, self.engine.grid_ny);
+        let kernel = self.engine.kernel::<W, W2, L>();
+        let mut grid = par_filled(Complex64::default(), gx * gy);
+        // Column-major accumulator: acc[ix * n + iy].
+        let mut acc = par_filled(Complex64::default(), n * n);
+        let mut screen = self.phase_screen(0);
+        let step = if self.planes > 1 { self.step_screen() } else { Vec::new() };
+        let mut ranges: Vec<Range<usize>> = self.tiles.iter().map(|t| t.points.start..t.points.start).collect();
+        for p in 0..self.planes {
+            self.advance_ranges(&mut ranges, p);
+            let spans: Vec<(usize, Range<usize>)> =
+                ranges.iter().enumerate().filter(|(_, r)| !r.is_empty()).map(|(i, r)| (i, r.clone())).collect();
+            if !spans.is_empty() {
+                self.spread_plane::<W, W2, L>(&kernel, p, &spans, values, &mut grid);
+                self.grid_to_accumulator(&mut grid, &screen, &mut acc);
+            }
+            if p + 1 < self.planes {
+                self.advance_screen(&mut screen, &step, p + 1);
+            }
+        }
+        acc.par_chunks_mut(n).enumerate().for_each(|(ix, col)| {
+            for (iy, v) in col.iter_mut().enumerate() {
+                *v *= self.total_correction(ix, iy);
+            }
+        });
+        let mut out = par_filled(Complex64::default(), n * n);
+        crate::fft2::transpose(&acc, &mut out, n, n);
+        out
+    }
+
+    /// Spread the points of plane `p` (`spans`: tile index and plan-order range, in tile
+    /// order) onto the zeroed grid, weighted by the w-kernel: tiles go into private buffers a
+    /// batch at a time, then the buffers are added to the grid row by row in parallel, each
+    /// grid row taking its buffers in tile order.
+    fn spread_plane<const W: usize, const W2: usize, const L: usize>(
+        &self,
+        kernel: &SymKernel<W, W2, L>,
+        p: usize,
+        spans: &[(usize, Range<usize>)],
+        values: &[Complex64],
+        grid: &mut [Complex64],
+    ) {
+        let (gx, gy) = (self.engine.grid_nx, self.engine.grid_ny);
+        let bw = TILE + W;
+        let bw2 = 2 * bw;
+        let padded_y = gy + 2 * W;
+        let batch = TILES_PER_THREAD * rayon::current_num_threads().max(1);
+        let spare = std::sync::Mutex::new(Vec::<Vec<f64>>::new());
+        for chunk in spans.chunks(batch) {
+            let buffers: Vec<Vec<f64>> = chunk
+                .par_iter()
+                .map_init(Vec::new, |weighted, (i, range)| {
+                    let tile = &self.tiles[*i];
+                    let mut buf = spare.lock().expect("no task panics holding the buffers").pop().unwrap_or_default();
+                    buf.clear();
+                    buf.resize(bw * bw2, 0.0);
+                    weighted.clear();
+                    weighted.extend(range.clone().map(|k| values[k] * self.weight(k, p)));
+                    let origin = ((tile.tx * TILE) as u32, (tile.ty * TILE) as u32);
+                    let local = 0..weighted.len();
+                    let mut source = Source::Sorted(&weighted[..]);
+                    spread_tile::<W, W2, L>(self.engine.simd, kernel, &self.positions[range.clone()], &mut source, local, &[], 0, &mut buf, bw2, origin);
+                    buf
+                })
+                .collect();
+            let tys: Vec<usize> = chunk.iter().map(|(i, _)| self.tiles[*i].ty).collect();
+            let (q_lo, q_hi) = (tys[0] * TILE, (tys[tys.len() - 1] * TILE + bw).min(padded_y));
+            grid.par_chunks_mut(gx).enumerate().for_each(|(r, row)| {
+                // Padded rows that wrap onto grid row r.
+                for q in [r + W + gy, r + W, (r + W).wrapping_sub(gy)] {
+                    if q < q_lo || q >= q_hi {
+                        continue;
+                    }
+                    // Tiles whose buffer rows cover q: ty * TILE <= q < ty * TILE + bw.
+                    let first = tys.partition_point(|&ty| ty * TILE + bw <= q);
+                    let last = tys.partition_point(|&ty| ty * TILE <= q);
+                    for j in first..last {
+                        let tile = &self.tiles[chunk[j].0];
+                        let src = &buffers[j][(q - tile.ty * TILE) * bw2..][..bw2];
+                        let start = (tile.tx * TILE + gx - W) % gx;
+                        if start + bw <= gx {
+                            for (d, s) in row[start..start + bw].iter_mut().zip(src.chunks_exact(2)) {
+                                *d += Complex64::new(s[0], s[1]);
+                            }
+                        } else {
+                            for (c, s) in src.chunks_exact(2).enumerate() {
+                                row[(start + c) % gx] += Complex64::new(s[0], s[1]);
+                            }
+                        }
+                    }
+                }
+            });
+            spare.lock().expect("no task panics holding the buffers").extend(buffers);
+        }
+    }
+
+    /// FFT the plane's grid to image modes, multiply by the plane's phase screen and add to
+    /// the column-major accumulator; leave the grid zeroed for the next plane.
+    fn grid_to_accumulator(&self, grid: &mut [Complex64], screen: &[Complex64], acc: &mut [Complex64]) {
+        let e = &self.engine;
+        let (gx, gy, n) = (e.grid_nx, e.grid_ny, self.size);
+        let h = n / 2 + 1;
+        grid.par_chunks_mut(gx).zip(self.row_used.par_iter()).for_each_init(
+            || vec![Complex64::default(); e.fft_x.get_inplace_scratch_len()],
+            |scratch, (row, &used)| {
+                if used {
+                    e.fft_x.process_with_scratch(row, scratch)
+                }
+            },
+        );
+        // Image columns ix sit at grid columns gcol[ix]: the upper half of the image at the
+        // start of the grid, the lower half at its end.
+        const B: usize = 16;
+        let half = n / 2;
+        let gcol: Vec<usize> = (0..n).map(|ix| if ix < half { gx - half + ix } else { ix - half }).collect();
+        let grid_ref: &[Complex64] = grid;
+        acc.par_chunks_mut(n * B).enumerate().for_each_init(
+            || (vec![Complex64::default(); gy * B], vec![Complex64::default(); e.fft_y.get_inplace_scratch_len()]),
+            |(block, scratch), (bi, dst)| {
+                let ncols = dst.len() / n;
+                let gcols = &gcol[bi * B..bi * B + ncols];
+                for (r, row) in grid_ref.chunks_exact(gx).enumerate() {
+                    for (c, &g) in gcols.iter().enumerate() {
+                        block[c * gy + r] = row[g];
+                    }
+                }
+                for c in 0..ncols {
+                    let col = &mut block[c * gy..(c + 1) * gy];
+                    e.fft_y.process_with_scratch(col, scratch);
+                    let ix = bi * B + c;
+                    let ph = &screen[ix.abs_diff(half) * h..][..h];
+                    let (lower, upper) = dst[c * n..(c + 1) * n].split_at_mut(half);
+                    // iy = j < n/2 at grid row gy - n/2 + j, |jy| = n/2 - j; iy = n/2 + j at row j.
+                    for (j, o) in lower.iter_mut().enumerate() {
+                        *o += col[gy - half + j] * ph[half - j];
+                    }
+                    for ((o, v), q) in upper.iter_mut().zip(&col[..half]).zip(&ph[..half]) {
+                        *o += v * q;
+                    }
+                }
+            },
+        );
+        grid.par_chunks_mut(gx).zip(self.row_used.par_iter()).for_each(|(row, &used)| {
+            if used {
+                row.fill(Complex64::default());
+            }
+        });
+    }
+
+    fn forward_impl<const W: usize, const W2: usize, const L: usize>(&self, image: &[Complex64]) -> Vec<Complex64> {
+        let e = &self.engine;
+        let n = self.size;
+        let (gx, gy) = (e.grid_nx, e.grid_ny);
+        let kernel = e.kernel::<W, W2, L>();
+        // Corrected image, column-major: f[ix * n + iy].
+        let mut f = par_filled(Complex64::default(), n * n);
+        f.par_chunks_mut(n).enumerate().for_each(|(ix, col)| {
+            for (iy, v) in col.iter_mut().enumerate() {
+                *v = image[iy * n + ix] * self.total_correction(ix, iy);
+            }
+        });
+        let mut cols = par_filled(Complex64::default(), n * gy);
+        let (pw, ph) = (gx + 2 * W, gy + 2 * W);
+        let mut padded = par_filled(0.0f64, 2 * pw * ph);
+        let mut out = par_filled(Complex64::default(), self.len());
+        let mut tile_out = Vec::with_capacity(self.tiles.len());
+        {
+            let mut rest = out.as_mut_slice();
+            for tile in &self.tiles {
+                let (head, tail) = std::mem::take(&mut rest).split_at_mut(tile.points.len());
+                tile_out.push(head);
+                rest = tail;
+            }
+        }
+        let mut screen = self.phase_screen(0);
+        let step = if self.planes > 1 { self.step_screen() } else { Vec::new() };
+        let pw2 = 2 * pw;
+        let mut rows = par_filled(Complex64::default(), n * gy);
+        let mut ranges: Vec<Range<usize>> = self.tiles.iter().map(|t| t.points.start..t.points.start).collect();
+        for p in 0..self.planes {
+            self.advance_ranges(&mut ranges, p);
+            if ranges.iter().any(|r| !r.is_empty()) {
+                self.image_to_padded(&f, &screen, &mut cols, &mut rows, &mut padded);
+                tile_out.par_iter_mut().zip(ranges.par_iter()).zip(self.tiles.par_iter()).for_each_init(
+                    Vec::new,
+                    |interp, ((dst, range), tile)| {
+                        if range.is_empty() {
+                            return;
+                        }
+                        interp.clear();
+                        interp.resize(range.len(), Complex64::default());
+                        {
+                            let mut sink = Sink::Sorted(&mut interp[..]);
+                            interp_points::<W, W2, L>(e.simd, &kernel, &self.positions[range.clone()], &padded, pw2, &mut sink, &[], 0);
+                        }
+                        let local = range.start - tile.points.start;
+                        for (j, v) in interp.iter().enumerate() {
+                            dst[local + j] += v * self.weight(range.start + j, p);
+                        }
+                    },
+                );
+            }
+            if p + 1 < self.planes {
+                self.advance_screen(&mut screen, &step, p + 1);
+            }
+        }
+        out
+    }
+
+    /// The plane's image (corrected image `f` times the conjugate phase screen) onto the
+    /// padded grid: inverse FFT the image columns, then the rows used, each written with
+    /// periodic margins of width `support` (see [`Nufft2d`]'s forward transform).
+    ///
+    /// `cols` (`n x gy`) and `rows` (`gy x n`) are scratch space.
+    fn image_to_padded(
+        &self,
+        f: &[Complex64],
+        screen: &[Complex64],
+        cols: &mut [Complex64],
+        rows: &mut [Complex64],
+        padded: &mut [f64],
+    ) {
+        let e = &self.engine;
+        let (gx, gy, n) = (e.grid_nx, e.grid_ny, self.size);
+        let w = e.shape.support;
+        let (h, half) = (n / 2 + 1, n / 2);
+        cols.par_chunks_mut(gy).enumerate().for_each_init(
+            || vec![Complex64::default(); e.ifft_y.get_inplace_scratch_len()],
+            |scratch, (ix, col)| {
+                let ph = &screen[ix.abs_diff(half) * h..][..h];
+                let (lower, upper) = f[ix * n..(ix + 1) * n].split_at(half);
+                // iy = n/2 + j at grid row j, iy = j < n/2 at row gy - n/2 + j (|jy| = n/2 - j).
+                for ((c, v), q) in col[..half].iter_mut().zip(upper).zip(&ph[..half]) {
+                    *c = v * q.conj();
+                }
+                col[half..gy - half].fill(Complex64::default());
+                for (j, (c, v)) in col[gy - half..].iter_mut().zip(lower).enumerate() {
+                    *c = v * ph[half - j].conj();
+                }
+                e.ifft_y.process_with_scratch(col, scratch);
+            },
+        );
+        // Grid rows, contiguous (the columns' transpose), then the row transforms.
+        crate::fft2::transpose(cols, rows, n, gy);
+        let rows: &[Complex64] = rows;
+        let pw = gx + 2 * w;
+        padded.par_chunks_mut(2 * pw).enumerate().for_each_init(
+            || (vec![Complex64::default(); gx], vec![Complex64::default(); e.ifft_x.get_inplace_scratch_len()]),
+            |(row, scratch), (q, dst)| {
+                let r = (q + gy - w) % gy;
+                if !self.row_used[r] {
+                    return;
+                }
+                let src = &rows[r * n..(r + 1) * n];
+                row[..half].copy_from_slice(&src[half..]);
+                row[half..gx - half].fill(Complex64::default());
+                row[gx - half..].copy_from_slice(&src[..half]);
+                e.ifft_x.process_with_scratch(row, scratch);
+                // Padded column i holds grid column (i - w) mod gx.
+                let wrapped = row[gx - w..].iter().chain(row.iter()).chain(&row[..w]);
+                for (d, v) in dst.chunks_exact_mut(2).zip(wrapped) {
+                    d[0] = v.re;
+                    d[1] = v.im;
+                }
+            },
+        );
+    }
+}
+
+/// Fourier transform of the kernel in plane units, `psi_hat(eta) = integral over s in
+/// [-support/2, support/2] of phi(2 s / support) cos(2 pi s eta)`, by Gauss-Legendre
+/// quadrature as [`KernelShape::fourier_coefficients`] (which is this at `eta = k / n`).
+pub(crate) fn psi_hat(shape: &KernelShape, eta: f64) -> f64 {
+    let half = shape.support as f64 / 2.0;
+    let (nodes, weights) = gauss_legendre(4 * shape.support + 40);
+    nodes
+        .iter()
+        .zip(&weights)
+        .map(|(&x, &wt)| {
+            let d = 0.5 * half * (x + 1.0);
+            wt * half * shape.eval(d / half) * (2.0 * PI * eta * d).cos()
+        })
+        .sum()
+}
+
+/// Chebyshev interpolant of a smooth function on `[-a, a]`.
+struct Chebyshev {
+    a: f64,
+    coeffs: Vec<f64>,
+}
+
+impl Chebyshev {
+    fn fit(f: impl Fn(f64) -> f64, a: f64, nodes: usize) -> Chebyshev {
+        let x: Vec<f64> = (0..nodes).map(|k| (PI * (k as f64 + 0.5) / nodes as f64).cos()).collect();
+        let fx: Vec<f64> = x.iter().map(|&x| f(a * x)).collect();
+        let coeffs = (0..nodes)
+            .map(|j| {
+                let s: f64 = fx
+                    .iter()
+                    .enumerate()
+                    .map(|(k, v)| v * (PI * j as f64 * (k as f64 + 0.5) / nodes as f64).cos())
+                    .sum();
+                s * if j == 0 { 1.0 } else { 2.0 } / nodes as f64
+            })
+            .collect();
+        Chebyshev { a, coeffs }
+    }
+
+    /// Clenshaw's recurrence at `t in [-a, a]`.
+    fn eval(&self, t: f64) -> f64 {
+        let x = t / self.a;
+        let (mut b1, mut b2) = (0.0, 0.0);
+        for &c in self.coeffs[1..].iter().rev() {
+            let b0 = 2.0 * x * b1 - b2 + c;
+            b2 = b1;
+            b1 = b0;
+        }
+        x * b1 - b2 + self.coeffs[0]
+    }
+}
+
+#[cfg(test)]
+mod tests;
