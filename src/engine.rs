@@ -212,6 +212,8 @@ pub struct ImageParams {
     /// NUFFT accuracy and oversampling.
     pub epsilon: f64,
     pub oversampling: f64,
+    /// The w-term (default `auto`: corrected where it matters at `epsilon`).
+    pub w_term: crate::operator::WTermMode,
     pub step: StepChoice,
     /// CLEAN major cycles (default 5), the first networks of a series (default all), or a
     /// plugin's steps (default 10).
@@ -241,6 +243,7 @@ impl Default for ImageParams {
             weighting_grid_factor: crate::weighting::DEFAULT_GRID_FACTOR,
             epsilon: 1e-6,
             oversampling: 2.0,
+            w_term: crate::operator::WTermMode::Auto,
             step: StepChoice::Auto,
             iterations: None,
             backend: BackendChoice::Auto,
@@ -282,7 +285,7 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
     };
     let (weighting, superresolution) = imaging_setting(params)?;
     let weights = WeightingParams { grid_factor: params.weighting_grid_factor, ..WeightingParams::new(weighting) };
-    let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling };
+    let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling, w_term: params.w_term };
     let mut stages = vec![
         read.to("weights"),
         StageSpec::typed("weights", &weights)?.to("grid"),

@@ -4,7 +4,7 @@
 //! the CLI and the pipeline stages call this with visibilities they read.
 
 use crate::nufft::NufftParams;
-use crate::operator::{ImageGeometry, MeasurementOperator};
+use crate::operator::{ImageGeometry, MeasurementOperator, WTermMode};
 use crate::vis::Visibilities;
 use crate::weighting::{Weighting, DEFAULT_GRID_FACTOR};
 use crate::{Error, Result};
@@ -57,6 +57,8 @@ pub struct DirtyParams {
     pub weighting: Weighting,
     pub grid_factor: f64,
     pub nufft: NufftParams,
+    /// The w-term (see [`WTermMode`]).
+    pub w_term: WTermMode,
     pub threads: usize,
 }
 
@@ -68,6 +70,7 @@ impl Default for DirtyParams {
             weighting: Weighting::Briggs { robust: 0.0 },
             grid_factor: DEFAULT_GRID_FACTOR,
             nufft: NufftParams::default(),
+            w_term: WTermMode::Auto,
             threads: 0,
         }
     }
@@ -114,7 +117,7 @@ pub fn dirty_image(vis: &Visibilities, params: &DirtyParams) -> Result<DirtyProd
     }
     let geometry = params.geometry(vis)?;
     let weight = total_weights(vis, geometry, params.weighting, params.grid_factor)?;
-    let operator = MeasurementOperator::new(geometry, &vis.u, &vis.v, &weight, params.nufft, params.threads)?;
+    let operator = MeasurementOperator::for_mode(params.w_term, geometry, &vis.u, &vis.v, &vis.w, &weight, params.nufft, params.threads)?;
     let dirty = operator.dirty_image(&vis.vis);
     let psf = operator.psf();
     Ok(DirtyProducts { operator, dirty, psf, weight })
@@ -135,7 +138,7 @@ impl WTerm {
     pub const WARN_PHASE_RAD: f64 = 0.3;
 
     pub fn of(vis: &Visibilities, geometry: ImageGeometry) -> WTerm {
-        let max_abs_w = vis.w.iter().fold(0.0f64, |m, &w| m.max(f64::from(w).abs()));
+        let max_abs_w = vis.w.iter().fold(0.0f64, |m, &w| m.max(w.abs()));
         let half = 0.5 * geometry.size as f64 * geometry.pixel_rad;
         let n = (1.0 - 2.0 * half * half).max(0.0).sqrt();
         WTerm { max_abs_w, max_phase_rad: 2.0 * std::f64::consts::PI * max_abs_w * (1.0 - n) }
@@ -160,7 +163,7 @@ mod w_term_tests {
 
     #[test]
     fn the_w_term_warning_follows_field_and_w() {
-        let vis = |w: f32| Visibilities { u: vec![1.0], v: vec![1.0], w: vec![w, -2.0 * w], vis: vec![Default::default(); 2], weight: vec![1.0; 2], frequency: vec![1e8; 2], imaging_weight: Vec::new() };
+        let vis = |w: f64| Visibilities { u: vec![1.0], v: vec![1.0], w: vec![w, -2.0 * w], vis: vec![Default::default(); 2], weight: vec![1.0; 2], frequency: vec![1e8; 2], imaging_weight: Vec::new() };
         // LOFAR-like: |w| 2e3 wavelengths, 3.2 deg field: n - 1 ~ -1.6e-3 at the corners.
         let wide = ImageGeometry::new(512, 3.2f64.to_radians() / 512.0).unwrap();
         let t = WTerm::of(&vis(1e3), wide);

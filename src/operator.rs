@@ -3,6 +3,11 @@
 //! round trip or, exactly for coplanar data, as a convolution with the 2N x 2N PSF) and its
 //! spectral norm.
 //!
+//! The operator is coplanar (a 2D NUFFT) or includes the w-term `exp(2 pi i w (n - 1))` (by
+//! w-gridding, `crate::nufft::wgrid`), as [`WTermMode`] decides from the data and the field:
+//! where the w-term turns no phase by more than the NUFFT's accuracy, the two are the same
+//! operator to that accuracy, and the coplanar one is cheaper and has an exact Toeplitz form.
+//!
 //! Conventions (see `docs/conventions.md`): a source of flux S at direction cosines (l, m)
 //! has visibility `S exp(+2 pi i (u l + v m))`; images are row-major `x[iy * N + ix]` with
 //! `l = -pixel (ix - N/2)` (RA increases to the left, as FITS with CDELT1 < 0 shows it) and
@@ -10,6 +15,7 @@
 //! imaging weight (the reference code's `(nW * nWimag)^2`).
 
 use crate::fft2::Fft2;
+use crate::nufft::wgrid::{max_w_phase, WGridPlan};
 use crate::nufft::{ChunkedAdjoint, Nufft2d, NufftParams};
 use crate::{Error, Result};
 use num_complex::{Complex32, Complex64};
@@ -109,12 +115,65 @@ impl Visibility for Complex32 {
     }
 }
 
+/// Whether the operator includes the w-term.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum WTermMode {
+    /// Included where it matters: where the largest phase it adds over the image exceeds the
+    /// NUFFT's requested accuracy (WSClean corrects it always; where this leaves it out, the
+    /// coplanar operator equals the w-corrected one to that accuracy).
+    #[default]
+    Auto,
+    /// Always included (w-gridding, even where it changes nothing).
+    On,
+    /// Never: coplanar imaging, as the reference does by default (for comparison).
+    Off,
+}
+
+impl WTermMode {
+    /// Whether the w-term is included for data whose largest |w| is `max_abs_w` (wavelengths)
+    /// on `geometry`, at the requested accuracy `epsilon`.
+    pub fn includes(self, geometry: ImageGeometry, max_abs_w: f64, epsilon: f64) -> bool {
+        match self {
+            WTermMode::On => true,
+            WTermMode::Off => false,
+            WTermMode::Auto => max_w_phase(geometry.size, geometry.pixel_rad, max_abs_w) > epsilon,
+        }
+    }
+
+    /// `auto`, `on` or `off`, as the command line and Python name it.
+    pub fn from_name(name: &str) -> Result<WTermMode> {
+        match name {
+            "auto" => Ok(WTermMode::Auto),
+            "on" => Ok(WTermMode::On),
+            "off" => Ok(WTermMode::Off),
+            other => Err(Error::parameter("w-term", format!("expected auto, on or off, got '{other}'"))),
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            WTermMode::Auto => "auto",
+            WTermMode::On => "on",
+            WTermMode::Off => "off",
+        }
+    }
+}
+
+/// The transform behind an operator.
+enum Plan {
+    /// The 2D NUFFT; values in its sorted order.
+    Coplanar(Nufft2d),
+    /// w-gridding; values in the caller's order.
+    WGridded(WGridPlan),
+}
+
 /// `Phi` for fixed baselines and weights: plans the NUFFT once and keeps the weights in the
 /// plan's internal order so every application is a straight pass.
 pub struct MeasurementOperator {
     geometry: ImageGeometry,
-    plan: Nufft2d,
-    /// `omega` in plan order.
+    plan: Plan,
+    /// `omega` in the plan's order.
     weight: Vec<f64>,
     kappa: f64,
 }
@@ -136,7 +195,49 @@ impl MeasurementOperator {
         let plan = Nufft2d::new(geometry.size, geometry.size, &x, &y, nufft, threads)?;
         drop((x, y));
         let weight: Vec<f64> = plan.order().iter().map(|&k| weight[k as usize]).collect();
-        let mut op = MeasurementOperator { geometry, plan, weight, kappa: 1.0 };
+        Self::normalised(MeasurementOperator { geometry, plan: Plan::Coplanar(plan), weight, kappa: 1.0 })
+    }
+
+    /// As [`new`](Self::new), with the w-term: `w` in wavelengths, one per visibility.
+    pub fn with_w_term(
+        geometry: ImageGeometry,
+        u: &[f64],
+        v: &[f64],
+        w: &[f64],
+        weight: &[f64],
+        nufft: NufftParams,
+        threads: usize,
+    ) -> Result<MeasurementOperator> {
+        check_points(geometry, u, v, weight)?;
+        if w.len() != u.len() {
+            return Err(Error::parameter("visibilities", "u and w arrays differ in length"));
+        }
+        let plan = WGridPlan::new(geometry.size, geometry.pixel_rad, u, v, w, nufft, threads)?;
+        Self::normalised(MeasurementOperator { geometry, plan: Plan::WGridded(plan), weight: weight.to_vec(), kappa: 1.0 })
+    }
+
+    /// The operator `mode` asks for on these data: with the w-term or coplanar.
+    #[allow(clippy::too_many_arguments)]
+    pub fn for_mode(
+        mode: WTermMode,
+        geometry: ImageGeometry,
+        u: &[f64],
+        v: &[f64],
+        w: &[f64],
+        weight: &[f64],
+        nufft: NufftParams,
+        threads: usize,
+    ) -> Result<MeasurementOperator> {
+        let max_abs_w = w.iter().fold(0.0f64, |m, w| m.max(w.abs()));
+        if mode.includes(geometry, max_abs_w, nufft.epsilon) {
+            Self::with_w_term(geometry, u, v, w, weight, nufft, threads)
+        } else {
+            Self::new(geometry, u, v, weight, nufft, threads)
+        }
+    }
+
+    /// Sets `kappa` from the PSF's peak.
+    fn normalised(mut op: MeasurementOperator) -> Result<MeasurementOperator> {
         let peak = op.unnormalised_psf_peak();
         if !(peak > 0.0) {
             return Err(Error::parameter("weight", "all visibilities have zero weight: nothing to image"));
@@ -158,8 +259,27 @@ impl MeasurementOperator {
     pub fn is_empty(&self) -> bool {
         self.weight.is_empty()
     }
-    pub fn nufft(&self) -> &Nufft2d {
-        &self.plan
+    /// The w-planes of a w-gridded operator; `None` for a coplanar one.
+    pub fn w_planes(&self) -> Option<usize> {
+        match &self.plan {
+            Plan::Coplanar(_) => None,
+            Plan::WGridded(plan) => Some(plan.planes()),
+        }
+    }
+
+    /// The plan's order of the caller's visibilities (`None`: the caller's own).
+    fn order(&self) -> Option<&[u32]> {
+        match &self.plan {
+            Plan::Coplanar(plan) => Some(plan.order()),
+            Plan::WGridded(_) => None,
+        }
+    }
+
+    fn install<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
+        match &self.plan {
+            Plan::Coplanar(plan) => plan.install(f),
+            Plan::WGridded(plan) => plan.install(f),
+        }
     }
 
     fn to_complex(x: &[f64]) -> Vec<Complex64> {
@@ -168,9 +288,27 @@ impl MeasurementOperator {
 
     /// `Re{Phi^H diag(omega) y}` for `y` in plan order (without kappa).
     fn back_project_sorted(&self, y_sorted: &[Complex64]) -> Vec<f64> {
-        let mut img = vec![Complex64::default(); self.geometry.pixels()];
-        self.plan.adjoint_sorted(y_sorted, &mut img);
-        img.iter().map(|c| c.re).collect()
+        match &self.plan {
+            Plan::Coplanar(plan) => {
+                let mut img = vec![Complex64::default(); self.geometry.pixels()];
+                plan.adjoint_sorted(y_sorted, &mut img);
+                img.iter().map(|c| c.re).collect()
+            }
+            Plan::WGridded(plan) => plan.adjoint(y_sorted).iter().map(|c| c.re).collect(),
+        }
+    }
+
+    /// `Phi_raw x` in the plan's order.
+    fn forward_sorted(&self, x: &[f64]) -> Vec<Complex64> {
+        let image = Self::to_complex(x);
+        match &self.plan {
+            Plan::Coplanar(plan) => {
+                let mut vis = vec![Complex64::default(); self.len()];
+                plan.forward_sorted(&image, &mut vis);
+                vis
+            }
+            Plan::WGridded(plan) => plan.forward(&image),
+        }
     }
 
     fn unnormalised_psf_peak(&self) -> f64 {
@@ -182,21 +320,30 @@ impl MeasurementOperator {
 
     /// Bring per-visibility values from the caller's order into plan order.
     pub fn to_plan_order<T: Copy + Send + Sync>(&self, values: &[T]) -> Vec<T> {
-        self.plan.install(|| self.plan.order().par_iter().map(|&k| values[k as usize]).collect())
+        match self.order() {
+            Some(order) => self.install(|| order.par_iter().map(|&k| values[k as usize]).collect()),
+            None => values.to_vec(),
+        }
     }
 
     /// Model visibilities `Phi_raw x` (unweighted), in the caller's order.
     pub fn model_visibilities(&self, x: &[f64]) -> Vec<Complex64> {
-        let mut out = vec![Complex64::default(); self.len()];
-        self.plan.forward(&Self::to_complex(x), &mut out);
-        out
+        match &self.plan {
+            Plan::Coplanar(plan) => {
+                let mut out = vec![Complex64::default(); self.len()];
+                plan.forward(&Self::to_complex(x), &mut out);
+                out
+            }
+            Plan::WGridded(plan) => plan.forward(&Self::to_complex(x)),
+        }
     }
 
     /// Dirty image `kappa Re{Phi_raw^H (omega y)}` of visibilities `vis` in the caller's order.
     pub fn dirty_image(&self, vis: &[impl Visibility]) -> Vec<f64> {
         assert_eq!(vis.len(), self.len(), "number of visibilities");
-        let weighted: Vec<Complex64> = self.plan.install(|| {
-            self.plan.order().par_iter().zip(self.weight.par_iter()).map(|(&k, &w)| vis[k as usize].to_c64() * w).collect()
+        let weighted: Vec<Complex64> = self.install(|| match self.order() {
+            Some(order) => order.par_iter().zip(self.weight.par_iter()).map(|(&k, &w)| vis[k as usize].to_c64() * w).collect(),
+            None => vis.par_iter().zip(self.weight.par_iter()).map(|(v, &w)| v.to_c64() * w).collect(),
         });
         let mut img = self.back_project_sorted(&weighted);
         img.iter_mut().for_each(|p| *p *= self.kappa);
@@ -211,12 +358,54 @@ impl MeasurementOperator {
 
     /// `D x = kappa Re{Phi^H Phi x}` by a NUFFT round trip.
     pub fn apply_normal(&self, x: &[f64]) -> Vec<f64> {
-        let mut vis = vec![Complex64::default(); self.len()];
-        self.plan.forward_sorted(&Self::to_complex(x), &mut vis);
+        let mut vis = self.forward_sorted(x);
         let k = self.kappa;
         vis.par_iter_mut().zip(self.weight.par_iter()).for_each(|(y, &w)| *y *= w * k);
         self.back_project_sorted(&vis)
     }
+}
+
+/// Model visibilities `Phi_raw x` of the image `x` on `geometry` at `(u, v, w)` (wavelengths,
+/// the caller's order), with the w-term where `w_term` includes it: the one prediction the
+/// simulator, the operator and `MODEL_DATA` share. Unlike [`MeasurementOperator::new`] it
+/// takes baselines beyond the Nyquist limit of the image and predicts zero for them (a
+/// flagged sample may lie there), and builds no PSF.
+#[allow(clippy::too_many_arguments)]
+pub fn predict(
+    geometry: ImageGeometry,
+    u: &[f64],
+    v: &[f64],
+    w: &[f64],
+    x: &[f64],
+    w_term: WTermMode,
+    nufft: NufftParams,
+    threads: usize,
+) -> Result<Vec<Complex64>> {
+    if u.len() != v.len() || u.len() != w.len() {
+        return Err(Error::parameter("visibilities", "u, v and w arrays differ in length"));
+    }
+    let limit = 0.5 / geometry.pixel_rad;
+    let inside: Vec<usize> = (0..u.len()).filter(|&k| u[k].abs() < limit && v[k].abs() < limit && u[k].is_finite() && v[k].is_finite()).collect();
+    let pick = |a: &[f64]| -> Vec<f64> { inside.iter().map(|&k| a[k]).collect() };
+    let (ui, vi, wi) = (pick(u), pick(v), pick(w));
+    let image: Vec<Complex64> = x.iter().map(|&p| Complex64::new(p, 0.0)).collect();
+    let max_abs_w = wi.iter().fold(0.0f64, |m, w| m.max(w.abs()));
+    let predicted = if inside.is_empty() {
+        Vec::new()
+    } else if w_term.includes(geometry, max_abs_w, nufft.epsilon) {
+        WGridPlan::new(geometry.size, geometry.pixel_rad, &ui, &vi, &wi, nufft, threads)?.forward(&image)
+    } else {
+        let (px, py): (Vec<f64>, Vec<f64>) = ui.iter().zip(&vi).map(|(&u, &v)| geometry.uv_to_phase(u, v)).unzip();
+        let plan = Nufft2d::new(geometry.size, geometry.size, &px, &py, nufft, threads)?;
+        let mut out = vec![Complex64::default(); px.len()];
+        plan.forward(&image, &mut out);
+        out
+    };
+    let mut all = vec![Complex64::default(); u.len()];
+    for (&k, value) in inside.iter().zip(predicted) {
+        all[k] = value;
+    }
+    Ok(all)
 }
 
 /// Checks what [`MeasurementOperator::new`] needs of its points: equal lengths, baselines
@@ -664,5 +853,68 @@ mod tests {
         let g = ImageGeometry::new(16, 1e-3).unwrap();
         let err = MeasurementOperator::new(g, &[600.0], &[0.0], &[1.0], NufftParams::default(), 1).err().unwrap().to_string();
         assert!(err.contains("Nyquist") && err.contains("arcsec"), "{err}");
+    }
+
+    /// A wide field where the w-term matters: 48 pixels of 0.5 deg (24 deg), |w| up to the
+    /// longest baseline, both signs.
+    fn wide_field(m: usize, seed: u64) -> (ImageGeometry, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>) {
+        let geometry = ImageGeometry::new(48, 0.5f64.to_radians()).unwrap();
+        let max_uv = 0.45 / geometry.pixel_rad;
+        let (u, v, weight) = baselines(m, max_uv, seed);
+        let mut rng = ChaCha8Rng::seed_from_u64(seed + 1);
+        let w = (0..m).map(|_| rng.gen_range(-max_uv..max_uv)).collect();
+        (geometry, u, v, w, weight)
+    }
+
+    #[test]
+    fn the_w_term_operator_matches_a_direct_sum_with_the_w_term() {
+        let (geometry, u, v, w, weight) = wide_field(300, 7);
+        let nufft = NufftParams { epsilon: 1e-7, oversampling: 2.0 };
+        let op = MeasurementOperator::for_mode(WTermMode::Auto, geometry, &u, &v, &w, &weight, nufft, 2).unwrap();
+        assert!(op.w_planes().is_some_and(|p| p > 1), "auto includes the w-term on a 24 deg field: {:?}", op.w_planes());
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let vis: Vec<Complex64> = (0..u.len()).map(|_| Complex64::new(rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0))).collect();
+        let weighted: Vec<Complex64> = vis.iter().zip(&weight).map(|(v, w)| v * w).collect();
+        let direct = crate::nufft::direct::adjoint_w(geometry.size, geometry.pixel_rad, &u, &v, &w, &weighted);
+        let ones: Vec<Complex64> = weight.iter().map(|&w| Complex64::new(w, 0.0)).collect();
+        let psf_direct = crate::nufft::direct::adjoint_w(geometry.size, geometry.pixel_rad, &u, &v, &w, &ones);
+        let n = geometry.size;
+        let kappa = 1.0 / psf_direct[(n / 2) * n + n / 2].re;
+        let expect: Vec<f64> = direct.iter().map(|c| c.re * kappa).collect();
+        let dirty = op.dirty_image(&vis);
+        let err = dirty.iter().zip(&expect).map(|(a, b)| (a - b).powi(2)).sum::<f64>().sqrt() / expect.iter().map(|b| b * b).sum::<f64>().sqrt();
+        assert!(err < 1e-6, "dirty image vs the direct sum with w: {err:e}");
+        // The coplanar operator is far off on this field: the test tells the two apart.
+        let flat = MeasurementOperator::for_mode(WTermMode::Off, geometry, &u, &v, &w, &weight, nufft, 2).unwrap().dirty_image(&vis);
+        let flat_err = flat.iter().zip(&expect).map(|(a, b)| (a - b).powi(2)).sum::<f64>().sqrt() / expect.iter().map(|b| b * b).sum::<f64>().sqrt();
+        assert!(flat_err > 1e-2, "coplanar {flat_err:e}");
+        // The prediction (MODEL_DATA, the simulator) against the direct forward sum.
+        let x: Vec<f64> = (0..n * n).map(|_| rng.gen_range(0.0..1.0)).collect();
+        let predicted = predict(geometry, &u, &v, &w, &x, WTermMode::Auto, nufft, 2).unwrap();
+        let image: Vec<Complex64> = x.iter().map(|&p| Complex64::new(p, 0.0)).collect();
+        let forward = crate::nufft::direct::forward_w(n, geometry.pixel_rad, &u, &v, &w, &image);
+        let err = crate::nufft::direct::relative_error(&predicted, &forward);
+        assert!(err < 1e-6, "prediction vs the direct forward sum with w: {err:e}");
+        // D through the operator is kappa Re{Phi^H Phi}: the direct sums composed.
+        let dx = op.apply_normal(&x);
+        let fw: Vec<Complex64> = forward.iter().zip(&weight).map(|(c, w)| c * w).collect();
+        let back = crate::nufft::direct::adjoint_w(n, geometry.pixel_rad, &u, &v, &w, &fw);
+        let expect: Vec<f64> = back.iter().map(|c| c.re * kappa).collect();
+        let err = dx.iter().zip(&expect).map(|(a, b)| (a - b).powi(2)).sum::<f64>().sqrt() / expect.iter().map(|b| b * b).sum::<f64>().sqrt();
+        assert!(err < 1e-6, "D x vs the direct sums: {err:e}");
+    }
+
+    #[test]
+    fn auto_leaves_the_w_term_out_only_where_it_is_below_the_accuracy() {
+        let (geometry, u, v, mut w, weight) = wide_field(200, 3);
+        let nufft = NufftParams { epsilon: 1e-6, oversampling: 2.0 };
+        // |w| so small that the largest phase it adds is below epsilon: coplanar.
+        let t = max_w_phase(geometry.size, geometry.pixel_rad, 1.0);
+        w.iter_mut().for_each(|w| *w = 0.5e-6 / t * w.signum());
+        let op = MeasurementOperator::for_mode(WTermMode::Auto, geometry, &u, &v, &w, &weight, nufft, 2).unwrap();
+        assert_eq!(op.w_planes(), None);
+        assert!(MeasurementOperator::for_mode(WTermMode::On, geometry, &u, &v, &w, &weight, nufft, 2).unwrap().w_planes().is_some());
+        w.iter_mut().for_each(|w| *w *= 4.0);
+        assert!(MeasurementOperator::for_mode(WTermMode::Auto, geometry, &u, &v, &w, &weight, nufft, 2).unwrap().w_planes().is_some());
     }
 }

@@ -46,7 +46,7 @@ fn backend_choice(backend: &str) -> PyResult<BackendChoice> {
 /// Python wrapper `r2d2_imaging.image` for the parameters.
 #[pyfunction]
 #[pyo3(signature = (obs, *, id, size, step, weighting, robust, superresolution, pixel_arcsec, truth, iterations, threads,
-                    backend, prefetch, plugin_config, epsilon, oversampling, weighting_grid_factor, onnx_runtime))]
+                    backend, prefetch, plugin_config, epsilon, oversampling, weighting_grid_factor, onnx_runtime, w_term))]
 #[allow(clippy::too_many_arguments)]
 pub fn image(
     py: Python<'_>,
@@ -68,6 +68,7 @@ pub fn image(
     oversampling: f64,
     weighting_grid_factor: f64,
     onnx_runtime: Option<PathBuf>,
+    w_term: &str,
 ) -> PyResult<Products> {
     let observation = match obs.extract::<PathBuf>() {
         Ok(path) => Observation::Path(path),
@@ -84,6 +85,7 @@ pub fn image(
         weighting_grid_factor,
         epsilon,
         oversampling,
+        w_term: r2d2_imaging::operator::WTermMode::from_name(w_term).map_err(crate::engine_error)?,
         step: step_choice(step, plugin_config)?,
         iterations,
         backend: backend_choice(backend)?,

@@ -27,8 +27,18 @@ pub fn run(args: Args) -> Result<()> {
     stats.log(&args.input);
     let products = dirty_image(&vis, &params)?;
     let geometry = products.operator.geometry();
-    if let Some(warning) = r2d2_imaging::imaging::WTerm::of(&vis, geometry).warning(geometry) {
-        log::warn!("{}: {warning}", args.input.display());
+    let w_term = r2d2_imaging::imaging::WTerm::of(&vis, geometry);
+    match products.operator.w_planes() {
+        Some(planes) => log::info!(
+            "{}: the w-term is corrected by w-gridding ({planes} w-planes; up to {:.3} rad at the field's corners)",
+            args.input.display(),
+            w_term.max_phase_rad
+        ),
+        None => {
+            if let Some(warning) = w_term.warning(geometry) {
+                log::warn!("{}: {warning} (--w-term off)", args.input.display());
+            }
+        }
     }
     log::info!(
         "{} x {} image, {:.4} arcsec pixels, {} weighting",

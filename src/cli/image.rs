@@ -83,6 +83,7 @@ fn image_params(args: &Args) -> Result<ImageParams> {
         weighting_grid_factor: image.weighting_grid_factor,
         epsilon: image.epsilon,
         oversampling: image.oversampling,
+        w_term: image.w_term,
         step: step_choice(args)?,
         iterations: args.iterations,
         backend: args.backend.parse()?,

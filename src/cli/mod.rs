@@ -186,6 +186,10 @@ pub struct ImageOptions {
     /// NUFFT oversampling factor.
     #[arg(long, default_value_t = 2.0)]
     pub oversampling: f64,
+    /// The w-term: auto (corrected by w-gridding where it turns a phase by more than
+    /// --epsilon over the field), on, or off (coplanar, for comparison).
+    #[arg(long, default_value = "auto", value_parser = r2d2_imaging::operator::WTermMode::from_name)]
+    pub w_term: r2d2_imaging::operator::WTermMode,
     /// Threads (0: all cores).
     #[arg(long, default_value_t = 0)]
     pub threads: usize,
@@ -214,6 +218,7 @@ impl ImageOptions {
             weighting: self.weighting()?.unwrap_or(r2d2_imaging::Weighting::Briggs { robust: 0.0 }),
             grid_factor: self.weighting_grid_factor,
             nufft: r2d2_imaging::nufft::NufftParams { epsilon: self.epsilon, oversampling: self.oversampling },
+            w_term: self.w_term,
             threads: self.threads,
         })
     }

@@ -3,7 +3,7 @@
 
 use super::state::Job;
 use crate::ms::{write_model_column, ModelReport, ModelTarget, Origin, ORIGIN_KEY};
-use crate::nufft::NufftParams;
+use crate::operator::WTermMode;
 use crate::{Error, Result};
 
 /// The writer's `model_column` for one job: predicts the job's final model into `column` of
@@ -21,11 +21,14 @@ pub fn write_job_model(job: &Job, column: &str) -> Result<ModelReport> {
             Error::parameter("model_column", format!("job '{}' was not read from a MeasurementSet (`kind: ms`): there is no MS to write `{column}` into", job.id))
         })?;
     let imaging = job.imaging.as_ref().ok_or_else(|| Error::parameter("model_column", format!("job '{}' was never gridded", job.id)))?;
+    // The prediction the images were made with: the gridder's NUFFT, and the w-term where it
+    // included it.
     let target = ModelTarget {
         column,
         geometry: imaging.geometry,
         model: &imaging.model,
-        nufft: NufftParams { epsilon: 1e-6, oversampling: 2.0 },
+        nufft: imaging.nufft,
+        w_term: if imaging.w_term { WTermMode::On } else { WTermMode::Off },
         threads: 0,
     };
     let report = write_model_column(&origin, &target)?;

@@ -5,6 +5,7 @@ use super::product::Product;
 use crate::pipeline::ProductKind;
 use crate::fits::{Beam, ImageWcs};
 use crate::metrics;
+use crate::nufft::NufftParams;
 use crate::operator::{ImageGeometry, MeasurementOperator, PsfConvolution};
 use crate::vis::{ObservationMeta, Visibilities};
 use crate::{Error, Result};
@@ -21,8 +22,16 @@ pub struct Imaging {
     pub psf_convolution: Arc<PsfConvolution>,
     /// The doubled PSF itself (2N x 2N), for steps that subtract shifted PSFs.
     pub psf_2n: Arc<Vec<f64>>,
-    /// Kept only when the residual update runs a NUFFT round trip.
+    /// Kept when the residual update runs through the operator: asked for (`method: nufft`),
+    /// or needed because the operator includes the w-term.
     pub operator: Option<Arc<MeasurementOperator>>,
+    /// Why the PSF convolution is not `D` to the NUFFT's accuracy for this job (the operator
+    /// includes the w-term), so the residual update must use the operator; `None` where it is.
+    pub toeplitz_inexact: Option<String>,
+    /// The NUFFT the images were made with and whether it included the w-term: what a
+    /// prediction from the model (`MODEL_DATA`) must use.
+    pub nufft: NufftParams,
+    pub w_term: bool,
     /// Current estimate `x_i` (Jy/pixel) and residual dirty image `r_i = x_d - D x_i`.
     pub model: Vec<f64>,
     pub residual: Vec<f64>,

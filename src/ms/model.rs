@@ -13,8 +13,8 @@
 //! for or refused (`lock.rs`).
 
 use super::{invalid, open_table, MsError, MsReader, Origin, TempDir, Window};
-use crate::nufft::{Nufft2d, NufftParams};
-use crate::operator::ImageGeometry;
+use crate::nufft::NufftParams;
+use crate::operator::{predict, ImageGeometry, WTermMode};
 use crate::vis::{DEFAULT_BATCH_ROWS, SPEED_OF_LIGHT};
 use crate::{Error, Result};
 use casacure::record::{ArrayData, ArrayValue, DataType, RecordValue};
@@ -30,6 +30,8 @@ pub struct ModelTarget<'a> {
     /// The model image, Jy/pixel, row-major `N x N`.
     pub model: &'a [f64],
     pub nufft: NufftParams,
+    /// Whether the prediction includes the w-term (as the images it came from did).
+    pub w_term: WTermMode,
     pub threads: usize,
 }
 
@@ -237,7 +239,6 @@ fn predict_into(ms: &Path, origin: &Origin, target: &ModelTarget<'_>) -> Result<
     let double = existed && matches!(desc[model_col].data_type, DataType::DComplex);
     let nrows = table.nrows();
     let mut report = ModelReport::default();
-    let image: Vec<Complex64> = target.model.iter().map(|&x| Complex64::new(x, 0.0)).collect();
     let chunk = 1u64 << 14;
     for start in (0..nrows).step_by(chunk as usize) {
         let n = chunk.min(nrows - start);
@@ -246,9 +247,9 @@ fn predict_into(ms: &Path, origin: &Origin, target: &ModelTarget<'_>) -> Result<
         let field = cells(field_col, "FIELD_ID")?;
         let dd = cells(dd_col, "DATA_DESC_ID")?;
         let old = if existed { Some(cells(model_col, column)?) } else { None };
-        // The selected rows of the chunk, their window, and their samples' (x, y).
+        // The selected rows of the chunk, their window, and their samples' (u, v, w).
         let mut rows: Vec<(u64, &Window)> = Vec::new();
-        let (mut x, mut y, mut inside) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut us, mut vs, mut ws, mut inside) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         for r in 0..n as usize {
             let window = super::as_i64(&dd[r])
                 .and_then(|d| usize::try_from(d).ok())
@@ -256,30 +257,26 @@ fn predict_into(ms: &Path, origin: &Origin, target: &ModelTarget<'_>) -> Result<
                 .and_then(Option::as_ref)
                 .filter(|_| super::as_i64(&field[r]) == Some(layout.field_id as i64));
             let Some(window) = window else { continue };
-            let [u, v, _] = super::array_f64(&uvw[r])
+            let [u, v, w] = super::array_f64(&uvw[r])
                 .and_then(|(_, values)| <[f64; 3]>::try_from(values).ok())
                 .ok_or_else(|| invalid(ms, format!("column `UVW` at row {}: expected 3 numbers", start + r as u64)))?;
             for channel in window.channels.clone() {
                 let per_metre = window.frequencies[channel] / SPEED_OF_LIGHT;
                 let (u, v) = (u * per_metre, v * per_metre);
                 let limit = 0.5 / target.geometry.pixel_rad;
-                let ok = u.abs() < limit && v.abs() < limit && u.is_finite() && v.is_finite();
+                let ok = u.abs() < limit && v.abs() < limit && u.is_finite() && v.is_finite() && w.is_finite();
                 inside.push(ok);
                 if ok {
-                    let (px, py) = target.geometry.uv_to_phase(u, v);
-                    x.push(px);
-                    y.push(py);
+                    us.push(u);
+                    vs.push(v);
+                    ws.push(w * per_metre);
                 } else {
                     report.beyond_nyquist += 1;
                 }
             }
             rows.push((start + r as u64, window));
         }
-        let mut predicted = vec![Complex64::default(); x.len()];
-        if !x.is_empty() {
-            let plan = Nufft2d::new(target.geometry.size, target.geometry.size, &x, &y, target.nufft, target.threads)?;
-            plan.forward(&image, &mut predicted);
-        }
+        let predicted = predict(target.geometry, &us, &vs, &ws, target.model, target.w_term, target.nufft, target.threads)?;
         let mut next = predicted.into_iter();
         let mut flags = inside.into_iter();
         for (row, window) in rows {

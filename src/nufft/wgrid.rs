@@ -280,6 +280,11 @@ impl WGridPlan {
     pub fn is_empty(&self) -> bool {
         self.order.is_empty()
     }
+    /// Runs `f` in the plan's thread pool.
+    pub fn install<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
+        self.engine.install(f)
+    }
+
     /// How many w-planes a transform runs (1 where the w-term is negligible).
     pub fn planes(&self) -> usize {
         self.planes

@@ -13,7 +13,7 @@ pub mod trainset;
 
 use crate::imaging::PixelScale;
 use crate::nufft::NufftParams;
-use crate::operator::ImageGeometry;
+use crate::operator::{ImageGeometry, WTermMode};
 use crate::vis::{ObservationMeta, VisTable};
 use crate::weighting::Weighting;
 use crate::{metrics, Error, Result};
@@ -91,7 +91,7 @@ pub fn simulate(req: &SimulationRequest) -> Result<SimulationOutput> {
         grid_factor: crate::weighting::DEFAULT_GRID_FACTOR,
     };
     let seed = req.observation.seed;
-    let sim = simulate_visibilities(&sky, geometry, &coverage, &model, req.nufft, req.threads, seed)?;
+    let sim = simulate_visibilities(&sky, geometry, &coverage, &model, WTermMode::Auto, req.nufft, req.threads, seed)?;
     log::debug!("noise sigma {:.4e} Jy per visibility (eta {:.4})", sim.noise_sigma, sim.eta);
     let weight = 1.0 / (sim.noise_sigma * sim.noise_sigma);
     let n = coverage.len();

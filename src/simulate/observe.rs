@@ -9,7 +9,7 @@
 
 use super::telescope::{self, TrackSpec};
 use crate::nufft::NufftParams;
-use crate::operator::{spectral_norm, ImageGeometry, MeasurementOperator};
+use crate::operator::{spectral_norm, ImageGeometry, MeasurementOperator, WTermMode};
 use crate::weighting::{imaging_weights, Weighting};
 use crate::{Error, Result};
 use num_complex::Complex64;
@@ -80,10 +80,16 @@ impl Coverage {
     }
     /// (u, v) in wavelengths.
     pub fn uv_wavelengths(&self) -> (Vec<f64>, Vec<f64>) {
-        let scale = |m: &[f64]| -> Vec<f64> {
-            m.iter().zip(&self.frequency_hz).map(|(x, f)| x * f / SPEED_OF_LIGHT).collect()
-        };
-        (scale(&self.u_m), scale(&self.v_m))
+        (self.wavelengths(&self.u_m), self.wavelengths(&self.v_m))
+    }
+
+    /// w of every sample in wavelengths.
+    pub fn w_wavelengths(&self) -> Vec<f64> {
+        self.wavelengths(&self.w_m)
+    }
+
+    fn wavelengths(&self, metres: &[f64]) -> Vec<f64> {
+        metres.iter().zip(&self.frequency_hz).map(|(x, f)| x * f / SPEED_OF_LIGHT).collect()
     }
     /// Longest unflagged baseline in wavelengths.
     pub fn max_uv(&self) -> f64 {
@@ -233,12 +239,15 @@ pub fn noise_level(
 
 /// Visibilities of `sky` (Jy/pixel on `geometry`) over `coverage`, plus Gaussian noise for the
 /// target dynamic range. Flagged samples are simulated too (they stay in the data, flagged)
-/// but do not count towards the noise level.
+/// but do not count towards the noise level. `w_term` says whether the prediction includes
+/// the w-term (the imaging's rule, so that what is simulated images as it was made).
+#[allow(clippy::too_many_arguments)]
 pub fn simulate_visibilities(
     sky: &[f64],
     geometry: ImageGeometry,
     coverage: &Coverage,
     model: &NoiseModel,
+    w_term: WTermMode,
     nufft: NufftParams,
     threads: usize,
     seed: u64,
@@ -248,8 +257,8 @@ pub fn simulate_visibilities(
     }
     let (tau, eta, l1) = noise_level(geometry, coverage, model, nufft, threads)?;
     let (u, v) = coverage.uv_wavelengths();
-    let raw = MeasurementOperator::new(geometry, &u, &v, &vec![1.0; u.len()], nufft, threads)?;
-    let mut vis = raw.model_visibilities(sky);
+    let vis = crate::operator::predict(geometry, &u, &v, &coverage.w_wavelengths(), sky, w_term, nufft, threads)?;
+    let mut vis = vis;
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     rng.set_stream(STREAM_NOISE);
     let s = tau / std::f64::consts::SQRT_2;
@@ -288,7 +297,7 @@ mod tests {
             let g = ImageGeometry::from_superresolution(64, 1.5, cov.max_uv()).unwrap();
             let sky = procedural_sky(&SkyParams::new(64, 1e3, seed)).unwrap();
             let model = NoiseModel { dynamic_range: 1e3, weighting: Weighting::Briggs { robust: 0.0 }, grid_factor: 2.0 };
-            let sim = simulate_visibilities(&sky, g, &cov, &model, nufft, 2, seed).unwrap();
+            let sim = simulate_visibilities(&sky, g, &cov, &model, WTermMode::Off, nufft, 2, seed).unwrap();
             (cov, sim.vis)
         };
         let (c1, v1) = run(5);
@@ -355,7 +364,7 @@ mod tests {
 
         // The simulated noise has that standard deviation.
         let sky = vec![0.0; 64];
-        let sim = simulate_visibilities(&sky, g, &cov, &model, nufft, 1, 3).unwrap();
+        let sim = simulate_visibilities(&sky, g, &cov, &model, WTermMode::Off, nufft, 1, 3).unwrap();
         let var = sim.vis.iter().map(|y| y.norm_sqr()).sum::<f64>() / sim.vis.len() as f64;
         assert!((var.sqrt() / tau - 1.0).abs() < 0.02, "noise std {} vs tau {tau}", var.sqrt());
     }

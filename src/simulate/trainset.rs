@@ -18,7 +18,7 @@ use super::extended::extended_sky;
 use super::sky::{exponentiate, procedural_sky, SkyParams};
 use crate::imaging::{dirty_image, DirtyParams, PixelScale};
 use crate::nufft::NufftParams;
-use crate::operator::{doubled_psf, ImageGeometry};
+use crate::operator::{doubled_psf, ImageGeometry, WTermMode};
 use crate::vis::VisTable;
 use crate::weighting::{Weighting, DEFAULT_GRID_FACTOR};
 use crate::{Error, Result};
@@ -197,7 +197,7 @@ pub fn make_sample(truth: TruthSource, params: &TrainsetParams, seed: u64, threa
     let geometry = ImageGeometry::from_superresolution(n, draw.superresolution, coverage.max_uv())?;
     let weighting = Weighting::Briggs { robust: draw.robust };
     let model = NoiseModel { dynamic_range: dr, weighting, grid_factor: DEFAULT_GRID_FACTOR };
-    let sim = simulate_visibilities(&sky, geometry, &coverage, &model, params.nufft, threads, seed)?;
+    let sim = simulate_visibilities(&sky, geometry, &coverage, &model, WTermMode::Off, params.nufft, threads, seed)?;
 
     // Through the same table -> visibilities -> dirty products path as a Parquet file would go.
     let table = |vis: Vec<num_complex::Complex64>| VisTable {
@@ -222,6 +222,8 @@ pub fn make_sample(truth: TruthSource, params: &TrainsetParams, seed: u64, threa
         weighting,
         grid_factor: DEFAULT_GRID_FACTOR,
         nufft: params.nufft,
+        // Training is coplanar: the series learns D as the PSF convolution it is then.
+        w_term: WTermMode::Off,
         threads,
     };
     let products = dirty_image(&vis, &dirty_params)?;

@@ -32,6 +32,7 @@ pub use crate::steps::onnx::{OnnxConfig as OnnxParams, ValidityMode};
 pub use crate::weighting::WeightingScheme;
 
 use crate::nufft::NufftParams;
+pub use crate::operator::WTermMode;
 use crate::pipeline::StageParams;
 use crate::weighting::{Weighting, DEFAULT_GRID_FACTOR};
 use serde::{Deserialize, Serialize};
@@ -179,7 +180,7 @@ impl StageParams for ArrowIpcParams {
 
 // ---- kind: gridder
 
-/// `kind: gridder`: the NUFFT's accuracy.
+/// `kind: gridder`: the NUFFT's accuracy, and whether it includes the w-term.
 #[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct GridderParams {
@@ -187,12 +188,15 @@ pub struct GridderParams {
     pub epsilon: f64,
     /// Oversampling of the NUFFT's grid; default 2.
     pub oversampling: f64,
+    /// The w-term: `auto` (default: included by w-gridding where it turns a phase by more
+    /// than `epsilon` over the field), `on` or `off` (coplanar, for comparison).
+    pub w_term: WTermMode,
 }
 
 impl Default for GridderParams {
     fn default() -> Self {
         let NufftParams { epsilon, oversampling } = NufftParams::default();
-        GridderParams { epsilon, oversampling }
+        GridderParams { epsilon, oversampling, w_term: WTermMode::Auto }
     }
 }
 

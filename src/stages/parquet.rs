@@ -1,10 +1,11 @@
 //! `kind: parquet`: one imaging job per Parquet file (a path, a list, or glob patterns), or
 //! several per file with `split_by` (time windows, frequency channels), read one record
-//! batch at a time.
+//! batch at a time. A file of another single-file format (a MATLAB .mat observation) is read
+//! by its content through the one reader (`vis::open`).
 
 use super::params::{Files, ParquetParams};
 use crate::job::{emit_parts, stem_id, Truth};
-use crate::vis::{read_parts, SplitBy};
+use crate::vis::{format_of, open, read_parts, OpenOptions, SplitBy, TableFormat, TableReader};
 use crate::job::Job;
 use crate::pipeline::{PipelineSpec, Source, StageSpec};
 use crate::vis::VisReader;
@@ -78,8 +79,14 @@ impl Source<Job> for ParquetSource {
             let id = stem_id(path);
             self.current_job = Some(id.clone());
             let extra: Vec<&str> = self.split_by.iter().map(|s| s.column.as_str()).collect();
-            let mut reader = VisReader::open_with_columns(path, self.batch_rows, &extra)?;
-            let Some((parts, stats)) = read_parts(&mut reader, self.split_by.as_ref(), &self.split_key, cancelled)? else {
+            // A Parquet table reads only the columns used; any other single-file format (a .mat)
+            // through the one reader, by its content.
+            let mut reader: Box<dyn TableReader> = if format_of(path)? == TableFormat::Parquet {
+                Box::new(VisReader::open_with_columns(path, self.batch_rows, &extra)?)
+            } else {
+                open(path, &OpenOptions { batch_rows: self.batch_rows, ..OpenOptions::default() })?
+            };
+            let Some((parts, stats)) = read_parts(reader.as_mut(), self.split_by.as_ref(), &self.split_key, cancelled)? else {
                 return Ok(());
             };
             stats.log(path);

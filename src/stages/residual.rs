@@ -95,13 +95,21 @@ impl Stage<Job> for ResidualStage {
         let began = Instant::now();
         let method = self.config.method;
         let iteration = job.iteration;
+        let id = job.id.clone();
         let im = job.imaging_mut("residual")?;
-        let d_x = match method {
-            ResidualMethod::Toeplitz => im.psf_convolution.apply(&im.model),
-            ResidualMethod::Nufft => match &im.operator {
-                Some(op) => op.apply_normal(&im.model),
-                None => return Err(Error::parameter("method", "nufft needs the visibilities, which the gridder released")),
-            },
+        let d_x = match (method, &im.toeplitz_inexact, &im.operator) {
+            (ResidualMethod::Toeplitz, None, _) => im.psf_convolution.apply(&im.model),
+            (ResidualMethod::Toeplitz, Some(why), Some(op)) => {
+                if iteration == 1 {
+                    log::info!("job {id}: the residual update runs through the operator instead of the PSF convolution: {why}");
+                }
+                op.apply_normal(&im.model)
+            }
+            (_, _, Some(op)) => op.apply_normal(&im.model),
+            (ResidualMethod::Nufft, _, None) => return Err(Error::parameter("method", "nufft needs the visibilities, which the gridder released")),
+            (ResidualMethod::Toeplitz, Some(why), None) => {
+                return Err(Error::parameter("method", format!("the PSF convolution is not exact here ({why}) and the gridder kept no operator")))
+            }
         };
         im.residual = im.dirty.iter().zip(&d_x).map(|(d, x)| d - x).collect();
         let what = format!("residual after step {iteration}");

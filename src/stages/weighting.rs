@@ -65,7 +65,6 @@ impl Stage<Job> for WeightingStage {
         let params = DirtyParams { size: self.image.size, pixel: self.image.pixel_scale(), ..DirtyParams::default() };
         let geometry = params.geometry(vis)?;
         let max_uv = vis.max_uv();
-        let w_term = crate::imaging::WTerm::of(vis, geometry);
         let given_unused = !vis.imaging_weight.is_empty() && self.weighting != Weighting::Given;
         job.weight = Some(total_weights(vis, geometry, self.weighting, self.grid_factor)?);
         if given_unused {
@@ -74,10 +73,6 @@ impl Stage<Job> for WeightingStage {
         }
         job.geometry = Some(geometry);
         job.superresolution = (max_uv > 0.0).then(|| 1.0 / (2.0 * max_uv * geometry.pixel_rad));
-        job.settings.insert("w_term".into(), serde_json::json!({"corrected": false, "max_abs_w": w_term.max_abs_w, "max_phase_rad": w_term.max_phase_rad}));
-        if let Some(warning) = w_term.warning(geometry) {
-            job.warn(warning);
-        }
         if let Some(problem) = truth_grid_problem(&job, geometry) {
             job.warn(problem);
         }

@@ -164,8 +164,9 @@ pub struct Visibilities {
     pub u: Vec<f64>,
     /// Baseline v, wavelengths.
     pub v: Vec<f64>,
-    /// Baseline w, wavelengths. Single precision: the imaging is coplanar and does not use w.
-    pub w: Vec<f32>,
+    /// Baseline w, wavelengths. Double precision: the w-term's phase `2 pi w (n - 1)` must
+    /// stay exact to the NUFFT's accuracy over wide fields.
+    pub w: Vec<f64>,
     /// Stokes I visibility, Jy. Single precision, as a MeasurementSet stores it (and WSClean
     /// grids it): the relative rounding, 6e-8, is far below the noise of any measurement and
     /// the NUFFT's accuracy; gridding accumulates in f64.
@@ -245,7 +246,7 @@ impl Visibilities {
         parts
     }
 
-    pub(crate) fn push(&mut self, uv: [f64; 2], w: f32, vis: Complex32, weight: f32, frequency: f64) {
+    pub(crate) fn push(&mut self, uv: [f64; 2], w: f64, vis: Complex32, weight: f32, frequency: f64) {
         self.u.push(uv[0]);
         self.v.push(uv[1]);
         self.w.push(w);

@@ -400,10 +400,24 @@ fn numbers(el: &Element<'_>, e: Endian, path: &Path) -> Result<Vec<f64>> {
 
 fn read_v73(path: &Path) -> Result<BTreeMap<String, Variable>> {
     let h5 = |doing: &str, e: hdf5_reader::error::Error| -> Error { TableError::decode(path, &format!("reading the .mat file (HDF5): {doing}"), e).into() };
-    let file = hdf5_reader::Hdf5File::open(path).map_err(|e| h5("opening it", e))?;
+    // The HDF5 data start after MATLAB's 512-byte header (the user block), and its addresses
+    // count from there. hdf5-reader finds such a superblock but takes the addresses from the
+    // file's start, so it is handed the bytes from the superblock on.
+    let size = std::fs::metadata(path).map_err(|e| Error::io(path, e))?.len();
+    crate::limits::check_memory(size as f64, "the .mat file").map_err(|m| invalid(path, m))?;
+    let bytes = std::fs::read(path).map_err(|e| Error::io(path, e))?;
+    const SIGNATURE: &[u8] = b"\x89HDF\r\n\x1a\n";
+    let start = std::iter::once(0)
+        .chain((0..).map(|k| 512usize << k))
+        .take_while(|&at| at + SIGNATURE.len() <= bytes.len())
+        .find(|&at| &bytes[at..at + SIGNATURE.len()] == SIGNATURE)
+        .ok_or_else(|| invalid(path, "a MAT 7.3 header, but no HDF5 superblock after it"))?;
+    let file = hdf5_reader::Hdf5File::from_vec(bytes[start..].to_vec()).map_err(|e| h5("opening it", e))?;
     let mut vars = BTreeMap::new();
-    for name in WANTED {
-        let Ok(ds) = file.dataset(&format!("/{name}")) else { continue };
+    let datasets = file.root_group().and_then(|g| g.datasets()).map_err(|e| h5("listing its variables", e))?;
+    for ds in datasets {
+        let name = ds.name().trim_start_matches('/').to_string();
+        let Some(&name) = WANTED.iter().find(|w| **w == name) else { continue };
         let class = ds.attribute("MATLAB_class").ok().and_then(|a| a.read_string().ok()).unwrap_or_default();
         let empty = ds.attribute("MATLAB_empty").is_ok();
         let dims: Vec<usize> = ds.shape().iter().rev().map(|&d| d as usize).collect();

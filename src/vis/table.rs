@@ -336,7 +336,7 @@ fn convert_batch(
         }
         out.push(
             [u[i] * per_metre, v[i] * per_metre],
-            (w[i] * per_metre) as f32,
+            w[i] * per_metre,
             Complex32::new(re[i] as f32, im[i] as f32),
             stored_weight,
             frequency[i],
@@ -826,7 +826,7 @@ mod tests {
             let per_metre = table.frequency[i] / 299_792_458.0;
             assert_eq!(vis.u[i], table.u_m[i] * per_metre);
             assert_eq!(vis.v[i], table.v_m[i] * per_metre);
-            assert_eq!(vis.w[i], (table.w_m[i] * per_metre) as f32);
+            assert_eq!(vis.w[i], table.w_m[i] * per_metre);
             assert_eq!(vis.vis[i], single(table.vis[i]));
             assert_eq!(vis.weight[i], table.weight[i] as f32);
             assert_eq!(vis.frequency[i], table.frequency[i]);
