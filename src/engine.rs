@@ -195,6 +195,30 @@ pub enum StepChoice {
     Native { library: PathBuf, config: Option<serde_yaml::Value> },
 }
 
+impl StepChoice {
+    /// A step as `r2d2 image --step` and Python's `step=` name it: `auto`, `clean`, a plugin
+    /// library (`.so`, `.dylib`, `.dll`, which alone takes `plugin_config`, a YAML or JSON
+    /// mapping), or a series (a directory or a name `r2d2 models` lists).
+    pub fn parse(step: &str, plugin_config: Option<&str>) -> Result<StepChoice> {
+        let path = PathBuf::from(step);
+        let is_library = matches!(path.extension().and_then(|e| e.to_str()), Some("so" | "dylib" | "dll"));
+        if plugin_config.is_some() && !is_library {
+            return Err(Error::parameter("plugin config", format!("only a native plugin takes a configuration; the step is '{step}'")));
+        }
+        Ok(match step {
+            "clean" => StepChoice::Clean,
+            crate::steps::series::AUTO_SERIES => StepChoice::Auto,
+            _ if is_library => StepChoice::Native {
+                library: path,
+                config: plugin_config
+                    .map(|text| serde_yaml::from_str(text).map_err(|e| Error::parameter("plugin config", format!("expected a YAML or JSON mapping: {e}"))))
+                    .transpose()?,
+            },
+            _ => StepChoice::Series(path),
+        })
+    }
+}
+
 pub use crate::steps::runtime::{BackendChoice, GraphOptimization};
 
 /// What [`Engine::image`] makes, with `r2d2 image`'s defaults.

@@ -23,12 +23,14 @@ from astropy.io import fits
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from r2d2train import common, series  # noqa: E402
 
+# `w_term: off`: the test samples are simulated coplanar, as training samples are (`r2d2
+# trainset`: the series learn D as the PSF convolution it then is).
 CLEAN_YAML = """name: clean-test
 image: {{size: {size}, superresolution: 1.5}}
 stages:
   read: {{kind: parquet, files: "{parquet}", to: weights}}
   weights: {{kind: weighting, scheme: briggs, robust: 0, to: grid}}
-  grid: {{kind: gridder, epsilon: 1.0e-6, to: step}}
+  grid: {{kind: gridder, epsilon: 1.0e-6, w_term: off, to: step}}
   step: {{kind: clean, gain: 0.1, components_per_cycle: {components}, major_cycles: {cycles}, threshold: {threshold}, to: update}}
   update: {{kind: residual, method: toeplitz, to: step, done: write}}
   write: {{kind: writer, prefix: "{prefix}"}}

@@ -2,45 +2,14 @@
 
 use crate::arrow_in;
 use crate::products::Products;
-use crate::{run_released, R2D2Error};
+use crate::run_released;
 use pyo3::prelude::*;
 use r2d2_imaging::{BackendChoice, Engine, EngineOptions, ImageParams, Observation, StepChoice};
 use r2d2_imaging::MemoryInput;
 use r2d2_imaging::Weighting;
 use std::path::PathBuf;
 
-fn parameter(name: &str, message: impl std::fmt::Display) -> PyErr {
-    R2D2Error::new_err(format!("invalid {name}: {message}"))
-}
 
-/// `step` as `r2d2 image --step` reads it: `auto`, `clean`, a plugin library, or a series.
-fn step_choice(step: &str, plugin_config: Option<&str>) -> PyResult<StepChoice> {
-    let path = PathBuf::from(step);
-    let is_library = matches!(path.extension().and_then(|e| e.to_str()), Some("so" | "dylib" | "dll"));
-    if plugin_config.is_some() && !is_library {
-        return Err(parameter("plugin_config", format!("only a native plugin takes a configuration; step is '{step}'")));
-    }
-    Ok(match step {
-        "auto" => StepChoice::Auto,
-        "clean" => StepChoice::Clean,
-        _ if is_library => StepChoice::Native {
-            library: path,
-            config: plugin_config
-                .map(|text| serde_yaml::from_str(text).map_err(|e| parameter("plugin_config", format!("expected a YAML or JSON mapping: {e}"))))
-                .transpose()?,
-        },
-        _ => StepChoice::Series(path),
-    })
-}
-
-fn backend_choice(backend: &str) -> PyResult<BackendChoice> {
-    match backend {
-        "auto" => Ok(BackendChoice::Auto),
-        "ort" => Ok(BackendChoice::Ort),
-        "tract" => Ok(BackendChoice::Tract),
-        other => Err(parameter("backend", format!("expected auto, ort or tract, got '{other}'"))),
-    }
-}
 
 /// Images `obs` (a path, or an object with `__arrow_c_stream__`) as `r2d2 image` does; see the
 /// Python wrapper `r2d2_imaging.image` for the parameters.
@@ -86,9 +55,9 @@ pub fn image(
         epsilon,
         oversampling,
         w_term: r2d2_imaging::operator::WTermMode::from_name(w_term).map_err(crate::engine_error)?,
-        step: step_choice(step, plugin_config)?,
+        step: StepChoice::parse(step, plugin_config).map_err(crate::engine_error)?,
         iterations,
-        backend: backend_choice(backend)?,
+        backend: backend.parse::<BackendChoice>().map_err(crate::engine_error)?,
         prefetch,
         truth,
         ..ImageParams::default()

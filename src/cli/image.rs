@@ -4,7 +4,7 @@
 use super::ImageOptions;
 use r2d2_imaging::steps::series::AUTO_SERIES;
 use r2d2_imaging::{BackendChoice, Error, GraphOptimization, ImageParams, Result, StepChoice};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -49,29 +49,6 @@ pub struct Args {
     name: String,
 }
 
-/// The step for `--step`.
-fn step_choice(args: &Args) -> Result<StepChoice> {
-    let path = Path::new(&args.step);
-    let is_library = matches!(path.extension().and_then(|e| e.to_str()), Some("so" | "dylib" | "dll"));
-    if args.plugin_config.is_some() && !is_library {
-        return Err(Error::parameter("plugin-config", format!("only a native plugin takes a configuration; --step is '{}'", args.step)));
-    }
-    Ok(match args.step.as_str() {
-        "clean" => StepChoice::Clean,
-        AUTO_SERIES => StepChoice::Auto,
-        _ if !is_library => StepChoice::Series(path.to_path_buf()),
-        _ => {
-            let config = match &args.plugin_config {
-                Some(text) => Some(
-                    serde_yaml::from_str(text).map_err(|e| Error::parameter("plugin-config", format!("expected a YAML or JSON mapping: {e}")))?,
-                ),
-                None => None,
-            };
-            StepChoice::Native { library: path.to_path_buf(), config }
-        }
-    })
-}
-
 /// `r2d2 image`'s options as the engine's parameters.
 fn image_params(args: &Args) -> Result<ImageParams> {
     let image = &args.image;
@@ -84,7 +61,7 @@ fn image_params(args: &Args) -> Result<ImageParams> {
         epsilon: image.epsilon,
         oversampling: image.oversampling,
         w_term: image.w_term,
-        step: step_choice(args)?,
+        step: StepChoice::parse(&args.step, args.plugin_config.as_deref())?,
         iterations: args.iterations,
         backend: args.backend.parse()?,
         prefetch: !args.no_prefetch,

@@ -111,7 +111,8 @@ impl JobProducts {
         let n = im.geometry.size;
         let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
         let stepped = job.iteration > 0;
-        let image = match (&im.beam, job.step_kind.as_deref().is_some_and(|k| k.ends_with("+restore"))) {
+        let image = match (&im.beam, job.restores) {
+            (Some(_), true) if job.restored.is_some() => job.restored.clone(),
             (Some(beam), true) => {
                 let smooth = crate::deconv::restore(&im.model, n, beam, im.geometry.pixel_rad);
                 Some(smooth.iter().zip(&im.residual).map(|(m, r)| (m + r) as f32).collect())

@@ -127,6 +127,11 @@ pub struct Job {
     pub series_finished: bool,
     /// Name of the step that made the model (products are named after what made them).
     pub step_kind: Option<String>,
+    /// Whether that step's model is restored (a CLEAN-like step: `-image.fits` is written),
+    /// and the restored image once made (a job's products are made once per sink, the
+    /// restoration only once).
+    pub restores: bool,
+    pub restored: Option<Vec<f32>>,
     /// A step of several realisations: the realisation running (1-based; 0 otherwise, and for
     /// the final step that images their mean) and the final models of those done.
     pub realisation: usize,
@@ -166,6 +171,8 @@ impl Job {
             iteration: 0,
             series_finished: false,
             step_kind: None,
+            restores: false,
+            restored: None,
             realisation: 0,
             realisation_models: Vec::new(),
             last_step_seconds: 0.0,

@@ -92,7 +92,8 @@ impl Stage<Job> for StepStage {
         im.model = model;
         job.iteration = iteration;
         job.series_finished = realisations == 1 && iteration >= self.step.series_length();
-        job.step_kind = Some(if self.step.restores() { format!("{}+restore", self.kind) } else { self.kind.to_string() });
+        job.step_kind = Some(self.kind.to_string());
+        job.restores = self.step.restores();
         job.last_step_seconds = began.elapsed().as_secs_f64();
         emit(Port::Next, job)
     }

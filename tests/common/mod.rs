@@ -5,7 +5,7 @@
 use r2d2_imaging::fits::read_image;
 use r2d2_imaging::imaging::{total_weights, DirtyParams};
 use r2d2_imaging::nufft::NufftParams;
-use r2d2_imaging::operator::{spectral_norm, MeasurementOperator};
+use r2d2_imaging::operator::{spectral_norm, MeasurementOperator, WTermMode};
 use r2d2_imaging::vis::read_parquet;
 use std::path::Path;
 use std::process::{Command, Output};
@@ -79,8 +79,9 @@ pub fn max_diff(a: &[f64], b: &[f64]) -> f64 {
 }
 
 /// `D x` through a NUFFT round trip at accuracy 1e-10, for the same weights as the default
-/// pipeline (Briggs 0, super-resolution 1.5): not the 2N-PSF convolution the pipeline's
-/// residual uses, so it checks that too.
+/// pipeline (Briggs 0, super-resolution 1.5) and with the w-term where the pipeline includes
+/// it (`auto`): not the 2N-PSF convolution the pipeline's residual uses where the w-term is
+/// negligible, so it checks that too.
 pub struct ReferenceOperator {
     operator: MeasurementOperator,
 }
@@ -91,7 +92,7 @@ impl ReferenceOperator {
         let params = DirtyParams { size: SIZE, threads: 1, nufft: NufftParams { epsilon: 1e-10, oversampling: 2.0 }, ..DirtyParams::default() };
         let geometry = params.geometry(&vis).unwrap();
         let weight = total_weights(&vis, geometry, params.weighting, params.grid_factor).unwrap();
-        let operator = MeasurementOperator::new(geometry, &vis.u, &vis.v, &weight, params.nufft, 1).unwrap();
+        let operator = MeasurementOperator::for_mode(WTermMode::Auto, geometry, &vis.u, &vis.v, &vis.w, &weight, params.nufft, 1).unwrap();
         ReferenceOperator { operator }
     }
 
