@@ -15,12 +15,14 @@
 //! thread while the current one infers (with `prefetch: false`, only the one running). When
 //! several jobs go through the series interleaved, the two most recently used stay resident.
 
+mod check;
 mod mapped_weights;
 pub mod runtime;
 pub mod series;
 
 use super::{JobDomain, NetworkStep, StepInput};
-use runtime::{check_network, BackendChoice, GraphOptimization, Network, Runtime, Signature};
+use check::{check_network, Signature};
+use runtime::{BackendChoice, GraphOptimization, Network, Runtime};
 use series::{Architecture, ImagingSetup, Series};
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
