@@ -4,12 +4,15 @@
 //! (`table`), Arrow IPC (`ipc`), record batches in memory (`memory`), MeasurementSets
 //! (`crate::ms`), opened by content with [`open`].
 
+mod convert;
 mod data;
 mod error;
+mod guard;
 mod ipc;
 mod mat;
 mod memory;
 mod open;
+mod parquet;
 mod reader;
 mod split;
 mod table;
@@ -22,4 +25,7 @@ pub use memory::{memory_table, MemoryInput, MemoryTable};
 pub use open::{format_of, open, read_table, write_parquet_from, OpenOptions, TableFormat};
 pub use reader::{TableReader, STDIN};
 pub use split::{read_parts, split_rows, Part, SplitBy, MAX_SPLIT_PARTS};
+pub use convert::*;
+pub(crate) use guard::*;
+pub use parquet::*;
 pub use table::*;
