@@ -98,7 +98,8 @@ def n_minus_one(l, m):
 def ducc0_errors(uvw, vis, dirty, image, model_vis, pixsize, seed):
     """Relative L2 errors of vis2dirty (16 random pixels) and dirty2vis (64 random
     visibilities) against direct sums with the w-term, ducc0's axes (l along the first
-    image axis). Its sign convention is found by trying both."""
+    image axis). ducc0's w-term has the sign opposite to its uv terms, exp(s 2 pi i (u l +
+    v m - w (n - 1))); the overall sign s is found by trying both."""
     rng = np.random.default_rng(seed + 1)
     npix = image.shape[0]
     u, v, w = uvw[:, 0], uvw[:, 1], uvw[:, 2]
@@ -108,7 +109,7 @@ def ducc0_errors(uvw, vis, dirty, image, model_vis, pixsize, seed):
         exact = np.empty(len(pix))
         for k, (i, j) in enumerate(pix):
             l, m = (i - npix // 2) * pixsize, (j - npix // 2) * pixsize
-            ph = u * l + v * m + w * n_minus_one(l, m)
+            ph = u * l + v * m - w * n_minus_one(l, m)
             exact[k] = np.real(np.sum(vis[:, 0] * np.exp(sign * 2j * np.pi * ph)))
         errs.append(rel_error(dirty[pix[:, 0], pix[:, 1]], exact))
     grid_err = min(errs)
@@ -120,7 +121,7 @@ def ducc0_errors(uvw, vis, dirty, image, model_vis, pixsize, seed):
     for sign in (+1, -1):
         exact = np.empty(len(rows), complex)
         for k, r in enumerate(rows):
-            exact[k] = np.sum(image * np.exp(sign * 2j * np.pi * (u[r] * ll + v[r] * mm + w[r] * t)))
+            exact[k] = np.sum(image * np.exp(sign * 2j * np.pi * (u[r] * ll + v[r] * mm - w[r] * t)))
         errs.append(rel_error(model_vis[rows, 0], exact))
     return grid_err, min(errs)
 

@@ -58,6 +58,9 @@ const MAX_PLANES: usize = 1 << 20;
 /// buffer memory (`(TILE + support)^2` complex each) while giving every thread enough work.
 const TILES_PER_THREAD: usize = 64;
 
+/// Grid rows transformed and staged together in the gridding FFT ([`WGridPlan::grid_to_accumulator`]).
+const ROW_BLOCK: usize = 16;
+
 /// Planes whose phase screens are advanced by one multiplication each, between exact
 /// evaluations (the rounding of repeated products stays near `1e-15`).
 const PHASE_RESEED: usize = 16;
@@ -475,6 +478,7 @@ impl WGridPlan {
         let mut grid = par_filled(Complex64::default(), gx * gy);
         // Column-major accumulator: acc[ix * n + iy].
         let mut acc = par_filled(Complex64::default(), n * n);
+        let mut staging = par_filled(Complex64::default(), gy.div_ceil(ROW_BLOCK) * ROW_BLOCK * n);
         let mut screen = self.phase_screen(0);
         let step = if self.planes > 1 { self.step_screen() } else { Vec::new() };
         let mut ranges: Vec<Range<usize>> = self.tiles.iter().map(|t| t.points.start..t.points.start).collect();
@@ -484,7 +488,7 @@ impl WGridPlan {
                 ranges.iter().enumerate().filter(|(_, r)| !r.is_empty()).map(|(i, r)| (i, r.clone())).collect();
             if !spans.is_empty() {
                 self.spread_plane::<W, W2, L>(&kernel, p, &spans, values, &mut grid);
-                self.grid_to_accumulator(&mut grid, &screen, &mut acc);
+                self.grid_to_accumulator(&mut grid, &mut staging, &screen, &mut acc);
             }
             if p + 1 < self.planes {
                 self.advance_screen(&mut screen, &step, p + 1);
@@ -568,32 +572,48 @@ impl WGridPlan {
 
     /// FFT the plane's grid to image modes, multiply by the plane's phase screen and add to
     /// the column-major accumulator; leave the grid zeroed for the next plane.
-    fn grid_to_accumulator(&self, grid: &mut [Complex64], screen: &[Complex64], acc: &mut [Complex64]) {
+    ///
+    /// Rows are transformed a block of [`ROW_BLOCK`] at a time, and while they are in cache
+    /// the image columns of the block are copied to `staging` (`[block][ix][row in block]`)
+    /// and the rows zeroed; the column transforms then read whole `ROW_BLOCK`-long runs of
+    /// consecutive columns, rather than a few values from every grid row.
+    fn grid_to_accumulator(&self, grid: &mut [Complex64], staging: &mut [Complex64], screen: &[Complex64], acc: &mut [Complex64]) {
+        const RB: usize = ROW_BLOCK;
         let e = &self.engine;
         let (gx, gy, n) = (e.grid_nx, e.grid_ny, self.size);
-        let h = n / 2 + 1;
-        grid.par_chunks_mut(gx).zip(self.row_used.par_iter()).for_each_init(
+        let (h, half) = (n / 2 + 1, n / 2);
+        // Image column ix sits at grid column gcol[ix]: the upper half of the image at the
+        // start of the grid, the lower half at its end.
+        let gcol: Vec<usize> = (0..n).map(|ix| if ix < half { gx - half + ix } else { ix - half }).collect();
+        grid.par_chunks_mut(gx * RB).zip(staging.par_chunks_mut(n * RB)).enumerate().for_each_init(
             || vec![Complex64::default(); e.fft_x.get_inplace_scratch_len()],
-            |scratch, (row, &used)| {
-                if used {
-                    e.fft_x.process_with_scratch(row, scratch)
+            |scratch, (rb, (rows, stage))| {
+                for (j, row) in rows.chunks_exact_mut(gx).enumerate() {
+                    if !self.row_used[rb * RB + j] {
+                        for ix in 0..n {
+                            stage[ix * RB + j] = Complex64::default();
+                        }
+                        continue;
+                    }
+                    e.fft_x.process_with_scratch(row, scratch);
+                    for (ix, &g) in gcol.iter().enumerate() {
+                        stage[ix * RB + j] = row[g];
+                    }
+                    row.fill(Complex64::default());
                 }
             },
         );
-        // Image columns ix sit at grid columns gcol[ix]: the upper half of the image at the
-        // start of the grid, the lower half at its end.
         const B: usize = 16;
-        let half = n / 2;
-        let gcol: Vec<usize> = (0..n).map(|ix| if ix < half { gx - half + ix } else { ix - half }).collect();
-        let grid_ref: &[Complex64] = grid;
+        let staging: &[Complex64] = staging;
         acc.par_chunks_mut(n * B).enumerate().for_each_init(
             || (vec![Complex64::default(); gy * B], vec![Complex64::default(); e.fft_y.get_inplace_scratch_len()]),
             |(block, scratch), (bi, dst)| {
                 let ncols = dst.len() / n;
-                let gcols = &gcol[bi * B..bi * B + ncols];
-                for (r, row) in grid_ref.chunks_exact(gx).enumerate() {
-                    for (c, &g) in gcols.iter().enumerate() {
-                        block[c * gy + r] = row[g];
+                for (rb, stage) in staging.chunks_exact(n * RB).enumerate() {
+                    let nr = RB.min(gy - rb * RB);
+                    for c in 0..ncols {
+                        let run = &stage[(bi * B + c) * RB..][..nr];
+                        block[c * gy + rb * RB..][..nr].copy_from_slice(run);
                     }
                 }
                 for c in 0..ncols {
@@ -612,11 +632,6 @@ impl WGridPlan {
                 }
             },
         );
-        grid.par_chunks_mut(gx).zip(self.row_used.par_iter()).for_each(|(row, &used)| {
-            if used {
-                row.fill(Complex64::default());
-            }
-        });
     }
 
     fn forward_impl<const W: usize, const W2: usize, const L: usize>(&self, image: &[Complex64]) -> Vec<Complex64> {
