@@ -28,6 +28,10 @@
 //! image, multiplied by its phase screen `exp(-2 pi i w_p tc)` and accumulated; the sum is
 //! divided by `psi_hat(dw tc)` pixel by pixel. Degridding is the same steps transposed.
 //!
+//! For real images ([`WGridPlan::new_real`], as in imaging, where the sky is real) the
+//! visibility at `-(u, v, w)` is the conjugate of that at `(u, v, w)`: points of negative `w`
+//! are mirrored and conjugated, so the planes only span `|w|`.
+//!
 //! One kernel shape serves both the uv grid and the w direction, chosen for a slightly
 //! tighter accuracy than asked since three dimensions now contribute error. Where the w-term
 //! is too small to matter at the requested accuracy (all `w` equal, or a tiny field) the
@@ -141,6 +145,9 @@ pub struct WGridPlan {
     /// plan order.
     w: Vec<f64>,
     first_plane: Vec<u32>,
+    /// A real-image plan ([`WGridPlan::new_real`]); `flip[k]`: plan point `k` is mirrored.
+    real: bool,
+    flip: Vec<bool>,
     /// Non-empty tiles in tile order; their point ranges cover the plan order.
     tiles: Vec<TileSpan>,
     /// Grid rows touched by some point's kernel.
@@ -153,9 +160,10 @@ pub struct WGridPlan {
 }
 
 impl WGridPlan {
-    /// Plan transforms between a `size x size` image of pixel `pixel_rad` (radians) and the
-    /// visibilities at `(u[k], v[k], w[k])` (wavelengths), run on `threads` threads (0: all
-    /// cores). `params.epsilon` is the requested relative accuracy of the whole transform.
+    /// Plan transforms between a `size x size` complex image of pixel `pixel_rad` (radians)
+    /// and the visibilities at `(u[k], v[k], w[k])` (wavelengths), run on `threads` threads
+    /// (0: all cores). `params.epsilon` is the requested relative accuracy of the whole
+    /// transform.
     pub fn new(
         size: usize,
         pixel_rad: f64,
@@ -164,6 +172,36 @@ impl WGridPlan {
         w: &[f64],
         params: NufftParams,
         threads: usize,
+    ) -> Result<WGridPlan> {
+        Self::build(size, pixel_rad, u, v, w, params, threads, false)
+    }
+
+    /// A plan for real images only ([`WGridPlan::forward_real`], [`WGridPlan::adjoint_real`]):
+    /// the visibility of a real image at `-(u, v, w)` is the conjugate of that at `(u, v,
+    /// w)`, so points of negative `w` are mirrored to positive `w` and conjugated, which
+    /// halves the w range (and the planes) of data with `w` of both signs.
+    pub fn new_real(
+        size: usize,
+        pixel_rad: f64,
+        u: &[f64],
+        v: &[f64],
+        w: &[f64],
+        params: NufftParams,
+        threads: usize,
+    ) -> Result<WGridPlan> {
+        Self::build(size, pixel_rad, u, v, w, params, threads, true)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn build(
+        size: usize,
+        pixel_rad: f64,
+        u: &[f64],
+        v: &[f64],
+        w: &[f64],
+        params: NufftParams,
+        threads: usize,
+        real: bool,
     ) -> Result<WGridPlan> {
         if u.len() != v.len() || u.len() != w.len() {
             return Err(Error::parameter(
@@ -200,6 +238,10 @@ impl WGridPlan {
             ));
         }
 
+        // Mirrored points of a real-image plan.
+        let flipped: Vec<bool> = w.iter().map(|&w| real && w < 0.0).collect();
+        let mirror = |a: &[f64]| -> Vec<f64> { a.iter().zip(&flipped).map(|(&a, &f)| if f { -a } else { a }).collect() };
+        let (u, v, w) = (&mirror(u)[..], &mirror(v)[..], &mirror(w)[..]);
         let (w_lo, w_hi) = w.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| (a.min(x), b.max(x)));
         let (w_lo, w_hi) = if w.is_empty() { (0.0, 0.0) } else { (w_lo, w_hi) };
         let w_mid = 0.5 * (w_lo + w_hi);
@@ -260,6 +302,8 @@ impl WGridPlan {
             rank: Vec::new(),
             w: Vec::new(),
             first_plane: Vec::new(),
+            real,
+            flip: Vec::new(),
             tiles: Vec::new(),
             row_used: Vec::new(),
             tc,
@@ -269,6 +313,9 @@ impl WGridPlan {
         let y: Vec<f64> = v.iter().map(|&v| 2.0 * PI * pixel_rad * v).collect();
         let pool = plan.engine.pool.clone();
         pool.install(|| plan.sort_points(&x, &y, w));
+        if real {
+            plan.flip = plan.order.iter().map(|&k| flipped[k as usize]).collect();
+        }
         Ok(plan)
     }
 
@@ -434,33 +481,71 @@ impl WGridPlan {
 
     /// Adjoint (gridding): the dirty image `f[iy * N + ix] = sum_k c_k exp(-2 pi i (u_k l +
     /// v_k m + w_k (n - 1)))`, visibilities in the caller's order.
+    ///
+    /// Panics on a real-image plan ([`WGridPlan::new_real`]), which only has
+    /// [`WGridPlan::adjoint_real`].
     pub fn adjoint(&self, vis: &[Complex64]) -> Vec<Complex64> {
-        assert_eq!(vis.len(), self.len(), "number of visibilities");
-        self.engine.install(|| {
-            let values: Vec<Complex64> = self
-                .order
-                .par_iter()
-                .zip(self.w.par_iter())
-                .map(|(&k, &w)| vis[k as usize] * Complex64::from_polar(1.0, -2.0 * PI * w * self.t0))
-                .collect();
-            dispatch_support!(self.engine.shape.support, W, W2, L => self.adjoint_impl::<W, W2, L>(&values))
-        })
+        assert!(!self.real, "a real-image plan (WGridPlan::new_real) has only adjoint_real");
+        self.engine.install(|| self.grid(vis))
+    }
+
+    /// The real part of [`WGridPlan::adjoint`]: the adjoint of [`WGridPlan::forward_real`]
+    /// (for the real inner product `Re <a, b>` on visibilities). Any plan.
+    pub fn adjoint_real(&self, vis: &[Complex64]) -> Vec<f64> {
+        self.engine.install(|| self.grid(vis).par_iter().map(|v| v.re).collect())
     }
 
     /// Forward (degridding): `V_k = sum f[iy * N + ix] exp(+2 pi i (u_k l + v_k m + w_k (n -
     /// 1)))`, visibilities in the caller's order.
+    ///
+    /// Panics on a real-image plan ([`WGridPlan::new_real`]), which only has
+    /// [`WGridPlan::forward_real`].
     pub fn forward(&self, image: &[Complex64]) -> Vec<Complex64> {
+        assert!(!self.real, "a real-image plan (WGridPlan::new_real) has only forward_real");
+        assert_eq!(image.len(), self.size * self.size, "image size");
+        self.engine.install(|| self.degrid(image))
+    }
+
+    /// [`WGridPlan::forward`] of a real image. Any plan.
+    pub fn forward_real(&self, image: &[f64]) -> Vec<Complex64> {
         assert_eq!(image.len(), self.size * self.size, "image size");
         self.engine.install(|| {
-            let sorted = dispatch_support!(self.engine.shape.support, W, W2, L => self.forward_impl::<W, W2, L>(image));
-            self.rank
-                .par_iter()
-                .map(|&i| {
-                    let i = i as usize;
-                    sorted[i] * Complex64::from_polar(1.0, 2.0 * PI * self.w[i] * self.t0)
-                })
-                .collect()
+            let image: Vec<Complex64> = image.par_iter().map(|&x| Complex64::new(x, 0.0)).collect();
+            self.degrid(&image)
         })
+    }
+
+    /// Gridding of the visibilities (caller's order) with the per-point phase
+    /// `exp(-2 pi i w t0)`, mirrored points conjugated (their real part is what counts).
+    fn grid(&self, vis: &[Complex64]) -> Vec<Complex64> {
+        assert_eq!(vis.len(), self.len(), "number of visibilities");
+        let values: Vec<Complex64> = (0..self.len())
+            .into_par_iter()
+            .map(|i| {
+                let c = vis[self.order[i] as usize];
+                let c = if self.flip.get(i) == Some(&true) { c.conj() } else { c };
+                c * Complex64::from_polar(1.0, -2.0 * PI * self.w[i] * self.t0)
+            })
+            .collect();
+        dispatch_support!(self.engine.shape.support, W, W2, L => self.adjoint_impl::<W, W2, L>(&values))
+    }
+
+    /// Degridding to the caller's order, with the per-point phase `exp(+2 pi i w t0)`,
+    /// mirrored points conjugated.
+    fn degrid(&self, image: &[Complex64]) -> Vec<Complex64> {
+        let sorted = dispatch_support!(self.engine.shape.support, W, W2, L => self.forward_impl::<W, W2, L>(image));
+        self.rank
+            .par_iter()
+            .map(|&i| {
+                let i = i as usize;
+                let v = sorted[i] * Complex64::from_polar(1.0, 2.0 * PI * self.w[i] * self.t0);
+                if self.flip.get(i) == Some(&true) {
+                    v.conj()
+                } else {
+                    v
+                }
+            })
+            .collect()
     }
 
     /// The per-pixel factor both directions apply once: the uv grid correction times the
