@@ -190,7 +190,8 @@ def main():
     ap.add_argument("--fov", type=float, default=15.0, help="field of view (image edge), degrees")
     ap.add_argument("--w-factor", type=float, default=1.0, help="|w| up to this times the uv disc radius")
     ap.add_argument("--epsilon", type=float, default=1e-5)
-    ap.add_argument("--oversampling", type=float, default=2.0, help="r2d2's grid oversampling")
+    ap.add_argument("--oversampling", type=float, default=0.0,
+                    help="r2d2's grid oversampling (0: the one its cost model suggests)")
     ap.add_argument("--threads", default="1,2", help="comma-separated thread counts")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--seed", type=int, default=1)
@@ -225,13 +226,15 @@ def main():
         re, cx = r["real"], r["complex"]
         for key in ("grid", "degrid"):
             ratio = re[f"{key}_mvis_per_s"] / d[f"{key}_mvis_per_s"]
-            supp = f"{d[f'{key}_support'] or '?'}/{r['support']}"
+            supp = f"{d[f'{key}_support'] or '?'}/{re['support']}"
             planes = f"{d[f'{key}_planes'] or '?'}/{re['planes']}/{cx['planes']}"
             print(f"{key:<8} {row['threads']:>3} {d[f'{key}_mvis_per_s']:>8.3f} {re[f'{key}_mvis_per_s']:>8.3f} "
                   f"{ratio:>6.2f} {re[f'{key}_mvis_per_s_planned']:>8.3f} {cx[f'{key}_mvis_per_s']:>8.3f}"
-                  f"  {supp:>8} {d[f'{key}_shape'] or '?':>10} {r['grid_size']}x{r['grid_size']:<4} {planes:>12}"
+                  f"  {supp:>8} {d[f'{key}_shape'] or '?':>10} {re['grid_size']}x{re['grid_size']:<4} {planes:>12}"
                   f"  {d[f'{key}_rel_error']:>9.2e} {re[f'{key}_rel_error']:>9.2e} {cx[f'{key}_rel_error']:>9.2e}")
     print()
+    print(f"r2d2's complex plan: oversampling {r0['complex']['oversampling']:.3g}, support {r0['complex']['support']}, "
+          f"grid {r0['complex']['grid_size']}; the columns show its real plan's.")
     print("Kernel supports, grids and w-planes of ducc0 are parsed from its verbosity=1 log ('?' if absent).")
     print("Errors: relative L2 against a direct sum with the w-term on sampled outputs (16 pixels /")
     print("64 visibilities); ducc0 and r2d2's real plan compute real images (the real part of the")

@@ -10,7 +10,7 @@
 //! accuracy. [`run_wgridder_bench`] does the same for the transforms with the w-term
 //! (`nufft::wgrid`) on a wide field.
 
-use crate::nufft::wgrid::{max_w_phase, WGridPlan};
+use crate::nufft::wgrid::{max_w_phase, suggested_oversampling, WGridPlan};
 use crate::nufft::{ChunkedAdjoint, Nufft2d, NufftParams};
 use crate::{Error, Result};
 use num_complex::Complex64;
@@ -260,7 +260,8 @@ pub struct WGridderBenchParams {
     /// `|w|` up to this times the largest `|(u, v)|`.
     pub w_factor: f64,
     pub epsilon: f64,
-    /// Oversampling of the uv grid (and of the w-planes).
+    /// Oversampling of the uv grid (and of the w-planes); 0: [`suggested_oversampling`]
+    /// for each kind of plan.
     pub oversampling: f64,
     /// Worker threads (0: all cores).
     pub threads: usize,
@@ -276,7 +277,7 @@ impl Default for WGridderBenchParams {
             fov_deg: 15.0,
             w_factor: 1.0,
             epsilon: 1e-5,
-            oversampling: NufftParams::default().oversampling,
+            oversampling: 0.0,
             threads: 1,
             repeats: 3,
             seed: 1,
@@ -301,9 +302,6 @@ pub struct WGridderReport {
     pub max_w_phase: f64,
     pub epsilon: f64,
     pub threads: usize,
-    pub support: usize,
-    pub grid_size: usize,
-    pub oversampling: f64,
     pub complex: WGridderTimings,
     pub real: WGridderTimings,
 }
@@ -311,6 +309,11 @@ pub struct WGridderReport {
 /// One kind of plan's figures in a [`WGridderReport`].
 #[derive(Clone, Debug, Serialize)]
 pub struct WGridderTimings {
+    /// Grid oversampling (asked for, or [`suggested_oversampling`]), kernel support, grid
+    /// edge and w-planes.
+    pub oversampling: f64,
+    pub support: usize,
+    pub grid_size: usize,
     pub planes: usize,
     pub plan_seconds: f64,
     pub grid_seconds: f64,
@@ -357,7 +360,10 @@ pub fn run_wgridder_bench(p: &WGridderBenchParams) -> Result<WGridderReport> {
     let n = p.size;
     let pixel = p.fov_deg.to_radians() / n as f64;
     let (u, v, w, vis) = synthetic_uvw(p.visibilities, pixel, p.w_factor, p.seed);
-    let params = NufftParams { epsilon: p.epsilon, oversampling: p.oversampling };
+    let params = |real: bool| NufftParams {
+        epsilon: p.epsilon,
+        oversampling: if p.oversampling > 0.0 { p.oversampling } else { suggested_oversampling(n, pixel, &w, real, p.epsilon) },
+    };
     let mut image_rng = ChaCha8Rng::seed_from_u64(p.seed ^ 0x5eed);
     let image: Vec<f64> = (0..n * n).map(|_| image_rng.gen_range(-1.0..1.0)).collect();
     let image_c: Vec<Complex64> = image.iter().map(|&x| Complex64::new(x, 0.0)).collect();
@@ -400,8 +406,11 @@ pub fn run_wgridder_bench(p: &WGridderBenchParams) -> Result<WGridderReport> {
         (num / den).sqrt()
     };
     let mvis = p.visibilities as f64 / 1e6;
-    let timings = |planes: usize, plan_seconds: f64, grid_seconds: f64, degrid_seconds: f64, errors: (f64, f64)| WGridderTimings {
-        planes,
+    let timings = |plan: &WGridPlan, plan_seconds: f64, grid_seconds: f64, degrid_seconds: f64, errors: (f64, f64)| WGridderTimings {
+        oversampling: plan.grid_size().0 as f64 / n as f64,
+        support: plan.kernel_support(),
+        grid_size: plan.grid_size().0,
+        planes: plan.planes(),
         plan_seconds,
         grid_seconds,
         degrid_seconds,
@@ -413,7 +422,7 @@ pub fn run_wgridder_bench(p: &WGridderBenchParams) -> Result<WGridderReport> {
         degrid_rel_error: errors.1,
     };
 
-    let make = || WGridPlan::new(n, pixel, &u, &v, &w, params, p.threads);
+    let make = || WGridPlan::new(n, pixel, &u, &v, &w, params(false), p.threads);
     drop(make()?);
     let (plan_seconds, plan) = best_of(p.repeats, || make().expect("checked above"));
     let (grid_seconds, dirty) = best_of(p.repeats, || plan.adjoint(&vis));
@@ -422,11 +431,10 @@ pub fn run_wgridder_bench(p: &WGridderBenchParams) -> Result<WGridderReport> {
         rel(pixels.iter().zip(&exact_dirty).map(|(&j, &e)| (dirty[j], e)).collect()),
         rel(points.iter().zip(&exact_vis).map(|(&k, &e)| (model_vis[k], e)).collect()),
     );
-    let complex = timings(plan.planes(), plan_seconds, grid_seconds, degrid_seconds, errors);
-    let (support, (grid_size, _)) = (plan.kernel_support(), plan.grid_size());
+    let complex = timings(&plan, plan_seconds, grid_seconds, degrid_seconds, errors);
     drop(plan);
 
-    let make = || WGridPlan::new_real(n, pixel, &u, &v, &w, params, p.threads);
+    let make = || WGridPlan::new_real(n, pixel, &u, &v, &w, params(true), p.threads);
     let (plan_seconds, plan) = best_of(p.repeats, || make().expect("checked above"));
     let (grid_seconds, dirty) = best_of(p.repeats, || plan.adjoint_real(&vis));
     let (degrid_seconds, model_vis) = best_of(p.repeats, || plan.forward_real(&image));
@@ -434,7 +442,7 @@ pub fn run_wgridder_bench(p: &WGridderBenchParams) -> Result<WGridderReport> {
         rel(pixels.iter().zip(&exact_dirty).map(|(&j, e)| (Complex64::new(dirty[j], 0.0), Complex64::new(e.re, 0.0))).collect()),
         rel(points.iter().zip(&exact_vis).map(|(&k, &e)| (model_vis[k], e)).collect()),
     );
-    let real = timings(plan.planes(), plan_seconds, grid_seconds, degrid_seconds, errors);
+    let real = timings(&plan, plan_seconds, grid_seconds, degrid_seconds, errors);
 
     let uv_max = u.iter().zip(&v).fold(0.0f64, |a, (u, v)| a.max(u.hypot(*v)));
     let w_max = w.iter().fold(0.0f64, |a, w| a.max(w.abs()));
@@ -448,9 +456,6 @@ pub fn run_wgridder_bench(p: &WGridderBenchParams) -> Result<WGridderReport> {
         max_w_phase: max_w_phase(n, pixel, w_max),
         epsilon: p.epsilon,
         threads: pool.current_num_threads(),
-        support,
-        grid_size,
-        oversampling: grid_size as f64 / n as f64,
         complex,
         real,
     })

@@ -84,6 +84,52 @@ pub fn max_w_phase(size: usize, pixel_rad: f64, w_max_abs: f64) -> f64 {
     }
 }
 
+/// The oversampling (among the tabulated 1.25, 1.5 and 2) that a cost model puts fastest
+/// for these data: spreading or interpolation costs about `support^3` per visibility (one
+/// `support^2` footprint on each of `support` planes), each plane an FFT of the oversampled
+/// grid. A lower oversampling means fewer planes and smaller FFTs but a wider kernel; the
+/// model's two constants were measured on this code (their ratio is what matters), and near
+/// a tie either choice is about as fast. `real`: for a [`WGridPlan::new_real`] plan.
+/// Falls back to 2 if nothing else reaches `epsilon` (or the field is not valid).
+pub fn suggested_oversampling(size: usize, pixel_rad: f64, w: &[f64], real: bool, epsilon: f64) -> f64 {
+    const SPREAD_COST: f64 = 1.6;
+    const FFT_COST: f64 = 1.0;
+    let Some(t_min) = t_min(size, pixel_rad) else { return 2.0 };
+    let dt = -0.5 * t_min;
+    let folded = |w: f64| if real { w.abs() } else { w };
+    let (lo, hi) = w.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| (a.min(folded(x)), b.max(folded(x))));
+    let span = if w.is_empty() { 0.0 } else { hi - lo };
+    let single = negligible_w(span, dt, epsilon);
+    let cost = |sigma: f64| -> Option<f64> {
+        let shape = KernelShape::for_accuracy(kernel_epsilon(single, epsilon), sigma).ok()?;
+        let support = shape.support as f64;
+        let g = super::good_fft_size((size as f64 * sigma).ceil() as usize) as f64;
+        let (planes, w_support) = if single { (1.0, 1.0) } else { ((span * 2.0 * sigma * dt).ceil() + support, support) };
+        Some(SPREAD_COST * w.len() as f64 * w_support * support * support + FFT_COST * planes * g * g * g.log2())
+    };
+    [1.25, 1.5, 2.0]
+        .into_iter()
+        .filter_map(|sigma| cost(sigma).map(|c| (sigma, c)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map_or(2.0, |(sigma, _)| sigma)
+}
+
+/// Whether the phase the single-plane reduction neglects, `2 pi (span / 2) dt` for a w
+/// range `span` and `|tc| <= dt`, is negligible against the accuracy asked.
+fn negligible_w(span: f64, dt: f64, epsilon: f64) -> bool {
+    2.0 * PI * 0.5 * span * dt <= 0.05 * epsilon
+}
+
+/// The accuracy the kernel is chosen for: with w-planes, three dimensions' errors add up
+/// where the kernel table measured two.
+fn kernel_epsilon(single: bool, epsilon: f64) -> f64 {
+    if single {
+        epsilon
+    } else {
+        epsilon / 1.25
+    }
+}
+
 /// `n - 1` at the image corner (the minimum over the image), if the corner is inside the
 /// unit circle.
 fn t_min(size: usize, pixel_rad: f64) -> Option<f64> {
@@ -163,7 +209,9 @@ impl WGridPlan {
     /// Plan transforms between a `size x size` complex image of pixel `pixel_rad` (radians)
     /// and the visibilities at `(u[k], v[k], w[k])` (wavelengths), run on `threads` threads
     /// (0: all cores). `params.epsilon` is the requested relative accuracy of the whole
-    /// transform.
+    /// transform; `params.oversampling` is used as given, and for wide fields a lower one
+    /// than the 2D default is often faster (fewer, smaller plane FFTs; see
+    /// [`suggested_oversampling`]).
     pub fn new(
         size: usize,
         pixel_rad: f64,
@@ -248,9 +296,8 @@ impl WGridPlan {
         let t0 = 0.5 * t_min;
         let dt = -0.5 * t_min;
         // The phase the single-plane reduction would neglect, against the accuracy asked.
-        let single = 2.0 * PI * 0.5 * (w_hi - w_lo) * dt <= 0.05 * params.epsilon;
-        // Three dimensions' errors add up where two were tabulated.
-        let uv_epsilon = if single { params.epsilon } else { params.epsilon / 1.25 };
+        let single = negligible_w(w_hi - w_lo, dt, params.epsilon);
+        let uv_epsilon = kernel_epsilon(single, params.epsilon);
         let shape = KernelShape::for_accuracy(uv_epsilon, params.oversampling)?;
         let engine = Nufft2d::with_kernel(size, size, &[], &[], shape.clone(), NufftParams { epsilon: uv_epsilon, ..params }, threads)?;
 

@@ -231,3 +231,16 @@ fn real_plan_refuses_complex_images() {
     let p = WGridPlan::new_real(16, 1e-3, &[1.0], &[1.0], &[-1.0], NufftParams::default(), 1).unwrap();
     p.forward(&[Complex64::default(); 256]);
 }
+
+#[test]
+fn suggested_oversampling_follows_the_cost() {
+    // Few visibilities on a wide field: the plane FFTs dominate, the coarsest grid wins.
+    let c = case(15.0, 512, 1000, (-1.0, 1.0), 15);
+    assert_eq!(suggested_oversampling(c.size, c.pixel, &c.w, false, 1e-5), 1.25);
+    // Without w-planes and with many visibilities per pixel the narrow kernel of the finer
+    // grid wins.
+    let w = vec![0.0; 2_000_000];
+    assert_eq!(suggested_oversampling(64, 1e-4, &w, false, 1e-5), 2.0);
+    // An invalid field falls back to the default.
+    assert_eq!(suggested_oversampling(16, 0.1, &c.w, false, 1e-5), 2.0);
+}
