@@ -260,7 +260,7 @@ impl WGridPlan {
         if u.len() > u32::MAX as usize {
             return Err(Error::parameter("uvw", "more than 2^32 visibilities in one plan"));
         }
-        if size < 2 || size % 2 != 0 {
+        if size < 2 || !size.is_multiple_of(2) {
             return Err(Error::parameter("image size", format!("expected an even size >= 2, got {size}")));
         }
         if !(pixel_rad.is_finite() && pixel_rad > 0.0) {
@@ -515,7 +515,7 @@ impl WGridPlan {
 
     /// The screen of plane `p + 1` from that of plane `p` (exactly every few planes).
     fn advance_screen(&self, screen: &mut Vec<Complex64>, step: &[Complex64], next: usize) {
-        if next % PHASE_RESEED == 0 {
+        if next.is_multiple_of(PHASE_RESEED) {
             *screen = self.phase_screen(next);
         } else {
             screen.par_iter_mut().zip(step.par_iter()).for_each(|(s, d)| *s *= d);
