@@ -199,8 +199,8 @@ pub struct WGridPlan {
     /// Grid rows touched by some point's kernel.
     row_used: Vec<bool>,
     /// Per pixel of one quadrant, `[|jx| * (N/2 + 1) + |jy|]` (`j` from the centre; the
-    /// image is symmetric in `l -> -l` and `m -> -m`): `tc`, and the final correction
-    /// `1 / psi_hat(dw tc)` times nothing else.
+    /// image is symmetric in `l -> -l` and `m -> -m`): `tc`, and the w correction
+    /// `1 / psi_hat(dw tc)` (1 without w-planes).
     tc: Vec<f64>,
     w_correction: Vec<f64>,
 }
