@@ -14,9 +14,10 @@ index inside every call, so r2d2's number here includes its plan (sorting) too; 
 "planned" throughput (plan reused, as in iterative imaging) is shown separately. Each side's
 accuracy is measured against a direct sum with the w-term on a sample of outputs.
 
-ducc0 computes a real image and, for that reason, may fold visibilities of negative w onto
-positive w (Hermitian symmetry), which halves its w range; r2d2's images are complex and it
-grids the whole w range. The planes column shows what each side used.
+ducc0 computes a real image and therefore folds visibilities of negative w onto positive w
+(Hermitian symmetry), which halves its w range; r2d2's real-image plan (WGridPlan::new_real)
+does the same and is the one compared, and its complex-image plan (whole w range) is shown
+alongside. The planes column shows what each used.
 
 Usage: python3 benches/wgridder_vs_ducc0.py [--visibilities 1000000] [--size 1024]
        [--fov 15] [--w-factor 1] [--epsilon 1e-5] [--threads 1,2] [--repeats 2]
@@ -98,7 +99,8 @@ def n_minus_one(l, m):
 def ducc0_errors(uvw, vis, dirty, image, model_vis, pixsize, seed):
     """Relative L2 errors of vis2dirty (16 random pixels) and dirty2vis (64 random
     visibilities) against direct sums with the w-term, ducc0's axes (l along the first
-    image axis). Its sign convention is found by trying both."""
+    image axis). ducc0's w-term has the sign opposite to its uv terms, exp(s 2 pi i (u l +
+    v m - w (n - 1))); the overall sign s is found by trying both."""
     rng = np.random.default_rng(seed + 1)
     npix = image.shape[0]
     u, v, w = uvw[:, 0], uvw[:, 1], uvw[:, 2]
@@ -108,7 +110,7 @@ def ducc0_errors(uvw, vis, dirty, image, model_vis, pixsize, seed):
         exact = np.empty(len(pix))
         for k, (i, j) in enumerate(pix):
             l, m = (i - npix // 2) * pixsize, (j - npix // 2) * pixsize
-            ph = u * l + v * m + w * n_minus_one(l, m)
+            ph = u * l + v * m - w * n_minus_one(l, m)
             exact[k] = np.real(np.sum(vis[:, 0] * np.exp(sign * 2j * np.pi * ph)))
         errs.append(rel_error(dirty[pix[:, 0], pix[:, 1]], exact))
     grid_err = min(errs)
@@ -120,7 +122,7 @@ def ducc0_errors(uvw, vis, dirty, image, model_vis, pixsize, seed):
     for sign in (+1, -1):
         exact = np.empty(len(rows), complex)
         for k, r in enumerate(rows):
-            exact[k] = np.sum(image * np.exp(sign * 2j * np.pi * (u[r] * ll + v[r] * mm + w[r] * t)))
+            exact[k] = np.sum(image * np.exp(sign * 2j * np.pi * (u[r] * ll + v[r] * mm - w[r] * t)))
         errs.append(rel_error(model_vis[rows, 0], exact))
     return grid_err, min(errs)
 
@@ -188,7 +190,8 @@ def main():
     ap.add_argument("--fov", type=float, default=15.0, help="field of view (image edge), degrees")
     ap.add_argument("--w-factor", type=float, default=1.0, help="|w| up to this times the uv disc radius")
     ap.add_argument("--epsilon", type=float, default=1e-5)
-    ap.add_argument("--oversampling", type=float, default=2.0, help="r2d2's grid oversampling")
+    ap.add_argument("--oversampling", type=float, default=0.0,
+                    help="r2d2's grid oversampling (0: the one its cost model suggests)")
     ap.add_argument("--threads", default="1,2", help="comma-separated thread counts")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--seed", type=int, default=1)
@@ -208,28 +211,34 @@ def main():
           f"(uv max {r0['uv_max']:.0f}; largest w phase {r0['max_w_phase']:.0f} rad), epsilon {a.epsilon:g}, "
           f"f64, ducc0 {ducc0.__version__} (SIMD lanes f32/f64: {ducc0.misc.native_vector_lengths()})")
 
-    head = (f"{'direction':<8} {'thr':>3} {'ducc0':>8} {'r2d2':>8} {'ratio':>6} {'r2d2 planned':>12}"
-            f"  {'supp d/r':>8} {'grid ducc0':>10} {'grid r2d2':>9} {'planes d/r':>10}"
-            f"  {'err ducc0':>9} {'err r2d2':>9}")
+    head = (f"{'direction':<8} {'thr':>3} {'ducc0':>8} {'r2d2':>8} {'ratio':>6} {'planned':>8} {'complex':>8}"
+            f"  {'supp d/r':>8} {'grid ducc0':>10} {'grid r2d2':>9} {'planes d/r/c':>12}"
+            f"  {'err ducc0':>9} {'err r2d2':>9} {'err cplx':>9}")
     print()
-    print("Mvis/s; r2d2 includes its plan (ducc0 indexes inside every call); ratio = r2d2 / ducc0")
+    print("Mvis/s. r2d2: real-image plan (negative w mirrored, as ducc0 does for its real images),")
+    print("including its plan (ducc0 indexes inside every call); planned: the same with the plan")
+    print("reused; complex: r2d2's complex-image plan (whole w range), including its plan.")
+    print("ratio = r2d2 / ducc0")
     print(head)
     print("-" * len(head))
     for row in rows:
         d, r = row["ducc0"], row["r2d2"]
+        re, cx = r["real"], r["complex"]
         for key in ("grid", "degrid"):
-            ratio = r[f"{key}_mvis_per_s"] / d[f"{key}_mvis_per_s"]
-            supp = f"{d[f'{key}_support'] or '?'}/{r['support']}"
-            planes = f"{d[f'{key}_planes'] or '?'}/{r['planes']}"
-            print(f"{key:<8} {row['threads']:>3} {d[f'{key}_mvis_per_s']:>8.3f} {r[f'{key}_mvis_per_s']:>8.3f} "
-                  f"{ratio:>6.2f} {r[f'{key}_mvis_per_s_planned']:>12.3f}  {supp:>8} "
-                  f"{d[f'{key}_shape'] or '?':>10} {r['grid_size']}x{r['grid_size']:<4} {planes:>10}"
-                  f"  {d[f'{key}_rel_error']:>9.2e} {r[f'{key}_rel_error']:>9.2e}")
+            ratio = re[f"{key}_mvis_per_s"] / d[f"{key}_mvis_per_s"]
+            supp = f"{d[f'{key}_support'] or '?'}/{re['support']}"
+            planes = f"{d[f'{key}_planes'] or '?'}/{re['planes']}/{cx['planes']}"
+            print(f"{key:<8} {row['threads']:>3} {d[f'{key}_mvis_per_s']:>8.3f} {re[f'{key}_mvis_per_s']:>8.3f} "
+                  f"{ratio:>6.2f} {re[f'{key}_mvis_per_s_planned']:>8.3f} {cx[f'{key}_mvis_per_s']:>8.3f}"
+                  f"  {supp:>8} {d[f'{key}_shape'] or '?':>10} {re['grid_size']}x{re['grid_size']:<4} {planes:>12}"
+                  f"  {d[f'{key}_rel_error']:>9.2e} {re[f'{key}_rel_error']:>9.2e} {cx[f'{key}_rel_error']:>9.2e}")
     print()
+    print(f"r2d2's complex plan: oversampling {r0['complex']['oversampling']:.3g}, support {r0['complex']['support']}, "
+          f"grid {r0['complex']['grid_size']}; the columns show its real plan's.")
     print("Kernel supports, grids and w-planes of ducc0 are parsed from its verbosity=1 log ('?' if absent).")
     print("Errors: relative L2 against a direct sum with the w-term on sampled outputs (16 pixels /")
-    print("64 visibilities); ducc0 computes a real image (and may fold negative w onto positive w),")
-    print("r2d2 a complex one.")
+    print("64 visibilities); ducc0 and r2d2's real plan compute real images (the real part of the")
+    print("complex plan's).")
     if a.json:
         with open(a.json, "w") as f:
             json.dump(rows, f, indent=2)

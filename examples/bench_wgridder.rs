@@ -1,5 +1,5 @@
 //! `cargo run --release --example bench_wgridder -- --visibilities 1000000 --size 1024
-//! --fov 15 --epsilon 1e-5 --threads 1 [--w-factor 1] [--oversampling 2] [--repeats 3]
+//! --fov 15 --epsilon 1e-5 --threads 1 [--w-factor 1] [--oversampling 0 (0: suggested)] [--repeats 3]
 //! [--seed 1]`: the w-gridding benchmark (`r2d2 bench wgridder`) as JSON.
 
 use r2d2_imaging::bench::{run_wgridder_bench, WGridderBenchParams};

@@ -10,7 +10,7 @@
 //! accuracy. [`run_wgridder_bench`] does the same for the transforms with the w-term
 //! (`nufft::wgrid`) on a wide field.
 
-use crate::nufft::wgrid::{max_w_phase, WGridPlan};
+use crate::nufft::wgrid::{max_w_phase, suggested_oversampling, WGridPlan};
 use crate::nufft::{ChunkedAdjoint, Nufft2d, NufftParams};
 use crate::{Error, Result};
 use num_complex::Complex64;
@@ -260,7 +260,8 @@ pub struct WGridderBenchParams {
     /// `|w|` up to this times the largest `|(u, v)|`.
     pub w_factor: f64,
     pub epsilon: f64,
-    /// Oversampling of the uv grid (and of the w-planes).
+    /// Oversampling of the uv grid (and of the w-planes); 0: [`suggested_oversampling`]
+    /// for each kind of plan.
     pub oversampling: f64,
     /// Worker threads (0: all cores).
     pub threads: usize,
@@ -276,7 +277,7 @@ impl Default for WGridderBenchParams {
             fov_deg: 15.0,
             w_factor: 1.0,
             epsilon: 1e-5,
-            oversampling: NufftParams::default().oversampling,
+            oversampling: 0.0,
             threads: 1,
             repeats: 3,
             seed: 1,
@@ -285,7 +286,9 @@ impl Default for WGridderBenchParams {
 }
 
 /// Timings (seconds, best of `repeats`), throughputs (million visibilities per second) and
-/// sampled accuracies of the w-term transforms.
+/// sampled accuracies of the w-term transforms, for a complex-image plan
+/// ([`WGridPlan::new`]) and a real-image one ([`WGridPlan::new_real`], which mirrors
+/// negative `w`).
 #[derive(Clone, Debug, Serialize)]
 pub struct WGridderReport {
     pub visibilities: usize,
@@ -299,9 +302,18 @@ pub struct WGridderReport {
     pub max_w_phase: f64,
     pub epsilon: f64,
     pub threads: usize,
+    pub complex: WGridderTimings,
+    pub real: WGridderTimings,
+}
+
+/// One kind of plan's figures in a [`WGridderReport`].
+#[derive(Clone, Debug, Serialize)]
+pub struct WGridderTimings {
+    /// Grid oversampling (asked for, or [`suggested_oversampling`]), kernel support, grid
+    /// edge and w-planes.
+    pub oversampling: f64,
     pub support: usize,
     pub grid_size: usize,
-    pub oversampling: f64,
     pub planes: usize,
     pub plan_seconds: f64,
     pub grid_seconds: f64,
@@ -313,7 +325,8 @@ pub struct WGridderReport {
     pub grid_mvis_per_s_planned: f64,
     pub degrid_mvis_per_s_planned: f64,
     /// Relative L2 error against the direct sum with the w-term, on 16 random pixels
-    /// (gridding) and 64 random visibilities (degridding).
+    /// (gridding) and 64 random visibilities (degridding). The degridded image is real in
+    /// both cases; the real plan's dirty image is the real part of the complex one's.
     pub grid_rel_error: f64,
     pub degrid_rel_error: f64,
 }
@@ -347,16 +360,15 @@ pub fn run_wgridder_bench(p: &WGridderBenchParams) -> Result<WGridderReport> {
     let n = p.size;
     let pixel = p.fov_deg.to_radians() / n as f64;
     let (u, v, w, vis) = synthetic_uvw(p.visibilities, pixel, p.w_factor, p.seed);
-    let params = NufftParams { epsilon: p.epsilon, oversampling: p.oversampling };
+    let params = |real: bool| NufftParams {
+        epsilon: p.epsilon,
+        oversampling: if p.oversampling > 0.0 { p.oversampling } else { suggested_oversampling(n, pixel, &w, real, p.epsilon) },
+    };
     let mut image_rng = ChaCha8Rng::seed_from_u64(p.seed ^ 0x5eed);
-    let image: Vec<Complex64> =
-        (0..n * n).map(|_| Complex64::new(image_rng.gen_range(-1.0..1.0), image_rng.gen_range(-1.0..1.0))).collect();
-    let make = || WGridPlan::new(n, pixel, &u, &v, &w, params, p.threads);
-    drop(make()?);
-    let (plan_seconds, plan) = best_of(p.repeats, || make().expect("checked above"));
-    let (grid_seconds, dirty) = best_of(p.repeats, || plan.adjoint(&vis));
-    let (degrid_seconds, model_vis) = best_of(p.repeats, || plan.forward(&image));
+    let image: Vec<f64> = (0..n * n).map(|_| image_rng.gen_range(-1.0..1.0)).collect();
+    let image_c: Vec<Complex64> = image.iter().map(|&x| Complex64::new(x, 0.0)).collect();
 
+    // Direct sums on a sample of outputs.
     let mut rng = ChaCha8Rng::seed_from_u64(p.seed ^ 0xe770);
     let pixels: Vec<usize> = (0..16).map(|_| rng.gen_range(0..n * n)).collect();
     let points: Vec<usize> = (0..64).map(|_| rng.gen_range(0..p.visibilities)).collect();
@@ -366,40 +378,74 @@ pub fn run_wgridder_bench(p: &WGridderBenchParams) -> Result<WGridderReport> {
         let m = pixel * ((j / n) as f64 - (n / 2) as f64);
         (l, m, crate::nufft::wgrid::n_minus_one(l * l + m * m))
     };
+    let pool = crate::parallel::shared_pool(p.threads)?;
+    let (exact_dirty, exact_vis): (Vec<Complex64>, Vec<Complex64>) = pool.install(|| {
+        let dirty = pixels
+            .par_iter()
+            .map(|&j| {
+                let (l, m, t) = lmt(j);
+                (0..u.len()).map(|k| vis[k] * Complex64::from_polar(1.0, -tau * (u[k] * l + v[k] * m + w[k] * t))).sum()
+            })
+            .collect();
+        let model = points
+            .par_iter()
+            .map(|&k| {
+                (0..n * n)
+                    .map(|j| {
+                        let (l, m, t) = lmt(j);
+                        image[j] * Complex64::from_polar(1.0, tau * (u[k] * l + v[k] * m + w[k] * t))
+                    })
+                    .sum()
+            })
+            .collect();
+        (dirty, model)
+    });
     let rel = |pairs: Vec<(Complex64, Complex64)>| {
         let num: f64 = pairs.iter().map(|(a, b)| (a - b).norm_sqr()).sum();
         let den: f64 = pairs.iter().map(|(_, b)| b.norm_sqr()).sum();
         (num / den).sqrt()
     };
-    let (grid_rel_error, degrid_rel_error) = plan_pool(p.threads)?.install(|| {
-        let grid = pixels
-            .par_iter()
-            .map(|&j| {
-                let (l, m, t) = lmt(j);
-                let exact: Complex64 =
-                    (0..u.len()).map(|k| vis[k] * Complex64::from_polar(1.0, -tau * (u[k] * l + v[k] * m + w[k] * t))).sum();
-                (dirty[j], exact)
-            })
-            .collect();
-        let degrid = points
-            .par_iter()
-            .map(|&k| {
-                let exact: Complex64 = (0..n * n)
-                    .map(|j| {
-                        let (l, m, t) = lmt(j);
-                        image[j] * Complex64::from_polar(1.0, tau * (u[k] * l + v[k] * m + w[k] * t))
-                    })
-                    .sum();
-                (model_vis[k], exact)
-            })
-            .collect();
-        (rel(grid), rel(degrid))
-    });
+    let mvis = p.visibilities as f64 / 1e6;
+    let timings = |plan: &WGridPlan, plan_seconds: f64, grid_seconds: f64, degrid_seconds: f64, errors: (f64, f64)| WGridderTimings {
+        oversampling: plan.grid_size().0 as f64 / n as f64,
+        support: plan.kernel_support(),
+        grid_size: plan.grid_size().0,
+        planes: plan.planes(),
+        plan_seconds,
+        grid_seconds,
+        degrid_seconds,
+        grid_mvis_per_s: mvis / (plan_seconds + grid_seconds),
+        degrid_mvis_per_s: mvis / (plan_seconds + degrid_seconds),
+        grid_mvis_per_s_planned: mvis / grid_seconds,
+        degrid_mvis_per_s_planned: mvis / degrid_seconds,
+        grid_rel_error: errors.0,
+        degrid_rel_error: errors.1,
+    };
+
+    let make = || WGridPlan::new(n, pixel, &u, &v, &w, params(false), p.threads);
+    drop(make()?);
+    let (plan_seconds, plan) = best_of(p.repeats, || make().expect("checked above"));
+    let (grid_seconds, dirty) = best_of(p.repeats, || plan.adjoint(&vis));
+    let (degrid_seconds, model_vis) = best_of(p.repeats, || plan.forward(&image_c));
+    let errors = (
+        rel(pixels.iter().zip(&exact_dirty).map(|(&j, &e)| (dirty[j], e)).collect()),
+        rel(points.iter().zip(&exact_vis).map(|(&k, &e)| (model_vis[k], e)).collect()),
+    );
+    let complex = timings(&plan, plan_seconds, grid_seconds, degrid_seconds, errors);
+    drop(plan);
+
+    let make = || WGridPlan::new_real(n, pixel, &u, &v, &w, params(true), p.threads);
+    let (plan_seconds, plan) = best_of(p.repeats, || make().expect("checked above"));
+    let (grid_seconds, dirty) = best_of(p.repeats, || plan.adjoint_real(&vis));
+    let (degrid_seconds, model_vis) = best_of(p.repeats, || plan.forward_real(&image));
+    let errors = (
+        rel(pixels.iter().zip(&exact_dirty).map(|(&j, e)| (Complex64::new(dirty[j], 0.0), Complex64::new(e.re, 0.0))).collect()),
+        rel(points.iter().zip(&exact_vis).map(|(&k, &e)| (model_vis[k], e)).collect()),
+    );
+    let real = timings(&plan, plan_seconds, grid_seconds, degrid_seconds, errors);
 
     let uv_max = u.iter().zip(&v).fold(0.0f64, |a, (u, v)| a.max(u.hypot(*v)));
     let w_max = w.iter().fold(0.0f64, |a, w| a.max(w.abs()));
-    let mvis = p.visibilities as f64 / 1e6;
-    let (grid_size, _) = plan.grid_size();
     Ok(WGridderReport {
         visibilities: p.visibilities,
         size: n,
@@ -409,25 +455,10 @@ pub fn run_wgridder_bench(p: &WGridderBenchParams) -> Result<WGridderReport> {
         w_max,
         max_w_phase: max_w_phase(n, pixel, w_max),
         epsilon: p.epsilon,
-        threads: plan_pool(p.threads)?.current_num_threads(),
-        support: plan.kernel_support(),
-        grid_size,
-        oversampling: grid_size as f64 / n as f64,
-        planes: plan.planes(),
-        plan_seconds,
-        grid_seconds,
-        degrid_seconds,
-        grid_mvis_per_s: mvis / (plan_seconds + grid_seconds),
-        degrid_mvis_per_s: mvis / (plan_seconds + degrid_seconds),
-        grid_mvis_per_s_planned: mvis / grid_seconds,
-        degrid_mvis_per_s_planned: mvis / degrid_seconds,
-        grid_rel_error,
-        degrid_rel_error,
+        threads: pool.current_num_threads(),
+        complex,
+        real,
     })
-}
-
-fn plan_pool(threads: usize) -> Result<std::sync::Arc<rayon::ThreadPool>> {
-    crate::parallel::shared_pool(threads)
 }
 
 /// `r2d2 bench pipeline`: the same jobs through one pipeline run (stages concurrently on

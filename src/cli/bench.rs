@@ -39,7 +39,8 @@ pub enum Command {
         w_factor: f64,
         #[arg(long, default_value_t = 1e-5)]
         epsilon: f64,
-        #[arg(long, default_value_t = 2.0)]
+        /// Grid oversampling; 0: the one a cost model suggests for each kind of plan.
+        #[arg(long, default_value_t = 0.0)]
         oversampling: f64,
         /// Threads (0: all cores).
         #[arg(long, default_value_t = 1)]

@@ -28,6 +28,10 @@
 //! image, multiplied by its phase screen `exp(-2 pi i w_p tc)` and accumulated; the sum is
 //! divided by `psi_hat(dw tc)` pixel by pixel. Degridding is the same steps transposed.
 //!
+//! For real images ([`WGridPlan::new_real`], as in imaging, where the sky is real) the
+//! visibility at `-(u, v, w)` is the conjugate of that at `(u, v, w)`: points of negative `w`
+//! are mirrored and conjugated, so the planes only span `|w|`.
+//!
 //! One kernel shape serves both the uv grid and the w direction, chosen for a slightly
 //! tighter accuracy than asked since three dimensions now contribute error. Where the w-term
 //! is too small to matter at the requested accuracy (all `w` equal, or a tiny field) the
@@ -58,6 +62,9 @@ const MAX_PLANES: usize = 1 << 20;
 /// buffer memory (`(TILE + support)^2` complex each) while giving every thread enough work.
 const TILES_PER_THREAD: usize = 64;
 
+/// Grid rows transformed and staged together in the gridding FFT ([`WGridPlan::grid_to_accumulator`]).
+const ROW_BLOCK: usize = 16;
+
 /// Planes whose phase screens are advanced by one multiplication each, between exact
 /// evaluations (the rounding of repeated products stays near `1e-15`).
 const PHASE_RESEED: usize = 16;
@@ -74,6 +81,52 @@ pub fn max_w_phase(size: usize, pixel_rad: f64, w_max_abs: f64) -> f64 {
     match t_min(size, pixel_rad) {
         Some(t) => 2.0 * PI * w_max_abs.abs() * (-t),
         None => f64::INFINITY,
+    }
+}
+
+/// The oversampling (among the tabulated 1.25, 1.5 and 2) that a cost model puts fastest
+/// for these data: spreading or interpolation costs about `support^3` per visibility (one
+/// `support^2` footprint on each of `support` planes), each plane an FFT of the oversampled
+/// grid. A lower oversampling means fewer planes and smaller FFTs but a wider kernel; the
+/// model's two constants were measured on this code (their ratio is what matters), and near
+/// a tie either choice is about as fast. `real`: for a [`WGridPlan::new_real`] plan.
+/// Falls back to 2 if nothing else reaches `epsilon` (or the field is not valid).
+pub fn suggested_oversampling(size: usize, pixel_rad: f64, w: &[f64], real: bool, epsilon: f64) -> f64 {
+    const SPREAD_COST: f64 = 1.6;
+    const FFT_COST: f64 = 1.0;
+    let Some(t_min) = t_min(size, pixel_rad) else { return 2.0 };
+    let dt = -0.5 * t_min;
+    let folded = |w: f64| if real { w.abs() } else { w };
+    let (lo, hi) = w.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| (a.min(folded(x)), b.max(folded(x))));
+    let span = if w.is_empty() { 0.0 } else { hi - lo };
+    let single = negligible_w(span, dt, epsilon);
+    let cost = |sigma: f64| -> Option<f64> {
+        let shape = KernelShape::for_accuracy(kernel_epsilon(single, epsilon), sigma).ok()?;
+        let support = shape.support as f64;
+        let g = super::good_fft_size((size as f64 * sigma).ceil() as usize) as f64;
+        let (planes, w_support) = if single { (1.0, 1.0) } else { ((span * 2.0 * sigma * dt).ceil() + support, support) };
+        Some(SPREAD_COST * w.len() as f64 * w_support * support * support + FFT_COST * planes * g * g * g.log2())
+    };
+    [1.25, 1.5, 2.0]
+        .into_iter()
+        .filter_map(|sigma| cost(sigma).map(|c| (sigma, c)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .map_or(2.0, |(sigma, _)| sigma)
+}
+
+/// Whether the phase the single-plane reduction neglects, `2 pi (span / 2) dt` for a w
+/// range `span` and `|tc| <= dt`, is negligible against the accuracy asked.
+fn negligible_w(span: f64, dt: f64, epsilon: f64) -> bool {
+    2.0 * PI * 0.5 * span * dt <= 0.05 * epsilon
+}
+
+/// The accuracy the kernel is chosen for: with w-planes, three dimensions' errors add up
+/// where the kernel table measured two.
+fn kernel_epsilon(single: bool, epsilon: f64) -> f64 {
+    if single {
+        epsilon
+    } else {
+        epsilon / 1.25
     }
 }
 
@@ -138,21 +191,27 @@ pub struct WGridPlan {
     /// plan order.
     w: Vec<f64>,
     first_plane: Vec<u32>,
+    /// A real-image plan ([`WGridPlan::new_real`]); `flip[k]`: plan point `k` is mirrored.
+    real: bool,
+    flip: Vec<bool>,
     /// Non-empty tiles in tile order; their point ranges cover the plan order.
     tiles: Vec<TileSpan>,
     /// Grid rows touched by some point's kernel.
     row_used: Vec<bool>,
     /// Per pixel of one quadrant, `[|jx| * (N/2 + 1) + |jy|]` (`j` from the centre; the
-    /// image is symmetric in `l -> -l` and `m -> -m`): `tc`, and the final correction
-    /// `1 / psi_hat(dw tc)` times nothing else.
+    /// image is symmetric in `l -> -l` and `m -> -m`): `tc`, and the w correction
+    /// `1 / psi_hat(dw tc)` (1 without w-planes).
     tc: Vec<f64>,
     w_correction: Vec<f64>,
 }
 
 impl WGridPlan {
-    /// Plan transforms between a `size x size` image of pixel `pixel_rad` (radians) and the
-    /// visibilities at `(u[k], v[k], w[k])` (wavelengths), run on `threads` threads (0: all
-    /// cores). `params.epsilon` is the requested relative accuracy of the whole transform.
+    /// Plan transforms between a `size x size` complex image of pixel `pixel_rad` (radians)
+    /// and the visibilities at `(u[k], v[k], w[k])` (wavelengths), run on `threads` threads
+    /// (0: all cores). `params.epsilon` is the requested relative accuracy of the whole
+    /// transform; `params.oversampling` is used as given, and for wide fields a lower one
+    /// than the 2D default is often faster (fewer, smaller plane FFTs; see
+    /// [`suggested_oversampling`]).
     pub fn new(
         size: usize,
         pixel_rad: f64,
@@ -161,6 +220,36 @@ impl WGridPlan {
         w: &[f64],
         params: NufftParams,
         threads: usize,
+    ) -> Result<WGridPlan> {
+        Self::build(size, pixel_rad, u, v, w, params, threads, false)
+    }
+
+    /// A plan for real images only ([`WGridPlan::forward_real`], [`WGridPlan::adjoint_real`]):
+    /// the visibility of a real image at `-(u, v, w)` is the conjugate of that at `(u, v,
+    /// w)`, so points of negative `w` are mirrored to positive `w` and conjugated, which
+    /// halves the w range (and the planes) of data with `w` of both signs.
+    pub fn new_real(
+        size: usize,
+        pixel_rad: f64,
+        u: &[f64],
+        v: &[f64],
+        w: &[f64],
+        params: NufftParams,
+        threads: usize,
+    ) -> Result<WGridPlan> {
+        Self::build(size, pixel_rad, u, v, w, params, threads, true)
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn build(
+        size: usize,
+        pixel_rad: f64,
+        u: &[f64],
+        v: &[f64],
+        w: &[f64],
+        params: NufftParams,
+        threads: usize,
+        real: bool,
     ) -> Result<WGridPlan> {
         if u.len() != v.len() || u.len() != w.len() {
             return Err(Error::parameter(
@@ -171,7 +260,7 @@ impl WGridPlan {
         if u.len() > u32::MAX as usize {
             return Err(Error::parameter("uvw", "more than 2^32 visibilities in one plan"));
         }
-        if size < 2 || size % 2 != 0 {
+        if size < 2 || !size.is_multiple_of(2) {
             return Err(Error::parameter("image size", format!("expected an even size >= 2, got {size}")));
         }
         if !(pixel_rad.is_finite() && pixel_rad > 0.0) {
@@ -197,15 +286,18 @@ impl WGridPlan {
             ));
         }
 
+        // Mirrored points of a real-image plan.
+        let flipped: Vec<bool> = w.iter().map(|&w| real && w < 0.0).collect();
+        let mirror = |a: &[f64]| -> Vec<f64> { a.iter().zip(&flipped).map(|(&a, &f)| if f { -a } else { a }).collect() };
+        let (u, v, w) = (&mirror(u)[..], &mirror(v)[..], &mirror(w)[..]);
         let (w_lo, w_hi) = w.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| (a.min(x), b.max(x)));
         let (w_lo, w_hi) = if w.is_empty() { (0.0, 0.0) } else { (w_lo, w_hi) };
         let w_mid = 0.5 * (w_lo + w_hi);
         let t0 = 0.5 * t_min;
         let dt = -0.5 * t_min;
         // The phase the single-plane reduction would neglect, against the accuracy asked.
-        let single = 2.0 * PI * 0.5 * (w_hi - w_lo) * dt <= 0.05 * params.epsilon;
-        // Three dimensions' errors add up where two were tabulated.
-        let uv_epsilon = if single { params.epsilon } else { params.epsilon / 1.25 };
+        let single = negligible_w(w_hi - w_lo, dt, params.epsilon);
+        let uv_epsilon = kernel_epsilon(single, params.epsilon);
         let shape = KernelShape::for_accuracy(uv_epsilon, params.oversampling)?;
         let engine = Nufft2d::with_kernel(size, size, &[], &[], shape.clone(), NufftParams { epsilon: uv_epsilon, ..params }, threads)?;
 
@@ -257,6 +349,8 @@ impl WGridPlan {
             rank: Vec::new(),
             w: Vec::new(),
             first_plane: Vec::new(),
+            real,
+            flip: Vec::new(),
             tiles: Vec::new(),
             row_used: Vec::new(),
             tc,
@@ -266,6 +360,9 @@ impl WGridPlan {
         let y: Vec<f64> = v.iter().map(|&v| 2.0 * PI * pixel_rad * v).collect();
         let pool = plan.engine.pool.clone();
         pool.install(|| plan.sort_points(&x, &y, w));
+        if real {
+            plan.flip = plan.order.iter().map(|&k| flipped[k as usize]).collect();
+        }
         Ok(plan)
     }
 
@@ -423,7 +520,7 @@ impl WGridPlan {
 
     /// The screen of plane `p + 1` from that of plane `p` (exactly every few planes).
     fn advance_screen(&self, screen: &mut Vec<Complex64>, step: &[Complex64], next: usize) {
-        if next % PHASE_RESEED == 0 {
+        if next.is_multiple_of(PHASE_RESEED) {
             *screen = self.phase_screen(next);
         } else {
             screen.par_iter_mut().zip(step.par_iter()).for_each(|(s, d)| *s *= d);
@@ -436,33 +533,71 @@ impl WGridPlan {
 
     /// Adjoint (gridding): the dirty image `f[iy * N + ix] = sum_k c_k exp(-2 pi i (u_k l +
     /// v_k m + w_k (n - 1)))`, visibilities in the caller's order.
+    ///
+    /// Panics on a real-image plan ([`WGridPlan::new_real`]), which only has
+    /// [`WGridPlan::adjoint_real`].
     pub fn adjoint(&self, vis: &[Complex64]) -> Vec<Complex64> {
-        assert_eq!(vis.len(), self.len(), "number of visibilities");
-        self.engine.install(|| {
-            let values: Vec<Complex64> = self
-                .order
-                .par_iter()
-                .zip(self.w.par_iter())
-                .map(|(&k, &w)| vis[k as usize] * Complex64::from_polar(1.0, -2.0 * PI * w * self.t0))
-                .collect();
-            dispatch_support!(self.engine.shape.support, W, W2, L => self.adjoint_impl::<W, W2, L>(&values))
-        })
+        assert!(!self.real, "a real-image plan (WGridPlan::new_real) has only adjoint_real");
+        self.engine.install(|| self.grid(vis))
+    }
+
+    /// The real part of [`WGridPlan::adjoint`]: the adjoint of [`WGridPlan::forward_real`]
+    /// (for the real inner product `Re <a, b>` on visibilities). Any plan.
+    pub fn adjoint_real(&self, vis: &[Complex64]) -> Vec<f64> {
+        self.engine.install(|| self.grid(vis).par_iter().map(|v| v.re).collect())
     }
 
     /// Forward (degridding): `V_k = sum f[iy * N + ix] exp(+2 pi i (u_k l + v_k m + w_k (n -
     /// 1)))`, visibilities in the caller's order.
+    ///
+    /// Panics on a real-image plan ([`WGridPlan::new_real`]), which only has
+    /// [`WGridPlan::forward_real`].
     pub fn forward(&self, image: &[Complex64]) -> Vec<Complex64> {
+        assert!(!self.real, "a real-image plan (WGridPlan::new_real) has only forward_real");
+        assert_eq!(image.len(), self.size * self.size, "image size");
+        self.engine.install(|| self.degrid(image))
+    }
+
+    /// [`WGridPlan::forward`] of a real image. Any plan.
+    pub fn forward_real(&self, image: &[f64]) -> Vec<Complex64> {
         assert_eq!(image.len(), self.size * self.size, "image size");
         self.engine.install(|| {
-            let sorted = dispatch_support!(self.engine.shape.support, W, W2, L => self.forward_impl::<W, W2, L>(image));
-            self.rank
-                .par_iter()
-                .map(|&i| {
-                    let i = i as usize;
-                    sorted[i] * Complex64::from_polar(1.0, 2.0 * PI * self.w[i] * self.t0)
-                })
-                .collect()
+            let image: Vec<Complex64> = image.par_iter().map(|&x| Complex64::new(x, 0.0)).collect();
+            self.degrid(&image)
         })
+    }
+
+    /// Gridding of the visibilities (caller's order) with the per-point phase
+    /// `exp(-2 pi i w t0)`, mirrored points conjugated (their real part is what counts).
+    fn grid(&self, vis: &[Complex64]) -> Vec<Complex64> {
+        assert_eq!(vis.len(), self.len(), "number of visibilities");
+        let values: Vec<Complex64> = (0..self.len())
+            .into_par_iter()
+            .map(|i| {
+                let c = vis[self.order[i] as usize];
+                let c = if self.flip.get(i) == Some(&true) { c.conj() } else { c };
+                c * Complex64::from_polar(1.0, -2.0 * PI * self.w[i] * self.t0)
+            })
+            .collect();
+        dispatch_support!(self.engine.shape.support, W, W2, L => self.adjoint_impl::<W, W2, L>(&values))
+    }
+
+    /// Degridding to the caller's order, with the per-point phase `exp(+2 pi i w t0)`,
+    /// mirrored points conjugated.
+    fn degrid(&self, image: &[Complex64]) -> Vec<Complex64> {
+        let sorted = dispatch_support!(self.engine.shape.support, W, W2, L => self.forward_impl::<W, W2, L>(image));
+        self.rank
+            .par_iter()
+            .map(|&i| {
+                let i = i as usize;
+                let v = sorted[i] * Complex64::from_polar(1.0, 2.0 * PI * self.w[i] * self.t0);
+                if self.flip.get(i) == Some(&true) {
+                    v.conj()
+                } else {
+                    v
+                }
+            })
+            .collect()
     }
 
     /// The per-pixel factor both directions apply once: the uv grid correction times the
@@ -480,6 +615,7 @@ impl WGridPlan {
         let mut grid = par_filled(Complex64::default(), gx * gy);
         // Column-major accumulator: acc[ix * n + iy].
         let mut acc = par_filled(Complex64::default(), n * n);
+        let mut staging = par_filled(Complex64::default(), gy.div_ceil(ROW_BLOCK) * ROW_BLOCK * n);
         let mut screen = self.phase_screen(0);
         let step = if self.planes > 1 { self.step_screen() } else { Vec::new() };
         let mut ranges: Vec<Range<usize>> = self.tiles.iter().map(|t| t.points.start..t.points.start).collect();
@@ -489,7 +625,7 @@ impl WGridPlan {
                 ranges.iter().enumerate().filter(|(_, r)| !r.is_empty()).map(|(i, r)| (i, r.clone())).collect();
             if !spans.is_empty() {
                 self.spread_plane::<W, W2, L>(&kernel, p, &spans, values, &mut grid);
-                self.grid_to_accumulator(&mut grid, &screen, &mut acc);
+                self.grid_to_accumulator(&mut grid, &mut staging, &screen, &mut acc);
             }
             if p + 1 < self.planes {
                 self.advance_screen(&mut screen, &step, p + 1);
@@ -573,32 +709,48 @@ impl WGridPlan {
 
     /// FFT the plane's grid to image modes, multiply by the plane's phase screen and add to
     /// the column-major accumulator; leave the grid zeroed for the next plane.
-    fn grid_to_accumulator(&self, grid: &mut [Complex64], screen: &[Complex64], acc: &mut [Complex64]) {
+    ///
+    /// Rows are transformed a block of [`ROW_BLOCK`] at a time, and while they are in cache
+    /// the image columns of the block are copied to `staging` (`[block][ix][row in block]`)
+    /// and the rows zeroed; the column transforms then read whole `ROW_BLOCK`-long runs of
+    /// consecutive columns, rather than a few values from every grid row.
+    fn grid_to_accumulator(&self, grid: &mut [Complex64], staging: &mut [Complex64], screen: &[Complex64], acc: &mut [Complex64]) {
+        const RB: usize = ROW_BLOCK;
         let e = &self.engine;
         let (gx, gy, n) = (e.grid_nx, e.grid_ny, self.size);
-        let h = n / 2 + 1;
-        grid.par_chunks_mut(gx).zip(self.row_used.par_iter()).for_each_init(
+        let (h, half) = (n / 2 + 1, n / 2);
+        // Image column ix sits at grid column gcol[ix]: the upper half of the image at the
+        // start of the grid, the lower half at its end.
+        let gcol: Vec<usize> = (0..n).map(|ix| if ix < half { gx - half + ix } else { ix - half }).collect();
+        grid.par_chunks_mut(gx * RB).zip(staging.par_chunks_mut(n * RB)).enumerate().for_each_init(
             || vec![Complex64::default(); e.fft_x.get_inplace_scratch_len()],
-            |scratch, (row, &used)| {
-                if used {
-                    e.fft_x.process_with_scratch(row, scratch)
+            |scratch, (rb, (rows, stage))| {
+                for (j, row) in rows.chunks_exact_mut(gx).enumerate() {
+                    if !self.row_used[rb * RB + j] {
+                        for ix in 0..n {
+                            stage[ix * RB + j] = Complex64::default();
+                        }
+                        continue;
+                    }
+                    e.fft_x.process_with_scratch(row, scratch);
+                    for (ix, &g) in gcol.iter().enumerate() {
+                        stage[ix * RB + j] = row[g];
+                    }
+                    row.fill(Complex64::default());
                 }
             },
         );
-        // Image columns ix sit at grid columns gcol[ix]: the upper half of the image at the
-        // start of the grid, the lower half at its end.
         const B: usize = 16;
-        let half = n / 2;
-        let gcol: Vec<usize> = (0..n).map(|ix| if ix < half { gx - half + ix } else { ix - half }).collect();
-        let grid_ref: &[Complex64] = grid;
+        let staging: &[Complex64] = staging;
         acc.par_chunks_mut(n * B).enumerate().for_each_init(
             || (vec![Complex64::default(); gy * B], vec![Complex64::default(); e.fft_y.get_inplace_scratch_len()]),
             |(block, scratch), (bi, dst)| {
                 let ncols = dst.len() / n;
-                let gcols = &gcol[bi * B..bi * B + ncols];
-                for (r, row) in grid_ref.chunks_exact(gx).enumerate() {
-                    for (c, &g) in gcols.iter().enumerate() {
-                        block[c * gy + r] = row[g];
+                for (rb, stage) in staging.chunks_exact(n * RB).enumerate() {
+                    let nr = RB.min(gy - rb * RB);
+                    for c in 0..ncols {
+                        let run = &stage[(bi * B + c) * RB..][..nr];
+                        block[c * gy + rb * RB..][..nr].copy_from_slice(run);
                     }
                 }
                 for c in 0..ncols {
@@ -617,11 +769,6 @@ impl WGridPlan {
                 }
             },
         );
-        grid.par_chunks_mut(gx).zip(self.row_used.par_iter()).for_each(|(row, &used)| {
-            if used {
-                row.fill(Complex64::default());
-            }
-        });
     }
 
     fn forward_impl<const W: usize, const W2: usize, const L: usize>(&self, image: &[Complex64]) -> Vec<Complex64> {

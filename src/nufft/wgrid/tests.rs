@@ -195,3 +195,52 @@ fn kernel_transform_interpolant_matches_quadrature() {
         assert!((psi_hat(&shape, 5.0 / 64.0) - coeffs[5]).abs() < 1e-13 * coeffs[0]);
     }
 }
+
+#[test]
+fn real_plan_matches_direct_sum_with_fewer_planes() {
+    let c = case(20.0, 48, 400, (-1.0, 1.0), 12);
+    let eps = 1e-6;
+    let params = NufftParams { epsilon: eps, oversampling: 2.0 };
+    let complex = plan(&c, eps, 2);
+    let real = WGridPlan::new_real(c.size, c.pixel, &c.u, &c.v, &c.w, params, 2).unwrap();
+    // Planes beyond the kernel support span the w range, which mirroring halves.
+    let span = |p: &WGridPlan| p.planes() - p.kernel_support();
+    assert!(span(&real) <= span(&complex) / 2 + 1, "{} vs {} planes", real.planes(), complex.planes());
+    let mut rng = ChaCha8Rng::seed_from_u64(13);
+    let f: Vec<f64> = (0..c.size * c.size).map(|_| rng.gen_range(-1.0..1.0)).collect();
+    let fc: Vec<Complex64> = f.iter().map(|&x| Complex64::new(x, 0.0)).collect();
+    let vis = random_complex(c.u.len(), 14);
+    let exact_fwd = forward_w(c.size, c.pixel, &c.u, &c.v, &c.w, &fc);
+    let exact_adj: Vec<Complex64> =
+        adjoint_w(c.size, c.pixel, &c.u, &c.v, &c.w, &vis).iter().map(|z| Complex64::new(z.re, 0.0)).collect();
+    let as_complex = |x: Vec<f64>| -> Vec<Complex64> { x.into_iter().map(|x| Complex64::new(x, 0.0)).collect() };
+    for (name, p) in [("real", &real), ("complex", &complex)] {
+        let fwd = relative_error(&p.forward_real(&f), &exact_fwd);
+        let adj = relative_error(&as_complex(p.adjoint_real(&vis)), &exact_adj);
+        assert!(fwd <= 2.0 * eps && adj <= 2.0 * eps, "{name} plan: forward {fwd:e}, adjoint {adj:e}");
+    }
+    // Adjoint for the real inner products.
+    let lhs: f64 = real.forward_real(&f).iter().zip(&vis).map(|(a, c)| (a * c.conj()).re).sum();
+    let rhs: f64 = f.iter().zip(&real.adjoint_real(&vis)).map(|(f, a)| f * a).sum();
+    assert!((lhs - rhs).abs() <= 1e-10 * lhs.abs(), "{lhs} vs {rhs}");
+}
+
+#[test]
+#[should_panic(expected = "forward_real")]
+fn real_plan_refuses_complex_images() {
+    let p = WGridPlan::new_real(16, 1e-3, &[1.0], &[1.0], &[-1.0], NufftParams::default(), 1).unwrap();
+    p.forward(&[Complex64::default(); 256]);
+}
+
+#[test]
+fn suggested_oversampling_follows_the_cost() {
+    // Few visibilities on a wide field: the plane FFTs dominate, the coarsest grid wins.
+    let c = case(15.0, 512, 1000, (-1.0, 1.0), 15);
+    assert_eq!(suggested_oversampling(c.size, c.pixel, &c.w, false, 1e-5), 1.25);
+    // Without w-planes and with many visibilities per pixel the narrow kernel of the finer
+    // grid wins.
+    let w = vec![0.0; 2_000_000];
+    assert_eq!(suggested_oversampling(64, 1e-4, &w, false, 1e-5), 2.0);
+    // An invalid field falls back to the default.
+    assert_eq!(suggested_oversampling(16, 0.1, &c.w, false, 1e-5), 2.0);
+}
