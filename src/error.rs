@@ -69,6 +69,11 @@ pub enum Error {
         source: Box<Error>,
     },
 
+    /// The machine could not give what the run needs (a thread, under an address-space
+    /// limit): not the input's fault, so no file is named.
+    #[error("out of memory: {0}")]
+    OutOfMemory(String),
+
     /// The run was interrupted (Ctrl-C) before it finished.
     #[error("interrupted: {0}")]
     Interrupted(String),

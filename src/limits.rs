@@ -42,10 +42,19 @@ pub fn memory_budget() -> MemoryBudget {
     // An address-space limit (`ulimit -v`) below that: what is left of it is the budget, so
     // that a size it cannot hold is an error about memory, not an aborted allocation.
     match address_space_left() {
-        Some(left) if left < available.bytes => MemoryBudget { bytes: left, origin: "the address-space limit (ulimit -v) less what the process maps" },
+        Some(left) if left < available.bytes => MemoryBudget {
+            bytes: left.saturating_sub(ADDRESS_SPACE_RESERVE),
+            origin: "the address-space limit (ulimit -v) less what the process maps and a reserve for its threads and inference runtime",
+        },
         _ => available,
     }
 }
+
+/// Address space a run maps after its sizes are checked, whatever its images: thread stacks
+/// (each reserves its full stack under `ulimit -v`) and ONNX Runtime's library, weights and
+/// threads. Without it a limit that passes the check aborts later, in an allocation no error
+/// can come back from, or inside the runtime.
+pub const ADDRESS_SPACE_RESERVE: u64 = 896 << 20;
 
 /// `RLIMIT_AS` less the process's current virtual size, when a limit is set.
 #[cfg(target_os = "linux")]

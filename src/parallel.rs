@@ -34,7 +34,7 @@ fn start(threads: usize) -> Result<ThreadPool> {
         .num_threads(threads)
         .thread_name(|i| format!("r2d2-compute-{i}"))
         .build()
-        .map_err(|e| Error::parameter("threads", format!("cannot start {threads} threads: {e}")))
+        .map_err(|e| Error::OutOfMemory(format!("cannot start {threads} compute threads: {e} (is the address space limited? ulimit -v)")))
 }
 
 /// Starts the pool of `threads` threads now (the engine sizes it once, when it is made).

@@ -445,3 +445,29 @@ fn an_address_space_limit_is_the_memory_budget() {
     assert!(all.contains("status 1") && all.contains("4096 x 4096") && all.contains("address-space limit"), "{all}");
     assert!(!all.contains("panicked") && !all.contains("memory allocation"), "{all}");
 }
+
+/// Address spaces too small for the run's threads and inference runtime end with an error
+/// about memory, never a panic, an abort, a crash inside the runtime or a hang, for a table
+/// and a MeasurementSet, the default (network) step and CLEAN.
+#[test]
+fn small_address_spaces_end_in_a_memory_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "128", "--seed", "3", "--out", "obs.parquet"], d));
+    check(&r2d2(&["convert", "obs.parquet", "obs.ms"], d));
+    let mut failures = Vec::new();
+    for limit in [200_000, 300_000, 400_000, 600_000, 800_000, 1_000_000] {
+        for (input, step) in [("obs.parquet", "auto"), ("obs.ms", "auto"), ("obs.parquet", "clean")] {
+            let script = format!("ulimit -v {limit}; timeout -s KILL 120 \"$R2D2\" image {input} --size 128 --step {step} --name out-{limit}/x; echo status $?");
+            let out = Command::new("sh").arg("-c").arg(&script).env("R2D2", env!("CARGO_BIN_EXE_r2d2")).current_dir(d).output().unwrap();
+            let all = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+            let clean = (all.contains("status 0") || (all.contains("status 1") && all.contains("error:")))
+                && !all.contains("panicked")
+                && !all.contains("memory allocation");
+            if !clean {
+                failures.push(format!("ulimit -v {limit}, {input}, step {step}:\n{all}"));
+            }
+        }
+    }
+    assert!(failures.is_empty(), "{}", failures.join("\n---\n"));
+}

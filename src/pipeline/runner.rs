@@ -160,8 +160,15 @@ fn run_built<J: Payload>(
     let stopped = || stop.is_stopped();
 
     std::thread::scope(|scope| {
+        // Threads are started fallibly: under an address-space limit (`ulimit -v`) a thread's
+        // stack may not fit, and `scope.spawn` would panic with the other stages waiting.
+        let no_thread = |what: String, e: std::io::Error| {
+            fail(Error::OutOfMemory(format!(
+                "cannot start the thread of {what}: {e} (is the address space limited? ulimit -v)"
+            )));
+        };
         // Turns the caller's request into this run's stop (which kills plugin hosts at once).
-        scope.spawn(|| {
+        let watcher = std::thread::Builder::new().name("r2d2-stop".into()).spawn_scoped(scope, || {
             while !ended.iter().all(|e| e.load(Ordering::SeqCst)) {
                 if requested.load(Ordering::SeqCst) {
                     stop.stop();
@@ -169,10 +176,18 @@ fn run_built<J: Payload>(
                 std::thread::sleep(POLL);
             }
         });
+        if let Err(e) = watcher {
+            no_thread("the stop watcher".into(), e);
+        }
         for (i, stage) in built.into_iter().enumerate() {
+            if stop.is_stopped() {
+                // A thread could not be started: the stages not yet started never run.
+                ended[i].store(true, Ordering::SeqCst);
+                continue;
+            }
             let (config, graph, channels, tokens, upstream, ended) = (config, graph, &channels, &tokens, &upstream, &ended);
             let (stopped, fail, record, finished, totals) = (&stopped, &fail, &record, &finished, &totals);
-            scope.spawn(move || {
+            let spawned = std::thread::Builder::new().name(format!("r2d2-stage-{i}")).spawn_scoped(scope, move || {
                 let _in = stop.enter();
                 // However this thread ends, the stages downstream must not wait for it.
                 let _ended = EndedOnExit { ended: &ended[i], stop };
@@ -286,6 +301,10 @@ fn run_built<J: Payload>(
                     }
                 }
             });
+            if let Err(e) = spawned {
+                ended[i].store(true, Ordering::SeqCst);
+                no_thread(format!("stage '{}'", config.stages[i].name), e);
+            }
         }
     });
 

@@ -247,13 +247,17 @@ impl OnnxStep {
     fn prefetch_after(&mut self, key: Key) {
         let Some(next) = self.successor(key) else { return };
         let (runtime, path, size, signature) = (self.runtime.clone(), self.file(next), self.size, self.signatures[next.0 - 1][next.1].clone());
-        let handle = std::thread::spawn(move || {
+        let spawned = std::thread::Builder::new().name("r2d2-prefetch".into()).spawn(move || {
             let started = std::time::Instant::now();
             let net = runtime.load(&path, size, &signature);
             log::debug!("loaded {} in {:.3} s (in the background)", path.display(), started.elapsed().as_secs_f64());
             net
         });
-        self.pending = Some((next, handle));
+        // Without a thread (a limited address space) the next network loads when it is needed.
+        match spawned {
+            Ok(handle) => self.pending = Some((next, handle)),
+            Err(e) => log::debug!("no background load of the next network: {e}"),
+        }
     }
 
     fn run_network(&mut self, job: &str, iteration: usize, layer: usize, first: &[f64], second: &[f64], alpha: f64) -> Result<Vec<f64>> {
