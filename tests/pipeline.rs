@@ -542,7 +542,11 @@ fn small_configuration_mistakes_are_refused_by_validate() {
         ("unknown placeholder", small_pipeline(None).replace("out/{job}", "out/{jobb}"), vec![], vec!["stages.write.prefix", "{jobb}", "{job}"]),
         ("prefix without a file name", small_pipeline(None).replace("out/{job}", "out/"), vec![], vec!["stages.write.prefix", "out/", "file name"]),
         ("size the series cannot take", onnx.clone(), vec!["image.size=100"], vec!["vla-r2d2-128", "multiple of 8", "100"]),
-        ("size 0", small_pipeline(None), vec!["image.size=0"], vec!["image.size", "at least one pixel"]),
+        ("size 0", small_pipeline(None), vec!["image.size=0"], vec!["image.size", "at least 8"]),
+        // The operator takes even sizes of at least 8 only, whatever the step.
+        ("odd size", small_pipeline(None), vec!["image.size=63"], vec!["image.size = 63", "even image size of at least 8"]),
+        ("odd size, CLEAN", small_pipeline(None), vec!["image.size=511"], vec!["image.size = 511", "even image size of at least 8"]),
+        ("size under 8", small_pipeline(None), vec!["image.size=6"], vec!["image.size = 6", "even image size of at least 8"]),
     ];
     for (what, text, sets, expected) in cases {
         validate_fails(d, &text, &sets, what, expected);
