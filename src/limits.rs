@@ -108,7 +108,7 @@ pub const MIN_IMAGE_SIZE: usize = 8;
 /// Refuses an image size the operator cannot take (odd, or under [`MIN_IMAGE_SIZE`]) or whose
 /// job cannot fit in the memory available (the product in f64: no overflow whatever the size).
 pub fn check_image_size(size: usize) -> std::result::Result<(), String> {
-    if size < MIN_IMAGE_SIZE || size % 2 != 0 {
+    if size < MIN_IMAGE_SIZE || !size.is_multiple_of(2) {
         return Err(format!("expected an even image size of at least {MIN_IMAGE_SIZE} pixels, got {size}"));
     }
     let pixels = size as f64 * size as f64;

@@ -53,7 +53,7 @@ impl ImageGeometry {
     }
 
     pub fn new(size: usize, pixel_rad: f64) -> Result<ImageGeometry> {
-        if size < crate::limits::MIN_IMAGE_SIZE || size % 2 != 0 {
+        if size < crate::limits::MIN_IMAGE_SIZE || !size.is_multiple_of(2) {
             return Err(Error::parameter("size", format!("expected an even image size of at least {} pixels, got {size}", crate::limits::MIN_IMAGE_SIZE)));
         }
         if !(pixel_rad > 0.0) || !pixel_rad.is_finite() {
