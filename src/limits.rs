@@ -110,11 +110,15 @@ pub fn check_memory(needed: f64, what: &str) -> std::result::Result<(), String> 
 /// grid, 2 x 4 x 16) and the NUFFT grid (4 x 16), rounded up for previews and scratch space.
 pub const IMAGE_BYTES_PER_PIXEL: f64 = 320.0;
 
-/// Refuses an image size whose job cannot fit in the memory available (the product in f64:
-/// no overflow whatever the size).
+/// The smallest image side the operator takes (it also needs an even side: the phase centre
+/// is the pixel N/2, and the PSF is 2N).
+pub const MIN_IMAGE_SIZE: usize = 8;
+
+/// Refuses an image size the operator cannot take (odd, or under [`MIN_IMAGE_SIZE`]) or whose
+/// job cannot fit in the memory available (the product in f64: no overflow whatever the size).
 pub fn check_image_size(size: usize) -> std::result::Result<(), String> {
-    if size == 0 {
-        return Err("expected at least one pixel".into());
+    if size < MIN_IMAGE_SIZE || !size.is_multiple_of(2) {
+        return Err(format!("expected an even image size of at least {MIN_IMAGE_SIZE} pixels, got {size}"));
     }
     let pixels = size as f64 * size as f64;
     check_memory(pixels * IMAGE_BYTES_PER_PIXEL, &format!("an image of {size} x {size} pixels"))
@@ -161,7 +165,10 @@ mod tests {
         assert!(check_image_size(64).is_ok());
         let err = check_image_size(1 << 40).unwrap_err();
         assert!(err.contains("1099511627776 x 1099511627776") && err.contains("memory available"), "{err}");
-        assert!(check_image_size(0).is_err());
+        for size in [0, 6, 63, 511] {
+            let err = check_image_size(size).unwrap_err();
+            assert!(err.contains("even image size of at least 8") && err.contains(&format!("got {size}")), "{err}");
+        }
         assert!(check_threads(0).is_ok() && check_threads(1).is_ok());
         let err = check_threads(usize::MAX).unwrap_err();
         assert!(err.contains("cores"), "{err}");

@@ -53,8 +53,8 @@ impl ImageGeometry {
     }
 
     pub fn new(size: usize, pixel_rad: f64) -> Result<ImageGeometry> {
-        if size < 8 || size % 2 != 0 {
-            return Err(Error::parameter("size", format!("expected an even image size of at least 8 pixels, got {size}")));
+        if size < crate::limits::MIN_IMAGE_SIZE || !size.is_multiple_of(2) {
+            return Err(Error::parameter("size", format!("expected an even image size of at least {} pixels, got {size}", crate::limits::MIN_IMAGE_SIZE)));
         }
         if !(pixel_rad > 0.0) || !pixel_rad.is_finite() {
             return Err(Error::parameter("pixel size", format!("expected a positive pixel size, got {pixel_rad} rad")));

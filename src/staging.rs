@@ -74,6 +74,10 @@ const COMMITTED: &str = "committed";
 /// Subdirectories: the staged products, and the earlier files moved aside.
 const NEW: &str = "new";
 const EARLIER: &str = "earlier";
+/// Bytes a staged file's path adds to its target directory's absolute path (tempfile makes
+/// the staging directory's absolute): `/.r2d2-staging-XXXXXX/new/`, with tempfile's 6 random
+/// characters (files moved aside under `earlier/` take numbers, not their names).
+pub const STAGED_PATH_EXTRA: usize = 1 + PREFIX.len() + 6 + 1 + NEW.len() + 1;
 /// Test hook only (tests/faults.rs): the process kills itself (SIGKILL) once this many renames
 /// of a commit are done (0: right after the journal is written), as a power cut would stop it.
 pub const KILL_AFTER_RENAMES: &str = "R2D2_TEST_KILL_AFTER_RENAMES";
@@ -508,8 +512,12 @@ mod tests {
     fn staging_directories_have_unpredictable_names_and_go_away() {
         let dir = tempfile::tempdir().unwrap();
         let a = Staging::new(dir.path()).unwrap();
-        let b = Staging::new(dir.path()).unwrap();
+        let mut b = Staging::new(dir.path()).unwrap();
         assert_ne!(a.dir.path(), b.dir.path(), "two stagings share a directory name");
+        // What the output-name checks allow for (`fits::check_output_prefix`).
+        let staged = b.file(dir.path().join("x"));
+        assert!(staged.is_absolute());
+        assert_eq!(staged.as_os_str().len(), dir.path().as_os_str().len() + STAGED_PATH_EXTRA + 1, "{}", staged.display());
         drop((a, b));
         assert!(listing(dir.path()).is_empty(), "{:?}", listing(dir.path()));
     }

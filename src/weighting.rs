@@ -14,6 +14,11 @@
 
 use crate::{Error, Result};
 
+/// The Briggs robustness accepted: WSClean and CASA use -2..2, and beyond +-5 the weights are
+/// natural or uniform to within 1e-4 (`briggs_limits_are_natural_and_uniform`), so a value
+/// outside this range is a mistake (a typo, a value meant for another option).
+pub const ROBUST_RANGE: (f64, f64) = (-5.0, 5.0);
+
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Weighting {
     Natural,
@@ -60,8 +65,12 @@ impl Weighting {
             "uniform" => Ok(Weighting::Uniform),
             "given" => Ok(Weighting::Given),
             "briggs" | "robust" => {
-                if !robust.is_finite() {
-                    return Err(Error::parameter("robust", format!("expected a finite number, got {robust}")));
+                let (low, high) = ROBUST_RANGE;
+                if !(low..=high).contains(&robust) {
+                    return Err(Error::parameter(
+                        "robust",
+                        format!("expected a Briggs robustness from {low} to {high} (-2: near uniform, 2: near natural; beyond that nothing changes), got {robust}"),
+                    ));
                 }
                 Ok(Weighting::Briggs { robust })
             }
@@ -232,6 +241,17 @@ mod tests {
             *per_cell.entry((c(uu), c(vv))).or_insert(0.0) += w[k] * iw[k];
         }
         assert!(per_cell.values().all(|s: &f64| (s - 1.0).abs() < 1e-12));
+    }
+
+    #[test]
+    fn robustness_outside_the_range_is_refused() {
+        for robust in [-1e30, -5.5, 5.5, 1e30, f64::NAN, f64::INFINITY] {
+            let e = Weighting::from_name("briggs", robust).unwrap_err().to_string();
+            assert!(e.contains("robust") && e.contains("from -5 to 5") && e.contains(&format!("got {robust}")), "{e}");
+        }
+        for robust in [-5.0, -2.0, 0.0, 2.0, 5.0] {
+            assert_eq!(Weighting::from_name("robust", robust).unwrap(), Weighting::Briggs { robust });
+        }
     }
 
     #[test]

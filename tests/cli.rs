@@ -177,6 +177,65 @@ fn bad_input_gives_errors_that_name_the_problem() {
     assert!(!out.status.success());
 }
 
+/// What `simulate` and `dirty` would refuse only late, or with a message blaming something
+/// else, is refused before any work, naming the option and what is expected. The input of
+/// `dirty` does not exist: the options are checked before it is read.
+#[test]
+fn options_are_refused_before_any_work_naming_what_is_expected() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    std::fs::create_dir(d.join("o")).unwrap();
+    let long = "x".repeat(240);
+    let deep = vec!["d".repeat(200); 5].join("/");
+    let sim = ["simulate", "--configs", "c", "--hours", "1"];
+    let cases: Vec<(Vec<&str>, Vec<&str>)> = vec![
+        (vec!["--dec", "-90", "--out", "s.parquet"], vec!["declination", "-90 deg never rises", "vla-c", "above -56"]),
+        (vec!["--freq-mhz", "1e9", "--out", "s.parquet"], vec!["frequency", "from 1e6 to 1e13 Hz", "got 1e15 Hz"]),
+        (vec!["--freq-mhz", "1e6", "--freq-ratio", "100", "--out", "s.parquet"], vec!["freq-ratio", "got 1e14 Hz"]),
+        (vec!["--integration-s", "0", "--out", "s.parquet"], vec!["integration time", "positive number of seconds, got 0"]),
+        (vec!["--out", "o/"], vec!["--out", "\"o/\" names a directory"]),
+        (vec!["--out", "o"], vec!["--out", "\"o\" is a directory", "o/obs.parquet"]),
+        (vec!["--out", "new/"], vec!["--out", "\"new/\" names a directory"]),
+        (vec!["--robust", "-1e30", "--out", "s.parquet"], vec!["robust", "from -5 to 5"]),
+        (vec!["--size", "63", "--out", "s.parquet"], vec!["size", "even image size of at least 8", "got 63"]),
+    ];
+    for (extra, expected) in cases {
+        let args: Vec<&str> = sim.iter().copied().chain(extra.iter().copied()).collect();
+        let out = r2d2(&args, d);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{extra:?}: {err}");
+        assert!(!err.contains("visibilities"), "{extra:?}: simulated first: {err}");
+        for e in expected {
+            assert!(err.contains(e), "{extra:?}: '{e}' missing from: {err}");
+        }
+    }
+    let long_out = format!("{long}.parquet");
+    let deep_out = format!("{deep}/obs.parquet");
+    for (out, expected) in [(long_out.as_str(), "255"), (deep_out.as_str(), "1024")] {
+        let args: Vec<&str> = sim.iter().copied().chain(["--out", out]).collect();
+        let err = String::from_utf8_lossy(&r2d2(&args, d).stderr).into_owned();
+        assert!(err.contains("--out") && err.contains(expected) && !err.contains("visibilities"), "{err}");
+    }
+    assert_eq!(std::fs::read_dir(d).unwrap().count(), 1, "only o/ is there");
+
+    let long_name = format!("out/{long}");
+    let deep_name = format!("{deep}/obs");
+    let cases: [(&[&str], &[&str]); 4] = [
+        (&["--size", "63"], &["--size", "even image size of at least 8", "got 63"]),
+        (&["--robust", "-1e30"], &["robust", "from -5 to 5"]),
+        (&["--name", &long_name], &["--name", &long_name, "file name would have", "255"]),
+        (&["--name", &deep_name], &["--name", "cfitsio", "1024"]),
+    ];
+    for (extra, expected) in cases {
+        let args: Vec<&str> = ["dirty", "missing.parquet"].into_iter().chain(extra.iter().copied()).collect();
+        let err = String::from_utf8_lossy(&r2d2(&args, d).stderr).into_owned();
+        assert!(!err.contains("missing.parquet"), "{extra:?}: the input was read first: {err}");
+        for e in expected {
+            assert!(err.contains(e), "{extra:?}: '{e}' missing from: {err}");
+        }
+    }
+}
+
 /// An error with a cause beneath it (cfitsio's report, what reading a plugin library found) is
 /// printed on one line naming the file and the cause, each once.
 #[test]

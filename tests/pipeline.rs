@@ -542,11 +542,30 @@ fn small_configuration_mistakes_are_refused_by_validate() {
         ("unknown placeholder", small_pipeline(None).replace("out/{job}", "out/{jobb}"), vec![], vec!["stages.write.prefix", "{jobb}", "{job}"]),
         ("prefix without a file name", small_pipeline(None).replace("out/{job}", "out/"), vec![], vec!["stages.write.prefix", "out/", "file name"]),
         ("size the series cannot take", onnx.clone(), vec!["image.size=100"], vec!["vla-r2d2-128", "multiple of 8", "100"]),
-        ("size 0", small_pipeline(None), vec!["image.size=0"], vec!["image.size", "at least one pixel"]),
+        ("size 0", small_pipeline(None), vec!["image.size=0"], vec!["image.size", "at least 8"]),
+        // The operator takes even sizes of at least 8 only, whatever the step.
+        ("odd size", small_pipeline(None), vec!["image.size=63"], vec!["image.size = 63", "even image size of at least 8"]),
+        ("odd size, CLEAN", small_pipeline(None), vec!["image.size=511"], vec!["image.size = 511", "even image size of at least 8"]),
+        ("size under 8", small_pipeline(None), vec!["image.size=6"], vec!["image.size = 6", "even image size of at least 8"]),
+        ("robust out of range", small_pipeline(None).replace("robust: 0", "robust: -1e30"), vec![], vec!["line 16, column 5: stages.weights.robust", "from -5 to 5", "-1000000000000000000000000000000"]),
+        // What the simulation would refuse, before any job.
+        ("declination the VLA never sees", small_pipeline(None).replace("hours: [1]\n", "hours: [1]\n    dec_deg: -90\n"), vec![], vec!["line 11, column 5: stages.source.dec_deg", "-90 deg never rises", "vla-c", "above -56"]),
+        ("frequency the readers refuse", small_pipeline(None).replace("hours: [1]\n", "hours: [1]\n    frequency_mhz: 1.0e9\n"), vec![], vec!["line 11, column 5: stages.source.frequency_mhz", "frequencies from 1e6 to 1e13 Hz", "got 1e15 Hz"]),
+        ("zero integration time", small_pipeline(None).replace("integration_s: 300", "integration_s: 0"), vec![], vec!["line 11, column 5: stages.source.integration_s", "integration time", "positive number of seconds"]),
+        ("prefix too long", small_pipeline(None).replace("out/{job}", &format!("out/{}{{job}}", "x".repeat(250))), vec![], vec!["stages.write.prefix", "file name would have", "255"]),
     ];
     for (what, text, sets, expected) in cases {
         validate_fails(d, &text, &sets, what, expected);
     }
+    // A byte-order mark before the first key: valid, and errors keep their lines.
+    std::fs::write(d.join("bom.yaml"), format!("\u{feff}{}", small_pipeline(None))).unwrap();
+    check(&r2d2(&["validate", "bom.yaml"], d));
+    let typo = small_pipeline(None).replace("scheme: briggs", "scheme: brigs");
+    std::fs::write(d.join("bom.yaml"), &typo).unwrap();
+    let plain = stderr(&r2d2(&["validate", "bom.yaml"], d));
+    std::fs::write(d.join("bom.yaml"), format!("\u{feff}{typo}")).unwrap();
+    let err = stderr(&r2d2(&["validate", "bom.yaml"], d));
+    assert!(err == plain && err.contains("bom.yaml: line 15, column 13") && err.contains("brigs"), "{err}");
     // The series takes multiples of 8 other than its training size.
     std::fs::write(d.join("p.yaml"), onnx).unwrap();
     check(&r2d2(&["validate", "p.yaml", "--set", "image.size=72"], d));

@@ -109,6 +109,8 @@ pub fn run(args: Args) -> Result<()> {
             format!("give one observing time per configuration: {} configurations, {} times", args.configs.len(), args.hours.len()),
         ));
     }
+    // The output and the observation before any work (reading the sky, simulating).
+    r2d2_imaging::fits::check_output_file(&args.out, false).map_err(|m| Error::parameter("--out", m))?;
     let spec = ObservationSpec {
         configurations: args.configs.iter().copied().zip(args.hours.iter().copied()).collect(),
         dec_deg: args.dec,
@@ -118,7 +120,12 @@ pub fn run(args: Args) -> Result<()> {
         random_rotation: !args.no_rotation,
         seed: args.seed,
     };
+    spec.validate()?;
+    let noise_weighting = Weighting::from_name(&args.weighting, args.robust)?;
     let source = parse_sky(&args.sky, args.seed)?;
+    if let SkySource::Procedural(_) = source {
+        r2d2_imaging::fits::check_output_file(&sky_path(&args.out), true).map_err(|m| Error::parameter("--out", format!("the sky model beside it: {m}")))?;
+    }
     let sky = match &source {
         SkySource::Procedural(seed) => SkyModel::Procedural { seed: *seed },
         SkySource::File(path) => {
@@ -143,7 +150,7 @@ pub fn run(args: Args) -> Result<()> {
             None => PixelScale::SuperResolution(args.superresolution),
         },
         dynamic_range: args.dr,
-        noise_weighting: Weighting::from_name(&args.weighting, args.robust)?,
+        noise_weighting,
         phase_centre_deg: (args.ra, args.dec),
         nufft: NufftParams { epsilon: args.epsilon, oversampling: 2.0 },
         threads: args.threads,
@@ -163,7 +170,7 @@ pub fn run(args: Args) -> Result<()> {
     log::info!("wrote {}", args.out.display());
 
     if let SkySource::Procedural(_) = source {
-        let sky_path = args.out.with_extension("sky.fits");
+        let sky_path = sky_path(&args.out);
         let wcs = ImageWcs {
             ra_deg: args.ra,
             dec_deg: args.dec,
@@ -175,4 +182,9 @@ pub fn run(args: Args) -> Result<()> {
         log::info!("wrote the sky model to {}", sky_path.display());
     }
     Ok(())
+}
+
+/// Where a procedural sky is written: beside the table, `obs.parquet` -> `obs.sky.fits`.
+fn sky_path(out: &std::path::Path) -> PathBuf {
+    out.with_extension("sky.fits")
 }

@@ -107,8 +107,66 @@ const RESERVED_KEYWORDS: &[&str] = &[
 /// Keyword families of the coordinate system (CTYPEn, PCi_j, ...), reserved like the above.
 const RESERVED_PREFIXES: &[&str] = &["NAXIS", "CTYPE", "CRPIX", "CRVAL", "CDELT", "CUNIT", "CROTA"];
 
+/// The longest suffix a writer appends to a prefix (`job::products` checks its names
+/// against it).
+pub const LONGEST_PRODUCT_SUFFIX: &str = "-uncertainty.fits";
+
+/// Bytes in one file name (NAME_MAX of Linux's and macOS's file systems).
+pub const NAME_MAX: usize = 255;
+
+/// Bytes in the longest path cfitsio opens (its FLEN_FILENAME less the terminator).
+pub const CFITSIO_PATH_MAX: usize = 1024;
+
+/// Bytes in the longest path the system opens (Linux's PATH_MAX less the terminator).
+pub const PATH_MAX: usize = 4095;
+
+/// Bytes a [`TempSibling`] adds to its target's name: `.` and `.tmp-<pid>-<counter>`, at
+/// their longest (u32 pid, u64 counter).
+const TEMP_NAME_EXTRA: usize = 1 + ".tmp-".len() + 10 + 1 + 20;
+
+/// How an output file is written, for [`check_name_length`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum OutputWrite {
+    /// Through a temporary beside it.
+    Direct,
+    /// Through a staging directory beside it (its path absolute), then a temporary.
+    Staged,
+}
+
+/// Refuses an output file whose name or path, once written through its temporary (and
+/// staging directory), is too long for the file system or, for FITS, for cfitsio: found
+/// before any work, not as "cfitsio status 105" after it. `shown` names the file the user gave.
+pub fn check_name_length(file: &Path, how: OutputWrite, fits: bool, shown: &str) -> std::result::Result<(), String> {
+    let name = file.file_name().map_or(0, |n| n.len());
+    if name + TEMP_NAME_EXTRA > NAME_MAX {
+        return Err(format!(
+            "{shown}: the file name would have {name} bytes, more than the {} allowed ({NAME_MAX}, the file system's limit, less {TEMP_NAME_EXTRA} for the temporary it is written through): use a shorter name",
+            NAME_MAX - TEMP_NAME_EXTRA
+        ));
+    }
+    let dir = file.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let dir_len = match how {
+        OutputWrite::Staged if !dir.is_absolute() => {
+            std::env::current_dir().map_or(0, |cwd| cwd.as_os_str().len() + 1) + dir.as_os_str().len() + crate::staging::STAGED_PATH_EXTRA
+        }
+        OutputWrite::Staged => dir.as_os_str().len() + crate::staging::STAGED_PATH_EXTRA,
+        // `./` before a relative name (`fitsio_path`), `/` after the directory.
+        OutputWrite::Direct => dir.as_os_str().len() + 3,
+    };
+    let (most, whose) = if fits { (CFITSIO_PATH_MAX, "cfitsio takes") } else { (PATH_MAX, "the system takes") };
+    let length = dir_len + name + TEMP_NAME_EXTRA;
+    if length > most {
+        return Err(format!(
+            "{shown}: the path written would have up to {length} bytes (with the temporary{} it is written through), more than the {most} {whose}: use a shorter path",
+            if how == OutputWrite::Staged { " and staging directory" } else { "" }
+        ));
+    }
+    Ok(())
+}
+
 /// Refuses an output prefix that names no file (`out/`, `.`, `..`): products are named
-/// `<prefix>-dirty.fits`, ..., so the prefix must end in a file-name part (`out/obs`).
+/// `<prefix>-dirty.fits`, ..., so the prefix must end in a file-name part (`out/obs`); and
+/// one whose product names would be too long ([`check_name_length`]).
 pub fn check_output_prefix(prefix: &str) -> std::result::Result<(), String> {
     // A `~` or `$VAR` the shell did not expand (quoted, or from a YAML file) would make a
     // directory literally named `~` or `$HOME`, which a later `rm -rf ~` turns into a disaster.
@@ -122,7 +180,23 @@ pub fn check_output_prefix(prefix: &str) -> std::result::Result<(), String> {
     if last.trim().is_empty() || last == "." || last == ".." {
         return Err(format!("\"{prefix}\" names a directory, not a file name: products are named <prefix>-dirty.fits, ..., so end the prefix with a name (out/obs, say)"));
     }
-    Ok(())
+    let longest = PathBuf::from(format!("{prefix}{LONGEST_PRODUCT_SUFFIX}"));
+    check_name_length(&longest, OutputWrite::Staged, true, &format!("prefix \"{prefix}\" (products such as <prefix>{LONGEST_PRODUCT_SUFFIX})"))
+}
+
+/// Refuses an output file path that names no file (`out/`, an existing directory) or whose
+/// name is too long ([`check_name_length`], written directly), before any work.
+pub fn check_output_file(path: &Path, fits: bool) -> std::result::Result<(), String> {
+    let shown = path.display().to_string();
+    let text = path.as_os_str().to_string_lossy();
+    let last = text.rsplit(['/', std::path::MAIN_SEPARATOR]).next().unwrap_or_default();
+    if last.trim().is_empty() || last == "." || last == ".." {
+        return Err(format!("\"{shown}\" names a directory, not a file: give the file to write (out/obs.parquet, say)"));
+    }
+    if path.is_dir() {
+        return Err(format!("\"{shown}\" is a directory: give the file to write in it (\"{}\", say)", path.join("obs.parquet").display()));
+    }
+    check_name_length(path, OutputWrite::Direct, fits, &format!("\"{shown}\""))
 }
 
 /// Writes a 2-D sky image as a WSClean-style FITS file, replacing `path` atomically.
@@ -764,6 +838,47 @@ mod tests {
         for prefix in ["out/obs", "a$b/obs", "out/$5", "/data/obs", "x~/obs"] {
             assert!(check_output_prefix(prefix).is_ok(), "{prefix}");
         }
+    }
+
+    #[test]
+    fn output_names_too_long_for_the_file_system_or_cfitsio_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let most = NAME_MAX - TEMP_NAME_EXTRA - LONGEST_PRODUCT_SUFFIX.len();
+        let at = |stem: usize| format!("{}/{}", dir.path().display(), "x".repeat(stem));
+        assert!(check_output_prefix(&at(most)).is_ok());
+        let e = check_output_prefix(&at(most + 1)).unwrap_err();
+        assert!(e.contains("prefix \"") && e.contains(&format!("{} bytes", most + 1 + LONGEST_PRODUCT_SUFFIX.len())) && e.contains("255"), "{e}");
+        // The longest name allowed is written.
+        let longest = PathBuf::from(format!("{}{LONGEST_PRODUCT_SUFFIX}", at(most)));
+        write_image(&longest, &pattern(8, 8), 8, 8, &test_wcs(), BrightnessUnit::JyPerBeam, None, &[]).unwrap();
+
+        // Paths: cfitsio's limit, with the staging directory a prefix's products go through.
+        let deep = |parts: usize, stem: usize| format!("{}/{}/{}", dir.path().display(), vec!["d".repeat(100); parts].join("/"), "p".repeat(stem));
+        let e = check_output_prefix(&deep(10, 10)).unwrap_err();
+        assert!(e.contains("cfitsio") && e.contains("1024") && e.contains("staging"), "{e}");
+        assert!(check_output_prefix(&deep(5, 10)).is_ok());
+        // A direct FITS file at cfitsio's limit is written; one byte more is refused.
+        let base = dir.path().as_os_str().len() + 8 * 101 + 3 + TEMP_NAME_EXTRA;
+        let stem = CFITSIO_PATH_MAX - base - ".fits".len();
+        let file = PathBuf::from(format!("{}.fits", deep(8, stem)));
+        check_output_file(&file, true).unwrap();
+        std::fs::create_dir_all(file.parent().unwrap()).unwrap();
+        write_image(&file, &pattern(8, 8), 8, 8, &test_wcs(), BrightnessUnit::JyPerBeam, None, &[]).unwrap();
+        let e = check_output_file(&PathBuf::from(format!("{}.fits", deep(8, stem + 1))), true).unwrap_err();
+        assert!(e.contains("cfitsio") && e.contains("1024"), "{e}");
+        assert!(check_output_file(&PathBuf::from(format!("{}.parquet", deep(8, stem + 1))), false).is_ok());
+    }
+
+    #[test]
+    fn output_files_that_name_directories_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        for path in ["o/", "o/.", "..", "."] {
+            let e = check_output_file(Path::new(path), false).unwrap_err();
+            assert!(e.contains(&format!("\"{path}\" names a directory")), "{e}");
+        }
+        let e = check_output_file(dir.path(), false).unwrap_err();
+        assert!(e.contains("is a directory") && e.contains("obs.parquet"), "{e}");
+        assert!(check_output_file(&dir.path().join("obs.parquet"), false).is_ok());
     }
 
     fn test_wcs() -> ImageWcs {

@@ -223,6 +223,10 @@ impl JobProducts {
 
     /// Writes every product into a staging directory beside the prefix.
     pub(crate) fn stage(&self, prefix: &str, options: &WriteOptions) -> Result<Staged> {
+        // The prefix was checked with `{job}` in it; a long job id can still make the names too long.
+        if prefix.contains("{job}") {
+            crate::fits::check_output_prefix(&prefix.replace("{job}", &self.id)).map_err(|m| Error::parameter("prefix", format!("job '{}': {m}", self.id)))?;
+        }
         let inputs: Vec<&Path> = self.inputs.iter().map(PathBuf::as_path).collect();
         check_spares_inputs(prefix, &self.id, &inputs)?;
         let (dir, stem) = prefix_parts(prefix, &self.id);
@@ -386,4 +390,15 @@ fn realisation_summary(job: &Job, dynamic_range: f64) -> (Vec<f64>, serde_json::
         "uncertainty_dynamic_range": dynamic_range,
     });
     (map, summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_output_name_checks_know_the_longest_product_name() {
+        let longest = product_suffixes().into_iter().map(|s| s.len() + 1).max().unwrap();
+        assert_eq!(longest, crate::fits::LONGEST_PRODUCT_SUFFIX.len());
+    }
 }

@@ -139,6 +139,9 @@ impl PipelineSpec {
     }
 
     pub fn parse(text: &str, file: &Path, overrides: &[String]) -> Result<PipelineSpec> {
+        // A byte-order mark (Windows editors write one) is no content; serde_yaml would read it
+        // as a document before the first. It holds no newline, so line numbers are unchanged.
+        let text = text.strip_prefix('\u{feff}').unwrap_or(text);
         check_nesting(text, file)?;
         // First pass on the text itself, so syntax and type errors carry line and column.
         let mut value: Value = serde_yaml::from_str(text).map_err(|e| yaml_error(file, &e))?;
@@ -442,6 +445,22 @@ mod tests {
             assert!(err.contains("c.yaml") && err.contains("line 1") && err.contains("expected 1 to 64"), "{bad}: {err}");
         }
         assert!(PipelineSpec::parse(&text("64"), Path::new("c.yaml"), &[]).is_ok());
+    }
+
+    #[test]
+    fn a_byte_order_mark_is_no_content_and_moves_no_line() {
+        let good = "image: {size: 16}\nstages:\n  source: {kind: simulate}\n";
+        let spec = PipelineSpec::parse(&format!("\u{feff}{good}"), Path::new("bom.yaml"), &[]).unwrap();
+        assert_eq!(spec.stages.len(), 1);
+        assert_eq!(locate_top(&spec.text, "image"), Some((1, 1)));
+        // Errors at the same lines and columns as without the mark.
+        let bad = ["channel_capacity: 0\nimage: {size: 16}\nstages:\n  source: {kind: simulate}\n", "image: {size: 16}\nstages:\n  source: {kind: simulate\n"];
+        for text in bad {
+            let plain = PipelineSpec::parse(text, Path::new("bom.yaml"), &[]).unwrap_err().to_string();
+            let marked = PipelineSpec::parse(&format!("\u{feff}{text}"), Path::new("bom.yaml"), &[]).unwrap_err().to_string();
+            assert_eq!(marked, plain);
+            assert!(plain.contains("line ") && !plain.contains("more than one document"), "{plain}");
+        }
     }
 
     #[test]

@@ -41,17 +41,57 @@ pub struct ObservationSpec {
     pub seed: u64,
 }
 
+impl ObservationSpec {
+    /// Checks everything a simulation of this observation would refuse, before any sample is
+    /// made: the configurations, each track (times, declination), the frequencies, the flag
+    /// fraction, and the memory the samples need.
+    pub fn validate(&self) -> Result<()> {
+        if self.configurations.is_empty() {
+            return Err(Error::parameter("configs", "expected at least one telescope configuration"));
+        }
+        for &(config, hours) in &self.configurations {
+            let array = telescope::vla(config)?;
+            // The track first: a zero integration time would otherwise be reported as a
+            // sample count that does not fit in memory.
+            TrackSpec { dec_rad: self.dec_deg.to_radians(), hour_angle_span_h: hours, integration_s: self.integration_s }.validate()?;
+            array.check_rises(self.dec_deg.to_radians())?;
+        }
+        if self.frequencies_hz.is_empty() {
+            return Err(Error::parameter("nfreq", "expected at least one frequency"));
+        }
+        for &f in &self.frequencies_hz {
+            check_frequency(f, "frequency")?;
+        }
+        if !(0.0..1.0).contains(&self.flag_fraction) {
+            return Err(Error::parameter("flag-fraction", format!("expected a fraction in [0, 1), got {}", self.flag_fraction)));
+        }
+        check_sample_count(self)
+    }
+}
+
+/// Refuses a frequency the readers would exclude as physically impossible
+/// ([`crate::vis::FREQUENCY_RANGE_HZ`]): the data written would be unreadable.
+fn check_frequency(hz: f64, what: &str) -> Result<()> {
+    let (low, high) = crate::vis::FREQUENCY_RANGE_HZ;
+    if !(low..=high).contains(&hz) {
+        return Err(Error::parameter(
+            what,
+            format!("expected frequencies from {low:e} to {high:e} Hz (a ground-based interferometer's, which the readers accept), got {hz:e} Hz"),
+        ));
+    }
+    Ok(())
+}
+
 /// `count` frequencies spaced evenly from `lowest` to `lowest * ratio`.
 pub fn frequency_channels(lowest_hz: f64, count: usize, ratio: f64) -> Result<Vec<f64>> {
-    if !(lowest_hz > 0.0) || !lowest_hz.is_finite() {
-        return Err(Error::parameter("frequency", format!("expected a positive frequency in Hz, got {lowest_hz}")));
-    }
+    check_frequency(lowest_hz, "frequency")?;
     if count == 0 {
         return Err(Error::parameter("nfreq", "expected at least one frequency"));
     }
     if !(ratio >= 1.0) || !ratio.is_finite() {
         return Err(Error::parameter("freq-ratio", format!("expected highest/lowest frequency >= 1, got {ratio}")));
     }
+    check_frequency(lowest_hz * ratio, "freq-ratio")?;
     if count == 1 {
         return Ok(vec![lowest_hz]);
     }
@@ -127,13 +167,7 @@ fn check_sample_count(spec: &ObservationSpec) -> Result<()> {
 
 /// Earth-rotation coverage of every configuration and frequency, rotated and flagged as asked.
 pub fn sample_coverage(spec: &ObservationSpec) -> Result<Coverage> {
-    if spec.configurations.is_empty() {
-        return Err(Error::parameter("configs", "expected at least one telescope configuration"));
-    }
-    check_sample_count(spec)?;
-    if !(0.0..1.0).contains(&spec.flag_fraction) {
-        return Err(Error::parameter("flag-fraction", format!("expected a fraction in [0, 1), got {}", spec.flag_fraction)));
-    }
+    spec.validate()?;
     let mut cov = Coverage::default();
     let mut time_offset = 0.0;
     for (k, &(config, hours)) in spec.configurations.iter().enumerate() {
@@ -382,6 +416,24 @@ mod tests {
     #[test]
     fn bad_parameters_are_named() {
         assert!(frequency_channels(1e9, 2, 0.5).unwrap_err().to_string().contains("freq-ratio"));
+        // Frequencies the readers would exclude: the simulated data would be unreadable.
+        for hz in [1e15, 1e5, 0.0, f64::NAN] {
+            let e = frequency_channels(hz, 1, 1.0).unwrap_err().to_string();
+            assert!(e.contains("frequency") && e.contains("from 1e6 to 1e13 Hz"), "{e}");
+        }
+        assert!(frequency_channels(1e13, 1, 1.0).is_ok());
+        assert!(frequency_channels(1e12, 2, 100.0).unwrap_err().to_string().contains("freq-ratio"));
+        let spec = ObservationSpec { frequencies_hz: vec![1e9, 1e14], ..small_spec(1) };
+        assert!(sample_coverage(&spec).unwrap_err().to_string().contains("got 1e14 Hz"));
+        // The track's own checks come before the sample count (which a zero time makes infinite).
+        for integration_s in [0.0, -1.0, f64::NAN] {
+            let e = sample_coverage(&ObservationSpec { integration_s, ..small_spec(1) }).unwrap_err().to_string();
+            assert!(e.contains("integration time") && !e.contains("memory"), "{e}");
+        }
+        let e = sample_coverage(&ObservationSpec { configurations: vec![('c', 0.0)], ..small_spec(1) }).unwrap_err().to_string();
+        assert!(e.contains("observation time"), "{e}");
+        let e = sample_coverage(&ObservationSpec { dec_deg: -90.0, ..small_spec(1) }).unwrap_err().to_string();
+        assert!(e.contains("declination") && e.contains("-90 deg never rises"), "{e}");
         let spec = ObservationSpec { flag_fraction: 1.5, ..small_spec(1) };
         assert!(sample_coverage(&spec).unwrap_err().to_string().contains("flag-fraction"));
         let spec = ObservationSpec { configurations: vec![('x', 1.0)], ..small_spec(1) };

@@ -77,6 +77,27 @@ impl Array {
         z.atan2(x.hypot(y))
     }
 
+    /// Refuses a declination that never rises above this array's horizon: from latitude
+    /// `lat` a source rises if `dec > lat - 90` (northern site) or `dec < lat + 90` (southern).
+    /// Horizon limits are not modelled otherwise (see [`uvw_tracks`]), so such a track would
+    /// be simulated as if the Earth were transparent.
+    pub fn check_rises(&self, dec_rad: f64) -> Result<()> {
+        let lat = self.latitude_rad().to_degrees();
+        let dec = dec_rad.to_degrees();
+        let (rises, reachable) = if lat >= 0.0 {
+            (dec > lat - 90.0, format!("above {:.1} deg", lat - 90.0))
+        } else {
+            (dec < lat + 90.0, format!("below {:.1} deg", lat + 90.0))
+        };
+        if rises {
+            return Ok(());
+        }
+        Err(Error::parameter(
+            "declination",
+            format!("{dec} deg never rises above the horizon of {} (latitude {lat:.1} deg): expected a declination {reachable}", self.name),
+        ))
+    }
+
     /// Longest baseline length in metres (0 for fewer than two antennas).
     pub fn max_baseline_m(&self) -> f64 {
         let p = &self.positions_itrf;
@@ -290,6 +311,7 @@ impl UvwTrack {
 /// keep the VLA's source above the horizon.
 pub fn uvw_tracks(array: &Array, spec: &TrackSpec) -> Result<UvwTrack> {
     spec.validate()?;
+    array.check_rises(spec.dec_rad)?;
     let n_ant = array.n_antennas();
     let n_t = spec.n_times();
     let n_bl = array.n_baselines();
@@ -448,6 +470,22 @@ mod tests {
             ..spec
         };
         assert!(uvw_tracks(&a, &bad).is_err());
+    }
+
+    #[test]
+    fn declinations_that_never_rise_are_refused() {
+        let a = vla('a').unwrap();
+        let lat = a.latitude_rad().to_degrees();
+        for dec_deg in [-90.0f64, -70.0, lat - 90.0 - 0.1] {
+            let spec = TrackSpec { dec_rad: dec_deg.to_radians(), hour_angle_span_h: 1.0, integration_s: 600.0 };
+            let e = uvw_tracks(&a, &spec).unwrap_err().to_string();
+            assert!(e.contains("declination") && e.contains("never rises") && e.contains("vla-a") && e.contains("above -56"), "{e}");
+        }
+        assert!(a.check_rises((lat - 90.0 + 0.1).to_radians()).is_ok());
+        // A southern site sees the south pole, not the north one.
+        let south = Array { name: "south".into(), positions_itrf: a.positions_itrf.iter().map(|p| [p[0], p[1], -p[2]]).collect(), ..a };
+        assert!(south.check_rises(-FRAC_PI_2).is_ok());
+        assert!(south.check_rises(FRAC_PI_2).unwrap_err().to_string().contains("below 56"));
     }
 
     #[test]

@@ -68,8 +68,9 @@ impl TrainsetParams {
             return Err(Error::parameter("superresolution", format!("expected 1 <= low <= high <= 10, got {s0}..{s1}")));
         }
         let (r0, r1) = self.robust;
-        if !range_ok(self.robust, -5.0, 5.0) {
-            return Err(Error::parameter("robust", format!("expected -5 <= low <= high <= 5, got {r0}..{r1}")));
+        let (low, high) = crate::weighting::ROBUST_RANGE;
+        if !range_ok(self.robust, low, high) {
+            return Err(Error::parameter("robust", format!("expected {low} <= low <= high <= {high}, got {r0}..{r1}")));
         }
         ImageGeometry::new(self.size, 1e-6).map(|_| ())
     }

@@ -35,7 +35,10 @@ const fn step(name: &'static str, build: fn(&BuildContext<'_>) -> Result<Built>)
 
 /// Every built-in kind.
 const BUILTIN: &[KindFn] = &[
-    source("simulate", |c| Ok(Built::Source(Box::new(simulate::SimulateSource::new(c.params()?, c.image(), c.threads)?)))),
+    source("simulate", |c| {
+        let source = simulate::SimulateSource::new(c.params()?, c.image(), c.threads).map_err(|e| at_key(c, SIMULATE_KEYS, e))?;
+        Ok(Built::Source(Box::new(source)))
+    }),
     source("parquet", |c| Ok(Built::Source(Box::new(parquet::ParquetSource::new(c.params()?, c.pipeline, c.stage, c.image().size)?)))),
     source("arrow-ipc", |c| Ok(Built::Source(Box::new(arrow_ipc::ArrowIpcSource::new(c.params()?, c.pipeline, c.stage, c.image().size)?)))),
     source("arrow", |c| Ok(Built::Source(Box::new(memory::MemorySource::new(c.params()?, c)?)))),
@@ -54,7 +57,7 @@ const BUILTIN: &[KindFn] = &[
         produces: &[Product::Weights],
         consumes_also: None,
         passes_on: false,
-        build: |c| Ok(Built::Stage(Box::new(weighting::WeightingStage::new(c.params()?, c.image())?))),
+        build: |c| Ok(Built::Stage(Box::new(weighting::WeightingStage::new(c.params()?, c.image()).map_err(|e| at_key(c, &[("robust", "robust")], e))?))),
     },
     KindFn {
         name: "gridder",
@@ -117,6 +120,34 @@ const BUILTIN: &[KindFn] = &[
 /// Why the sources before stage `c` may make several jobs (a list or pattern of files, a
 /// `split_by`), if they may. Several sources feeding one writer are caught
 /// by the writer at run time, when a second job reaches a prefix already written.
+/// The stage keys of the parameters the simulation's checks name.
+const SIMULATE_KEYS: &[(&str, &str)] = &[
+    ("configs", "configurations"),
+    ("telescope configuration", "configurations"),
+    ("observation time", "hours"),
+    ("hours", "hours"),
+    ("declination", "dec_deg"),
+    ("integration time", "integration_s"),
+    ("frequency", "frequency_mhz"),
+    ("nfreq", "channels"),
+    ("freq-ratio", "frequency_ratio"),
+    ("flag-fraction", "flag_fraction"),
+    ("robust", "robust"),
+];
+
+/// A stage constructor's parameter error at the line of the stage key it is about (`keys`:
+/// the error's parameter name, the key), else as it is.
+fn at_key(c: &BuildContext<'_>, keys: &[(&str, &str)], e: crate::Error) -> crate::Error {
+    let key = match &e {
+        crate::Error::Parameter { name, .. } => keys.iter().find(|(n, _)| n == name).map(|(_, key)| *key),
+        _ => None,
+    };
+    match key {
+        Some(key) => c.error_caused(key, e),
+        None => e,
+    }
+}
+
 fn several_jobs(c: &BuildContext<'_>) -> Result<Option<String>> {
     let mut why = Vec::new();
     for p in c.upstream_params::<params::ParquetParams>()? {

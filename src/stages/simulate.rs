@@ -31,9 +31,23 @@ impl SimulateSource {
             return Err(Error::parameter("jobs", "expected at least one job"));
         }
         let weighting = config.noise_weighting.with_robust(config.robust)?;
-        frequency_channels(config.frequency_mhz * 1e6, config.channels, config.frequency_ratio)?;
+        // Before any job: what the observation of every seed would refuse.
+        observation(&config, config.seed)?.validate()?;
         Ok(SimulateSource { config, image: image.clone(), weighting, threads })
     }
+}
+
+/// The observation of the job of `seed`.
+fn observation(c: &SimulateParams, seed: u64) -> Result<ObservationSpec> {
+    Ok(ObservationSpec {
+        configurations: c.configurations.iter().copied().zip(c.hours.iter().copied()).collect(),
+        dec_deg: c.dec_deg,
+        integration_s: c.integration_s,
+        frequencies_hz: frequency_channels(c.frequency_mhz * 1e6, c.channels, c.frequency_ratio)?,
+        flag_fraction: c.flag_fraction,
+        random_rotation: true,
+        seed,
+    })
 }
 
 impl Source<Job> for SimulateSource {
@@ -45,15 +59,7 @@ impl Source<Job> for SimulateSource {
             }
             let seed = c.seed + k;
             let request = SimulationRequest {
-                observation: ObservationSpec {
-                    configurations: c.configurations.iter().copied().zip(c.hours.iter().copied()).collect(),
-                    dec_deg: c.dec_deg,
-                    integration_s: c.integration_s,
-                    frequencies_hz: frequency_channels(c.frequency_mhz * 1e6, c.channels, c.frequency_ratio)?,
-                    flag_fraction: c.flag_fraction,
-                    random_rotation: true,
-                    seed,
-                },
+                observation: observation(c, seed)?,
                 sky: SkyModel::Procedural { seed },
                 size: self.image.size,
                 pixel: self.image.pixel_scale(),
