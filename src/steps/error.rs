@@ -115,6 +115,9 @@ pub enum PluginError {
         path.display()
     )]
     NotFound { path: PathBuf, stage: String, cwd: String },
+    /// The path is a directory, a FIFO, ...: `kind` says which.
+    #[error("{}: stages.{stage}.library: {kind}, not a regular file (expected a plugin shared library)", path.display())]
+    NotAFile { path: PathBuf, stage: String, kind: &'static str },
     /// The file is not a plugin library for this machine (found by reading it, not loading it).
     #[error("{}: stages.{stage}.library", path.display())]
     Library {
