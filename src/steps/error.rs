@@ -142,6 +142,15 @@ pub enum PluginError {
         #[source]
         source: HostError,
     },
+    /// The plugin host could not be found or started, or is not a plugin host: the library is
+    /// not to blame (nothing of it ran).
+    #[error("stages.{stage}: cannot start the plugin host (isolation: process)")]
+    HostProgram {
+        path: PathBuf,
+        stage: String,
+        #[source]
+        source: HostError,
+    },
     /// A step failed: the plugin's own message, or how its host process ended.
     #[error("{}: {message}", path.display())]
     Step { path: PathBuf, message: String },
@@ -187,13 +196,17 @@ pub enum HostError {
     /// The host executable was not found ([`find_host`] says where it looked).
     #[error("{0}")]
     NotFound(String),
-    /// The system could not start the host.
-    #[error("cannot start the plugin host {}", host.display())]
+    /// The system could not start the host (`host`: its path, or `R2D2_PLUGIN_HOST=PATH`).
+    #[error("{host} could not be executed")]
     Spawn {
-        host: PathBuf,
+        host: String,
         #[source]
         source: std::io::Error,
     },
+    /// The executable started is not a working plugin host: it ended, said something else or
+    /// nothing before its greeting (`how`), with no plugin loaded yet.
+    #[error("{host} is not an r2d2 plugin host: {how}")]
+    Handshake { host: String, how: String },
     /// The system could not start the thread that reads the host's replies.
     #[error("cannot start a thread")]
     Thread(#[source] std::io::Error),

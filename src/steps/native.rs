@@ -119,7 +119,12 @@ impl NativeStep {
             ),
             Isolation::Process => Backend::Isolated(
                 HostedInstance::start(path, &config_json, image_size, config.iterations, Duration::from_secs_f64(config.timeout))
-                    .map_err(|source| PluginError::Host { path: named(), stage: key(), source })?,
+                    .map_err(|source| match source {
+                        HostError::NotFound(_) | HostError::Spawn { .. } | HostError::Handshake { .. } => {
+                            PluginError::HostProgram { path: named(), stage: key(), source }
+                        }
+                        _ => PluginError::Host { path: named(), stage: key(), source },
+                    })?,
             ),
         };
         Ok(NativeStep {
