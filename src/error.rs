@@ -199,6 +199,32 @@ pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
         .unwrap_or_else(|| "no message".to_string())
 }
 
+/// What a path that is not a regular file is, in words ("a directory", "a FIFO (named pipe)"),
+/// from its metadata: the caller never opens it (a FIFO's open blocks until a writer comes).
+pub fn file_kind(metadata: &std::fs::Metadata) -> &'static str {
+    let kind = metadata.file_type();
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if kind.is_fifo() {
+            return "a FIFO (named pipe)";
+        }
+        if kind.is_socket() {
+            return "a socket";
+        }
+        if kind.is_char_device() || kind.is_block_device() {
+            return "a device";
+        }
+    }
+    if kind.is_dir() {
+        "a directory"
+    } else if kind.is_file() {
+        "a regular file"
+    } else {
+        "not a regular file"
+    }
+}
+
 thread_local! {
     /// Set while [`catch_quietly`] runs on this thread: the panic hook then keeps the panic's
     /// location for the error message instead of printing it.

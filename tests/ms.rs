@@ -312,6 +312,110 @@ fn bad_ms_input_names_the_ms_and_column_and_writes_nothing() {
     }));
 }
 
+/// Runs python-casacore `script` (it gets the MS path as `sys.argv[1]`) on `dir/<ms>`.
+fn casacore(dir: &Path, ms: &str, script: &str) {
+    let script = format!("import sys\nimport numpy as np\nfrom casacore.tables import table\nms = sys.argv[1]\n{script}");
+    let out = Command::new("python3").args(["-c", &script, ms]).current_dir(dir).output().expect("python3 runs");
+    assert!(out.status.success(), "{}", text(&out));
+}
+
+/// An MS name, make_ms.py options, a python-casacore script run on it, r2d2 options, and
+/// words the error must contain.
+type ScriptedCase<'a> = (&'a str, &'a [&'a str], &'a str, &'a [&'a str], &'a [&'a str]);
+
+/// An MS that holds nothing to image, or a field selection that is ambiguous, gives an error
+/// saying so (issue 23): not one about data descriptions or baselines of length zero, and never
+/// an error of a thousand names. Nothing is written, the MS is unchanged.
+#[test]
+fn ms_with_nothing_to_image_or_an_ambiguous_field_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d, 2);
+    let zero_weights = "t = table(ms, readonly=False, ack=False)\nfor c in ('WEIGHT_SPECTRUM', 'WEIGHT'):\n    t.putcol(c, 0 * t.getcol(c))\nt.close()";
+    let all_flagged = "t = table(ms, readonly=False, ack=False)\nt.putcol('FLAG', np.ones_like(t.getcol('FLAG')))\nt.close()";
+    let no_rows = "t = table(ms, ack=False)\nt.query('ANTENNA1 < 0').copy(ms + '.tmp', deep=True).close()\nt.close()";
+    let one_window = "t = table(ms, ack=False)\nt.query('DATA_DESC_ID == 0').copy(ms + '.tmp', deep=True).close()\nt.close()";
+    let twins = "f = table(ms + '/FIELD', readonly=False, ack=False)\nf.putcell('NAME', 1, 'TARGET')\nf.close()";
+    let many = "f = table(ms + '/FIELD', readonly=False, ack=False)\nf.addrows(1052)\nf.putcol('NAME', ['TARGET'] + ['F%04d' % i for i in range(1, 1053)])\nf.close()";
+    let cases: &[ScriptedCase] = &[
+        ("empty.ms", &[], no_rows, &[], &["holds no rows", "main table is empty"]),
+        ("window.ms", &["--spw", "2"], one_window, &["--spw", "1"], &["holds no rows in spectral window 1", "its rows are in window 0"]),
+        ("weightless.ms", &[], zero_weights, &[], &["no usable visibilities", "flagged or have zero weight", "with zero (or negative) weight"]),
+        ("flagged.ms", &[], all_flagged, &[], &["no usable visibilities", "flagged or have zero weight", "flagged)"]),
+        ("twins.ms", &["--fields", "2"], twins, &["--field", "TARGET"], &["field 'TARGET' names 2 rows", "0 'TARGET', 1 'TARGET'", "choose one by its id"]),
+        ("many.ms", &[], many, &["--field", "NOPE"], &["field 'NOPE' matches no row", "0 'TARGET', 1 'F0001'", "11 'F0011', ... and 1041 more"]),
+    ];
+    for (ms, make, script, options, expected) in cases {
+        make_ms(d, ms, make);
+        casacore(d, ms, script);
+        // A script that copies the rows it keeps leaves the copy beside the MS.
+        if d.join(format!("{ms}.tmp")).exists() {
+            std::fs::remove_dir_all(d.join(ms)).unwrap();
+            std::fs::rename(d.join(format!("{ms}.tmp")), d.join(ms)).unwrap();
+        }
+        let digest = tree_digest(&d.join(ms));
+        for command in ["image", "dirty"] {
+            let mut args = vec![command, ms, "--size", "64", "--name", "bad"];
+            if command == "image" {
+                args.extend(["--step", "clean", "--iterations", "1", "--model-column", "MODEL_DATA"]);
+            }
+            args.extend_from_slice(options);
+            let out = r2d2(&args, d);
+            let err = stderr(&out);
+            assert!(!out.status.success(), "{ms} {command}: no error");
+            assert!(err.contains(ms), "{ms} {command}: the error names the MS: {err}");
+            for word in *expected {
+                assert!(err.contains(word), "{ms} {command}: the error says {word:?}: {err}");
+            }
+            for wrong in ["data description", "baseline longer than zero"] {
+                assert!(!err.contains(wrong), "{ms} {command}: {err}");
+            }
+            assert!(err.len() < 2000, "{ms} {command}: an error of {} bytes", err.len());
+        }
+        assert!(tree_digest(&d.join(ms)) == digest, "{ms}: the MS is unchanged");
+        assert!(!std::fs::read_dir(d).unwrap().any(|e| e.unwrap().file_name().to_string_lossy().starts_with("bad")), "{ms}: products written");
+    }
+}
+
+/// A model column that cannot be written because the MS is read-only is refused before the
+/// imaging: no products, the MS unchanged. Run as `nobody` when the tests run as root, whom
+/// permissions do not stop.
+#[cfg(unix)]
+#[test]
+fn a_read_only_ms_refuses_a_model_column_before_imaging() {
+    use std::os::unix::fs::{MetadataExt, PermissionsExt};
+    use std::os::unix::process::CommandExt;
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d, 1);
+    std::fs::create_dir(d.join("ro")).unwrap();
+    make_ms(d, "ro/obs.ms", &[]);
+    let digest = tree_digest(&d.join("ro/obs.ms"));
+    let root = std::fs::metadata(d).unwrap().uid() == 0;
+    // Products may be written where the run is; the MS and its directory may not.
+    std::fs::set_permissions(d, std::fs::Permissions::from_mode(0o777)).unwrap();
+    for path in ["ro/obs.ms", "ro"] {
+        std::fs::set_permissions(d.join(path), std::fs::Permissions::from_mode(0o555)).unwrap();
+    }
+    let mut command = Command::new(env!("CARGO_BIN_EXE_r2d2"));
+    command.args(["image", "ro/obs.ms", "--size", "64", "--step", "clean", "--iterations", "1", "--name", "ro", "--model-column", "MODEL_DATA"]).current_dir(d);
+    if root {
+        command.uid(65534).gid(65534);
+    }
+    let out = command.output().unwrap();
+    for path in ["ro", "ro/obs.ms"] {
+        std::fs::set_permissions(d.join(path), std::fs::Permissions::from_mode(0o755)).unwrap();
+    }
+    let err = stderr(&out);
+    assert!(!out.status.success(), "{err}");
+    for word in ["ro/obs.ms", "cannot write `MODEL_DATA`", "is not writable"] {
+        assert!(err.contains(word), "the error says {word:?}: {err}");
+    }
+    assert!(!err.contains("samples read"), "refused after the data were read: {err}");
+    assert!(!std::fs::read_dir(d).unwrap().any(|e| e.unwrap().file_name().to_string_lossy().starts_with("ro-")), "products written");
+    assert!(tree_digest(&d.join("ro/obs.ms")) == digest, "the MS is unchanged");
+}
+
 #[test]
 fn wsclean_images_the_ms_as_the_engine_does() {
     // WSClean (Debian package `wsclean`, installed by .ci/run; a missing one fails) on the

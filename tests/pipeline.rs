@@ -477,6 +477,25 @@ fn arrow_ipc_without_end_of_stream_is_refused_unless_allowed() {
     assert!(!stderr(&out).contains("WARN"), "{}", stderr(&out));
 }
 
+/// A second stream after the first's end-of-stream marker (two files concatenated) is refused,
+/// naming the file and the byte offset, not dropped with exit 0.
+#[test]
+fn arrow_ipc_stream_followed_by_another_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let (schema, batches) = small_table_batches(d);
+    let (stream, _) = ipc_stream(&schema, &batches);
+    std::fs::write(d.join("two.arrows"), [stream.as_slice(), stream.as_slice()].concat()).unwrap();
+    std::fs::write(d.join("two.yaml"), small_pipeline(Some(&ipc_source("two.arrows", "")))).unwrap();
+    let offset = format!("byte offset {}", stream.len());
+    let out = r2d2(&["run", "two.yaml"], d);
+    assert_fails_with(&out, "two.arrows", &["two.arrows", "end-of-stream marker", &offset, "second stream"]);
+    assert!(!d.join("out").exists(), "products written");
+    let out = r2d2(&["convert", "two.arrows", "two.parquet"], d);
+    assert_fails_with(&out, "convert", &["two.arrows", &offset]);
+    assert!(!d.join("two.parquet").exists());
+}
+
 /// SIGTERM (what a batch scheduler or `kill` sends) stops a run like Ctrl-C: at a job
 /// boundary, with an error and a non-zero exit, every job's products complete or absent, and
 /// no staging directory left behind.

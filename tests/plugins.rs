@@ -338,6 +338,93 @@ fn isolated_plugins_that_crash_exit_or_hang_fail_the_run_naming_library_stage_an
     assert!(err.contains("R2D2_PLUGIN_HOST=") && err.contains("is not a file"), "{err}");
 }
 
+/// `command`'s output, failing the test if it runs past `limit` (it is then killed).
+fn output_within(command: &mut Command, limit: std::time::Duration) -> std::process::Output {
+    let mut child = command.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped()).spawn().unwrap();
+    let began = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if began.elapsed() > limit {
+            child.kill().unwrap();
+            panic!("still running after {limit:?}: {}", stderr(&child.wait_with_output().unwrap()));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.wait_with_output().unwrap()
+}
+
+/// A FIFO or a directory given as the library is said to be one (not "no such plugin
+/// library"), at once: the FIFO is never opened, which would block.
+#[cfg(unix)]
+#[test]
+fn a_fifo_or_a_directory_as_the_library_is_not_a_regular_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    assert!(Command::new("mkfifo").arg(d.join("fifo.so")).status().unwrap().success());
+    std::fs::create_dir(d.join("dir.so")).unwrap();
+    for (name, kind) in [("fifo.so", "a FIFO (named pipe)"), ("dir.so", "a directory")] {
+        std::fs::write(d.join("p.yaml"), pipeline(&native_step(&d.join(name), 2, "{fail: none}"))).unwrap();
+        for command in ["validate", "run"] {
+            let out = output_within(Command::new(env!("CARGO_BIN_EXE_r2d2")).args([command, "p.yaml"]).current_dir(d), std::time::Duration::from_secs(60));
+            let err = stderr(&out);
+            assert_eq!(out.status.code(), Some(1), "{name} {command}: {err}");
+            for e in [name, "stages.step.library", kind, "not a regular file"] {
+                assert!(err.contains(e), "{name} {command}: '{e}' missing from: {err}");
+            }
+            assert!(!err.contains("no such plugin library"), "{name} {command}: {err}");
+        }
+    }
+}
+
+/// An R2D2_PLUGIN_HOST that is not a plugin host (it exits, cannot be executed, or starts other
+/// processes and never answers) is blamed, not the plugin; the wait for it is bounded and
+/// nothing it started is left running.
+#[cfg(unix)]
+#[test]
+fn a_bad_plugin_host_is_blamed_and_leaves_no_process_behind() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    std::fs::write(d.join("p.yaml"), pipeline(&native_step(&faulty(), 2, "{fail: none}"))).unwrap();
+    std::fs::write(d.join("text.txt"), "not a program\n").unwrap();
+    // A marker of this test's own in the command lines of the processes the scripts start.
+    let script = |name: &str, body: &str| {
+        let path = d.join(name);
+        std::fs::write(&path, format!("#!/bin/sh\n{body}\n")).unwrap();
+        std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o755)).unwrap();
+        path
+    };
+    let marker = "987.2514";
+    let hosts = [
+        (PathBuf::from("/bin/false"), "before its handshake"),
+        (d.join("text.txt"), "could not be executed"),
+        (script("exits.sh", &format!("sleep {marker} &\nexit 0")), "before its handshake"),
+        (script("hangs.sh", &format!("sleep {marker} &\nsleep {marker}")), "sent no handshake within"),
+    ];
+    for (host, how) in hosts {
+        let out = output_within(
+            Command::new(env!("CARGO_BIN_EXE_r2d2")).args(["run", "p.yaml"]).current_dir(d).env("R2D2_PLUGIN_HOST", &host),
+            std::time::Duration::from_secs(60),
+        );
+        let err = stderr(&out);
+        let name = host.display().to_string();
+        assert_eq!(out.status.code(), Some(1), "{name}: {err}");
+        for e in [&format!("R2D2_PLUGIN_HOST={name}"), "cannot start the plugin host", how] {
+            assert!(err.contains(e), "{name}: '{e}' missing from: {err}");
+        }
+        assert!(!err.contains("the plugin failed") && !err.contains("stages.step.library"), "{name}: the plugin is blamed: {err}");
+        assert!(!d.join("out").exists(), "{name}: products written");
+        // Killed processes may take a moment to go.
+        let began = std::time::Instant::now();
+        while !processes_mentioning(marker).is_empty() && began.elapsed().as_secs() < 2 {
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+        let left = processes_mentioning(marker);
+        assert!(left.is_empty(), "{name}: processes left running: {left:?}");
+    }
+}
+
 /// Processes whose command line mentions `needle` (the plugin hosts of one library).
 fn processes_mentioning(needle: &str) -> Vec<String> {
     let mut found = Vec::new();

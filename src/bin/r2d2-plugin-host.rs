@@ -56,6 +56,9 @@ fn error(out: &mut impl Write, message: &str) -> io::Result<()> {
 
 fn serve(library: PathBuf, input: &mut impl Read, out: &mut impl Write) -> io::Result<()> {
     let bad = |what: String| io::Error::new(io::ErrorKind::InvalidData, what);
+    // Before the plugin is loaded: the engine tells a failing host from a failing plugin.
+    out.write_all(&[wire::HELLO])?;
+    out.flush()?;
     if wire::read_tag(input)? != Some(wire::CREATE) {
         return Err(bad("expected a create message first".into()));
     }

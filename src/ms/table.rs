@@ -307,6 +307,9 @@ impl Layout {
     /// Reads the subtables and resolves `selection`; `used_fields` and `used_dd` are the
     /// `FIELD_ID` and `DATA_DESC_ID` values present in the main table.
     pub(crate) fn read(ms: &Path, selection: &MsSelection, used_fields: &[usize], used_dd: &[usize]) -> Result<Layout> {
+        if used_fields.is_empty() {
+            return Err(invalid(ms, "the MS holds no rows (its main table is empty): nothing to read"));
+        }
         let names = field_names(ms)?;
         let field_id = match &selection.field {
             None => match used_fields {
@@ -360,7 +363,16 @@ impl Layout {
         let telescope = telescope(ms)?;
         let windows = read_windows(ms, selection, used_dd)?;
         if windows.iter().all(Option::is_none) {
-            return Err(invalid(ms, "no data description row matches the spectral window selection"));
+            // Only a window selection can leave none: every window in use is otherwise kept.
+            let wanted = selection.spw.as_ref().map(|s| s.iter().map(usize::to_string).collect::<Vec<_>>().join(", ")).unwrap_or_default();
+            let dd_path = ms.join("DATA_DESCRIPTION");
+            let spw_of = id_column(&open_subtable(ms, "DATA_DESCRIPTION")?, &dd_path, "SPECTRAL_WINDOW_ID")?;
+            let used: std::collections::BTreeSet<i64> = used_dd.iter().filter_map(|&dd| spw_of.get(dd).copied()).collect();
+            let used = used.iter().map(i64::to_string).collect::<Vec<_>>().join(", ");
+            return Err(invalid(
+                ms,
+                format!("the MS holds no rows in spectral window {wanted} (`spw`, `--spw`): its rows are in window {used}"),
+            ));
         }
         Ok(Layout { windows, field_id, field_name, ra_deg, dec_deg, telescope })
     }

@@ -115,6 +115,9 @@ pub enum PluginError {
         path.display()
     )]
     NotFound { path: PathBuf, stage: String, cwd: String },
+    /// The path is a directory, a FIFO, ...: `kind` says which.
+    #[error("{}: stages.{stage}.library: {kind}, not a regular file (expected a plugin shared library)", path.display())]
+    NotAFile { path: PathBuf, stage: String, kind: &'static str },
     /// The file is not a plugin library for this machine (found by reading it, not loading it).
     #[error("{}: stages.{stage}.library", path.display())]
     Library {
@@ -134,6 +137,15 @@ pub enum PluginError {
     /// Starting the plugin in its host process, or creating it there, failed.
     #[error("{}: stages.{stage}.library", path.display())]
     Host {
+        path: PathBuf,
+        stage: String,
+        #[source]
+        source: HostError,
+    },
+    /// The plugin host could not be found or started, or is not a plugin host: the library is
+    /// not to blame (nothing of it ran).
+    #[error("stages.{stage}: cannot start the plugin host (isolation: process)")]
+    HostProgram {
         path: PathBuf,
         stage: String,
         #[source]
@@ -184,13 +196,17 @@ pub enum HostError {
     /// The host executable was not found ([`find_host`] says where it looked).
     #[error("{0}")]
     NotFound(String),
-    /// The system could not start the host.
-    #[error("cannot start the plugin host {}", host.display())]
+    /// The system could not start the host (`host`: its path, or `R2D2_PLUGIN_HOST=PATH`).
+    #[error("{host} could not be executed")]
     Spawn {
-        host: PathBuf,
+        host: String,
         #[source]
         source: std::io::Error,
     },
+    /// The executable started is not a working plugin host: it ended, said something else or
+    /// nothing before its greeting (`how`), with no plugin loaded yet.
+    #[error("{host} is not an r2d2 plugin host: {how}")]
+    Handshake { host: String, how: String },
     /// The system could not start the thread that reads the host's replies.
     #[error("cannot start a thread")]
     Thread(#[source] std::io::Error),

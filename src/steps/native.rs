@@ -102,9 +102,14 @@ impl NativeStep {
         };
         let path = &config.library;
         let (named, key) = (|| path.clone(), || stage.to_string());
-        if !path.is_file() {
-            let cwd = std::env::current_dir().map(|d| d.display().to_string()).unwrap_or_default();
-            return Err(PluginError::NotFound { path: named(), stage: key(), cwd }.into());
+        // From the metadata, never by opening: a FIFO's open would block.
+        match std::fs::metadata(path) {
+            Ok(m) if m.is_file() => {}
+            Ok(m) => return Err(PluginError::NotAFile { path: named(), stage: key(), kind: crate::error::file_kind(&m) }.into()),
+            Err(_) => {
+                let cwd = std::env::current_dir().map(|d| d.display().to_string()).unwrap_or_default();
+                return Err(PluginError::NotFound { path: named(), stage: key(), cwd }.into());
+            }
         }
         super::native_file::check(path).map_err(|source| PluginError::Library { path: named(), stage: key(), source })?;
         let backend = match config.isolation {
@@ -114,7 +119,12 @@ impl NativeStep {
             ),
             Isolation::Process => Backend::Isolated(
                 HostedInstance::start(path, &config_json, image_size, config.iterations, Duration::from_secs_f64(config.timeout))
-                    .map_err(|source| PluginError::Host { path: named(), stage: key(), source })?,
+                    .map_err(|source| match source {
+                        HostError::NotFound(_) | HostError::Spawn { .. } | HostError::Handshake { .. } => {
+                            PluginError::HostProgram { path: named(), stage: key(), source }
+                        }
+                        _ => PluginError::Host { path: named(), stage: key(), source },
+                    })?,
             ),
         };
         Ok(NativeStep {

@@ -23,26 +23,60 @@ pub const HOST: &str = "r2d2-plugin-host";
 /// Environment variable naming the host executable.
 pub const HOST_ENV: &str = "R2D2_PLUGIN_HOST";
 
-/// Kills host `pid` if `alive` still says it has not been reaped.
+/// Longest wait for a started host's greeting. A host sends it before loading the plugin, so
+/// only an executable that is not a plugin host (or a stopped machine) comes near it.
+const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// Kills host `pid` and its process group (whatever it started) if `alive` still says it has
+/// not been reaped.
 #[cfg(unix)]
 fn kill(pid: u32, alive: &Mutex<bool>) {
     let alive = alive.lock().unwrap_or_else(|e| e.into_inner());
     if *alive {
-        // SAFETY: kill(2) takes plain integers. The pid is a child of ours that has not been
-        // reaped (`alive` turns false, under this lock, before it is waited for), so it cannot
-        // name another process.
-        unsafe { libc::kill(pid as libc::pid_t, libc::SIGKILL) };
+        kill_group(pid);
     }
+}
+
+/// SIGKILL to the host's process group (its id is the host's pid: it was started as the
+/// group's leader). Only while the host is not reaped: until then no other group has that id.
+#[cfg(unix)]
+fn kill_group(pid: u32) {
+    // SAFETY: kill(2) takes plain integers; the callers hold the host unreaped (see above).
+    unsafe { libc::kill(-(pid as libc::pid_t), libc::SIGKILL) };
 }
 
 #[cfg(not(unix))]
 fn kill(_pid: u32, _alive: &Mutex<bool>) {}
 
+#[cfg(not(unix))]
+fn kill_group(_pid: u32) {}
+
+/// Whether child `pid` has ended, without reaping it (its pid, and so its process group's id,
+/// stays reserved until it is waited for).
+#[cfg(unix)]
+fn has_ended(child: &mut Child) -> bool {
+    // SAFETY: waitid(2) with WNOWAIT on our own child writes only into `info`.
+    unsafe {
+        let mut info: libc::siginfo_t = std::mem::zeroed();
+        let flags = libc::WEXITED | libc::WNOHANG | libc::WNOWAIT;
+        libc::waitid(libc::P_PID, child.id() as libc::id_t, &mut info, flags) == 0 && info.si_pid() != 0
+    }
+}
+
+#[cfg(not(unix))]
+fn has_ended(child: &mut Child) -> bool {
+    matches!(child.try_wait(), Ok(Some(_)))
+}
+
 /// The host executable (see the module documentation for the search order).
 pub fn find_host() -> Result<PathBuf, String> {
     if let Some(path) = std::env::var_os(HOST_ENV) {
         let path = PathBuf::from(path);
-        return if path.is_file() { Ok(path) } else { Err(format!("{HOST_ENV}={} is not a file", path.display())) };
+        return match std::fs::metadata(&path) {
+            Ok(m) if m.is_file() => Ok(path),
+            Ok(m) => Err(format!("{HOST_ENV}={} is not a file: it is {}", path.display(), crate::error::file_kind(&m))),
+            Err(e) => Err(format!("{HOST_ENV}={} is not a file ({e})", path.display())),
+        };
     }
     let name = format!("{HOST}{}", std::env::consts::EXE_SUFFIX);
     let mut places = Vec::new();
@@ -60,7 +94,17 @@ pub fn find_host() -> Result<PathBuf, String> {
     })
 }
 
+/// The host as messages name it: `R2D2_PLUGIN_HOST=PATH` when the variable chose it.
+fn host_name(host: &Path) -> String {
+    match std::env::var_os(HOST_ENV) {
+        Some(_) => format!("{HOST_ENV}={}", host.display()),
+        None => format!("the plugin host {}", host.display()),
+    }
+}
+
 enum Reply {
+    /// The host's greeting: it runs and speaks the protocol.
+    Hello,
     Ok,
     Error(String),
     Increment(Vec<f64>),
@@ -92,13 +136,12 @@ impl HostedInstance {
     /// Start the host for `library` and create the plugin there; `timeout` bounds every call.
     pub fn start(library: &Path, config_json: &str, size: usize, iterations: usize, timeout: Duration) -> Result<HostedInstance, HostError> {
         let host = find_host().map_err(HostError::NotFound)?;
-        let mut child = Command::new(&host)
-            .arg(library)
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .map_err(|source| HostError::Spawn { host: host.clone(), source })?;
+        let mut command = Command::new(&host);
+        command.arg(library).stdin(Stdio::piped()).stdout(Stdio::piped()).stderr(Stdio::inherit());
+        // A group of its own: whatever the host starts is killed with it.
+        #[cfg(unix)]
+        std::os::unix::process::CommandExt::process_group(&mut command, 0);
+        let mut child = command.spawn().map_err(|source| HostError::Spawn { host: host_name(&host), source })?;
         let alive = Arc::new(Mutex::new(true));
         let run = crate::pipeline::cancel::current();
         let kill_on_stop = run.as_ref().map(|run| {
@@ -115,6 +158,7 @@ impl HostedInstance {
                 let mut output = BufReader::with_capacity(1 << 16, output);
                 loop {
                     let reply = match wire::read_tag(&mut output) {
+                        Ok(Some(wire::HELLO)) => Reply::Hello,
                         Ok(Some(wire::OK)) => Reply::Ok,
                         Ok(Some(wire::ERROR)) => wire::read_text(&mut output).map(Reply::Error).unwrap_or(Reply::Gone),
                         Ok(Some(wire::INCREMENT)) => {
@@ -146,6 +190,7 @@ impl HostedInstance {
             run,
             _kill_on_stop: kill_on_stop,
         };
+        hosted.handshake().map_err(|how| HostError::Handshake { host: host_name(&host), how })?;
         let sent = hosted.send(|w| {
             w.write_all(&[wire::CREATE])?;
             wire::write_u64(w, size as u64)?;
@@ -161,6 +206,37 @@ impl HostedInstance {
             Reply::Error(message) => Err(HostError::Failed(message)),
             _ => Err(HostError::Failed(hosted.fail("creating the plugin", "an unexpected reply from the plugin host".into()))),
         }
+    }
+
+    /// The host's greeting, within [`HANDSHAKE_TIMEOUT`]; else how the executable failed (it
+    /// is then stopped). Nothing of the plugin has run yet: a failure here is the host's.
+    fn handshake(&mut self) -> Result<(), String> {
+        let began = Instant::now();
+        let failed = loop {
+            match self.replies.recv_timeout(Duration::from_millis(50)) {
+                Ok(Reply::Hello) => return Ok(()),
+                Ok(Reply::Gone) | Err(crossbeam_channel::RecvTimeoutError::Disconnected) => {
+                    break match self.reap(Duration::from_secs(5)) {
+                        _ if self.run.as_ref().is_some_and(RunStop::is_stopped) => "interrupted: it was stopped".to_string(),
+                        Some(status) => format!("it ended ({status}) before its handshake"),
+                        None => "it closed its output before its handshake".to_string(),
+                    };
+                }
+                Ok(_) => break "it answered the handshake with another message".to_string(),
+                Err(crossbeam_channel::RecvTimeoutError::Timeout) => {
+                    // Processes it started may hold its output open after it ended.
+                    if let Some(status) = self.reap(Duration::ZERO) {
+                        break format!("it ended ({status}) before its handshake");
+                    }
+                    if began.elapsed() >= HANDSHAKE_TIMEOUT {
+                        break format!("it sent no handshake within {} s", HANDSHAKE_TIMEOUT.as_secs());
+                    }
+                }
+            }
+        };
+        self.stop();
+        self.dead = Some(failed.clone());
+        Err(failed)
     }
 
     /// Write one message and flush; `Err` when the host's input is closed (the host is gone).
@@ -209,26 +285,31 @@ impl HostedInstance {
         loop {
             // Under `alive`'s lock: once reaped, the pid must not be signalled.
             let mut alive = self.alive.lock().unwrap_or_else(|e| e.into_inner());
-            match self.child.try_wait() {
-                Ok(Some(status)) => {
-                    *alive = false;
-                    return Some(status);
-                }
-                Ok(None) if began.elapsed() < patience => {
-                    drop(alive);
-                    std::thread::sleep(Duration::from_millis(5));
-                }
-                _ => return None,
+            if *alive && has_ended(&mut self.child) {
+                // What the host started dies with it, before its group id is given up.
+                kill_group(self.child.id());
+                let status = self.child.wait().ok();
+                *alive = false;
+                return status;
             }
+            if !*alive || began.elapsed() >= patience {
+                return None;
+            }
+            drop(alive);
+            std::thread::sleep(Duration::from_millis(5));
         }
     }
 
     /// Kill the host and reap it.
     fn stop(&mut self) {
         self.input = None;
-        let _ = self.child.kill();
-        *self.alive.lock().unwrap_or_else(|e| e.into_inner()) = false;
-        let _ = self.child.wait();
+        let mut alive = self.alive.lock().unwrap_or_else(|e| e.into_inner());
+        if *alive {
+            kill_group(self.child.id());
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+            *alive = false;
+        }
     }
 
     /// One step in the host: the increment (N x N), unchecked.

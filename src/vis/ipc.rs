@@ -53,14 +53,17 @@ impl IpcReader {
                     "this is the Arrow IPC file format, which needs a seekable file: send the stream format on standard input, or give the file's path",
                 ));
             }
-            return Self::new(source, IpcMessages::new(Box::new(reader), None), allow_truncated);
+            return Self::new(source, IpcMessages::new(Box::new(reader), None, false), allow_truncated);
         }
         let source = PathBuf::from(input);
         let file = std::fs::File::open(&source).map_err(|e| Error::io(&source, e))?;
         let length = file.metadata().map_err(|e| Error::io(&source, e))?.len();
         let mut reader = BufReader::new(file);
-        let header = if peek_is_file_format(&mut reader, &source)? { skip_file_header(&mut reader, &source)? } else { 0 };
-        Self::new(source, IpcMessages::new(Box::new(reader), Some(length.saturating_sub(header))), allow_truncated)
+        let file_format = peek_is_file_format(&mut reader, &source)?;
+        let header = if file_format { skip_file_header(&mut reader, &source)? } else { 0 };
+        let mut messages = IpcMessages::new(Box::new(reader), Some(length.saturating_sub(header)), file_format);
+        messages.offset = header;
+        Self::new(source, messages, allow_truncated)
     }
 
     fn new(source: PathBuf, mut messages: IpcMessages, allow_truncated: bool) -> Result<IpcReader> {
@@ -123,7 +126,22 @@ impl TableReader for IpcReader {
                     self.finished = true;
                     return Some(Err(Error::input(&self.source, format!("{what}: a second schema in the stream"))));
                 }
-                Ok(IpcMessage::End) => self.finished = true,
+                Ok(IpcMessage::End) => {
+                    self.finished = true;
+                    // The file format's footer follows its marker; in a stream, more bytes are
+                    // another stream (files concatenated), which would otherwise be dropped.
+                    // Standard input is not read past the marker: its sender may hold it open.
+                    let (offset, left) = (self.messages.offset, self.messages.left.unwrap_or(0));
+                    if !self.messages.file_format && left > 0 {
+                        return Some(Err(Error::input(
+                            &self.source,
+                            format!(
+                                "{left} more bytes follow the Arrow IPC end-of-stream marker, from byte offset {offset} (after row {}): a second stream appended to the first? Write one stream, or convert each separately",
+                                self.rows
+                            ),
+                        )));
+                    }
+                }
                 Ok(IpcMessage::EndOfInput) => {
                     // A sender that died between two batches leaves a stream that looks whole
                     // but for the marker: imaging it silently would pass part of an
@@ -176,12 +194,16 @@ struct IpcMessages {
     input: Box<dyn Read>,
     /// Bytes left in the input, when it is a file.
     left: Option<u64>,
+    /// Bytes of the input consumed (the file format's header included).
+    offset: u64,
+    /// The IPC file format: its footer follows the end-of-stream marker.
+    file_format: bool,
     dictionaries: std::collections::HashMap<i64, arrow::array::ArrayRef>,
 }
 
 impl IpcMessages {
-    fn new(input: Box<dyn Read>, left: Option<u64>) -> IpcMessages {
-        IpcMessages { input, left, dictionaries: Default::default() }
+    fn new(input: Box<dyn Read>, left: Option<u64>, file_format: bool) -> IpcMessages {
+        IpcMessages { input, left, offset: 0, file_format, dictionaries: Default::default() }
     }
 
     /// Reads until `buf` is full or the input ends; the number of bytes read.
@@ -198,6 +220,7 @@ impl IpcMessages {
         if let Some(left) = &mut self.left {
             *left = left.saturating_sub(got as u64);
         }
+        self.offset += got as u64;
         Ok(got)
     }
 

@@ -72,7 +72,7 @@ pub const MAX_SPLIT_PARTS: usize = 100_000;
 
 /// Reads the whole table: one part, or one per group of `split` (in group order). `split_key`
 /// names the split's YAML key (`stages.source.split_by`) in errors. `None` when `cancelled()`
-/// turned true.
+/// turned true. A table with no sample left to image is an error naming it.
 pub fn read_parts(
     reader: &mut dyn TableReader,
     split: Option<&SplitBy>,
@@ -80,6 +80,10 @@ pub fn read_parts(
     cancelled: &dyn Fn() -> bool,
 ) -> Result<Option<(Vec<Part>, IngestStats)>> {
     let Some(scan) = scan(reader, split, split_key, cancelled)? else { return Ok(None) };
+    if scan.stats.kept() == 0 {
+        // Here, before an image geometry is made of no baselines (which blamed the uv coverage).
+        return Err(Error::input(reader.source(), nothing_to_image(&scan.stats)));
+    }
     let Some(split) = split else {
         return Ok(Some((vec![Part { suffix: None, vis: scan.vis }], scan.stats)));
     };
@@ -93,6 +97,25 @@ pub fn read_parts(
         .map(|(vis, suffix)| Part { suffix: Some(suffix), vis })
         .collect();
     Ok(Some((parts, scan.stats)))
+}
+
+/// Why a table whose samples were all excluded cannot be imaged, with what excluded them.
+fn nothing_to_image(stats: &IngestStats) -> String {
+    if stats.rows == 0 {
+        return "the table holds no samples: nothing to image".into();
+    }
+    let reasons: Vec<String> = [
+        (stats.flagged, "flagged"),
+        (stats.nonpositive_weight, "with zero (or negative) weight"),
+        (stats.non_finite, "non-finite"),
+        (stats.impossible, "physically impossible"),
+    ]
+    .iter()
+    .filter(|(n, _)| *n > 0)
+    .map(|(n, why)| format!("{n} {why}"))
+    .collect();
+    let what = if stats.non_finite + stats.impossible == 0 { "are flagged or have zero weight" } else { "are excluded" };
+    format!("no usable visibilities: all {} samples {what} ({}): nothing to image", stats.rows, reasons.join(", "))
 }
 
 /// The rows (0-based, over the whole table) of each job `split` makes of the table, as

@@ -201,6 +201,8 @@ impl Instance {
 pub mod wire {
     use std::io::{self, Read, Write};
 
+    /// The host's first byte, before it loads the plugin: it is a plugin host.
+    pub const HELLO: u8 = b'H';
     pub const CREATE: u8 = b'C';
     pub const STEP: u8 = b'S';
     pub const OK: u8 = b'K';

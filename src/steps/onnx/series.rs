@@ -246,9 +246,12 @@ impl Series {
         for file in series.files.iter().flatten() {
             let size = match std::fs::metadata(file) {
                 Ok(m) if m.is_file() => m.len(),
-                found => {
-                    let source = found.err();
-                    return Err(SeriesError::MissingNetwork { path: file.clone(), series: series.name.clone(), source }.into());
+                Ok(m) => {
+                    let kind = crate::error::file_kind(&m);
+                    return Err(invalid(file, format!("network file of series '{}' is {kind}, not a regular file (expected an ONNX network)", series.name)));
+                }
+                Err(source) => {
+                    return Err(SeriesError::MissingNetwork { path: file.clone(), series: series.name.clone(), source: Some(source) }.into());
                 }
             };
             let canonical = file.canonicalize().map_err(|e| Error::io(file, e))?;
@@ -263,6 +266,10 @@ impl Series {
     }
 
     fn from_manifest(dir: &Path, path: &Path) -> Result<Series> {
+        let metadata = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
+        if !metadata.is_file() {
+            return Err(invalid(path, format!("the manifest is {}, not a regular file (expected YAML)", crate::error::file_kind(&metadata))));
+        }
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
         let de = serde_yaml::Deserializer::from_str(&text);
         let manifest: Manifest = serde_path_to_error::deserialize(de).map_err(|e| {
@@ -676,6 +683,27 @@ mod tests {
         let io = module.source().and_then(|c| c.downcast_ref::<std::io::Error>()).expect("the system's error");
         assert_eq!(io.kind(), std::io::ErrorKind::NotFound);
         assert_eq!(e.matches(&io.to_string()).count(), 1, "{e}");
+    }
+
+    /// A FIFO or a directory where a network or the manifest should be is said to be one, and
+    /// never opened (a FIFO's open would block until a writer came).
+    #[cfg(unix)]
+    #[test]
+    fn fifos_and_directories_are_not_network_files() {
+        let mkfifo = |path: &Path| assert!(std::process::Command::new("mkfifo").arg(path).status().unwrap().success());
+        let dir = tempfile::tempdir().unwrap();
+        touch(&dir.path().join("R2D2_UNet_N1.onnx"));
+        mkfifo(&dir.path().join("R2D2_UNet_N2.onnx"));
+        std::fs::create_dir(dir.path().join("R2D2_UNet_N3.onnx")).unwrap();
+        let e = Series::open(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("R2D2_UNet_N2.onnx") && e.contains("is a FIFO (named pipe), not a regular file") && !e.contains("missing"), "{e}");
+        std::fs::remove_file(dir.path().join("R2D2_UNet_N2.onnx")).unwrap();
+        touch(&dir.path().join("R2D2_UNet_N2.onnx"));
+        let e = Series::open(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("R2D2_UNet_N3.onnx") && e.contains("is a directory, not a regular file") && !e.contains("missing"), "{e}");
+        mkfifo(&dir.path().join("manifest.yaml"));
+        let e = Series::open(dir.path()).unwrap_err().to_string();
+        assert!(e.contains("manifest.yaml") && e.contains("the manifest is a FIFO (named pipe)"), "{e}");
     }
 
     /// A series `dir/s` whose manifest lists `networks`.
