@@ -530,3 +530,21 @@ fn small_address_spaces_end_in_a_memory_error() {
     }
     assert!(failures.is_empty(), "{}", failures.join("\n---\n"));
 }
+
+/// A job outside the chosen series' domain is warned about, and the warning names the shipped
+/// series whose declared domain holds it (Briggs +1: the broad VLA series).
+#[test]
+fn a_job_outside_the_series_domain_is_pointed_to_one_that_covers_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "600", "--size", "512", "--seed", "3", "--out", "obs.parquet"], d));
+    let out = r2d2(&["image", "obs.parquet", "--size", "512", "--robust", "1", "--iterations", "1", "--name", "b"], d);
+    check(&out);
+    let log = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(log.contains("series 'vla-r2d2-512' was not trained for this job") && log.contains("Briggs robust 1 is outside"), "{log}");
+    assert!(log.contains("series 'vla-r2d2-512-broad' was trained for it"), "{log}");
+    // Inside the domain there is nothing to point to.
+    let out = r2d2(&["image", "obs.parquet", "--size", "512", "--robust", "0", "--iterations", "1", "--name", "c"], d);
+    check(&out);
+    assert!(!String::from_utf8_lossy(&out.stderr).contains("was trained for it"));
+}

@@ -329,7 +329,10 @@ impl NetworkStep for OnnxStep {
             return Ok(problems);
         }
         let domain = self.series.manifest.as_ref().and_then(|m| m.validity.as_ref()).map(|v| v.summary()).unwrap_or_default();
-        let message = format!("series '{}' was not trained for this job: {} (its domain: {domain})", self.series.name, problems.join("; "));
+        let mut message = format!("series '{}' was not trained for this job: {} (its domain: {domain})", self.series.name, problems.join("; "));
+        if let Some(other) = series::covering_series(self.size, &setup, &self.series.name) {
+            message.push_str(&format!("; series '{other}' was trained for it (--step {other}, or `series: {other}`)"));
+        }
         match self.validity {
             ValidityMode::Error => Err(Error::parameter("validity", message)),
             ValidityMode::Warn => Ok(vec![format!("{message}; its image may be wrong, `validity: error` refuses such jobs")]),

@@ -486,7 +486,7 @@ impl Series {
 pub const AUTO_SERIES: &str = "auto";
 
 /// The project's own series, preferred in this order when several were trained for a size.
-pub const PROJECT_SERIES: [&str; 2] = ["vla-r2d2-512", "vla-r2d2-128"];
+pub const PROJECT_SERIES: [&str; 3] = ["vla-r2d2-512", "vla-r2d2-128", "vla-r2d2-512-broad"];
 
 /// The series for `size x size` images when none is named: among the series found in
 /// [`model_dirs`], one whose manifest lists `size` in `image_sizes` (the project's own first,
@@ -528,6 +528,25 @@ fn select_in(roots: &[PathBuf], size: usize) -> Result<(PathBuf, Option<String>)
             Err(SeriesError::NotFound { name: PathBuf::from(AUTO_SERIES), message }.into())
         }
     }
+}
+
+/// A series found in [`model_dirs`], other than `except`, trained for `size x size` images and
+/// declaring a domain that holds `setup`: what a warning about a job outside its series' domain
+/// can point to (the project's own first, then by name).
+pub fn covering_series(size: usize, setup: &ImagingSetup, except: &str) -> Option<String> {
+    let mut names: Vec<(usize, String)> = Vec::new();
+    for root in model_dirs() {
+        for (_, series) in discover(&root) {
+            let Ok(series) = series else { continue };
+            let declares = series.manifest.as_ref().is_some_and(|m| m.validity.is_some());
+            if series.name != except && !series.is_empty() && declares && series.image_sizes.contains(&size) && series.validity_problems(setup).is_empty() {
+                let rank = PROJECT_SERIES.iter().position(|p| *p == series.name).unwrap_or(PROJECT_SERIES.len());
+                names.push((rank, series.name));
+            }
+        }
+    }
+    names.sort();
+    names.into_iter().next().map(|(_, name)| name)
 }
 
 /// The series directory for a step's `series` value and image size: [`select_for_size`] for
