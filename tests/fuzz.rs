@@ -164,14 +164,18 @@ fn mutated_inputs_end_in_success_or_a_clean_error() {
     let from_obs = "    kind: parquet\n    files: ../obs.parquet\n";
     let series = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/vla-r2d2-128");
     let manifest_pipeline = pipeline(from_obs, "    kind: onnx\n    series: series\n").replace(&format!("size: {SIZE}"), "size: 128");
-    // The MS of the observation, and the tiny analytic ONNX series.
-    let ms = std::process::Command::new("python3")
-        .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/make_ms.py"))
-        .args(["obs.parquet", "obs.ms"])
-        .current_dir(d)
-        .output()
-        .expect("python3 runs (a test requirement)");
-    assert!(ms.status.success(), "tests/make_ms.py failed (pip install -r tests/requirements.txt): {}", stderr(&ms));
+    // The MS of the observation (as CASA lays it out, and as DP3 does: IncrementalStMan and
+    // TiledColumnStMan), and the tiny analytic ONNX series.
+    for (out, options) in [("obs.ms", &[][..]), ("dp3.ms", &["--stman", "dp3"][..])] {
+        let ms = std::process::Command::new("python3")
+            .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/make_ms.py"))
+            .args(["obs.parquet", out])
+            .args(options)
+            .current_dir(d)
+            .output()
+            .expect("python3 runs (a test requirement)");
+        assert!(ms.status.success(), "tests/make_ms.py failed (pip install -r tests/requirements.txt): {}", stderr(&ms));
+    }
     common::make_test_models(&d.join("models"), 0.5);
     let s = |v: &[&str]| v.iter().map(|a| a.to_string()).collect::<Vec<_>>();
     let file = |name: &str, bytes: Vec<u8>| vec![(name.to_string(), bytes)];
@@ -188,6 +192,7 @@ fn mutated_inputs_end_in_success_or_a_clean_error() {
     series_files.extend(tree(&series, &series).into_iter().filter(|(n, _)| n.ends_with(".onnx")).map(|(n, b)| (format!("series/{n}"), b)));
     series_files.push(("manifest.yaml".into(), manifest_pipeline.into_bytes()));
     let ms_files: Vec<(String, Vec<u8>)> = tree(&d.join("obs.ms"), d).into_iter().map(|(n, b)| (n.replacen("obs.ms", "in.ms", 1), b)).collect();
+    let dp3_files: Vec<(String, Vec<u8>)> = tree(&d.join("dp3.ms"), d).into_iter().map(|(n, b)| (n.replacen("dp3.ms", "in.ms", 1), b)).collect();
     let networks = onnx_series(false, "auto").iter().filter(|(n, _)| n.ends_with(".onnx")).count();
     let kinds = [
         Kind { name: "parquet", files: file("in.parquet", std::fs::read(&obs).unwrap()), mutable: 1, args: image("in.parquet"), names: "in.parquet" },
@@ -211,6 +216,13 @@ fn mutated_inputs_end_in_success_or_a_clean_error() {
             name: "measurement-set",
             mutable: ms_files.len(),
             files: ms_files,
+            args: s(&["dirty", "in.ms", "--size", &SIZE.to_string(), "--name", "out/x"]),
+            names: "in.ms",
+        },
+        Kind {
+            name: "measurement-set-dp3",
+            mutable: dp3_files.len(),
+            files: dp3_files,
             args: s(&["dirty", "in.ms", "--size", &SIZE.to_string(), "--name", "out/x"]),
             names: "in.ms",
         },

@@ -685,7 +685,7 @@ fn wide_fields_image_and_predict_as_wsclean_with_the_w_term() {
 /// sized by a damaged count, as casacure made before its vendored patch) fails the whole test
 /// binary. Every word of each file's first 512 bytes (headers and their counts) and one word in
 /// 8 after them, at an offset drawn afresh per run (`R2D2_HEADER_SWEEP_SEED` repeats one;
-/// `R2D2_HEADER_SWEEP=full` takes every word, about 20 minutes).
+/// `R2D2_HEADER_SWEEP=full` takes every word: some minutes).
 #[test]
 fn damaged_table_headers_fail_cleanly() {
     use r2d2_imaging::vis::{read_table, OpenOptions};

@@ -465,6 +465,22 @@ impl TsmFile {
                 .map_err(|e| TsmError::FileIo(crate::datafile::FileIoError::new(&path, e)))?;
             tile_files.push((f, buf));
         }
+        // r2d2 patch: a damaged cube shape must not size the gather plan (one entry per line
+        // of a cell, which aborted on an 8 GiB reservation): a cell cannot hold more elements
+        // than its tile file has bits.
+        let full_cell = header.root_type == "TiledCellStMan";
+        for cube in &header.cubes {
+            let nrdim = cube.nrdim.max(0) as usize;
+            let cut = if full_cell { nrdim } else { nrdim.saturating_sub(1) };
+            let elements = cube.cube_shape.iter().take(cut).try_fold(1u64, |n, &d| n.checked_mul(u64::try_from(d).ok()?));
+            let bits = tile_files
+                .iter()
+                .find(|(s, _)| *s == cube.file_seq_nr)
+                .map_or(u64::from(u32::MAX), |(_, b)| (b.len() as u64).saturating_mul(8)); // no file: a table without rows
+            if elements.is_none_or(|n| n > bits.max(1)) {
+                return Err(TsmError::BadGeometry { cube_shape: cube.cube_shape.clone(), tile_shape: cube.tile_shape.clone() });
+            }
+        }
         Ok(TsmFile::assemble(header, tile_files, table_big_endian))
     }
 
