@@ -240,11 +240,12 @@ fn image_command_runs_the_default_pipeline() {
     }
     let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("cl/obs-metrics.json")).unwrap()).unwrap();
     assert!(v["iterations"][1]["logsnr"].is_number());
-    // A network series over the same prefix makes no restored image: CLEAN's goes, rather
-    // than stand beside the new products as if it were theirs.
+    // A network series over the same prefix restores its own model: CLEAN's restored image is
+    // replaced, not left beside the new products as if it were theirs.
+    let clean_image = std::fs::read(d.join("cl/obs-image.fits")).unwrap();
     check(&r2d2(&["image", "obs.parquet", "--size", "64", "--name", "cl/obs"], d));
-    assert!(!d.join("cl/obs-image.fits").exists() && !d.join("cl/obs-image.png").exists());
-    assert!(d.join("cl/obs-model.fits").exists());
+    assert!(d.join("cl/obs-image.png").exists() && d.join("cl/obs-model.fits").exists());
+    assert_ne!(std::fs::read(d.join("cl/obs-image.fits")).unwrap(), clean_image);
 
     // A series name that is nowhere says where it looked.
     let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "nosuch", "--name", "x"], d);

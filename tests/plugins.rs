@@ -134,8 +134,8 @@ fn clean_rust_plugin_and_c_plugin_run_from_yaml_alone_and_the_plugin_runs_projec
     let ratios: Vec<f64> = metrics["iterations"].as_array().unwrap().iter().map(|m| m["residual_ratio"].as_f64().unwrap()).collect();
     assert_eq!(ratios.len(), iterations);
     assert!(ratios.windows(2).all(|w| w[1] < w[0]), "Landweber with gain 1/||D|| must reduce the residual: {ratios:?}");
-    // An R2D2 model is the image: no restored product for a native step.
-    assert!(!d.join("out-rust/obs-image.fits").exists());
+    // A native step's model is restored too (model at the beam plus residual).
+    assert!(d.join("out-rust/obs-image.fits").exists());
 
     // The C plugin, built against the header alone, computes the same numbers.
     assert_eq!(product("c", "model"), model, "C and Rust plugins disagree");

@@ -92,11 +92,14 @@ def split(obs: Observation, column: str, window: Optional[float] = None, id: Opt
     return [Job(f"{name}-{suffix}", table.take(rows)) for suffix, rows in parts]
 
 
-def jobs(observations: Union[Sequence[Observation], Mapping[str, Observation]], split_by: Optional[Mapping[str, Any]] = None) -> list[Job]:
+def jobs(observations: Union[Observation, Sequence[Observation], Mapping[str, Observation]], split_by: Optional[Mapping[str, Any]] = None) -> list[Job]:
     """The jobs of a list of observations (ids from file names) or a mapping id -> observation,
     each one job, or each split by ``split_by`` (``{"column": "frequency"}``,
     ``{"column": "time", "window": 600}``). Repeated ids are refused: their products would
-    overwrite each other."""
+    overwrite each other. A single observation (a path or a table) is one job: a string is
+    not taken for a list of its characters."""
+    if isinstance(observations, (str, os.PathLike, pa.Table)):
+        observations = [observations]
     items = list(observations.items()) if isinstance(observations, Mapping) else [(_stem(o, i), o) for i, o in enumerate(observations)]
     if split_by is None:
         out = [Job(name, os.fspath(obs) if isinstance(obs, os.PathLike) else obs) for name, obs in items]

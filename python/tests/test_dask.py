@@ -98,3 +98,14 @@ def test_a_failed_job_raises_the_engines_error(client, observations, tmp_path):
 def test_prefix_needs_the_job_placeholder(client, observations):
     with pytest.raises(ValueError, match="placeholder"):
         image_many(client, observations, prefix="out/same", **PARAMS)
+
+
+def test_a_single_path_or_table_is_one_job(tmp_path):
+    # A string is one observation, not a list of characters ("Failed to open local file 'o'").
+    (one,) = jobs(str(tmp_path / "obs.parquet"))
+    assert one.id == "obs"
+    (one,) = jobs(tmp_path / "obs.parquet")
+    assert one.id == "obs"
+    import pyarrow as pa
+    (one,) = jobs(pa.table({"u": [0.0]}))
+    assert one.id == "table0"

@@ -209,7 +209,7 @@ pub fn check_output_file(path: &Path, fits: bool) -> std::result::Result<(), Str
 /// Nothing is ever left half-written at `path`: the file is written to a temporary
 /// sibling and renamed over the target, and the temporary is removed on failure.
 /// Header floats are written by cfitsio with 15 significant digits (as in WSClean's
-/// files); fitsio also adds `EXTNAME = '_PRIMARY'` to the primary HDU.
+/// files); the `EXTNAME = '_PRIMARY'` fitsio adds to the primary HDU is removed.
 #[allow(clippy::too_many_arguments)]
 pub fn write_image(
     path: &Path,
@@ -345,6 +345,23 @@ struct Header<'a> {
 }
 
 /// Creates the FITS file at `file_name` (a cfitsio file name) and writes header and pixels.
+/// fitsio names the primary HDU `EXTNAME = '_PRIMARY'` (its own marker); WSClean's files
+/// carry no EXTNAME there, and viewers show it as if it were the image's name.
+fn remove_primary_extname(file: &mut FitsFile) -> fitsio::errors::Result<()> {
+    let mut status = 0;
+    // SAFETY: `file` is open and exclusively borrowed for the call, so its raw pointer is valid
+    // and used by nothing else; the key name is a NUL-terminated literal; cfitsio reports
+    // through `status` only.
+    unsafe {
+        fitsio::sys::ffdkey(file.as_raw(), c"EXTNAME".as_ptr(), &mut status);
+    }
+    // 202: no such keyword (a cfitsio that does not add it); nothing to remove.
+    match status {
+        0 | 202 => Ok(()),
+        _ => Err(fitsio::errors::Error::Message(format!("cfitsio status {status} removing EXTNAME"))),
+    }
+}
+
 fn write_fits(file_name: &str, pixels: &[f32], h: &Header) -> fitsio::errors::Result<()> {
     // fitsio takes the shape slowest axis first: [STOKES, FREQ, Dec, RA].
     let dimensions: Vec<usize> =
@@ -352,6 +369,7 @@ fn write_fits(file_name: &str, pixels: &[f32], h: &Header) -> fitsio::errors::Re
     let description = ImageDescription { data_type: ImageType::Float, dimensions: &dimensions };
     let mut file = FitsFile::create(file_name).with_custom_primary(&description).overwrite().open()?;
     let hdu = file.primary_hdu()?;
+    remove_primary_extname(&mut file)?;
     let f = &mut file;
 
     hdu.write_key(f, "BUNIT", h.unit.as_fits())?;
@@ -962,6 +980,20 @@ mod tests {
         assert_eq!(hdu.read_key::<String>(&mut f, "OBJECT").unwrap(), "3C 286");
         assert_eq!(hdu.read_key::<f64>(&mut f, "BMAJ").unwrap(), 2e-3);
         assert_eq!(hdu.read_key::<String>(&mut f, "RADESYS").unwrap(), "FK5");
+    }
+
+    #[test]
+    fn the_primary_hdu_carries_no_extname() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("image.fits");
+        write_image(&path, &pattern(8, 8), 8, 8, &test_wcs(), BrightnessUnit::JyPerBeam, None, &[]).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        // The header: 80-character cards up to END.
+        let cards: Vec<&[u8]> = bytes.chunks(80).take_while(|c| !c.starts_with(b"END ")).collect();
+        assert!(cards.iter().any(|c| c.starts_with(b"BUNIT ")), "the header was not read");
+        assert!(!cards.iter().any(|c| c.starts_with(b"EXTNAME")), "EXTNAME in the primary header");
+        // The file still reads, with its WCS.
+        assert_wcs_close(&read_image(&path).unwrap().wcs.unwrap(), &test_wcs());
     }
 
     #[test]

@@ -74,7 +74,4 @@ impl NetworkStep for CleanStep {
         Ok(input.model.iter().zip(&result.components).map(|(x, c)| x + c).collect())
     }
 
-    fn restores(&self) -> bool {
-        true
-    }
 }

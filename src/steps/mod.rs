@@ -66,9 +66,11 @@ pub trait NetworkStep: Send {
     }
     /// Iteration `iteration` (1-based): the new estimate `x_i`.
     fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>>;
-    /// Whether the products include a restored image (model convolved with the beam plus
-    /// residual), as CLEAN users expect; R2D2's model is the image.
+    /// Whether the products include a restored image (`-image.fits`: the model convolved with
+    /// the fitted restoring beam plus the residual, Jy/beam), as WSClean users and the tools
+    /// that read WSClean's products expect. Every built-in step restores; an R2D2 model stays
+    /// the image in Jy/pixel (`-model.fits`), the restored one is its view at the beam.
     fn restores(&self) -> bool {
-        false
+        true
     }
 }
