@@ -43,17 +43,18 @@ pub fn memory_budget() -> MemoryBudget {
     // that a size it cannot hold is an error about memory, not an aborted allocation.
     match address_space_left() {
         Some(left) if left < available.bytes => MemoryBudget {
-            bytes: left.saturating_sub(ADDRESS_SPACE_RESERVE),
+            bytes: left,
             origin: "the address-space limit (ulimit -v) less what the process maps and a reserve for its threads and inference runtime",
         },
         _ => available,
     }
 }
 
-/// Address space a run maps after its sizes are checked, whatever its images: thread stacks
+/// Address space a run maps after its first size check, whatever its images: thread stacks
 /// (each reserves its full stack under `ulimit -v`) and ONNX Runtime's library, weights and
 /// threads. Without it a limit that passes the check aborts later, in an allocation no error
-/// can come back from, or inside the runtime.
+/// can come back from, or inside the runtime. Counted once: what the process maps after the
+/// first check is taken from it.
 pub const ADDRESS_SPACE_RESERVE: u64 = 896 << 20;
 
 /// `RLIMIT_AS` less the process's current virtual size, when a limit is set.
@@ -66,7 +67,12 @@ fn address_space_left() -> Option<u64> {
     }
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
     let kib: u64 = status.lines().find(|l| l.starts_with("VmSize:"))?.split_whitespace().nth(1)?.parse().ok()?;
-    Some((limit.rlim_cur as u64).saturating_sub(kib.saturating_mul(1024)))
+    let mapped = kib.saturating_mul(1024);
+    // The process will map at least its size at the first check plus the reserve; what it has
+    // mapped since counts against the reserve, not on top of it.
+    static FIRST: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
+    let expected = mapped.max(FIRST.get_or_init(|| mapped).saturating_add(ADDRESS_SPACE_RESERVE));
+    Some((limit.rlim_cur as u64).saturating_sub(expected))
 }
 
 #[cfg(not(target_os = "linux"))]

@@ -515,7 +515,7 @@ fn small_address_spaces_end_in_a_memory_error() {
     check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "128", "--seed", "3", "--out", "obs.parquet"], d));
     check(&r2d2(&["convert", "obs.parquet", "obs.ms"], d));
     let mut failures = Vec::new();
-    for limit in [200_000, 300_000, 400_000, 600_000, 800_000, 1_000_000] {
+    for limit in [200_000, 300_000, 400_000, 600_000, 800_000, 1_000_000, 1_200_000, 1_500_000] {
         for (input, step) in [("obs.parquet", "auto"), ("obs.ms", "auto"), ("obs.parquet", "clean")] {
             let script = format!("ulimit -v {limit}; timeout -s KILL 120 \"$R2D2\" image {input} --size 128 --step {step} --name out-{limit}/x; echo status $?");
             let out = Command::new("sh").arg("-c").arg(&script).env("R2D2", env!("CARGO_BIN_EXE_r2d2")).current_dir(d).output().unwrap();
