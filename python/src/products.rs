@@ -140,7 +140,8 @@ impl Products {
     fn residual(&self, py: Python<'_>) -> Option<Py<PyArray2<f32>>> {
         self.array(py, 3)
     }
-    /// CLEAN's restored image; None for other steps.
+    /// The restored image (the model convolved with the fitted beam plus the residual,
+    /// Jy/beam); None where no step ran (a dirty image) or no beam could be fitted.
     #[getter]
     fn image(&self, py: Python<'_>) -> Option<Py<PyArray2<f32>>> {
         self.array(py, 4)
