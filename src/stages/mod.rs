@@ -117,9 +117,6 @@ const BUILTIN: &[KindFn] = &[
     },
 ];
 
-/// Why the sources before stage `c` may make several jobs (a list or pattern of files, a
-/// `split_by`), if they may. Several sources feeding one writer are caught
-/// by the writer at run time, when a second job reaches a prefix already written.
 /// The stage keys of the parameters the simulation's checks name.
 const SIMULATE_KEYS: &[(&str, &str)] = &[
     ("configs", "configurations"),
@@ -148,6 +145,9 @@ fn at_key(c: &BuildContext<'_>, keys: &[(&str, &str)], e: crate::Error) -> crate
     }
 }
 
+/// Why the sources before stage `c` may make several jobs (a list or pattern of files, a
+/// `split_by`), if they may. Several sources feeding one writer are caught
+/// by the writer at run time, when a second job reaches a prefix already written.
 fn several_jobs(c: &BuildContext<'_>) -> Result<Option<String>> {
     let mut why = Vec::new();
     for p in c.upstream_params::<params::ParquetParams>()? {

@@ -496,7 +496,9 @@ pub fn select_for_size(size: usize) -> Result<(PathBuf, Option<String>)> {
     select_in(&model_dirs(), size)
 }
 
-fn select_in(roots: &[PathBuf], size: usize) -> Result<(PathBuf, Option<String>)> {
+/// The usable series under `roots` (the first of each name), the project's own first in
+/// [`PROJECT_SERIES`] order, then by name.
+fn ranked_series(roots: &[PathBuf]) -> Vec<(PathBuf, Series)> {
     let mut found: Vec<(PathBuf, Series)> = Vec::new();
     for root in roots {
         for (dir, series) in discover(root) {
@@ -508,6 +510,11 @@ fn select_in(roots: &[PathBuf], size: usize) -> Result<(PathBuf, Option<String>)
     }
     let rank = |s: &Series| (PROJECT_SERIES.iter().position(|p| *p == s.name).unwrap_or(PROJECT_SERIES.len()), s.name.clone());
     found.sort_by_key(|(_, s)| rank(s));
+    found
+}
+
+fn select_in(roots: &[PathBuf], size: usize) -> Result<(PathBuf, Option<String>)> {
+    let found = ranked_series(roots);
     if let Some((dir, s)) = found.iter().find(|(_, s)| s.image_sizes.contains(&size)) {
         log::info!("series '{}' chosen for {size} x {size} (trained for {:?})", s.name, s.image_sizes);
         return Ok((dir.clone(), None));
@@ -534,19 +541,11 @@ fn select_in(roots: &[PathBuf], size: usize) -> Result<(PathBuf, Option<String>)
 /// declaring a domain that holds `setup`: what a warning about a job outside its series' domain
 /// can point to (the project's own first, then by name).
 pub fn covering_series(size: usize, setup: &ImagingSetup, except: &str) -> Option<String> {
-    let mut names: Vec<(usize, String)> = Vec::new();
-    for root in model_dirs() {
-        for (_, series) in discover(&root) {
-            let Ok(series) = series else { continue };
-            let declares = series.manifest.as_ref().is_some_and(|m| m.validity.is_some());
-            if series.name != except && !series.is_empty() && declares && series.image_sizes.contains(&size) && series.validity_problems(setup).is_empty() {
-                let rank = PROJECT_SERIES.iter().position(|p| *p == series.name).unwrap_or(PROJECT_SERIES.len());
-                names.push((rank, series.name));
-            }
-        }
-    }
-    names.sort();
-    names.into_iter().next().map(|(_, name)| name)
+    ranked_series(&model_dirs()).into_iter().map(|(_, s)| s).find_map(|s| {
+        let declares = s.manifest.as_ref().is_some_and(|m| m.validity.is_some());
+        let covers = s.name != except && declares && s.image_sizes.contains(&size) && s.validity_problems(setup).is_empty();
+        covers.then_some(s.name)
+    })
 }
 
 /// The series directory for a step's `series` value and image size: [`select_for_size`] for
