@@ -26,6 +26,7 @@ vla-r2d2-128)
     make_once "$D/val" "$R2D2" trainset --procedural 48 --seed 500000 $SIM
     make_once "$D/test" "$R2D2" trainset --procedural 32 --seed 900000 $SIM --parquet
     TRAIN=("$D/train")
+    VAL=("$D/val")
     ARGS="--epochs-first 16 --epochs 6 --batch 8 --bf16 --max-networks 12"
     ;;
 vla-r2d2-512)
@@ -40,6 +41,7 @@ vla-r2d2-512)
     make_once "$D/val" "$R2D2" trainset --procedural 16 --seed 500000 $SIM
     make_once "$D/test" "$R2D2" trainset --procedural 12 --seed 900000 $SIM --parquet
     TRAIN=("$D/train-radio" "$D/train-images")
+    VAL=("$D/val")
     ARGS="--norm none --crop 128 --crops-per-sample 4 --epochs-first 10 --epochs 4 --batch 8 --max-networks 15"
     ;;
 vla-r2d2-512-broad)
@@ -47,7 +49,8 @@ vla-r2d2-512-broad)
     # integration times drawn per sample (tracks and DR as in vla-r2d2-512), and skies with
     # extended emission (textured lobes, spiral disks, halos and relics) beside the classic
     # procedural ones and the reworked images. Seeds: training 1000.. (images), 100000..
-    # (classic), 200000.. (extended); validation 510000.. (extended skies); test 900000.. and
+    # (classic), 200000.. (extended); validation 500000.. (classic) and 510000.. (extended);
+    # test 900000.. and
     # 910000..: disjoint from each other.
     D="$DATA/512-broad"
     SIM="--size 512 --epsilon 1e-5 --superresolution 1.5..2.5 --robust=-1..1 --integration-s 200..450"
@@ -56,10 +59,12 @@ vla-r2d2-512-broad)
     make_once "$D/train-images" "$R2D2" trainset --truths "$D/truths-train" --source-dr 50 --seed 1000 $SIM
     make_once "$D/train-radio" "$R2D2" trainset --procedural 80 --seed 100000 $SIM
     make_once "$D/train-extended" "$R2D2" trainset --procedural 120 --sky extended --seed 200000 $SIM
-    make_once "$D/val" "$R2D2" trainset --procedural 16 --sky extended --seed 510000 $SIM
+    make_once "$D/val-classic" "$R2D2" trainset --procedural 8 --seed 500000 $SIM
+    make_once "$D/val-extended" "$R2D2" trainset --procedural 8 --sky extended --seed 510000 $SIM
     make_once "$D/test" "$R2D2" trainset --procedural 12 --seed 900000 $SIM --parquet
     make_once "$D/test-extended" "$R2D2" trainset --procedural 12 --sky extended --seed 910000 $SIM --parquet
     TRAIN=("$D/train-radio" "$D/train-extended" "$D/train-images")
+    VAL=("$D/val-classic" "$D/val-extended")
     # --loss-projection none: with the reference's clipped loss network 1 died on these data
     # (outputs negative everywhere after the first epochs, no gradient, validation 0 dB).
     ARGS="--norm none --crop 128 --crops-per-sample 4 --epochs-first 10 --epochs 4 --batch 8 --max-networks 15 --loss-projection none"
@@ -68,6 +73,6 @@ vla-r2d2-512-broad)
 esac
 RESUME=""
 [ -f "$SERIES/manifest.yaml" ] && RESUME="--resume"
-$RUN python3 training/train.py --train "${TRAIN[@]}" --val "$D/val" --series "$SERIES" --work "$D/work" \
+$RUN python3 training/train.py --train "${TRAIN[@]}" --val "${VAL[@]}" --series "$SERIES" --work "$D/work" \
     --seed 1 --threads 2 $ARGS $RESUME ${TRAIN_ARGS:-}
 $RUN python3 training/evaluate.py --series "$SERIES" --test "$D/test" --r2d2 "$R2D2" --out "$D/eval" --update-manifest

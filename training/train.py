@@ -52,7 +52,7 @@ def replay_key(args, networks):
     for k in range(1, networks + 1):
         with open(os.path.join(args.series, series.weights_name(k)), "rb") as f:
             h.update(hashlib.sha256(f.read()).digest())
-    for d in list(args.train) + [args.val]:
+    for d in list(args.train) + list(args.val):
         h.update(os.path.abspath(d).encode())
     h.update(repr((args.limit_train, args.limit_val, networks)).encode())
     return h.hexdigest()
@@ -152,7 +152,7 @@ def train_network(i, model, train, x, r, active, args, work, device):
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--train", required=True, nargs="+", help="training set directories (r2d2 trainset), concatenated")
-    p.add_argument("--val", required=True, help="validation set directory (r2d2 trainset)")
+    p.add_argument("--val", required=True, nargs="+", help="validation set directories (r2d2 trainset), concatenated")
     p.add_argument("--series", required=True, help="series directory, e.g. models/vla-r2d2-128")
     p.add_argument("--name", default=None, help="series name (default: directory name)")
     p.add_argument("--work", required=True, help="directory for per-epoch checkpoints")
@@ -219,7 +219,7 @@ def main(argv=None):
             "crops": {"side": args.crop, "per_sample_and_epoch": args.crops_per_sample} if args.crop else None,
             "device": device.type,
             "train_data": {"path": [common.repo_relative(t) for t in args.train], "samples": len(train), **common.portable(train.meta)},
-            "validation_data": {"path": common.repo_relative(args.val), "samples": len(val), **common.portable(val.meta)},
+            "validation_data": {"path": [common.repo_relative(v) for v in args.val], "samples": len(val), **common.portable(val.meta)},
             "networks": [],
         }
         validity = series.domain(train.meta, size)

@@ -9,8 +9,12 @@
 //! target dynamic range, as the reference does with its training images (Terris et al. 2022):
 //! the linear fading of an envelope becomes emission spanning decades of brightness, which is
 //! where a series trained only on compact sources and Gaussian blobs leaves stripes and holes.
-//! Compact sources are added after the exponentiation, with the Euclidean power law on
-//! `[1/DR, 1]` of the classic skies.
+//! The objects' compact parts (cores, hotspots, jets, bulges, clumps, embedded galaxies) are
+//! drawn apart and added after the exponentiation, their brightest at a random fraction
+//! ([`COMPACT_TO_DIFFUSE`]) of the diffuse peak: drawn before it, a one-pixel core became the
+//! image's peak and the exponentiation pushed the lobes to ~1e-3 of it, so most of the flux sat
+//! in one or two pixels and a series was selected on delta recovery. Background compact
+//! sources follow, with the Euclidean power law on `[1/DR, 1]` of the classic skies.
 //!
 //! Like `sky`, a sky is a pure function of its parameters, has peak 1, no negative pixels, and
 //! an exactly empty border outside the support box.
@@ -26,6 +30,9 @@ use std::f64::consts::PI;
 /// Dynamic range of the linear drawing before exponentiation: envelopes are drawn down to
 /// this fraction of the peak.
 pub const SOURCE_DR: f64 = 200.0;
+
+/// Range of the brightest compact part's peak relative to the exponentiated diffuse peak.
+const COMPACT_TO_DIFFUSE: std::ops::Range<f64> = 0.2..1.5;
 
 /// Random stream of extended skies (the classic skies use stream 0 of the same seed).
 const STREAM_EXTENDED: u64 = 21;
@@ -49,6 +56,7 @@ pub fn extended_sky(p: &SkyParams) -> Result<Vec<f64>> {
 
     let texture = filaments(&mut rng, n);
     let mut img = vec![0.0; n * n];
+    let mut compact = Canvas::new(n, 1e-4);
     // One dominant object, then up to two smaller ones of lower brightness.
     let objects = rng.gen_range(1..=3);
     for k in 0..objects {
@@ -58,10 +66,10 @@ pub fn extended_sky(p: &SkyParams) -> Result<Vec<f64>> {
         let cy = uniform_in(&mut rng, inner_lo + 0.5 * extent, inner_hi - 0.5 * extent);
         let shape = Placement { cx, cy, extent, amp, theta: rng.gen_range(0.0..PI) };
         match rng.gen_range(0..4) {
-            0 => fr2_galaxy(&mut img, &mut rng, n, &shape, &texture),
-            1 => fr1_galaxy(&mut img, &mut rng, n, &shape, &texture),
-            2 => spiral_disk(&mut img, &mut rng, n, &shape, &texture),
-            _ => halo_and_relic(&mut img, &mut rng, n, &shape, &texture),
+            0 => fr2_galaxy(&mut img, &mut compact, &mut rng, n, &shape, &texture),
+            1 => fr1_galaxy(&mut img, &mut compact, &mut rng, n, &shape, &texture),
+            2 => spiral_disk(&mut img, &mut compact, &mut rng, n, &shape, &texture),
+            _ => halo_and_relic(&mut img, &mut compact, &mut rng, n, &shape, &texture),
         }
     }
     let peak = img.iter().copied().fold(0.0, f64::max);
@@ -70,6 +78,13 @@ pub fn extended_sky(p: &SkyParams) -> Result<Vec<f64>> {
         *v = if *v / peak < floor { 0.0 } else { *v / peak };
     }
     exponentiate(&mut img, SOURCE_DR, dr)?;
+    let compact_peak = compact.data.iter().copied().fold(0.0, f64::max);
+    if compact_peak > 0.0 {
+        let scale = rng.gen_range(COMPACT_TO_DIFFUSE) / compact_peak;
+        for (v, c) in img.iter_mut().zip(&compact.data) {
+            *v += scale * c;
+        }
+    }
 
     // Compact sources: fewer than in the classic skies, so the extended emission dominates.
     let mut canvas = Canvas::new(n, 0.01 / dr);
@@ -161,10 +176,9 @@ fn soft_blob(dx: f64, dy: f64, theta: f64, sa: f64, sb: f64, p: f64) -> f64 {
 
 /// An FR II radio galaxy: a core, thin jets, and two textured lobes bent off the axis with
 /// compact hotspots at their outer ends.
-fn fr2_galaxy(img: &mut [f64], rng: &mut ChaCha8Rng, n: usize, at: &Placement, texture: &[f64]) {
+fn fr2_galaxy(img: &mut [f64], canvas: &mut Canvas, rng: &mut ChaCha8Rng, n: usize, at: &Placement, texture: &[f64]) {
     let half = 0.5 * at.extent;
     let (s, c) = at.theta.sin_cos();
-    let mut canvas = Canvas::new(n, 1e-4);
     canvas.add_gaussian(at.cx, at.cy, at.amp, 1.0, 1.0, 0.0);
     for side in [-1.0, 1.0] {
         let reach = half * rng.gen_range(0.75..0.95);
@@ -187,16 +201,12 @@ fn fr2_galaxy(img: &mut [f64], rng: &mut ChaCha8Rng, n: usize, at: &Placement, t
             canvas.add_gaussian(at.cx + side * t * reach * c, at.cy + side * t * reach * s, jet * (1.0 - 0.7 * t), 1.0, 0.7, at.theta);
         }
     }
-    for (v, c) in img.iter_mut().zip(&canvas.data) {
-        *v += c;
-    }
 }
 
 /// An FR I radio galaxy: a bright core and jets that widen into textured plumes, bent as by
 /// motion through a cluster, fading with distance.
-fn fr1_galaxy(img: &mut [f64], rng: &mut ChaCha8Rng, n: usize, at: &Placement, texture: &[f64]) {
+fn fr1_galaxy(img: &mut [f64], canvas: &mut Canvas, rng: &mut ChaCha8Rng, n: usize, at: &Placement, texture: &[f64]) {
     let half = 0.5 * at.extent;
-    let mut canvas = Canvas::new(n, 1e-4);
     canvas.add_gaussian(at.cx, at.cy, at.amp, 1.2, 1.2, 0.0);
     let curvature = rng.gen_range(-1.2..1.2) / half;
     for side in [-1.0, 1.0] {
@@ -216,14 +226,11 @@ fn fr1_galaxy(img: &mut [f64], rng: &mut ChaCha8Rng, n: usize, at: &Placement, t
             add_textured(img, n, x, y, 3.5 * width, amp * 0.6, 0.45, texture, |px, py| soft_blob(px - x, py - y, tangent, width, 0.7 * width, 1.0));
         }
     }
-    for (v, c) in img.iter_mut().zip(&canvas.data) {
-        *v += c;
-    }
 }
 
 /// An inclined spiral disk: exponential profile, two to four logarithmic arms, a bulge and
 /// clumps of star formation along the arms.
-fn spiral_disk(img: &mut [f64], rng: &mut ChaCha8Rng, n: usize, at: &Placement, texture: &[f64]) {
+fn spiral_disk(img: &mut [f64], canvas: &mut Canvas, rng: &mut ChaCha8Rng, n: usize, at: &Placement, texture: &[f64]) {
     let h = at.extent * rng.gen_range(0.1..0.18);
     let cos_i = rng.gen_range(0.3..1.0);
     let arms = rng.gen_range(2..=4) as f64;
@@ -246,7 +253,6 @@ fn spiral_disk(img: &mut [f64], rng: &mut ChaCha8Rng, n: usize, at: &Placement, 
         let (r, wave) = arm(px, py);
         (-r / h).exp() * (0.25 + 0.75 * wave.powf(contrast)) * (1.0 - (r / (0.5 * at.extent)).powi(4)).max(0.0)
     });
-    let mut canvas = Canvas::new(n, 1e-4);
     canvas.add_gaussian(cx, cy, at.amp * rng.gen_range(0.3..1.0), 0.4 * h, 0.4 * h * cos_i.max(0.5), at.theta);
     // Clumps where the arms are bright.
     for _ in 0..rng.gen_range(5..25) {
@@ -256,14 +262,11 @@ fn spiral_disk(img: &mut [f64], rng: &mut ChaCha8Rng, n: usize, at: &Placement, 
             canvas.add_gaussian(px, py, disk_amp * (-r / h).exp() * rng.gen_range(0.5..2.0), rng.gen_range(0.6..1.8), rng.gen_range(0.5..1.2), rng.gen_range(0.0..PI));
         }
     }
-    for (v, c) in img.iter_mut().zip(&canvas.data) {
-        *v += c;
-    }
 }
 
 /// A cluster's smooth faint halo with a filamentary arc-shaped relic at its edge and a few
 /// embedded compact galaxies.
-fn halo_and_relic(img: &mut [f64], rng: &mut ChaCha8Rng, n: usize, at: &Placement, texture: &[f64]) {
+fn halo_and_relic(img: &mut [f64], canvas: &mut Canvas, rng: &mut ChaCha8Rng, n: usize, at: &Placement, texture: &[f64]) {
     let (cx, cy) = (at.cx, at.cy);
     let sigma = 0.22 * at.extent;
     let elong = rng.gen_range(0.6..1.0);
@@ -280,13 +283,9 @@ fn halo_and_relic(img: &mut [f64], rng: &mut ChaCha8Rng, n: usize, at: &Placemen
         let dphi = ((dy.atan2(dx) - facing + PI).rem_euclid(2.0 * PI)) - PI;
         (-0.5 * ((r - radius) / width).powi(2)).exp() * (-0.5 * (dphi / arc).powi(2)).exp()
     });
-    let mut canvas = Canvas::new(n, 1e-4);
     for _ in 0..rng.gen_range(2..6) {
         let (x, y) = (cx + rng.gen_range(-1.0..1.0) * sigma, cy + rng.gen_range(-1.0..1.0) * sigma);
         canvas.add_gaussian(x, y, at.amp * rng.gen_range(0.2..1.0), rng.gen_range(0.7..1.5), rng.gen_range(0.6..1.2), rng.gen_range(0.0..PI));
-    }
-    for (v, c) in img.iter_mut().zip(&canvas.data) {
-        *v += c;
     }
 }
 
@@ -317,6 +316,18 @@ mod tests {
             // compact sources: the point of these skies.
             let faint = img.iter().filter(|&&v| v > 0.0 && v < 1e-2).count() as f64 / (n * n) as f64;
             assert!(faint > 0.03, "seed {seed}: faint emission over only {:.1} % of the image", 100.0 * faint);
+        }
+    }
+
+    #[test]
+    fn flux_is_spread_over_the_objects_not_held_by_a_few_compact_pixels() {
+        // A series selected on skies whose flux sits in one core pixel learns delta recovery.
+        for seed in 0..8 {
+            let mut v = extended_sky(&SkyParams::new(256, 1e4, seed)).unwrap();
+            v.sort_by(|a, b| b.total_cmp(a));
+            let total: f64 = v.iter().sum();
+            let brightest: f64 = v[..16].iter().sum();
+            assert!(brightest < 0.3 * total, "seed {seed}: the 16 brightest pixels hold {:.0} % of the flux", 100.0 * brightest / total);
         }
     }
 
