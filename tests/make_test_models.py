@@ -1,6 +1,6 @@
 """Write the tiny ONNX networks the tests use (no training: their effect is known analytically).
 
-    python3 tests/make_test_models.py OUT_DIR [--gain G]
+    python3 tests/make_test_models.py OUT_DIR [--gain G [--first-gain G1]]
 
 OUT_DIR/
   landweber/        R2D2 series of 4 networks, manifest: a 1x1 convolution returning
@@ -110,8 +110,18 @@ def manifest(path, name, networks, architecture="r2d2", sizes=(64,), any_size=Tr
         f.write("\n".join(lines) + "\n")
 
 
-def main(out, gain):
+def main(out, gain, first_gain=None):
     os.makedirs(out, exist_ok=True)
+    if first_gain is not None:
+        # A series whose first network overshoots (a gain beyond Landweber's on the dirty
+        # image) and whose later ones are convergent Landweber steps: the divergence guard's
+        # tolerated overshoot.
+        d = os.path.join(out, "overshoot")
+        os.makedirs(d, exist_ok=True)
+        files = [f"os{i}.onnx" for i in range(1, 5)]
+        for i, f in enumerate(files, 1):
+            conv1x1(os.path.join(d, f), [first_gain, 0.0] if i == 1 else [0.0, gain], 0.0)
+        manifest(os.path.join(d, "manifest.yaml"), "overshoot", files)
     # Landweber series: network 1 reads the dirty image (channel 0), later ones the residual (channel 1).
     for d, named in (("landweber", False), ("landweber-ref", True)):
         os.makedirs(os.path.join(out, d), exist_ok=True)
@@ -140,7 +150,9 @@ def main(out, gain):
 
 if __name__ == "__main__":
     args = sys.argv[1:]
-    if len(args) == 3 and args[1] == "--gain":
+    if len(args) == 5 and args[1] == "--gain" and args[3] == "--first-gain":
+        main(args[0], float(args[2]), float(args[4]))
+    elif len(args) == 3 and args[1] == "--gain":
         main(args[0], float(args[2]))
     elif len(args) == 1:
         main(args[0], 0.5)

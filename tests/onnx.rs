@@ -178,3 +178,50 @@ fn a_diverging_series_is_stopped_and_its_best_iterate_kept() {
     assert!(ratios[3] > ratios[0] && ratios[0] > 1.0, "{ratios:?}");
     assert!(metrics.get("stop").is_none(), "{metrics}");
 }
+
+/// A series whose first network overshoots (residual ratio above 1, from the empty model) and
+/// whose next ones bring the ratio down is let run by the divergence guard, without a warning;
+/// the same first network alone (the series ending above ratio 1) is divergence: the empty
+/// model is kept, with the warning.
+#[test]
+fn a_first_overshoot_that_the_series_recovers_from_is_not_divergence() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    let reference = ReferenceOperator::new(&d.join("obs.parquet"));
+    let gain = reference.landweber_gain();
+    make_models(&d.join("models"), gain);
+    check(&r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/landweber", "--iterations", "1", "--name", "probe"], d));
+    let dirty = read(&d.join("probe-dirty.fits"));
+    let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+    // The first gain whose single projected step lands between ratio 1.2 and 1.8.
+    let first = (6..=40)
+        .map(|k| k as f64 * 0.25 * gain)
+        .find(|&g| {
+            let (_, r) = landweber_reference(&reference, &dirty, g, 0.0, 1, true);
+            (1.2..1.8).contains(&(norm(&r) / norm(&dirty)))
+        })
+        .expect("a gain that overshoots to ratio 1.2..1.8");
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/make_test_models.py");
+    let out = std::process::Command::new("python3").arg(&script).arg(d.join("models")).args(["--gain", &gain.to_string(), "--first-gain", &first.to_string()]).output().unwrap();
+    assert!(out.status.success(), "{}", text(&out));
+
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/overshoot", "--name", "os"], d);
+    check(&out);
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("os-metrics.json")).unwrap()).unwrap();
+    let ratios: Vec<f64> = metrics["iterations"].as_array().unwrap().iter().map(|m| m["residual_ratio"].as_f64().unwrap()).collect();
+    assert!(ratios[0] > 1.2 && ratios[0] < 1.8, "{ratios:?}");
+    assert!(*ratios.last().unwrap() < 1.0 && ratios.len() >= 2, "the series ran on and recovered: {ratios:?}");
+    assert!(metrics.get("stop").is_none_or(|s| s["reason"] != "diverged"), "{metrics}");
+    assert!(!text(&out).contains("diverged"), "{}", text(&out));
+    assert!(read(&d.join("os-model.fits")).iter().any(|&x| x > 0.0));
+
+    // Ending on the overshoot: divergence, the empty model kept.
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/overshoot", "--iterations", "1", "--name", "os1"], d);
+    check(&out);
+    let log = text(&out);
+    assert!(log.contains("diverged") && log.contains("kept the empty model"), "{log}");
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("os1-metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["stop"]["reason"], "diverged", "{metrics}");
+    assert!(read(&d.join("os1-model.fits")).iter().all(|&x| x == 0.0));
+}

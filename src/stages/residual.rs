@@ -37,7 +37,7 @@ impl ResidualStage {
         let last = *ratios.last()?;
         let rose_twice = n >= 3 && ratios[n - 1] > ratios[n - 2] && ratios[n - 2] > ratios[n - 3];
         if self.config.divergence_guard {
-            if last > 1.0 {
+            if last > 1.0 && !tolerated_overshoot(ratios) {
                 return Some(StopReason::Diverged);
             }
             if rose_twice && ratios[n - 1] > DIVERGING_RISE * ratios[n - 3] {
@@ -53,6 +53,26 @@ impl ResidualStage {
         (n >= 2 && (ratios[n - 1] - ratios[n - 2]).abs() / ratios[n - 2] < self.config.tolerance).then_some(StopReason::Converged)
     }
 }
+
+/// Whether a residual ratio above 1 (the latest of `ratios`) may stand for one more network:
+/// only at the start of a series, whose first networks overshoot from the empty model and then
+/// bring the ratio down at each network, below [`OVERSHOOT_CEILING`], for fewer than
+/// [`OVERSHOOT_ITERATIONS`] iterations. Series trained over a range of weightings can
+/// overshoot at their first network and recover at the next (measured on held-out Briggs +1
+/// skies, where stopping kept the empty model). A ratio that rises above 1, or stays above it,
+/// is divergence.
+fn tolerated_overshoot(ratios: &[f64]) -> bool {
+    let n = ratios.len();
+    let above = ratios.iter().rev().take_while(|&&r| r > 1.0).count();
+    let falling = n == 1 || ratios[n - 1] < ratios[n - 2];
+    above == n && n < OVERSHOOT_ITERATIONS && falling && ratios[n - 1] <= OVERSHOOT_CEILING
+}
+
+/// The highest residual ratio the guard lets a series go on from (see [`tolerated_overshoot`]).
+const OVERSHOOT_CEILING: f64 = 2.0;
+
+/// The most consecutive iterations above ratio 1 the guard lets a series go on from.
+const OVERSHOOT_ITERATIONS: usize = 3;
 
 /// A residual ratio that rises at two consecutive iterations by more than this factor in all
 /// is a series going wrong (the guard's); a smaller rise is the wobble of a series at its
@@ -128,7 +148,12 @@ impl Stage<Job> for ResidualStage {
         // ratios of several realisations' iterations are not one sequence either).
         let several = job.realisation > 0 || !job.realisation_models.is_empty();
         let ratios: Vec<f64> = job.metrics.iter().map(|m| m.residual_ratio).collect();
-        let reason = if several { None } else { self.stop_reason(&ratios) };
+        let mut reason = if several { None } else { self.stop_reason(&ratios) };
+        // A tolerated overshoot is a promise the next network must keep: a series that ends
+        // above ratio 1 diverged.
+        if reason.is_none() && !several && self.config.divergence_guard && job.series_finished && ratios.last().is_some_and(|&r| r > 1.0) {
+            reason = Some(StopReason::Diverged);
+        }
         match reason {
             Some(reason @ (StopReason::Diverged | StopReason::Rising)) if self.config.divergence_guard => fall_back(&mut job, reason)?,
             Some(reason) => {
@@ -165,11 +190,19 @@ mod tests {
     }
 
     #[test]
-    fn the_guard_stops_above_one_and_on_a_second_rise_and_the_v2_rule_on_convergence() {
+    fn the_guard_stops_above_one_and_on_a_second_rise_and_the_v2_rule_on_convergence_but_lets_a_first_overshoot_recover() {
         let guarded = stage(true, true);
         assert_eq!(guarded.stop_reason(&[0.5, 0.3]), None);
-        assert_eq!(guarded.stop_reason(&[1.2]), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[2.5]), Some(StopReason::Diverged));
         assert_eq!(guarded.stop_reason(&[0.5, 0.3, 1.01]), Some(StopReason::Diverged));
+        // A first network's overshoot from the empty model may stand while the next ones
+        // bring the ratio down (below the ceiling, for two iterations at most).
+        assert_eq!(guarded.stop_reason(&[1.34]), None);
+        assert_eq!(guarded.stop_reason(&[1.34, 1.06]), None);
+        assert_eq!(guarded.stop_reason(&[1.34, 1.06, 0.36]), None);
+        assert_eq!(guarded.stop_reason(&[1.34, 1.4]), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[1.34, 1.2, 1.1]), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[0.9, 1.2]), Some(StopReason::Diverged));
         // One rise is allowed (a network may trade residual for precision); two in a row by
         // more than 10 % are divergence; two small ones the v2 stop at the noise floor.
         assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.31]), None);
