@@ -346,7 +346,20 @@ fn imaging_setting(params: &ImageParams) -> Result<(Weighting, f64)> {
             // `auto`'s off-size warning (not repeated here).
             let dir = match &params.step {
                 StepChoice::Series(path) => crate::steps::series::resolve(path).ok(),
-                _ => crate::steps::series::select_for_size(params.size).ok().map(|(dir, _)| dir),
+                _ => {
+                    // What the options fix takes part in `auto`'s choice (a series trained for
+                    // it); the chosen series' own setting fills in the rest.
+                    let fixed = crate::steps::series::ImagingSetup {
+                        superresolution: params.superresolution,
+                        weighting: params.weighting.map(|w| w.scheme_name().to_string()),
+                        robust: params.weighting.and_then(|w| match w {
+                            Weighting::Briggs { robust } => Some(robust),
+                            _ => None,
+                        }),
+                        telescope: None,
+                    };
+                    crate::steps::series::select_for(params.size, &fixed).ok().map(|(dir, _)| dir)
+                }
             };
             dir.and_then(|d| crate::steps::series::Series::open(&d).ok()).and_then(|s| s.manifest.map(|m| (s.name, m)))
         }

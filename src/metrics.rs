@@ -116,3 +116,40 @@ mod tests {
         assert_eq!(log_snr(&est, &truth, 1e4), expected);
     }
 }
+
+/// The noise of an image as a robust standard deviation: 1.4826 times the median absolute
+/// deviation from the median (the Gaussian-equivalent sigma, insensitive to the few bright
+/// pixels of residual sources). 0 for an empty image.
+pub fn robust_sigma(image: &[f32]) -> f64 {
+    let mut values: Vec<f64> = image.iter().map(|&v| f64::from(v)).filter(|v| v.is_finite()).collect();
+    if values.is_empty() {
+        return 0.0;
+    }
+    let median = |v: &mut Vec<f64>| {
+        let mid = v.len() / 2;
+        *v.select_nth_unstable_by(mid, f64::total_cmp).1
+    };
+    let centre = median(&mut values);
+    let mut deviations: Vec<f64> = values.iter().map(|v| (v - centre).abs()).collect();
+    1.4826 * median(&mut deviations)
+}
+
+#[cfg(test)]
+mod robust_sigma_tests {
+    use super::robust_sigma;
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+
+    #[test]
+    fn robust_sigma_is_the_gaussian_sigma_despite_bright_outliers() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let normal = Normal::new(0.5, 0.02).unwrap();
+        let mut image: Vec<f32> = (0..40_000).map(|_| normal.sample(&mut rng) as f32).collect();
+        for v in image.iter_mut().step_by(100) {
+            *v = 50.0;
+        }
+        let sigma = robust_sigma(&image);
+        assert!((sigma - 0.02).abs() < 0.001, "{sigma}");
+        assert_eq!(robust_sigma(&[]), 0.0);
+    }
+}

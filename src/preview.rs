@@ -15,6 +15,11 @@ pub enum PreviewScale {
     /// `log10(x / peak)` over `[-log10(dynamic_range), 0]`: pixels below `peak / dynamic_range`
     /// (negative ones included) take the bottom colour, as radio images are usually shown.
     Log { dynamic_range: f64 },
+    /// Signed, for images with negative pixels that mean something (dirty, residual, PSF,
+    /// restored): `asinh(x / softening)` symmetric about zero, linear within a few
+    /// `softening` (set it to the noise) and logarithmic beyond, on a diverging palette
+    /// whose white is zero, so negative sidelobes and noise read as such.
+    Signed { softening: f64 },
 }
 
 /// Writes a preview of `image` (`size_x * size_y`, row-major, row 0 at the bottom as in FITS)
@@ -25,7 +30,26 @@ pub enum PreviewScale {
 /// value of largest magnitude in its block (the maximum for the log scale) so that point
 /// sources stay visible. Non-finite pixels are shown grey.
 pub fn write_png(path: &Path, image: &[f64], size_x: usize, size_y: usize, scale: PreviewScale, title: &str) -> Result<()> {
-    let canvas = render(image, size_x, size_y, scale, title)?;
+    write_png_on_sky(path, image, size_x, size_y, scale, title, None)
+}
+
+/// Where an image lies on the sky, for its preview: the pixel size, and the restoring beam
+/// (drawn as an ellipse in the lower left corner, as viewers do) where there is one. A scale
+/// bar of a round angle goes in the lower right.
+#[derive(Clone, Copy, Debug)]
+pub struct SkyFrame {
+    pub pixel_arcsec: f64,
+    /// FWHM major and minor axes (arcsec) and position angle (degrees east of north).
+    pub beam: Option<(f64, f64, f64)>,
+}
+
+/// [`write_png`] with the beam and a scale bar drawn over the image (`sky`).
+pub fn write_png_on_sky(path: &Path, image: &[f64], size_x: usize, size_y: usize, scale: PreviewScale, title: &str, sky: Option<&SkyFrame>) -> Result<()> {
+    let mut canvas = render(image, size_x, size_y, scale, title)?;
+    if let Some(sky) = sky {
+        let l = layout(size_x, size_y, 0, 0);
+        draw_sky(&mut canvas, &l, sky);
+    }
     let tmp = TempSibling::new(path)?;
     let file = std::fs::File::create(tmp.path()).map_err(|e| Error::io(path, e))?;
     let mut out = std::io::BufWriter::new(file);
@@ -167,6 +191,7 @@ impl Canvas {
 /// The mapping from pixel values to [0, 1] and the labelled ticks of the colour bar.
 struct ColourScale {
     map: Box<dyn Fn(f64) -> Option<f64>>,
+    palette: fn(f64) -> Rgb,
     /// `(position in [0, 1], label)`.
     ticks: Vec<(f64, String)>,
 }
@@ -179,7 +204,7 @@ fn colour_scale(values: impl Iterator<Item = f64>, scale: PreviewScale) -> Resul
             if !(hi > lo) {
                 // Constant (or empty) image: one colour, one label.
                 let value = if lo.is_finite() { lo } else { 0.0 };
-                return Ok(ColourScale { map: Box::new(move |v| finite(v).map(|_| 0.5)), ticks: vec![(0.5, format_value(value))] });
+                return Ok(ColourScale { map: Box::new(move |v| finite(v).map(|_| 0.5)), palette: colour, ticks: vec![(0.5, format_value(value))] });
             }
             let mut ticks = vec![(0.0, format_value(lo)), (1.0, format_value(hi))];
             let step = nice_step((hi - lo) / 5.0);
@@ -189,7 +214,7 @@ fn colour_scale(values: impl Iterator<Item = f64>, scale: PreviewScale) -> Resul
                 ticks.push(((v - lo) / (hi - lo), format_tick(v, step)));
                 k += 1.0;
             }
-            Ok(ColourScale { map: Box::new(move |v| finite(v).map(|v| (v - lo) / (hi - lo))), ticks })
+            Ok(ColourScale { map: Box::new(move |v| finite(v).map(|v| (v - lo) / (hi - lo))), palette: colour, ticks })
         }
         PreviewScale::Log { dynamic_range } => {
             if !(dynamic_range > 1.0) || !dynamic_range.is_finite() {
@@ -200,7 +225,7 @@ fn colour_scale(values: impl Iterator<Item = f64>, scale: PreviewScale) -> Resul
             }
             if !(hi > 0.0) {
                 // Nothing positive to show on a log scale.
-                return Ok(ColourScale { map: Box::new(move |v| finite(v).map(|_| 0.0)), ticks: vec![(0.0, "no positive pixel".into())] });
+                return Ok(ColourScale { map: Box::new(move |v| finite(v).map(|_| 0.0)), palette: colour, ticks: vec![(0.0, "no positive pixel".into())] });
             }
             let decades = dynamic_range.log10();
             let floor = hi / dynamic_range;
@@ -212,9 +237,93 @@ fn colour_scale(values: impl Iterator<Item = f64>, scale: PreviewScale) -> Resul
             for k in (first..=last).rev().step_by(every) {
                 ticks.push((position(10f64.powi(k)), format_power_of_ten(k)));
             }
-            Ok(ColourScale { map: Box::new(move |v| finite(v).map(position)), ticks })
+            Ok(ColourScale { map: Box::new(move |v| finite(v).map(position)), palette: colour, ticks })
+        }
+        PreviewScale::Signed { softening } => {
+            let reach = lo.abs().max(hi.abs());
+            if !(reach > 0.0) || !reach.is_finite() {
+                return Ok(ColourScale { map: Box::new(move |v| finite(v).map(|_| 0.5)), palette: diverging, ticks: vec![(0.5, "0".into())] });
+            }
+            // A softening that is not positive (an image without noise) falls back to a
+            // thousandth of the largest magnitude.
+            let soft = if softening > 0.0 && softening.is_finite() { softening.min(reach) } else { reach * 1e-3 };
+            let top = (reach / soft).asinh();
+            let position = move |v: f64| 0.5 + 0.5 * (v / soft).asinh() / top;
+            let mut ticks = vec![(0.5, "0".to_string()), (1.0, format_value(reach)), (0.0, format_value(-reach))];
+            // Powers of ten between the softening and the largest magnitude, both signs.
+            let (first, last) = ((soft.log10()).ceil() as i32, reach.log10().floor() as i32);
+            let every = ((last - first + 1).max(1) as usize).div_ceil(4).max(1);
+            for k in (first..=last).rev().step_by(every) {
+                let v = 10f64.powi(k);
+                ticks.push((position(v), format_power_of_ten(k)));
+                ticks.push((position(-v), format!("-{}", format_power_of_ten(k))));
+            }
+            Ok(ColourScale { map: Box::new(move |v| finite(v).map(position)), palette: diverging, ticks })
         }
     }
+}
+
+/// The beam ellipse (lower left) and a scale bar (lower right) over the image area.
+fn draw_sky(canvas: &mut Canvas, l: &Layout, sky: &SkyFrame) {
+    if !(sky.pixel_arcsec > 0.0 && sky.pixel_arcsec.is_finite()) {
+        return;
+    }
+    // Display pixels per arcsecond.
+    let per_arcsec = l.zoom as f64 / (l.shrink as f64 * sky.pixel_arcsec);
+    let margin = 8.0;
+    if let Some((major, minor, pa)) = sky.beam {
+        let (a, b) = (0.5 * major * per_arcsec, 0.5 * minor * per_arcsec);
+        // A beam larger than a fifth of the image is left out rather than covering it.
+        if a.is_finite() && b > 0.0 && a <= 0.2 * l.image_w.min(l.image_h) as f64 {
+            let reach = a.max(2.0);
+            let (cx, cy) = (l.image_x as f64 + margin + reach, (l.image_y + l.image_h) as f64 - margin - reach);
+            // Position angle from north (up) towards east (left).
+            let (s, c) = pa.to_radians().sin_cos();
+            let r = reach.ceil() as i64 + 1;
+            for dy in -r..=r {
+                for dx in -r..=r {
+                    let (x, y) = (dx as f64, dy as f64);
+                    // Along the major axis: up rotated towards the left by pa.
+                    let along = -x * s - y * c;
+                    let across = x * c - y * s;
+                    let q = (along / a.max(0.5)).powi(2) + (across / b.max(0.5)).powi(2);
+                    if q <= 1.0 {
+                        let inner = q <= 0.6;
+                        let (px, py) = ((cx + x) as usize, (cy + y) as usize);
+                        canvas.set(px, py, if inner { [200, 200, 200] } else { INK });
+                    }
+                }
+            }
+        }
+    }
+    // Scale bar: a round angle of about a fifth of the image width.
+    let width_arcsec = l.image_w as f64 / per_arcsec;
+    let target = 0.2 * width_arcsec;
+    let (value, unit, arcsec) = if target >= 120.0 {
+        let v = nice_floor(target / 60.0);
+        (v, "arcmin", v * 60.0)
+    } else {
+        let v = nice_floor(target);
+        (v, "arcsec", v)
+    };
+    let length = (arcsec * per_arcsec).round() as usize;
+    if length >= 4 {
+        let label = format!("{} {unit}", format_value(value));
+        let x1 = l.image_x + l.image_w - margin as usize;
+        let x0 = x1.saturating_sub(length);
+        let y = l.image_y + l.image_h - margin as usize - 1;
+        canvas.fill(x0, y - 1, length, 3, INK);
+        let text_w = label.chars().count() * CHAR_ADVANCE;
+        let tx = (x0 + x1) / 2;
+        canvas.fill(tx.saturating_sub(text_w / 2 + 2), y - 4 - TEXT_H - 2, text_w + 4, TEXT_H + 4, BACKGROUND);
+        canvas.text(tx.saturating_sub(text_w / 2), y - 4 - TEXT_H, &label, INK);
+    }
+}
+
+/// 1, 2 or 5 times a power of ten, at most `raw`.
+fn nice_floor(raw: f64) -> f64 {
+    let magnitude = 10f64.powf(raw.log10().floor());
+    [5.0, 2.0, 1.0].iter().map(|m| m * magnitude).find(|&s| s <= raw * (1.0 + 1e-12)).unwrap_or(magnitude)
 }
 
 /// 1, 2 or 5 times a power of ten, at least `raw`.
@@ -277,7 +386,7 @@ fn render(image: &[f64], size_x: usize, size_y: usize, scale: PreviewScale, titl
         for iy in by * s..((by + 1) * s).min(size_y) {
             for &v in &image[iy * size_x + bx * s..iy * size_x + ((bx + 1) * s).min(size_x)] {
                 let better = match scale {
-                    PreviewScale::Linear => v.abs() > best.abs() || best.is_nan(),
+                    PreviewScale::Linear | PreviewScale::Signed { .. } => v.abs() > best.abs() || best.is_nan(),
                     PreviewScale::Log { .. } => v > best || best.is_nan(),
                 };
                 if v.is_finite() && better {
@@ -300,7 +409,7 @@ fn render(image: &[f64], size_x: usize, size_y: usize, scale: PreviewScale, titl
     for row in 0..l.blocks_y {
         let by = l.blocks_y - 1 - row;
         for bx in 0..l.blocks_x {
-            let c = (colours.map)(blocks[by * l.blocks_x + bx]).map_or(NOT_FINITE, colour);
+            let c = (colours.map)(blocks[by * l.blocks_x + bx]).map_or(NOT_FINITE, colours.palette);
             canvas.fill(l.image_x + bx * l.zoom, l.image_y + row * l.zoom, l.zoom, l.zoom, c);
         }
     }
@@ -309,7 +418,7 @@ fn render(image: &[f64], size_x: usize, size_y: usize, scale: PreviewScale, titl
     // Colour bar, top colour at the top.
     for y in 0..l.bar_h {
         let t = 1.0 - y as f64 / (l.bar_h - 1) as f64;
-        canvas.fill(l.bar_x, l.bar_y + y, BAR_W, 1, colour(t));
+        canvas.fill(l.bar_x, l.bar_y + y, BAR_W, 1, (colours.palette)(t));
     }
     canvas.frame(l.bar_x, l.bar_y, BAR_W, l.bar_h, FRAME);
     let tick_y = |t: f64| l.bar_y + ((1.0 - t) * (l.bar_h - 1) as f64).round() as usize;
@@ -344,6 +453,21 @@ fn colour(t: f64) -> Rgb {
     let (a, b) = ((8 * k) as f64, ((8 * k + 8).min(255)) as f64);
     let f = ((entry - a) / (b - a)).clamp(0.0, 1.0);
     let (c0, c1) = (VIRIDIS[k], VIRIDIS[k + 1]);
+    [0, 1, 2].map(|i| (c0[i] as f64 + f * (c1[i] as f64 - c0[i] as f64)).round() as u8)
+}
+
+/// A diverging palette for signed images: dark blue (most negative) through white (zero, at
+/// 0.5) to dark red (most positive), the anchors of ColorBrewer's RdBu (Apache-2.0), reversed.
+const RDBU: [Rgb; 11] = [
+    [5, 48, 97], [33, 102, 172], [67, 147, 195], [146, 197, 222], [209, 229, 240], [247, 247, 247],
+    [253, 219, 199], [244, 165, 130], [214, 96, 77], [178, 24, 43], [103, 0, 31],
+];
+
+fn diverging(t: f64) -> Rgb {
+    let x = t.clamp(0.0, 1.0) * (RDBU.len() - 1) as f64;
+    let k = (x.floor() as usize).min(RDBU.len() - 2);
+    let f = x - k as f64;
+    let (c0, c1) = (RDBU[k], RDBU[k + 1]);
     [0, 1, 2].map(|i| (c0[i] as f64 + f * (c1[i] as f64 - c0[i] as f64)).round() as u8)
 }
 
@@ -444,6 +568,25 @@ fn glyph(c: char) -> [u8; 7] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_signed_scale_puts_zero_at_white_and_negatives_in_blue() {
+        let cs = colour_scale([-2.0, 0.0, 1.0, 0.01].into_iter(), PreviewScale::Signed { softening: 0.01 }).unwrap();
+        assert_eq!((cs.map)(0.0), Some(0.5));
+        let (neg, pos) = ((cs.map)(-0.01).unwrap(), (cs.map)(0.01).unwrap());
+        assert!(neg < 0.5 && pos > 0.5 && ((0.5 - neg) - (pos - 0.5)).abs() < 1e-12);
+        assert_eq!((cs.map)(-2.0), Some(0.0));
+        assert_eq!((cs.map)(2.0), Some(1.0));
+        assert_eq!((cs.palette)(0.5), [247, 247, 247]);
+        let (blue, red) = ((cs.palette)(neg), (cs.palette)(pos));
+        assert!(blue[2] > blue[0] && red[0] > red[2], "{blue:?} {red:?}");
+        // Asinh: linear near zero, logarithmic far out (a tenfold value is far less than ten
+        // times further from white).
+        let step = |v: f64| (cs.map)(v).unwrap() - 0.5;
+        assert!((step(0.001) / step(0.0005) - 2.0).abs() < 0.01);
+        assert!(step(1.0) / step(0.1) < 2.0);
+        assert!(cs.ticks.iter().any(|(_, l)| l == "-0.1") && cs.ticks.iter().any(|(_, l)| l == "0"));
+    }
 
     const TOP: Rgb = [253, 231, 37];
     const BOTTOM: Rgb = [68, 1, 84];

@@ -58,6 +58,16 @@ impl WeightingScheme {
 }
 
 impl Weighting {
+    /// The scheme as a configuration and a series' manifest name it.
+    pub fn scheme_name(&self) -> &'static str {
+        match self {
+            Weighting::Natural => "natural",
+            Weighting::Uniform => "uniform",
+            Weighting::Briggs { .. } => "briggs",
+            Weighting::Given => "given",
+        }
+    }
+
     /// Parse `natural`, `uniform` or `briggs` (with its robustness).
     pub fn from_name(name: &str, robust: f64) -> Result<Weighting> {
         match name.to_ascii_lowercase().as_str() {

@@ -531,14 +531,23 @@ fn small_address_spaces_end_in_a_memory_error() {
     assert!(failures.is_empty(), "{}", failures.join("\n---\n"));
 }
 
-/// A job outside the chosen series' domain is warned about, and the warning names the shipped
-/// series whose declared domain holds it (Briggs +1: the broad VLA series).
+/// `auto` picks the shipped series whose declared domain holds the job's setting (Briggs +1:
+/// the broad VLA series, not the one trained at 0); a series named outside its domain is
+/// warned about, and the warning names the series that covers the job.
 #[test]
 fn a_job_outside_the_series_domain_is_pointed_to_one_that_covers_it() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "600", "--size", "512", "--seed", "3", "--out", "obs.parquet"], d));
-    let out = r2d2(&["image", "obs.parquet", "--size", "512", "--robust", "1", "--iterations", "1", "--name", "b"], d);
+    let out = r2d2(&["image", "obs.parquet", "--size", "512", "--robust", "1", "--iterations", "1", "--name", "a"], d);
+    check(&out);
+    let log = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(log.contains("series 'vla-r2d2-512-broad' chosen for 512 x 512: 'vla-r2d2-512' was not trained for this setting (Briggs robust 1 is outside"), "{log}");
+    assert!(!log.contains("was not trained for this job"), "{log}");
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("a-metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["settings"]["step"]["series"], "vla-r2d2-512-broad", "{metrics}");
+
+    let out = r2d2(&["image", "obs.parquet", "--size", "512", "--robust", "1", "--step", "vla-r2d2-512", "--iterations", "1", "--name", "b"], d);
     check(&out);
     let log = String::from_utf8_lossy(&out.stderr).into_owned();
     assert!(log.contains("series 'vla-r2d2-512' was not trained for this job") && log.contains("Briggs robust 1 is outside"), "{log}");

@@ -751,3 +751,20 @@ fn damaged_table_headers_fail_cleanly() {
     assert!(cases > 1000, "only {cases} cases: the MSs lack the expected table files");
     assert!(failures.is_empty(), "{} of {cases} cases:\n{}", failures.len(), failures.join("\n"));
 }
+
+/// The products' headers say what WSClean's do where the MS tells it: the field as OBJECT,
+/// the start of OBSERVATION.TIME_RANGE as DATE-OBS (checked with astropy's time conversion),
+/// the data column, the weighting, and HISTORY with the command; the metrics file has the
+/// same facts and a residual noise estimate.
+#[test]
+fn products_carry_object_date_weighting_and_history_from_the_ms() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d, 1);
+    make_ms(d, "obs.ms", &[]);
+    casacore(d, "obs.ms", "t = table(ms + '/OBSERVATION', readonly=False, ack=False)\nt.putcol('TIME_RANGE', np.array([[5.2e9, 5.2e9 + 3600.0]]))\nt.close()\nf = table(ms + '/FIELD', readonly=False, ack=False)\nf.putcol('NAME', ['3C 286'] * f.nrows())\nf.close()");
+    check(&r2d2(&["image", "obs.ms", "--size", "64", "--step", "clean", "--iterations", "2", "--robust=-0.5", "--name", "hdr"], d));
+    let script = "import json\nfrom astropy.io import fits\nfrom astropy.time import Time\nh = fits.getheader('hdr-image.fits')\nexpected = Time(5.2e9 / 86400.0, format='mjd', scale='utc').isot[:21]\nassert h['DATE-OBS'] == expected, (h['DATE-OBS'], expected)\nassert h['OBJECT'] == '3C 286' and h['WEIGHT'] == 'briggs -0.5' and h['DATACOL'] == 'DATA', repr(h)\nhistory = ' '.join(str(c) for c in h['HISTORY'])\nassert 'r2d2-imaging' in history and 'image obs.ms --size 64' in history, history\nm = json.load(open('hdr-metrics.json'))\nassert m['object'] == '3C 286' and m['date_obs'] == expected and m['residual_noise_jy_per_beam'] > 0, m";
+    let out = Command::new("python3").args(["-c", script]).current_dir(d).output().expect("python3 runs");
+    assert!(out.status.success(), "{}", text(&out));
+}

@@ -10,6 +10,9 @@ visibility table (Parquet, Arrow) raise the subclass for that kind (:class:`Fits
 
 - :func:`run` / :func:`validate`: a YAML pipeline, as ``r2d2 run`` / ``r2d2 validate``.
 - :func:`image`: one observation through the default imaging pipeline, as ``r2d2 image``.
+- :func:`info`: the build, the inference backend and the series found, as ``r2d2 info``.
+- Logging: the engine's log records go to :mod:`logging` (logger ``r2d2_imaging``); its
+  warnings about a job are also raised as :class:`R2D2Warning` through :mod:`warnings`.
 - :mod:`r2d2_imaging.dask`: many jobs over the workers of a ``dask.distributed`` cluster.
 - ``r2d2.yml`` beside this file: Stimela2 cabs for ``r2d2 image``, ``r2d2 run`` and
   ``r2d2 simulate`` (``_include: (r2d2_imaging)r2d2.yml``).
@@ -18,6 +21,7 @@ visibility table (Parquet, Arrow) raise the subclass for that kind (:class:`Fits
 from __future__ import annotations
 
 import json
+import logging
 import os
 import warnings
 from typing import Any, Mapping, Optional, Union
@@ -36,6 +40,18 @@ from ._native import (
 
 __version__ = _native.__version__
 
+# The engine's log records reach Python's `logging` under this logger (and its children, by
+# engine module: `r2d2_imaging.stages.residual`, ...), at the level it is set to; a library
+# prints nothing on its own, so it has a NullHandler until the application configures
+# logging. Job warnings are also raised through `warnings` (R2D2Warning).
+logging.getLogger("r2d2_imaging").addHandler(logging.NullHandler())
+
+# Series shipped in the package (the project's own), looked up after the engine's own places
+# (none of them when R2D2_MODELS is set), so an installed package images without setup.
+_PACKAGE_MODELS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "models")
+if os.path.isdir(_PACKAGE_MODELS):
+    _native.add_model_dir(_PACKAGE_MODELS)
+
 
 class R2D2Warning(UserWarning):
     """A warning the engine raised about a job (outside its series' domain, a diverging
@@ -52,6 +68,7 @@ __all__ = [
     "TableError",
     "Products",
     "image",
+    "info",
     "run",
     "validate",
     "__version__",
@@ -122,6 +139,15 @@ def _onnx_runtime() -> Optional[str]:
     except OSError:
         return None
     return os.path.join(capi, names[-1]) if names else None
+
+
+def info() -> dict:
+    """What this build and machine will use, as ``r2d2 info`` and ``r2d2 models`` tell it:
+    ``version``, ``gridder_simd``, ``threads``, ``onnx_backend`` (what ``backend="auto"``
+    runs networks on, with this interpreter's ``onnxruntime`` where installed),
+    ``model_dirs`` (where series are looked up, in order) and ``series`` (each usable one
+    found: ``name``, ``path``, ``networks``, ``image_sizes``, ``telescope``, ``domain``)."""
+    return _native.info(_onnx_runtime())
 
 
 def image(obs, size: int = 512, step: Optional[str] = None, weighting: Optional[str] = None, robust: Optional[float] = None,

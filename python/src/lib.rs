@@ -11,6 +11,7 @@
 
 mod arrow_in;
 mod image;
+mod logging;
 mod products;
 
 use numpy::PyArray1;
@@ -66,6 +67,7 @@ pub(crate) fn run_released<T: Send + 'static>(
     py: Python<'_>,
     work: impl FnOnce(Arc<AtomicBool>) -> r2d2_imaging::Result<T> + Send + 'static,
 ) -> PyResult<T> {
+    logging::follow_level(py)?;
     let cancel = Arc::new(AtomicBool::new(false));
     let (tx, rx) = bounded(1);
     let flag = cancel.clone();
@@ -81,12 +83,15 @@ pub(crate) fn run_released<T: Send + 'static>(
         match py.allow_threads(|| rx.recv_timeout(SIGNAL_POLL)) {
             Ok(outcome) => break outcome,
             Err(RecvTimeoutError::Timeout) => {
-                if let Err(interrupt) = py.check_signals() {
+                // Handing records to `logging` runs Python code, and with it a pending signal
+                // handler: its KeyboardInterrupt comes back from the hand-over.
+                if let Err(interrupt) = py.check_signals().and_then(|()| logging::hand_over(py)) {
                     cancel.store(true, Ordering::SeqCst);
                     py.allow_threads(|| {
                         let _ = rx.recv();
                     });
                     let _ = worker.join();
+                    let _ = logging::hand_over(py);
                     return Err(interrupt);
                 }
             }
@@ -96,6 +101,7 @@ pub(crate) fn run_released<T: Send + 'static>(
         }
     };
     let _ = worker.join();
+    logging::hand_over(py)?;
     match outcome {
         Ok(result) => result.map_err(engine_error),
         Err(payload) => Err(R2D2Error::new_err(format!(
@@ -187,8 +193,60 @@ fn split_rows<'py>(
     Ok(parts.into_iter().map(|(suffix, rows)| (suffix, PyArray1::from_vec(py, rows))).collect())
 }
 
+/// Add a directory of model series to look up after the engine's own places.
+#[pyfunction]
+fn add_model_dir(dir: std::path::PathBuf) {
+    r2d2_imaging::steps::series::add_model_dir(dir);
+}
+
+/// What this build and machine will use, as `r2d2 info` and `r2d2 models` say it: version,
+/// gridder SIMD level, threads, the ONNX inference backend `auto` picks with `onnx_runtime`
+/// (a library path or None), where series are looked up and the usable series found there.
+#[pyfunction]
+#[pyo3(signature = (onnx_runtime=None))]
+fn info(py: Python<'_>, onnx_runtime: Option<std::path::PathBuf>) -> PyResult<Bound<'_, PyDict>> {
+    use r2d2_imaging::steps::runtime::{use_onnx_runtime, BackendChoice, Runtime};
+    use r2d2_imaging::steps::series::{discover, model_dirs};
+    let out = PyDict::new(py);
+    out.set_item("version", env!("CARGO_PKG_VERSION"))?;
+    out.set_item("gridder_simd", format!("{:?}", r2d2_imaging::nufft::simd::SimdLevel::detect()))?;
+    out.set_item("threads", std::thread::available_parallelism().map_or(1, |n| n.get()))?;
+    let backend = run_released(py, move |_| {
+        if let Some(lib) = &onnx_runtime {
+            use_onnx_runtime(lib)?;
+        }
+        Ok(Runtime::select(BackendChoice::Auto, 0)?.describe())
+    })?;
+    out.set_item("onnx_backend", backend)?;
+    let dirs = model_dirs();
+    out.set_item("model_dirs", dirs.iter().map(|d| d.display().to_string()).collect::<Vec<_>>())?;
+    let series = pyo3::types::PyList::empty(py);
+    let mut seen = std::collections::HashSet::new();
+    for root in &dirs {
+        for (dir, found) in discover(root) {
+            let Ok(s) = found else { continue };
+            if s.is_empty() || !seen.insert(s.name.clone()) {
+                continue;
+            }
+            let entry = PyDict::new(py);
+            entry.set_item("name", &s.name)?;
+            entry.set_item("path", dir.display().to_string())?;
+            entry.set_item("networks", s.len())?;
+            entry.set_item("image_sizes", s.image_sizes.clone())?;
+            let manifest = s.manifest.as_ref();
+            entry.set_item("telescope", manifest.map(|m| m.telescope.clone()).filter(|t| !t.is_empty()))?;
+            let domain = manifest.and_then(|m| m.validity.as_ref()).map(|v| serde_json::to_string(v).unwrap_or_default());
+            entry.set_item("domain", domain.map(|d| py.import("json")?.call_method1("loads", (d,))).transpose()?)?;
+            series.append(entry)?;
+        }
+    }
+    out.set_item("series", series)?;
+    Ok(out)
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
+    logging::install();
     m.add("R2D2Error", m.py().get_type::<R2D2Error>())?;
     m.add("FitsError", m.py().get_type::<FitsError>())?;
     m.add("SeriesError", m.py().get_type::<SeriesError>())?;
@@ -200,6 +258,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(validate, m)?)?;
     m.add_function(wrap_pyfunction!(run, m)?)?;
     m.add_function(wrap_pyfunction!(split_rows, m)?)?;
+    m.add_function(wrap_pyfunction!(info, m)?)?;
+    m.add_function(wrap_pyfunction!(add_model_dir, m)?)?;
     m.add_function(wrap_pyfunction!(image::image, m)?)?;
     m.add_function(wrap_pyfunction!(products::_products, m)?)?;
     m.add_class::<products::Products>()?;

@@ -163,30 +163,21 @@ impl Products {
         Ok(header)
     }
     /// As `<prefix>-metrics.json`: `job`, `image_size`, `pixel_arcsec`, `iterations` (one
-    /// dict per iteration: residual ratio, SNR, logSNR, seconds), `stage_seconds`.
+    /// dict per iteration: residual ratio, SNR, logSNR, seconds), `stage_seconds`, `settings`
+    /// (weighting, step and series, data column), `warnings`, `stop`, `telescope`, `object`,
+    /// `date_obs` and `residual_noise_jy_per_beam` where known.
     #[getter]
-    fn metrics<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyDict>> {
-        let out = PyDict::new(py);
-        out.set_item("job", &self.job.id)?;
-        out.set_item("image_size", self.job.size)?;
-        out.set_item("pixel_arcsec", self.job.pixel_arcsec)?;
-        let rows = PyList::empty(py);
-        for m in &self.job.metrics {
-            rows.append(metrics_row(py, m)?)?;
+    fn metrics<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let mut metrics = self.job.metrics_json();
+        // Every row has `snr` and `logsnr` here (None without a truth); the file leaves them out.
+        if let Some(rows) = metrics.get_mut("iterations").and_then(|r| r.as_array_mut()) {
+            for row in rows.iter_mut().filter_map(|r| r.as_object_mut()) {
+                for key in ["snr", "logsnr"] {
+                    row.entry(key).or_insert(serde_json::Value::Null);
+                }
+            }
         }
-        out.set_item("iterations", rows)?;
-        out.set_item("stage_seconds", &self.job.stage_seconds)?;
-        let json = py.import("json")?;
-        if let Some(summary) = &self.job.realisations {
-            out.set_item("realisations", json.call_method1("loads", (summary.to_string(),))?)?;
-        }
-        let loads = |value: serde_json::Value| json.call_method1("loads", (value.to_string(),));
-        out.set_item("settings", loads(serde_json::json!(self.job.settings))?)?;
-        out.set_item("warnings", &self.job.warnings)?;
-        if let Some(stop) = &self.job.stop {
-            out.set_item("stop", loads(serde_json::json!(stop))?)?;
-        }
-        Ok(out)
+        py.import("json")?.call_method1("loads", (metrics.to_string(),))
     }
 
     /// Writes the products as `r2d2 image --name PREFIX` does (FITS, PNG previews unless
@@ -216,7 +207,7 @@ impl Products {
         let state = (
             (j.id.clone(), j.size, images, j.header.clone(), metrics, j.stage_seconds.clone()),
             (j.iterations, j.pixel_arcsec, wcs, beam, j.telescope.clone(), j.dynamic_range, j.realisations.as_ref().map(|v| v.to_string())),
-            serde_json::json!({"warnings": j.warnings, "stop": j.stop, "settings": j.settings}).to_string(),
+            serde_json::json!({"warnings": j.warnings, "stop": j.stop, "settings": j.settings, "object": j.object, "date_obs": j.date_obs, "residual_noise": j.residual_noise}).to_string(),
         );
         let restore = py.import("r2d2_imaging._native")?.getattr("_products")?.unbind();
         Ok((restore, PyTuple::new(py, [state.into_pyobject(py)?.into_any()])?))
@@ -230,12 +221,19 @@ type State<'py> = (
     String,
 );
 
-/// The job's notes in the pickled state (a JSON object: warnings, stop, settings).
+/// The job's notes in the pickled state (a JSON object: warnings, stop, settings, object,
+/// date, residual noise).
 #[derive(serde::Deserialize)]
 struct Notes {
     warnings: Vec<String>,
     stop: Option<r2d2_imaging::LoopStop>,
     settings: BTreeMap<String, serde_json::Value>,
+    #[serde(default)]
+    object: Option<String>,
+    #[serde(default)]
+    date_obs: Option<String>,
+    #[serde(default)]
+    residual_noise: Option<f64>,
 }
 
 /// Products from their pickled state.
@@ -273,6 +271,9 @@ pub fn _products(state: State<'_>) -> PyResult<Products> {
         wcs: ImageWcs { ra_deg: wcs.0, dec_deg: wcs.1, pixel_deg: wcs.2, freq_hz: wcs.3, bandwidth_hz: wcs.4 },
         beam: beam.map(|(major_deg, minor_deg, pa_deg)| Beam { major_deg, minor_deg, pa_deg }),
         telescope,
+        object: notes.object,
+        date_obs: notes.date_obs,
+        residual_noise: notes.residual_noise,
         dynamic_range,
         warnings: notes.warnings,
         stop: notes.stop,

@@ -102,6 +102,10 @@ pub fn main() -> ExitCode {
     // WSClean's spellings (`-size 512 512`, `-weight briggs 0`, ...) read as this engine's, or
     // named with their counterpart; arguments that are not UTF-8 go to clap as they are.
     let args: Vec<std::ffi::OsString> = std::env::args_os().collect();
+    // The command as typed (the program by its name) goes into the products' HISTORY.
+    let program = args.first().and_then(|a| std::path::Path::new(a).file_name()).map_or("r2d2".into(), |n| n.to_string_lossy().into_owned());
+    let words = std::iter::once(program).chain(args.iter().skip(1).map(|a| a.to_string_lossy().into_owned()));
+    r2d2_imaging::job::record_command_line(words.map(|w| if w.is_empty() || w.contains(char::is_whitespace) { format!("'{w}'") } else { w }).collect::<Vec<_>>().join(" "));
     let cli = match args.iter().map(|a| a.to_str().map(str::to_string)).collect::<Option<Vec<String>>>() {
         Some(text) => match wsclean_args::rewrite(text) {
             Ok(rewritten) => Cli::parse_from(rewritten),

@@ -101,8 +101,12 @@ const MAX_STRING_VALUE: usize = 68;
 /// keywords may not redefine them, or the file would contradict itself.
 const RESERVED_KEYWORDS: &[&str] = &[
     "SIMPLE", "BITPIX", "EXTEND", "END", "BSCALE", "BZERO", "BLANK", "BUNIT", "BMAJ", "BMIN", "BPA",
-    "EQUINOX", "RADESYS", "RADECSYS", "SPECSYS", "ORIGIN", "LONPOLE", "LATPOLE", "COMMENT", "HISTORY",
+    "EQUINOX", "RADESYS", "RADECSYS", "SPECSYS", "ORIGIN", "LONPOLE", "LATPOLE", "COMMENT",
 ];
+
+/// The longest HISTORY text an extra keyword may carry (cfitsio continues it over as many
+/// cards as it needs).
+const MAX_HISTORY: usize = 4096;
 
 /// Keyword families of the coordinate system (CTYPEn, PCi_j, ...), reserved like the above.
 const RESERVED_PREFIXES: &[&str] = &["NAXIS", "CTYPE", "CRPIX", "CRVAL", "CDELT", "CUNIT", "CROTA"];
@@ -362,6 +366,22 @@ fn remove_primary_extname(file: &mut FitsFile) -> fitsio::errors::Result<()> {
     }
 }
 
+/// A HISTORY record (cfitsio continues a long one over several cards).
+fn write_history(file: &mut FitsFile, text: &str) -> fitsio::errors::Result<()> {
+    let text = std::ffi::CString::new(text).map_err(|_| fitsio::errors::Error::Message("HISTORY text with a NUL byte".into()))?;
+    let mut status = 0;
+    // SAFETY: `file` is open and exclusively borrowed for the call, so its raw pointer is valid
+    // and used by nothing else; `text` is a NUL-terminated string that outlives the call, which
+    // cfitsio only reads; it reports through `status` only.
+    unsafe {
+        fitsio::sys::ffphis(file.as_raw(), text.as_ptr(), &mut status);
+    }
+    match status {
+        0 => Ok(()),
+        _ => Err(fitsio::errors::Error::Message(format!("cfitsio status {status} writing HISTORY"))),
+    }
+}
+
 fn write_fits(file_name: &str, pixels: &[f32], h: &Header) -> fitsio::errors::Result<()> {
     // fitsio takes the shape slowest axis first: [STOKES, FREQ, Dec, RA].
     let dimensions: Vec<usize> =
@@ -423,6 +443,7 @@ fn write_fits(file_name: &str, pixels: &[f32], h: &Header) -> fitsio::errors::Re
             ExtraValue::Integer(v) => hdu.write_key(f, &keyword.name, *v)?,
             ExtraValue::Float(v) => hdu.write_key(f, &keyword.name, *v)?,
             ExtraValue::Text(v) => hdu.write_key(f, &keyword.name, v.as_str())?,
+            ExtraValue::History(text) => write_history(f, text)?,
         }
     }
     hdu.write_image(f, pixels)?;
@@ -439,6 +460,8 @@ enum ExtraValue {
     Integer(i64),
     Float(f64),
     Text(String),
+    /// `HISTORY` text: commentary cards, as many as there are such keywords.
+    History(String),
 }
 
 impl ExtraKeyword {
@@ -467,6 +490,12 @@ impl ExtraKeyword {
             ));
         }
         let trimmed = value.trim();
+        if upper == "HISTORY" {
+            if !value.bytes().all(|b| (b' '..=b'~').contains(&b)) || value.len() > MAX_HISTORY {
+                return Err(Error::parameter(parameter(), format!("HISTORY text must be printable ASCII of at most {MAX_HISTORY} characters")));
+            }
+            return Ok(ExtraKeyword { name: upper, value: ExtraValue::History(value.to_string()) });
+        }
         let value = if let Ok(v) = trimmed.parse::<i64>() {
             ExtraValue::Integer(v)
         } else if let Some(v) = trimmed.parse::<f64>().ok().filter(|v| v.is_finite()) {

@@ -26,6 +26,9 @@ impl Payload for Job {
     fn iteration(&self) -> usize {
         self.iteration
     }
+    fn iterations_planned(&self) -> usize {
+        self.series_length
+    }
     fn add_stage_seconds(&mut self, stage: &str, seconds: f64) {
         *self.stage_seconds.entry(stage.to_string()).or_insert(0.0) += seconds;
     }

@@ -4,7 +4,7 @@
 
 use crate::fits::{write_image, Beam, BrightnessUnit, ImageWcs};
 use super::state::{IterationMetrics, Job, LoopStop};
-use crate::preview::{write_png, PreviewScale};
+use crate::preview::{write_png_on_sky, PreviewScale, SkyFrame};
 use crate::staging::Staging;
 use crate::{Error, Result};
 use arrow::array::{ArrayRef, Float64Array, RecordBatch, UInt32Array};
@@ -51,6 +51,11 @@ pub struct JobProducts {
     pub wcs: ImageWcs,
     pub beam: Option<Beam>,
     pub telescope: String,
+    /// What was observed and when it began (FITS `OBJECT`, `DATE-OBS`), where the data say.
+    pub object: Option<String>,
+    pub date_obs: Option<String>,
+    /// The final residual's noise, Jy/beam ([`crate::metrics::robust_sigma`]).
+    pub residual_noise: Option<f64>,
     /// Dynamic range of the truth or of the simulated sky, when known (previews' scale).
     pub dynamic_range: Option<f64>,
     /// Warnings raised about the job (outside a series' domain, a diverging series).
@@ -103,6 +108,24 @@ impl Staged {
     }
 }
 
+/// The command line of this process, recorded in the products' HISTORY ([`record_command_line`]).
+static COMMAND_LINE: std::sync::OnceLock<String> = std::sync::OnceLock::new();
+
+/// Record the command that runs this process (the CLI's `r2d2 image ...`), for the HISTORY of
+/// the products it writes; the first call counts.
+pub fn record_command_line(command: String) {
+    let _ = COMMAND_LINE.set(command);
+}
+
+fn command_line() -> Option<String> {
+    COMMAND_LINE.get().cloned()
+}
+
+/// Printable ASCII only (HISTORY text), at most the HISTORY limit of the FITS writer.
+fn fits_safe(text: &str) -> String {
+    text.chars().map(|c| if (' '..='~').contains(&c) { c } else { '?' }).take(2000).collect()
+}
+
 impl JobProducts {
     /// The products of a gridded job; `dynamic_range` (else the job's known one, else the
     /// previews' default) sets where the uncertainty map is masked.
@@ -152,6 +175,9 @@ impl JobProducts {
             wcs,
             beam: im.beam,
             telescope: job.meta.telescope.clone(),
+            object: job.meta.extra.get(crate::vis::OBJECT_KEY).cloned(),
+            date_obs: job.meta.extra.get(crate::vis::DATE_OBS_KEY).cloned(),
+            residual_noise: stepped.then(|| crate::metrics::robust_sigma(&f32s(&im.residual))),
             dynamic_range: dynamic_range_known,
             warnings: job.warnings.clone(),
             stop: job.stop.clone(),
@@ -198,13 +224,75 @@ impl JobProducts {
         cards.into_iter().map(|(k, v)| (k.to_string(), v)).collect()
     }
 
-    /// The keywords beside the WCS that every product carries (and the MS column imaged).
+    /// The keywords beside the WCS that every product carries, as WSClean records them where
+    /// the meaning is shared: telescope, object, date, the MS column imaged, the weighting, and
+    /// what made the model (the series and its networks run, or the step).
     fn extra_keywords(&self) -> Vec<(&'static str, String)> {
-        let mut cards = vec![("TELESCOP", self.telescope.clone()), ("R2D2ITER", self.iterations.to_string())];
-        if let Some(column) = self.settings.get("data_column").and_then(|c| c.as_str()) {
-            cards.push(("DATACOL", column.to_string()));
+        let fits_text = |s: &str| s.chars().filter(|c| (' '..='~').contains(c)).take(60).collect::<String>();
+        let mut cards = vec![("TELESCOP", fits_text(&self.telescope))];
+        if let Some(object) = self.object.as_deref().filter(|o| !o.trim().is_empty()) {
+            cards.push(("OBJECT", fits_text(object)));
         }
+        if let Some(date) = &self.date_obs {
+            cards.push(("DATE-OBS", fits_text(date)));
+        }
+        if let Some(column) = self.settings.get("data_column").and_then(|c| c.as_str()) {
+            cards.push(("DATACOL", fits_text(column)));
+        }
+        if let Some(weighting) = self.settings.get("weighting") {
+            let scheme = weighting.get("scheme").and_then(|s| s.as_str()).unwrap_or_default();
+            let text = match weighting.get("robust").and_then(|r| r.as_f64()) {
+                Some(robust) if scheme == "briggs" => format!("briggs {robust}"),
+                _ => scheme.to_string(),
+            };
+            if !text.is_empty() {
+                cards.push(("WEIGHT", fits_text(&text)));
+            }
+        }
+        if let Some(series) = self.settings.get("step").and_then(|s| s.get("series")).and_then(|s| s.as_str()) {
+            cards.push(("R2D2SER", fits_text(series)));
+        }
+        cards.push(("R2D2ITER", self.iterations.to_string()));
         cards
+    }
+
+    /// HISTORY records of the files: what wrote them and, for a command-line run, its command.
+    fn history(&self) -> Vec<(&'static str, String)> {
+        let mut lines = vec![("HISTORY", format!("r2d2-imaging {} imaged job '{}'", env!("CARGO_PKG_VERSION"), fits_safe(&self.id)))];
+        if let Some(command) = command_line() {
+            lines.push(("HISTORY", format!("command: {}", fits_safe(&command))));
+        }
+        lines
+    }
+
+    /// `<prefix>-metrics.json`: the job, its per-iteration figures, seconds per stage, image
+    /// and pixel size, the settings (weighting, step and series, data column), warnings, how
+    /// the loop stopped, what was observed and when, and the residual's noise.
+    pub fn metrics_json(&self) -> serde_json::Value {
+        let mut metrics = serde_json::json!({
+            "job": self.id,
+            "iterations": self.metrics,
+            "stage_seconds": self.stage_seconds,
+            "image_size": self.size,
+            "pixel_arcsec": self.pixel_arcsec,
+            "settings": self.settings,
+            "warnings": self.warnings,
+        });
+        if let Some(noise) = self.residual_noise {
+            metrics["residual_noise_jy_per_beam"] = serde_json::json!(noise);
+        }
+        for (key, value) in [("telescope", Some(&self.telescope)), ("object", self.object.as_ref()), ("date_obs", self.date_obs.as_ref())] {
+            if let Some(value) = value.filter(|v| !v.is_empty()) {
+                metrics[key] = serde_json::json!(value);
+            }
+        }
+        if let Some(stop) = &self.stop {
+            metrics["stop"] = serde_json::json!(stop);
+        }
+        if let Some(summary) = &self.realisations {
+            metrics["realisations"] = summary.clone();
+        }
+        metrics
     }
 
     /// Writes the products as `r2d2 image` does (`<prefix>-dirty.fits`, `-psf`, `-model`,
@@ -233,7 +321,8 @@ impl JobProducts {
         let target = |suffix: &str| dir.join(format!("{stem}-{suffix}"));
         let mut staging = Staging::new(&dir)?;
         let n = self.size;
-        let extra = self.extra_keywords();
+        let mut extra = self.extra_keywords();
+        extra.extend(self.history());
         let mut images: Vec<(&str, &[f32], BrightnessUnit)> =
             vec![("dirty", &self.dirty, BrightnessUnit::JyPerBeam), ("psf", &self.psf, BrightnessUnit::JyPerBeam)];
         if let (Some(model), Some(residual)) = (&self.model, &self.residual) {
@@ -247,32 +336,29 @@ impl JobProducts {
             images.push(("uncertainty", uncertainty, BrightnessUnit::Ratio));
         }
         let scale = PreviewScale::Log { dynamic_range: preview_dynamic_range(options.preview_dynamic_range.or(self.dynamic_range)) };
-        for (name, data, unit) in &images {
-            let data: Vec<f64> = data.iter().map(|&v| f64::from(v)).collect();
+        for (name, pixels, unit) in &images {
+            let data: Vec<f64> = pixels.iter().map(|&v| f64::from(v)).collect();
             staging.write(target(&format!("{name}.fits")), |path| write_image(path, &data, n, n, &self.wcs, *unit, self.beam.as_ref(), &extra))?;
             if options.previews {
-                let (title, scale) = match unit {
-                    BrightnessUnit::Ratio => (format!("{} {name} (std / mean)", self.id), PreviewScale::Linear),
-                    _ => (format!("{} {name} ({})", self.id, unit.as_fits()), scale),
+                // The model is positive (log scale over the dynamic range); the others carry
+                // meaningful negative pixels (sidelobes, noise) and get the signed stretch,
+                // linear within their noise.
+                let (title, scale) = match (unit, *name) {
+                    (BrightnessUnit::Ratio, _) => (format!("{} {name} (std / mean)", self.id), PreviewScale::Linear),
+                    (_, "model") => (format!("{} {name} ({})", self.id, unit.as_fits()), scale),
+                    _ => {
+                        let softening = crate::metrics::robust_sigma(pixels);
+                        (format!("{} {name} ({}, asinh)", self.id, unit.as_fits()), PreviewScale::Signed { softening })
+                    }
                 };
-                staging.write(target(&format!("{name}.png")), |path| write_png(path, &data, n, n, scale, &title))?;
+                let sky = SkyFrame {
+                    pixel_arcsec: self.pixel_arcsec,
+                    beam: self.beam.map(|b| (b.major_deg * 3600.0, b.minor_deg * 3600.0, b.pa_deg)),
+                };
+                staging.write(target(&format!("{name}.png")), |path| write_png_on_sky(path, &data, n, n, scale, &title, Some(&sky)))?;
             }
         }
-        let mut metrics = serde_json::json!({
-            "job": self.id,
-            "iterations": self.metrics,
-            "stage_seconds": self.stage_seconds,
-            "image_size": n,
-            "pixel_arcsec": self.pixel_arcsec,
-            "settings": self.settings,
-            "warnings": self.warnings,
-        });
-        if let Some(stop) = &self.stop {
-            metrics["stop"] = serde_json::json!(stop);
-        }
-        if let Some(summary) = &self.realisations {
-            metrics["realisations"] = summary.clone();
-        }
+        let metrics = self.metrics_json();
         let text = serde_json::to_string_pretty(&metrics).expect("metrics serialise");
         staging.write(target("metrics.json"), |path| std::fs::write(path, &text).map_err(|e| Error::io(path, e)))?;
         staging.write(target("metrics.parquet"), |path| self.write_metrics_parquet(path))?;

@@ -125,6 +125,8 @@ pub struct Job {
     pub iteration: usize,
     /// Set by the network step when it ran the last network of its series.
     pub series_finished: bool,
+    /// The steps the network step will run at most (its series' length; 0 before the first).
+    pub series_length: usize,
     /// Name of the step that made the model (products are named after what made them).
     pub step_kind: Option<String>,
     /// Whether that step's model is restored (a CLEAN-like step: `-image.fits` is written),
@@ -170,6 +172,7 @@ impl Job {
             imaging: None,
             iteration: 0,
             series_finished: false,
+            series_length: 0,
             step_kind: None,
             restores: false,
             restored: None,

@@ -5,7 +5,7 @@ use super::{
     MsSelection, Origin, SampleColumns, StokesI, Window, ORIGIN_KEY,
 };
 use crate::vis::TableReader;
-use crate::vis::{ObservationMeta, DEFAULT_BATCH_ROWS};
+use crate::vis::{ObservationMeta, DATE_OBS_KEY, DEFAULT_BATCH_ROWS, OBJECT_KEY};
 use crate::{Error, Result};
 use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, RecordBatch};
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
@@ -165,7 +165,13 @@ impl MsReader {
         };
         let mut extra = std::collections::BTreeMap::new();
         extra.insert("ms_field".to_string(), layout.field_name.clone());
+        if !layout.field_name.trim().is_empty() {
+            extra.insert(OBJECT_KEY.to_string(), layout.field_name.trim().to_string());
+        }
         extra.insert("ms_data_column".to_string(), selection.data_column.clone());
+        if let Some(date) = super::table::observation_start(path) {
+            extra.insert(DATE_OBS_KEY.to_string(), date);
+        }
         extra.insert(ORIGIN_KEY.to_string(), serde_json::to_string(&origin).expect("the origin serialises"));
         let meta = ObservationMeta {
             phase_centre_ra_deg: layout.ra_deg,

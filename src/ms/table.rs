@@ -410,6 +410,40 @@ pub(crate) fn telescope(ms: &Path) -> Result<String> {
     })
 }
 
+/// When the observation began, as FITS `DATE-OBS` text (UTC, ISO 8601): the start of
+/// `OBSERVATION.TIME_RANGE` of the first row. `None` where it is missing, zero or unreadable:
+/// a date is a courtesy to the products, never a reason to refuse the data.
+pub(crate) fn observation_start(ms: &Path) -> Option<String> {
+    let table = open_subtable(ms, "OBSERVATION").ok()?;
+    let cells = read_column(&table, &ms.join("OBSERVATION"), "TIME_RANGE").ok()?;
+    let (_, range) = array_f64(cells.first()?)?;
+    mjd_seconds_to_iso(*range.first()?)
+}
+
+/// Modified Julian Date in seconds (casacore's epoch) as `YYYY-MM-DDThh:mm:ss.s`; `None`
+/// outside years 1900..2200 (no real observation; zero is the common "unset").
+pub(crate) fn mjd_seconds_to_iso(mjd_s: f64) -> Option<String> {
+    // MJD 15020 is 1900-01-01, MJD 124593 is 2200-01-01.
+    if !(mjd_s.is_finite() && (15020.0 * 86400.0..124593.0 * 86400.0).contains(&mjd_s)) {
+        return None;
+    }
+    let days = (mjd_s / 86400.0).floor();
+    let seconds = mjd_s - days * 86400.0;
+    // Civil date from days since 1970-01-01 (H. Hinnant's algorithm); MJD 40587 is that day.
+    let z = days as i64 - 40587 + 719468;
+    let era = z.div_euclid(146097);
+    let doe = z - era * 146097;
+    let yoe = (doe - doe / 1460 + doe / 36524 - doe / 146096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let day = doy - (153 * mp + 2) / 5 + 1;
+    let month = if mp < 10 { mp + 3 } else { mp - 9 };
+    let year = yoe + era * 400 + i64::from(month <= 2);
+    let tenths = (seconds * 10.0).round() as i64;
+    let (h, m, s10) = (tenths / 36000, tenths / 600 % 60, tenths % 600);
+    Some(format!("{year:04}-{month:02}-{day:02}T{h:02}:{m:02}:{:02}.{}", s10 / 10, s10 % 10))
+}
+
 /// Integer ids of a subtable column (`DATA_DESCRIPTION.SPECTRAL_WINDOW_ID`, ...).
 pub(crate) fn id_column(table: &Table, path: &Path, name: &str) -> Result<Vec<i64>> {
     read_column(table, path, name)?
@@ -593,5 +627,18 @@ mod tests {
         assert_eq!("3C286".parse::<FieldSelector>().unwrap(), FieldSelector::Name("3C286".into()));
         assert_eq!(correlation_name(12), "YY");
         assert_eq!(correlation_name(40), "code 40");
+    }
+}
+
+#[cfg(test)]
+mod date_tests {
+    use super::mjd_seconds_to_iso;
+
+    #[test]
+    fn mjd_seconds_become_iso_dates() {
+        assert_eq!(mjd_seconds_to_iso(51544.5 * 86400.0).unwrap(), "2000-01-01T12:00:00.0");
+        assert_eq!(mjd_seconds_to_iso(60000.0 * 86400.0 + 3723.46).unwrap(), "2023-02-25T01:02:03.5");
+        assert_eq!(mjd_seconds_to_iso(51603.0 * 86400.0).unwrap(), "2000-02-29T00:00:00.0");
+        assert!(mjd_seconds_to_iso(0.0).is_none() && mjd_seconds_to_iso(150.0).is_none() && mjd_seconds_to_iso(f64::NAN).is_none());
     }
 }

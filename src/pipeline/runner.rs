@@ -39,8 +39,9 @@ const POLL: Duration = Duration::from_millis(20);
 /// a progress bar from it; the runner draws nothing).
 #[derive(Clone, Debug)]
 pub enum Progress {
-    /// `stage` started on `job` (`iteration`: network steps done so far).
-    Working { stage: String, job: String, iteration: usize },
+    /// `stage` started on `job` (`iteration`: network steps done so far, `of`: planned, 0 when
+    /// not known).
+    Working { stage: String, job: String, iteration: usize, of: usize },
     /// `stage` finished its job and waits for the next.
     Idle { stage: String },
     /// `job` reached the end of the pipeline.
@@ -273,7 +274,7 @@ fn run_built<J: Payload>(
                             }
                         };
                         let id = job.id().to_string();
-                        progress(&Progress::Working { stage: name.clone(), job: id.clone(), iteration: job.iteration() });
+                        progress(&Progress::Working { stage: name.clone(), job: id.clone(), iteration: job.iteration(), of: job.iterations_planned() });
                         let began = Instant::now();
                         // A sink passing its jobs on (the product sink before a writer) ends nothing.
                         let sink = graph.roles[i] == Role::Sink && graph.next[i].is_none();

@@ -14,6 +14,11 @@ pub trait Payload: Send + 'static {
     fn id(&self) -> &str;
     /// How far the item has come round a loop (for progress reports).
     fn iteration(&self) -> usize;
+    /// How many times round the loop the item is planned to go (0: not known), so progress
+    /// can say "3 of 15".
+    fn iterations_planned(&self) -> usize {
+        0
+    }
     /// Adds time spent on the item by a stage.
     fn add_stage_seconds(&mut self, stage: &str, seconds: f64);
 }

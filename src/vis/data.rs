@@ -18,6 +18,13 @@ pub(crate) const KEY_DYNAMIC_RANGE: &str = "dynamic_range";
 /// describes the file, not the observation, and is regenerated on every write.
 pub(crate) const KEY_ARROW_SCHEMA: &str = "ARROW:schema";
 
+/// Metadata key of when the observation began (FITS `DATE-OBS` text, UTC), where a reader
+/// knows it (an MS's `OBSERVATION.TIME_RANGE`) or a table carries it.
+pub const DATE_OBS_KEY: &str = "date_obs";
+
+/// Metadata key of what was observed (FITS `OBJECT`): an MS's field name, or a table's own.
+pub const OBJECT_KEY: &str = "object";
+
 /// What the observation is, as recorded in the file's key-value metadata.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ObservationMeta {

@@ -109,7 +109,7 @@ impl OnnxStep {
     /// Open and check the series for `size x size` images: every file is read and its input and
     /// output checked here, before imaging starts.
     pub fn new(config: &OnnxConfig, size: usize, pipeline_threads: usize, setup: &ImagingSetup) -> Result<OnnxStep> {
-        let series = Series::open(&series::resolve_for_size(&config.series, size)?)?;
+        let series = Series::open(&series::resolve_for(&config.series, size, setup)?)?;
         if let Some(warning) = series.check_size(size)? {
             log::warn!("{warning}");
         }

@@ -482,18 +482,20 @@ impl Series {
 }
 
 /// The value of a step's `series` (and the default of `r2d2 image --step`) that picks the
-/// series by the job's image size ([`select_for_size`]).
+/// series by the job's image size and imaging setting ([`select_for`]).
 pub const AUTO_SERIES: &str = "auto";
 
 /// The project's own series, preferred in this order when several were trained for a size.
 pub const PROJECT_SERIES: [&str; 3] = ["vla-r2d2-512", "vla-r2d2-128", "vla-r2d2-512-broad"];
 
-/// The series for `size x size` images when none is named: among the series found in
-/// [`model_dirs`], one whose manifest lists `size` in `image_sizes` (the project's own first,
-/// then by name); failing that, the series that allows other sizes and was trained nearest to
-/// `size` (by ratio), with a warning that it runs at a size it was not trained for.
-pub fn select_for_size(size: usize) -> Result<(PathBuf, Option<String>)> {
-    select_in(&model_dirs(), size)
+/// The series for `size x size` images when none is named, among the series found in
+/// [`model_dirs`]: of those whose manifest lists `size` in `image_sizes`, the first (the
+/// project's own first, then by name) whose declared domain holds `setup` (what the pipeline
+/// fixes: weighting, a super-resolution factor), else the first of them, whose domain warning
+/// the job then carries; failing any, the series that allows other sizes and was trained
+/// nearest to `size` (by ratio), with a warning that it runs at a size it was not trained for.
+pub fn select_for(size: usize, setup: &ImagingSetup) -> Result<(PathBuf, Option<String>)> {
+    select_in(&model_dirs(), size, setup)
 }
 
 /// The usable series under `roots` (the first of each name), the project's own first in
@@ -513,10 +515,19 @@ fn ranked_series(roots: &[PathBuf]) -> Vec<(PathBuf, Series)> {
     found
 }
 
-fn select_in(roots: &[PathBuf], size: usize) -> Result<(PathBuf, Option<String>)> {
+fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(PathBuf, Option<String>)> {
     let found = ranked_series(roots);
-    if let Some((dir, s)) = found.iter().find(|(_, s)| s.image_sizes.contains(&size)) {
-        log::info!("series '{}' chosen for {size} x {size} (trained for {:?})", s.name, s.image_sizes);
+    let trained: Vec<&(PathBuf, Series)> = found.iter().filter(|(_, s)| s.image_sizes.contains(&size)).collect();
+    if let Some((dir, s)) = trained.iter().find(|(_, s)| s.validity_problems(setup).is_empty()).or(trained.first()) {
+        match trained.first() {
+            Some((_, first)) if first.name != s.name => log::info!(
+                "series '{}' chosen for {size} x {size}: '{}' was not trained for this setting ({})",
+                s.name,
+                first.name,
+                first.validity_problems(setup).join("; ")
+            ),
+            _ => log::info!("series '{}' chosen for {size} x {size} (trained for {:?})", s.name, s.image_sizes),
+        }
         return Ok((dir.clone(), None));
     }
     let distance = |s: &Series| {
@@ -548,11 +559,11 @@ pub fn covering_series(size: usize, setup: &ImagingSetup, except: &str) -> Optio
     })
 }
 
-/// The series directory for a step's `series` value and image size: [`select_for_size`] for
-/// [`AUTO_SERIES`], else [`resolve`].
-pub fn resolve_for_size(series: &Path, size: usize) -> Result<PathBuf> {
+/// The series directory for a step's `series` value, image size and imaging setting:
+/// [`select_for`] for [`AUTO_SERIES`], else [`resolve`].
+pub fn resolve_for(series: &Path, size: usize, setup: &ImagingSetup) -> Result<PathBuf> {
     if series.as_os_str() == AUTO_SERIES {
-        let (dir, warning) = select_for_size(size)?;
+        let (dir, warning) = select_for(size, setup)?;
         if let Some(w) = warning {
             log::warn!("{w}");
         }
@@ -561,9 +572,24 @@ pub fn resolve_for_size(series: &Path, size: usize) -> Result<PathBuf> {
     resolve(series)
 }
 
+/// Directories an embedding host ships series in (the Python package's own `models/`), looked
+/// up after the built-in places ([`add_model_dir`]).
+static HOST_MODEL_DIRS: std::sync::RwLock<Vec<PathBuf>> = std::sync::RwLock::new(Vec::new());
+
+/// Add a directory of series to look up after the built-in places (an embedding host's own,
+/// such as the series an installed Python package ships).
+pub fn add_model_dir(dir: PathBuf) {
+    if let Ok(mut dirs) = HOST_MODEL_DIRS.write() {
+        if !dirs.contains(&dir) {
+            dirs.push(dir);
+        }
+    }
+}
+
 /// Where series are looked up by name, in order: `$R2D2_MODELS` alone when set; else `models/`
 /// in the working directory, the repository's `models/` for a binary built in it
-/// (`target/<profile>/r2d2`), and `share/r2d2-imaging/models` beside an installed `bin/r2d2`.
+/// (`target/<profile>/r2d2`), `share/r2d2-imaging/models` beside an installed `bin/r2d2`, and
+/// the directories an embedding host added ([`add_model_dir`]).
 pub fn model_dirs() -> Vec<PathBuf> {
     if let Some(dir) = std::env::var_os("R2D2_MODELS").filter(|d| !d.is_empty()) {
         return vec![PathBuf::from(dir)];
@@ -572,6 +598,9 @@ pub fn model_dirs() -> Vec<PathBuf> {
     if let Some(bin) = std::env::current_exe().ok().and_then(|e| e.parent().map(Path::to_path_buf)) {
         dirs.push(bin.join("../../models"));
         dirs.push(bin.join("../share/r2d2-imaging/models"));
+    }
+    if let Ok(host) = HOST_MODEL_DIRS.read() {
+        dirs.extend(host.iter().cloned());
     }
     dirs
 }
@@ -630,7 +659,7 @@ mod tests {
         series_dir(root.path(), "vla-r2d2-512", "[512]", true);
         series_dir(root.path(), "vla-r2d2-128", "[128]", true);
         series_dir(root.path(), "fixed-64", "[64]", false);
-        let pick = |size| select_in(&roots, size).unwrap();
+        let pick = |size| select_in(&roots, size, &ImagingSetup::default()).unwrap();
         // Trained for the size: the project's own series before others of the same size.
         assert_eq!(pick(512), (root.path().join("vla-r2d2-512"), None));
         assert_eq!(pick(128), (root.path().join("vla-r2d2-128"), None));
@@ -646,7 +675,7 @@ mod tests {
         assert_eq!(pick(2048).0, root.path().join("vla-r2d2-512"));
         // Nothing usable: an error naming where it looked.
         let empty = tempfile::tempdir().unwrap();
-        let e = select_in(&[empty.path().to_path_buf()], 512).unwrap_err().to_string();
+        let e = select_in(&[empty.path().to_path_buf()], 512, &ImagingSetup::default()).unwrap_err().to_string();
         assert!(e.contains("no model series for 512 x 512") && e.contains(&empty.path().display().to_string()), "{e}");
     }
 
