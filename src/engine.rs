@@ -182,6 +182,31 @@ impl From<MemoryInput> for Observation {
     }
 }
 
+/// CLEAN's stopping controls as WSClean names them; `None` keeps the step's default.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct CleanControls {
+    /// Components over all major cycles (`-niter`).
+    pub niter: Option<usize>,
+    /// Minor-cycle loop gain (`-gain`, default 0.1).
+    pub gain: Option<f64>,
+    /// Fraction of the peak each major cycle's minor cycle cleans away (`-mgain`).
+    pub mgain: Option<f64>,
+    /// Stop at this many times the residual's noise (`-auto-threshold`).
+    pub auto_threshold: Option<f64>,
+    /// Stop below this residual peak, Jy/beam (`-threshold`).
+    pub threshold: Option<f64>,
+}
+
+impl CleanControls {
+    fn any(&self) -> bool {
+        *self != CleanControls::default()
+    }
+}
+
+/// Major cycles of `r2d2 image --step clean` when `-niter` bounds the work and no
+/// `--iterations` is given: enough for the thresholds and `-niter` to end the loop first.
+const CLEAN_MAJOR_CYCLES_WITH_NITER: usize = 20;
+
 /// The network step of [`Engine::image`].
 #[derive(Clone, Debug, PartialEq)]
 pub enum StepChoice {
@@ -239,9 +264,12 @@ pub struct ImageParams {
     /// The w-term (default `auto`: corrected where it matters at `epsilon`).
     pub w_term: crate::operator::WTermMode,
     pub step: StepChoice,
-    /// CLEAN major cycles (default 5), the first networks of a series (default all), or a
-    /// plugin's steps (default 10).
+    /// CLEAN major cycles (default 5, or 20 when `clean.max_components` bounds the work), the
+    /// first networks of a series (default all), or a plugin's steps (default 10).
     pub iterations: Option<usize>,
+    /// CLEAN's stopping controls with WSClean's meanings (`-niter`, `-gain`, `-mgain`,
+    /// `-auto-threshold`, `-threshold`); refused with another step.
+    pub clean: CleanControls,
     /// Series only: inference backend, prefetching of the next network, graph optimisation.
     pub backend: BackendChoice,
     pub prefetch: bool,
@@ -269,6 +297,7 @@ impl Default for ImageParams {
             oversampling: 2.0,
             w_term: crate::operator::WTermMode::Auto,
             step: StepChoice::Auto,
+            clean: CleanControls::default(),
             iterations: None,
             backend: BackendChoice::Auto,
             prefetch: true,
@@ -390,8 +419,30 @@ fn imaging_setting(params: &ImageParams) -> Result<(Weighting, f64)> {
 
 /// The step stage for `params.step`.
 fn step_stage(params: &ImageParams) -> Result<StageSpec> {
+    if params.clean.any() && params.step != StepChoice::Clean {
+        return Err(Error::parameter(
+            "step",
+            "the CLEAN controls (niter, gain, mgain, auto-threshold, threshold) are for --step clean; the default step is a network series, which needs none",
+        ));
+    }
     match &params.step {
-        StepChoice::Clean => StageSpec::typed("step", &CleanParams { major_cycles: params.iterations.unwrap_or(5), ..CleanParams::default() }),
+        StepChoice::Clean => {
+            let c = params.clean;
+            let defaults = CleanParams::default();
+            let cycles = params.iterations.unwrap_or(if c.niter.is_some() { CLEAN_MAJOR_CYCLES_WITH_NITER } else { defaults.major_cycles });
+            StageSpec::typed(
+                "step",
+                &CleanParams {
+                    major_cycles: cycles,
+                    gain: c.gain.unwrap_or(defaults.gain),
+                    threshold: c.threshold.unwrap_or(defaults.threshold),
+                    max_components: c.niter,
+                    major_gain: c.mgain,
+                    auto_threshold: c.auto_threshold,
+                    ..defaults
+                },
+            )
+        }
         StepChoice::Auto | StepChoice::Series(_) => {
             // `auto` is resolved by the step, which knows the image size.
             let series = match &params.step {

@@ -46,7 +46,7 @@ pub mod progress;
 #[doc(hidden)]
 pub mod staging;
 
-pub use engine::{is_ms, BackendChoice, Engine, EngineOptions, GraphOptimization, ImageParams, Observation, ProgressObserver, StepChoice};
+pub use engine::{is_ms, BackendChoice, CleanControls, Engine, EngineOptions, GraphOptimization, ImageParams, Observation, ProgressObserver, StepChoice};
 pub use error::{Error, Result};
 pub use imaging::ImageConfig;
 pub use job::{

@@ -557,3 +557,33 @@ fn a_job_outside_the_series_domain_is_pointed_to_one_that_covers_it() {
     check(&out);
     assert!(!String::from_utf8_lossy(&out.stderr).contains("was trained for it"));
 }
+
+/// A WSClean command line for CLEAN runs with WSClean's meanings given `--step clean`: the
+/// loop ends on the auto-threshold, well within the major cycles allowed, with the residual's
+/// noise recorded; the same options with the default (network) step are refused, naming
+/// `--step clean`, and nothing is written.
+#[test]
+fn wsclean_clean_controls_run_with_their_meanings() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64", "--seed", "4", "--out", "obs.parquet"], d));
+    let wsclean = ["-size", "64", "64", "-weight", "briggs", "0", "-niter", "5000", "-auto-threshold", "3", "-mgain", "0.8", "-gain", "0.1", "-j", "1"];
+    let mut args = vec!["image", "obs.parquet", "--step", "clean", "-name", "ws"];
+    args.extend(wsclean);
+    check(&r2d2(&args, d));
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("ws-metrics.json")).unwrap()).unwrap();
+    let cycles = metrics["iterations"].as_array().unwrap().len();
+    assert!(cycles < 20 && metrics["stop"]["reason"] == "converged", "{metrics}");
+    let noise = metrics["residual_noise_jy_per_beam"].as_f64().unwrap();
+    let residual = read_image(&d.join("ws-residual.fits")).unwrap().data;
+    let peak = residual.iter().fold(0.0f64, |m, r| m.max(r.abs()));
+    // The last minor cycle stopped at 3 sigma of the residual it started from; the exact
+    // residual of the next major cycle is close to it.
+    assert!(peak < 5.0 * noise && peak > 0.0, "residual peak {peak} against noise {noise}");
+
+    let mut args = vec!["image", "obs.parquet", "-name", "net"];
+    args.extend(wsclean);
+    let out = r2d2(&args, d);
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("--step clean"), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(!d.join("net-metrics.json").exists());
+}

@@ -3,7 +3,7 @@
 
 use super::ImageOptions;
 use r2d2_imaging::steps::series::AUTO_SERIES;
-use r2d2_imaging::{BackendChoice, Error, GraphOptimization, ImageParams, Result, StepChoice};
+use r2d2_imaging::{BackendChoice, CleanControls, Error, GraphOptimization, ImageParams, Result, StepChoice};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -27,6 +27,22 @@ pub struct Args {
     /// (default: all), or the steps of a native plugin (default 10).
     #[arg(long)]
     iterations: Option<usize>,
+    /// CLEAN (--step clean): most components over all major cycles, as WSClean's -niter
+    /// (with it, up to 20 major cycles unless --iterations says otherwise).
+    #[arg(long)]
+    niter: Option<usize>,
+    /// CLEAN: minor-cycle loop gain, as WSClean's -gain (default 0.1).
+    #[arg(long)]
+    gain: Option<f64>,
+    /// CLEAN: the fraction of the peak each major cycle cleans away, as WSClean's -mgain.
+    #[arg(long)]
+    mgain: Option<f64>,
+    /// CLEAN: stop at this many times the residual's noise, as WSClean's -auto-threshold.
+    #[arg(long)]
+    auto_threshold: Option<f64>,
+    /// CLEAN: stop below this residual peak in Jy/beam, as WSClean's -threshold.
+    #[arg(long)]
+    threshold: Option<f64>,
     /// Configuration of a native plugin, a YAML/JSON mapping (e.g. '{gain: 0.1}').
     #[arg(long)]
     plugin_config: Option<String>,
@@ -63,6 +79,7 @@ fn image_params(args: &Args) -> Result<ImageParams> {
         w_term: image.w_term,
         step: StepChoice::parse(&args.step, args.plugin_config.as_deref())?,
         iterations: args.iterations,
+        clean: CleanControls { niter: args.niter, gain: args.gain, mgain: args.mgain, auto_threshold: args.auto_threshold, threshold: args.threshold },
         backend: args.backend.parse()?,
         prefetch: !args.no_prefetch,
         graph_optimization: if args.graph_optimization == "all" { GraphOptimization::All } else { GraphOptimization::Extended },

@@ -19,20 +19,18 @@ const OPTIONS: &[(&str, usize, Spelling)] = &[
     ("data-column", 1, Spelling::Same),
     ("name", 1, Spelling::Same),
     ("j", 1, Spelling::Same),
-    (
-        "niter",
-        1,
-        Spelling::Counterpart(
-            "WSClean's -niter counts CLEAN components; here --iterations counts a series' networks or CLEAN's major cycles, and CLEAN's minor-cycle limits are the keys `gain`, `threshold` and `components_per_cycle` of a pipeline's `clean` stage (r2d2 run, README: Pipelines)",
-        ),
-    ),
-    ("auto-threshold", 1, Spelling::Counterpart("CLEAN's threshold is the `threshold` key of a pipeline's `clean` stage (r2d2 run); a network series needs none")),
+    ("niter", 1, Spelling::Same),
+    ("auto-threshold", 1, Spelling::Same),
+    ("threshold", 1, Spelling::Same),
+    ("mgain", 1, Spelling::Same),
+    ("gain", 1, Spelling::Same),
     ("auto-mask", 1, Spelling::Counterpart("there is no CLEAN mask here; a network series needs none")),
-    ("mgain", 1, Spelling::Counterpart("CLEAN's major-cycle depth is `components_per_cycle` (and `major_cycles`) of a pipeline's `clean` stage (r2d2 run); a network series needs none")),
-    ("gain", 1, Spelling::Counterpart("CLEAN's loop gain is the `gain` key of a pipeline's `clean` stage (r2d2 run); a network series needs none")),
     ("multiscale", 0, Spelling::Counterpart("there is no multiscale CLEAN here; a network series images extended emission itself (the default step)")),
     ("padding", 1, Spelling::Counterpart("the gridder's padding is fixed by --oversampling (default 2, as -padding 2)")),
 ];
+
+/// WSClean's CLEAN controls, which `r2d2 image --step clean` takes with the same meanings.
+const CLEAN_OPTIONS: [&str; 5] = ["niter", "auto-threshold", "threshold", "mgain", "gain"];
 
 /// `args` (the whole command line) with WSClean's spellings rewritten, for `image` and `dirty`
 /// only; `Err` names the option and its counterpart.
@@ -68,6 +66,9 @@ pub fn rewrite(args: Vec<String>) -> Result<Vec<String>, String> {
         for _ in 0..*count {
             values.push(rest.next().ok_or_else(|| format!("-{name}: expected {count} value(s), as in WSClean"))?);
         }
+        if command == "dirty" && CLEAN_OPTIONS.contains(&name) {
+            return Err(format!("-{name} (WSClean's option) controls CLEAN; r2d2 dirty makes the dirty image only (r2d2 image --step clean -{name} ... cleans)"));
+        }
         match spelling {
             Spelling::Counterpart(advice) => return Err(format!("-{name} (WSClean's option) has no counterpart in r2d2 {command}: {advice}")),
             Spelling::Same => out.extend(translate(name, &values, &mut rest)?),
@@ -99,6 +100,9 @@ fn translate(name: &str, values: &[String], rest: &mut std::iter::Peekable<std::
         "data-column" => pair("--data-column", &values[0]),
         "name" => pair("--name", &values[0]),
         "j" => pair("--threads", &values[0]),
+        // CLEAN's controls: the same meanings, with --step clean (the engine refuses them with
+        // a network series, saying so).
+        name if CLEAN_OPTIONS.contains(&name) => pair(&format!("--{name}"), &values[0]),
         _ => unreachable!("every Same option is translated"),
     })
 }
@@ -129,6 +133,11 @@ mod tests {
         assert_eq!(got, words("r2d2 image --size 512 --pixel-arcsec 1.5 --weighting briggs --robust=-0.5 --data-column CORRECTED_DATA --name out --threads 2 obs.ms"));
         assert_eq!(rewrite(words("r2d2 dirty obs.ms --size 256 256 -weight natural")).unwrap(), words("r2d2 dirty obs.ms --size 256 --weighting natural"));
         assert_eq!(rewrite(words("r2d2 image obs.ms -scale 0.01deg")).unwrap()[4], "36");
+        // CLEAN's controls, WSClean's meanings (the engine refuses them with a network series).
+        assert_eq!(
+            rewrite(words("r2d2 image obs.ms --step clean -niter 10000 -auto-threshold 3 -mgain 0.8 -gain 0.1 -threshold 0.001")).unwrap(),
+            words("r2d2 image obs.ms --step clean --niter 10000 --auto-threshold 3 --mgain 0.8 --gain 0.1 --threshold 0.001")
+        );
         // Other commands, and this engine's own spellings, pass untouched.
         assert_eq!(rewrite(words("r2d2 simulate -size 4 4")).unwrap(), words("r2d2 simulate -size 4 4"));
         assert_eq!(rewrite(words("r2d2 -q image obs.ms --size 64 -v")).unwrap(), words("r2d2 -q image obs.ms --size 64 -v"));
@@ -137,9 +146,7 @@ mod tests {
     #[test]
     fn wsclean_options_without_counterpart_name_what_to_use() {
         for (line, words_expected) in [
-            ("r2d2 image obs.ms -niter 10000", &["-niter", "--iterations", "clean"][..]),
-            ("r2d2 image obs.ms -auto-threshold 3", &["-auto-threshold", "threshold"][..]),
-            ("r2d2 image obs.ms -mgain 0.8", &["-mgain", "clean"][..]),
+            ("r2d2 dirty obs.ms -niter 10000", &["-niter", "dirty image only", "--step clean"][..]),
             ("r2d2 image obs.ms -multiscale", &["-multiscale"][..]),
             ("r2d2 image -size 512 256 obs.ms", &["square"][..]),
             ("r2d2 image --size 512 256 obs.ms", &["square"][..]),

@@ -1,5 +1,13 @@
 //! The built-in `clean` step: one Hogbom minor cycle per loop iteration (a major cycle), the
 //! residual update in between being the pipeline's own.
+//!
+//! The stopping controls mean what WSClean's do: `max_components` (`-niter`, components over
+//! all major cycles), `gain` (`-gain`), `major_gain` (`-mgain`: each minor cycle cleans the
+//! peak down by this fraction of its value at the cycle's start), `auto_threshold`
+//! (`-auto-threshold`: stop at this many times the residual's robust noise, measured at each
+//! major cycle) and `threshold` (`-threshold`, Jy/beam). A minor cycle that has nothing left
+//! to clean leaves the model as it is, and the residual update's convergence rule ends the
+//! loop.
 
 use super::{NetworkStep, StepInput};
 use crate::deconv::{hogbom, HogbomParams};
@@ -24,11 +32,30 @@ pub struct CleanConfig {
     /// Only positive components (intensity).
     #[serde(default)]
     pub positive_only: bool,
+    /// Components over all major cycles of a job (WSClean's `-niter`); none: no total limit.
+    #[serde(default)]
+    pub max_components: Option<usize>,
+    /// Fraction of the peak each minor cycle cleans away (WSClean's `-mgain`); none: only
+    /// `components_per_cycle` and the thresholds end a minor cycle.
+    #[serde(default)]
+    pub major_gain: Option<f64>,
+    /// Stop at this many times the residual's robust noise (WSClean's `-auto-threshold`).
+    #[serde(default)]
+    pub auto_threshold: Option<f64>,
 }
 
 impl Default for CleanConfig {
     fn default() -> Self {
-        CleanConfig { gain: gain(), threshold: 0.0, components_per_cycle: components(), major_cycles: cycles(), positive_only: false }
+        CleanConfig {
+            gain: gain(),
+            threshold: 0.0,
+            components_per_cycle: components(),
+            major_cycles: cycles(),
+            positive_only: false,
+            max_components: None,
+            major_gain: None,
+            auto_threshold: None,
+        }
     }
 }
 
@@ -44,6 +71,8 @@ fn cycles() -> usize {
 
 pub struct CleanStep {
     config: CleanConfig,
+    /// Components taken so far per job (for `max_components`).
+    taken: std::collections::HashMap<String, usize>,
 }
 
 impl CleanStep {
@@ -54,7 +83,16 @@ impl CleanStep {
         if config.major_cycles == 0 {
             return Err(Error::parameter("major_cycles", "expected at least one major cycle"));
         }
-        Ok(CleanStep { config })
+        if !(config.threshold >= 0.0 && config.threshold.is_finite()) {
+            return Err(Error::parameter("threshold", format!("expected a threshold of 0 Jy/beam or more, got {}", config.threshold)));
+        }
+        if let Some(m) = config.major_gain.filter(|m| !(*m > 0.0 && *m <= 1.0)) {
+            return Err(Error::parameter("major_gain", format!("expected a major-cycle gain in (0, 1], got {m}")));
+        }
+        if let Some(s) = config.auto_threshold.filter(|s| !(*s >= 0.0 && s.is_finite())) {
+            return Err(Error::parameter("auto_threshold", format!("expected a number of noise sigmas of 0 or more, got {s}")));
+        }
+        Ok(CleanStep { config, taken: std::collections::HashMap::new() })
     }
 }
 
@@ -63,15 +101,115 @@ impl NetworkStep for CleanStep {
         self.config.major_cycles
     }
 
-    fn step(&mut self, _iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>> {
-        let params = HogbomParams {
-            gain: self.config.gain,
-            threshold: self.config.threshold,
-            max_components: self.config.components_per_cycle,
-            positive_only: self.config.positive_only,
-        };
+    fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>> {
+        let c = &self.config;
+        if iteration == 1 {
+            self.taken.remove(input.job);
+        }
+        let taken = self.taken.get(input.job).copied().unwrap_or(0);
+        let budget = c.max_components.map_or(c.components_per_cycle, |total| c.components_per_cycle.min(total.saturating_sub(taken)));
+        if budget == 0 {
+            return Ok(input.model.to_vec());
+        }
+        let peak = input.residual.iter().map(|&r| if c.positive_only { r } else { r.abs() }).fold(0.0, f64::max);
+        let mut level = c.threshold;
+        if let Some(m) = c.major_gain {
+            level = level.max((1.0 - m) * peak);
+        }
+        if let Some(sigmas) = c.auto_threshold {
+            let residual: Vec<f32> = input.residual.iter().map(|&r| r as f32).collect();
+            level = level.max(sigmas * crate::metrics::robust_sigma(&residual));
+        }
+        let params = HogbomParams { gain: c.gain, threshold: level, max_components: budget, positive_only: c.positive_only };
         let result = hogbom(input.residual, input.psf_2n, input.size, &params);
+        *self.taken.entry(input.job.to_string()).or_insert(0) += result.n_components;
+        log::debug!("job {}: major cycle {iteration}: {} components down to {:.3e} Jy/beam (stop level {level:.3e})", input.job, result.n_components, result.last_peak);
         Ok(input.model.iter().zip(&result.components).map(|(x, c)| x + c).collect())
     }
 
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::operator::PsfConvolution;
+
+    const N: usize = 32;
+
+    /// A Gaussian 2N PSF (peak 1 at (N, N)), and the dirty image of point sources through it.
+    fn problem() -> (Vec<f64>, Vec<f64>, PsfConvolution) {
+        let m = 2 * N;
+        let psf_2n: Vec<f64> = (0..m * m)
+            .map(|k| {
+                let (x, y) = ((k % m) as f64 - N as f64, (k / m) as f64 - N as f64);
+                (-(x * x + y * y) / (2.0 * 1.5f64.powi(2))).exp()
+            })
+            .collect();
+        let convolution = PsfConvolution::new(N, &psf_2n).unwrap();
+        let mut sky = vec![0.0; N * N];
+        for (x, y, s) in [(10, 12, 1.0), (20, 8, 0.5), (16, 24, 0.25), (5, 27, 0.1)] {
+            sky[y * N + x] = s;
+        }
+        let dirty = convolution.apply(&sky);
+        (psf_2n, dirty, convolution)
+    }
+
+    fn cycle(step: &mut CleanStep, iteration: usize, model: &[f64], residual: &[f64], psf_2n: &[f64], convolution: &PsfConvolution) -> Vec<f64> {
+        let psf = vec![0.0; N * N];
+        let input = StepInput { job: "job", size: N, model, residual, dirty: residual, psf: &psf, psf_2n, psf_convolution: convolution };
+        step.step(iteration, &input).unwrap()
+    }
+
+    fn peak(v: &[f64]) -> f64 {
+        v.iter().fold(0.0, |m: f64, x| m.max(x.abs()))
+    }
+
+    /// `-niter` bounds the components over all major cycles of a job; `-mgain` ends each
+    /// minor cycle once the peak is down by that fraction; `-auto-threshold` stops at that
+    /// many noise sigmas; `-threshold` at an absolute level; a new job starts afresh.
+    #[test]
+    fn the_controls_mean_what_wsclean_means() {
+        let (psf_2n, dirty, convolution) = problem();
+        let config = |c: CleanConfig| CleanStep::new(c).unwrap();
+        let components = |model: &[f64], before: &[f64]| model.iter().zip(before).filter(|(a, b)| a != b).count();
+
+        // -niter 7 with 5 per cycle: 5 components, then 2, then none.
+        let mut step = config(CleanConfig { max_components: Some(7), components_per_cycle: 5, gain: 0.1, ..CleanConfig::default() });
+        let m1 = cycle(&mut step, 1, &vec![0.0; N * N], &dirty, &psf_2n, &convolution);
+        assert_eq!(*step.taken.get("job").unwrap(), 5);
+        let r1: Vec<f64> = dirty.iter().zip(convolution.apply(&m1)).map(|(d, x)| d - x).collect();
+        let m2 = cycle(&mut step, 2, &m1, &r1, &psf_2n, &convolution);
+        assert_eq!(*step.taken.get("job").unwrap(), 7);
+        let r2: Vec<f64> = dirty.iter().zip(convolution.apply(&m2)).map(|(d, x)| d - x).collect();
+        assert_eq!(cycle(&mut step, 3, &m2, &r2, &psf_2n, &convolution), m2, "the budget is spent: the model stays");
+        assert!(components(&m2, &vec![0.0; N * N]) >= 1);
+        // Iteration 1 of the job again: a fresh budget.
+        cycle(&mut step, 1, &vec![0.0; N * N], &dirty, &psf_2n, &convolution);
+        assert_eq!(*step.taken.get("job").unwrap(), 5);
+
+        // -mgain 0.8: the minor cycle stops with the residual peak at about 0.2 of the start.
+        let mut step = config(CleanConfig { major_gain: Some(0.8), components_per_cycle: 100_000, gain: 0.1, ..CleanConfig::default() });
+        let m = cycle(&mut step, 1, &vec![0.0; N * N], &dirty, &psf_2n, &convolution);
+        let r: Vec<f64> = dirty.iter().zip(convolution.apply(&m)).map(|(d, x)| d - x).collect();
+        let ratio = peak(&r) / peak(&dirty);
+        assert!(ratio <= 0.2 + 1e-9 && ratio > 0.15, "peak down to {ratio} of the start");
+
+        // -auto-threshold 3 on a residual with noise: nothing below 3 sigma is cleaned.
+        let noisy: Vec<f64> = dirty.iter().enumerate().map(|(k, d)| d + 0.01 * ((k * 7919 % 1000) as f64 / 500.0 - 1.0)).collect();
+        let sigma = crate::metrics::robust_sigma(&noisy.iter().map(|&v| v as f32).collect::<Vec<_>>());
+        let mut step = config(CleanConfig { auto_threshold: Some(3.0), components_per_cycle: 100_000, gain: 0.1, ..CleanConfig::default() });
+        let m = cycle(&mut step, 1, &vec![0.0; N * N], &noisy, &psf_2n, &convolution);
+        let r: Vec<f64> = noisy.iter().zip(convolution.apply(&m)).map(|(d, x)| d - x).collect();
+        assert!(peak(&r) < 3.0 * sigma * 1.001 && peak(&r) > 2.0 * sigma, "residual peak {} against 3 sigma {}", peak(&r), 3.0 * sigma);
+
+        // -threshold 0.3 Jy/beam: the peak is cleaned to just below it, and no further.
+        let mut step = config(CleanConfig { threshold: 0.3, components_per_cycle: 100_000, gain: 0.1, ..CleanConfig::default() });
+        let m = cycle(&mut step, 1, &vec![0.0; N * N], &dirty, &psf_2n, &convolution);
+        let r: Vec<f64> = dirty.iter().zip(convolution.apply(&m)).map(|(d, x)| d - x).collect();
+        assert!(peak(&r) < 0.3 && peak(&r) > 0.2, "{}", peak(&r));
+
+        for bad in [CleanConfig { major_gain: Some(0.0), ..CleanConfig::default() }, CleanConfig { auto_threshold: Some(-1.0), ..CleanConfig::default() }, CleanConfig { threshold: f64::NAN, ..CleanConfig::default() }] {
+            assert!(CleanStep::new(bad).is_err());
+        }
+    }
 }
