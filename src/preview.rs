@@ -45,10 +45,11 @@ pub struct SkyFrame {
 
 /// [`write_png`] with the beam and a scale bar drawn over the image (`sky`).
 pub fn write_png_on_sky(path: &Path, image: &[f64], size_x: usize, size_y: usize, scale: PreviewScale, title: &str, sky: Option<&SkyFrame>) -> Result<()> {
-    let mut canvas = render(image, size_x, size_y, scale, title)?;
+    let mut canvas = render(image, size_x, size_y, scale, title, sky)?;
     if let Some(sky) = sky {
-        let l = layout(size_x, size_y, 0, 0);
+        let l = layout_with(size_x, size_y, 0, 0, true);
         draw_sky(&mut canvas, &l, sky);
+        draw_axes(&mut canvas, &l, size_x, size_y, sky);
     }
     let tmp = TempSibling::new(path)?;
     let file = std::fs::File::create(tmp.path()).map_err(|e| Error::io(path, e))?;
@@ -118,19 +119,29 @@ struct Layout {
 }
 
 fn layout(size_x: usize, size_y: usize, title_chars: usize, label_chars: usize) -> Layout {
+    layout_with(size_x, size_y, title_chars, label_chars, false)
+}
+
+/// Characters of an axis tick label at most (offsets such as `-12.5`).
+const AXIS_LABEL_CHARS: usize = 5;
+
+/// The layout, with room for sky axes (offset ticks and labels left of and below the image,
+/// and the axes' caption) where `axes`.
+fn layout_with(size_x: usize, size_y: usize, title_chars: usize, label_chars: usize, axes: bool) -> Layout {
     let longer = size_x.max(size_y);
     let shrink = longer.div_ceil(MAX_DISPLAY).max(1);
     let zoom = if shrink > 1 { 1 } else { (TARGET_DISPLAY / longer).clamp(1, MAX_ZOOM) };
     let (blocks_x, blocks_y) = (size_x.div_ceil(shrink), size_y.div_ceil(shrink));
     let (image_w, image_h) = (blocks_x * zoom, blocks_y * zoom);
-    let image_x = PAD;
+    let image_x = PAD + if axes { AXIS_LABEL_CHARS * CHAR_ADVANCE + TICK_LEN + LABEL_GAP } else { 0 };
     let image_y = PAD + TEXT_H + TITLE_GAP;
     let bar_x = image_x + image_w + BAR_GAP;
     let bar_h = image_h.max(BAR_MIN_H);
     let label_x = bar_x + BAR_W + TICK_LEN + LABEL_GAP;
     let width = (label_x + label_chars * CHAR_ADVANCE + PAD).max(2 * PAD + title_chars * CHAR_ADVANCE);
     // Labels are centred on ticks and may stand half a line beyond the bar's ends.
-    let height = image_y + image_h.max(bar_h) + TEXT_H / 2 + PAD;
+    let below = if axes { TICK_LEN + LABEL_GAP + 2 * TEXT_H + LABEL_GAP } else { 0 };
+    let height = image_y + (image_h + below).max(bar_h) + TEXT_H / 2 + PAD;
     Layout { zoom, shrink, blocks_x, blocks_y, image_x, image_y, image_w, image_h, bar_x, bar_y: image_y, bar_h, label_x, width, height }
 }
 
@@ -308,7 +319,7 @@ fn draw_sky(canvas: &mut Canvas, l: &Layout, sky: &SkyFrame) {
     };
     let length = (arcsec * per_arcsec).round() as usize;
     if length >= 4 {
-        let label = format!("{} {unit}", format_value(value));
+        let label = format!("{} {unit}", format_tick(value, value));
         let x1 = l.image_x + l.image_w - margin as usize;
         let x0 = x1.saturating_sub(length);
         let y = l.image_y + l.image_h - margin as usize - 1;
@@ -318,6 +329,51 @@ fn draw_sky(canvas: &mut Canvas, l: &Layout, sky: &SkyFrame) {
         canvas.fill(tx.saturating_sub(text_w / 2 + 2), y - 4 - TEXT_H - 2, text_w + 4, TEXT_H + 4, BACKGROUND);
         canvas.text(tx.saturating_sub(text_w / 2), y - 4 - TEXT_H, &label, INK);
     }
+}
+
+/// Offset axes from the phase centre (the image's centre pixel, `N/2`): right ascension
+/// growing to the left (east) below the image, declination growing up at its left, in
+/// arcseconds or arcminutes for larger fields, with a caption naming them.
+fn draw_axes(canvas: &mut Canvas, l: &Layout, size_x: usize, size_y: usize, sky: &SkyFrame) {
+    if !(sky.pixel_arcsec > 0.0 && sky.pixel_arcsec.is_finite()) {
+        return;
+    }
+    let field = size_x.max(size_y) as f64 * sky.pixel_arcsec;
+    let (unit, per_unit) = if field > 600.0 { ("arcmin", 60.0) } else { ("arcsec", 1.0) };
+    let step = nice_step(field / per_unit / 5.0);
+    // Display position of image pixel coordinate `p` (0-based, pixel centres) along an axis.
+    let display = |p: f64| (p + 0.5) * l.zoom as f64 / l.shrink as f64;
+    let ticks = |n: usize| -> Vec<(f64, f64)> {
+        let half = n as f64 / 2.0 * sky.pixel_arcsec / per_unit;
+        let k_max = (half / step).floor() as i64;
+        (-k_max..=k_max).map(|k| (k as f64 * step, k as f64 * step * per_unit / sky.pixel_arcsec)).collect()
+    };
+    let y_axis = l.image_y + l.image_h;
+    for (value, pixels) in ticks(size_x) {
+        // East (positive RA offset) to the left of the centre pixel.
+        let x = display(size_x as f64 / 2.0 - pixels);
+        if x < 0.0 || x >= l.image_w as f64 {
+            continue;
+        }
+        let x = l.image_x + x as usize;
+        canvas.fill(x, y_axis + 1, 1, TICK_LEN, INK);
+        let label = format_tick(value, step);
+        let w = label.chars().count() * CHAR_ADVANCE;
+        canvas.text(x.saturating_sub(w / 2), y_axis + 1 + TICK_LEN + LABEL_GAP, &label, INK);
+    }
+    for (value, pixels) in ticks(size_y) {
+        let y = display(size_y as f64 / 2.0 + pixels);
+        if y < 0.0 || y >= l.image_h as f64 {
+            continue;
+        }
+        let y = l.image_y + l.image_h - 1 - y as usize;
+        canvas.fill(l.image_x.saturating_sub(1 + TICK_LEN), y, TICK_LEN, 1, INK);
+        let label = format_tick(value, step);
+        let w = label.chars().count() * CHAR_ADVANCE;
+        canvas.text(l.image_x.saturating_sub(1 + TICK_LEN + LABEL_GAP + w), y.saturating_sub(TEXT_H / 2), &label, INK);
+    }
+    let caption = format!("RA, Dec offset ({unit}), east left");
+    canvas.text(l.image_x, y_axis + 1 + TICK_LEN + 2 * LABEL_GAP + TEXT_H, &caption, INK);
 }
 
 /// 1, 2 or 5 times a power of ten, at most `raw`.
@@ -369,7 +425,7 @@ fn format_power_of_ten(k: i32) -> String {
 }
 
 /// Draws the preview in memory.
-fn render(image: &[f64], size_x: usize, size_y: usize, scale: PreviewScale, title: &str) -> Result<Canvas> {
+fn render(image: &[f64], size_x: usize, size_y: usize, scale: PreviewScale, title: &str, sky: Option<&SkyFrame>) -> Result<Canvas> {
     if size_x == 0 || size_y == 0 || image.len() != size_x * size_y {
         return Err(Error::parameter(
             "image",
@@ -399,7 +455,7 @@ fn render(image: &[f64], size_x: usize, size_y: usize, scale: PreviewScale, titl
     let blocks: Vec<f64> = (0..probe.blocks_y).flat_map(|by| (0..probe.blocks_x).map(move |bx| (bx, by))).map(|(bx, by)| reduce(bx, by)).collect();
     let colours = colour_scale(blocks.iter().copied(), scale)?;
     let label_chars = colours.ticks.iter().map(|t| t.1.chars().count()).max().unwrap_or(0);
-    let l = layout(size_x, size_y, title.chars().count(), label_chars);
+    let l = layout_with(size_x, size_y, title.chars().count(), label_chars, sky.is_some());
     let mut canvas = Canvas::new(l.width, l.height);
 
     canvas.text(PAD, PAD, title, INK);
@@ -568,6 +624,27 @@ fn glyph(c: char) -> [u8; 7] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn sky_previews_have_offset_axes_a_beam_and_a_scale_bar() {
+        let n = 64;
+        let image: Vec<f64> = (0..n * n).map(|k| ((k % n) as f64 - 32.0) * 0.01).collect();
+        let sky = SkyFrame { pixel_arcsec: 2.0, beam: Some((8.0, 4.0, 30.0)) };
+        let plain = render(&image, n, n, PreviewScale::Signed { softening: 0.01 }, "t", None).unwrap();
+        let mut framed = render(&image, n, n, PreviewScale::Signed { softening: 0.01 }, "t", Some(&sky)).unwrap();
+        let l = layout_with(n, n, 1, 5, true);
+        assert!(framed.width > plain.width && framed.height > plain.height, "room for the axes");
+        let before = framed.rgb.clone();
+        draw_sky(&mut framed, &l, &sky);
+        draw_axes(&mut framed, &l, n, n, &sky);
+        let ink = |c: &Canvas, x0: usize, y0: usize, w: usize, h: usize| {
+            (y0..y0 + h).flat_map(|y| (x0..x0 + w).map(move |x| (x, y))).filter(|&(x, y)| c.rgb[3 * (y * c.width + x)..3 * (y * c.width + x) + 3] == INK).count()
+        };
+        // Ticks and labels below and left of the image; a beam in its lower left corner.
+        assert!(ink(&framed, l.image_x, l.image_y + l.image_h + 1, l.image_w, TICK_LEN + LABEL_GAP + TEXT_H) > 20);
+        assert!(ink(&framed, PAD, l.image_y, l.image_x - PAD, l.image_h) > 20);
+        assert!(ink(&framed, l.image_x, l.image_y + l.image_h / 2, l.image_w / 3, l.image_h / 2) > ink(&Canvas { width: framed.width, height: framed.height, rgb: before }, l.image_x, l.image_y + l.image_h / 2, l.image_w / 3, l.image_h / 2));
+    }
 
     #[test]
     fn the_signed_scale_puts_zero_at_white_and_negatives_in_blue() {

@@ -156,7 +156,7 @@ def test_engine_log_records_reach_pythons_logging(observations, caplog):
     with caplog.at_level("INFO", logger="r2d2_imaging"):
         r2d2_imaging.image(observations[2], **CLEAN)
     ours = [r for r in caplog.records if r.name.startswith("r2d2_imaging")]
-    assert any("iteration 3" in r.getMessage() and r.levelname == "INFO" for r in ours), [r.getMessage() for r in ours]
+    assert any("iteration 3 of 3" in r.getMessage() and r.levelname == "INFO" for r in ours), [r.getMessage() for r in ours]
     assert all(r.name == "r2d2_imaging" or r.name.startswith("r2d2_imaging.") for r in ours)
     caplog.clear()
     with caplog.at_level("WARNING", logger="r2d2_imaging"), pytest.warns(r2d2_imaging.R2D2Warning):

@@ -136,8 +136,11 @@ impl Stage<Job> for ResidualStage {
         crate::sanity::check_image(&im.residual, im.geometry.size, &what, "the model is too large for the residual update to stay finite")?;
         job.record_iteration(began.elapsed().as_secs_f64());
         if let Some(m) = job.metrics.last() {
+            // "of N" where the step's series length is known: progress for a log reader (a
+            // Python caller's `logging`) as the command line's bar shows it.
+            let of = if job.series_length > 0 { format!(" of {}", job.series_length) } else { String::new() };
             log::info!(
-                "job {}: iteration {} residual ratio {:.4e}{}",
+                "job {}: iteration {}{of} residual ratio {:.4e}{}",
                 job.id,
                 m.iteration,
                 m.residual_ratio,
