@@ -51,13 +51,14 @@ fn simulate_clean_write_pipeline_produces_checked_products() {
     assert!(String::from_utf8_lossy(&header[..2880 * 2]).contains("BMAJ"));
 
     // A PNG preview per FITS product: a 64^2 image is shown 8x enlarged (512 rows) under a
-    // title line (12 + 14 + 10 rows) with half a label line and a 12-row margin below it.
+    // title line (12 + 14 + 10 rows), with the offset axes below it (tick, gap, labels and
+    // caption: 5 + 4 + 2 x 14 + 4 rows), half a label line and a 12-row margin.
     for product in ["dirty", "psf", "model", "residual", "image"] {
         let file = std::fs::File::open(d.join(format!("out/sim-5-{product}.png"))).unwrap();
         let mut reader = png::Decoder::new(std::io::BufReader::new(file)).read_info().unwrap();
         let mut pixels = vec![0; reader.output_buffer_size()];
         let info = reader.next_frame(&mut pixels).unwrap();
-        assert_eq!(info.height, 12 + 14 + 10 + 512 + 7 + 12, "{product}");
+        assert_eq!(info.height, 12 + 14 + 10 + 512 + (5 + 4 + 2 * 14 + 4) + 7 + 12, "{product}");
         assert!(info.width > 12 + 512 + 16 + 20 && info.width < 1024, "{product}: width {}", info.width);
         assert_eq!(info.color_type, png::ColorType::Rgb);
         // Not blank: the image area (from x = 12, y = 36) holds several colours.
