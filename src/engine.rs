@@ -380,11 +380,8 @@ fn imaging_setting(params: &ImageParams) -> Result<(Weighting, f64)> {
                     // it); the chosen series' own setting fills in the rest.
                     let fixed = crate::steps::series::ImagingSetup {
                         superresolution: params.superresolution,
-                        weighting: params.weighting.map(|w| w.scheme_name().to_string()),
-                        robust: params.weighting.and_then(|w| match w {
-                            Weighting::Briggs { robust } => Some(robust),
-                            _ => None,
-                        }),
+                        weighting: params.weighting.map(|w| w.scheme().name().to_string()),
+                        robust: params.weighting.and_then(|w| w.robust()),
                         telescope: None,
                     };
                     crate::steps::series::select_for(params.size, &fixed).ok().map(|(dir, _)| dir)

@@ -46,6 +46,16 @@ pub enum WeightingScheme {
 }
 
 impl WeightingScheme {
+    /// The scheme as a configuration and a series' manifest name it.
+    pub fn name(self) -> &'static str {
+        match self {
+            WeightingScheme::Natural => "natural",
+            WeightingScheme::Uniform => "uniform",
+            WeightingScheme::Briggs => "briggs",
+            WeightingScheme::Given => "given",
+        }
+    }
+
     /// The weighting, with `robust` for Briggs (ignored otherwise).
     pub fn with_robust(self, robust: f64) -> Result<Weighting> {
         match self {
@@ -58,13 +68,21 @@ impl WeightingScheme {
 }
 
 impl Weighting {
-    /// The scheme as a configuration and a series' manifest name it.
-    pub fn scheme_name(&self) -> &'static str {
+    /// The scheme, without its robustness.
+    pub fn scheme(&self) -> WeightingScheme {
         match self {
-            Weighting::Natural => "natural",
-            Weighting::Uniform => "uniform",
-            Weighting::Briggs { .. } => "briggs",
-            Weighting::Given => "given",
+            Weighting::Natural => WeightingScheme::Natural,
+            Weighting::Uniform => WeightingScheme::Uniform,
+            Weighting::Briggs { .. } => WeightingScheme::Briggs,
+            Weighting::Given => WeightingScheme::Given,
+        }
+    }
+
+    /// Briggs' robustness; `None` for the other schemes.
+    pub fn robust(&self) -> Option<f64> {
+        match self {
+            Weighting::Briggs { robust } => Some(*robust),
+            _ => None,
         }
     }
 

@@ -201,12 +201,13 @@ fn add_model_dir(dir: std::path::PathBuf) {
 
 /// What this build and machine will use, as `r2d2 info` and `r2d2 models` say it: version,
 /// gridder SIMD level, threads, the ONNX inference backend `auto` picks with `onnx_runtime`
-/// (a library path or None), where series are looked up and the usable series found there.
+/// (a library path or None), where series are looked up and the usable series found there
+/// (in the order `auto` prefers them).
 #[pyfunction]
 #[pyo3(signature = (onnx_runtime=None))]
 fn info(py: Python<'_>, onnx_runtime: Option<std::path::PathBuf>) -> PyResult<Bound<'_, PyDict>> {
     use r2d2_imaging::steps::runtime::{use_onnx_runtime, BackendChoice, Runtime};
-    use r2d2_imaging::steps::series::{discover, model_dirs};
+    use r2d2_imaging::steps::series::{found_series, model_dirs};
     let out = PyDict::new(py);
     out.set_item("version", env!("CARGO_PKG_VERSION"))?;
     out.set_item("gridder_simd", format!("{:?}", r2d2_imaging::nufft::simd::SimdLevel::detect()))?;
@@ -218,27 +219,19 @@ fn info(py: Python<'_>, onnx_runtime: Option<std::path::PathBuf>) -> PyResult<Bo
         Ok(Runtime::select(BackendChoice::Auto, 0)?.describe())
     })?;
     out.set_item("onnx_backend", backend)?;
-    let dirs = model_dirs();
-    out.set_item("model_dirs", dirs.iter().map(|d| d.display().to_string()).collect::<Vec<_>>())?;
+    out.set_item("model_dirs", model_dirs().iter().map(|d| d.display().to_string()).collect::<Vec<_>>())?;
     let series = pyo3::types::PyList::empty(py);
-    let mut seen = std::collections::HashSet::new();
-    for root in &dirs {
-        for (dir, found) in discover(root) {
-            let Ok(s) = found else { continue };
-            if s.is_empty() || !seen.insert(s.name.clone()) {
-                continue;
-            }
-            let entry = PyDict::new(py);
-            entry.set_item("name", &s.name)?;
-            entry.set_item("path", dir.display().to_string())?;
-            entry.set_item("networks", s.len())?;
-            entry.set_item("image_sizes", s.image_sizes.clone())?;
-            let manifest = s.manifest.as_ref();
-            entry.set_item("telescope", manifest.map(|m| m.telescope.clone()).filter(|t| !t.is_empty()))?;
-            let domain = manifest.and_then(|m| m.validity.as_ref()).map(|v| serde_json::to_string(v).unwrap_or_default());
-            entry.set_item("domain", domain.map(|d| py.import("json")?.call_method1("loads", (d,))).transpose()?)?;
-            series.append(entry)?;
-        }
+    for (dir, s) in found_series() {
+        let entry = PyDict::new(py);
+        entry.set_item("name", &s.name)?;
+        entry.set_item("path", dir.display().to_string())?;
+        entry.set_item("networks", s.len())?;
+        entry.set_item("image_sizes", s.image_sizes.clone())?;
+        let manifest = s.manifest.as_ref();
+        entry.set_item("telescope", manifest.map(|m| m.telescope.clone()).filter(|t| !t.is_empty()))?;
+        let domain = manifest.and_then(|m| m.validity.as_ref()).map(|v| serde_json::to_string(v).unwrap_or_default());
+        entry.set_item("domain", domain.map(|d| py.import("json")?.call_method1("loads", (d,))).transpose()?)?;
+        series.append(entry)?;
     }
     out.set_item("series", series)?;
     Ok(out)

@@ -177,7 +177,7 @@ impl JobProducts {
             telescope: job.meta.telescope.clone(),
             object: job.meta.extra.get(crate::vis::OBJECT_KEY).cloned(),
             date_obs: job.meta.extra.get(crate::vis::DATE_OBS_KEY).cloned(),
-            residual_noise: stepped.then(|| crate::metrics::robust_sigma(&f32s(&im.residual))),
+            residual_noise: stepped.then(|| crate::metrics::robust_sigma(&im.residual)),
             dynamic_range: dynamic_range_known,
             warnings: job.warnings.clone(),
             stop: job.stop.clone(),

@@ -169,8 +169,8 @@ impl MsReader {
             extra.insert(OBJECT_KEY.to_string(), layout.field_name.trim().to_string());
         }
         extra.insert("ms_data_column".to_string(), selection.data_column.clone());
-        if let Some(date) = super::table::observation_start(path) {
-            extra.insert(DATE_OBS_KEY.to_string(), date);
+        if let Some(date) = &layout.date_obs {
+            extra.insert(DATE_OBS_KEY.to_string(), date.clone());
         }
         extra.insert(ORIGIN_KEY.to_string(), serde_json::to_string(&origin).expect("the origin serialises"));
         let meta = ObservationMeta {

@@ -266,7 +266,7 @@ pub(crate) struct Window {
     pub stokes: StokesI,
 }
 
-/// The subtables' facts for a selection: fields, windows, phase centre, telescope.
+/// The subtables' facts for a selection: fields, windows, phase centre, telescope, start.
 #[derive(Clone, Debug)]
 pub(crate) struct Layout {
     /// Per DATA_DESC_ID: the window, or None when not selected.
@@ -276,6 +276,8 @@ pub(crate) struct Layout {
     pub ra_deg: f64,
     pub dec_deg: f64,
     pub telescope: String,
+    /// When the observation began (FITS `DATE-OBS` text), where the MS says.
+    pub date_obs: Option<String>,
 }
 
 /// Field names of the `FIELD` subtable, in row order.
@@ -360,7 +362,7 @@ impl Layout {
         };
         let field_name = names.get(field_id).cloned().unwrap_or_default();
         let (ra_deg, dec_deg) = phase_centre(ms, field_id)?;
-        let telescope = telescope(ms)?;
+        let (telescope, date_obs) = observation(ms)?;
         let windows = read_windows(ms, selection, used_dd)?;
         if windows.iter().all(Option::is_none) {
             // Only a window selection can leave none: every window in use is otherwise kept.
@@ -374,7 +376,7 @@ impl Layout {
                 format!("the MS holds no rows in spectral window {wanted} (`spw`, `--spw`): its rows are in window {used}"),
             ));
         }
-        Ok(Layout { windows, field_id, field_name, ra_deg, dec_deg, telescope })
+        Ok(Layout { windows, field_id, field_name, ra_deg, dec_deg, telescope, date_obs })
     }
 }
 
@@ -399,25 +401,23 @@ pub(crate) fn phase_centre(ms: &Path, field: usize) -> Result<(f64, f64)> {
     }
 }
 
-/// `OBSERVATION.TELESCOPE_NAME` of the first row; `unknown` when empty.
-pub(crate) fn telescope(ms: &Path) -> Result<String> {
+/// From the first row of `OBSERVATION`: `TELESCOPE_NAME` (`unknown` when empty), and when the
+/// observation began as FITS `DATE-OBS` text (UTC, ISO 8601: the start of `TIME_RANGE`;
+/// `None` where it is missing, zero or unreadable: a date is a courtesy to the products, never
+/// a reason to refuse the data).
+pub(crate) fn observation(ms: &Path) -> Result<(String, Option<String>)> {
     let table = open_subtable(ms, "OBSERVATION")?;
     let path = ms.join("OBSERVATION");
     let names = read_column(&table, &path, "TELESCOPE_NAME")?;
-    Ok(match names.first() {
+    let telescope = match names.first() {
         Some(RecordValue::String(s)) if !s.trim().is_empty() => s.trim().to_string(),
         _ => "unknown".to_string(),
-    })
-}
-
-/// When the observation began, as FITS `DATE-OBS` text (UTC, ISO 8601): the start of
-/// `OBSERVATION.TIME_RANGE` of the first row. `None` where it is missing, zero or unreadable:
-/// a date is a courtesy to the products, never a reason to refuse the data.
-pub(crate) fn observation_start(ms: &Path) -> Option<String> {
-    let table = open_subtable(ms, "OBSERVATION").ok()?;
-    let cells = read_column(&table, &ms.join("OBSERVATION"), "TIME_RANGE").ok()?;
-    let (_, range) = array_f64(cells.first()?)?;
-    mjd_seconds_to_iso(*range.first()?)
+    };
+    let start = read_column(&table, &path, "TIME_RANGE").ok().and_then(|cells| {
+        let (_, range) = array_f64(cells.first()?)?;
+        mjd_seconds_to_iso(*range.first()?)
+    });
+    Ok((telescope, start))
 }
 
 /// Modified Julian Date in seconds (casacore's epoch) as `YYYY-MM-DDThh:mm:ss.s`; `None`

@@ -183,20 +183,10 @@ fn imaging_setup(ctx: &BuildContext<'_>) -> Result<crate::steps::series::Imaging
     };
     Ok(crate::steps::series::ImagingSetup {
         superresolution: image.pixel_arcsec.is_none().then(|| image.superresolution.unwrap_or(1.5)),
-        weighting: weighting.map(|w| scheme_name(w.scheme).to_string()),
+        weighting: weighting.map(|w| w.scheme.name().to_string()),
         robust: weighting.map(|w| w.robust),
         telescope: None,
     })
-}
-
-/// A scheme as a series' manifest names it.
-fn scheme_name(scheme: crate::weighting::WeightingScheme) -> &'static str {
-    match scheme {
-        crate::weighting::WeightingScheme::Natural => "natural",
-        crate::weighting::WeightingScheme::Uniform => "uniform",
-        crate::weighting::WeightingScheme::Briggs => "briggs",
-        crate::weighting::WeightingScheme::Given => "given",
-    }
 }
 
 /// A registry holding the built-in kinds.

@@ -31,13 +31,14 @@ impl ResidualStage {
     }
 
     /// Whether the loop stops after the latest iteration, and why: divergence first (the
-    /// guard), then the reference v2 criterion.
-    fn stop_reason(&self, ratios: &[f64]) -> Option<StopReason> {
+    /// guard), then the reference v2 criterion. `finished`: the series ran its last network, so
+    /// a tolerated overshoot has no next network to keep its promise.
+    fn stop_reason(&self, ratios: &[f64], finished: bool) -> Option<StopReason> {
         let n = ratios.len();
         let last = *ratios.last()?;
         let rose_twice = n >= 3 && ratios[n - 1] > ratios[n - 2] && ratios[n - 2] > ratios[n - 3];
         if self.config.divergence_guard {
-            if last > 1.0 && !tolerated_overshoot(ratios) {
+            if last > 1.0 && (finished || !tolerated_overshoot(ratios)) {
                 return Some(StopReason::Diverged);
             }
             if rose_twice && ratios[n - 1] > DIVERGING_RISE * ratios[n - 3] {
@@ -151,12 +152,7 @@ impl Stage<Job> for ResidualStage {
         // ratios of several realisations' iterations are not one sequence either).
         let several = job.realisation > 0 || !job.realisation_models.is_empty();
         let ratios: Vec<f64> = job.metrics.iter().map(|m| m.residual_ratio).collect();
-        let mut reason = if several { None } else { self.stop_reason(&ratios) };
-        // A tolerated overshoot is a promise the next network must keep: a series that ends
-        // above ratio 1 diverged.
-        if reason.is_none() && !several && self.config.divergence_guard && job.series_finished && ratios.last().is_some_and(|&r| r > 1.0) {
-            reason = Some(StopReason::Diverged);
-        }
+        let reason = if several { None } else { self.stop_reason(&ratios, job.series_finished) };
         match reason {
             Some(reason @ (StopReason::Diverged | StopReason::Rising)) if self.config.divergence_guard => fall_back(&mut job, reason)?,
             Some(reason) => {
@@ -195,32 +191,35 @@ mod tests {
     #[test]
     fn the_guard_stops_above_one_and_on_a_second_rise_and_the_v2_rule_on_convergence_but_lets_a_first_overshoot_recover() {
         let guarded = stage(true, true);
-        assert_eq!(guarded.stop_reason(&[0.5, 0.3]), None);
-        assert_eq!(guarded.stop_reason(&[2.5]), Some(StopReason::Diverged));
-        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 1.01]), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3], false), None);
+        assert_eq!(guarded.stop_reason(&[2.5], false), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 1.01], false), Some(StopReason::Diverged));
         // A first network's overshoot from the empty model may stand while the next ones
         // bring the ratio down (below the ceiling, for two iterations at most).
-        assert_eq!(guarded.stop_reason(&[1.34]), None);
-        assert_eq!(guarded.stop_reason(&[1.34, 1.06]), None);
-        assert_eq!(guarded.stop_reason(&[1.34, 1.06, 0.36]), None);
-        assert_eq!(guarded.stop_reason(&[1.34, 1.4]), Some(StopReason::Diverged));
-        assert_eq!(guarded.stop_reason(&[1.34, 1.2, 1.1]), Some(StopReason::Diverged));
-        assert_eq!(guarded.stop_reason(&[0.9, 1.2]), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[1.34], false), None);
+        assert_eq!(guarded.stop_reason(&[1.34, 1.06], false), None);
+        assert_eq!(guarded.stop_reason(&[1.34, 1.06, 0.36], false), None);
+        assert_eq!(guarded.stop_reason(&[1.34, 1.4], false), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[1.34, 1.2, 1.1], false), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[0.9, 1.2], false), Some(StopReason::Diverged));
+        // A series that ends on a tolerated overshoot diverged.
+        assert_eq!(guarded.stop_reason(&[1.34], true), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[1.34, 0.5], true), None);
         // One rise is allowed (a network may trade residual for precision); two in a row by
         // more than 10 % are divergence; two small ones the v2 stop at the noise floor.
-        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.31]), None);
-        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.32, 0.34]), Some(StopReason::Rising));
-        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.301, 0.302]), Some(StopReason::Stalled));
-        assert_eq!(stage(false, true).stop_reason(&[0.5, 0.3, 0.301, 0.302]), None, "no v2 stop without early_stop");
-        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.3 * (1.0 + 5e-5)]), Some(StopReason::Converged));
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.31], false), None);
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.32, 0.34], false), Some(StopReason::Rising));
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.301, 0.302], false), Some(StopReason::Stalled));
+        assert_eq!(stage(false, true).stop_reason(&[0.5, 0.3, 0.301, 0.302], false), None, "no v2 stop without early_stop");
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.3 * (1.0 + 5e-5)], false), Some(StopReason::Converged));
         // Without the guard and the early stop, nothing stops the series.
         let plain = stage(false, false);
-        assert_eq!(plain.stop_reason(&[3.0, 4.0, 5.0]), None);
+        assert_eq!(plain.stop_reason(&[3.0, 4.0, 5.0], false), None);
         // The v2 rule alone stops a rising series too (and keeps the last iterate, as the
         // reference does), but not one above 1 that has not risen twice.
         let v2 = stage(true, false);
-        assert_eq!(v2.stop_reason(&[3.0]), None);
-        assert_eq!(v2.stop_reason(&[0.5, 0.6, 0.7]), Some(StopReason::Stalled));
+        assert_eq!(v2.stop_reason(&[3.0], false), None);
+        assert_eq!(v2.stop_reason(&[0.5, 0.6, 0.7], false), Some(StopReason::Stalled));
     }
 
     #[test]

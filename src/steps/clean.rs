@@ -117,8 +117,7 @@ impl NetworkStep for CleanStep {
             level = level.max((1.0 - m) * peak);
         }
         if let Some(sigmas) = c.auto_threshold {
-            let residual: Vec<f32> = input.residual.iter().map(|&r| r as f32).collect();
-            level = level.max(sigmas * crate::metrics::robust_sigma(&residual));
+            level = level.max(sigmas * crate::metrics::robust_sigma(input.residual));
         }
         let params = HogbomParams { gain: c.gain, threshold: level, max_components: budget, positive_only: c.positive_only };
         let result = hogbom(input.residual, input.psf_2n, input.size, &params);
@@ -126,7 +125,6 @@ impl NetworkStep for CleanStep {
         log::debug!("job {}: major cycle {iteration}: {} components down to {:.3e} Jy/beam (stop level {level:.3e})", input.job, result.n_components, result.last_peak);
         Ok(input.model.iter().zip(&result.components).map(|(x, c)| x + c).collect())
     }
-
 }
 
 #[cfg(test)]
@@ -196,7 +194,7 @@ mod tests {
 
         // -auto-threshold 3 on a residual with noise: nothing below 3 sigma is cleaned.
         let noisy: Vec<f64> = dirty.iter().enumerate().map(|(k, d)| d + 0.01 * ((k * 7919 % 1000) as f64 / 500.0 - 1.0)).collect();
-        let sigma = crate::metrics::robust_sigma(&noisy.iter().map(|&v| v as f32).collect::<Vec<_>>());
+        let sigma = crate::metrics::robust_sigma(&noisy);
         let mut step = config(CleanConfig { auto_threshold: Some(3.0), components_per_cycle: 100_000, gain: 0.1, ..CleanConfig::default() });
         let m = cycle(&mut step, 1, &vec![0.0; N * N], &noisy, &psf_2n, &convolution);
         let r: Vec<f64> = noisy.iter().zip(convolution.apply(&m)).map(|(d, x)| d - x).collect();

@@ -498,6 +498,12 @@ pub fn select_for(size: usize, setup: &ImagingSetup) -> Result<(PathBuf, Option<
     select_in(&model_dirs(), size, setup)
 }
 
+/// The usable series found in [`model_dirs`] (the first of each name), in the order `auto`
+/// prefers them.
+pub fn found_series() -> Vec<(PathBuf, Series)> {
+    ranked_series(&model_dirs())
+}
+
 /// The usable series under `roots` (the first of each name), the project's own first in
 /// [`PROJECT_SERIES`] order, then by name.
 fn ranked_series(roots: &[PathBuf]) -> Vec<(PathBuf, Series)> {
@@ -552,7 +558,7 @@ fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(Pa
 /// declaring a domain that holds `setup`: what a warning about a job outside its series' domain
 /// can point to (the project's own first, then by name).
 pub fn covering_series(size: usize, setup: &ImagingSetup, except: &str) -> Option<String> {
-    ranked_series(&model_dirs()).into_iter().map(|(_, s)| s).find_map(|s| {
+    found_series().into_iter().map(|(_, s)| s).find_map(|s| {
         let declares = s.manifest.as_ref().is_some_and(|m| m.validity.is_some());
         let covers = s.name != except && declares && s.image_sizes.contains(&size) && s.validity_problems(setup).is_empty();
         covers.then_some(s.name)
