@@ -551,7 +551,8 @@ pub fn run_pipeline_bench(p: &PipelineBenchParams) -> Result<PipelineBenchReport
     std::fs::create_dir_all(&dir.0).map_err(|e| Error::io(&dir.0, e))?;
     let request = SimulationRequest {
         observation: ObservationSpec {
-            configurations: vec![(p.configuration, p.hours)],
+            telescope: "vla".into(),
+            configurations: vec![(p.configuration.to_string(), p.hours)],
             dec_deg: 40.0,
             integration_s: p.integration_s,
             frequencies_hz: vec![1.4e9],

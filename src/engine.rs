@@ -313,6 +313,8 @@ impl Default for ImageParams {
 
 /// The `r2d2 image` pipeline for `obs` and `params`, and the in-memory inputs it reads.
 fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, Vec<MemoryInput>)> {
+    let (resolved, clean_because) = resolve_auto(params, observation_telescope(&obs).as_deref())?;
+    let params = &resolved;
     let mut inputs = Vec::new();
     let truth = params.truth.clone();
     let read = match obs {
@@ -343,7 +345,7 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
         read.to("weights"),
         StageSpec::typed("weights", &weights)?.to("grid"),
         StageSpec::typed("grid", &grid)?.to("step"),
-        step_stage(params)?.to("update"),
+        step_stage(params, clean_because)?.to("update"),
         StageSpec::typed("update", &ResidualParams::default())?.to("step").done("products"),
     ];
     let products = StageSpec::typed("products", &ProductsParams::default())?;
@@ -415,7 +417,53 @@ fn imaging_setting(params: &ImageParams) -> Result<(Weighting, f64)> {
 }
 
 /// The step stage for `params.step`.
-fn step_stage(params: &ImageParams) -> Result<StageSpec> {
+/// The telescope an observation says its data come from, read without its samples (none
+/// where it names none, or is standard input, which can be read once only).
+fn observation_telescope(obs: &Observation) -> Option<String> {
+    let telescope = match obs {
+        Observation::Path(path) => crate::vis::telescope_of(path),
+        Observation::Batches(input) => input.batches.schema().metadata().get("telescope").cloned(),
+    };
+    telescope.filter(|t| !t.trim().is_empty())
+}
+
+/// Components the CLEAN that `auto` falls back to may take: its stopping rule is the
+/// auto-threshold, as in WSClean's usual command (`-auto-threshold 3 -mgain 0.8`).
+const FALLBACK_CLEAN: CleanControls = CleanControls { niter: Some(1_000_000), gain: None, mgain: Some(0.8), auto_threshold: Some(3.0), threshold: None };
+
+/// `auto` where the data's telescope is known: among the series trained for the image size,
+/// one trained for that telescope (and the setting, where one is); where no series was
+/// trained for the telescope at any size, the built-in CLEAN with WSClean's usual stopping
+/// rule, and the reason every job carries as a warning (a series trained on another
+/// telescope's PSFs gives a confident image that nothing vouches for; CLEAN's is the one
+/// the user knows how to judge).
+fn resolve_auto(params: &ImageParams, telescope: Option<&str>) -> Result<(ImageParams, Option<String>)> {
+    let (StepChoice::Auto, Some(telescope)) = (&params.step, telescope) else { return Ok((params.clone(), None)) };
+    let found = crate::steps::series::found_series();
+    if found.is_empty() || found.iter().any(|(_, s)| s.trained_for_telescope(telescope)) {
+        let setup = crate::steps::series::ImagingSetup {
+            superresolution: params.superresolution,
+            weighting: params.weighting.map(|w| w.scheme().name().to_string()),
+            robust: params.weighting.and_then(|w| w.robust()),
+            telescope: Some(telescope.to_string()),
+        };
+        // Trained for the size: that series, by name; else `auto`'s off-size choice as before.
+        if crate::steps::series::series_for_telescope(params.size, telescope).is_empty() {
+            return Ok((params.clone(), None));
+        }
+        let (dir, _) = crate::steps::series::select_for(params.size, &setup)?;
+        return Ok((ImageParams { step: StepChoice::Series(dir), ..params.clone() }, None));
+    }
+    let known: Vec<String> = found.iter().map(|(_, s)| s.name_with_telescopes()).collect();
+    let reason = format!(
+        "no series was trained for the telescope '{telescope}' the data come from (series: {}): imaged with the built-in CLEAN (auto-threshold 3, mgain 0.8); --step NAME runs a series anyway, outside what it was trained for",
+        known.join(", ")
+    );
+    let clean = if params.clean.any() { params.clean } else { FALLBACK_CLEAN };
+    Ok((ImageParams { step: StepChoice::Clean, clean, ..params.clone() }, Some(reason)))
+}
+
+fn step_stage(params: &ImageParams, clean_because: Option<String>) -> Result<StageSpec> {
     if params.clean.any() && params.step != StepChoice::Clean {
         return Err(Error::parameter(
             "step",
@@ -436,6 +484,7 @@ fn step_stage(params: &ImageParams) -> Result<StageSpec> {
                     max_components: c.niter,
                     major_gain: c.mgain,
                     auto_threshold: c.auto_threshold,
+                    chosen_because: clean_because,
                     ..defaults
                 },
             )

@@ -87,7 +87,8 @@ fn simulation_is_reproducible_from_its_seed() {
 /// coverage not rotated.
 fn vla_at_1_4_ghz(configuration: (char, f64), dec_deg: f64, integration_s: f64) -> ObservationSpec {
     ObservationSpec {
-        configurations: vec![configuration],
+        telescope: "vla".into(),
+        configurations: vec![(configuration.0.to_string(), configuration.1)],
         dec_deg,
         integration_s,
         frequencies_hz: frequency_channels(1.4e9, 1, 1.0).unwrap(),

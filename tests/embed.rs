@@ -19,7 +19,8 @@ const SIZE: usize = 64;
 fn observation(seed: u64) -> SimulationOutput {
     simulate(&SimulationRequest {
         observation: ObservationSpec {
-            configurations: vec![('c', 1.0)],
+            telescope: "vla".into(),
+            configurations: vec![("c".into(), 1.0)],
             dec_deg: 40.0,
             integration_s: 120.0,
             frequencies_hz: vec![1.4e9],

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Rebuild a shipped series from nothing, seeded end to end:
-#   training/reproduce.sh [vla-r2d2-512|vla-r2d2-512-broad|vla-r2d2-128] [DATA_DIR]   (default vla-r2d2-512, training/data)
+#   training/reproduce.sh [vla-r2d2-512|meerkat-r2d2-512|vla-r2d2-512-broad|vla-r2d2-128] [DATA_DIR]
+#   (default vla-r2d2-512, training/data)
 # Steps whose output exists are skipped, so rerunning the script resumes it; training itself
 # resumes from its per-epoch checkpoint and adds networks to the series (--resume).
 # Environment: R2D2 (the engine binary, default target/release/r2d2), SERIES (default
@@ -29,11 +30,19 @@ vla-r2d2-128)
     VAL=("$D/val")
     ARGS="--epochs-first 16 --epochs 6 --batch 8 --bf16 --max-networks 12"
     ;;
-vla-r2d2-512)
+vla-r2d2-512|meerkat-r2d2-512)
     # Training truths: 120 of the project's procedural radio skies (seeds 100000..) and 80
     # reworked scikit-image images; validation 500000.., test 900000..: disjoint seeds.
-    D="$DATA/512"
-    SIM="--size 512 --integration-s 300 --epsilon 1e-5"
+    # One recipe for every telescope: the observations are drawn from the telescope's
+    # training preset (data/telescopes/telescopes.yaml); the VLA's integration time is 300 s.
+    TELESCOPE=${RECIPE%-r2d2-512}
+    if [ "$TELESCOPE" = vla ]; then
+        D="$DATA/512"
+        SIM="--size 512 --integration-s 300 --epsilon 1e-5"
+    else
+        D="$DATA/512-$TELESCOPE"
+        SIM="--size 512 --telescope $TELESCOPE --epsilon 1e-5"
+    fi
     mkdir -p "$D"
     make_once "$D/truths-train" python3 training/prepare_truths.py --count 80 --size 512 --seed 2 --source-dr 50
     make_once "$D/train-images" "$R2D2" trainset --truths "$D/truths-train" --source-dr 50 --seed 1000 $SIM
@@ -69,7 +78,7 @@ vla-r2d2-512-broad)
     # (outputs negative everywhere after the first epochs, no gradient, validation 0 dB).
     ARGS="--norm none --crop 128 --crops-per-sample 4 --epochs-first 10 --epochs 4 --batch 8 --max-networks 15 --loss-projection none"
     ;;
-*) echo "unknown recipe $RECIPE (vla-r2d2-512, vla-r2d2-512-broad or vla-r2d2-128)" >&2; exit 2 ;;
+*) echo "unknown recipe $RECIPE (vla-r2d2-512, meerkat-r2d2-512, vla-r2d2-512-broad or vla-r2d2-128)" >&2; exit 2 ;;
 esac
 RESUME=""
 [ -f "$SERIES/manifest.yaml" ] && RESUME="--resume"

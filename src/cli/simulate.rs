@@ -1,4 +1,4 @@
-//! `r2d2 simulate`: a VLA observation of a sky (FITS or procedural) into a Parquet table.
+//! `r2d2 simulate`: an observation of a sky by a telescope of the registry (FITS or procedural) into a Parquet table.
 
 use r2d2_imaging::fits::{read_image, write_image, BrightnessUnit, ImageWcs};
 use r2d2_imaging::nufft::NufftParams;
@@ -15,39 +15,41 @@ pub struct Args {
     /// Sky model: a FITS image (Jy/pixel), or `procedural[:SEED]` for a generated radio sky.
     #[arg(long, default_value = "procedural")]
     sky: String,
-    /// Telescope (only `vla` is built in).
+    /// Telescope (`data/telescopes/telescopes.yaml`: vla, meerkat, ska-mid). Its typical
+    /// observation fills in every option of the observation not given.
     #[arg(long, default_value = "vla")]
     telescope: String,
-    /// Array configurations, comma separated (a, b, c, d).
-    #[arg(long, default_value = "a,c", value_delimiter = ',')]
-    configs: Vec<char>,
-    /// Observing time per configuration in hours, comma separated, one per configuration.
-    #[arg(long, default_value = "6,2", value_delimiter = ',')]
-    hours: Vec<f64>,
-    /// Declination of the phase centre, degrees.
-    #[arg(long, default_value_t = 40.0, allow_hyphen_values = true)]
-    dec: f64,
+    /// Array configurations, comma separated (vla: a, b, c, d; default a,c).
+    #[arg(long, value_delimiter = ',')]
+    configs: Option<Vec<String>>,
+    /// Observing time per configuration in hours, comma separated, one per configuration
+    /// (vla: 6,2; meerkat: 8).
+    #[arg(long, value_delimiter = ',')]
+    hours: Option<Vec<f64>>,
+    /// Declination of the phase centre, degrees (vla: 40; meerkat: -30).
+    #[arg(long, allow_hyphen_values = true)]
+    dec: Option<f64>,
     /// Right ascension of the phase centre, degrees.
     #[arg(long, default_value_t = 180.0)]
     ra: f64,
     /// Target dynamic range: fixes the noise level (reference formula).
     #[arg(long, default_value_t = 1e4)]
     dr: f64,
-    /// Number of frequency channels.
-    #[arg(long, default_value_t = 1)]
-    nfreq: usize,
-    /// Lowest frequency, MHz.
-    #[arg(long, default_value_t = 1400.0)]
-    freq_mhz: f64,
-    /// Highest over lowest frequency.
-    #[arg(long, default_value_t = 1.0)]
-    freq_ratio: f64,
+    /// Number of frequency channels (vla: 1; meerkat: 8).
+    #[arg(long)]
+    nfreq: Option<usize>,
+    /// Lowest frequency, MHz (vla: 1400; meerkat: 856).
+    #[arg(long)]
+    freq_mhz: Option<f64>,
+    /// Highest over lowest frequency (vla: 1; meerkat: 2, L band 856..1712 MHz).
+    #[arg(long)]
+    freq_ratio: Option<f64>,
     /// Fraction of samples flagged at random.
     #[arg(long, default_value_t = 0.0)]
     flag_fraction: f64,
-    /// Integration time, seconds.
-    #[arg(long, default_value_t = 30.0)]
-    integration_s: f64,
+    /// Integration time, seconds (vla: 30; meerkat: 8).
+    #[arg(long)]
+    integration_s: Option<f64>,
     /// Do not rotate the uv coverage by a random angle.
     #[arg(long)]
     no_rotation: bool,
@@ -100,22 +102,29 @@ fn parse_sky(text: &str, seed: u64) -> Result<SkySource> {
 }
 
 pub fn run(args: Args) -> Result<()> {
-    if !args.telescope.eq_ignore_ascii_case("vla") {
-        return Err(Error::parameter("telescope", format!("expected vla (the built-in telescope), got '{}'", args.telescope)));
-    }
-    if args.configs.len() != args.hours.len() {
+    let telescope = r2d2_imaging::simulate::telescope::telescope(&args.telescope)?;
+    let preset = &telescope.observation;
+    let configs = args.configs.clone().unwrap_or_else(|| preset.configurations.clone());
+    let hours = args.hours.clone().unwrap_or_else(|| preset.hours.clone());
+    if configs.len() != hours.len() {
         return Err(Error::parameter(
             "hours",
-            format!("give one observing time per configuration: {} configurations, {} times", args.configs.len(), args.hours.len()),
+            format!("give one observing time per configuration: {} configurations, {} times", configs.len(), hours.len()),
         ));
     }
+    let dec = args.dec.unwrap_or(preset.dec_deg);
     // The output and the observation before any work (reading the sky, simulating).
     r2d2_imaging::fits::check_output_file(&args.out, false).map_err(|m| Error::parameter("--out", m))?;
     let spec = ObservationSpec {
-        configurations: args.configs.iter().copied().zip(args.hours.iter().copied()).collect(),
-        dec_deg: args.dec,
-        integration_s: args.integration_s,
-        frequencies_hz: frequency_channels(args.freq_mhz * 1e6, args.nfreq, args.freq_ratio)?,
+        telescope: telescope.key.clone(),
+        configurations: configs.into_iter().zip(hours).collect(),
+        dec_deg: dec,
+        integration_s: args.integration_s.unwrap_or(preset.integration_s),
+        frequencies_hz: frequency_channels(
+            args.freq_mhz.unwrap_or(preset.frequency_mhz) * 1e6,
+            args.nfreq.unwrap_or(preset.channels),
+            args.freq_ratio.unwrap_or(preset.frequency_ratio),
+        )?,
         flag_fraction: args.flag_fraction,
         random_rotation: !args.no_rotation,
         seed: args.seed,
@@ -151,7 +160,7 @@ pub fn run(args: Args) -> Result<()> {
         },
         dynamic_range: args.dr,
         noise_weighting,
-        phase_centre_deg: (args.ra, args.dec),
+        phase_centre_deg: (args.ra, dec),
         nufft: NufftParams { epsilon: args.epsilon, oversampling: 2.0 },
         threads: args.threads,
     };
@@ -173,7 +182,7 @@ pub fn run(args: Args) -> Result<()> {
         let sky_path = sky_path(&args.out);
         let wcs = ImageWcs {
             ra_deg: args.ra,
-            dec_deg: args.dec,
+            dec_deg: dec,
             pixel_deg: geometry.pixel_rad.to_degrees(),
             freq_hz: Some(spec.frequencies_hz.iter().sum::<f64>() / spec.frequencies_hz.len() as f64),
             bandwidth_hz: None,

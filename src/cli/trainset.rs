@@ -1,4 +1,4 @@
-//! `r2d2 trainset`: a training/validation/test set for R2D2 series, one simulated VLA A+C
+//! `r2d2 trainset`: a training/validation/test set for R2D2 series, one simulated
 //! observation per ground truth, written as stacked .npy arrays plus per-sample scalars.
 
 use ndarray::{Array2, Array3};
@@ -40,10 +40,14 @@ pub struct Args {
     dr_min: f64,
     #[arg(long, default_value_t = 1e5)]
     dr_max: f64,
+    /// Telescope whose training preset the observations are drawn from
+    /// (`data/telescopes/telescopes.yaml`: vla, meerkat, ska-mid).
+    #[arg(long, default_value = "vla")]
+    telescope: String,
     /// Integration time in seconds (longer: fewer points, faster); `LOW..HIGH` draws one per
-    /// sample.
-    #[arg(long, default_value = "120", value_parser = parse_range)]
-    integration_s: (f64, f64),
+    /// sample. Default: the telescope's training preset's.
+    #[arg(long, value_parser = parse_range)]
+    integration_s: Option<(f64, f64)>,
     /// Super-resolution factor, or `LOW..HIGH` drawn per sample.
     #[arg(long, default_value = "1.5", value_parser = parse_range)]
     superresolution: (f64, f64),
@@ -159,7 +163,7 @@ fn write_visibilities(dir: &Path, samples: &[TrainSample]) -> Result<()> {
         let meta = ObservationMeta {
             phase_centre_ra_deg: PHASE_CENTRE_RA_DEG,
             phase_centre_dec_deg: dec,
-            telescope: "VLA".into(),
+            telescope: r2d2_imaging::simulate::telescope::telescope(&s.info.observation.telescope)?.name.clone(),
             noise_sigma: Some(s.info.tau),
             dynamic_range: Some(s.info.observation.dynamic_range),
             extra: [("simulation_seed".to_string(), s.info.seed.to_string())].into_iter().collect(),
@@ -178,12 +182,15 @@ fn write_json(path: &Path, value: &impl Serialize) -> Result<()> {
 }
 
 pub fn run(args: Args) -> Result<()> {
+    let telescope = r2d2_imaging::simulate::telescope::telescope(&args.telescope)?;
+    let integration_s = args.integration_s.unwrap_or((telescope.training.integration_s, telescope.training.integration_s));
     let params = TrainsetParams {
+        telescope,
         size: args.size,
         superresolution: args.superresolution,
         robust: args.robust,
         dynamic_range: (args.dr_min, args.dr_max),
-        integration_s: args.integration_s,
+        integration_s,
         nufft: NufftParams { epsilon: args.epsilon, oversampling: 2.0 },
     };
     params.validate()?;
@@ -276,10 +283,10 @@ pub fn run(args: Args) -> Result<()> {
             "source_dr": args.truths.as_ref().map(|_| args.source_dr),
             "procedural": args.procedural,
             "sky": args.procedural.map(|_| format!("{:?}", args.sky).to_lowercase()),
-            "telescope": "vla",
-            "track_hours": {"a": [5.0, 10.0], "c": [1.0, 3.0]},
+            "telescope": telescope.key,
+            "track_hours": telescope.training.configurations.iter().cloned().zip(telescope.training.hours.iter().copied()).collect::<std::collections::BTreeMap<_, _>>(),
             "dynamic_range": [args.dr_min, args.dr_max],
-            "integration_s": range_json(args.integration_s),
+            "integration_s": range_json(integration_s),
             "superresolution": range_json(args.superresolution),
             "weighting": {"scheme": "briggs", "robust": range_json(args.robust)},
             "epsilon": args.epsilon,

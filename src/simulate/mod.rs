@@ -115,7 +115,7 @@ pub fn simulate(req: &SimulationRequest) -> Result<SimulationOutput> {
     let meta = ObservationMeta {
         phase_centre_ra_deg: req.phase_centre_deg.0,
         phase_centre_dec_deg: req.phase_centre_deg.1,
-        telescope: "VLA".into(),
+        telescope: telescope::telescope(&req.observation.telescope)?.name.clone(),
         noise_sigma: Some(sim.noise_sigma),
         dynamic_range: Some(req.dynamic_range),
         extra,

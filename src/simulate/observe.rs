@@ -1,4 +1,4 @@
-//! A simulated observation: VLA-like uv coverage over one or more configurations and
+//! A simulated observation: a telescope's uv coverage over one or more configurations and
 //! frequencies, random rotation and flagging, then visibilities `Phi x + n` with the noise
 //! level the reference implementation derives from a target dynamic range.
 //!
@@ -28,8 +28,10 @@ const STREAM_NOISE: u64 = 3;
 /// What the telescope observes.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ObservationSpec {
-    /// VLA configurations and the observing time in each, hours (e.g. `[('a', 6.0), ('c', 2.0)]`).
-    pub configurations: Vec<(char, f64)>,
+    /// The telescope (a key or name of `data/telescopes/telescopes.yaml`: `vla`, `meerkat`).
+    pub telescope: String,
+    /// Its configurations and the observing time in each, hours (e.g. `[("a", 6.0), ("c", 2.0)]`).
+    pub configurations: Vec<(String, f64)>,
     pub dec_deg: f64,
     pub integration_s: f64,
     /// Observing frequencies in Hz.
@@ -49,8 +51,9 @@ impl ObservationSpec {
         if self.configurations.is_empty() {
             return Err(Error::parameter("configs", "expected at least one telescope configuration"));
         }
-        for &(config, hours) in &self.configurations {
-            let array = telescope::vla(config)?;
+        let scope = telescope::telescope(&self.telescope)?;
+        for (config, hours) in &self.configurations {
+            let (array, hours) = (scope.array(config)?, *hours);
             // The track first: a zero integration time would otherwise be reported as a
             // sample count that does not fit in memory.
             TrackSpec { dec_rad: self.dec_deg.to_radians(), hour_angle_span_h: hours, integration_s: self.integration_s }.validate()?;
@@ -152,9 +155,10 @@ const SIMULATION_BYTES_PER_SAMPLE: f64 = 200.0;
 /// f64: hours of 1e300 must not wrap a count).
 fn check_sample_count(spec: &ObservationSpec) -> Result<()> {
     let mut samples = 0.0;
-    for &(config, hours) in &spec.configurations {
+    let scope = telescope::telescope(&spec.telescope)?;
+    for (config, hours) in &spec.configurations {
         let integrations = (hours * 3600.0 / spec.integration_s).round().max(1.0);
-        samples += integrations * telescope::vla(config)?.n_baselines() as f64 * spec.frequencies_hz.len() as f64;
+        samples += integrations * scope.array(config)?.n_baselines() as f64 * spec.frequencies_hz.len() as f64;
     }
     let what = format!(
         "an observation of {samples:.3e} samples ({} configuration(s), {} s integrations, {} channel(s))",
@@ -170,8 +174,9 @@ pub fn sample_coverage(spec: &ObservationSpec) -> Result<Coverage> {
     spec.validate()?;
     let mut cov = Coverage::default();
     let mut time_offset = 0.0;
-    for (k, &(config, hours)) in spec.configurations.iter().enumerate() {
-        let array = telescope::vla(config)?;
+    let scope = telescope::telescope(&spec.telescope)?;
+    for (k, (config, hours)) in spec.configurations.iter().enumerate() {
+        let (array, hours) = (scope.array(config)?, *hours);
         let track = telescope::uvw_tracks(
             &array,
             &TrackSpec { dec_rad: spec.dec_deg.to_radians(), hour_angle_span_h: hours, integration_s: spec.integration_s },
@@ -313,7 +318,8 @@ mod tests {
 
     fn small_spec(seed: u64) -> ObservationSpec {
         ObservationSpec {
-            configurations: vec![('c', 1.0), ('d', 0.5)],
+            telescope: "vla".into(),
+            configurations: vec![("c".into(), 1.0), ("d".into(), 0.5)],
             dec_deg: 40.0,
             integration_s: 120.0,
             frequencies_hz: frequency_channels(1.0e9, 2, 1.5).unwrap(),
@@ -375,7 +381,7 @@ mod tests {
 
     #[test]
     fn noise_level_follows_the_reference_formula_and_the_data_carry_it() {
-        let spec = ObservationSpec { configurations: vec![('d', 0.5)], integration_s: 300.0, ..small_spec(3) };
+        let spec = ObservationSpec { configurations: vec![("d".into(), 0.5)], integration_s: 300.0, ..small_spec(3) };
         let cov = sample_coverage(&spec).unwrap();
         let g = ImageGeometry::from_superresolution(8, 1.5, cov.max_uv()).unwrap();
         let dr = 500.0;
@@ -430,13 +436,13 @@ mod tests {
             let e = sample_coverage(&ObservationSpec { integration_s, ..small_spec(1) }).unwrap_err().to_string();
             assert!(e.contains("integration time") && !e.contains("memory"), "{e}");
         }
-        let e = sample_coverage(&ObservationSpec { configurations: vec![('c', 0.0)], ..small_spec(1) }).unwrap_err().to_string();
+        let e = sample_coverage(&ObservationSpec { configurations: vec![("c".into(), 0.0)], ..small_spec(1) }).unwrap_err().to_string();
         assert!(e.contains("observation time"), "{e}");
         let e = sample_coverage(&ObservationSpec { dec_deg: -90.0, ..small_spec(1) }).unwrap_err().to_string();
         assert!(e.contains("declination") && e.contains("-90 deg never rises"), "{e}");
         let spec = ObservationSpec { flag_fraction: 1.5, ..small_spec(1) };
         assert!(sample_coverage(&spec).unwrap_err().to_string().contains("flag-fraction"));
-        let spec = ObservationSpec { configurations: vec![('x', 1.0)], ..small_spec(1) };
+        let spec = ObservationSpec { configurations: vec![("x".into(), 1.0)], ..small_spec(1) };
         assert!(sample_coverage(&spec).is_err());
     }
 }

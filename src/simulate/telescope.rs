@@ -1,9 +1,10 @@
-//! Antenna layouts and Earth-rotation uv coverage.
+//! Telescopes, antenna layouts and Earth-rotation uv coverage.
 //!
-//! The R2D2 training sets are simulated with real VLA layouts (configurations A and C in the
-//! paper), so the antenna tables shipped in `data/telescopes/` are compiled in with
-//! `include_str!`: the binary then needs no data files at run time and a simulation cannot
-//! silently pick up a different table.
+//! Telescopes are data, not code: `data/telescopes/telescopes.yaml` names each telescope, its
+//! layouts (antenna tables in ITRF metres beside it) and its typical observing set-ups (what
+//! `r2d2 simulate` observes by default, what `r2d2 trainset` draws per sample). Both the
+//! registry and the tables are compiled in with `include_str!`, so the binary needs no data
+//! files at run time and a simulation cannot silently pick up a different table.
 //!
 //! Baselines are computed in the ITRF (Earth-fixed, equatorial) frame and projected onto the
 //! (u, v, w) frame of the phase centre with the standard rotation (Thompson, Moran & Swenson,
@@ -12,17 +13,143 @@
 //! and belongs to whoever assembles the visibilities.
 
 use crate::error::{Error, Result};
+use serde::Deserialize;
+use std::collections::BTreeMap;
+use std::sync::OnceLock;
 
 /// Sidereal rate: hours of hour angle per hour of (UTC) time.
 const SIDEREAL_PER_SOLAR: f64 = 1.002_737_909_35;
 
-/// The VLA tables, in configuration order a, b, c, d.
-const VLA_TABLES: [(char, &str); 4] = [
-    ('a', include_str!("../../data/telescopes/vlaa.itrf.txt")),
-    ('b', include_str!("../../data/telescopes/vlab.itrf.txt")),
-    ('c', include_str!("../../data/telescopes/vlac.itrf.txt")),
-    ('d', include_str!("../../data/telescopes/vlad.itrf.txt")),
+/// Where the registry is, for its errors.
+const REGISTRY_PATH: &str = "data/telescopes/telescopes.yaml";
+const REGISTRY: &str = include_str!("../../data/telescopes/telescopes.yaml");
+
+/// The antenna tables the registry may name, by file name.
+const TABLES: [(&str, &str); 6] = [
+    ("vlaa.itrf.txt", include_str!("../../data/telescopes/vlaa.itrf.txt")),
+    ("vlab.itrf.txt", include_str!("../../data/telescopes/vlab.itrf.txt")),
+    ("vlac.itrf.txt", include_str!("../../data/telescopes/vlac.itrf.txt")),
+    ("vlad.itrf.txt", include_str!("../../data/telescopes/vlad.itrf.txt")),
+    ("meerkat.itrf.txt", include_str!("../../data/telescopes/meerkat.itrf.txt")),
+    ("skamid-aastar.itrf.txt", include_str!("../../data/telescopes/skamid-aastar.itrf.txt")),
 ];
+
+/// A telescope the simulator knows (an entry of the registry).
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Telescope {
+    /// The registry's key (`vla`, `meerkat`), filled in from the entry's name.
+    #[serde(skip)]
+    pub key: String,
+    /// The name written as `TELESCOPE_NAME` into tables and MeasurementSets (`VLA`, `MeerKAT`).
+    pub name: String,
+    /// Configuration name -> antenna table file.
+    pub layouts: BTreeMap<String, String>,
+    /// A typical observation: what `r2d2 simulate --telescope KEY` does where no option says
+    /// otherwise.
+    pub observation: ObservationPreset,
+    /// What `r2d2 trainset --telescope KEY` draws per sample.
+    pub training: TrainingPreset,
+}
+
+/// A typical observation of a telescope.
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ObservationPreset {
+    pub configurations: Vec<String>,
+    /// Observing time per configuration, hours.
+    pub hours: Vec<f64>,
+    pub dec_deg: f64,
+    /// Lowest frequency, MHz.
+    pub frequency_mhz: f64,
+    pub channels: usize,
+    /// Highest over lowest frequency.
+    pub frequency_ratio: f64,
+    pub integration_s: f64,
+}
+
+/// The ranges a training set draws its observations from, per sample (uniformly).
+#[derive(Clone, Debug, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainingPreset {
+    pub configurations: Vec<String>,
+    /// Observing time per configuration, `[low, high]` hours.
+    pub hours: Vec<[f64; 2]>,
+    pub dec_deg: [f64; 2],
+    /// Lowest frequency, MHz (only frequency ratios matter once the pixel follows the
+    /// super-resolution, but the written tables carry it).
+    pub lowest_frequency_mhz: f64,
+    /// Number of channels, `[low, high]`.
+    pub channels: [usize; 2],
+    pub frequency_ratio: [f64; 2],
+    /// Integration time when the set does not choose one, seconds.
+    pub integration_s: f64,
+}
+
+/// Every telescope of the registry, in its order.
+pub fn telescopes() -> Result<&'static [Telescope]> {
+    static PARSED: OnceLock<std::result::Result<Vec<Telescope>, String>> = OnceLock::new();
+    PARSED.get_or_init(|| parse_registry(REGISTRY)).as_deref().map_err(|m| Error::input(REGISTRY_PATH, m.clone()))
+}
+
+fn parse_registry(text: &str) -> std::result::Result<Vec<Telescope>, String> {
+    let entries: serde_yaml::Mapping = serde_yaml::from_str(text).map_err(|e| e.to_string())?;
+    let mut out = Vec::new();
+    for (key, value) in entries {
+        let key = key.as_str().ok_or("expected telescope names as keys")?.to_string();
+        let mut t: Telescope = serde_yaml::from_value(value).map_err(|e| format!("{key}: {e}"))?;
+        t.key = key;
+        t.check()?;
+        out.push(t);
+    }
+    Ok(out)
+}
+
+/// The telescope named `name` (its key or its `TELESCOPE_NAME`, any case).
+pub fn telescope(name: &str) -> Result<&'static Telescope> {
+    let all = telescopes()?;
+    let wanted = name.trim();
+    all.iter().find(|t| t.key.eq_ignore_ascii_case(wanted) || t.name.eq_ignore_ascii_case(wanted)).ok_or_else(|| {
+        let known: Vec<&str> = all.iter().map(|t| t.key.as_str()).collect();
+        Error::parameter("telescope", format!("expected one of {} (the telescopes in {REGISTRY_PATH}), got '{name}'", known.join(", ")))
+    })
+}
+
+impl Telescope {
+    /// The antenna array of configuration `config` (any case).
+    pub fn array(&self, config: &str) -> Result<Array> {
+        let wanted = config.trim().to_ascii_lowercase();
+        let file = self.layouts.get(&wanted).ok_or_else(|| {
+            let known: Vec<&str> = self.layouts.keys().map(String::as_str).collect();
+            Error::parameter("telescope configuration", format!("expected one of {} for {}, got {config:?}", known.join(", "), self.key))
+        })?;
+        let (_, text) = TABLES.iter().find(|(name, _)| name == file).ok_or_else(|| {
+            Error::input(REGISTRY_PATH, format!("{}: layout {wanted}: no antenna table {file} is compiled in", self.key))
+        })?;
+        let name = if self.layouts.len() == 1 { self.key.clone() } else { format!("{}-{wanted}", self.key) };
+        parse_itrf_table(text, &name)
+    }
+
+    /// Refuses an entry whose presets name layouts it lacks or give ranges that do not fit.
+    fn check(&self) -> std::result::Result<(), String> {
+        let key = &self.key;
+        let o = &self.observation;
+        let t = &self.training;
+        for c in o.configurations.iter().chain(&t.configurations) {
+            if !self.layouts.contains_key(c) {
+                return Err(format!("{key}: configuration '{c}' is not one of its layouts"));
+            }
+        }
+        if o.configurations.len() != o.hours.len() || t.configurations.len() != t.hours.len() {
+            return Err(format!("{key}: give one observing time per configuration"));
+        }
+        let ordered = |[lo, hi]: [f64; 2]| lo.is_finite() && hi.is_finite() && lo <= hi;
+        if !t.hours.iter().all(|h| ordered(*h) && h[0] > 0.0) || !ordered(t.dec_deg) || !ordered(t.frequency_ratio) || t.channels[0] < 1 || t.channels[0] > t.channels[1] {
+            return Err(format!("{key}: training ranges must be [low, high] with low <= high (positive hours, at least one channel)"));
+        }
+        Ok(())
+    }
+}
 
 /// An antenna array: positions in the ITRF frame (metres) and dish diameters.
 #[derive(Debug, Clone, PartialEq)]
@@ -111,17 +238,9 @@ impl Array {
     }
 }
 
-/// The VLA in configuration `config` ('a', 'b', 'c' or 'd', case-insensitive), from the
-/// tables compiled into the binary.
+/// The VLA in configuration `config` ('a', 'b', 'c' or 'd', case-insensitive).
 pub fn vla(config: char) -> Result<Array> {
-    let c = config.to_ascii_lowercase();
-    let (_, text) = VLA_TABLES.iter().find(|(k, _)| *k == c).ok_or_else(|| {
-        Error::parameter(
-            "telescope configuration",
-            format!("expected one of a, b, c, d for vla, got {config:?}"),
-        )
-    })?;
-    parse_itrf_table(text, &format!("vla-{c}"))
+    telescope("vla")?.array(&config.to_string())
 }
 
 /// Parse an antenna table: lines starting with `#` and blank lines are ignored; every other
@@ -393,6 +512,45 @@ mod tests {
             assert_eq!(a.n_baselines(), 351);
             assert!(a.dish_diameter_m.iter().all(|&d| d == 25.0));
         }
+    }
+
+    #[test]
+    fn every_telescope_of_the_registry_has_its_layouts_and_presets() {
+        let all = telescopes().unwrap();
+        assert_eq!(all.iter().map(|t| t.key.as_str()).collect::<Vec<_>>(), ["vla", "meerkat", "ska-mid"]);
+        for t in all {
+            for config in t.layouts.keys() {
+                let a = t.array(config).unwrap();
+                assert!(a.n_antennas() >= 27, "{}", a.name);
+            }
+            assert!(std::ptr::eq(telescope(&t.name).unwrap(), t), "found by its TELESCOPE_NAME too");
+        }
+        let meerkat = telescope("meerkat").unwrap().array("meerkat").unwrap();
+        assert_eq!((meerkat.n_antennas(), meerkat.n_baselines()), (64, 2016));
+        assert!(meerkat.dish_diameter_m.iter().all(|&d| d == 13.5));
+        // MeerKAT's longest baseline is 7.7 km; the site is at 30.7 deg S (geodetic; the
+        // geocentric latitude reported here is 0.17 deg nearer the equator), 21.4 deg E.
+        let longest = meerkat.max_baseline_m();
+        assert!((7600.0..7800.0).contains(&longest), "{longest}");
+        let (lat, lon) = (meerkat.latitude_rad().to_degrees(), meerkat.longitude_rad().to_degrees());
+        assert!((-30.6..-30.4).contains(&lat) && (21.3..21.5).contains(&lon), "{lat} {lon}");
+        let ska = telescope("SKA-Mid").unwrap().array("aastar").unwrap();
+        assert_eq!(ska.n_antennas(), 143);
+        // The SKA dishes of the source's AA* list reach several times MeerKAT's extent.
+        assert!(ska.max_baseline_m() > 4.0 * longest, "{}", ska.max_baseline_m());
+    }
+
+    #[test]
+    fn a_registry_naming_a_missing_layout_or_bad_ranges_is_refused() {
+        let entry = |rest: &str| format!("x:\n  name: X\n  layouts: {{a: vlaa.itrf.txt}}\n  observation: {{configurations: [a], hours: [1], dec_deg: 0, frequency_mhz: 1000, channels: 1, frequency_ratio: 1, integration_s: 10}}\n{rest}");
+        let good = "  training: {configurations: [a], hours: [[1, 2]], dec_deg: [0, 10], lowest_frequency_mhz: 1000, channels: [1, 2], frequency_ratio: [1, 2], integration_s: 60}\n";
+        assert!(parse_registry(&entry(good)).is_ok());
+        let e = parse_registry(&entry(&good.replace("configurations: [a]", "configurations: [b]"))).unwrap_err();
+        assert!(e.contains("'b' is not one of its layouts"), "{e}");
+        let e = parse_registry(&entry(&good.replace("dec_deg: [0, 10]", "dec_deg: [10, 0]"))).unwrap_err();
+        assert!(e.contains("low <= high"), "{e}");
+        let e = parse_registry(&entry(&good.replace("integration_s: 60", "integration: 60"))).unwrap_err();
+        assert!(e.contains("unknown field"), "{e}");
     }
 
     #[test]

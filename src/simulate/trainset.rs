@@ -1,9 +1,10 @@
 //! Training data for R2D2 series, made by the same simulator and operator that imaging uses,
 //! so a network learns exactly the measurement operator it will meet at inference.
 //!
-//! Each sample is a randomised VLA A+C observation as in the paper (declination 5..60 deg,
-//! A 5..10 h, C 1..3 h, 1..4 frequencies with highest/lowest 1..2, random rotation, up to 20%
-//! flagged), a super-resolution, Briggs robustness and integration time drawn per sample from
+//! Each sample is a randomised observation of the set's telescope, drawn from the ranges of
+//! its training preset (`data/telescopes/telescopes.yaml`; the VLA's is the paper's A+C:
+//! declination 5..60 deg, A 5..10 h, C 1..3 h, 1..4 frequencies with highest/lowest 1..2),
+//! rotated at random and up to 20% flagged, a super-resolution, Briggs robustness and integration time drawn per sample from
 //! the set's ranges (a single value each by default: SR 1.5, Briggs 0, 300 s), noise for a
 //! target dynamic range drawn log-uniformly, and a ground truth exponentiated to that dynamic
 //! range (or a procedural radio sky made at it). A sample holds what sequential training needs: the truth, the
@@ -16,6 +17,7 @@
 use super::observe::{frequency_channels, sample_coverage, simulate_visibilities, NoiseModel, ObservationSpec};
 use super::extended::extended_sky;
 use super::sky::{exponentiate, procedural_sky, SkyParams};
+use super::telescope::Telescope;
 use crate::imaging::{dirty_image, DirtyParams, PixelScale};
 use crate::nufft::NufftParams;
 use crate::operator::{doubled_psf, ImageGeometry, WTermMode};
@@ -25,18 +27,18 @@ use crate::{Error, Result};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
+use std::collections::BTreeMap;
 
 /// Random stream of the observation parameters (the simulator's own streams use the seed
 /// with other stream numbers, so the choices stay independent).
 const STREAM_PARAMETERS: u64 = 11;
 
-/// Lowest observing frequency: the VLA L band (only ratios matter once the pixel follows SR).
-const LOWEST_FREQUENCY_HZ: f64 = 1.0e9;
-
 /// What is fixed across a training set. Each `(low, high)` range is drawn from per sample
 /// (uniformly; the dynamic range log-uniformly); `low == high` fixes the value.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct TrainsetParams {
+    /// The telescope whose training preset the observations are drawn from.
+    pub telescope: &'static Telescope,
     pub size: usize,
     pub superresolution: (f64, f64),
     /// Briggs robustness.
@@ -79,9 +81,15 @@ impl TrainsetParams {
 /// The randomised observation of one sample (recorded with it).
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct ObservationDraw {
+    pub telescope: String,
     pub dec_deg: f64,
-    pub hours_a: f64,
-    pub hours_c: f64,
+    /// Hours of each configuration, recorded as `hours_<configuration>` (`hours_a`).
+    #[serde(flatten)]
+    pub hours: BTreeMap<String, f64>,
+    /// The configurations in the order they are observed.
+    #[serde(skip)]
+    pub configurations: Vec<String>,
+    pub lowest_frequency_hz: f64,
     pub frequencies: usize,
     pub frequency_ratio: f64,
     pub flag_fraction: f64,
@@ -92,19 +100,25 @@ pub struct ObservationDraw {
 }
 
 impl ObservationDraw {
-    /// The paper's VLA A+C ranges and the set's ranges, drawn from `seed`. The imaging
+    /// The telescope's training ranges and the set's ranges, drawn from `seed`. The imaging
     /// settings are drawn after the observation, so a set of fixed settings draws the same
-    /// observations as before they could vary.
+    /// observations as before they could vary (and the VLA's draws are those of the paper's
+    /// A+C ranges written in code before telescopes were data).
     pub fn random(seed: u64, params: &TrainsetParams) -> ObservationDraw {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         rng.set_stream(STREAM_PARAMETERS);
         let (lo, hi) = params.dynamic_range;
+        let t = &params.telescope.training;
+        let dec_deg = rng.gen_range(t.dec_deg[0]..=t.dec_deg[1]);
+        let hours = t.configurations.iter().zip(&t.hours).map(|(c, [h0, h1])| (format!("hours_{c}"), rng.gen_range(*h0..=*h1))).collect();
         let mut draw = ObservationDraw {
-            dec_deg: rng.gen_range(5.0..=60.0),
-            hours_a: rng.gen_range(5.0..=10.0),
-            hours_c: rng.gen_range(1.0..=3.0),
-            frequencies: rng.gen_range(1..=4),
-            frequency_ratio: rng.gen_range(1.0..=2.0),
+            telescope: params.telescope.key.clone(),
+            dec_deg,
+            hours,
+            configurations: t.configurations.clone(),
+            lowest_frequency_hz: t.lowest_frequency_mhz * 1e6,
+            frequencies: rng.gen_range(t.channels[0]..=t.channels[1]),
+            frequency_ratio: rng.gen_range(t.frequency_ratio[0]..=t.frequency_ratio[1]),
             flag_fraction: rng.gen_range(0.0..0.2),
             dynamic_range: (lo.ln() + (hi.ln() - lo.ln()) * rng.gen::<f64>()).exp(),
             superresolution: params.superresolution.0,
@@ -120,10 +134,11 @@ impl ObservationDraw {
 
     pub fn spec(&self, seed: u64) -> Result<ObservationSpec> {
         Ok(ObservationSpec {
-            configurations: vec![('a', self.hours_a), ('c', self.hours_c)],
+            telescope: self.telescope.clone(),
+            configurations: self.configurations.iter().map(|c| (c.clone(), self.hours[&format!("hours_{c}")])).collect(),
             dec_deg: self.dec_deg,
             integration_s: self.integration_s,
-            frequencies_hz: frequency_channels(LOWEST_FREQUENCY_HZ, self.frequencies, self.frequency_ratio)?,
+            frequencies_hz: frequency_channels(self.lowest_frequency_hz, self.frequencies, self.frequency_ratio)?,
             flag_fraction: self.flag_fraction,
             random_rotation: true,
             seed,
@@ -256,6 +271,7 @@ mod tests {
 
     fn params() -> TrainsetParams {
         TrainsetParams {
+            telescope: crate::simulate::telescope::telescope("vla").unwrap(),
             size: 32,
             superresolution: (1.5, 1.5),
             robust: (0.0, 0.0),
@@ -272,15 +288,44 @@ mod tests {
             let d = ObservationDraw::random(seed, &params());
             let r = ObservationDraw::random(seed, &ranged);
             // The observation itself does not depend on the imaging ranges.
-            assert_eq!((d.dec_deg, d.hours_a, d.dynamic_range), (r.dec_deg, r.hours_a, r.dynamic_range));
+            assert_eq!((d.dec_deg, &d.hours, d.dynamic_range), (r.dec_deg, &r.hours, r.dynamic_range));
             assert_eq!((d.superresolution, d.robust, d.integration_s), (1.5, 0.0, 1800.0));
             assert!((1.5..=2.5).contains(&r.superresolution) && (-1.0..=1.0).contains(&r.robust) && (100.0..=400.0).contains(&r.integration_s));
-            assert!((5.0..=60.0).contains(&d.dec_deg) && (5.0..=10.0).contains(&d.hours_a) && (1.0..=3.0).contains(&d.hours_c));
+            assert!((5.0..=60.0).contains(&d.dec_deg) && (5.0..=10.0).contains(&d.hours["hours_a"]) && (1.0..=3.0).contains(&d.hours["hours_c"]));
             assert!((1..=4).contains(&d.frequencies) && (1.0..=2.0).contains(&d.frequency_ratio));
             assert!((0.0..0.2).contains(&d.flag_fraction) && (1e3..=1e5).contains(&d.dynamic_range));
             assert_eq!(d, ObservationDraw::random(seed, &params()));
         }
         assert_ne!(ObservationDraw::random(1, &params()), ObservationDraw::random(2, &params()));
+    }
+
+    /// The VLA's draws from the registry are those the committed series' data were made with
+    /// when the ranges were code: sample 0 of `training/reproduce.sh vla-r2d2-512-broad`'s
+    /// classic skies (seed 100000), as its samples.json recorded it.
+    #[test]
+    fn vla_draws_are_those_the_shipped_series_were_trained_on() {
+        let broad = TrainsetParams { superresolution: (1.5, 2.5), robust: (-1.0, 1.0), integration_s: (200.0, 450.0), ..params() };
+        let d = ObservationDraw::random(100000, &broad);
+        assert_eq!((d.dec_deg, d.hours["hours_a"], d.hours["hours_c"]), (31.23210928542795, 7.58892522475332, 1.6921363302763672));
+        assert_eq!((d.frequencies, d.frequency_ratio, d.flag_fraction), (3, 1.6432148850239297, 0.10067725267206665));
+        assert_eq!((d.dynamic_range, d.superresolution, d.robust, d.integration_s), (26913.420264327848, 1.606363561987386, 0.6056763231086113, 417.747856678782));
+        let json = serde_json::to_value(&d).unwrap();
+        assert_eq!((json["hours_a"].as_f64(), json["telescope"].as_str()), (Some(7.58892522475332), Some("vla")));
+    }
+
+    /// MeerKAT's draws follow its preset: one configuration, L band, southern declinations.
+    #[test]
+    fn meerkat_draws_follow_its_preset() {
+        let meerkat = TrainsetParams { telescope: crate::simulate::telescope::telescope("MeerKAT").unwrap(), ..params() };
+        for seed in 0..50 {
+            let d = ObservationDraw::random(seed, &meerkat);
+            assert_eq!(d.configurations, ["meerkat"]);
+            assert!((8.0..=12.0).contains(&d.hours["hours_meerkat"]) && (-60.0..=0.0).contains(&d.dec_deg), "{d:?}");
+            assert_eq!(d.lowest_frequency_hz, 856e6);
+            let spec = d.spec(seed).unwrap();
+            assert_eq!(spec.telescope, "meerkat");
+            spec.validate().unwrap();
+        }
     }
 
     /// The dirty image is the PSF convolution of the truth plus the back-projected noise:

@@ -374,7 +374,7 @@ impl StageParams for ResidualParams {
 
 // ---- kind: simulate
 
-/// `kind: simulate`: simulated VLA observations of procedural skies.
+/// `kind: simulate`: simulated observations of procedural skies.
 #[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SimulateParams {
@@ -384,10 +384,12 @@ pub struct SimulateParams {
     pub seed: u64,
     /// Of the procedural sky; default 1e4.
     pub dynamic_range: f64,
-    /// VLA configurations; default `[a, c]`.
-    pub configurations: Vec<char>,
-    /// Hours per configuration; default `[6, 2]`.
-    pub hours: Vec<f64>,
+    /// A telescope of `data/telescopes/telescopes.yaml`; default `vla`.
+    pub telescope: String,
+    /// Its configurations; default its typical observation's (`[a, c]` for the VLA).
+    pub configurations: Option<Vec<String>>,
+    /// Hours per configuration; default its typical observation's (`[6, 2]` for the VLA).
+    pub hours: Option<Vec<f64>>,
     /// Phase centre; default (180, 40) degrees.
     pub dec_deg: f64,
     pub ra_deg: f64,
@@ -411,8 +413,9 @@ impl Default for SimulateParams {
             jobs: 1,
             seed: 7,
             dynamic_range: 1e4,
-            configurations: vec!['a', 'c'],
-            hours: vec![6.0, 2.0],
+            telescope: "vla".into(),
+            configurations: None,
+            hours: None,
             dec_deg: 40.0,
             ra_deg: 180.0,
             integration_s: 30.0,

@@ -1,4 +1,4 @@
-//! `kind: simulate`: simulated VLA observations of procedural skies (one job per seed), with
+//! `kind: simulate`: simulated observations of procedural skies (one job per seed), with
 //! the true sky attached so the run reports SNR and logSNR.
 
 use super::params::SimulateParams;
@@ -20,10 +20,11 @@ pub struct SimulateSource {
 
 impl SimulateSource {
     pub fn new(config: SimulateParams, image: &ImageConfig, threads: usize) -> Result<SimulateSource> {
-        if config.configurations.len() != config.hours.len() {
+        let (configurations, hours) = tracks(&config)?;
+        if configurations.len() != hours.len() {
             return Err(Error::parameter(
                 "hours",
-                format!("one observing time per configuration: {} configurations, {} times", config.configurations.len(), config.hours.len()),
+                format!("one observing time per configuration: {} configurations, {} times", configurations.len(), hours.len()),
             ));
         }
         crate::vis::check_phase_centre(config.ra_deg, config.dec_deg)?;
@@ -37,10 +38,18 @@ impl SimulateSource {
     }
 }
 
+/// The configurations and hours asked for, else the telescope's typical observation's.
+fn tracks(c: &SimulateParams) -> Result<(Vec<String>, Vec<f64>)> {
+    let preset = &crate::simulate::telescope::telescope(&c.telescope)?.observation;
+    Ok((c.configurations.clone().unwrap_or_else(|| preset.configurations.clone()), c.hours.clone().unwrap_or_else(|| preset.hours.clone())))
+}
+
 /// The observation of the job of `seed`.
 fn observation(c: &SimulateParams, seed: u64) -> Result<ObservationSpec> {
+    let (configurations, hours) = tracks(c)?;
     Ok(ObservationSpec {
-        configurations: c.configurations.iter().copied().zip(c.hours.iter().copied()).collect(),
+        telescope: c.telescope.clone(),
+        configurations: configurations.into_iter().zip(hours).collect(),
         dec_deg: c.dec_deg,
         integration_s: c.integration_s,
         frequencies_hz: frequency_channels(c.frequency_mhz * 1e6, c.channels, c.frequency_ratio)?,

@@ -42,6 +42,10 @@ pub struct CleanConfig {
     /// Stop at this many times the residual's robust noise (WSClean's `-auto-threshold`).
     #[serde(default)]
     pub auto_threshold: Option<f64>,
+    /// Why CLEAN runs where a series was asked for (`auto` found none trained for the data's
+    /// telescope): every job carries it as a warning. Set by the engine.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub chosen_because: Option<String>,
 }
 
 impl Default for CleanConfig {
@@ -55,6 +59,7 @@ impl Default for CleanConfig {
             max_components: None,
             major_gain: None,
             auto_threshold: None,
+            chosen_because: None,
         }
     }
 }
@@ -99,6 +104,10 @@ impl CleanStep {
 impl NetworkStep for CleanStep {
     fn series_length(&self) -> usize {
         self.config.major_cycles
+    }
+
+    fn domain_problems(&self, _job: &super::JobDomain<'_>) -> Result<Vec<String>> {
+        Ok(self.config.chosen_because.iter().cloned().collect())
     }
 
     fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>> {

@@ -22,7 +22,7 @@ pub use error::TableError;
 pub use ipc::IpcReader;
 pub use mat::MatReader;
 pub use memory::{memory_table, MemoryInput, MemoryTable};
-pub use open::{format_of, open, read_table, write_parquet_from, OpenOptions, TableFormat};
+pub use open::{format_of, open, read_table, telescope_of, write_parquet_from, OpenOptions, TableFormat};
 pub use reader::{TableReader, STDIN};
 pub use split::{read_parts, split_rows, Part, SplitBy, MAX_SPLIT_PARTS};
 pub use convert::*;

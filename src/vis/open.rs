@@ -121,6 +121,17 @@ pub fn open(path: &Path, options: &OpenOptions) -> Result<Box<dyn TableReader>> 
     })
 }
 
+/// The telescope a table says its data come from (its `telescope` metadata, an MS's
+/// `OBSERVATION::TELESCOPE_NAME`), read without its samples; none where it names none, where
+/// it does not open (its reader reports that), or for standard input, which is read once.
+pub fn telescope_of(path: &Path) -> Option<String> {
+    if path.as_os_str() == STDIN {
+        return None;
+    }
+    let reader = open(path, &OpenOptions::default()).ok()?;
+    Some(reader.meta().telescope.clone()).filter(|t| !t.trim().is_empty())
+}
+
 /// Reads a whole table of any format: the kept samples, the metadata and the counts.
 pub fn read_table(path: &Path, options: &OpenOptions) -> Result<(Visibilities, ObservationMeta, IngestStats)> {
     let mut reader = open(path, options)?;

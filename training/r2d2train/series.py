@@ -85,7 +85,8 @@ def domain(train_meta, size):
         "weighting": sorted({s["weighting"]["scheme"] for s in sets}),
         "robust": _span(s["weighting"]["robust"] for s in sets),
         "dynamic_range": _span(s["dynamic_range"] for s in sets),
-        "track_hours": [min(t["a"][0] + t["c"][0] for t in tracks), max(t["a"][1] + t["c"][1] for t in tracks)],
+        # Every configuration of a sample is observed in turn: a track is their sum.
+        "track_hours": [min(sum(h[0] for h in t.values()) for t in tracks), max(sum(h[1] for h in t.values()) for t in tracks)],
         "integration_s": _span(s["integration_s"] for s in sets),
     }
 
@@ -103,7 +104,7 @@ def new_manifest(name, model, size, description, provenance, validity):
         "format": 1,
         "name": name,
         "description": description,
-        "telescope": "vla",
+        "telescope": validity["telescopes"][0],
         "architecture": "r2d2",
         "network": {"kind": "uwdsr" if isinstance(model, UWDSR) else "unet", "base_channels": model.base_channels,
                     "poolings": model.poolings, "norm": getattr(model, "norm", "none"), "parameters": parameter_count(model)},

@@ -440,6 +440,20 @@ impl Series {
         problems
     }
 
+    /// Whether the series was trained for data of `telescope` (it declares that telescope,
+    /// or declares none).
+    pub fn trained_for_telescope(&self, telescope: &str) -> bool {
+        self.validity_problems(&ImagingSetup { telescope: Some(telescope.to_string()), ..ImagingSetup::default() }).is_empty()
+    }
+
+    /// The name and the telescopes it was trained for: `vla-r2d2-512 (vla)`.
+    pub fn name_with_telescopes(&self) -> String {
+        match self.manifest.as_ref().and_then(|m| m.validity.as_ref()).and_then(|v| v.telescopes.as_ref()) {
+            Some(t) if !t.is_empty() => format!("{} ({})", self.name, t.join("/")),
+            _ => self.name.clone(),
+        }
+    }
+
     pub fn is_empty(&self) -> bool {
         self.files.is_empty()
     }
@@ -524,7 +538,10 @@ fn ranked_series(roots: &[PathBuf]) -> Vec<(PathBuf, Series)> {
 fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(PathBuf, Option<String>)> {
     let found = ranked_series(roots);
     let trained: Vec<&(PathBuf, Series)> = found.iter().filter(|(_, s)| s.image_sizes.contains(&size)).collect();
-    if let Some((dir, s)) = trained.iter().find(|(_, s)| s.validity_problems(setup).is_empty()).or(trained.first()) {
+    // A series of the data's telescope outside its settings before one of another telescope.
+    let same_telescope = |s: &Series| setup.telescope.as_deref().map_or(true, |t| s.trained_for_telescope(t));
+    let fits = trained.iter().find(|(_, s)| s.validity_problems(setup).is_empty());
+    if let Some((dir, s)) = fits.or(trained.iter().find(|(_, s)| same_telescope(s))).or(trained.first()) {
         match trained.first() {
             Some((_, first)) if first.name != s.name => log::info!(
                 "series '{}' chosen for {size} x {size}: '{}' was not trained for this setting ({})",
@@ -563,6 +580,15 @@ pub fn covering_series(size: usize, setup: &ImagingSetup, except: &str) -> Optio
         let covers = s.name != except && declares && s.image_sizes.contains(&size) && s.validity_problems(setup).is_empty();
         covers.then_some(s.name)
     })
+}
+
+/// The series found for `size x size` images, in `auto`'s order, and whether each was trained
+/// for `telescope`.
+pub fn series_for_telescope(size: usize, telescope: &str) -> Vec<(Series, bool)> {
+    found_series().into_iter().map(|(_, s)| s).filter(|s| s.image_sizes.contains(&size)).map(|s| {
+        let trained = s.trained_for_telescope(telescope);
+        (s, trained)
+    }).collect()
 }
 
 /// The series directory for a step's `series` value, image size and imaging setting:

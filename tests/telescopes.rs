@@ -1,0 +1,79 @@
+//! Telescopes as data (`data/telescopes/`): the layouts are the published antenna positions,
+//! `r2d2 simulate --telescope` observes with a telescope's preset and names it in what it
+//! writes, and `series: auto` images a telescope no series was trained for with CLEAN and
+//! says so.
+
+mod common;
+
+use common::{check, r2d2, stderr};
+use std::path::Path;
+use std::process::Command;
+
+/// Positions published as WGS84 longitude, latitude (deg) and height (m), from the source the
+/// tables were made from (simms 3.0.2's skamid.geodetic.yaml), converted back from the
+/// tables' ITRF by astropy: the tables hold those positions and the conversion is right.
+#[test]
+fn layouts_hold_the_published_geodetic_positions() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/telescopes");
+    let script = r##"
+import sys
+from astropy.coordinates import EarthLocation
+import astropy.units as u
+published = {
+    ("meerkat.itrf.txt", "M000"): (21.44380263, -30.71292499, 1095.967),
+    ("meerkat.itrf.txt", "M063"): (21.40819056, -30.72764891, 1103.023),
+    ("skamid-aastar.itrf.txt", "SKA001"): (21.449412, -30.71329, 1098.074),
+}
+for (file, name), (lon, lat, h) in published.items():
+    rows = [l.split() for l in open(f"{sys.argv[1]}/{file}") if not l.startswith("#") and l.strip()]
+    x, y, z = next(map(float, r[:3]) for r in rows if r[4] == name)
+    g = EarthLocation.from_geocentric(x, y, z, unit=u.m).to_geodetic("WGS84")
+    err = (abs(g.lon.deg - lon), abs(g.lat.deg - lat), abs(g.height.to_value(u.m) - h))
+    assert err[0] < 1e-7 and err[1] < 1e-7 and err[2] < 1e-3, (file, name, err)
+print("ok")
+"##;
+    let out = Command::new("python3").arg("-c").arg(script).arg(&dir).output().expect("python3 runs (a test requirement)");
+    assert!(out.status.success() && String::from_utf8_lossy(&out.stdout).contains("ok"), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+/// `r2d2 simulate --telescope meerkat` fills in MeerKAT's preset, writes `MeerKAT` as the
+/// telescope, an MS made from it carries it in OBSERVATION, and `r2d2 image` on that MS (no
+/// series was trained for MeerKAT) images with CLEAN and a warning that names the telescope,
+/// where VLA data keep the series.
+#[test]
+fn a_telescope_without_a_series_is_imaged_by_clean_with_a_warning() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let sim = |telescope: &str, config: &str, out: &str| {
+        r2d2(&["simulate", "--telescope", telescope, "--configs", config, "--hours", "1", "--nfreq", "1", "--integration-s", "600", "--size", "64", "--dr", "100", "--out", out], d)
+    };
+    check(&sim("meerkat", "meerkat", "mk.parquet"));
+    let out = r2d2(&["convert", "mk.parquet", "mk.ms"], d);
+    check(&out);
+    let read = Command::new("python3")
+        .arg("-c")
+        .arg("import sys; from casacore.tables import table; t = table(sys.argv[1] + '/OBSERVATION', ack=False); print(t.getcol('TELESCOPE_NAME')[0])")
+        .arg(d.join("mk.ms"))
+        .output()
+        .expect("python3 runs");
+    assert_eq!(String::from_utf8_lossy(&read.stdout).trim(), "MeerKAT", "{}", String::from_utf8_lossy(&read.stderr));
+
+    let out = r2d2(&["image", "mk.ms", "--size", "64", "--name", "mk"], d);
+    check(&out);
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("mk-metrics.json")).unwrap()).unwrap();
+    let warnings = metrics["warnings"].to_string();
+    assert!(warnings.contains("'MeerKAT'") && warnings.contains("built-in CLEAN") && warnings.contains("vla-r2d2-512 (vla)"), "{warnings}");
+    assert_eq!(metrics["telescope"], "MeerKAT");
+    assert!(stderr(&out).contains("no series was trained for the telescope 'MeerKAT'"), "{}", stderr(&out));
+
+    // The VLA's data at the same size: a series (off its size, as before), not CLEAN.
+    check(&sim("vla", "c", "vla.parquet"));
+    let out = r2d2(&["image", "vla.parquet", "--size", "64", "--name", "vla"], d);
+    check(&out);
+    let metrics = std::fs::read_to_string(d.join("vla-metrics.json")).unwrap();
+    assert!(!metrics.contains("built-in CLEAN"), "{metrics}");
+    assert!(stderr(&out).contains("series 'vla-r2d2"), "{}", stderr(&out));
+
+    let out = r2d2(&["simulate", "--telescope", "alma", "--out", "x.parquet"], d);
+    common::assert_fails_with(&out, "unknown telescope", &["vla, meerkat, ska-mid", "'alma'"]);
+}
