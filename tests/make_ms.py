@@ -21,7 +21,8 @@ of it is exactly the table's samples:
 - `--stman mixed` stores DATA, FLAG and WEIGHT_SPECTRUM with TiledColumnStMan and the
   scalar columns with IncrementalStMan (default: StandardStMan, as default_ms); `--stman dp3`
   as DP3 writes an MS: the same, with the array column FLAG_CATEGORY in the scalars'
-  IncrementalStMan.
+  IncrementalStMan; `--stman meerkat` as MeerKAT's pipelines write one: the data as `mixed`,
+  and `WEIGHT` and `SIGMA` in a TiledShapeStMan.
 - `--fields 2` adds a second field (named `OTHER`) with junk rows; the first is `TARGET`.
 - `--autocorrelations` adds antenna i-i rows with junk, which must be excluded.
 - `--data-column NAME` puts the table's visibilities in NAME (e.g. CORRECTED_DATA) and junk
@@ -56,7 +57,7 @@ def parse_args():
     p.add_argument("--spw", type=int, default=1)
     p.add_argument("--weights", choices=["spectrum", "row", "sigma", "empty-spectrum"], default="spectrum")
     p.add_argument("--flag-hands", choices=["both", "one"], default="both")
-    p.add_argument("--stman", choices=["ssm", "mixed", "dp3"], default="ssm")
+    p.add_argument("--stman", choices=["ssm", "mixed", "dp3", "meerkat"], default="ssm")
     p.add_argument("--fields", type=int, choices=[1, 2], default=1)
     p.add_argument("--autocorrelations", action="store_true")
     p.add_argument("--data-column", default="DATA")
@@ -172,7 +173,7 @@ def main():
         columns.append(makearrcoldesc("FLAG_CATEGORY", False, valuetype="boolean", ndim=3))
         desc = maketabdesc(columns)
     dminfo = None
-    if args.stman in ("mixed", "dp3"):
+    if args.stman in ("mixed", "dp3", "meerkat"):
         tiled = [c for c in ("DATA", args.data_column, "FLAG", "WEIGHT_SPECTRUM")
                  if c == "FLAG" or c in [d["name"] for d in columns]]
         dminfo = {"*1": {"TYPE": "IncrementalStMan", "NAME": "ISM", "SPEC": {"BUCKETSIZE": 32768},
@@ -182,6 +183,10 @@ def main():
             dminfo[f"*{i + 2}"] = {"TYPE": "TiledColumnStMan", "NAME": f"Tiled{c}",
                                    "SPEC": {"DEFAULTTILESHAPE": np.array([ncorr, wchan, 64], np.int32)},
                                    "COLUMNS": [c]}
+        if args.stman == "meerkat":
+            dminfo["*99"] = {"TYPE": "TiledShapeStMan", "NAME": "TiledWeightSigma",
+                             "SPEC": {"DEFAULTTILESHAPE": np.array([ncorr, 1024], np.int32)},
+                             "COLUMNS": ["WEIGHT", "SIGMA"]}
     ms = default_ms(args.ms, desc, dminfo) if dminfo else default_ms(args.ms, desc)
     ms.addrows(nrow)
     ms.putcol("TIME", m_time)

@@ -37,8 +37,8 @@ print("ok")
 }
 
 /// `r2d2 simulate --telescope meerkat` fills in MeerKAT's preset, writes `MeerKAT` as the
-/// telescope, an MS made from it carries it in OBSERVATION, and `r2d2 image` on that MS (no
-/// series was trained for MeerKAT) images with CLEAN and a warning that names the telescope,
+/// telescope, an MS made from it carries it in OBSERVATION, and `r2d2 image` on an MS laid out
+/// as MeerKAT's pipelines write one (no series was trained for MeerKAT) images with CLEAN and a warning that names the telescope,
 /// where VLA data keep the series.
 #[test]
 fn a_telescope_without_a_series_is_imaged_by_clean_with_a_warning() {
@@ -58,7 +58,12 @@ fn a_telescope_without_a_series_is_imaged_by_clean_with_a_warning() {
         .expect("python3 runs");
     assert_eq!(String::from_utf8_lossy(&read.stdout).trim(), "MeerKAT", "{}", String::from_utf8_lossy(&read.stderr));
 
-    let out = r2d2(&["image", "mk.ms", "--size", "64", "--name", "mk"], d);
+    // As MeerKAT's pipelines write an MS (WEIGHT and SIGMA in a TiledShapeStMan, the data
+    // tiled, autocorrelations): imaged with no option beyond the size.
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/make_ms.py");
+    let made = Command::new("python3").arg(&script).args(["mk.parquet", "mk-pipeline.ms", "--stman", "meerkat", "--autocorrelations"]).current_dir(d).output().expect("python3 runs");
+    assert!(made.status.success(), "{}", String::from_utf8_lossy(&made.stderr));
+    let out = r2d2(&["image", "mk-pipeline.ms", "--size", "64", "--name", "mk"], d);
     check(&out);
     let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("mk-metrics.json")).unwrap()).unwrap();
     let warnings = metrics["warnings"].to_string();

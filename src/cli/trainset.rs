@@ -7,7 +7,6 @@ use r2d2_imaging::vis::{write_parquet, ObservationMeta};
 use r2d2_imaging::nufft::NufftParams;
 use r2d2_imaging::simulate::trainset::{make_sample, SampleInfo, TrainSample, TrainsetParams, TruthSource};
 use r2d2_imaging::{Error, Result};
-use rayon::prelude::*;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -219,33 +218,49 @@ pub fn run(args: Args) -> Result<()> {
         _ => return Err(Error::parameter("procedural", "expected --truths DIR or --procedural COUNT > 0")),
     };
     let total = truths.len();
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(args.threads)
-        .build()
-        .map_err(|e| Error::parameter("threads", format!("cannot start {} threads: {e}", args.threads)))?;
+    // Plain threads taking the next sample in turn, not a rayon pool: a rayon worker waiting
+    // for its sample's single-threaded compute pool steals further samples meanwhile, so
+    // samples piled up at once (MeerKAT's, a few GB each, exhausted the memory).
+    let workers = if args.threads == 0 { std::thread::available_parallelism().map_or(1, |n| n.get()) } else { args.threads }.min(total.max(1));
+    let next = AtomicUsize::new(0);
     let done = AtomicUsize::new(0);
     let started = std::time::Instant::now();
-    let samples: Vec<TrainSample> = pool.install(|| {
-        truths
-            .par_iter()
-            .enumerate()
-            .map(|(k, truth)| {
+    let made: Vec<std::sync::Mutex<Option<Result<TrainSample>>>> = (0..total).map(|_| std::sync::Mutex::new(None)).collect();
+    std::thread::scope(|scope| {
+        for _ in 0..workers {
+            scope.spawn(|| loop {
+                let k = next.fetch_add(1, Ordering::Relaxed);
+                if k >= total {
+                    break;
+                }
                 let seed = args.seed + k as u64;
-                let source = match truth {
+                let source = match &truths[k] {
                     Some(data) => TruthSource::Image { data, source_dr: args.source_dr },
                     None if args.sky == SkyKind::Extended => TruthSource::Extended { seed },
                     None => TruthSource::Procedural { seed },
                 };
                 let sample = make_sample(source, &params, seed, 1, args.parquet)
-                    .map_err(|e| Error::parameter(format!("sample {k} ({})", sources[k]), e.to_string()))?;
+                    .map_err(|e| Error::parameter(format!("sample {k} ({})", sources[k]), e.to_string()));
+                let failed = sample.is_err();
+                *made[k].lock().expect("no worker panics holding a slot") = Some(sample);
+                if failed {
+                    // The first error ends the set: no more samples are started.
+                    next.store(total, Ordering::Relaxed);
+                    break;
+                }
                 let finished = done.fetch_add(1, Ordering::Relaxed) + 1;
                 if finished % 20 == 0 || finished == total {
                     log::info!("{finished}/{total} samples, {:.1} s", started.elapsed().as_secs_f64());
                 }
-                Ok(sample)
-            })
-            .collect::<Result<Vec<_>>>()
-    })?;
+            });
+        }
+    });
+    // Slots are taken in order, so every slot before a failed one is filled: the first
+    // error is met before any slot left empty.
+    let samples: Vec<TrainSample> = made
+        .into_iter()
+        .map_while(|slot| slot.into_inner().expect("no worker panics holding a slot"))
+        .collect::<Result<_>>()?;
 
     // Write everything beside the target, then swap it in: never a half-written set.
     let partial = args.out.with_extension("partial");

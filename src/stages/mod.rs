@@ -185,8 +185,25 @@ fn imaging_setup(ctx: &BuildContext<'_>) -> Result<crate::steps::series::Imaging
         superresolution: image.pixel_arcsec.is_none().then(|| image.superresolution.unwrap_or(1.5)),
         weighting: weighting.map(|w| w.scheme.name().to_string()),
         robust: weighting.map(|w| w.robust),
-        telescope: None,
+        telescope: source_telescope(ctx)?,
     })
+}
+
+/// The telescope the first input of the sources before the step names (`auto` prefers a
+/// series trained for it); none where no source reads a named file, or it names none.
+fn source_telescope(ctx: &BuildContext<'_>) -> Result<Option<String>> {
+    let mut paths: Vec<std::path::PathBuf> = Vec::new();
+    for p in ctx.upstream_params::<params::ParquetParams>()? {
+        match &p.files {
+            params::Files::One(f) => paths.push(f.into()),
+            params::Files::Many(fs) => paths.extend(fs.first().map(Into::into)),
+        }
+    }
+    paths.extend(ctx.upstream_params::<params::ArrowIpcParams>()?.into_iter().map(|p| p.path.into()));
+    #[cfg(feature = "ms")]
+    paths.extend(ctx.upstream_params::<params::MsParams>()?.into_iter().map(|p| p.path));
+    // A glob pattern is not a file: it is not opened.
+    Ok(paths.iter().filter(|p| !p.to_string_lossy().contains(['*', '?', '['])).find_map(|p| crate::vis::telescope_of(p)))
 }
 
 /// A registry holding the built-in kinds.
