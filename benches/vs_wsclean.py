@@ -1,6 +1,6 @@
-"""R2D2 (`r2d2 image`) against WSClean's multiscale CLEAN on held-out 512 x 512 VLA observations.
+"""R2D2 (`r2d2 image`) against WSClean's multiscale CLEAN on held-out 512 x 512 observations (VLA by default).
 
-    python3 benches/vs_wsclean.py [--skies 8] [--out bench-out/vs_wsclean] [--seed 900000]
+    python3 benches/vs_wsclean.py [--telescope vla|meerkat] [--skies 8] [--out bench-out/vs_wsclean] [--seed 900000]
                                   [--integration-s 300] [--series SERIES] [--threads 2]
                                   [--keep-data DIR] [--r2d2 target/release/r2d2] [--wsclean wsclean]
                                   [--robust R] [--superresolution SR] [--dr LOW HIGH]
@@ -16,18 +16,16 @@ Needs `wsclean` (Debian: apt-get install -y wsclean), GNU time at /usr/bin/time 
 `time`) and the Python packages in benches/requirements.txt (python-casacore, pyarrow, astropy,
 numpy, matplotlib).
 
-1. Held-out observations: `r2d2 trainset --procedural K --seed 900000 --size 512
+1. Held-out observations: `r2d2 trainset --telescope T --procedural K --seed 900000 --size 512
    --integration-s 300 --epsilon 1e-5 --parquet`, the project's 512 test recipe (seeds 900000..
-   are never used for training or selection). Each sample is a Parquet table (vis/NNNNN.parquet),
+   are never used for training or selection; `--telescope meerkat` draws MeerKAT's tracks at
+   its preset's integration time). Each sample is a Parquet table (vis/NNNNN.parquet),
    its true sky (vis/NNNNN.sky.fits, Jy/pixel) and a samples.json row (dynamic range, ...).
    With --keep-data DIR the data are made once in DIR and reused.
-2. Each table is also written as a MeasurementSet (python-casacore): one row per (time,
-   antenna1, antenna2), the distinct frequencies as channels of one spectral window, UVW in
-   metres from the table, DATA/WEIGHT_SPECTRUM/FLAG from vis_re/vis_im, weight and flag.
-   Polarisation: two correlations XX and YY, both equal to the table's Stokes I visibility,
-   with the table's weight each, so that WSClean's Stokes I = (XX + YY) / 2 is the table's
-   visibility and its weights are proportional to the table's. Channels missing for a row are
-   flagged. Round trip: WSClean's natural-weighted dirty image of the MS (-weight natural
+2. Each table is also written as a MeasurementSet by the engine's converter (`r2d2 convert`):
+   one row per (time, antenna1, antenna2), the distinct frequencies as channels of one
+   spectral window, XX and YY both the table's Stokes I visibility with its weight, so that
+   WSClean's Stokes I = (XX + YY) / 2 is the table's visibility. Round trip: WSClean's natural-weighted dirty image of the MS (-weight natural
    -niter 0) is compared with `r2d2 dirty --weighting natural` of the Parquet table at the
    same pixel scale; the relative difference is reported (and must be small).
 3. Imaging (each under /usr/bin/time -v for wall time and peak RSS, --threads cores):
@@ -168,192 +166,16 @@ def table_samples(cols):
     return n, chans, ch, weight, flag, vis
 
 
-def vla_antennas():
-    """ITRF positions of VLA configurations A and C (the engine's data/telescopes tables):
-    the simulator numbers configuration A's antennas 0..26 and C's 27..53."""
-    positions, names = [], []
-    for config in ("a", "c"):
-        with open(os.path.join(REPO, "data", "telescopes", f"vla{config}.itrf.txt")) as f:
-            for line in f:
-                if line.strip() and not line.startswith("#"):
-                    x, y, z, _diam, station, _mount = line.split()[:6]
-                    positions.append((float(x), float(y), float(z)))
-                    names.append(f"{config.upper()}-{station}")
-    return np.array(positions), names
-
-
-def infer_baselines(uvw, integration_s, sample):
-    """Times and antennas of MS rows in the simulator's order (configuration A then C, each
-    time-major over the 351 baselines i < j of its 27 antennas), checked: the length of each
-    row's (u, v, w) must equal its assigned baseline's length (invariant under the earth
-    rotation and the simulator's random uv rotation). If the check fails, nominal numbering
-    (same order, configuration A's antennas) is used; WSClean's imaging reads neither."""
-    positions, _ = vla_antennas()
-    n_ant, n_bl = 27, 351
-    pairs = np.array([(i, j) for i in range(n_ant) for j in range(i + 1, n_ant)])
-    nrow = len(uvw)
-    k = np.arange(nrow)
-    step, pair = k // n_bl, pairs[k % n_bl]
-    n_a = nrow // n_bl
-    if sample and "hours_a" in sample:
-        n_a = max(1, round(sample["hours_a"] * 3600 / integration_s))
-    config_c = step >= n_a
-    a1 = pair[:, 0] + n_ant * config_c
-    a2 = pair[:, 1] + n_ant * config_c
-    length = np.linalg.norm(positions[a2] - positions[a1], axis=1)
-    ok = nrow % n_bl == 0 and np.allclose(np.linalg.norm(uvw, axis=1), length, rtol=1e-6, atol=1e-3)
-    offset_c = sample["hours_a"] * 3600 if sample and "hours_a" in sample else n_a * integration_s
-    t = np.where(config_c, offset_c + (step - n_a + 0.5) * integration_s, (step + 0.5) * integration_s)
-    if not ok:
-        a1, a2 = pair[:, 0], pair[:, 1]
-        t = (step + 0.5) * integration_s
-    return MJD_OFFSET_S + t, a1.astype(np.int32), a2.astype(np.int32), "inferred" if ok else "nominal"
-
-
-def write_ms(parquet, ms, integration_s, sample=None):
-    """Write a Parquet visibility table (one Stokes I sample per row) as a MeasurementSet."""
-    from casacore.tables import default_ms, makearrcoldesc, maketabdesc, table
-
-    cols, meta = read_table(parquet)
-    n, chans, ch, weight, flag, vis = table_samples(cols)
-    flag |= ~(np.isfinite(vis) & np.isfinite(weight) & (weight > 0))
-    if all(k in cols for k in ("time", "antenna1", "antenna2")):
-        keys = np.stack([cols["time"].astype(np.float64), cols["antenna1"].astype(np.float64),
-                         cols["antenna2"].astype(np.float64)], axis=1)
-        rows, first, row_of = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-        times, a1, a2 = MJD_OFFSET_S + rows[:, 0], rows[:, 1].astype(np.int32), rows[:, 2].astype(np.int32)
-        baselines = "from the table"
-    else:
-        # No time/antenna columns (as `r2d2 trainset` writes): one row per distinct (u, v, w)
-        # in metres, in the order of first appearance, and time/antennas inferred below.
-        keys = np.stack([cols["u"], cols["v"], cols["w"]], axis=1).astype(np.float64)
-        _, first, row_of = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-        order = np.argsort(first)
-        rank = np.empty_like(order)
-        rank[order] = np.arange(len(order))
-        row_of = rank[row_of.ravel()]
-        first = first[order]
-        times, a1, a2, baselines = infer_baselines(keys[first], integration_s, sample)
-    row_of = row_of.ravel()
-    nrow, nchan, npol = len(first), len(chans), 2
-    if np.any(np.bincount(row_of * nchan + ch, minlength=nrow * nchan) > 1):
-        sys.exit(f"{parquet}: more than one sample per (time, antenna1, antenna2, frequency)")
-    uvw = np.zeros((nrow, 3))
-    for j, name in enumerate("uvw"):
-        uvw[row_of, j] = cols[name]
-        spread = np.abs(uvw[row_of, j] - cols[name]).max()
-        assert spread <= 1e-6 * (1 + np.abs(cols[name]).max()), f"{name} differs between channels of a row"
-
-    data = np.zeros((nrow, nchan, npol), np.complex64)
-    wspec = np.zeros((nrow, nchan, npol), np.float32)
-    fl = np.ones((nrow, nchan, npol), bool)
-    for p in range(npol):
-        data[row_of, ch, p] = vis
-        wspec[row_of, ch, p] = np.where(flag, 0, weight)
-        fl[row_of, ch, p] = flag
-    wrow = np.where(fl, 0, wspec).sum(axis=1) / np.maximum((~fl).sum(axis=1), 1)  # [nrow, npol]
-
+def convert_ms(r2d2, parquet, ms):
+    """The table as a MeasurementSet, by the engine's converter (`r2d2 convert`): one row per
+    (time, antenna1, antenna2), XX and YY both the table's Stokes I visibility and weight."""
     if os.path.exists(ms):
         shutil.rmtree(ms)
-    desc = maketabdesc([
-        makearrcoldesc("DATA", 0j, valuetype="complex", shape=[nchan, npol]),
-        makearrcoldesc("WEIGHT_SPECTRUM", 0.0, valuetype="float", shape=[nchan, npol]),
-    ])
-    t = default_ms(ms, desc)
-    t.addrows(nrow)
-    t.putcol("TIME", times)
-    t.putcol("TIME_CENTROID", times)
-    t.putcol("INTERVAL", np.full(nrow, integration_s))
-    t.putcol("EXPOSURE", np.full(nrow, integration_s))
-    t.putcol("ANTENNA1", a1)
-    t.putcol("ANTENNA2", a2)
-    t.putcol("UVW", uvw)
-    t.putcol("DATA", data)
-    t.putcol("FLAG", fl)
-    t.putcol("FLAG_ROW", fl.all(axis=(1, 2)))
-    t.putcol("WEIGHT_SPECTRUM", wspec)
-    t.putcol("WEIGHT", wrow.astype(np.float32))
-    t.putcol("SIGMA", np.where(wrow > 0, 1 / np.sqrt(np.maximum(wrow, 1e-300)), 0).astype(np.float32))
-    for c in ("DATA_DESC_ID", "FIELD_ID", "ARRAY_ID", "OBSERVATION_ID", "FEED1", "FEED2", "PROCESSOR_ID"):
-        t.putcol(c, np.zeros(nrow, np.int32))
-    t.putcol("STATE_ID", np.full(nrow, -1, np.int32))
-    t.putcol("SCAN_NUMBER", (1 + a1 // 27).astype(np.int32))  # one scan per VLA configuration
-    t.close()
-
-    positions, names = vla_antennas()
-    nant = max(int(max(a1.max(), a2.max())) + 1, 27)
-    if nant > len(positions):  # not the simulator's numbering: nominal positions
-        positions = np.resize(positions, (nant, 3))
-        names = [f"ANT{k:02d}" for k in range(nant)]
-    ant = table(ms + "/ANTENNA", readonly=False, ack=False)
-    ant.addrows(nant)
-    ant.putcol("NAME", names[:nant])
-    ant.putcol("STATION", names[:nant])
-    ant.putcol("TYPE", ["GROUND-BASED"] * nant)
-    ant.putcol("MOUNT", ["ALT-AZ"] * nant)
-    ant.putcol("POSITION", positions[:nant])
-    ant.putcol("OFFSET", np.zeros((nant, 3)))
-    ant.putcol("DISH_DIAMETER", np.full(nant, 25.0))
-    ant.putcol("FLAG_ROW", np.zeros(nant, bool))
-    ant.close()
-
-    widths = np.diff(chans) if nchan > 1 else np.array([1e6])
-    widths = np.concatenate([widths, widths[-1:]]) if nchan > 1 else widths
-    spw = table(ms + "/SPECTRAL_WINDOW", readonly=False, ack=False)
-    spw.addrows(1)
-    spw.putcell("NUM_CHAN", 0, nchan)
-    spw.putcell("CHAN_FREQ", 0, chans)
-    spw.putcell("CHAN_WIDTH", 0, widths)
-    spw.putcell("EFFECTIVE_BW", 0, widths)
-    spw.putcell("RESOLUTION", 0, widths)
-    spw.putcell("REF_FREQUENCY", 0, float(chans[0]))
-    spw.putcell("TOTAL_BANDWIDTH", 0, float(widths.sum()))
-    spw.putcell("MEAS_FREQ_REF", 0, 5)  # TOPO
-    spw.putcell("NAME", 0, "SPW0")
-    spw.putcell("NET_SIDEBAND", 0, 1)
-    spw.putcell("FLAG_ROW", 0, False)
-    spw.close()
-
-    pol = table(ms + "/POLARIZATION", readonly=False, ack=False)
-    pol.addrows(1)
-    pol.putcell("NUM_CORR", 0, npol)
-    pol.putcell("CORR_TYPE", 0, np.array([9, 12], np.int32))  # XX, YY
-    pol.putcell("CORR_PRODUCT", 0, np.array([[0, 0], [1, 1]], np.int32))
-    pol.putcell("FLAG_ROW", 0, False)
-    pol.close()
-
-    dd = table(ms + "/DATA_DESCRIPTION", readonly=False, ack=False)
-    dd.addrows(1)
-    dd.putcell("SPECTRAL_WINDOW_ID", 0, 0)
-    dd.putcell("POLARIZATION_ID", 0, 0)
-    dd.putcell("FLAG_ROW", 0, False)
-    dd.close()
-
-    ra = math.radians(float(meta["phase_centre_ra_deg"]))
-    dec = math.radians(float(meta["phase_centre_dec_deg"]))
-    direction = np.array([[ra, dec]])
-    field = table(ms + "/FIELD", readonly=False, ack=False)
-    field.addrows(1)
-    for c in ("PHASE_DIR", "DELAY_DIR", "REFERENCE_DIR"):
-        field.putcell(c, 0, direction)
-    field.putcell("NAME", 0, os.path.splitext(os.path.basename(parquet))[0])
-    field.putcell("CODE", 0, "")
-    field.putcell("NUM_POLY", 0, 0)
-    field.putcell("SOURCE_ID", 0, -1)
-    field.putcell("TIME", 0, float(times[0]))
-    field.putcell("FLAG_ROW", 0, False)
-    field.close()
-
-    obs = table(ms + "/OBSERVATION", readonly=False, ack=False)
-    obs.addrows(1)
-    obs.putcell("TELESCOPE_NAME", 0, meta.get("telescope", "VLA"))
-    obs.putcell("TIME_RANGE", 0, np.array([times.min(), times.max()]))
-    obs.putcell("OBSERVER", 0, "r2d2 simulate")
-    obs.putcell("PROJECT", 0, "r2d2-imaging vs_wsclean")
-    obs.putcell("RELEASE_DATE", 0, 0.0)
-    obs.putcell("FLAG_ROW", 0, False)
-    obs.close()
-    return {"rows": nrow, "channels": nchan, "samples": n, "flagged": int(flag.sum()), "baselines": baselines}
+    text, _, _ = run([r2d2, "convert", parquet, ms])
+    m = re.search(r"wrote (\d+) samples as (\d+) rows x (\d+) channels", text)
+    if not m:
+        sys.exit(f"r2d2 convert {parquet}: unexpected report: {text[-500:]}")
+    return {"samples": int(m.group(1)), "rows": int(m.group(2)), "channels": int(m.group(3))}
 
 
 # ---------------------------------------------------------------- the benchmark
@@ -362,16 +184,19 @@ def make_data(args, r2d2, data_dir):
     if os.path.exists(info):
         with open(info) as f:
             have = json.load(f)
-        wanted = (args.seed, args.size, args.integration_s, args.superresolution, args.robust, list(args.dr), args.sky)
-        found = (have.get("seed"), have.get("size"), have.get("integration_s"), have.get("superresolution"),
+        wanted = (args.telescope, args.seed, args.size, args.superresolution, args.robust, list(args.dr), args.sky)
+        found = (have.get("telescope"), have.get("seed"), have.get("size"), have.get("superresolution"),
                  have.get("weighting", {}).get("robust"), have.get("dynamic_range"), have.get("sky") or "classic")
+        if args.integration_s is not None and have.get("integration_s") != args.integration_s:
+            found = None
         if found == wanted and have.get("samples", 0) >= args.skies and os.path.isdir(os.path.join(data_dir, "vis")):
             log(f"reusing {have['samples']} observations in {data_dir}")
             return
     log(f"simulating {args.skies} observations into {data_dir} ...")
     os.makedirs(os.path.dirname(os.path.abspath(data_dir)), exist_ok=True)
-    _, wall, _ = run([r2d2, "trainset", "--procedural", args.skies, "--sky", args.sky, "--seed", args.seed,
-                      "--size", args.size, "--integration-s", args.integration_s, "--superresolution", args.superresolution,
+    integration = [] if args.integration_s is None else ["--integration-s", args.integration_s]
+    _, wall, _ = run([r2d2, "trainset", "--telescope", args.telescope, "--procedural", args.skies, "--sky", args.sky, "--seed", args.seed,
+                      "--size", args.size, *integration, "--superresolution", args.superresolution,
                       f"--robust={args.robust:g}", "--dr-min", args.dr[0], "--dr-max", args.dr[1], "--epsilon", "1e-5",
                       "--threads", args.threads, "--parquet", "--out", data_dir])
     log(f"  {wall:.1f} s")
@@ -435,7 +260,7 @@ def one_sky(args, r2d2, data_dir, k, sample, out):
            "pixel_arcsec": sample.get("pixel_arcsec")}
 
     t = time.time()
-    rec["ms"] = write_ms(obs, ms, args.integration_s, sample)
+    rec["ms"] = convert_ms(r2d2, obs, ms)
     rec["ms"]["seconds"] = time.time() - t
 
     # Round trip: natural-weighted dirty images of the Parquet table (engine) and the MS (WSClean).
@@ -533,7 +358,7 @@ def table_md(means, n):
     return "\n".join(lines)
 
 
-def plot(path, panels, records):
+def plot(path, panels, records, title):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -559,7 +384,7 @@ def plot(path, panels, records):
     cax = fig.add_axes([0.9, 0.1, 0.02, 0.8])
     cb = fig.colorbar(im, cax=cax)
     cb.set_label("log10(image / truth peak)")
-    fig.suptitle("held-out 512 x 512 VLA A+C skies (SNR / logSNR); north up, east left", fontsize=10, y=0.995)
+    fig.suptitle(f"held-out {title} skies (SNR / logSNR); north up, east left", fontsize=10, y=0.995)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -588,7 +413,9 @@ def main():
     ap.add_argument("--skies", type=int, default=8)
     ap.add_argument("--seed", type=int, default=900000, help="first test seed (900000..: never trained or selected on)")
     ap.add_argument("--size", type=int, default=512)
-    ap.add_argument("--integration-s", type=float, default=300.0)
+    ap.add_argument("--telescope", default="vla", help="a telescope of data/telescopes/telescopes.yaml (vla, meerkat, ska-mid)")
+    ap.add_argument("--integration-s", type=float, default=None,
+                    help="default: 300 s for the VLA (the 512 test recipe), the telescope's training preset otherwise")
     ap.add_argument("--r2d2", default=os.path.join(REPO, "target", "release", "r2d2"))
     ap.add_argument("--wsclean", default="wsclean")
     ap.add_argument("--series", default=None, help="network series for `r2d2 image --step` (default: the one it chooses)")
@@ -604,6 +431,8 @@ def main():
     ap.add_argument("--sky", choices=["classic", "extended"], default="classic",
                     help="procedural skies (classic) or extended emission (test seeds 910000.. by default)")
     args = ap.parse_args()
+    if args.integration_s is None and args.telescope == "vla":
+        args.integration_s = 300.0
     if args.sky == "extended" and args.seed == 900000:
         args.seed = 910000
 
@@ -641,11 +470,11 @@ def main():
     series_log = sorted({l for r in records for l in r["runs"]["r2d2"]["series_log"]})
     series_used = sorted({s for r in records for s in r["runs"]["r2d2"]["series"]}) or [args.series or "?"]
     result = {
-        "skies": args.skies, "seed": args.seed, "size": args.size, "integration_s": args.integration_s,
+        "telescope": args.telescope, "skies": args.skies, "seed": args.seed, "size": args.size, "integration_s": args.integration_s,
         "threads": args.threads, "data": data_dir,
         "setting": {"robust": args.robust, "superresolution": args.superresolution, "dynamic_range": args.dr, "sky": args.sky},
-        "trainset_command": f"r2d2 trainset --procedural {args.skies} --sky {args.sky} --seed {args.seed} --size {args.size} "
-                            f"--integration-s {args.integration_s:g} --superresolution {args.superresolution:g} "
+        "trainset_command": f"r2d2 trainset --telescope {args.telescope} --procedural {args.skies} --sky {args.sky} --seed {args.seed} --size {args.size} "
+                            f"{'' if args.integration_s is None else f'--integration-s {args.integration_s:g} '}--superresolution {args.superresolution:g} "
                             f"--robust={args.robust:g} --dr-min {args.dr[0]:g} --dr-max {args.dr[1]:g} --epsilon 1e-5 --parquet --out {data_dir}",
         "wsclean_paper_command": "wsclean -niter 2000000 -weight briggs 0 -j 1 -multiscale -mgain 0.8 -gain 0.1 "
                                  "-auto-threshold 0.5 -auto-mask 1.5 -padding 2",
@@ -661,8 +490,9 @@ def main():
         "per_sky": records,
     }
     md = table_md(means, args.skies)
-    header = (f"Held-out {args.size} x {args.size} VLA A+C observations, {args.sky} skies, seeds {args.seed}..{args.seed + args.skies - 1} "
-              f"(`r2d2 trainset --procedural`, integration {args.integration_s:g} s), Briggs {args.robust:g}, SR {args.superresolution:g}, "
+    integration = "the telescope's training preset" if args.integration_s is None else f"{args.integration_s:g} s"
+    header = (f"Held-out {args.size} x {args.size} {args.telescope} observations (its training preset's tracks), {args.sky} skies, seeds {args.seed}..{args.seed + args.skies - 1} "
+              f"(`r2d2 trainset --procedural`, integration {integration}), Briggs {args.robust:g}, SR {args.superresolution:g}, "
               f"DR {args.dr[0]:g}..{args.dr[1]:g}; means over {args.skies} skies, {args.threads} threads each.\n\n")
     warned = [l for l in series_log if "WARN" in l]
     footer = (f"\n\nR2D2 series: {', '.join(series_used)}{' (' + warned[0].split('] ', 1)[-1] + ')' if warned else ''}. "
@@ -672,7 +502,7 @@ def main():
         json.dump(result, f, indent=1)
     with open(os.path.join(out, "vs_wsclean.md"), "w") as f:
         f.write(header + md + footer)
-    plot(os.path.join(out, "vs_wsclean.png"), panels, records[:len(panels)])
+    plot(os.path.join(out, "vs_wsclean.png"), panels, records[:len(panels)], f"{args.size} x {args.size} {args.telescope}")
     print(header + md + footer)
 
 
