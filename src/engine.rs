@@ -380,13 +380,7 @@ fn imaging_setting(params: &ImageParams) -> Result<(Weighting, f64)> {
                 _ => {
                     // What the options fix takes part in `auto`'s choice (a series trained for
                     // it); the chosen series' own setting fills in the rest.
-                    let fixed = crate::steps::series::ImagingSetup {
-                        superresolution: params.superresolution,
-                        weighting: params.weighting.map(|w| w.scheme().name().to_string()),
-                        robust: params.weighting.and_then(|w| w.robust()),
-                        telescope: None,
-                    };
-                    crate::steps::series::select_for(params.size, &fixed).ok().map(|(dir, _)| dir)
+                    crate::steps::series::select_for(params.size, &fixed_setup(params, None)).ok().map(|(dir, _)| dir)
                 }
             };
             dir.and_then(|d| crate::steps::series::Series::open(&d).ok()).and_then(|s| s.manifest.map(|m| (s.name, m)))
@@ -416,7 +410,6 @@ fn imaging_setting(params: &ImageParams) -> Result<(Weighting, f64)> {
     Ok((weighting, superresolution))
 }
 
-/// The step stage for `params.step`.
 /// The telescope an observation says its data come from, read without its samples (none
 /// where it names none, or is standard input, which can be read once only).
 fn observation_telescope(obs: &Observation) -> Option<String> {
@@ -438,20 +431,16 @@ const FALLBACK_CLEAN: CleanControls = CleanControls { niter: Some(1_000_000), ga
 /// telescope's PSFs gives a confident image that nothing vouches for; CLEAN's is the one
 /// the user knows how to judge).
 fn resolve_auto(params: &ImageParams, telescope: Option<&str>) -> Result<(ImageParams, Option<String>)> {
-    let (StepChoice::Auto, Some(telescope)) = (&params.step, telescope) else { return Ok((params.clone(), None)) };
+    // CLEAN controls with `auto` are refused by the step stage, whatever the telescope.
+    let (StepChoice::Auto, Some(telescope), false) = (&params.step, telescope, params.clean.any()) else { return Ok((params.clone(), None)) };
     let found = crate::steps::series::found_series();
     if found.is_empty() || found.iter().any(|(_, s)| s.trained_for_telescope(telescope)) {
-        let setup = crate::steps::series::ImagingSetup {
-            superresolution: params.superresolution,
-            weighting: params.weighting.map(|w| w.scheme().name().to_string()),
-            robust: params.weighting.and_then(|w| w.robust()),
-            telescope: Some(telescope.to_string()),
-        };
-        // Trained for the size: that series, by name; else `auto`'s off-size choice as before.
-        if crate::steps::series::series_for_telescope(params.size, telescope).is_empty() {
+        // Series trained for the size: the one `auto` prefers for this telescope, by name;
+        // none: `auto`'s off-size choice.
+        if !found.iter().any(|(_, s)| s.image_sizes.contains(&params.size)) {
             return Ok((params.clone(), None));
         }
-        let (dir, _) = crate::steps::series::select_for(params.size, &setup)?;
+        let (dir, _) = crate::steps::series::select_for(params.size, &fixed_setup(params, Some(telescope)))?;
         return Ok((ImageParams { step: StepChoice::Series(dir), ..params.clone() }, None));
     }
     let known: Vec<String> = found.iter().map(|(_, s)| s.name_with_telescopes()).collect();
@@ -459,10 +448,20 @@ fn resolve_auto(params: &ImageParams, telescope: Option<&str>) -> Result<(ImageP
         "no series was trained for the telescope '{telescope}' the data come from (series: {}): imaged with the built-in CLEAN (auto-threshold 3, mgain 0.8); --step NAME runs a series anyway, outside what it was trained for",
         known.join(", ")
     );
-    let clean = if params.clean.any() { params.clean } else { FALLBACK_CLEAN };
-    Ok((ImageParams { step: StepChoice::Clean, clean, ..params.clone() }, Some(reason)))
+    Ok((ImageParams { step: StepChoice::Clean, clean: FALLBACK_CLEAN, ..params.clone() }, Some(reason)))
 }
 
+/// What the options fix of a series' domain (a series is chosen for it).
+fn fixed_setup(params: &ImageParams, telescope: Option<&str>) -> crate::steps::series::ImagingSetup {
+    crate::steps::series::ImagingSetup {
+        superresolution: params.superresolution,
+        weighting: params.weighting.map(|w| w.scheme().name().to_string()),
+        robust: params.weighting.and_then(|w| w.robust()),
+        telescope: telescope.map(str::to_string),
+    }
+}
+
+/// The step stage for `params.step` (`clean_because`: why CLEAN runs where `auto` was asked).
 fn step_stage(params: &ImageParams, clean_because: Option<String>) -> Result<StageSpec> {
     if params.clean.any() && params.step != StepChoice::Clean {
         return Err(Error::parameter(

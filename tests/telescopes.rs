@@ -82,3 +82,32 @@ fn a_telescope_without_a_series_is_imaged_by_clean_with_a_warning() {
     let out = r2d2(&["simulate", "--telescope", "alma", "--out", "x.parquet"], d);
     common::assert_fails_with(&out, "unknown telescope", &["vla, meerkat, ska-mid", "'alma'"]);
 }
+
+/// With a series trained for MeerKAT among the series found, `auto` runs it on MeerKAT data
+/// (and not CLEAN), and `r2d2 models` lists it under its telescope.
+#[test]
+fn auto_runs_the_series_trained_for_the_datas_telescope() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    common::make_test_models(&d.join("models"), 0.5);
+    let manifest = d.join("models/landweber/manifest.yaml");
+    let text = std::fs::read_to_string(&manifest).unwrap().replace("name: landweber", "name: meerkat-landweber");
+    std::fs::write(&manifest, format!("{text}validity: {{telescopes: [meerkat], image_sizes: [64]}}\n")).unwrap();
+    let with_models = |args: &[&str]| {
+        Command::new(env!("CARGO_BIN_EXE_r2d2")).args(args).current_dir(d).env("R2D2_MODELS", d.join("models")).output().expect("r2d2 runs")
+    };
+    check(&r2d2(&["simulate", "--telescope", "meerkat", "--hours", "1", "--nfreq", "1", "--integration-s", "600", "--size", "64", "--dr", "100", "--out", "mk.parquet"], d));
+    let out = with_models(&["image", "mk.parquet", "--size", "64", "--name", "mk"]);
+    check(&out);
+    let log = stderr(&out);
+    assert!(log.contains("series 'meerkat-landweber'") && !log.contains("built-in CLEAN"), "{log}");
+    let metrics = std::fs::read_to_string(d.join("mk-metrics.json")).unwrap();
+    assert!(!metrics.contains("was not trained for this job"), "{metrics}");
+
+    let out = with_models(&["models"]);
+    check(&out);
+    let listing = String::from_utf8_lossy(&out.stdout).into_owned();
+    let meerkat = listing.find("telescope meerkat:").expect("a meerkat group");
+    assert!(listing[meerkat..].contains("meerkat-landweber"), "{listing}");
+    assert!(listing.contains("without a series here: vla, ska-mid"), "{listing}");
+}

@@ -582,15 +582,6 @@ pub fn covering_series(size: usize, setup: &ImagingSetup, except: &str) -> Optio
     })
 }
 
-/// The series found for `size x size` images, in `auto`'s order, and whether each was trained
-/// for `telescope`.
-pub fn series_for_telescope(size: usize, telescope: &str) -> Vec<(Series, bool)> {
-    found_series().into_iter().map(|(_, s)| s).filter(|s| s.image_sizes.contains(&size)).map(|s| {
-        let trained = s.trained_for_telescope(telescope);
-        (s, trained)
-    }).collect()
-}
-
 /// The series directory for a step's `series` value, image size and imaging setting:
 /// [`select_for`] for [`AUTO_SERIES`], else [`resolve`].
 pub fn resolve_for(series: &Path, size: usize, setup: &ImagingSetup) -> Result<PathBuf> {
