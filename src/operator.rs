@@ -411,7 +411,7 @@ pub fn predict(
 /// Checks what [`MeasurementOperator::new`] needs of its points: equal lengths, baselines
 /// within the image's Nyquist limit (`|u| >= 1 / (2 pixel)` would alias), weights finite and
 /// not negative.
-fn check_points(geometry: ImageGeometry, u: &[f64], v: &[f64], weight: &[f64]) -> Result<()> {
+pub(crate) fn check_points(geometry: ImageGeometry, u: &[f64], v: &[f64], weight: &[f64]) -> Result<()> {
     if u.len() != v.len() || u.len() != weight.len() {
         return Err(Error::parameter("visibilities", "u, v and weight arrays differ in length"));
     }
