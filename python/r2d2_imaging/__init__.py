@@ -155,7 +155,8 @@ def image(obs, size: int = 512, step: Optional[str] = None, weighting: Optional[
           iterations: Optional[int] = None, threads: int = 0, id: Optional[str] = None, backend: str = "auto",
           prefetch: bool = True, plugin_config: Optional[str] = None, epsilon: float = 1e-6, oversampling: float = 2.0,
           weighting_grid_factor: Optional[float] = None, onnx_runtime: Optional[PathLike] = None,
-          w_term: str = "auto") -> Products:
+          w_term: str = "auto", niter: Optional[int] = None, gain: Optional[float] = None, mgain: Optional[float] = None,
+          auto_threshold: Optional[float] = None, threshold: Optional[float] = None) -> Products:
     """Image one observation as ``r2d2 image`` does, in this process.
 
     ``obs`` is a path (Parquet, Arrow IPC, MeasurementSet) or a table in the documented
@@ -169,7 +170,10 @@ def image(obs, size: int = 512, step: Optional[str] = None, weighting: Optional[
     ``briggs``), ``robust`` and ``superresolution``: ``None`` takes the series' own (as it was
     trained; Briggs 0 and 1.5 for other steps); ``robust`` alone means Briggs; ``given`` uses
     the imaging weights that come with the data. ``w_term``: ``auto`` (corrected where it
-    matters at ``epsilon``), ``on`` or ``off``.
+    matters at ``epsilon``), ``on`` or ``off``. With ``step="clean"``, WSClean's CLEAN
+    controls: ``niter`` (components over all major cycles), ``gain``, ``mgain``,
+    ``auto_threshold`` (sigmas of the residual's robust noise) and ``threshold`` (Jy/beam);
+    refused with a network series.
 
     Returns :class:`Products`: ``dirty``, ``psf``, ``model``, ``residual`` (and ``image`` for
     CLEAN) as float32 arrays (N, N) in FITS orientation (row 0 at the bottom, as astropy reads
@@ -186,6 +190,7 @@ def image(obs, size: int = 512, step: Optional[str] = None, weighting: Optional[
         pixel_arcsec=pixel_arcsec, truth=os.fspath(truth) if truth is not None else None, iterations=iterations,
         threads=threads, backend=backend, prefetch=prefetch, plugin_config=plugin_config, epsilon=epsilon,
         oversampling=oversampling, weighting_grid_factor=weighting_grid_factor, w_term=w_term,
+        niter=niter, gain=gain, mgain=mgain, auto_threshold=auto_threshold, threshold=threshold,
         onnx_runtime=os.fspath(onnx_runtime) if onnx_runtime is not None else _onnx_runtime())
     for message in products.metrics.get("warnings", []):
         warnings.warn(f"job {products.id}: {message}", R2D2Warning, stacklevel=2)

@@ -4,7 +4,7 @@ use crate::arrow_in;
 use crate::products::Products;
 use crate::run_released;
 use pyo3::prelude::*;
-use r2d2_imaging::{BackendChoice, Engine, EngineOptions, ImageParams, Observation, StepChoice};
+use r2d2_imaging::{BackendChoice, CleanControls, Engine, EngineOptions, ImageParams, Observation, StepChoice};
 use r2d2_imaging::MemoryInput;
 use r2d2_imaging::Weighting;
 use std::path::PathBuf;
@@ -15,7 +15,8 @@ use std::path::PathBuf;
 /// Python wrapper `r2d2_imaging.image` for the parameters.
 #[pyfunction]
 #[pyo3(signature = (obs, *, id, size, step, weighting, robust, superresolution, pixel_arcsec, truth, iterations, threads,
-                    backend, prefetch, plugin_config, epsilon, oversampling, weighting_grid_factor, onnx_runtime, w_term))]
+                    backend, prefetch, plugin_config, epsilon, oversampling, weighting_grid_factor, onnx_runtime, w_term,
+                    niter=None, gain=None, mgain=None, auto_threshold=None, threshold=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn image(
     py: Python<'_>,
@@ -38,6 +39,11 @@ pub fn image(
     weighting_grid_factor: f64,
     onnx_runtime: Option<PathBuf>,
     w_term: &str,
+    niter: Option<usize>,
+    gain: Option<f64>,
+    mgain: Option<f64>,
+    auto_threshold: Option<f64>,
+    threshold: Option<f64>,
 ) -> PyResult<Products> {
     let observation = match obs.extract::<PathBuf>() {
         Ok(path) => Observation::Path(path),
@@ -57,6 +63,7 @@ pub fn image(
         w_term: r2d2_imaging::operator::WTermMode::from_name(w_term).map_err(crate::engine_error)?,
         step: StepChoice::parse(step, plugin_config).map_err(crate::engine_error)?,
         iterations,
+        clean: CleanControls { niter, gain, mgain, auto_threshold, threshold },
         backend: backend.parse::<BackendChoice>().map_err(crate::engine_error)?,
         prefetch,
         truth,

@@ -46,6 +46,20 @@ def test_arrays_header_and_metrics_are_the_cli_products(r2d2_bin, observations, 
     assert p.metrics["image_size"] == 128 and len(p.metrics["iterations"]) == 3
 
 
+def test_clean_controls_are_the_clis(r2d2_bin, observations, tmp_path):
+    """WSClean's CLEAN controls reach the step as `r2d2 image`'s options do, and are refused
+    with a network series."""
+    controls = dict(niter=300, gain=0.1, mgain=0.8, auto_threshold=3.0)
+    p = r2d2_imaging.image(observations[0], size=128, step="clean", threads=1, **controls)
+    cli_image(r2d2_bin, observations[0], tmp_path / "cli/obs", "--size", "128", "--step", "clean", "--threads", "1",
+              "--niter", "300", "--gain", "0.1", "--mgain", "0.8", "--auto-threshold", "3")
+    data, _ = read_fits(tmp_path / "cli/obs-model.fits")
+    np.testing.assert_array_equal(p.model, data)
+    assert 0 < np.count_nonzero(p.model) <= 300
+    with pytest.raises(r2d2_imaging.R2D2Error, match="--step clean"):
+        r2d2_imaging.image(observations[0], size=128, threads=1, niter=300)
+
+
 def test_write_makes_exactly_the_cli_files(r2d2_bin, observations, clean_products, tmp_path):
     cli_image(r2d2_bin, observations[0], tmp_path / "cli/obs", "--size", "128", "--step", "clean", "--iterations", "3", "--threads", "1")
     clean_products.write(tmp_path / "py/obs")
