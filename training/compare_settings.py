@@ -11,7 +11,8 @@ observed once per setting by `r2d2 simulate` (the VLA: A 8 h + C 2 h at 300 s; M
 imaged by `r2d2 image --step SERIES` at that setting, with the divergence guard as users
 get it. The SNR (dB) of each kept model against the true sky is printed as a markdown
 table, one cell per sky, with the series chosen by `auto` for the setting alongside.
-Observations are cached in WORK and reused.
+Observations and images are cached in WORK and reused (remove WORK after changing a
+series).
 """
 
 import argparse
@@ -78,10 +79,11 @@ def main():
             truth = fits.getdata(os.path.join(args.work, obs.replace(".parquet", ".sky.fits"))).squeeze()
             for series in args.series:
                 name = f"{args.telescope}-{tag}-{os.path.basename(os.path.normpath(series))}-{seed}"
-                run([r2d2, "image", obs, "--size", args.size, "--step", series, *setting_args(setting),
-                     "--truth", obs.replace(".parquet", ".sky.fits"), "--name", name], args.work)
+                if not os.path.exists(os.path.join(args.work, f"{name}-model.fits")):
+                    run([r2d2, "image", obs, "--size", args.size, "--step", series, *setting_args(setting),
+                         "--truth", obs.replace(".parquet", ".sky.fits"), "--name", name], args.work)
                 model = fits.getdata(os.path.join(args.work, f"{name}-model.fits")).squeeze()
-                cells[series].append(snr_db(model, truth))
+                cells[series].append(float(snr_db(model, truth)))
             log = run([r2d2, "image", obs, "--size", args.size, *setting_args(setting), "--iterations", "1",
                        "--name", f"{args.telescope}-{tag}-auto-{seed}"], args.work)
             chosen.update(l.split("series '")[1].split("'")[0] for l in log.splitlines() if "series '" in l and "chosen" in l)
