@@ -189,8 +189,8 @@ fn imaging_setup(ctx: &BuildContext<'_>) -> Result<crate::steps::series::Imaging
     })
 }
 
-/// The telescope the first input of the sources before the step names (`auto` prefers a
-/// series trained for it); none where no source reads a named file, or it names none.
+/// The telescope of the sources before the step (`auto` prefers a series trained for it): a
+/// simulated source's, else the one the first named file says; none where none says.
 fn source_telescope(ctx: &BuildContext<'_>) -> Result<Option<String>> {
     let mut paths: Vec<std::path::PathBuf> = Vec::new();
     for p in ctx.upstream_params::<params::ParquetParams>()? {
@@ -202,6 +202,10 @@ fn source_telescope(ctx: &BuildContext<'_>) -> Result<Option<String>> {
     paths.extend(ctx.upstream_params::<params::ArrowIpcParams>()?.into_iter().map(|p| p.path.into()));
     #[cfg(feature = "ms")]
     paths.extend(ctx.upstream_params::<params::MsParams>()?.into_iter().map(|p| p.path));
+    // A simulated source names its telescope.
+    if let Some(p) = ctx.upstream_params::<params::SimulateParams>()?.first() {
+        return Ok(Some(crate::simulate::telescope::telescope(&p.telescope)?.name.clone()));
+    }
     // A glob pattern is not a file: it is not opened.
     Ok(paths.iter().filter(|p| !p.to_string_lossy().contains(['*', '?', '['])).find_map(|p| crate::vis::telescope_of(p)))
 }
