@@ -313,7 +313,7 @@ impl Default for ImageParams {
 
 /// The `r2d2 image` pipeline for `obs` and `params`, and the in-memory inputs it reads.
 fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, Vec<MemoryInput>)> {
-    let (resolved, clean_because) = resolve_auto(params, observation_telescope(&obs).as_deref())?;
+    let (resolved, clean_because) = resolve_auto(params, || observation_telescope(&obs))?;
     let params = &resolved;
     let mut inputs = Vec::new();
     let truth = params.truth.clone();
@@ -413,11 +413,10 @@ fn imaging_setting(params: &ImageParams) -> Result<(Weighting, f64)> {
 /// The telescope an observation says its data come from, read without its samples (none
 /// where it names none, or is standard input, which can be read once only).
 fn observation_telescope(obs: &Observation) -> Option<String> {
-    let telescope = match obs {
+    match obs {
         Observation::Path(path) => crate::vis::telescope_of(path),
-        Observation::Batches(input) => input.batches.schema().metadata().get("telescope").cloned(),
-    };
-    telescope.filter(|t| !t.trim().is_empty())
+        Observation::Batches(input) => input.batches.schema().metadata().get("telescope").and_then(|t| crate::vis::named_telescope(t)),
+    }
 }
 
 /// Components the CLEAN that `auto` falls back to may take: its stopping rule is the
@@ -430,9 +429,14 @@ const FALLBACK_CLEAN: CleanControls = CleanControls { niter: Some(1_000_000), ga
 /// rule, and the reason every job carries as a warning (a series trained on another
 /// telescope's PSFs gives a confident image that nothing vouches for; CLEAN's is the one
 /// the user knows how to judge).
-fn resolve_auto(params: &ImageParams, telescope: Option<&str>) -> Result<(ImageParams, Option<String>)> {
+/// The telescope is read (`telescope()`) only when `auto` is asked for.
+fn resolve_auto(params: &ImageParams, telescope: impl FnOnce() -> Option<String>) -> Result<(ImageParams, Option<String>)> {
     // CLEAN controls with `auto` are refused by the step stage, whatever the telescope.
-    let (StepChoice::Auto, Some(telescope), false) = (&params.step, telescope, params.clean.any()) else { return Ok((params.clone(), None)) };
+    if params.step != StepChoice::Auto || params.clean.any() {
+        return Ok((params.clone(), None));
+    }
+    let Some(telescope) = telescope() else { return Ok((params.clone(), None)) };
+    let telescope = telescope.as_str();
     let found = crate::steps::series::found_series();
     if found.is_empty() || found.iter().any(|(_, s)| s.trained_for_telescope(telescope)) {
         // Series trained for the size: the one `auto` prefers for this telescope, by name;

@@ -83,6 +83,13 @@ fn every_format_images_as_the_parquet_table_it_was_made_from() {
     assert!(relative(&converted, &reference) <= 1e-6);
     check(&r2d2(&["image", "v5z.mat", "--size", "64", "--step", "clean", "--iterations", "2", "--name", "img"], d));
     assert!(d.join("img-model.fits").exists() && d.join("img-image.fits").exists());
+    // A .mat names no telescope (`unknown`): `auto` runs the series for the size, with no
+    // telescope warning and no fall-back to CLEAN, as on a table that names none.
+    let out = r2d2(&["image", "v5z.mat", "--size", "64", "--iterations", "1", "--name", "auto"], d);
+    check(&out);
+    let metrics = std::fs::read_to_string(d.join("auto-metrics.json")).unwrap();
+    assert!(!metrics.contains("built-in CLEAN") && !metrics.contains("the telescope 'unknown'"), "{metrics}");
+    assert!(String::from_utf8_lossy(&out.stderr).contains("series 'vla-r2d2"), "{}", String::from_utf8_lossy(&out.stderr));
 }
 
 #[test]

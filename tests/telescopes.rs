@@ -109,5 +109,7 @@ fn auto_runs_the_series_trained_for_the_datas_telescope() {
     let listing = String::from_utf8_lossy(&out.stdout).into_owned();
     let meerkat = listing.find("telescope meerkat:").expect("a meerkat group");
     assert!(listing[meerkat..].contains("meerkat-landweber"), "{listing}");
-    assert!(listing.contains("without a series here: vla, ska-mid"), "{listing}");
+    // The other test series declare no telescope: `auto` may run them on any data, so no
+    // telescope is said to be without a series.
+    assert!(listing.contains("no telescope declared") && !listing.contains("without a series"), "{listing}");
 }

@@ -22,38 +22,42 @@ pub fn run(args: Args) -> Result<()> {
         out!("no model series under {}", dir.display())?;
         return Ok(());
     }
-    // By telescope: the one each series declares in its domain (or manifest), in the order
-    // the registry lists telescopes, then others; series that declare none last.
-    let telescope_of = |s: &r2d2_imaging::steps::series::Series| {
-        let m = s.manifest.as_ref();
-        let declared = m.and_then(|m| m.validity.as_ref()).and_then(|v| v.telescopes.as_ref()).and_then(|t| t.first().cloned());
-        declared.or_else(|| m.map(|m| m.telescope.clone()).filter(|t| !t.is_empty())).map(|t| r2d2_imaging::steps::series::telescope_key(&t))
+    // By telescope: each series under every telescope its domain declares (the registry's
+    // order, then others); series that declare none, which `auto` takes for any telescope, last.
+    let usable: Vec<(&std::path::PathBuf, &r2d2_imaging::steps::series::Series)> =
+        found.iter().filter_map(|(dir, s)| s.as_ref().ok().map(|s| (dir, s))).collect();
+    let declared = |s: &r2d2_imaging::steps::series::Series| -> Vec<String> {
+        let v = s.manifest.as_ref().and_then(|m| m.validity.as_ref()).and_then(|v| v.telescopes.clone()).unwrap_or_default();
+        v.iter().map(|t| r2d2_imaging::steps::series::telescope_key(t)).collect()
     };
     let registry: Vec<String> = r2d2_imaging::simulate::telescope::telescopes()?.iter().map(|t| t.key.clone()).collect();
-    let mut groups: Vec<Option<String>> = Vec::new();
-    for (_, s) in &found {
-        let key = s.as_ref().ok().and_then(|s| telescope_of(s));
-        if s.is_ok() && !groups.contains(&key) {
-            groups.push(key);
-        }
-    }
-    groups.sort_by_key(|g| (g.is_none(), g.as_ref().map(|k| registry.iter().position(|r| r == k).unwrap_or(registry.len())), g.clone()));
-    for group in &groups {
-        match group {
-            Some(t) => out!("telescope {t}:")?,
-            None => out!("no telescope declared:")?,
-        }
-        for (dir, series) in &found {
-            match series {
-                Ok(s) if telescope_of(s) == *group => describe(dir, s)?,
-                _ => {}
+    let mut groups: Vec<String> = registry.clone();
+    for (_, s) in &usable {
+        for t in declared(s) {
+            if !groups.contains(&t) {
+                groups.push(t);
             }
         }
     }
-    let without: Vec<&String> = registry.iter().filter(|k| !groups.contains(&Some((*k).clone()))).collect();
+    for group in &groups {
+        let members: Vec<_> = usable.iter().filter(|(_, s)| declared(s).contains(group)).collect();
+        if !members.is_empty() {
+            out!("telescope {group}:")?;
+            for (dir, s) in members {
+                describe(dir, s)?;
+            }
+        }
+    }
+    let undeclared: Vec<_> = usable.iter().filter(|(_, s)| declared(s).is_empty()).collect();
+    if !undeclared.is_empty() {
+        out!("no telescope declared (`auto` may run these on any telescope's data):")?;
+        for (dir, s) in undeclared {
+            describe(dir, s)?;
+        }
+    }
+    let without: Vec<&str> = registry.iter().filter(|k| !usable.iter().any(|(_, s)| s.trained_for_telescope(k))).map(String::as_str).collect();
     if !without.is_empty() {
-        let list: Vec<&str> = without.iter().map(|k| k.as_str()).collect();
-        out!("telescopes the simulator knows without a series here: {} (`series: auto` images their data with the built-in CLEAN)", list.join(", "))?;
+        out!("telescopes the simulator knows without a series here: {} (`series: auto` images their data with the built-in CLEAN)", without.join(", "))?;
     }
     for (dir, series) in &found {
         if let Err(e) = series {

@@ -35,7 +35,7 @@ pub struct Args {
     /// Target dynamic range: fixes the noise level (reference formula).
     #[arg(long, default_value_t = 1e4)]
     dr: f64,
-    /// Number of frequency channels (vla: 1; meerkat: 8).
+    /// Number of frequency channels (vla: 1; meerkat: 4).
     #[arg(long)]
     nfreq: Option<usize>,
     /// Lowest frequency, MHz (vla: 1400; meerkat: 856).

@@ -411,13 +411,19 @@ pub(crate) fn observation(ms: &Path) -> Result<(String, Option<String>)> {
     let names = read_column(&table, &path, "TELESCOPE_NAME")?;
     let telescope = match names.first() {
         Some(RecordValue::String(s)) if !s.trim().is_empty() => s.trim().to_string(),
-        _ => "unknown".to_string(),
+        _ => crate::vis::UNKNOWN_TELESCOPE.to_string(),
     };
     let start = read_column(&table, &path, "TIME_RANGE").ok().and_then(|cells| {
         let (_, range) = array_f64(cells.first()?)?;
         mjd_seconds_to_iso(*range.first()?)
     });
     Ok((telescope, start))
+}
+
+/// The MS's `OBSERVATION::TELESCOPE_NAME` (`unknown` when empty), read from that subtable
+/// alone: no field or window selection, no pass over the rows.
+pub fn telescope_name(ms: &Path) -> Result<String> {
+    observation(ms).map(|(telescope, _)| telescope)
 }
 
 /// Modified Julian Date in seconds (casacore's epoch) as `YYYY-MM-DDThh:mm:ss.s`; `None`

@@ -252,7 +252,8 @@ fn normal_operator_norm(
     crate::operator::check_points(geometry, u, v, weight)?;
     let psf_2n = doubled_psf(geometry, u, v, weight, 1.0, nufft, threads)?;
     let normal = PsfConvolution::new(geometry.size, &psf_2n)?;
-    Ok(spectral_norm(|x| normal.apply(x), geometry.pixels(), 1e-7, 300))
+    // On the simulation's own threads, as the NUFFT was (not rayon's global pool).
+    Ok(crate::parallel::shared_pool(threads)?.install(|| spectral_norm(|x| normal.apply(x), geometry.pixels(), 1e-7, 300)))
 }
 
 /// Noise level for a target dynamic range, per the reference formula.

@@ -135,6 +135,14 @@ impl Telescope {
         let key = &self.key;
         let o = &self.observation;
         let t = &self.training;
+        if let Some(c) = self.layouts.keys().find(|c| **c != c.to_ascii_lowercase()) {
+            return Err(format!("{key}: layout '{c}': names are lower case (options match them in any case)"));
+        }
+        let mut drawn = t.configurations.clone();
+        drawn.sort();
+        if drawn.windows(2).any(|w| w[0] == w[1]) {
+            return Err(format!("{key}: training lists a configuration twice (each draws its own hours)"));
+        }
         for c in o.configurations.iter().chain(&t.configurations) {
             if !self.layouts.contains_key(c) {
                 return Err(format!("{key}: configuration '{c}' is not one of its layouts"));

@@ -75,8 +75,9 @@ const BUILTIN: &[KindFn] = &[
     step("clean", |c| Ok(Built::Stage(Box::new(step::StepStage::clean(c.params()?)?)))),
     // The series is checked against the pipeline (image size, network shapes): say where.
     step("onnx", |c| {
-        let setup = imaging_setup(c)?;
-        let step = step::StepStage::onnx(c.params()?, c.image().size, c.threads, &setup).map_err(|e| c.error_caused("series", e))?;
+        let config: crate::steps::onnx::OnnxConfig = c.params()?;
+        let setup = imaging_setup(c, config.series.as_os_str() == crate::steps::series::AUTO_SERIES)?;
+        let step = step::StepStage::onnx(config, c.image().size, c.threads, &setup).map_err(|e| c.error_caused("series", e))?;
         Ok(Built::Stage(Box::new(step)))
     }),
     step("native", |c| {
@@ -173,7 +174,9 @@ fn several_jobs(c: &BuildContext<'_>) -> Result<Option<String>> {
 /// pixel size is given in arcsec: it then depends on each job's longest baseline) and the
 /// weighting of the weighting stage before the step (unknown if there are several that
 /// disagree, or none of the built-in kind).
-fn imaging_setup(ctx: &BuildContext<'_>) -> Result<crate::steps::series::ImagingSetup> {
+/// The telescope is looked up only for `auto` (`choosing`), whose choice it takes part in; a
+/// named series meets each job's telescope at the job.
+fn imaging_setup(ctx: &BuildContext<'_>, choosing: bool) -> Result<crate::steps::series::ImagingSetup> {
     let image = ctx.image();
     let mut weightings = ctx.upstream_params::<params::WeightingParams>()?;
     weightings.dedup();
@@ -185,7 +188,7 @@ fn imaging_setup(ctx: &BuildContext<'_>) -> Result<crate::steps::series::Imaging
         superresolution: image.pixel_arcsec.is_none().then(|| image.superresolution.unwrap_or(1.5)),
         weighting: weighting.map(|w| w.scheme.name().to_string()),
         robust: weighting.map(|w| w.robust),
-        telescope: source_telescope(ctx)?,
+        telescope: if choosing { source_telescope(ctx)? } else { None },
     })
 }
 
@@ -245,7 +248,7 @@ mod tests {
             context: &context,
             validating: false,
         };
-        imaging_setup(&ctx).unwrap()
+        imaging_setup(&ctx, false).unwrap()
     }
 
     const PIPELINE: &str = "image: {size: 16, superresolution: 2}\nstages:\n  source: {kind: simulate, to: weights}\n  weights: {kind: weighting, scheme: robust, robust: -0.5, to: grid}\n  grid: {kind: gridder, to: step}\n  step: {kind: clean, to: update}\n  update: {kind: residual, to: step, done: write}\n  write: {kind: writer}\n";

@@ -390,16 +390,19 @@ pub struct SimulateParams {
     pub configurations: Option<Vec<String>>,
     /// Hours per configuration; default its typical observation's (`[6, 2]` for the VLA).
     pub hours: Option<Vec<f64>>,
-    /// Phase centre; default (180, 40) degrees.
-    pub dec_deg: f64,
+    /// Declination of the phase centre; default the telescope's typical observation's (40
+    /// degrees for the VLA, -30 for MeerKAT).
+    pub dec_deg: Option<f64>,
+    /// Default 180 degrees.
     pub ra_deg: f64,
-    /// Seconds per sample; default 30.
-    pub integration_s: f64,
-    /// Frequency channels; default 1, at 1400 MHz.
-    pub channels: usize,
-    pub frequency_mhz: f64,
-    /// Highest to lowest channel frequency; default 1.
-    pub frequency_ratio: f64,
+    /// Seconds per sample; default the typical observation's (VLA 30, MeerKAT 8).
+    pub integration_s: Option<f64>,
+    /// Frequency channels and the lowest frequency; default the typical observation's (VLA
+    /// 1 at 1400 MHz, MeerKAT 4 from 856 MHz).
+    pub channels: Option<usize>,
+    pub frequency_mhz: Option<f64>,
+    /// Highest to lowest channel frequency; default the typical observation's (VLA 1, MeerKAT 2).
+    pub frequency_ratio: Option<f64>,
     /// Fraction of the samples flagged; default 0.
     pub flag_fraction: f64,
     /// Weighting the noise level is defined for; default Briggs, robust 0.
@@ -416,12 +419,12 @@ impl Default for SimulateParams {
             telescope: "vla".into(),
             configurations: None,
             hours: None,
-            dec_deg: 40.0,
+            dec_deg: None,
             ra_deg: 180.0,
-            integration_s: 30.0,
-            channels: 1,
-            frequency_mhz: 1400.0,
-            frequency_ratio: 1.0,
+            integration_s: None,
+            channels: None,
+            frequency_mhz: None,
+            frequency_ratio: None,
             flag_fraction: 0.0,
             noise_weighting: WeightingScheme::Briggs,
             robust: 0.0,

@@ -13,6 +13,8 @@ use crate::{Error, Result};
 
 pub struct SimulateSource {
     config: SimulateParams,
+    /// The observation of every job but its seed: the options, else the telescope's preset.
+    observation: ObservationSpec,
     image: ImageConfig,
     weighting: Weighting,
     threads: usize,
@@ -20,42 +22,43 @@ pub struct SimulateSource {
 
 impl SimulateSource {
     pub fn new(config: SimulateParams, image: &ImageConfig, threads: usize) -> Result<SimulateSource> {
-        let (configurations, hours) = tracks(&config)?;
-        if configurations.len() != hours.len() {
-            return Err(Error::parameter(
-                "hours",
-                format!("one observing time per configuration: {} configurations, {} times", configurations.len(), hours.len()),
-            ));
-        }
-        crate::vis::check_phase_centre(config.ra_deg, config.dec_deg)?;
+        let observation = observation(&config)?;
+        crate::vis::check_phase_centre(config.ra_deg, observation.dec_deg)?;
         if config.jobs == 0 {
             return Err(Error::parameter("jobs", "expected at least one job"));
         }
         let weighting = config.noise_weighting.with_robust(config.robust)?;
         // Before any job: what the observation of every seed would refuse.
-        observation(&config, config.seed)?.validate()?;
-        Ok(SimulateSource { config, image: image.clone(), weighting, threads })
+        observation.validate()?;
+        Ok(SimulateSource { config, observation, image: image.clone(), weighting, threads })
     }
 }
 
-/// The configurations and hours asked for, else the telescope's typical observation's.
-fn tracks(c: &SimulateParams) -> Result<(Vec<String>, Vec<f64>)> {
+/// The observation `c` asks for, the telescope's typical observation filling in what it does
+/// not say (seed 0: each job sets its own).
+fn observation(c: &SimulateParams) -> Result<ObservationSpec> {
     let preset = &crate::simulate::telescope::telescope(&c.telescope)?.observation;
-    Ok((c.configurations.clone().unwrap_or_else(|| preset.configurations.clone()), c.hours.clone().unwrap_or_else(|| preset.hours.clone())))
-}
-
-/// The observation of the job of `seed`.
-fn observation(c: &SimulateParams, seed: u64) -> Result<ObservationSpec> {
-    let (configurations, hours) = tracks(c)?;
+    let configurations = c.configurations.clone().unwrap_or_else(|| preset.configurations.clone());
+    let hours = c.hours.clone().unwrap_or_else(|| preset.hours.clone());
+    if configurations.len() != hours.len() {
+        return Err(Error::parameter(
+            "hours",
+            format!("one observing time per configuration: {} configurations, {} times", configurations.len(), hours.len()),
+        ));
+    }
     Ok(ObservationSpec {
         telescope: c.telescope.clone(),
         configurations: configurations.into_iter().zip(hours).collect(),
-        dec_deg: c.dec_deg,
-        integration_s: c.integration_s,
-        frequencies_hz: frequency_channels(c.frequency_mhz * 1e6, c.channels, c.frequency_ratio)?,
+        dec_deg: c.dec_deg.unwrap_or(preset.dec_deg),
+        integration_s: c.integration_s.unwrap_or(preset.integration_s),
+        frequencies_hz: frequency_channels(
+            c.frequency_mhz.unwrap_or(preset.frequency_mhz) * 1e6,
+            c.channels.unwrap_or(preset.channels),
+            c.frequency_ratio.unwrap_or(preset.frequency_ratio),
+        )?,
         flag_fraction: c.flag_fraction,
         random_rotation: true,
-        seed,
+        seed: 0,
     })
 }
 
@@ -68,13 +71,13 @@ impl Source<Job> for SimulateSource {
             }
             let seed = c.seed + k;
             let request = SimulationRequest {
-                observation: observation(c, seed)?,
+                observation: ObservationSpec { seed, ..self.observation.clone() },
                 sky: SkyModel::Procedural { seed },
                 size: self.image.size,
                 pixel: self.image.pixel_scale(),
                 dynamic_range: c.dynamic_range,
                 noise_weighting: self.weighting,
-                phase_centre_deg: (c.ra_deg, c.dec_deg),
+                phase_centre_deg: (c.ra_deg, self.observation.dec_deg),
                 nufft: NufftParams::default(),
                 threads: self.threads,
             };

@@ -272,3 +272,12 @@ pub const MAX_BASELINE_M: f64 = 1.3e7;
 /// what is below a few MHz, the atmosphere absorbs what is above about 1 THz.
 pub const FREQUENCY_RANGE_HZ: (f64, f64) = (1e6, 1e13);
 
+
+/// `telescope` unless it names none (empty, or the `unknown` that readers write then).
+pub fn named_telescope(telescope: &str) -> Option<String> {
+    let t = telescope.trim();
+    (!t.is_empty() && !t.eq_ignore_ascii_case(UNKNOWN_TELESCOPE)).then(|| t.to_string())
+}
+
+/// What readers write as the telescope of data that name none.
+pub const UNKNOWN_TELESCOPE: &str = "unknown";

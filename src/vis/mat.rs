@@ -81,7 +81,7 @@ impl MatReader {
             path.display(),
             batch.num_rows()
         );
-        let mut meta = ObservationMeta::new(0.0, 0.0, "unknown");
+        let mut meta = ObservationMeta::new(0.0, 0.0, crate::vis::UNKNOWN_TELESCOPE);
         meta.extra.insert("source_format".into(), "mat".into());
         Ok(MatReader { source: path.to_path_buf(), meta, batch, next_row: 0, batch_rows: batch_rows.max(1) })
     }

@@ -7,7 +7,7 @@ use super::reader::{TableReader, STDIN};
 use super::error::TableError;
 use super::split::read_parts;
 use super::mat::MatReader;
-use super::{IngestStats, IpcReader, ObservationMeta, VisReader, Visibilities, DEFAULT_BATCH_ROWS};
+use super::{named_telescope, IngestStats, IpcReader, ObservationMeta, VisReader, Visibilities, DEFAULT_BATCH_ROWS};
 use crate::{Error, Result};
 use crate::fits::TempSibling;
 use parquet::arrow::ArrowWriter;
@@ -122,15 +122,22 @@ pub fn open(path: &Path, options: &OpenOptions) -> Result<Box<dyn TableReader>> 
 }
 
 /// The telescope a table says its data come from (its `telescope` metadata, an MS's
-/// `OBSERVATION::TELESCOPE_NAME`), read without its samples; none where it names none, where
-/// it does not open (its reader reports that), or for standard input, which is read once.
+/// `OBSERVATION::TELESCOPE_NAME`), read without its samples or any selection; none where it
+/// names none (or `unknown`), where it does not open (its reader reports that), for a .mat
+/// file (the format names none) and for standard input, which is read once.
 pub fn telescope_of(path: &Path) -> Option<String> {
     if path.as_os_str() == STDIN {
         return None;
     }
-    let reader = open(path, &OpenOptions::default()).ok()?;
-    Some(reader.meta().telescope.clone()).filter(|t| !t.trim().is_empty())
+    let telescope = match format_of(path).ok()? {
+        TableFormat::Parquet | TableFormat::ArrowIpc => open(path, &OpenOptions::default()).ok()?.meta().telescope.clone(),
+        #[cfg(feature = "ms")]
+        TableFormat::MeasurementSet => crate::ms::telescope_name(path).ok()?,
+        _ => return None,
+    };
+    named_telescope(&telescope)
 }
+
 
 /// Reads a whole table of any format: the kept samples, the metadata and the counts.
 pub fn read_table(path: &Path, options: &OpenOptions) -> Result<(Visibilities, ObservationMeta, IngestStats)> {

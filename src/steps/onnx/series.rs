@@ -416,7 +416,8 @@ impl Series {
         let outside = |x: f64, [lo, hi]: [f64; 2]| x < lo - 1e-9 || x > hi + 1e-9;
         if let (Some(telescopes), Some(telescope)) = (&v.telescopes, &job.telescope) {
             let key = telescope_key(telescope);
-            if !key.is_empty() && !telescopes.iter().any(|t| telescope_key(t) == key) {
+            // Data that name no telescope are not checked against one.
+            if !key.is_empty() && key != crate::vis::UNKNOWN_TELESCOPE && !telescopes.iter().any(|t| telescope_key(t) == key) {
                 problems.push(format!("the data come from the telescope '{telescope}', and the series was trained for {}", telescopes.join(", ")));
             }
         }
