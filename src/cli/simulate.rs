@@ -3,7 +3,7 @@
 use r2d2_imaging::fits::{read_image, write_image, BrightnessUnit, ImageWcs};
 use r2d2_imaging::nufft::NufftParams;
 use r2d2_imaging::imaging::PixelScale;
-use r2d2_imaging::simulate::observe::{frequency_channels, ObservationSpec};
+use r2d2_imaging::simulate::observe::ObservationRequest;
 use r2d2_imaging::simulate::{simulate, SimulationOutput, SimulationRequest, SkyModel};
 use r2d2_imaging::vis::write_parquet;
 use r2d2_imaging::weighting::Weighting;
@@ -102,34 +102,23 @@ fn parse_sky(text: &str, seed: u64) -> Result<SkySource> {
 }
 
 pub fn run(args: Args) -> Result<()> {
-    let telescope = r2d2_imaging::simulate::telescope::telescope(&args.telescope)?;
-    let preset = &telescope.observation;
-    let configs = args.configs.clone().unwrap_or_else(|| preset.configurations.clone());
-    let hours = args.hours.clone().unwrap_or_else(|| preset.hours.clone());
-    if configs.len() != hours.len() {
-        return Err(Error::parameter(
-            "hours",
-            format!("give one observing time per configuration: {} configurations, {} times", configs.len(), hours.len()),
-        ));
-    }
-    let dec = args.dec.unwrap_or(preset.dec_deg);
     // The output and the observation before any work (reading the sky, simulating).
     r2d2_imaging::fits::check_output_file(&args.out, false).map_err(|m| Error::parameter("--out", m))?;
-    let spec = ObservationSpec {
-        telescope: telescope.key.clone(),
-        configurations: configs.into_iter().zip(hours).collect(),
-        dec_deg: dec,
-        integration_s: args.integration_s.unwrap_or(preset.integration_s),
-        frequencies_hz: frequency_channels(
-            args.freq_mhz.unwrap_or(preset.frequency_mhz) * 1e6,
-            args.nfreq.unwrap_or(preset.channels),
-            args.freq_ratio.unwrap_or(preset.frequency_ratio),
-        )?,
+    let spec = ObservationRequest {
+        telescope: args.telescope.clone(),
+        configurations: args.configs.clone(),
+        hours: args.hours.clone(),
+        dec_deg: args.dec,
+        integration_s: args.integration_s,
+        channels: args.nfreq,
+        frequency_mhz: args.freq_mhz,
+        frequency_ratio: args.freq_ratio,
         flag_fraction: args.flag_fraction,
         random_rotation: !args.no_rotation,
         seed: args.seed,
-    };
-    spec.validate()?;
+    }
+    .spec()?;
+    let dec = spec.dec_deg;
     let noise_weighting = Weighting::from_name(&args.weighting, args.robust)?;
     let source = parse_sky(&args.sky, args.seed)?;
     if let SkySource::Procedural(_) = source {

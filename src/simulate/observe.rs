@@ -72,6 +72,55 @@ impl ObservationSpec {
     }
 }
 
+/// An observation as options ask for it: what they leave open is the telescope's typical
+/// observation's (`data/telescopes/telescopes.yaml`). `r2d2 simulate` and `kind: simulate`
+/// both make their observation through it.
+#[derive(Clone, Debug, Default)]
+pub struct ObservationRequest {
+    pub telescope: String,
+    pub configurations: Option<Vec<String>>,
+    pub hours: Option<Vec<f64>>,
+    pub dec_deg: Option<f64>,
+    pub integration_s: Option<f64>,
+    pub channels: Option<usize>,
+    pub frequency_mhz: Option<f64>,
+    pub frequency_ratio: Option<f64>,
+    pub flag_fraction: f64,
+    pub random_rotation: bool,
+    pub seed: u64,
+}
+
+impl ObservationRequest {
+    /// The observation, checked (`ObservationSpec::validate`).
+    pub fn spec(&self) -> Result<ObservationSpec> {
+        let preset = &telescope::telescope(&self.telescope)?.observation;
+        let configurations = self.configurations.clone().unwrap_or_else(|| preset.configurations.clone());
+        let hours = self.hours.clone().unwrap_or_else(|| preset.hours.clone());
+        if configurations.len() != hours.len() {
+            return Err(Error::parameter(
+                "hours",
+                format!("give one observing time per configuration: {} configurations, {} times", configurations.len(), hours.len()),
+            ));
+        }
+        let spec = ObservationSpec {
+            telescope: self.telescope.clone(),
+            configurations: configurations.into_iter().zip(hours).collect(),
+            dec_deg: self.dec_deg.unwrap_or(preset.dec_deg),
+            integration_s: self.integration_s.unwrap_or(preset.integration_s),
+            frequencies_hz: frequency_channels(
+                self.frequency_mhz.unwrap_or(preset.frequency_mhz) * 1e6,
+                self.channels.unwrap_or(preset.channels),
+                self.frequency_ratio.unwrap_or(preset.frequency_ratio),
+            )?,
+            flag_fraction: self.flag_fraction,
+            random_rotation: self.random_rotation,
+            seed: self.seed,
+        };
+        spec.validate()?;
+        Ok(spec)
+    }
+}
+
 /// Refuses a frequency the readers would exclude as physically impossible
 /// ([`crate::vis::FREQUENCY_RANGE_HZ`]): the data written would be unreadable.
 fn check_frequency(hz: f64, what: &str) -> Result<()> {

@@ -6,7 +6,7 @@ use crate::nufft::NufftParams;
 use crate::imaging::ImageConfig;
 use crate::job::Job;
 use crate::pipeline::Source;
-use crate::simulate::observe::{frequency_channels, ObservationSpec};
+use crate::simulate::observe::{ObservationRequest, ObservationSpec};
 use crate::simulate::{simulate, SimulationRequest, SkyModel};
 use crate::weighting::Weighting;
 use crate::{Error, Result};
@@ -28,8 +28,6 @@ impl SimulateSource {
             return Err(Error::parameter("jobs", "expected at least one job"));
         }
         let weighting = config.noise_weighting.with_robust(config.robust)?;
-        // Before any job: what the observation of every seed would refuse.
-        observation.validate()?;
         Ok(SimulateSource { config, observation, image: image.clone(), weighting, threads })
     }
 }
@@ -37,29 +35,20 @@ impl SimulateSource {
 /// The observation `c` asks for, the telescope's typical observation filling in what it does
 /// not say (seed 0: each job sets its own).
 fn observation(c: &SimulateParams) -> Result<ObservationSpec> {
-    let preset = &crate::simulate::telescope::telescope(&c.telescope)?.observation;
-    let configurations = c.configurations.clone().unwrap_or_else(|| preset.configurations.clone());
-    let hours = c.hours.clone().unwrap_or_else(|| preset.hours.clone());
-    if configurations.len() != hours.len() {
-        return Err(Error::parameter(
-            "hours",
-            format!("one observing time per configuration: {} configurations, {} times", configurations.len(), hours.len()),
-        ));
-    }
-    Ok(ObservationSpec {
+    ObservationRequest {
         telescope: c.telescope.clone(),
-        configurations: configurations.into_iter().zip(hours).collect(),
-        dec_deg: c.dec_deg.unwrap_or(preset.dec_deg),
-        integration_s: c.integration_s.unwrap_or(preset.integration_s),
-        frequencies_hz: frequency_channels(
-            c.frequency_mhz.unwrap_or(preset.frequency_mhz) * 1e6,
-            c.channels.unwrap_or(preset.channels),
-            c.frequency_ratio.unwrap_or(preset.frequency_ratio),
-        )?,
+        configurations: c.configurations.clone(),
+        hours: c.hours.clone(),
+        dec_deg: c.dec_deg,
+        integration_s: c.integration_s,
+        channels: c.channels,
+        frequency_mhz: c.frequency_mhz,
+        frequency_ratio: c.frequency_ratio,
         flag_fraction: c.flag_fraction,
         random_rotation: true,
         seed: 0,
-    })
+    }
+    .spec()
 }
 
 impl Source<Job> for SimulateSource {
