@@ -14,7 +14,8 @@ fn main() -> r2d2_imaging::Result<()> {
     let size = 128;
     let observation = simulate(&SimulationRequest {
         observation: ObservationSpec {
-            configurations: vec![('c', 2.0)],
+            telescope: "vla".into(),
+            configurations: vec![("c".into(), 2.0)],
             dec_deg: 40.0,
             integration_s: 60.0,
             frequencies_hz: vec![1.4e9],
