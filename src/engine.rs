@@ -439,11 +439,9 @@ fn resolve_auto(params: &ImageParams, telescope: impl FnOnce() -> Option<String>
     let telescope = telescope.as_str();
     let found = crate::steps::series::found_series();
     if found.is_empty() || found.iter().any(|(_, s)| s.trained_for_telescope(telescope)) {
-        // Series trained for the size: the one `auto` prefers for this telescope, by name;
-        // none: `auto`'s off-size choice.
-        if !found.iter().any(|(_, s)| s.image_sizes.contains(&params.size)) {
-            return Ok((params.clone(), None));
-        }
+        // The series `auto` prefers for this telescope, named from here on so that the
+        // imaging setting comes from the series that runs. Off its trained size the step
+        // says so itself.
         let (dir, _) = crate::steps::series::select_for(params.size, &fixed_setup(params, Some(telescope)))?;
         return Ok((ImageParams { step: StepChoice::Series(dir), ..params.clone() }, None));
     }

@@ -501,14 +501,15 @@ impl Series {
 pub const AUTO_SERIES: &str = "auto";
 
 /// The project's own series, preferred in this order when several were trained for a size.
-pub const PROJECT_SERIES: [&str; 3] = ["vla-r2d2-512", "vla-r2d2-128", "vla-r2d2-512-broad"];
+pub const PROJECT_SERIES: [&str; 4] = ["vla-r2d2-512", "vla-r2d2-128", "vla-r2d2-512-broad", "meerkat-r2d2-512"];
 
 /// The series for `size x size` images when none is named, among the series found in
 /// [`model_dirs`]: of those whose manifest lists `size` in `image_sizes`, the first (the
 /// project's own first, then by name) whose declared domain holds `setup` (what the pipeline
 /// fixes: weighting, a super-resolution factor), else the first of them, whose domain warning
-/// the job then carries; failing any, the series that allows other sizes and was trained
-/// nearest to `size` (by ratio), with a warning that it runs at a size it was not trained for.
+/// the job then carries (one of the data's telescope before one of another); failing any, the
+/// series that allows other sizes and was trained nearest to `size` (by ratio, the data's
+/// telescope first), with a warning that it runs at a size it was not trained for.
 pub fn select_for(size: usize, setup: &ImagingSetup) -> Result<(PathBuf, Option<String>)> {
     select_in(&model_dirs(), size, setup)
 }
@@ -558,7 +559,12 @@ fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(Pa
         s.image_sizes.iter().map(|&t| (t as f64 / size as f64).ln().abs()).fold(f64::INFINITY, f64::min)
     };
     // `found` is in rank order and min_by keeps the first of equals: ties go to the higher rank.
-    let nearest = found.iter().filter(|(_, s)| s.any_size && !s.image_sizes.is_empty()).min_by(|a, b| distance(&a.1).total_cmp(&distance(&b.1)));
+    // The data's telescope counts before the size: its PSFs are what the networks learnt.
+    let resizable: Vec<&(PathBuf, Series)> = found.iter().filter(|(_, s)| s.any_size && !s.image_sizes.is_empty()).collect();
+    let nearest = |of_telescope: bool| {
+        resizable.iter().copied().filter(|(_, s)| !of_telescope || same_telescope(s)).min_by(|a, b| distance(&a.1).total_cmp(&distance(&b.1)))
+    };
+    let nearest = nearest(true).or_else(|| nearest(false));
     match nearest {
         Some((dir, s)) => Ok((
             dir.clone(),
@@ -701,6 +707,29 @@ mod tests {
         let empty = tempfile::tempdir().unwrap();
         let e = select_in(&[empty.path().to_path_buf()], 512, &ImagingSetup::default()).unwrap_err().to_string();
         assert!(e.contains("no model series for 512 x 512") && e.contains(&empty.path().display().to_string()), "{e}");
+    }
+
+    #[test]
+    fn auto_prefers_the_datas_telescope_at_the_size_and_off_it() {
+        let root = tempfile::tempdir().unwrap();
+        let roots = [root.path().to_path_buf()];
+        for (name, telescope) in [("vla-r2d2-512", "vla"), ("meerkat-r2d2-512", "meerkat")] {
+            series_dir(root.path(), name, "[512]", true);
+            let manifest = root.path().join(name).join("manifest.yaml");
+            let text = std::fs::read_to_string(&manifest).unwrap();
+            std::fs::write(&manifest, format!("{text}validity: {{telescopes: [{telescope}]}}\n")).unwrap();
+        }
+        let pick = |size, telescope: &str| {
+            let setup = ImagingSetup { telescope: Some(telescope.to_string()), ..ImagingSetup::default() };
+            select_in(&roots, size, &setup).unwrap().0
+        };
+        assert_eq!(pick(512, "VLA"), root.path().join("vla-r2d2-512"));
+        assert_eq!(pick(512, "MeerKAT"), root.path().join("meerkat-r2d2-512"));
+        // Off the trained size the telescope still counts before the project's order.
+        assert_eq!(pick(256, "MeerKAT"), root.path().join("meerkat-r2d2-512"));
+        assert_eq!(pick(256, "VLA"), root.path().join("vla-r2d2-512"));
+        // Data naming no telescope keep the project's order.
+        assert_eq!(pick(512, "unknown"), root.path().join("vla-r2d2-512"));
     }
 
     #[test]
