@@ -570,7 +570,11 @@ mod tests {
         spec.stages
             .iter()
             .filter(|s| s.kind != ProductsParams::KIND)
-            .map(|s| StageSpec { to: next(&s.to), done: next(&s.done), ..s.clone() })
+            .map(|s| {
+                let mut s = s.clone();
+                (s.to, s.done) = (next(&s.to), next(&s.done));
+                s
+            })
             .collect()
     }
 
@@ -595,7 +599,7 @@ mod tests {
         let (mut code, inputs) = image_spec(Observation::Path(table_file("obs.parquet", b"PAR1")), &params).unwrap();
         assert!(inputs.is_empty());
         // The YAML names the observation as the command line would: by its name.
-        code.stages[0].params["files"] = "obs.parquet".into();
+        code.stages[0].set_param("files", "obs.parquet").unwrap();
         assert_eq!((&yaml.name, &yaml.image, yaml.threads, yaml.channel_capacity), (&code.name, &code.image, code.threads, code.channel_capacity));
         let code_stages = without_products(&code);
         let shape = |stages: &[StageSpec]| stages.iter().map(|s| (s.name.clone(), s.kind.clone(), s.to.clone(), s.done.clone())).collect::<Vec<_>>();

@@ -152,7 +152,7 @@ fn run<'py>(
         .stages
         .iter()
         .filter(|s| s.kind == "writer")
-        .filter_map(|s| s.params.get("prefix").and_then(|p| p.as_str()).map(str::to_string))
+        .filter_map(|s| s.params().get("prefix").and_then(|p| p.as_str()).map(str::to_string))
         .collect();
     let report = run_released(py, move |cancel| engine.run(&config, Vec::new(), None, cancel))?;
     let metrics_files = PyDict::new(py);

@@ -36,7 +36,7 @@ pub fn cancel_on_ctrl_c() -> Arc<AtomicBool> {
 
 /// Whether a stage of `spec` may run native ONNX Runtime.
 fn uses_onnx(spec: &PipelineSpec) -> bool {
-    spec.stages.iter().any(|s| s.kind == "onnx" && s.params.get("backend").and_then(|b| b.as_str()) != Some("tract"))
+    spec.stages.iter().any(|s| s.kind == "onnx" && s.params().get("backend").and_then(|b| b.as_str()) != Some("tract"))
 }
 
 pub fn run_pipeline(spec: &PipelineSpec) -> Result<()> {

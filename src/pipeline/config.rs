@@ -45,16 +45,17 @@ struct RawPipeline {
 ///
 /// The built-in kinds' parameters are in `r2d2_imaging::params`; a kind of an embedding
 /// program's own implements this for its parameters the same way.
-pub trait StageParams: Serialize + DeserializeOwned {
+pub trait StageParams: Serialize + DeserializeOwned + Clone + Send + Sync + 'static {
     /// The YAML `kind` these parameters are for.
     const KIND: &'static str;
 }
 
 /// One stage as written in the YAML: its name, kind, routing and its own parameters.
 ///
-/// The parameters stay a YAML mapping here, whatever the kind: the registry is open to kinds
-/// the engine does not know, so the spec carries any kind's; [`StageSpec::typed`] is the
-/// checked way to write a known kind's.
+/// The parameters are a YAML mapping, whatever the kind: the registry is open to kinds the
+/// engine does not know, so the spec carries any kind's. A spec written in code with
+/// [`StageSpec::typed`] also keeps the typed value, which its kind then receives as it was
+/// given (the mapping is what it reads as, for logs and the kinds that read it).
 #[derive(Clone, Debug)]
 pub struct StageSpec {
     pub name: String,
@@ -62,7 +63,18 @@ pub struct StageSpec {
     pub to: Option<String>,
     pub done: Option<String>,
     /// The remaining keys, parsed by the stage kind's own config struct.
-    pub params: Value,
+    params: Value,
+    typed: Option<TypedParams>,
+}
+
+/// A stage's parameters as the program gave them ([`StageSpec::typed`]).
+#[derive(Clone)]
+struct TypedParams(std::sync::Arc<dyn std::any::Any + Send + Sync>);
+
+impl std::fmt::Debug for TypedParams {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("TypedParams")
+    }
 }
 
 /// A parsed pipeline description.
@@ -86,6 +98,7 @@ impl StageSpec {
     /// `StageSpec::typed("weights", &WeightingParams::default())?.to("grid")`. An error only if
     /// the parameters do not serialise to a mapping (which the built-in kinds' always do).
     pub fn typed<P: StageParams>(name: impl Into<String>, params: &P) -> Result<StageSpec> {
+        let typed_params = params;
         let name = name.into();
         let what = || format!("stage '{name}' ({})", P::KIND);
         let params = serde_yaml::to_value(params).map_err(|e| Error::parameter(what(), format!("its parameters do not serialise: {e}")))?;
@@ -93,7 +106,10 @@ impl StageSpec {
             Value::Mapping(map) if ROUTING_KEYS.iter().any(|k| map.contains_key(*k)) => {
                 Err(Error::parameter(what(), format!("its parameters use a name the engine keeps for routing ({})", ROUTING_KEYS.join(", "))))
             }
-            Value::Mapping(_) => Ok(StageSpec { name, kind: P::KIND.to_string(), to: None, done: None, params }),
+            Value::Mapping(_) => {
+                let typed = Some(TypedParams(std::sync::Arc::new(typed_params.clone())));
+                Ok(StageSpec { name, kind: P::KIND.to_string(), to: None, done: None, params, typed })
+            }
             _ => Err(Error::parameter(what(), "its parameters serialise to something other than a mapping")),
         }
     }
@@ -102,7 +118,31 @@ impl StageSpec {
     pub fn new(name: impl Into<String>, params: Value) -> StageSpec {
         let mut params = params;
         let kind = params.as_mapping_mut().and_then(|m| m.remove("kind")).and_then(|k| k.as_str().map(str::to_string)).unwrap_or_default();
-        StageSpec { name: name.into(), kind, to: None, done: None, params }
+        StageSpec { name: name.into(), kind, to: None, done: None, params, typed: None }
+    }
+
+    /// The stage's parameters as a YAML mapping (without `kind`, `to` and `done`).
+    pub fn params(&self) -> &Value {
+        &self.params
+    }
+
+    /// Sets one parameter (`key: value` in the stage's mapping); a typed value the spec held
+    /// gives way to the mapping, which the kind then reads.
+    pub fn set_param(&mut self, key: &str, value: impl Into<Value>) -> Result<()> {
+        let Value::Mapping(map) = &mut self.params else {
+            return Err(Error::parameter(format!("stage '{}'", self.name), "its parameters are not a mapping"));
+        };
+        if ROUTING_KEYS.contains(&key) {
+            return Err(Error::parameter(format!("stage '{}'", self.name), format!("`{key}` is the engine's routing, not a parameter")));
+        }
+        map.insert(Value::String(key.to_string()), value.into());
+        self.typed = None;
+        Ok(())
+    }
+
+    /// The typed value the spec was written with, if it is a `T`.
+    fn typed_as<T: Clone + 'static>(&self) -> Option<T> {
+        self.typed.as_ref().and_then(|t| t.0.downcast_ref::<T>()).cloned()
     }
 
     /// Where the stage's jobs go next.
@@ -181,7 +221,7 @@ impl PipelineSpec {
             let kind = take("kind")?.ok_or_else(|| located(file, here, &format!("stage '{name}' has no `kind`")))?;
             let to = take("to")?;
             let done = take("done")?;
-            stages.push(StageSpec { name, kind, to, done, params: Value::Mapping(map) });
+            stages.push(StageSpec { name, kind, to, done, params: Value::Mapping(map), typed: None });
         }
         // Before any stage is built: a size or thread count this machine cannot take would
         // otherwise surface as an aborted allocation or a hang, not as an error about the key.
@@ -221,7 +261,11 @@ impl PipelineSpec {
     /// Deserialize a stage's parameters into its kind's config struct; errors name the file,
     /// line, column and key (a nested key by its path: `stages.source.split_by.window`), or the
     /// `--set` override the wrong value came from.
-    pub fn stage_params<T: DeserializeOwned>(&self, stage: &StageSpec) -> Result<T> {
+    pub fn stage_params<T: DeserializeOwned + Clone + 'static>(&self, stage: &StageSpec) -> Result<T> {
+        // Written in code: the value as given, not a copy read back from its mapping.
+        if let Some(typed) = stage.typed_as::<T>() {
+            return Ok(typed);
+        }
         let e = match serde_path_to_error::deserialize(stage.params.clone()) {
             Ok(params) => return Ok(params),
             Err(e) => e,
@@ -436,6 +480,38 @@ fn apply_override(root: &mut Value, spec: &str) -> Result<()> {
 mod tests {
     use super::*;
     use std::time::Instant;
+
+    /// Parameters with a field the mapping does not carry: what a kind receives shows
+    /// whether it came through the mapping.
+    #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+    struct Probe {
+        gain: f64,
+        #[serde(skip)]
+        given_in_code: bool,
+    }
+
+    impl StageParams for Probe {
+        const KIND: &'static str = "probe";
+    }
+
+    #[test]
+    fn typed_parameters_reach_their_kind_as_given_until_a_key_is_set() {
+        let given = Probe { gain: 0.1, given_in_code: true };
+        let mut stage = StageSpec::typed("p", &given).unwrap();
+        let pipeline = PipelineSpec::new("t", &serde_yaml::Value::Null, vec![stage.clone()]).unwrap();
+        assert_eq!(pipeline.stage_params::<Probe>(&stage).unwrap(), given);
+        assert_eq!(stage.params().get("gain").and_then(Value::as_f64), Some(0.1));
+        // Another type than the one given is read from the mapping.
+        #[derive(Clone, Deserialize)]
+        struct Gain {
+            gain: f64,
+        }
+        assert_eq!(pipeline.stage_params::<Gain>(&stage).unwrap().gain, 0.1);
+        // A key set afterwards: the mapping is what the kind reads.
+        stage.set_param("gain", 0.2).unwrap();
+        assert_eq!(pipeline.stage_params::<Probe>(&stage).unwrap(), Probe { gain: 0.2, given_in_code: false });
+        assert!(stage.set_param("to", "x").unwrap_err().to_string().contains("routing"));
+    }
 
     #[test]
     fn channel_capacity_is_bounded() {

@@ -180,7 +180,7 @@ impl<J: Payload> BuildContext<'_, J> {
     }
 
     /// The stage's parameters as the kind's config struct; errors name the file, line and key.
-    pub fn params<T: DeserializeOwned>(&self) -> Result<T> {
+    pub fn params<T: DeserializeOwned + Clone + 'static>(&self) -> Result<T> {
         self.pipeline.stage_params(self.stage)
     }
 

@@ -87,7 +87,7 @@ mod tests {
         // And back: what `StageSpec::typed` writes reads as the same parameters.
         let spec = crate::StageSpec::typed("s", &params).unwrap();
         assert_eq!(spec.kind, P::KIND);
-        assert_eq!(from_value::<P>(spec.params), params, "{}: does not survive a round trip", P::KIND);
+        assert_eq!(from_value::<P>(spec.params().clone()), params, "{}: does not survive a round trip", P::KIND);
     }
 
     fn from_value<P: DeserializeOwned>(value: serde_yaml::Value) -> P {
