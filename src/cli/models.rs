@@ -27,7 +27,7 @@ pub fn run(args: Args) -> Result<()> {
     let usable: Vec<(&std::path::PathBuf, &r2d2_imaging::steps::series::Series)> =
         found.iter().filter_map(|(dir, s)| s.as_ref().ok().map(|s| (dir, s))).collect();
     let declared = |s: &r2d2_imaging::steps::series::Series| -> Vec<String> {
-        let v = s.manifest.as_ref().and_then(|m| m.validity.as_ref()).and_then(|v| v.telescopes.clone()).unwrap_or_default();
+        let v = s.telescopes().to_vec();
         v.iter().map(|t| r2d2_imaging::steps::series::telescope_key(t)).collect()
     };
     let registry: Vec<String> = r2d2_imaging::simulate::telescope::telescopes()?.iter().map(|t| t.key.clone()).collect();

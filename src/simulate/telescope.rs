@@ -246,11 +246,6 @@ impl Array {
     }
 }
 
-/// The VLA in configuration `config` ('a', 'b', 'c' or 'd', case-insensitive).
-pub fn vla(config: char) -> Result<Array> {
-    telescope("vla")?.array(&config.to_string())
-}
-
 /// Parse an antenna table: lines starting with `#` and blank lines are ignored; every other
 /// line holds `X Y Z dish_diameter [station [mount]]`, with X, Y, Z in ITRF metres and the
 /// dish diameter in metres. Extra columns (station name, mount) are accepted and ignored.
@@ -506,6 +501,11 @@ fn norm3(a: [f64; 3]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The VLA in configuration `config` ('a', 'b', 'c' or 'd', case-insensitive).
+    fn vla(config: char) -> Result<Array> {
+        telescope("vla")?.array(&config.to_string())
+    }
     use std::f64::consts::{FRAC_PI_2, PI};
 
     fn baseline(a: &Array, i: i32, j: i32) -> [f64; 3] {

@@ -447,11 +447,17 @@ impl Series {
         self.validity_problems(&ImagingSetup { telescope: Some(telescope.to_string()), ..ImagingSetup::default() }).is_empty()
     }
 
+    /// The telescopes the series' domain declares (none: it declares none, and may run on
+    /// any telescope's data).
+    pub fn telescopes(&self) -> &[String] {
+        self.manifest.as_ref().and_then(|m| m.validity.as_ref()).and_then(|v| v.telescopes.as_deref()).unwrap_or_default()
+    }
+
     /// The name and the telescopes it was trained for: `vla-r2d2-512 (vla)`.
     pub fn name_with_telescopes(&self) -> String {
-        match self.manifest.as_ref().and_then(|m| m.validity.as_ref()).and_then(|v| v.telescopes.as_ref()) {
-            Some(t) if !t.is_empty() => format!("{} ({})", self.name, t.join("/")),
-            _ => self.name.clone(),
+        match self.telescopes() {
+            [] => self.name.clone(),
+            t => format!("{} ({})", self.name, t.join("/")),
         }
     }
 
