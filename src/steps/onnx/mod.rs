@@ -101,6 +101,8 @@ pub struct OnnxStep {
     /// The imaging the pipeline fixes (weighting), completed per job for the domain check.
     setup: ImagingSetup,
     validity: ValidityMode,
+    /// The series runs at a size it was not trained for.
+    size_warning: Option<String>,
 }
 
 type Key = (usize, usize);
@@ -110,9 +112,8 @@ impl OnnxStep {
     /// output checked here, before imaging starts.
     pub fn new(config: &OnnxConfig, size: usize, pipeline_threads: usize, setup: &ImagingSetup) -> Result<OnnxStep> {
         let series = Series::open(&series::resolve_for(&config.series, size, setup)?)?;
-        if let Some(warning) = series.check_size(size)? {
-            log::warn!("{warning}");
-        }
+        // Said per job (its log line and its metrics), before its first network.
+        let size_warning = series.check_size(size)?;
         // What the pipeline fixes (weighting, a super-resolution factor) is refused here, before
         // any data are read, under `validity: error`; each job is checked with what only its
         // data tell (telescope, the pixel's super-resolution) before its first network.
@@ -171,6 +172,7 @@ impl OnnxStep {
             walking: Default::default(),
             setup: setup.clone(),
             validity: config.validity,
+            size_warning,
         })
     }
 
@@ -325,8 +327,9 @@ impl NetworkStep for OnnxStep {
             ..self.setup.clone()
         };
         let problems = self.series.validity_problems(&setup);
+        let mut warnings: Vec<String> = self.size_warning.iter().cloned().collect();
         if problems.is_empty() {
-            return Ok(problems);
+            return Ok(warnings);
         }
         let domain = self.series.manifest.as_ref().and_then(|m| m.validity.as_ref()).map(|v| v.summary()).unwrap_or_default();
         let mut message = format!("series '{}' was not trained for this job: {} (its domain: {domain})", self.series.name, problems.join("; "));
@@ -335,7 +338,10 @@ impl NetworkStep for OnnxStep {
         }
         match self.validity {
             ValidityMode::Error => Err(Error::parameter("validity", message)),
-            ValidityMode::Warn => Ok(vec![format!("{message}; its image may be wrong, `validity: error` refuses such jobs")]),
+            ValidityMode::Warn => {
+                warnings.push(format!("{message}; its image may be wrong, `validity: error` refuses such jobs"));
+                Ok(warnings)
+            }
         }
     }
 
