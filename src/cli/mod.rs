@@ -72,7 +72,7 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Simulate a VLA observation of a sky image (or a procedural sky) into a Parquet table.
+    /// Simulate an observation (the VLA by default, --telescope) of a sky image (or a procedural sky) into a Parquet table.
     Simulate(simulate::Args),
     /// Training data for R2D2 series: simulated VLA A+C observations of ground truths (.npy).
     Trainset(trainset::Args),

@@ -231,6 +231,18 @@ pub fn make_sample(truth: TruthSource, params: &TrainsetParams, seed: u64, threa
     };
     let vis_table = table(sim.vis.clone());
     let (vis, _) = vis_table.to_visibilities("simulated sample")?;
+    // The table a sample is imaged from by other imagers (the engine's `image`, WSClean) holds
+    // the baselines' w, so its visibilities are predicted with the w-term, by the imaging's
+    // rule, as a real observation's are; the training images above stay coplanar.
+    let kept_table = match keep_table {
+        false => None,
+        true => {
+            let (u, v) = coverage.uv_wavelengths();
+            let mut with_w = crate::operator::predict(geometry, &u, &v, &coverage.w_wavelengths(), &sky, WTermMode::Auto, params.nufft, threads)?;
+            with_w.iter_mut().zip(&sim.noise).for_each(|(y, n)| *y += n);
+            Some(table(with_w))
+        }
+    };
     let (noise, _) = table(sim.noise.clone()).to_visibilities("simulated noise")?;
     let dirty_params = DirtyParams {
         size: n,
@@ -259,7 +271,7 @@ pub fn make_sample(truth: TruthSource, params: &TrainsetParams, seed: u64, threa
             pixel_arcsec: geometry.pixel_arcsec(),
             observation: draw,
         },
-        table: keep_table.then_some(vis_table),
+        table: kept_table,
         pixel_rad: geometry.pixel_rad,
     })
 }
@@ -330,6 +342,32 @@ mod tests {
 
     /// The dirty image is the PSF convolution of the truth plus the back-projected noise:
     /// `x_d = D x + b`, with D from the 2N PSF. Ties the four arrays of a sample together.
+    /// The kept table is the truth predicted with the w-term plus the sample's noise: imaged
+    /// with its w (as the engine and WSClean do), it is consistent; the coplanar prediction
+    /// the training images come from would not be, where the w-term matters.
+    #[test]
+    fn the_kept_table_is_predicted_with_its_w() {
+        let meerkat = TrainsetParams {
+            telescope: crate::simulate::telescope::telescope("meerkat").unwrap(),
+            size: 128,
+            integration_s: (1800.0, 1800.0),
+            dynamic_range: (1e5, 1e5),
+            ..params()
+        };
+        let s = make_sample(TruthSource::Procedural { seed: 3 }, &meerkat, 11, 2, true).unwrap();
+        let (vis, _) = s.table.as_ref().unwrap().to_visibilities("kept").unwrap();
+        let geometry = ImageGeometry::new(meerkat.size, s.pixel_rad).unwrap();
+        let rms_from = |mode: WTermMode| {
+            let y = crate::operator::predict(geometry, &vis.u, &vis.v, &vis.w, &s.truth, mode, meerkat.nufft, 2).unwrap();
+            let sum: f64 = y.iter().zip(&vis.vis).map(|(p, t)| (num_complex::Complex64::new(t.re as f64, t.im as f64) - p).norm_sqr()).sum();
+            (sum / y.len() as f64).sqrt()
+        };
+        let (with_w, coplanar) = (rms_from(WTermMode::On), rms_from(WTermMode::Off));
+        // What is left after the w-prediction is the noise (tau per complex sample).
+        assert!((with_w / s.info.tau - 1.0).abs() < 0.05, "{with_w} vs tau {}", s.info.tau);
+        assert!(coplanar > 1.5 * with_w, "the w-term does not matter here: {coplanar} vs {with_w}");
+    }
+
     #[test]
     fn dirty_is_psf_convolution_of_truth_plus_noise() {
         let s = make_sample(TruthSource::Procedural { seed: 4 }, &params(), 9, 2, false).unwrap();
