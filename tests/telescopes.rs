@@ -1,7 +1,7 @@
 //! Telescopes as data (`data/telescopes/`): the layouts are the published antenna positions,
 //! `r2d2 simulate --telescope` observes with a telescope's preset and names it in what it
-//! writes, and `series: auto` images a telescope no series was trained for with CLEAN and
-//! says so.
+//! writes, and `series: auto` runs the series trained for the data's telescope, or images a
+//! telescope no series was trained for with CLEAN and says so.
 
 mod common;
 
@@ -36,43 +36,53 @@ print("ok")
     assert!(out.status.success() && String::from_utf8_lossy(&out.stdout).contains("ok"), "{}", String::from_utf8_lossy(&out.stderr));
 }
 
-/// `r2d2 simulate --telescope meerkat` fills in MeerKAT's preset, writes `MeerKAT` as the
-/// telescope, an MS made from it carries it in OBSERVATION, and `r2d2 image` on an MS laid out
-/// as MeerKAT's pipelines write one (no series was trained for MeerKAT) images with CLEAN and a warning that names the telescope,
-/// where VLA data keep the series.
+/// `r2d2 simulate --telescope T` fills in T's preset and writes T's name as the telescope; an
+/// MS made from it carries it in OBSERVATION.
+fn simulated_ms(d: &Path, telescope: &str, config: &str, name: &str, expect: &str) {
+    let parquet = format!("{name}.parquet");
+    check(&r2d2(
+        &["simulate", "--telescope", telescope, "--configs", config, "--hours", "1", "--nfreq", "1", "--integration-s", "600", "--size", "64", "--dr", "100", "--out", &parquet],
+        d,
+    ));
+    check(&r2d2(&["convert", &parquet, &format!("{name}.ms")], d));
+    let read = Command::new("python3")
+        .arg("-c")
+        .arg("import sys; from casacore.tables import table; t = table(sys.argv[1] + '/OBSERVATION', ack=False); print(t.getcol('TELESCOPE_NAME')[0])")
+        .arg(d.join(format!("{name}.ms")))
+        .output()
+        .expect("python3 runs");
+    assert_eq!(String::from_utf8_lossy(&read.stdout).trim(), expect, "{}", String::from_utf8_lossy(&read.stderr));
+    // As MeerKAT's (and SKA-Mid's) pipelines write an MS: WEIGHT and SIGMA in a
+    // TiledShapeStMan, the data tiled, autocorrelations.
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/make_ms.py");
+    let made = Command::new("python3")
+        .arg(&script)
+        .args([parquet.as_str(), &format!("{name}-pipeline.ms"), "--stman", "meerkat", "--autocorrelations"])
+        .current_dir(d)
+        .output()
+        .expect("python3 runs");
+    assert!(made.status.success(), "{}", String::from_utf8_lossy(&made.stderr));
+}
+
+/// A pipeline-written MS of a telescope no series was trained for (SKA-Mid) is imaged with
+/// CLEAN and a warning that names the telescope and the series there are, with no option
+/// beyond the size; the VLA's data keep the series.
 #[test]
 fn a_telescope_without_a_series_is_imaged_by_clean_with_a_warning() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let sim = |telescope: &str, config: &str, out: &str| {
-        r2d2(&["simulate", "--telescope", telescope, "--configs", config, "--hours", "1", "--nfreq", "1", "--integration-s", "600", "--size", "64", "--dr", "100", "--out", out], d)
-    };
-    check(&sim("meerkat", "meerkat", "mk.parquet"));
-    let out = r2d2(&["convert", "mk.parquet", "mk.ms"], d);
+    simulated_ms(d, "ska-mid", "aastar", "ska", "SKA-Mid");
+    let out = r2d2(&["image", "ska-pipeline.ms", "--size", "64", "--name", "ska"], d);
     check(&out);
-    let read = Command::new("python3")
-        .arg("-c")
-        .arg("import sys; from casacore.tables import table; t = table(sys.argv[1] + '/OBSERVATION', ack=False); print(t.getcol('TELESCOPE_NAME')[0])")
-        .arg(d.join("mk.ms"))
-        .output()
-        .expect("python3 runs");
-    assert_eq!(String::from_utf8_lossy(&read.stdout).trim(), "MeerKAT", "{}", String::from_utf8_lossy(&read.stderr));
-
-    // As MeerKAT's pipelines write an MS (WEIGHT and SIGMA in a TiledShapeStMan, the data
-    // tiled, autocorrelations): imaged with no option beyond the size.
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/make_ms.py");
-    let made = Command::new("python3").arg(&script).args(["mk.parquet", "mk-pipeline.ms", "--stman", "meerkat", "--autocorrelations"]).current_dir(d).output().expect("python3 runs");
-    assert!(made.status.success(), "{}", String::from_utf8_lossy(&made.stderr));
-    let out = r2d2(&["image", "mk-pipeline.ms", "--size", "64", "--name", "mk"], d);
-    check(&out);
-    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("mk-metrics.json")).unwrap()).unwrap();
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("ska-metrics.json")).unwrap()).unwrap();
     let warnings = metrics["warnings"].to_string();
-    assert!(warnings.contains("'MeerKAT'") && warnings.contains("built-in CLEAN") && warnings.contains("vla-r2d2-512 (vla)"), "{warnings}");
-    assert_eq!(metrics["telescope"], "MeerKAT");
-    assert!(stderr(&out).contains("no series was trained for the telescope 'MeerKAT'"), "{}", stderr(&out));
+    assert!(warnings.contains("'SKA-Mid'") && warnings.contains("built-in CLEAN") && warnings.contains("vla-r2d2-512 (vla)"), "{warnings}");
+    assert!(warnings.contains("meerkat-r2d2-512 (meerkat)"), "{warnings}");
+    assert_eq!(metrics["telescope"], "SKA-Mid");
+    assert!(stderr(&out).contains("no series was trained for the telescope 'SKA-Mid'"), "{}", stderr(&out));
 
     // The VLA's data at the same size: a series (off its size, as before), not CLEAN.
-    check(&sim("vla", "c", "vla.parquet"));
+    check(&r2d2(&["simulate", "--telescope", "vla", "--configs", "c", "--hours", "1", "--nfreq", "1", "--integration-s", "600", "--size", "64", "--dr", "100", "--out", "vla.parquet"], d));
     let out = r2d2(&["image", "vla.parquet", "--size", "64", "--name", "vla"], d);
     check(&out);
     let metrics = std::fs::read_to_string(d.join("vla-metrics.json")).unwrap();
@@ -81,6 +91,25 @@ fn a_telescope_without_a_series_is_imaged_by_clean_with_a_warning() {
 
     let out = r2d2(&["simulate", "--telescope", "alma", "--out", "x.parquet"], d);
     common::assert_fails_with(&out, "unknown telescope", &["vla, meerkat, ska-mid", "'alma'"]);
+}
+
+/// A MeerKAT MS as MeerKAT's pipelines write one is imaged by the project's MeerKAT series,
+/// off its trained size too (the telescope counts before the size), and not by CLEAN or a
+/// VLA series.
+#[test]
+fn meerkat_data_are_imaged_by_the_meerkat_series() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    simulated_ms(d, "meerkat", "meerkat", "mk", "MeerKAT");
+    let out = r2d2(&["image", "mk-pipeline.ms", "--size", "64", "--name", "mk"], d);
+    check(&out);
+    let log = stderr(&out);
+    assert!(log.contains("meerkat-r2d2-512") && !log.contains("built-in CLEAN") && !log.contains("series 'vla-r2d2"), "{log}");
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("mk-metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["telescope"], "MeerKAT");
+    // Off its trained size: said in the job's metrics, not only in the log.
+    let warnings = metrics["warnings"].to_string();
+    assert!(!warnings.contains("was not trained for this job") && warnings.contains("running it at 64 x 64"), "{warnings}");
 }
 
 /// With a series trained for MeerKAT among the series found, `auto` runs it on MeerKAT data

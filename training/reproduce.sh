@@ -83,5 +83,5 @@ esac
 RESUME=""
 [ -f "$SERIES/manifest.yaml" ] && RESUME="--resume"
 $RUN python3 training/train.py --train "${TRAIN[@]}" --val "${VAL[@]}" --series "$SERIES" --work "$D/work" \
-    --seed 1 --threads 2 $ARGS $RESUME ${TRAIN_ARGS:-}
+    --name "$RECIPE" --seed 1 --threads 2 $ARGS $RESUME ${TRAIN_ARGS:-}
 $RUN python3 training/evaluate.py --series "$SERIES" --test "$D/test" --r2d2 "$R2D2" --out "$D/eval" --update-manifest

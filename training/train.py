@@ -14,6 +14,7 @@ networks to an existing series (the previous networks are replayed to rebuild x 
 """
 import argparse
 import hashlib
+import math
 import os
 import subprocess
 import sys
@@ -104,7 +105,7 @@ def train_network(i, model, train, x, r, active, args, work, device):
     with --crop, each step sees crops of them: valid samples for a local network (norm none)."""
     opt = torch.optim.RMSprop(model.parameters(), lr=args.lr)
     epochs = args.epochs_first if i == 1 else args.epochs
-    start_epoch, seconds = 0, 0.0
+    start_epoch, seconds, resumed_loss = 0, 0.0, float("nan")
     ckpt = os.path.join(work, "current.pt")
     if os.path.exists(ckpt):
         state = torch.load(ckpt, weights_only=False, map_location=device)
@@ -112,6 +113,8 @@ def train_network(i, model, train, x, r, active, args, work, device):
             model.load_state_dict(state["model"])
             opt.load_state_dict(state["optimizer"])
             start_epoch, seconds = state["epoch"], state["seconds"]
+            # The last epoch's loss, for the provenance when no epoch is left to run.
+            resumed_loss = state.get("loss", float("nan"))
             log(f"N{i}: resuming after epoch {start_epoch}")
     idx = torch.nonzero(active).flatten()
     inp_all, alpha, prev = common.network_input(i, train.dirty[idx], x[idx], r[idx])
@@ -119,7 +122,7 @@ def train_network(i, model, train, x, r, active, args, work, device):
     prev = prev.unsqueeze(1)
     target = target.unsqueeze(1)
     crop = args.crop or train.size
-    loss_value = float("nan")
+    loss_value = resumed_loss
     for epoch in range(start_epoch, epochs):
         t0 = time.time()
         model.train()
@@ -143,7 +146,7 @@ def train_network(i, model, train, x, r, active, args, work, device):
         loss_value = total / count
         seconds += time.time() - t0
         torch.save({"iteration": i, "epoch": epoch + 1, "seconds": seconds, "model": model.state_dict(),
-                    "optimizer": opt.state_dict()}, ckpt + ".tmp")
+                    "optimizer": opt.state_dict(), "loss": loss_value}, ckpt + ".tmp")
         os.replace(ckpt + ".tmp", ckpt)
         log(f"N{i} epoch {epoch + 1}/{epochs}: L1 {loss_value:.5f} on {count} crops of {crop} from {len(idx)} samples, {time.time() - t0:.1f} s")
     return epochs, seconds, loss_value
@@ -305,7 +308,7 @@ def main(argv=None):
         manifest["validation"].append({"iteration": i, **{k: round(v, 4) for k, v in m.items()}})
         manifest["provenance"]["networks"].append({
             "iteration": i, "epochs": epochs, "train_seconds": round(seconds, 1), "train_samples": before,
-            "pruned_after": before - int(active.sum()), "final_l1": round(loss, 6), "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "pruned_after": before - int(active.sum()), "final_l1": round(loss, 6) if math.isfinite(loss) else None, "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         })
         series.write_manifest(args.series, manifest)
         os.remove(os.path.join(args.work, "current.pt"))

@@ -77,8 +77,10 @@ const OVERSHOOT_ITERATIONS: usize = 3;
 
 /// A residual ratio that rises at two consecutive iterations by more than this factor in all
 /// is a series going wrong (the guard's); a smaller rise is the wobble of a series at its
-/// noise floor, which the reference v2 rule stops on, keeping the last iterate.
-const DIVERGING_RISE: f64 = 1.1;
+/// noise floor, which the reference v2 rule stops on, keeping the last iterate. Measured: in
+/// their domains, series wobble by a few per cent (VLA) to a fifth (MeerKAT, at ratio 0.002)
+/// near the end; outside it, ratios grow by factors.
+const DIVERGING_RISE: f64 = 1.5;
 
 /// After the divergence guard stopped a job: its model and residual become the best iterate's
 /// (the empty model when no iterate did better than ratio 1), and a warning says so.
@@ -206,9 +208,12 @@ mod tests {
         assert_eq!(guarded.stop_reason(&[1.34], true), Some(StopReason::Diverged));
         assert_eq!(guarded.stop_reason(&[1.34, 0.5], true), None);
         // One rise is allowed (a network may trade residual for precision); two in a row by
-        // more than 10 % are divergence; two small ones the v2 stop at the noise floor.
+        // more than half are divergence; two smaller ones the v2 stop at the noise floor
+        // (a held-out MeerKAT sky: 0.0019 -> 0.0021 -> 0.0023).
         assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.31], false), None);
-        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.32, 0.34], false), Some(StopReason::Rising));
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.4, 0.46], false), Some(StopReason::Rising));
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.32, 0.34], false), Some(StopReason::Stalled));
+        assert_eq!(guarded.stop_reason(&[0.0019, 0.0021, 0.0023], false), Some(StopReason::Stalled));
         assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.301, 0.302], false), Some(StopReason::Stalled));
         assert_eq!(stage(false, true).stop_reason(&[0.5, 0.3, 0.301, 0.302], false), None, "no v2 stop without early_stop");
         assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.3 * (1.0 + 5e-5)], false), Some(StopReason::Converged));
