@@ -374,13 +374,13 @@ def plot(path, panels, records, title):
             ax = axes[i][j]
             v = np.log10(np.clip(pan[key] / peak, 1e-4, None))
             im = ax.imshow(v, origin="lower", cmap="inferno", vmin=-4, vmax=0, interpolation="nearest")
-            title = label if key == "truth" else f"{label}\n{rec['scores'][key]['snr_db']:.1f} / {rec['scores'][key]['logsnr_db']:.1f} dB"
+            heading = label if key == "truth" else f"{label}\n{rec['scores'][key]['snr_db']:.1f} / {rec['scores'][key]['logsnr_db']:.1f} dB"
             if key == "truth":
-                title += f"\nsky {rec['sky']}, DR {rec['dynamic_range']:.2g}"
-            ax.set_title(title, fontsize=8)
+                heading += f"\nsky {rec['sky']}, DR {rec['dynamic_range']:.2g}"
+            ax.set_title(heading, fontsize=8)
             ax.set_xticks([])
             ax.set_yticks([])
-    fig.subplots_adjust(left=0.02, right=0.88, bottom=0.03, top=1 - 0.55 / (3.3 * rows), wspace=0.04, hspace=0.25)
+    fig.subplots_adjust(left=0.02, right=0.88, bottom=0.03, top=1 - 0.75 / (3.3 * rows), wspace=0.04, hspace=0.25)
     cax = fig.add_axes([0.9, 0.1, 0.02, 0.8])
     cb = fig.colorbar(im, cax=cax)
     cb.set_label("log10(image / truth peak)")

@@ -152,6 +152,15 @@ def train_network(i, model, train, x, r, active, args, work, device):
     return epochs, seconds, loss_value
 
 
+def telescope_name(key):
+    """The telescope's TELESCOPE_NAME from the registry (data/telescopes/telescopes.yaml)."""
+    import yaml
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "data", "telescopes", "telescopes.yaml")
+    with open(path) as f:
+        entry = (yaml.safe_load(f) or {}).get(key) or {}
+    return entry.get("name", key.upper())
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--train", required=True, nargs="+", help="training set directories (r2d2 trainset), concatenated")
@@ -228,7 +237,7 @@ def main(argv=None):
         validity = series.domain(train.meta, size)
         fmt = lambda r: f"{r[0]:g}" if r[0] == r[1] else f"{r[0]:g}..{r[1]:g}"
         desc = (f"R2D2 {args.arch} series ({args.base_channels} channels, {args.poolings} poolings, norm {args.norm}) for "
-                f"{'/'.join(t.upper() for t in validity['telescopes'])}, Briggs {fmt(validity['robust'])}, "
+                f"{'/'.join(telescope_name(t) for t in validity['telescopes'])}, Briggs {fmt(validity['robust'])}, "
                 f"SR {fmt(validity['superresolution'])}, trained at {size}x{size}; H and W must be multiples of {2 ** args.poolings}")
         model = series.make_network(args.arch, args.base_channels, args.poolings, args.norm)
         manifest = series.new_manifest(name, model, size, desc, provenance, validity)

@@ -61,7 +61,7 @@ pub struct Iterate {
 pub enum StopReason {
     /// The residual ratio rose above 1: the model explained the data worse than an empty one.
     Diverged,
-    /// The residual ratio rose at two consecutive iterations, by more than half in all.
+    /// The residual ratio rose at two consecutive iterations, by more than half in all, to above 0.05.
     Rising,
     /// The residual ratio rose slightly at two consecutive iterations (reference v2): the
     /// series is at its noise floor; the last iterate is kept.

@@ -41,7 +41,7 @@ impl ResidualStage {
             if last > 1.0 && (finished || !tolerated_overshoot(ratios)) {
                 return Some(StopReason::Diverged);
             }
-            if rose_twice && ratios[n - 1] > DIVERGING_RISE * ratios[n - 3] {
+            if rose_twice && ratios[n - 1] > DIVERGING_RISE * ratios[n - 3] && last > RISING_FLOOR {
                 return Some(StopReason::Rising);
             }
         }
@@ -81,6 +81,12 @@ const OVERSHOOT_ITERATIONS: usize = 3;
 /// their domains, series wobble by a few per cent (VLA) to a fifth (MeerKAT, at ratio 0.002)
 /// near the end; outside it, ratios grow by factors.
 const DIVERGING_RISE: f64 = 1.5;
+
+/// Below this residual ratio a rise is never divergence: the model explains all but a few
+/// per cent of the dirty image, and a network that trades residual for precision raises a
+/// ratio at the noise floor by any factor (held-out MeerKAT: 0.0024 -> 0.0057 over two
+/// networks while the SNR rose). Diverging series measured so far were at 1 to 200.
+const RISING_FLOOR: f64 = 0.05;
 
 /// After the divergence guard stopped a job: its model and residual become the best iterate's
 /// (the empty model when no iterate did better than ratio 1), and a warning says so.
@@ -208,12 +214,15 @@ mod tests {
         assert_eq!(guarded.stop_reason(&[1.34], true), Some(StopReason::Diverged));
         assert_eq!(guarded.stop_reason(&[1.34, 0.5], true), None);
         // One rise is allowed (a network may trade residual for precision); two in a row by
-        // more than half are divergence; two smaller ones the v2 stop at the noise floor
+        // more than half, above a ratio of 0.05, are divergence; others the v2 stop at the noise floor
         // (a held-out MeerKAT sky: 0.0019 -> 0.0021 -> 0.0023).
         assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.31], false), None);
         assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.4, 0.46], false), Some(StopReason::Rising));
         assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.32, 0.34], false), Some(StopReason::Stalled));
         assert_eq!(guarded.stop_reason(&[0.0019, 0.0021, 0.0023], false), Some(StopReason::Stalled));
+        // Near the noise floor no rise is divergence; above the floor the same rise is.
+        assert_eq!(guarded.stop_reason(&[0.0024, 0.004, 0.0057], false), Some(StopReason::Stalled));
+        assert_eq!(guarded.stop_reason(&[0.024, 0.04, 0.057], false), Some(StopReason::Rising));
         assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.301, 0.302], false), Some(StopReason::Stalled));
         assert_eq!(stage(false, true).stop_reason(&[0.5, 0.3, 0.301, 0.302], false), None, "no v2 stop without early_stop");
         assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.3 * (1.0 + 5e-5)], false), Some(StopReason::Converged));
