@@ -441,8 +441,11 @@ fn resolve_auto(params: &ImageParams, telescope: impl FnOnce() -> Option<String>
     if found.is_empty() || found.iter().any(|(_, s)| s.trained_for_telescope(telescope)) {
         // The series `auto` prefers for this telescope, named from here on so that the
         // imaging setting comes from the series that runs. Off its trained size the step
-        // says so itself.
-        let (dir, _) = crate::steps::series::select_for(params.size, &fixed_setup(params, Some(telescope)))?;
+        // also says so in each job's metrics.
+        let (dir, off_size) = crate::steps::series::select_for(params.size, &fixed_setup(params, Some(telescope)))?;
+        if let Some(warning) = off_size {
+            log::warn!("{warning}");
+        }
         return Ok((ImageParams { step: StepChoice::Series(dir), ..params.clone() }, None));
     }
     let known: Vec<String> = found.iter().map(|(_, s)| s.name_with_telescopes()).collect();
