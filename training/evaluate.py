@@ -23,8 +23,10 @@ from astropy.io import fits
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from r2d2train import common, series  # noqa: E402
 
-# `w_term: off`: the test samples are simulated coplanar, as training samples are (`r2d2
-# trainset`: the series learn D as the PSF convolution it then is).
+# `w_term: off`: the series are evaluated on the coplanar images of the set (`r2d2 trainset`:
+# the series learn D as the PSF convolution it then is), and this CLEAN row is a model-only
+# baseline beside them. The tables hold visibilities predicted with their w (what other
+# imagers see): `benches/vs_wsclean.py` images them as a user would, w-term included.
 CLEAN_YAML = """name: clean-test
 image: {{size: {size}, superresolution: 1.5}}
 stages:
@@ -55,7 +57,7 @@ def run_clean(r2d2, data, k, workdir, cycles, components):
     proc = subprocess.run([r2d2, "-q", "run", yaml_path], capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"r2d2 run {yaml_path} failed:\n{proc.stderr}")
-    return read_fits(prefix + "-model.fits"), read_fits(prefix + "-residual.fits")
+    return read_fits(prefix + "-model.fits"), read_fits(prefix + "-residual.fits"), read_fits(prefix + "-dirty.fits")
 
 
 def evaluate(series_dir, test_dir, r2d2, out, clean_cycles=10, clean_components=2000, limit=None, threads=2):
@@ -85,12 +87,14 @@ def evaluate(series_dir, test_dir, r2d2, out, clean_cycles=10, clean_components=
     models, residuals, d_mismatch = [], [], []
     with tempfile.TemporaryDirectory(dir=out) as work:
         for k in range(len(data)):
-            model, res = run_clean(r2d2, data, k, work, clean_cycles, clean_components)
+            model, res, engine_dirty = run_clean(r2d2, data, k, work, clean_cycles, clean_components)
             models.append(model)
             residuals.append(res)
-            # dirty - D model with this package's D vs the engine's Toeplitz residual.
-            mine = common.residual(data.dirty[k:k + 1], torch.from_numpy(model[None]).float(), data.psf_hat[k:k + 1])[0].double()
-            d_mismatch.append(float((mine - torch.from_numpy(res)).norm() / data.dirty[k].double().norm()))
+            # The engine's dirty - D model with this package's D vs the engine's Toeplitz
+            # residual: the two D alone (the engine's dirty image is of the table's visibilities).
+            dirty_k = torch.from_numpy(engine_dirty[None]).float()
+            mine = common.residual(dirty_k, torch.from_numpy(model[None]).float(), data.psf_hat[k:k + 1])[0].double()
+            d_mismatch.append(float((mine - torch.from_numpy(res)).norm() / dirty_k.double().norm()))
     clean_x = torch.from_numpy(np.stack(models)).float()
     clean_r = torch.from_numpy(np.stack(residuals)).float()
     row("clean", clean_cycles, clean_x, clean_r)
