@@ -64,6 +64,15 @@ fn simulated_ms(d: &Path, telescope: &str, config: &str, name: &str, expect: &st
     assert!(made.status.success(), "{}", String::from_utf8_lossy(&made.stderr));
 }
 
+/// `r2d2 image NAME-pipeline.ms --size 64 --name NAME` with no other option: its output
+/// (checked to succeed) and its metrics.
+fn image_pipeline_ms(d: &Path, name: &str) -> (std::process::Output, serde_json::Value) {
+    let out = r2d2(&["image", &format!("{name}-pipeline.ms"), "--size", "64", "--name", name], d);
+    check(&out);
+    let metrics = serde_json::from_str(&std::fs::read_to_string(d.join(format!("{name}-metrics.json"))).unwrap()).unwrap();
+    (out, metrics)
+}
+
 /// A pipeline-written MS of a telescope no series was trained for (SKA-Mid) is imaged with
 /// CLEAN and a warning that names the telescope and the series there are, with no option
 /// beyond the size; the VLA's data keep the series.
@@ -72,9 +81,7 @@ fn a_telescope_without_a_series_is_imaged_by_clean_with_a_warning() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     simulated_ms(d, "ska-mid", "aastar", "ska", "SKA-Mid");
-    let out = r2d2(&["image", "ska-pipeline.ms", "--size", "64", "--name", "ska"], d);
-    check(&out);
-    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("ska-metrics.json")).unwrap()).unwrap();
+    let (out, metrics) = image_pipeline_ms(d, "ska");
     let warnings = metrics["warnings"].to_string();
     assert!(warnings.contains("'SKA-Mid'") && warnings.contains("built-in CLEAN") && warnings.contains("vla-r2d2-512 (vla)"), "{warnings}");
     assert!(warnings.contains("meerkat-r2d2-512 (meerkat)"), "{warnings}");
@@ -101,11 +108,9 @@ fn meerkat_data_are_imaged_by_the_meerkat_series() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
     simulated_ms(d, "meerkat", "meerkat", "mk", "MeerKAT");
-    let out = r2d2(&["image", "mk-pipeline.ms", "--size", "64", "--name", "mk"], d);
-    check(&out);
+    let (out, metrics) = image_pipeline_ms(d, "mk");
     let log = stderr(&out);
     assert!(log.contains("meerkat-r2d2-512") && !log.contains("built-in CLEAN") && !log.contains("series 'vla-r2d2"), "{log}");
-    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("mk-metrics.json")).unwrap()).unwrap();
     assert_eq!(metrics["telescope"], "MeerKAT");
     // Off its trained size: said in the job's metrics, not only in the log.
     let warnings = metrics["warnings"].to_string();

@@ -98,17 +98,16 @@ impl StageSpec {
     /// `StageSpec::typed("weights", &WeightingParams::default())?.to("grid")`. An error only if
     /// the parameters do not serialise to a mapping (which the built-in kinds' always do).
     pub fn typed<P: StageParams>(name: impl Into<String>, params: &P) -> Result<StageSpec> {
-        let typed_params = params;
         let name = name.into();
         let what = || format!("stage '{name}' ({})", P::KIND);
-        let params = serde_yaml::to_value(params).map_err(|e| Error::parameter(what(), format!("its parameters do not serialise: {e}")))?;
-        match &params {
+        let mapping = serde_yaml::to_value(params).map_err(|e| Error::parameter(what(), format!("its parameters do not serialise: {e}")))?;
+        match &mapping {
             Value::Mapping(map) if ROUTING_KEYS.iter().any(|k| map.contains_key(*k)) => {
                 Err(Error::parameter(what(), format!("its parameters use a name the engine keeps for routing ({})", ROUTING_KEYS.join(", "))))
             }
             Value::Mapping(_) => {
-                let typed = Some(TypedParams(std::sync::Arc::new(typed_params.clone())));
-                Ok(StageSpec { name, kind: P::KIND.to_string(), to: None, done: None, params, typed })
+                let typed = Some(TypedParams(std::sync::Arc::new(params.clone())));
+                Ok(StageSpec { name, kind: P::KIND.to_string(), to: None, done: None, params: mapping, typed })
             }
             _ => Err(Error::parameter(what(), "its parameters serialise to something other than a mapping")),
         }
