@@ -44,17 +44,56 @@ def fits_header_value(path, key):
                     return float(card[10:].split("/")[0])
 
 
+# Channels per `r2d2 simulate` run: the simulator holds its whole observation (about 200 bytes
+# a sample), so larger observations are simulated in parts of this many channels and joined.
+PART_CHANNELS = 10
+
+
 def observation(d, name, hours, channels):
     parquet = os.path.join(d, f"{name}.parquet")
     if not os.path.exists(parquet):
-        subprocess.run([R2D2, "simulate", "--configs", "c", "--hours", str(hours), "--integration-s", "10", "--nfreq", str(channels),
-                        "--freq-ratio", "1.5" if channels > 1 else "1", "--seed", "1", "--out", parquet, "-q"], check=True)
+        if channels <= PART_CHANNELS:
+            subprocess.run([R2D2, "simulate", "--configs", "c", "--hours", str(hours), "--integration-s", "10", "--nfreq", str(channels),
+                            "--freq-ratio", "1.5" if channels > 1 else "1", "--seed", "1", "--out", parquet, "-q"], check=True)
+        else:
+            join_parts(d, name, hours, channels, parquet)
     ms = os.path.join(d, f"{name}.ms")
     if not os.path.isdir(ms):
         subprocess.run([R2D2, "convert", parquet, ms, "-q"], check=True)
     rows = int(subprocess.run(["python3", "-c", f"import pyarrow.parquet as pq; print(pq.ParquetFile('{parquet}').metadata.num_rows)"],
                               capture_output=True, text=True, check=True).stdout)
     return parquet, ms, rows
+
+
+def join_parts(d, name, hours, channels, parquet):
+    """The 1400..2100 MHz band in `channels` channels, simulated PART_CHANNELS at a time (the
+    same procedural sky on a fixed pixel, the same tracks) and joined a row group at a time."""
+    import pyarrow.parquet as pq
+    low, high = 1400.0, 2100.0
+    step = (high - low) / (channels - 1)
+    parts = []
+    for start in range(0, channels, PART_CHANNELS):
+        count = min(PART_CHANNELS, channels - start)
+        lowest = low + start * step
+        part = os.path.join(d, f"{name}-part{start // PART_CHANNELS:03d}.parquet")
+        if not os.path.exists(part):
+            subprocess.run([R2D2, "simulate", "--configs", "c", "--hours", str(hours), "--integration-s", "10", "--nfreq", str(count),
+                            "--freq-mhz", str(lowest), "--freq-ratio", str((lowest + (count - 1) * step) / lowest),
+                            "--pixel-arcsec", "2.8", "--seed", "1", "--out", part, "-q"], check=True)
+        parts.append(part)
+    tmp = parquet + ".tmp"
+    first = pq.ParquetFile(parts[0])
+    with pq.ParquetWriter(tmp, first.schema_arrow, compression="zstd") as writer:
+        for part in parts:
+            f = pq.ParquetFile(part)
+            for group in range(f.num_row_groups):
+                writer.write_table(f.read_row_group(group))
+    os.replace(tmp, parquet)
+    for part in parts:
+        os.remove(part)
+        sky = part[: -len(".parquet")] + ".sky.fits"
+        if os.path.exists(sky):
+            os.remove(sky)
 
 
 def measure(d, name, parquet, ms, size, steps):

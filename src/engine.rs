@@ -263,6 +263,9 @@ pub struct ImageParams {
     pub oversampling: f64,
     /// The w-term (default `auto`: corrected where it matters at `epsilon`).
     pub w_term: crate::operator::WTermMode,
+    /// Most memory (MB) a file's samples may take held for an operator (the w-corrected
+    /// residual); above it they are read again at each update (the gridder's `hold_mb`).
+    pub hold_mb: f64,
     pub step: StepChoice,
     /// CLEAN major cycles (default 5, or 20 when `clean.max_components` bounds the work), the
     /// first networks of a series (default all), or a plugin's steps (default 10).
@@ -296,6 +299,7 @@ impl Default for ImageParams {
             epsilon: 1e-6,
             oversampling: 2.0,
             w_term: crate::operator::WTermMode::Auto,
+            hold_mb: crate::stages::params::DEFAULT_HOLD_MB,
             step: StepChoice::Auto,
             clean: CleanControls::default(),
             iterations: None,
@@ -340,7 +344,7 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
     };
     let (weighting, superresolution) = imaging_setting(params)?;
     let weights = WeightingParams { grid_factor: params.weighting_grid_factor, ..WeightingParams::new(weighting) };
-    let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling, w_term: params.w_term };
+    let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling, w_term: params.w_term, hold_mb: params.hold_mb, ..GridderParams::default() };
     let mut stages = vec![
         read.to("weights"),
         StageSpec::typed("weights", &weights)?.to("grid"),

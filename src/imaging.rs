@@ -5,7 +5,7 @@
 
 use crate::nufft::NufftParams;
 use crate::operator::{ImageGeometry, MeasurementOperator, WTermMode};
-use crate::vis::Visibilities;
+use crate::vis::{weighting_problem, VisSummary, Visibilities};
 use crate::weighting::{Weighting, DEFAULT_GRID_FACTOR};
 use crate::{Error, Result};
 
@@ -79,8 +79,13 @@ impl Default for DirtyParams {
 impl DirtyParams {
     /// The image geometry for these visibilities.
     pub fn geometry(&self, vis: &Visibilities) -> Result<ImageGeometry> {
+        self.geometry_for(vis.max_uv())
+    }
+
+    /// The image geometry for samples whose longest baseline is `max_uv` wavelengths.
+    pub fn geometry_for(&self, max_uv: f64) -> Result<ImageGeometry> {
         match self.pixel {
-            PixelScale::SuperResolution(sr) => ImageGeometry::from_superresolution(self.size, sr, vis.max_uv()),
+            PixelScale::SuperResolution(sr) => ImageGeometry::from_superresolution(self.size, sr, max_uv),
             PixelScale::Arcsec(p) => ImageGeometry::from_arcsec(self.size, p),
         }
     }
@@ -99,10 +104,7 @@ pub struct DirtyProducts {
 pub fn total_weights(vis: &Visibilities, geometry: ImageGeometry, weighting: Weighting, grid_factor: f64) -> Result<Vec<f64>> {
     if weighting == Weighting::Given {
         if vis.imaging_weight.len() != vis.len() {
-            return Err(Error::parameter(
-                "weighting",
-                "`given` uses the imaging weights given with the data (a table's `imaging_weight` column, a .mat file's `nWimag`), and these visibilities carry none: choose natural, uniform or briggs",
-            ));
+            return Err(weighting_problem(Weighting::Given, &VisSummary::empty()).expect("given without weights"));
         }
         return Ok(vis.weight.iter().zip(&vis.imaging_weight).map(|(&n, &i)| f64::from(n) * f64::from(i)).collect());
     }
@@ -177,3 +179,4 @@ mod w_term_tests {
         assert!(WTerm::of(&vis(1.7e5), narrow).warning(narrow).is_none());
     }
 }
+

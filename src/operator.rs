@@ -236,6 +236,34 @@ impl MeasurementOperator {
         }
     }
 
+    /// As [`for_mode`](Self::for_mode) with `kappa` 1 and no PSF computed for it: one part of
+    /// an operator summed over parts (samples read a chunk at a time), whose `kappa` is the
+    /// whole sum's.
+    #[allow(clippy::too_many_arguments)]
+    pub fn part_for_mode(
+        w_term: bool,
+        geometry: ImageGeometry,
+        u: &[f64],
+        v: &[f64],
+        w: &[f64],
+        weight: &[f64],
+        nufft: NufftParams,
+        threads: usize,
+    ) -> Result<MeasurementOperator> {
+        check_points(geometry, u, v, weight)?;
+        if w.len() != u.len() {
+            return Err(Error::parameter("visibilities", "u and w arrays differ in length"));
+        }
+        if w_term {
+            let plan = WGridPlan::new(geometry.size, geometry.pixel_rad, u, v, w, nufft, threads)?;
+            return Ok(MeasurementOperator { geometry, plan: Plan::WGridded(plan), weight: weight.to_vec(), kappa: 1.0 });
+        }
+        let (x, y): (Vec<f64>, Vec<f64>) = u.iter().zip(v).map(|(&u, &v)| geometry.uv_to_phase(u, v)).unzip();
+        let plan = Nufft2d::new(geometry.size, geometry.size, &x, &y, nufft, threads)?;
+        let weight: Vec<f64> = plan.order().iter().map(|&k| weight[k as usize]).collect();
+        Ok(MeasurementOperator { geometry, plan: Plan::Coplanar(plan), weight, kappa: 1.0 })
+    }
+
     /// Sets `kappa` from the PSF's peak.
     fn normalised(mut op: MeasurementOperator) -> Result<MeasurementOperator> {
         let peak = op.unnormalised_psf_peak();
@@ -539,6 +567,91 @@ pub fn doubled_psf(
         .try_into()
         .expect("one transform");
     Ok(psf)
+}
+
+/// The dirty image, the 2N PSF (and the N PSF, its centre) and `kappa` of samples given a
+/// chunk at a time, as a table is read: one pass over the data makes every image the imaging
+/// needs, and memory is the two grids and one chunk, whatever the number of samples. Equal to
+/// [`dirty_and_psf`] and [`doubled_psf`] to the NUFFT's accuracy.
+pub struct ImageGridder {
+    geometry: ImageGeometry,
+    /// `None`: the 2N PSF only (the dirty image is made elsewhere: with the w-term).
+    dirty: Option<ChunkedAdjoint>,
+    psf_2n: ChunkedAdjoint,
+    samples: usize,
+}
+
+/// What [`ImageGridder`] makes.
+pub struct GriddedImages {
+    /// Empty where the gridder made the 2N PSF only.
+    pub dirty: Vec<f64>,
+    /// Peak 1 at `(N/2, N/2)`.
+    pub psf: Vec<f64>,
+    /// `2N x 2N`, centre at `(N, N)`, scaled by the same `kappa`.
+    pub psf_2n: Vec<f64>,
+    pub kappa: f64,
+}
+
+impl ImageGridder {
+    pub fn new(geometry: ImageGeometry, nufft: NufftParams, threads: usize) -> Result<ImageGridder> {
+        let n = geometry.size;
+        Ok(ImageGridder {
+            geometry,
+            dirty: Some(ChunkedAdjoint::new(n, n, 1, nufft, threads)?),
+            psf_2n: ChunkedAdjoint::new(2 * n, 2 * n, 1, nufft, threads)?,
+            samples: 0,
+        })
+    }
+
+    /// A gridder of the (coplanar) 2N PSF alone.
+    pub fn doubled_psf_only(geometry: ImageGeometry, nufft: NufftParams, threads: usize) -> Result<ImageGridder> {
+        let n = geometry.size;
+        Ok(ImageGridder { geometry, dirty: None, psf_2n: ChunkedAdjoint::new(2 * n, 2 * n, 1, nufft, threads)?, samples: 0 })
+    }
+
+    /// Adds samples at `(u, v)` (wavelengths) with total weights `weight` and values `vis`.
+    /// Baselines beyond the image's Nyquist limit are refused (see [`MeasurementOperator::new`]).
+    pub fn add(&mut self, u: &[f64], v: &[f64], weight: &[f64], vis: &[impl Visibility]) -> Result<()> {
+        check_points(self.geometry, u, v, weight)?;
+        if vis.len() != weight.len() {
+            return Err(Error::parameter("visibilities", "visibility and weight arrays differ in length"));
+        }
+        // The caller's chunk is gridded whole (its size sets the sorting's memory), up to the
+        // size beyond which larger chunks no longer save time.
+        let step = u.len().clamp(1, 1 << 20);
+        for start in (0..u.len()).step_by(step) {
+            let end = (start + step).min(u.len());
+            let (x, y): (Vec<f64>, Vec<f64>) =
+                u[start..end].iter().zip(&v[start..end]).map(|(&u, &v)| self.geometry.uv_to_phase(u, v)).unzip();
+            if let Some(dirty) = &mut self.dirty {
+                dirty.add(&x, &y, |_, k| vis[start + k].to_c64() * weight[start + k])?;
+            }
+            self.psf_2n.add(&x, &y, |_, k| Complex64::new(weight[start + k], 0.0))?;
+        }
+        self.samples += u.len();
+        Ok(())
+    }
+
+    /// The images, normalised by `kappa` (`None`: from the 2N PSF's own peak).
+    pub fn finish(self, kappa: Option<f64>) -> Result<GriddedImages> {
+        let n = self.geometry.size;
+        let real = |images: Vec<Vec<Complex64>>| -> Vec<f64> { images.into_iter().next().unwrap_or_default().into_iter().map(|c| c.re).collect() };
+        let mut dirty = self.dirty.map(|d| real(d.finish())).unwrap_or_default();
+        let mut psf_2n = real(self.psf_2n.finish());
+        let peak = psf_2n.get(n * 2 * n + n).copied().unwrap_or(0.0);
+        if self.samples == 0 || !(peak > 0.0) {
+            return Err(Error::parameter("weight", "all visibilities have zero weight: nothing to image"));
+        }
+        let kappa = kappa.unwrap_or(1.0 / peak);
+        dirty.iter_mut().chain(psf_2n.iter_mut()).for_each(|p| *p *= kappa);
+        // The N PSF is the 2N one's centre: the same sums at the same offsets from the peak.
+        let mut psf = Vec::with_capacity(n * n);
+        for iy in 0..n {
+            let row = (iy + n / 2) * 2 * n + n / 2;
+            psf.extend_from_slice(&psf_2n[row..row + n]);
+        }
+        Ok(GriddedImages { dirty, psf, psf_2n, kappa })
+    }
 }
 
 /// `D x = kappa Re{Phi^H Phi x}` as a linear convolution with the 2N x 2N PSF, by FFT:

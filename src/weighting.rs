@@ -188,42 +188,121 @@ fn weigh(
     grid_factor: f64,
     combine: impl Fn(f64, f64) -> f64,
 ) -> Result<Vec<f64>> {
-    if scheme == Weighting::Natural {
-        return Ok((0..n).map(|k| combine(1.0, natural_weight(k))).collect());
-    }
     if scheme == Weighting::Given {
         return Err(Error::parameter("weighting", "`given` takes the imaging weights given with the visibilities, which these have none of"));
     }
-    check_grid(grid_factor, image_size)?;
-    let cells = ((grid_factor * image_size as f64).floor() as usize).max(1);
-    let cell_of = |k: usize| -> usize {
-        let (u, v) = point(k);
-        let (u, v) = if v < 0.0 { (-u, -v) } else { (u, v) };
-        let index = |t: f64| -> usize {
-            let c = ((t + std::f64::consts::PI) * cells as f64 / (2.0 * std::f64::consts::PI)).floor();
-            c.clamp(0.0, (cells - 1) as f64) as usize
-        };
-        index(v) * cells + index(u)
-    };
-    let mut density = vec![0.0f64; cells * cells];
-    for k in 0..n {
-        density[cell_of(k)] += natural_weight(k);
-    }
-    Ok(match scheme {
-        Weighting::Natural | Weighting::Given => unreachable!("handled above"),
-        Weighting::Uniform => (0..n)
-            .map(|k| {
-                let g = density[cell_of(k)];
-                combine(if g > 0.0 { 1.0 / g } else { 0.0 }, natural_weight(k))
-            })
-            .collect(),
-        Weighting::Briggs { robust } => {
-            let sum_w: f64 = (0..n).map(&natural_weight).sum();
-            let sum_g2: f64 = density.iter().map(|g| g * g).sum();
-            let f2 = if sum_g2 > 0.0 { (5.0 * 10f64.powf(-robust)).powi(2) * sum_w / sum_g2 } else { 0.0 };
-            (0..n).map(|k| combine(1.0 / (1.0 + f2 * density[cell_of(k)]), natural_weight(k))).collect()
+    let mut density = DensityGrid::new(scheme, image_size, grid_factor)?;
+    density.add(n, &point, &natural_weight);
+    let rule = density.finish();
+    Ok((0..n).map(|k| combine(rule.imaging_weight(point(k)), natural_weight(k))).collect())
+}
+
+/// The summed natural weight per weighting cell, gathered over the samples (given in as many
+/// calls of [`add`](Self::add) as the caller likes: a table read in chunks): the first of the
+/// two passes of uniform and Briggs weighting. Natural and given weighting need no grid.
+pub struct DensityGrid {
+    scheme: Weighting,
+    cells: usize,
+    density: Vec<f64>,
+    sum_w: f64,
+}
+
+impl DensityGrid {
+    pub fn new(scheme: Weighting, image_size: usize, grid_factor: f64) -> Result<DensityGrid> {
+        if !scheme.needs_density() {
+            return Ok(DensityGrid { scheme, cells: 0, density: Vec::new(), sum_w: 0.0 });
         }
-    })
+        check_grid(grid_factor, image_size)?;
+        let cells = ((grid_factor * image_size as f64).floor() as usize).max(1);
+        Ok(DensityGrid { scheme, cells, density: vec![0.0; cells * cells], sum_w: 0.0 })
+    }
+
+    /// Adds `n` samples at operator coordinates `point(k)` with natural weight `natural(k)`.
+    pub fn add(&mut self, n: usize, point: impl Fn(usize) -> (f64, f64), natural: impl Fn(usize) -> f64) {
+        if self.density.is_empty() {
+            return;
+        }
+        for k in 0..n {
+            let w = natural(k);
+            self.density[cell_of(self.cells, point(k))] += w;
+            self.sum_w += w;
+        }
+    }
+
+    /// The imaging weight of every sample from now on.
+    pub fn finish(self) -> WeightRule {
+        let DensityGrid { scheme, cells, density, sum_w } = self;
+        let f2 = match scheme {
+            Weighting::Briggs { robust } => {
+                let sum_g2: f64 = density.iter().map(|g| g * g).sum();
+                if sum_g2 > 0.0 {
+                    (5.0 * 10f64.powf(-robust)).powi(2) * sum_w / sum_g2
+                } else {
+                    0.0
+                }
+            }
+            _ => 0.0,
+        };
+        WeightRule { scheme, cells, density, f2 }
+    }
+}
+
+/// A sample's imaging weight from its position alone, once the density of the whole
+/// uv-coverage is known: no per-sample array is needed, so a table read in chunks is weighted
+/// as it is gridded.
+#[derive(Clone, Debug)]
+pub struct WeightRule {
+    scheme: Weighting,
+    cells: usize,
+    density: Vec<f64>,
+    f2: f64,
+}
+
+impl WeightRule {
+    /// Natural weighting (the imaging weight is 1).
+    pub fn natural() -> WeightRule {
+        WeightRule { scheme: Weighting::Natural, cells: 0, density: Vec::new(), f2: 0.0 }
+    }
+
+    pub fn scheme(&self) -> Weighting {
+        self.scheme
+    }
+
+    /// The imaging weight (multiplying the natural weight) at operator coordinates `point`;
+    /// 1 for natural weighting, and for `given` (whose weights come with the samples).
+    pub fn imaging_weight(&self, point: (f64, f64)) -> f64 {
+        match self.scheme {
+            Weighting::Natural | Weighting::Given => 1.0,
+            Weighting::Uniform => {
+                let g = self.density[cell_of(self.cells, point)];
+                if g > 0.0 {
+                    1.0 / g
+                } else {
+                    0.0
+                }
+            }
+            Weighting::Briggs { .. } => 1.0 / (1.0 + self.f2 * self.density[cell_of(self.cells, point)]),
+        }
+    }
+}
+
+impl Weighting {
+    /// Whether the scheme needs the density of the whole uv-coverage before any sample's
+    /// weight is known (a second pass over the data).
+    pub fn needs_density(&self) -> bool {
+        matches!(self, Weighting::Uniform | Weighting::Briggs { .. })
+    }
+}
+
+/// The weighting cell of operator coordinates `(u, v)` on a `cells x cells` grid, folded onto
+/// the half plane `v >= 0`.
+fn cell_of(cells: usize, (u, v): (f64, f64)) -> usize {
+    let (u, v) = if v < 0.0 { (-u, -v) } else { (u, v) };
+    let index = |t: f64| -> usize {
+        let c = ((t + std::f64::consts::PI) * cells as f64 / (2.0 * std::f64::consts::PI)).floor();
+        c.clamp(0.0, (cells - 1) as f64) as usize
+    };
+    index(v) * cells + index(u)
 }
 
 #[cfg(test)]

@@ -6,7 +6,8 @@
 # resumes from its per-epoch checkpoint and adds networks to the series (--resume).
 # Environment: R2D2 (the engine binary, default target/release/r2d2), SERIES (default
 # models/<recipe>), TRAIN_ARGS (extra train.py options, e.g. "--max-networks 20"),
-# NICE (default 19: training yields the CPU to interactive work).
+# NICE (default 19: training yields the CPU to interactive work), WORK (per-epoch checkpoints,
+# default <data>/work: give a retrain into another SERIES its own).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 RECIPE=${1:-vla-r2d2-512}
@@ -82,6 +83,6 @@ vla-r2d2-512-broad)
 esac
 RESUME=""
 [ -f "$SERIES/manifest.yaml" ] && RESUME="--resume"
-$RUN python3 training/train.py --train "${TRAIN[@]}" --val "${VAL[@]}" --series "$SERIES" --work "$D/work" \
+$RUN python3 training/train.py --train "${TRAIN[@]}" --val "${VAL[@]}" --series "$SERIES" --work "${WORK:-$D/work}" \
     --name "$RECIPE" --seed 1 --threads 2 $ARGS $RESUME ${TRAIN_ARGS:-}
 $RUN python3 training/evaluate.py --series "$SERIES" --test "$D/test" --r2d2 "$R2D2" --out "$D/eval" --update-manifest

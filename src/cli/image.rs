@@ -63,6 +63,10 @@ pub struct Args {
     /// Output prefix (WSClean's -name).
     #[arg(long, default_value = "r2d2")]
     name: String,
+    /// Most memory (MB) the samples may take held in memory where the residual update needs
+    /// them (the w-term); above it they are read again from the file at each update.
+    #[arg(long, default_value_t = r2d2_imaging::params::DEFAULT_HOLD_MB)]
+    hold_mb: f64,
 }
 
 /// `r2d2 image`'s options as the engine's parameters.
@@ -77,6 +81,7 @@ fn image_params(args: &Args) -> Result<ImageParams> {
         epsilon: image.epsilon,
         oversampling: image.oversampling,
         w_term: image.w_term,
+        hold_mb: args.hold_mb,
         step: StepChoice::parse(&args.step, args.plugin_config.as_deref())?,
         iterations: args.iterations,
         clean: CleanControls { niter: args.niter, gain: args.gain, mgain: args.mgain, auto_threshold: args.auto_threshold, threshold: args.threshold },

@@ -3,7 +3,8 @@
 
 use super::state::Job;
 use crate::fits::ImageWcs;
-use crate::vis::{ObservationMeta, Part};
+use crate::vis::{ObservationMeta, Part, StreamedTable, VisSource};
+use std::sync::Arc;
 use crate::{Error, Result};
 use std::path::{Path, PathBuf};
 
@@ -59,6 +60,30 @@ pub fn emit_parts(
         emit(job)?;
     }
     Ok(())
+}
+
+/// Emits the one job of a table read again from its file at each pass.
+pub fn emit_streamed(
+    id: &str,
+    meta: &ObservationMeta,
+    table: StreamedTable,
+    truth: Option<&Truth>,
+    emit: &mut dyn FnMut(Job) -> Result<()>,
+) -> Result<()> {
+    if table.stats().kept() == 0 {
+        return Err(Error::input(table.path(), crate::vis::nothing_to_image(table.stats())));
+    }
+    log::info!("job {id}: {} visibilities, read from {} at each pass", table.stats().kept(), table.path().display());
+    let path = table.path().to_path_buf();
+    let mut job = Job::from_source(id, meta.clone(), VisSource::Streamed(Arc::new(table)));
+    job.inputs.push(path);
+    if let Some(t) = truth {
+        job.truth = Some(t.image.clone());
+        job.truth_dynamic_range = t.dynamic_range;
+        job.truth_wcs = t.wcs;
+        job.inputs.push(t.path.clone());
+    }
+    emit(job)
 }
 
 /// Why `id` cannot name a job, if it cannot: it becomes a file name inside the writer's

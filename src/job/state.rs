@@ -6,8 +6,9 @@ use crate::pipeline::ProductKind;
 use crate::fits::{Beam, ImageWcs};
 use crate::metrics;
 use crate::nufft::NufftParams;
-use crate::operator::{ImageGeometry, MeasurementOperator, PsfConvolution};
-use crate::vis::{ObservationMeta, Visibilities};
+use crate::operator::{ImageGeometry, PsfConvolution};
+use crate::vis::{DataOperator, ObservationMeta, VisSource, Visibilities};
+use crate::weighting::WeightRule;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -24,7 +25,7 @@ pub struct Imaging {
     pub psf_2n: Arc<Vec<f64>>,
     /// Kept when the residual update runs through the operator: asked for (`method: nufft`),
     /// or needed because the operator includes the w-term.
-    pub operator: Option<Arc<MeasurementOperator>>,
+    pub operator: Option<Arc<DataOperator>>,
     /// Why the PSF convolution is not `D` to the NUFFT's accuracy for this job (the operator
     /// includes the w-term), so the residual update must use the operator; `None` where it is.
     pub toeplitz_inexact: Option<String>,
@@ -109,17 +110,18 @@ pub struct IterationMetrics {
 pub struct Job {
     pub id: String,
     pub meta: ObservationMeta,
-    /// Visibilities; released by the gridder unless the residual update needs them.
-    pub vis: Option<Visibilities>,
+    /// Visibilities, held or read again from their file at each pass; released by the gridder
+    /// (which holds them in its operator where the residual update needs them).
+    pub vis: Option<VisSource>,
     /// Ground truth on the image grid, when known (simulated data), for SNR/logSNR.
     pub truth: Option<Vec<f64>>,
     /// Dynamic range of the truth, for logSNR.
     pub truth_dynamic_range: Option<f64>,
     /// The truth's grid (from its FITS header), checked against the job's.
     pub truth_wcs: Option<ImageWcs>,
-    /// Image geometry and total weights per visibility, set by the weighting stage.
+    /// Image geometry and the imaging weight of every sample, set by the weighting stage.
     pub geometry: Option<ImageGeometry>,
-    pub weight: Option<Vec<f64>>,
+    pub weight: Option<WeightRule>,
     pub imaging: Option<Imaging>,
     /// Network steps done so far.
     pub iteration: usize,
@@ -160,6 +162,11 @@ pub struct Job {
 
 impl Job {
     pub fn new(id: impl Into<String>, meta: ObservationMeta, vis: Visibilities) -> Job {
+        Job::from_source(id, meta, VisSource::Held(Arc::new(vis)))
+    }
+
+    /// A job whose visibilities are held or read from their file at each pass.
+    pub fn from_source(id: impl Into<String>, meta: ObservationMeta, vis: VisSource) -> Job {
         Job {
             id: id.into(),
             meta,
@@ -204,17 +211,17 @@ impl Job {
 
     /// The visibilities, or an error naming the stage that needed them (released by the
     /// gridder unless a stage after it consumes the operator).
-    pub fn visibilities(&self, stage: &str) -> Result<&Visibilities> {
+    pub fn visibilities(&self, stage: &str) -> Result<&VisSource> {
         self.vis.as_ref().ok_or_else(|| missing(stage, &self.id, Product::Visibilities))
     }
 
     /// Takes the visibilities out of the job (the gridder's: it releases them).
-    pub fn take_visibilities(&mut self, stage: &str) -> Result<Visibilities> {
+    pub fn take_visibilities(&mut self, stage: &str) -> Result<VisSource> {
         self.vis.take().ok_or_else(|| missing(stage, &self.id, Product::Visibilities))
     }
 
     /// Takes the weights out of the job, with the geometry they were made for (the gridder's).
-    pub fn take_weights(&mut self, stage: &str) -> Result<(ImageGeometry, Vec<f64>)> {
+    pub fn take_weights(&mut self, stage: &str) -> Result<(ImageGeometry, WeightRule)> {
         match (self.geometry, self.weight.take()) {
             (Some(geometry), Some(weight)) => Ok((geometry, weight)),
             (_, weight) => {

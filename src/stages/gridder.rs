@@ -4,15 +4,22 @@
 
 use super::params::GridderParams;
 use crate::nufft::NufftParams;
-use crate::operator::{dirty_and_psf, doubled_psf, MeasurementOperator, PsfConvolution, WTermMode};
+use crate::operator::{doubled_psf, ImageGridder, MeasurementOperator, PsfConvolution, WTermMode};
 use crate::job::{Emit, Imaging, Job};
 use crate::pipeline::{Port, Stage};
-use crate::Result;
+use crate::vis::{chunk_weights, DataOperator, StreamedOperator, VisSource};
+use crate::{Error, Result};
 use std::sync::Arc;
+
+/// What an operator holds per sample (baselines, value, weight, its plan's sorting and
+/// positions): what a streamed table costs when the residual update needs the operator.
+const OPERATOR_BYTES_PER_SAMPLE: f64 = 100.0;
 
 pub struct GridderStage {
     nufft: NufftParams,
     w_term: WTermMode,
+    hold_bytes: f64,
+    chunk_rows: usize,
     threads: usize,
     keep_operator: bool,
 }
@@ -21,32 +28,58 @@ impl GridderStage {
     pub fn new(config: GridderParams, threads: usize, keep_operator: bool) -> Result<GridderStage> {
         let nufft = NufftParams { epsilon: config.epsilon, oversampling: config.oversampling };
         crate::nufft::kernel::KernelShape::for_accuracy(nufft.epsilon, nufft.oversampling)?;
-        Ok(GridderStage { nufft, w_term: config.w_term, threads, keep_operator })
+        if !(config.hold_mb >= 0.0) || !config.hold_mb.is_finite() {
+            return Err(Error::parameter("hold_mb", format!("expected a number of megabytes >= 0, got {}", config.hold_mb)));
+        }
+        if config.chunk_rows == 0 {
+            return Err(Error::parameter("chunk_rows", "expected at least 1 sample per chunk"));
+        }
+        Ok(GridderStage { nufft, w_term: config.w_term, hold_bytes: config.hold_mb * 1e6, chunk_rows: config.chunk_rows, threads, keep_operator })
     }
 }
 
 impl Stage<Job> for GridderStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
-        let (geometry, weight) = job.take_weights("gridder")?;
-        let mut vis = job.take_visibilities("gridder")?;
-        let (frequency_hz, bandwidth_hz) = vis.band().map_or((None, None), |(centre, width)| (Some(centre), width));
-        let max_abs_w = vis.w.iter().fold(0.0f64, |m, w| m.max(w.abs()));
+        let (geometry, rule) = job.take_weights("gridder")?;
+        let source = job.take_visibilities("gridder")?;
+        let summary = source.summary();
+        let (frequency_hz, bandwidth_hz) = summary.band().map_or((None, None), |(centre, width)| (Some(centre), width));
+        let max_abs_w = summary.max_abs_w;
         let max_phase = crate::nufft::wgrid::max_w_phase(geometry.size, geometry.pixel_rad, max_abs_w);
         let w_term = self.w_term.includes(geometry, max_abs_w, self.nufft.epsilon);
-        // Memory: each column goes as soon as nothing further needs it. The residual's NUFFT
-        // method keeps everything.
-        if !self.keep_operator {
-            if !w_term {
-                vis.w = Vec::new();
-            }
-            vis.frequency = Vec::new();
-            vis.weight = Vec::new(); // natural weights: `weight` (set by the weighting stage) replaces them
-        }
         // With the w-term the PSF convolution is not D (the response depends on the position
-        // in the field): the operator is kept for the residual update. Without it and without
-        // a NUFFT residual, the dirty image and PSF are gridded in chunks and nothing the size
-        // of the table is built beside it.
-        let (dirty, psf, kappa, operator) = if w_term || self.keep_operator {
+        // in the field): the operator, which holds the samples, is kept for the residual
+        // update. Otherwise the samples are gridded a chunk at a time as they are read, and
+        // nothing the size of the table is ever held.
+        let needs_operator = w_term || self.keep_operator;
+        let held_bytes = OPERATOR_BYTES_PER_SAMPLE * summary.samples as f64;
+        let stream_operator = needs_operator && source.is_streamed() && held_bytes > self.hold_bytes;
+        let (dirty, psf, psf_2n, operator, kept) = if stream_operator {
+            log::info!(
+                "job {}: the operator reads the {} samples again from the file at each residual update (holding them would take about {}, above the gridder's hold_mb {})",
+                job.id,
+                summary.samples,
+                crate::limits::format_bytes(held_bytes),
+                self.hold_bytes / 1e6
+            );
+            // Chunks as large as the hold limit allows: each costs its w-planes' FFTs.
+            let chunk_rows = self.chunk_rows.max((self.hold_bytes / OPERATOR_BYTES_PER_SAMPLE) as usize);
+            let g = StreamedOperator::grid(source, rule, geometry, w_term, self.nufft, self.threads, chunk_rows)?;
+            (g.dirty, g.psf, g.psf_2n, Some(Arc::new(DataOperator::Streamed(g.operator))), None)
+        } else if needs_operator {
+            if source.is_streamed() {
+                crate::limits::check_memory(held_bytes, &format!("the {} samples of job '{}' held for the operator", summary.samples, job.id))
+                    .map_err(|m| Error::parameter("gridder", format!("{m}: lower the gridder's hold_mb so that the samples are read from the file at each update instead")))?;
+                log::info!("job {}: the operator holds the {} samples in memory (about {})", job.id, summary.samples, crate::limits::format_bytes(held_bytes));
+            }
+            let mut vis = source.into_held()?;
+            let weight = chunk_weights(&vis.chunk(0..vis.len()), geometry, &rule)?;
+            drop(rule);
+            if !self.keep_operator {
+                vis.frequency = Vec::new();
+                vis.weight = Vec::new(); // natural weights: the total weights replace them
+                vis.imaging_weight = Vec::new();
+            }
             let operator = MeasurementOperator::for_mode(
                 if w_term { WTermMode::On } else { WTermMode::Off },
                 geometry,
@@ -62,11 +95,18 @@ impl Stage<Job> for GridderStage {
                 vis.vis = Vec::new();
                 vis.w = Vec::new();
             }
-            (dirty, operator.psf(), operator.kappa(), Some(Arc::new(operator)))
+            let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, operator.kappa(), self.nufft, self.threads)?;
+            let kept = self.keep_operator.then_some(vis);
+            (dirty, operator.psf(), psf_2n, Some(Arc::new(DataOperator::Held(operator))), kept)
         } else {
-            let images = dirty_and_psf(geometry, &vis.u, &vis.v, &weight, &vis.vis, self.nufft, self.threads)?;
-            vis.vis = Vec::new();
-            (images.dirty, images.psf, images.kappa, None)
+            let mut gridder = ImageGridder::new(geometry, self.nufft, self.threads)?;
+            source.for_each_chunk(self.chunk_rows, &mut |c| {
+                let weight = chunk_weights(&c, geometry, &rule)?;
+                gridder.add(c.u, c.v, &weight, c.vis)
+            })?;
+            drop(source);
+            let images = gridder.finish(None)?;
+            (images.dirty, images.psf, images.psf_2n, None, None)
         };
         let planes = operator.as_ref().and_then(|op| op.w_planes());
         let toeplitz_inexact = w_term.then(|| {
@@ -90,8 +130,6 @@ impl Stage<Job> for GridderStage {
             serde_json::json!({"mode": self.w_term.name(), "corrected": w_term, "planes": planes, "max_abs_w": max_abs_w, "max_phase_rad": max_phase}),
         );
         crate::sanity::check_image(&dirty, geometry.size, "dirty image", "the visibilities or weights hold values too large to image (check the data column and the weights)")?;
-        let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, kappa, self.nufft, self.threads)?;
-        drop(weight);
         let psf_convolution = PsfConvolution::new(geometry.size, &psf_2n)?;
         let beam = match crate::deconv::restoring_beam(&psf, geometry.size, geometry.pixel_rad) {
             Ok((b, warning)) => {
@@ -123,8 +161,8 @@ impl Stage<Job> for GridderStage {
             bandwidth_hz,
             best: None,
         });
-        if self.keep_operator {
-            job.vis = Some(vis);
+        if let Some(vis) = kept {
+            job.vis = Some(VisSource::Held(Arc::new(vis)));
         }
         emit(Port::Next, job)
     }

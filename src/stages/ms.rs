@@ -3,8 +3,8 @@
 //! `spw`, or `field`: one job per field, each with its own phase centre), read in row chunks.
 
 use super::params::MsParams;
-use crate::job::{emit_parts, job_id_problem, stem_id, Truth};
-use crate::vis::{read_parts, SplitBy, TableReader};
+use crate::job::{emit_parts, emit_streamed, job_id_problem, stem_id, Truth};
+use crate::vis::{read_parts, SplitBy, StreamedTable, TableReader};
 use crate::ms::{FieldSelector, MsReader, MsSelection};
 use crate::job::Job;
 use crate::pipeline::{PipelineSpec, Source, StageSpec};
@@ -83,6 +83,20 @@ impl MsSource {
         cancelled: &dyn Fn() -> bool,
     ) -> Result<bool> {
         let split = self.split_by.as_ref().filter(|s| s.column != FIELD_SPLIT);
+        if split.is_none() {
+            // One job of the selection, read again at each pass: nothing the size of the
+            // table is held.
+            let (path, chosen, batch_rows) = (self.path.clone(), selection.clone(), self.batch_rows);
+            let reopen = move || -> Result<Box<dyn TableReader>> { Ok(Box::new(MsReader::open(&path, &chosen, batch_rows)?)) };
+            let reader = MsReader::open(&self.path, selection, self.batch_rows)?;
+            let Some(table) = StreamedTable::scan(&self.path, Box::new(reopen), cancelled)? else {
+                return Ok(false);
+            };
+            let column = reader.meta().extra.get("ms_data_column").cloned().unwrap_or_default();
+            log::info!("{} (field {} '{}', column {column}): {}; {}", self.path.display(), reader.field().0, reader.field().1, table.stats(), reader.counts());
+            emit_streamed(id, reader.meta(), table, self.truth.as_ref(), emit)?;
+            return Ok(true);
+        }
         let mut reader = MsReader::open_part(&self.path, selection, self.batch_rows, split.map(|s| s.column.as_str()))?;
         let Some((parts, stats)) = read_parts(&mut reader, split, &self.split_key, cancelled)? else {
             return Ok(false);

@@ -191,12 +191,28 @@ pub struct GridderParams {
     /// The w-term: `auto` (default: included by w-gridding where it turns a phase by more
     /// than `epsilon` over the field), `on` or `off` (coplanar, for comparison).
     pub w_term: WTermMode,
+    /// Most memory (MB) the samples of a job read from a file may take held in an operator
+    /// (the residual update through the operator: the w-term, `method: nufft`); above it
+    /// they are read again from the file at every update instead, in chunks as large as
+    /// this allows. Default 256.
+    pub hold_mb: f64,
+    /// Samples per chunk of a pass over the data: what gridding holds beside its grids (about
+    /// 100 bytes a sample). Default 1048576.
+    pub chunk_rows: usize,
 }
+
+/// The default of [`GridderParams::hold_mb`].
+pub const DEFAULT_HOLD_MB: f64 = 256.0;
+
+/// The default of [`GridderParams::chunk_rows`]: large enough that a chunk's fixed cost
+/// (sorting, merging its tiles into the grids, a w-gridded chunk's plane FFTs) is small beside
+/// its spreading, small enough to be little beside the images.
+pub const DEFAULT_CHUNK_ROWS: usize = 1 << 20;
 
 impl Default for GridderParams {
     fn default() -> Self {
         let NufftParams { epsilon, oversampling } = NufftParams::default();
-        GridderParams { epsilon, oversampling, w_term: WTermMode::Auto }
+        GridderParams { epsilon, oversampling, w_term: WTermMode::Auto, hold_mb: DEFAULT_HOLD_MB, chunk_rows: DEFAULT_CHUNK_ROWS }
     }
 }
 

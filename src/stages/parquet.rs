@@ -4,8 +4,8 @@
 //! by its content through the one reader (`vis::open`).
 
 use super::params::{Files, ParquetParams};
-use crate::job::{emit_parts, stem_id, Truth};
-use crate::vis::{format_of, open, read_parts, OpenOptions, SplitBy, TableFormat, TableReader};
+use crate::job::{emit_parts, emit_streamed, stem_id, Truth};
+use crate::vis::{format_of, open, read_parts, OpenOptions, SplitBy, StreamedTable, TableFormat, TableReader};
 use crate::job::Job;
 use crate::pipeline::{PipelineSpec, Source, StageSpec};
 use crate::vis::VisReader;
@@ -78,10 +78,24 @@ impl Source<Job> for ParquetSource {
         for path in &self.paths {
             let id = stem_id(path);
             self.current_job = Some(id.clone());
+            let format = format_of(path)?;
+            if self.split_by.is_none() && format != TableFormat::Mat {
+                // One job of the whole table, read again at each pass: nothing the size of the
+                // table is held (a .mat file is read whole by its format).
+                let (file, batch_rows) = (path.clone(), self.batch_rows);
+                let reopen = move || open(&file, &OpenOptions { batch_rows, ..OpenOptions::default() });
+                let meta = reopen()?.meta().clone();
+                let Some(table) = StreamedTable::scan(path, Box::new(reopen), cancelled)? else {
+                    return Ok(());
+                };
+                table.stats().log(path);
+                emit_streamed(&id, &meta, table, self.truth.as_ref(), emit)?;
+                continue;
+            }
             let extra: Vec<&str> = self.split_by.iter().map(|s| s.column.as_str()).collect();
             // A Parquet table reads only the columns used; any other single-file format (a .mat)
             // through the one reader, by its content.
-            let mut reader: Box<dyn TableReader> = if format_of(path)? == TableFormat::Parquet {
+            let mut reader: Box<dyn TableReader> = if format == TableFormat::Parquet {
                 Box::new(VisReader::open_with_columns(path, self.batch_rows, &extra)?)
             } else {
                 open(path, &OpenOptions { batch_rows: self.batch_rows, ..OpenOptions::default() })?

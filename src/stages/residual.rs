@@ -132,9 +132,9 @@ impl Stage<Job> for ResidualStage {
                 if iteration == 1 {
                     log::info!("job {id}: the residual update runs through the operator instead of the PSF convolution: {why}");
                 }
-                op.apply_normal(&im.model)
+                op.apply_normal(&im.model)?
             }
-            (_, _, Some(op)) => op.apply_normal(&im.model),
+            (_, _, Some(op)) => op.apply_normal(&im.model)?,
             (ResidualMethod::Nufft, _, None) => return Err(Error::parameter("method", "nufft needs the visibilities, which the gridder released")),
             (ResidualMethod::Toeplitz, Some(why), None) => {
                 return Err(Error::parameter("method", format!("the PSF convolution is not exact here ({why}) and the gridder kept no operator")))

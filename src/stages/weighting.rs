@@ -2,7 +2,8 @@
 //! every visibility (natural x imaging: natural, uniform or Briggs).
 
 use super::params::WeightingParams;
-use crate::imaging::{total_weights, DirtyParams};
+use crate::imaging::DirtyParams;
+use crate::vis::weight_rule;
 use crate::imaging::ImageConfig;
 use crate::job::{Emit, Job};
 use crate::pipeline::{Port, Stage};
@@ -62,11 +63,15 @@ impl WeightingStage {
 impl Stage<Job> for WeightingStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
         let vis = job.visibilities("weighting")?;
+        let summary = vis.summary();
         let params = DirtyParams { size: self.image.size, pixel: self.image.pixel_scale(), ..DirtyParams::default() };
-        let geometry = params.geometry(vis)?;
-        let max_uv = vis.max_uv();
-        let given_unused = !vis.imaging_weight.is_empty() && self.weighting != Weighting::Given;
-        job.weight = Some(total_weights(vis, geometry, self.weighting, self.grid_factor)?);
+        let geometry = params.geometry_for(summary.max_uv)?;
+        let max_uv = summary.max_uv;
+        let given_unused = summary.imaging_weights && self.weighting != Weighting::Given;
+        if vis.is_streamed() && self.weighting.needs_density() {
+            log::info!("job {}: {} weighting reads the table once more for the density of its uv-coverage", job.id, self.weighting);
+        }
+        job.weight = Some(weight_rule(vis, geometry, self.weighting, self.grid_factor)?);
         if given_unused {
             // As the reference's current imager: weights given with the data are used when asked.
             log::info!("job {}: the data carry imaging weights (`imaging_weight`, a .mat file's `nWimag`), not used: the weighting is {} (`given` uses them)", job.id, self.weighting);

@@ -100,7 +100,7 @@ pub fn read_parts(
 }
 
 /// Why a table whose samples were all excluded cannot be imaged, with what excluded them.
-fn nothing_to_image(stats: &IngestStats) -> String {
+pub fn nothing_to_image(stats: &IngestStats) -> String {
     if stats.rows == 0 {
         return "the table holds no samples: nothing to image".into();
     }

@@ -1,0 +1,322 @@
+//! Visibilities read in passes, a chunk at a time ([`VisSource`]): held in memory, or read
+//! again from their file at every pass, so that imaging a table needs memory for one chunk,
+//! not for the table. What a pass over the whole table tells before imaging starts (the
+//! longest baseline, the band, |w|) is a [`VisSummary`].
+
+use super::convert::{record_batch_to_visibilities, IngestStats};
+use super::data::Visibilities;
+use super::reader::TableReader;
+use crate::{Error, Result};
+use num_complex::Complex32;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// Samples of a pass, borrowed: a slice of held visibilities or one decoded batch.
+#[derive(Clone, Copy, Debug)]
+pub struct VisChunk<'a> {
+    pub u: &'a [f64],
+    pub v: &'a [f64],
+    pub w: &'a [f64],
+    pub vis: &'a [Complex32],
+    pub weight: &'a [f32],
+    pub frequency: &'a [f64],
+    /// Empty when the data carry no imaging weights.
+    pub imaging_weight: &'a [f32],
+}
+
+impl<'a> VisChunk<'a> {
+    pub fn len(&self) -> usize {
+        self.u.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.u.is_empty()
+    }
+}
+
+impl Visibilities {
+    /// Samples `range` of these visibilities, borrowed.
+    pub fn chunk(&self, range: std::ops::Range<usize>) -> VisChunk<'_> {
+        VisChunk {
+            u: &self.u[range.clone()],
+            v: &self.v[range.clone()],
+            w: &self.w[range.clone()],
+            vis: &self.vis[range.clone()],
+            weight: &self.weight[range.clone()],
+            frequency: &self.frequency[range.clone()],
+            imaging_weight: if self.imaging_weight.is_empty() { &[] } else { &self.imaging_weight[range] },
+        }
+    }
+}
+
+/// What imaging needs to know of all the samples before its first pass over them.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct VisSummary {
+    pub samples: u64,
+    /// Longest projected baseline sqrt(u^2 + v^2), wavelengths.
+    pub max_uv: f64,
+    pub max_abs_w: f64,
+    /// Lowest and highest frequency, Hz (`lowest > highest` when empty).
+    pub lowest_hz: f64,
+    pub highest_hz: f64,
+    /// Whether the samples carry imaging weights (the `given` weighting's).
+    pub imaging_weights: bool,
+}
+
+impl VisSummary {
+    pub fn empty() -> VisSummary {
+        VisSummary { lowest_hz: f64::INFINITY, highest_hz: 0.0, ..VisSummary::default() }
+    }
+
+    pub fn of(vis: &Visibilities) -> VisSummary {
+        let mut s = VisSummary::empty();
+        s.add(&vis.chunk(0..vis.len()));
+        s
+    }
+
+    pub fn add(&mut self, chunk: &VisChunk<'_>) {
+        self.samples += chunk.len() as u64;
+        self.max_uv = chunk.u.iter().zip(chunk.v).map(|(u, v)| u.hypot(*v)).fold(self.max_uv, f64::max);
+        self.max_abs_w = chunk.w.iter().fold(self.max_abs_w, |m, w| m.max(w.abs()));
+        for &f in chunk.frequency {
+            self.lowest_hz = self.lowest_hz.min(f);
+            self.highest_hz = self.highest_hz.max(f);
+        }
+        self.imaging_weights |= !chunk.imaging_weight.is_empty();
+    }
+
+    /// Centre of the observed band and its width (None for a single frequency), Hz.
+    pub fn band(&self) -> Option<(f64, Option<f64>)> {
+        let (lo, hi) = (self.lowest_hz, self.highest_hz);
+        (hi >= lo).then(|| (0.5 * (lo + hi), (hi > lo).then_some(hi - lo)))
+    }
+}
+
+/// Opens the table again for another pass (its reader, positioned at the first row).
+pub type Reopen = dyn Fn() -> Result<Box<dyn TableReader>> + Send + Sync;
+
+/// A job's visibilities: held in memory, or read again from their file at every pass.
+#[derive(Clone)]
+pub enum VisSource {
+    Held(Arc<Visibilities>),
+    Streamed(Arc<StreamedTable>),
+}
+
+/// A table read again from its file at every pass. Each pass must find the samples the first
+/// found: a file changed under a running job is an error, not an image of two tables.
+pub struct StreamedTable {
+    path: PathBuf,
+    reopen: Box<Reopen>,
+    stats: IngestStats,
+    summary: VisSummary,
+}
+
+impl StreamedTable {
+    /// Reads the table once (`reopen` gives its reader), counting its samples and what
+    /// imaging needs to know of them; the samples are not kept. `cancelled` is polled at
+    /// every batch (`None`: it turned true).
+    pub fn scan(path: &Path, reopen: Box<Reopen>, cancelled: &dyn Fn() -> bool) -> Result<Option<StreamedTable>> {
+        let mut stats = IngestStats::default();
+        let mut summary = VisSummary::empty();
+        let mut reader = reopen()?;
+        let source = reader.source().display().to_string();
+        while let Some(batch) = reader.next_batch() {
+            if cancelled() {
+                return Ok(None);
+            }
+            let vis = record_batch_to_visibilities(&batch?, &mut stats, &source)?;
+            summary.add(&vis.chunk(0..vis.len()));
+        }
+        Ok(Some(StreamedTable { path: path.to_path_buf(), reopen, stats, summary }))
+    }
+
+    pub fn stats(&self) -> &IngestStats {
+        &self.stats
+    }
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+impl VisSource {
+    pub fn summary(&self) -> VisSummary {
+        match self {
+            VisSource::Held(vis) => VisSummary::of(vis),
+            VisSource::Streamed(table) => table.summary,
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        match self {
+            VisSource::Held(vis) => vis.len(),
+            VisSource::Streamed(table) => table.summary.samples as usize,
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Whether each pass reads the file again.
+    pub fn is_streamed(&self) -> bool {
+        matches!(self, VisSource::Streamed(_))
+    }
+
+    /// Calls `f` with every sample, in chunks of at most `chunk_rows` (held data) or one
+    /// decoded batch (a file), in the table's order.
+    pub fn for_each_chunk(&self, chunk_rows: usize, f: &mut dyn FnMut(VisChunk<'_>) -> Result<()>) -> Result<()> {
+        match self {
+            VisSource::Held(vis) => {
+                let n = vis.len();
+                let step = chunk_rows.max(1);
+                for start in (0..n).step_by(step) {
+                    f(vis.chunk(start..(start + step).min(n)))?;
+                }
+                Ok(())
+            }
+            VisSource::Streamed(table) => {
+                let mut reader = (table.reopen)()?;
+                let source = reader.source().display().to_string();
+                let mut stats = IngestStats::default();
+                // Batches are gathered into chunks of `chunk_rows`: a consumer's cost per call
+                // (sorting, merging grids) is then paid per chunk, not per batch.
+                let mut buffer = Visibilities::default();
+                while let Some(batch) = reader.next_batch() {
+                    let vis = record_batch_to_visibilities(&batch?, &mut stats, &source)?;
+                    if stats.kept() > table.stats.kept() {
+                        break;
+                    }
+                    if buffer.is_empty() && vis.len() >= chunk_rows {
+                        f(vis.chunk(0..vis.len()))?;
+                        continue;
+                    }
+                    buffer.push_batch(vis);
+                    if buffer.len() >= chunk_rows {
+                        f(buffer.chunk(0..buffer.len()))?;
+                        buffer = Visibilities::default();
+                    }
+                }
+                if stats != table.stats {
+                    return Err(Error::input(
+                        &table.path,
+                        format!(
+                            "the table changed while it was imaged: its first reading found {}, a later one {} (was it written to meanwhile?); nothing was written",
+                            table.stats, stats
+                        ),
+                    ));
+                }
+                if !buffer.is_empty() {
+                    f(buffer.chunk(0..buffer.len()))?;
+                }
+                Ok(())
+            }
+        }
+    }
+
+    /// The samples in memory, taken out of the source: the held ones (copied only where
+    /// another holder shares them), or the file read whole.
+    pub fn into_held(self) -> Result<Visibilities> {
+        match self {
+            VisSource::Held(vis) => Ok(Arc::try_unwrap(vis).unwrap_or_else(|shared| Visibilities::clone(&shared))),
+            streamed => streamed.read_all(),
+        }
+    }
+
+    /// The samples in memory: the held ones, or the file read whole (for a caller that
+    /// needs them all at once, such as an operator kept for the residual update).
+    pub fn read_all(&self) -> Result<Visibilities> {
+        match self {
+            VisSource::Held(vis) => Ok(Visibilities::clone(vis)),
+            VisSource::Streamed(table) => {
+                let mut all = Visibilities::with_capacity(table.summary.samples as usize);
+                self.for_each_chunk(1 << 20, &mut |c| {
+                    all.u.extend_from_slice(c.u);
+                    all.v.extend_from_slice(c.v);
+                    all.w.extend_from_slice(c.w);
+                    all.vis.extend_from_slice(c.vis);
+                    all.weight.extend_from_slice(c.weight);
+                    all.frequency.extend_from_slice(c.frequency);
+                    all.imaging_weight.extend_from_slice(c.imaging_weight);
+                    Ok(())
+                })?;
+                Ok(all)
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn held_chunks_cover_every_sample_once_in_order() {
+        let n = 10;
+        let vis = Visibilities {
+            u: (0..n).map(|k| k as f64).collect(),
+            v: vec![1.0; n],
+            w: vec![0.5; n],
+            vis: vec![Complex32::new(1.0, 0.0); n],
+            weight: vec![2.0; n],
+            frequency: (0..n).map(|k| 1e9 + k as f64).collect(),
+            imaging_weight: Vec::new(),
+        };
+        let source = VisSource::Held(Arc::new(vis.clone()));
+        let mut seen = Vec::new();
+        source
+            .for_each_chunk(3, &mut |c| {
+                assert!(c.len() <= 3 && c.imaging_weight.is_empty());
+                seen.extend_from_slice(c.u);
+                Ok(())
+            })
+            .unwrap();
+        assert_eq!(seen, vis.u);
+        let s = source.summary();
+        assert_eq!((s.samples, s.max_abs_w, s.band()), (10, 0.5, Some((1e9 + 4.5, Some(9.0)))));
+        assert_eq!(s.max_uv, 9f64.hypot(1.0));
+        assert_eq!(source.read_all().unwrap(), vis);
+    }
+
+    /// A table of `rows` samples in memory, as a reader.
+    fn table(rows: usize) -> Box<dyn TableReader> {
+        use super::super::table::{to_record_batches, VisTable};
+        let t = VisTable {
+            u_m: (0..rows).map(|k| 10.0 + k as f64).collect(),
+            v_m: vec![5.0; rows],
+            w_m: vec![1.0; rows],
+            frequency: vec![1.4e9; rows],
+            vis: vec![num_complex::Complex64::new(1.0, 0.0); rows],
+            weight: vec![1.0; rows],
+            flag: vec![false; rows],
+            time: vec![0.0; rows],
+            antenna1: vec![0; rows],
+            antenna2: vec![1; rows],
+        };
+        let meta = super::super::ObservationMeta::new(10.0, 20.0, "VLA");
+        let (schema, batches) = to_record_batches(&t, &meta, 4).unwrap();
+        let input = super::super::MemoryInput::from_batches("t", schema, batches);
+        Box::new(super::super::memory_table(input, "t").unwrap())
+    }
+
+    #[test]
+    fn a_table_that_changes_between_passes_is_an_error_naming_it() {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        let opened = Arc::new(AtomicUsize::new(0));
+        let counter = opened.clone();
+        // The first reading finds 10 samples, every later one 9: a file written meanwhile.
+        let reopen = move || Ok(table(if counter.fetch_add(1, Ordering::SeqCst) == 0 { 10 } else { 9 }));
+        let streamed = StreamedTable::scan(Path::new("obs.parquet"), Box::new(reopen), &|| false).unwrap().unwrap();
+        assert_eq!((streamed.stats().kept(), streamed.summary.samples), (10, 10));
+        let source = VisSource::Streamed(Arc::new(streamed));
+        let e = source.for_each_chunk(3, &mut |_| Ok(())).unwrap_err().to_string();
+        assert!(e.contains("obs.parquet") && e.contains("changed while it was imaged"), "{e}");
+        // One that stays the same is read whole in chunks of at least 3 (its batches of 4).
+        let same = StreamedTable::scan(Path::new("same.parquet"), Box::new(|| Ok(table(10))), &|| false).unwrap().unwrap();
+        let mut sizes = Vec::new();
+        VisSource::Streamed(Arc::new(same)).for_each_chunk(3, &mut |c| {
+            sizes.push(c.len());
+            Ok(())
+        })
+        .unwrap();
+        assert_eq!(sizes, vec![4, 4, 2]);
+    }
+}
