@@ -569,10 +569,10 @@ pub fn doubled_psf(
     Ok(psf)
 }
 
-/// The dirty image, the 2N PSF (and the N PSF, its centre) and `kappa` of samples given a
-/// chunk at a time, as a table is read: one pass over the data makes every image the imaging
-/// needs, and memory is the two grids and one chunk, whatever the number of samples. Equal to
-/// [`dirty_and_psf`] and [`doubled_psf`] to the NUFFT's accuracy.
+/// The dirty image, the PSF, the 2N PSF and `kappa` of samples given a chunk at a time, as a
+/// table is read: one pass over the data makes every image the imaging needs, and memory is
+/// the grids and one chunk, whatever the number of samples. The same sums as [`dirty_and_psf`]
+/// and [`doubled_psf`] (to the order of floating-point additions).
 pub struct ImageGridder {
     geometry: ImageGeometry,
     /// `None`: the 2N PSF only (the dirty image is made elsewhere: with the w-term).
@@ -585,7 +585,7 @@ pub struct ImageGridder {
 pub struct GriddedImages {
     /// Empty where the gridder made the 2N PSF only.
     pub dirty: Vec<f64>,
-    /// Peak 1 at `(N/2, N/2)`.
+    /// Peak 1 at `(N/2, N/2)`; empty where the gridder made the 2N PSF only.
     pub psf: Vec<f64>,
     /// `2N x 2N`, centre at `(N, N)`, scaled by the same `kappa`.
     pub psf_2n: Vec<f64>,
@@ -597,7 +597,7 @@ impl ImageGridder {
         let n = geometry.size;
         Ok(ImageGridder {
             geometry,
-            dirty: Some(ChunkedAdjoint::new(n, n, 1, nufft, threads)?),
+            dirty: Some(ChunkedAdjoint::new(n, n, 2, nufft, threads)?),
             psf_2n: ChunkedAdjoint::new(2 * n, 2 * n, 1, nufft, threads)?,
             samples: 0,
         })
@@ -624,7 +624,8 @@ impl ImageGridder {
             let (x, y): (Vec<f64>, Vec<f64>) =
                 u[start..end].iter().zip(&v[start..end]).map(|(&u, &v)| self.geometry.uv_to_phase(u, v)).unzip();
             if let Some(dirty) = &mut self.dirty {
-                dirty.add(&x, &y, |_, k| vis[start + k].to_c64() * weight[start + k])?;
+                let value = |t: usize, k: usize| if t == 0 { vis[start + k].to_c64() * weight[start + k] } else { Complex64::new(weight[start + k], 0.0) };
+                dirty.add(&x, &y, value)?;
             }
             self.psf_2n.add(&x, &y, |_, k| Complex64::new(weight[start + k], 0.0))?;
         }
@@ -632,24 +633,25 @@ impl ImageGridder {
         Ok(())
     }
 
-    /// The images, normalised by `kappa` (`None`: from the 2N PSF's own peak).
+    /// The images, normalised by `kappa` (`None`: from the N PSF's peak, as the operator's).
     pub fn finish(self, kappa: Option<f64>) -> Result<GriddedImages> {
         let n = self.geometry.size;
-        let real = |images: Vec<Vec<Complex64>>| -> Vec<f64> { images.into_iter().next().unwrap_or_default().into_iter().map(|c| c.re).collect() };
-        let mut dirty = self.dirty.map(|d| real(d.finish())).unwrap_or_default();
-        let mut psf_2n = real(self.psf_2n.finish());
-        let peak = psf_2n.get(n * 2 * n + n).copied().unwrap_or(0.0);
+        let real = |image: Vec<Complex64>| -> Vec<f64> { image.into_iter().map(|c| c.re).collect() };
+        let (mut dirty, mut psf) = match self.dirty {
+            Some(d) => {
+                let mut images = d.finish().into_iter().map(real);
+                (images.next().unwrap_or_default(), images.next().unwrap_or_default())
+            }
+            None => (Vec::new(), Vec::new()),
+        };
+        let mut psf_2n = real(self.psf_2n.finish().into_iter().next().unwrap_or_default());
+        // The peak of the N PSF where there is one (the operator's kappa), else the 2N one's.
+        let peak = if psf.is_empty() { psf_2n.get(n * 2 * n + n).copied() } else { psf.get((n / 2) * n + n / 2).copied() }.unwrap_or(0.0);
         if self.samples == 0 || !(peak > 0.0) {
             return Err(Error::parameter("weight", "all visibilities have zero weight: nothing to image"));
         }
         let kappa = kappa.unwrap_or(1.0 / peak);
-        dirty.iter_mut().chain(psf_2n.iter_mut()).for_each(|p| *p *= kappa);
-        // The N PSF is the 2N one's centre: the same sums at the same offsets from the peak.
-        let mut psf = Vec::with_capacity(n * n);
-        for iy in 0..n {
-            let row = (iy + n / 2) * 2 * n + n / 2;
-            psf.extend_from_slice(&psf_2n[row..row + n]);
-        }
+        dirty.iter_mut().chain(psf.iter_mut()).chain(psf_2n.iter_mut()).for_each(|p| *p *= kappa);
         Ok(GriddedImages { dirty, psf, psf_2n, kappa })
     }
 }
