@@ -5,8 +5,8 @@
 
 use crate::nufft::NufftParams;
 use crate::operator::{ImageGeometry, MeasurementOperator, WTermMode};
-use crate::vis::{weighting_problem, VisSummary, Visibilities};
-use crate::weighting::{Weighting, DEFAULT_GRID_FACTOR};
+use crate::vis::{chunk_weights, Visibilities};
+use crate::weighting::{DensityGrid, Weighting, DEFAULT_GRID_FACTOR};
 use crate::{Error, Result};
 
 /// How the pixel size is chosen.
@@ -103,10 +103,7 @@ pub struct DirtyProducts {
 /// Total weights (natural x imaging) of `vis` on `geometry`.
 pub fn total_weights(vis: &Visibilities, geometry: ImageGeometry, weighting: Weighting, grid_factor: f64) -> Result<Vec<f64>> {
     if weighting == Weighting::Given {
-        if vis.imaging_weight.len() != vis.len() {
-            return Err(weighting_problem(Weighting::Given, &VisSummary::empty()).expect("given without weights"));
-        }
-        return Ok(vis.weight.iter().zip(&vis.imaging_weight).map(|(&n, &i)| f64::from(n) * f64::from(i)).collect());
+        return chunk_weights(&vis.chunk(0..vis.len()), geometry, &DensityGrid::new(weighting, geometry.size, grid_factor)?.finish());
     }
     let point = |k: usize| geometry.uv_to_phase(vis.u[k], vis.v[k]);
     crate::weighting::total_weights(point, &vis.weight, geometry.size, weighting, grid_factor)

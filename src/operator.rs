@@ -190,12 +190,7 @@ impl MeasurementOperator {
         nufft: NufftParams,
         threads: usize,
     ) -> Result<MeasurementOperator> {
-        check_points(geometry, u, v, weight)?;
-        let (x, y): (Vec<f64>, Vec<f64>) = u.iter().zip(v).map(|(&u, &v)| geometry.uv_to_phase(u, v)).unzip();
-        let plan = Nufft2d::new(geometry.size, geometry.size, &x, &y, nufft, threads)?;
-        drop((x, y));
-        let weight: Vec<f64> = plan.order().iter().map(|&k| weight[k as usize]).collect();
-        Self::normalised(MeasurementOperator { geometry, plan: Plan::Coplanar(plan), weight, kappa: 1.0 })
+        Self::normalised(Self::part_for_mode(false, geometry, u, v, &[], weight, nufft, threads)?)
     }
 
     /// As [`new`](Self::new), with the w-term: `w` in wavelengths, one per visibility.
@@ -208,12 +203,7 @@ impl MeasurementOperator {
         nufft: NufftParams,
         threads: usize,
     ) -> Result<MeasurementOperator> {
-        check_points(geometry, u, v, weight)?;
-        if w.len() != u.len() {
-            return Err(Error::parameter("visibilities", "u and w arrays differ in length"));
-        }
-        let plan = WGridPlan::new(geometry.size, geometry.pixel_rad, u, v, w, nufft, threads)?;
-        Self::normalised(MeasurementOperator { geometry, plan: Plan::WGridded(plan), weight: weight.to_vec(), kappa: 1.0 })
+        Self::normalised(Self::part_for_mode(true, geometry, u, v, w, weight, nufft, threads)?)
     }
 
     /// The operator `mode` asks for on these data: with the w-term or coplanar.
@@ -236,9 +226,10 @@ impl MeasurementOperator {
         }
     }
 
-    /// As [`for_mode`](Self::for_mode) with `kappa` 1 and no PSF computed for it: one part of
-    /// an operator summed over parts (samples read a chunk at a time), whose `kappa` is the
-    /// whole sum's.
+    /// The operator with the w-term (`w_term`: `w` in wavelengths, one per visibility) or
+    /// coplanar (`w` unused), with `kappa` 1 and no PSF computed for it: what [`new`](Self::new)
+    /// and [`with_w_term`](Self::with_w_term) normalise, and one part of an operator summed over
+    /// parts (samples read a chunk at a time), whose `kappa` is the whole sum's.
     #[allow(clippy::too_many_arguments)]
     pub fn part_for_mode(
         w_term: bool,
@@ -251,15 +242,16 @@ impl MeasurementOperator {
         threads: usize,
     ) -> Result<MeasurementOperator> {
         check_points(geometry, u, v, weight)?;
-        if w.len() != u.len() {
-            return Err(Error::parameter("visibilities", "u and w arrays differ in length"));
-        }
         if w_term {
+            if w.len() != u.len() {
+                return Err(Error::parameter("visibilities", "u and w arrays differ in length"));
+            }
             let plan = WGridPlan::new(geometry.size, geometry.pixel_rad, u, v, w, nufft, threads)?;
             return Ok(MeasurementOperator { geometry, plan: Plan::WGridded(plan), weight: weight.to_vec(), kappa: 1.0 });
         }
         let (x, y): (Vec<f64>, Vec<f64>) = u.iter().zip(v).map(|(&u, &v)| geometry.uv_to_phase(u, v)).unzip();
         let plan = Nufft2d::new(geometry.size, geometry.size, &x, &y, nufft, threads)?;
+        drop((x, y));
         let weight: Vec<f64> = plan.order().iter().map(|&k| weight[k as usize]).collect();
         Ok(MeasurementOperator { geometry, plan: Plan::Coplanar(plan), weight, kappa: 1.0 })
     }
@@ -531,14 +523,20 @@ fn dirty_and_psf_in_chunks(
     let [mut dirty, mut psf]: [Vec<f64>; 2] = grid_in_chunks(geometry, u, v, weight, 2, value, nufft, threads, chunk)?
         .try_into()
         .expect("two transforms");
-    let n = geometry.size;
-    let peak = psf[(n / 2) * n + n / 2];
+    let kappa = normalise_by_psf_peak(geometry.size, &mut dirty, &mut psf)?;
+    Ok(DirtyAndPsf { dirty, psf, kappa })
+}
+
+/// Scales `dirty` and the `n x n` `psf` by `kappa = 1 / psf peak` (at `(n/2, n/2)`) and returns
+/// it; an error where the peak is not positive (every weight zero).
+pub fn normalise_by_psf_peak(n: usize, dirty: &mut [f64], psf: &mut [f64]) -> Result<f64> {
+    let peak = psf.get((n / 2) * n + n / 2).copied().unwrap_or(0.0);
     if !(peak > 0.0) {
         return Err(Error::parameter("weight", "all visibilities have zero weight: nothing to image"));
     }
     let kappa = 1.0 / peak;
     dirty.iter_mut().chain(psf.iter_mut()).for_each(|p| *p *= kappa);
-    Ok(DirtyAndPsf { dirty, psf, kappa })
+    Ok(kappa)
 }
 
 /// What [`dirty_and_psf`] gives.
@@ -633,7 +631,8 @@ impl ImageGridder {
         Ok(())
     }
 
-    /// The images, normalised by `kappa` (`None`: from the N PSF's peak, as the operator's).
+    /// The images, normalised by `kappa` (`None`: from the N PSF's peak, as the operator's; a
+    /// gridder of the 2N PSF alone must be given it).
     pub fn finish(self, kappa: Option<f64>) -> Result<GriddedImages> {
         let n = self.geometry.size;
         let real = |image: Vec<Complex64>| -> Vec<f64> { image.into_iter().map(|c| c.re).collect() };
@@ -645,13 +644,17 @@ impl ImageGridder {
             None => (Vec::new(), Vec::new()),
         };
         let mut psf_2n = real(self.psf_2n.finish().into_iter().next().unwrap_or_default());
-        // The peak of the N PSF where there is one (the operator's kappa), else the 2N one's.
-        let peak = if psf.is_empty() { psf_2n.get(n * 2 * n + n).copied() } else { psf.get((n / 2) * n + n / 2).copied() }.unwrap_or(0.0);
-        if self.samples == 0 || !(peak > 0.0) {
+        if self.samples == 0 {
             return Err(Error::parameter("weight", "all visibilities have zero weight: nothing to image"));
         }
-        let kappa = kappa.unwrap_or(1.0 / peak);
-        dirty.iter_mut().chain(psf.iter_mut()).chain(psf_2n.iter_mut()).for_each(|p| *p *= kappa);
+        let kappa = match kappa {
+            Some(kappa) => {
+                dirty.iter_mut().chain(psf.iter_mut()).for_each(|p| *p *= kappa);
+                kappa
+            }
+            None => normalise_by_psf_peak(n, &mut dirty, &mut psf)?,
+        };
+        psf_2n.iter_mut().for_each(|p| *p *= kappa);
         Ok(GriddedImages { dirty, psf, psf_2n, kappa })
     }
 }

@@ -65,7 +65,6 @@ pub fn emit_parts(
 /// Emits the one job of a table read again from its file at each pass.
 pub fn emit_streamed(
     id: &str,
-    meta: &ObservationMeta,
     table: StreamedTable,
     truth: Option<&Truth>,
     emit: &mut dyn FnMut(Job) -> Result<()>,
@@ -75,7 +74,8 @@ pub fn emit_streamed(
     }
     log::info!("job {id}: {} visibilities, read from {} at each pass", table.stats().kept(), table.path().display());
     let path = table.path().to_path_buf();
-    let mut job = Job::from_source(id, meta.clone(), VisSource::Streamed(Arc::new(table)));
+    let meta = table.meta().clone();
+    let mut job = Job::from_source(id, meta, VisSource::Streamed(Arc::new(table)));
     job.inputs.push(path);
     if let Some(t) = truth {
         job.truth = Some(t.image.clone());

@@ -89,12 +89,13 @@ impl MsSource {
             let (path, chosen, batch_rows) = (self.path.clone(), selection.clone(), self.batch_rows);
             let reopen = move || -> Result<Box<dyn TableReader>> { Ok(Box::new(MsReader::open(&path, &chosen, batch_rows)?)) };
             let reader = MsReader::open(&self.path, selection, self.batch_rows)?;
-            let Some(table) = StreamedTable::scan(&self.path, Box::new(reopen), cancelled)? else {
+            let (field, field_name) = (reader.field().0, reader.field().1.to_string());
+            let Some(table) = StreamedTable::scan(Box::new(reader), Box::new(reopen), cancelled)? else {
                 return Ok(false);
             };
-            let column = reader.meta().extra.get("ms_data_column").cloned().unwrap_or_default();
-            log::info!("{} (field {} '{}', column {column}): {}; {}", self.path.display(), reader.field().0, reader.field().1, table.stats(), reader.counts());
-            emit_streamed(id, reader.meta(), table, self.truth.as_ref(), emit)?;
+            let column = table.meta().extra.get("ms_data_column").cloned().unwrap_or_default();
+            log::info!("{} (field {field} '{field_name}', column {column}): {}; {}", self.path.display(), table.stats(), table.reader_summary().unwrap_or_default());
+            emit_streamed(id, table, self.truth.as_ref(), emit)?;
             return Ok(true);
         }
         let mut reader = MsReader::open_part(&self.path, selection, self.batch_rows, split.map(|s| s.column.as_str()))?;

@@ -84,12 +84,11 @@ impl Source<Job> for ParquetSource {
                 // table is held (a .mat file is read whole by its format).
                 let (file, batch_rows) = (path.clone(), self.batch_rows);
                 let reopen = move || open(&file, &OpenOptions { batch_rows, ..OpenOptions::default() });
-                let meta = reopen()?.meta().clone();
-                let Some(table) = StreamedTable::scan(path, Box::new(reopen), cancelled)? else {
+                let Some(table) = StreamedTable::scan(reopen()?, Box::new(reopen), cancelled)? else {
                     return Ok(());
                 };
                 table.stats().log(path);
-                emit_streamed(&id, &meta, table, self.truth.as_ref(), emit)?;
+                emit_streamed(&id, table, self.truth.as_ref(), emit)?;
                 continue;
             }
             let extra: Vec<&str> = self.split_by.iter().map(|s| s.column.as_str()).collect();

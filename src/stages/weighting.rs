@@ -71,7 +71,7 @@ impl Stage<Job> for WeightingStage {
         if vis.is_streamed() && self.weighting.needs_density() {
             log::info!("job {}: {} weighting reads the table once more for the density of its uv-coverage", job.id, self.weighting);
         }
-        job.weight = Some(weight_rule(vis, geometry, self.weighting, self.grid_factor)?);
+        job.weight = Some(weight_rule(vis, &summary, geometry, self.weighting, self.grid_factor)?);
         if given_unused {
             // As the reference's current imager: weights given with the data are used when asked.
             log::info!("job {}: the data carry imaging weights (`imaging_weight`, a .mat file's `nWimag`), not used: the weighting is {} (`given` uses them)", job.id, self.weighting);

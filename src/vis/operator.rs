@@ -4,25 +4,27 @@
 
 use super::stream::{VisChunk, VisSource, VisSummary};
 use crate::nufft::NufftParams;
-use crate::operator::{ImageGeometry, ImageGridder, MeasurementOperator};
+use crate::operator::{normalise_by_psf_peak, ImageGeometry, ImageGridder, MeasurementOperator};
 use crate::weighting::{DensityGrid, WeightRule, Weighting};
 use crate::{Error, Result};
 
 /// Why `weighting` cannot weight samples of which `summary` tells, if it cannot: `given`
 /// needs imaging weights given with the data.
 pub fn weighting_problem(weighting: Weighting, summary: &VisSummary) -> Option<Error> {
-    (weighting == Weighting::Given && !summary.imaging_weights).then(|| {
-        Error::parameter(
-            "weighting",
-            "`given` uses the imaging weights given with the data (a table's `imaging_weight` column, a .mat file's `nWimag`), and these visibilities carry none: choose natural, uniform or briggs",
-        )
-    })
+    (weighting == Weighting::Given && !summary.imaging_weights).then(no_given_weights)
 }
 
-/// The imaging weight of every sample of `vis` on `geometry`: for uniform and Briggs, a pass
+fn no_given_weights() -> Error {
+    Error::parameter(
+        "weighting",
+        "`given` uses the imaging weights given with the data (a table's `imaging_weight` column, a .mat file's `nWimag`), and these visibilities carry none: choose natural, uniform or briggs",
+    )
+}
+
+/// The imaging weight of every sample of `vis` (of which `summary` tells) on `geometry`: for uniform and Briggs, a pass
 /// over the samples gathers the density of the uv-coverage first.
-pub fn weight_rule(vis: &VisSource, geometry: ImageGeometry, weighting: Weighting, grid_factor: f64) -> Result<WeightRule> {
-    if let Some(e) = weighting_problem(weighting, &vis.summary()) {
+pub fn weight_rule(vis: &VisSource, summary: &VisSummary, geometry: ImageGeometry, weighting: Weighting, grid_factor: f64) -> Result<WeightRule> {
+    if let Some(e) = weighting_problem(weighting, summary) {
         return Err(e);
     }
     let mut density = DensityGrid::new(weighting, geometry.size, grid_factor)?;
@@ -42,7 +44,7 @@ pub fn chunk_weights(chunk: &VisChunk<'_>, geometry: ImageGeometry, rule: &Weigh
     let natural = |k: usize| f64::from(chunk.weight[k]);
     if rule.scheme() == Weighting::Given {
         if chunk.imaging_weight.len() != n {
-            return Err(weighting_problem(Weighting::Given, &VisSummary::empty()).expect("given without weights"));
+            return Err(no_given_weights());
         }
         return Ok((0..n).map(|k| natural(k) * f64::from(chunk.imaging_weight[k])).collect());
     }
@@ -127,13 +129,7 @@ impl StreamedOperator {
             drop(op);
             doubled.add(c.u, c.v, &weight, c.vis)
         })?;
-        let n = geometry.size;
-        let peak = psf[(n / 2) * n + n / 2];
-        if !(peak > 0.0) {
-            return Err(Error::parameter("weight", "all visibilities have zero weight: nothing to image"));
-        }
-        let kappa = 1.0 / peak;
-        dirty.iter_mut().chain(psf.iter_mut()).for_each(|p| *p *= kappa);
+        let kappa = normalise_by_psf_peak(geometry.size, &mut dirty, &mut psf)?;
         let psf_2n = doubled.finish(Some(kappa))?.psf_2n;
         let operator = StreamedOperator { vis, rule, geometry, w_term, nufft, threads, chunk_rows, kappa, planes };
         Ok(StreamedGridding { operator, dirty, psf, psf_2n })

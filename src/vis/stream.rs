@@ -4,7 +4,7 @@
 //! longest baseline, the band, |w|) is a [`VisSummary`].
 
 use super::convert::{record_batch_to_visibilities, IngestStats};
-use super::data::Visibilities;
+use super::data::{ObservationMeta, Visibilities};
 use super::reader::TableReader;
 use crate::{Error, Result};
 use num_complex::Complex32;
@@ -106,18 +106,19 @@ pub enum VisSource {
 pub struct StreamedTable {
     path: PathBuf,
     reopen: Box<Reopen>,
+    meta: ObservationMeta,
     stats: IngestStats,
     summary: VisSummary,
+    reader_summary: Option<String>,
 }
 
 impl StreamedTable {
-    /// Reads the table once (`reopen` gives its reader), counting its samples and what
-    /// imaging needs to know of them; the samples are not kept. `cancelled` is polled at
-    /// every batch (`None`: it turned true).
-    pub fn scan(path: &Path, reopen: Box<Reopen>, cancelled: &dyn Fn() -> bool) -> Result<Option<StreamedTable>> {
+    /// Reads the table once through `reader`, counting its samples and what imaging needs to
+    /// know of them; the samples are not kept. `reopen` gives the table's reader again for
+    /// each later pass. `cancelled` is polled at every batch (`None`: it turned true).
+    pub fn scan(mut reader: Box<dyn TableReader>, reopen: Box<Reopen>, cancelled: &dyn Fn() -> bool) -> Result<Option<StreamedTable>> {
         let mut stats = IngestStats::default();
         let mut summary = VisSummary::empty();
-        let mut reader = reopen()?;
         let source = reader.source().display().to_string();
         while let Some(batch) = reader.next_batch() {
             if cancelled() {
@@ -126,7 +127,14 @@ impl StreamedTable {
             let vis = record_batch_to_visibilities(&batch?, &mut stats, &source)?;
             summary.add(&vis.chunk(0..vis.len()));
         }
-        Ok(Some(StreamedTable { path: path.to_path_buf(), reopen, stats, summary }))
+        Ok(Some(StreamedTable {
+            path: reader.source().to_path_buf(),
+            reopen,
+            meta: reader.meta().clone(),
+            stats,
+            summary,
+            reader_summary: reader.summary(),
+        }))
     }
 
     pub fn stats(&self) -> &IngestStats {
@@ -134,6 +142,13 @@ impl StreamedTable {
     }
     pub fn path(&self) -> &Path {
         &self.path
+    }
+    pub fn meta(&self) -> &ObservationMeta {
+        &self.meta
+    }
+    /// What the reader had to say of the table once read (a MeasurementSet's rows skipped).
+    pub fn reader_summary(&self) -> Option<&str> {
+        self.reader_summary.as_deref()
     }
 }
 
@@ -304,13 +319,14 @@ mod tests {
         let counter = opened.clone();
         // The first reading finds 10 samples, every later one 9: a file written meanwhile.
         let reopen = move || Ok(table(if counter.fetch_add(1, Ordering::SeqCst) == 0 { 10 } else { 9 }));
-        let streamed = StreamedTable::scan(Path::new("obs.parquet"), Box::new(reopen), &|| false).unwrap().unwrap();
+        let first = reopen().unwrap();
+        let streamed = StreamedTable::scan(first, Box::new(reopen), &|| false).unwrap().unwrap();
         assert_eq!((streamed.stats().kept(), streamed.summary.samples), (10, 10));
         let source = VisSource::Streamed(Arc::new(streamed));
         let e = source.for_each_chunk(3, &mut |_| Ok(())).unwrap_err().to_string();
-        assert!(e.contains("obs.parquet") && e.contains("changed while it was imaged"), "{e}");
+        assert!(e.contains("t:") && e.contains("changed while it was imaged"), "{e}");
         // One that stays the same is read whole in chunks of at least 3 (its batches of 4).
-        let same = StreamedTable::scan(Path::new("same.parquet"), Box::new(|| Ok(table(10))), &|| false).unwrap().unwrap();
+        let same = StreamedTable::scan(table(10), Box::new(|| Ok(table(10))), &|| false).unwrap().unwrap();
         let mut sizes = Vec::new();
         VisSource::Streamed(Arc::new(same)).for_each_chunk(3, &mut |c| {
             sizes.push(c.len());
