@@ -7,7 +7,7 @@
 
 use crate::job::{ProductSink, Registry, RunContext};
 use crate::pipeline::{runner, PipelineSpec, Progress, RunReport, StageSpec};
-use crate::vis::{MemoryInput, TableFormat};
+use crate::vis::{MemoryInput, PartedObservation, TableFormat};
 #[cfg(feature = "ms")]
 use crate::params::MsParams;
 use crate::params::{
@@ -112,12 +112,24 @@ impl Engine {
         sink: Option<Box<dyn ProductSink>>,
         cancel: Arc<AtomicBool>,
     ) -> Result<RunReport> {
+        self.run_with_parts(spec, inputs, Vec::new(), sink, cancel)
+    }
+
+    /// [`run`](Self::run), the `arrow` source also reading observations in parts.
+    fn run_with_parts(
+        &self,
+        spec: &PipelineSpec,
+        inputs: Vec<MemoryInput>,
+        parted: Vec<PartedObservation>,
+        sink: Option<Box<dyn ProductSink>>,
+        cancel: Arc<AtomicBool>,
+    ) -> Result<RunReport> {
         let spec = self.with_threads(spec);
         let progress: &(dyn Fn(&Progress) + Sync) = match &self.progress {
             Some(observer) => observer.as_ref(),
             None => &|_| {},
         };
-        let context = RunContext::new(&spec, inputs, sink)?;
+        let context = RunContext::new(&spec, inputs, sink)?.with_parted(parted);
         runner::run(&self.registry, &spec, &context, cancel, progress)
     }
 
@@ -141,14 +153,14 @@ impl Engine {
             inputs.extend(params.truth.as_deref());
             crate::job::check_spares_inputs(prefix, &crate::job::stem_id(path), &inputs)?;
         }
-        let (spec, inputs) = image_spec(obs, params)?;
+        let (spec, inputs, parted) = image_spec(obs, params)?;
         let delivered: Arc<Mutex<Vec<JobProducts>>> = Arc::default();
         let into = delivered.clone();
         let sink = move |products: JobProducts| -> Result<()> {
             into.lock().expect("products").push(products);
             Ok(())
         };
-        self.run(&spec, inputs, Some(Box::new(sink)), self.cancel.clone())?;
+        self.run_with_parts(&spec, inputs, parted, Some(Box::new(sink)), self.cancel.clone())?;
         let mut delivered = std::mem::take(&mut *delivered.lock().expect("products"));
         match delivered.len() {
             1 => Ok(delivered.remove(0)),
@@ -157,11 +169,18 @@ impl Engine {
     }
 }
 
-/// An observation for [`Engine::image`]: a file (Parquet, Arrow IPC, a MeasurementSet) or
-/// record batches in memory.
+/// An observation for [`Engine::image`]: a file (Parquet, Arrow IPC, a MeasurementSet),
+/// record batches in memory, or parts gridded where they live (a cluster's workers).
 pub enum Observation {
     Path(PathBuf),
     Batches(MemoryInput),
+    Parts(PartedObservation),
+}
+
+impl From<PartedObservation> for Observation {
+    fn from(parts: PartedObservation) -> Self {
+        Observation::Parts(parts)
+    }
 }
 
 impl From<PathBuf> for Observation {
@@ -316,14 +335,21 @@ impl Default for ImageParams {
 }
 
 /// The `r2d2 image` pipeline for `obs` and `params`, and the in-memory inputs it reads.
-fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, Vec<MemoryInput>)> {
+fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, Vec<MemoryInput>, Vec<PartedObservation>)> {
     let (resolved, clean_because) = resolve_auto(params, || observation_telescope(&obs))?;
     let params = &resolved;
-    let mut inputs = Vec::new();
+    let (mut inputs, mut parted) = (Vec::new(), Vec::new());
     let truth = params.truth.clone();
     let read = match obs {
         Observation::Batches(input) => {
             inputs.push(input);
+            StageSpec::typed("read", &ArrowParams { truth, ..ArrowParams::default() })?
+        }
+        Observation::Parts(parts) => {
+            if params.model_column.is_some() {
+                return Err(Error::parameter("model-column", format!("job '{}' is in parts: only a MeasurementSet input has a column to write the model into", parts.id)));
+            }
+            parted.push(parts);
             StageSpec::typed("read", &ArrowParams { truth, ..ArrowParams::default() })?
         }
         Observation::Path(path) => {
@@ -366,7 +392,7 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
         superresolution: params.pixel_arcsec.is_none().then_some(superresolution),
         pixel_arcsec: params.pixel_arcsec,
     };
-    Ok((PipelineSpec::new("image", &image, stages)?, inputs))
+    Ok((PipelineSpec::new("image", &image, stages)?, inputs, parted))
 }
 
 /// Weighting and super-resolution of an image: what `params` asks for; where it asks for none,
@@ -420,6 +446,7 @@ fn observation_telescope(obs: &Observation) -> Option<String> {
     match obs {
         Observation::Path(path) => crate::vis::telescope_of(path),
         Observation::Batches(input) => input.batches.schema().metadata().get("telescope").and_then(|t| crate::vis::named_telescope(t)),
+        Observation::Parts(parts) => crate::vis::named_telescope(&parts.meta.telescope),
     }
 }
 
@@ -603,7 +630,7 @@ mod tests {
     fn pipelines_image_yaml_is_the_pipeline_of_engine_image() {
         let yaml = PipelineSpec::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines/image.yaml"), &[]).unwrap();
         let params = ImageParams { write: Some("{job}".into()), ..ImageParams::default() };
-        let (mut code, inputs) = image_spec(Observation::Path(table_file("obs.parquet", b"PAR1")), &params).unwrap();
+        let (mut code, inputs, _) = image_spec(Observation::Path(table_file("obs.parquet", b"PAR1")), &params).unwrap();
         assert!(inputs.is_empty());
         // The YAML names the observation as the command line would: by its name.
         code.stages[0].set_param("files", "obs.parquet").unwrap();
@@ -622,16 +649,16 @@ mod tests {
     fn engine_image_pipelines_read_back_as_typed_parameters() {
         let clean = ImageParams { step: StepChoice::Clean, iterations: Some(3), weighting: Some(Weighting::Uniform), write: Some("out/{job}".into()), ..ImageParams::default() };
         let arrows = table_file("a.arrows", &[0xff; 8]);
-        let (spec, _) = image_spec(Observation::Path(arrows.clone()), &clean).unwrap();
+        let (spec, _, _) = image_spec(Observation::Path(arrows.clone()), &clean).unwrap();
         assert_eq!(spec.stage_params::<CleanParams>(spec.stage("step").unwrap()).unwrap().major_cycles, 3);
         assert_eq!(spec.stage_params::<WeightingParams>(spec.stage("weights").unwrap()).unwrap().scheme, WeightingScheme::Uniform);
         assert_eq!(spec.stage_params::<ArrowIpcParams>(spec.stage("read").unwrap()).unwrap().path, arrows.to_string_lossy());
         let native = ImageParams { step: StepChoice::Native { library: "p.so".into(), config: Some(serde_yaml::from_str("{gain: 1}").unwrap()) }, ..ImageParams::default() };
-        let (spec, _) = image_spec(Observation::Path(table_file("a.parquet", b"PAR1")), &native).unwrap();
+        let (spec, _, _) = image_spec(Observation::Path(table_file("a.parquet", b"PAR1")), &native).unwrap();
         let step = spec.stage_params::<NativeParams>(spec.stage("step").unwrap()).unwrap();
         assert_eq!((step.iterations, step.config.unwrap()["gain"].as_f64()), (10, Some(1.0)));
         let onnx = ImageParams { iterations: Some(2), prefetch: false, backend: BackendChoice::Tract, ..ImageParams::default() };
-        let (spec, _) = image_spec(Observation::Path(table_file("a.parquet", b"PAR1")), &onnx).unwrap();
+        let (spec, _, _) = image_spec(Observation::Path(table_file("a.parquet", b"PAR1")), &onnx).unwrap();
         let step = spec.stage_params::<OnnxParams>(spec.stage("step").unwrap()).unwrap();
         assert_eq!((step.networks, step.prefetch, step.backend), (Some(2), false, BackendChoice::Tract));
     }

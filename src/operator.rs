@@ -635,18 +635,10 @@ impl ImageGridder {
     /// gridder of the 2N PSF alone must be given it).
     pub fn finish(self, kappa: Option<f64>) -> Result<GriddedImages> {
         let n = self.geometry.size;
-        let real = |image: Vec<Complex64>| -> Vec<f64> { image.into_iter().map(|c| c.re).collect() };
-        let (mut dirty, mut psf) = match self.dirty {
-            Some(d) => {
-                let mut images = d.finish().into_iter().map(real);
-                (images.next().unwrap_or_default(), images.next().unwrap_or_default())
-            }
-            None => (Vec::new(), Vec::new()),
-        };
-        let mut psf_2n = real(self.psf_2n.finish().into_iter().next().unwrap_or_default());
         if self.samples == 0 {
             return Err(Error::parameter("weight", "all visibilities have zero weight: nothing to image"));
         }
+        let (mut dirty, mut psf, mut psf_2n) = self.unnormalised();
         let kappa = match kappa {
             Some(kappa) => {
                 dirty.iter_mut().chain(psf.iter_mut()).for_each(|p| *p *= kappa);
@@ -656,6 +648,21 @@ impl ImageGridder {
         };
         psf_2n.iter_mut().for_each(|p| *p *= kappa);
         Ok(GriddedImages { dirty, psf, psf_2n, kappa })
+    }
+
+    /// The dirty image, PSF and 2N PSF as gridded, not normalised (empty dirty image and PSF
+    /// for a gridder of the 2N PSF alone): one part of images summed over parts.
+    pub fn unnormalised(self) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        let real = |image: Vec<Complex64>| -> Vec<f64> { image.into_iter().map(|c| c.re).collect() };
+        let (dirty, psf) = match self.dirty {
+            Some(d) => {
+                let mut images = d.finish().into_iter().map(real);
+                (images.next().unwrap_or_default(), images.next().unwrap_or_default())
+            }
+            None => (Vec::new(), Vec::new()),
+        };
+        let psf_2n = real(self.psf_2n.finish().into_iter().next().unwrap_or_default());
+        (dirty, psf, psf_2n)
     }
 }
 

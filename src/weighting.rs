@@ -229,6 +229,34 @@ impl DensityGrid {
         }
     }
 
+    /// Adds another part's density (gathered on the same grid) to this one.
+    pub fn merge(&mut self, other: &DensityGrid) -> Result<()> {
+        if (self.scheme, self.cells) != (other.scheme, other.cells) {
+            return Err(Error::parameter("weighting", "two parts' uv densities were gathered for different weightings or grids"));
+        }
+        self.density.iter_mut().zip(&other.density).for_each(|(a, b)| *a += b);
+        self.sum_w += other.sum_w;
+        Ok(())
+    }
+
+    /// The summed natural weight per cell (row-major, `cells x cells`; empty where the
+    /// scheme needs none) and over all cells: what a part sends to be summed.
+    pub fn raw(&self) -> (&[f64], f64) {
+        (&self.density, self.sum_w)
+    }
+
+    /// A density gathered elsewhere, as [`raw`](Self::raw) gave it: an error where its cell
+    /// count is not the grid's of `scheme`, `image_size` and `grid_factor`.
+    pub fn from_raw(scheme: Weighting, image_size: usize, grid_factor: f64, density: Vec<f64>, sum_w: f64) -> Result<DensityGrid> {
+        let mut grid = DensityGrid::new(scheme, image_size, grid_factor)?;
+        if density.len() != grid.density.len() {
+            return Err(Error::parameter("weighting", format!("a uv density of {} cells where {} was expected", density.len(), grid.density.len())));
+        }
+        grid.density = density;
+        grid.sum_w = sum_w;
+        Ok(grid)
+    }
+
     /// The imaging weight of every sample from now on.
     pub fn finish(self) -> WeightRule {
         let DensityGrid { scheme, cells, density, sum_w } = self;
@@ -266,6 +294,22 @@ impl WeightRule {
 
     pub fn scheme(&self) -> Weighting {
         self.scheme
+    }
+
+    /// The density per cell (empty where the scheme needs none) and Briggs' `f^2`: what the
+    /// rule travels as to where a part of the samples is weighted.
+    pub fn raw(&self) -> (&[f64], f64) {
+        (&self.density, self.f2)
+    }
+
+    /// The rule [`raw`](Self::raw) gave for `scheme`: an error where the density is not a
+    /// square grid (or not empty, for a scheme that needs none).
+    pub fn from_raw(scheme: Weighting, density: Vec<f64>, f2: f64) -> Result<WeightRule> {
+        let cells = (density.len() as f64).sqrt().round() as usize;
+        if cells * cells != density.len() || scheme.needs_density() == density.is_empty() {
+            return Err(Error::parameter("weighting", format!("a {scheme} weighting rule of {} cells: expected a square grid of cells for uniform and Briggs, none otherwise", density.len())));
+        }
+        Ok(WeightRule { scheme, cells, density, f2 })
     }
 
     /// The imaging weight (multiplying the natural weight) at operator coordinates `point`;

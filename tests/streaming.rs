@@ -81,3 +81,67 @@ fn chunk_and_hold_sizes_are_checked() {
         assert_fails_with(&out, "a bad gridder size", &[expected]);
     }
 }
+
+/// One observation kept in parts, each gridded on its own and the images summed (what Dask
+/// workers do with the parts they hold, made here in this process): the products of the
+/// whole table imaged at once, coplanar to the float rounding of the sums, with the w-term to
+/// the NUFFT's accuracy (each part's w-planes are its own).
+#[test]
+fn an_observation_in_parts_images_as_the_whole_table() {
+    use r2d2_imaging::vis::{open_source, LocalParts, OpenOptions, PartedObservation, VisSource, VisSummary};
+    use r2d2_imaging::{Engine, EngineOptions, ImageParams, Observation, StepChoice, Weighting};
+    use std::sync::Arc;
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    observation(dir);
+    let path = dir.join("obs.parquet");
+    let (meta, source) = open_source(&path, &OpenOptions::default()).unwrap();
+    let vis = source.read_all().unwrap();
+    // Three parts of unequal sizes, interleaved (as channels or time ranges of one track).
+    let group: Vec<usize> = (0..vis.len()).map(|k| (k * 7 / 3) % 3).collect();
+    let parts: Vec<VisSource> = vis.partition(&group, 3).into_iter().map(|p| VisSource::Held(Arc::new(p))).collect();
+    let described: Vec<(String, _, VisSummary)> = parts.iter().enumerate().map(|(k, p)| (format!("part{k}"), meta.clone(), p.summary())).collect();
+    let engine = Engine::new(EngineOptions { threads: 2, onnx_runtime: None }).unwrap();
+    for w_term in ["off", "on"] {
+        let params = ImageParams {
+            size: SIZE,
+            step: StepChoice::Clean,
+            iterations: Some(3),
+            weighting: Some(Weighting::Briggs { robust: 0.0 }),
+            w_term: r2d2_imaging::operator::WTermMode::from_name(w_term).unwrap(),
+            ..ImageParams::default()
+        };
+        let whole = engine.image(path.as_path(), &params).unwrap();
+        let passes = Box::new(LocalParts { parts: parts.clone() });
+        let parted = engine.image(Observation::Parts(PartedObservation::new("obs", &described, passes).unwrap()), &params).unwrap();
+        let tolerance = if w_term == "off" { 1e-6 } else { 1e-5 };
+        for (name, a, b) in [
+            ("dirty", &whole.dirty, &parted.dirty),
+            ("psf", &whole.psf, &parted.psf),
+            ("model", whole.model.as_ref().unwrap(), parted.model.as_ref().unwrap()),
+            ("residual", whole.residual.as_ref().unwrap(), parted.residual.as_ref().unwrap()),
+        ] {
+            let (a, b): (Vec<f64>, Vec<f64>) = (a.iter().map(|&x| x as f64).collect(), b.iter().map(|&x| x as f64).collect());
+            let d = max_diff(&a, &b) / max_abs(&a);
+            assert!(d < tolerance, "w_term {w_term}, {name}: {d:e}");
+        }
+        // The header is the same; the fitted beam to the rounding of its PSF's sums.
+        assert_eq!(whole.header.len(), parted.header.len());
+        for ((key, a), (key_b, b)) in whole.header.iter().zip(&parted.header) {
+            assert_eq!(key, key_b);
+            match key.as_str() {
+                "BMAJ" | "BMIN" | "BPA" => {
+                    let (a, b): (f64, f64) = (a.parse().unwrap(), b.parse().unwrap());
+                    assert!((a - b).abs() <= 1e-6 * a.abs(), "w_term {w_term}, {key}: {a} {b}");
+                }
+                _ => assert_eq!(a, b, "w_term {w_term}, {key}"),
+            }
+        }
+    }
+    // A part of another observation (another phase centre) is refused, naming it.
+    let mut other = meta.clone();
+    other.phase_centre_dec_deg += 1.0;
+    let mixed = vec![described[0].clone(), ("elsewhere.parquet".to_string(), other, described[1].2)];
+    let e = PartedObservation::new("obs", &mixed, Box::new(LocalParts { parts: parts[..2].to_vec() })).err().unwrap().to_string();
+    assert!(e.contains("elsewhere.parquet") && e.contains("another observation"), "{e}");
+}

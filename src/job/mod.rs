@@ -20,7 +20,7 @@ pub use contract::{BuildContext, Built, Emit, KindFn, Registry};
 pub use product::Product;
 #[cfg(feature = "ms")]
 pub use model_column::write_job_model;
-pub use parts::{emit_parts, emit_streamed, job_id_problem, stem_id, Truth};
+pub use parts::{emit_parts, emit_streamed, emit_parted, job_id_problem, stem_id, Truth};
 pub use products::{check_spares_inputs, record_command_line, JobProducts, WriteOptions};
 pub use run::{ImageContext, ProductSink, RunContext};
 pub use state::{Imaging, Iterate, IterationMetrics, Job, LoopStop, StopReason};

@@ -77,13 +77,26 @@ pub fn emit_streamed(
     let meta = table.meta().clone();
     let mut job = Job::from_source(id, meta, VisSource::Streamed(Arc::new(table)));
     job.inputs.push(path);
+    with_truth(&mut job, truth);
+    emit(job)
+}
+
+/// Emits the one job of an observation in parts gridded where they live.
+pub fn emit_parted(observation: crate::vis::PartedObservation, truth: Option<&Truth>, emit: &mut dyn FnMut(Job) -> Result<()>) -> Result<()> {
+    log::info!("job {}: {} visibilities in {}", observation.id, observation.summary.samples, observation.passes.describe());
+    let (id, meta) = (observation.id.clone(), observation.meta.clone());
+    let mut job = Job::from_source(id, meta, VisSource::Parts(Arc::new(observation)));
+    with_truth(&mut job, truth);
+    emit(job)
+}
+
+fn with_truth(job: &mut Job, truth: Option<&Truth>) {
     if let Some(t) = truth {
         job.truth = Some(t.image.clone());
         job.truth_dynamic_range = t.dynamic_range;
         job.truth_wcs = t.wcs;
         job.inputs.push(t.path.clone());
     }
-    emit(job)
 }
 
 /// Why `id` cannot name a job, if it cannot: it becomes a file name inside the writer's

@@ -7,7 +7,7 @@ use super::products::JobProducts;
 use super::state::Job;
 use crate::imaging::ImageConfig;
 use crate::pipeline::{BuildContext, PipelineSpec};
-use crate::vis::MemoryInput;
+use crate::vis::{MemoryInput, PartedObservation};
 use crate::Result;
 use std::sync::Mutex;
 
@@ -28,6 +28,7 @@ pub struct RunContext {
     /// The pipeline's `image` section, checked.
     pub image: ImageConfig,
     inputs: Mutex<Option<Vec<MemoryInput>>>,
+    parted: Mutex<Option<Vec<PartedObservation>>>,
     sink: Mutex<Option<Box<dyn ProductSink>>>,
 }
 
@@ -38,7 +39,12 @@ impl RunContext {
         // Before any stage is built: a size this machine cannot take would otherwise surface
         // as an aborted allocation, not as an error about the key.
         crate::limits::check_image_size(image.size).map_err(|m| spec.top_error("image", &format!("image.size = {}: {m}", image.size)))?;
-        Ok(RunContext { image, inputs: Mutex::new(Some(inputs)), sink: Mutex::new(sink) })
+        Ok(RunContext { image, inputs: Mutex::new(Some(inputs)), parted: Mutex::new(Some(Vec::new())), sink: Mutex::new(sink) })
+    }
+
+    /// With observations in parts for the `arrow` source too.
+    pub fn with_parted(self, parted: Vec<PartedObservation>) -> RunContext {
+        RunContext { parted: Mutex::new(Some(parted)), ..self }
     }
 }
 
@@ -48,6 +54,8 @@ pub trait ImageContext {
     fn image(&self) -> &ImageConfig;
     /// The run's in-memory inputs (for the one source that reads them); `None` once taken.
     fn take_inputs(&self) -> Option<Vec<MemoryInput>>;
+    /// The run's observations in parts (taken with the in-memory inputs, by the same source).
+    fn take_parted(&self) -> Vec<PartedObservation>;
     /// The run's product sink (for the one stage that delivers to it); `None` once taken or
     /// when the run has none.
     fn take_sink(&self) -> Option<Box<dyn ProductSink>>;
@@ -59,6 +67,9 @@ impl ImageContext for BuildContext<'_, Job> {
     }
     fn take_inputs(&self) -> Option<Vec<MemoryInput>> {
         self.context.inputs.lock().expect("run inputs").take()
+    }
+    fn take_parted(&self) -> Vec<PartedObservation> {
+        self.context.parted.lock().expect("run inputs").take().unwrap_or_default()
     }
     fn take_sink(&self) -> Option<Box<dyn ProductSink>> {
         self.context.sink.lock().expect("run sink").take()

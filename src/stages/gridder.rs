@@ -4,10 +4,10 @@
 
 use super::params::GridderParams;
 use crate::nufft::NufftParams;
-use crate::operator::{doubled_psf, ImageGridder, MeasurementOperator, PsfConvolution, WTermMode};
+use crate::operator::{doubled_psf, MeasurementOperator, PsfConvolution, WTermMode};
 use crate::job::{Emit, Imaging, Job};
 use crate::pipeline::{Port, Stage};
-use crate::vis::{chunk_weights, DataOperator, StreamedOperator, VisSource};
+use crate::vis::{chunk_weights, source_images, DataOperator, PartPass, StreamedOperator, VisSource};
 use crate::{Error, Result};
 use std::sync::Arc;
 
@@ -56,19 +56,32 @@ impl Stage<Job> for GridderStage {
         // update. Otherwise the samples are gridded a chunk at a time as they are read, and
         // nothing the size of the table is ever held.
         let needs_operator = w_term || self.keep_operator;
+        let in_parts = matches!(source, VisSource::Parts(_));
+        if in_parts && self.keep_operator {
+            return Err(Error::parameter(
+                "method",
+                format!("job '{}' is in parts gridded where they live, and the residual update's exact NUFFT round trip needs its samples in one process: use method: toeplitz", job.id),
+            ));
+        }
         let held_bytes = OPERATOR_BYTES_PER_SAMPLE * summary.samples as f64;
-        let stream_operator = needs_operator && source.is_streamed() && held_bytes > self.hold_bytes;
+        let stream_operator = needs_operator && (in_parts || (source.is_streamed() && held_bytes > self.hold_bytes));
+        let scheme = rule.scheme();
+        let pass = |w_term: bool, chunk_rows: usize| PartPass::new(geometry, scheme, 0.0, w_term, self.nufft, self.threads, chunk_rows);
         let (dirty, psf, psf_2n, operator, kept) = if stream_operator {
-            log::info!(
-                "job {}: the operator reads the {} samples again from the file at each residual update (holding them would take about {}, above the gridder's hold_mb {})",
-                job.id,
-                summary.samples,
-                crate::limits::format_bytes(held_bytes),
-                self.hold_bytes / 1e6
-            );
+            if let VisSource::Parts(parts) = &source {
+                log::info!("job {}: the operator applies to the {} samples where they live ({}) at each residual update", job.id, summary.samples, parts.passes.describe());
+            } else {
+                log::info!(
+                    "job {}: the operator reads the {} samples again from the file at each residual update (holding them would take about {}, above the gridder's hold_mb {})",
+                    job.id,
+                    summary.samples,
+                    crate::limits::format_bytes(held_bytes),
+                    self.hold_bytes / 1e6
+                );
+            }
             // Chunks as large as the hold limit allows: each costs its w-planes' FFTs.
             let chunk_rows = self.chunk_rows.max((self.hold_bytes / STREAMED_BYTES_PER_SAMPLE) as usize);
-            let g = StreamedOperator::grid(source, rule, geometry, w_term, self.nufft, self.threads, chunk_rows)?;
+            let g = StreamedOperator::grid(source, rule, pass(w_term, chunk_rows))?;
             (g.dirty, g.psf, g.psf_2n, Some(Arc::new(DataOperator::Streamed(g.operator))), None)
         } else if needs_operator {
             if source.is_streamed() {
@@ -103,13 +116,9 @@ impl Stage<Job> for GridderStage {
             let kept = self.keep_operator.then_some(vis);
             (dirty, operator.psf(), psf_2n, Some(Arc::new(DataOperator::Held(operator))), kept)
         } else {
-            let mut gridder = ImageGridder::new(geometry, self.nufft, self.threads)?;
-            source.for_each_chunk(self.chunk_rows, &mut |c| {
-                let weight = chunk_weights(&c, geometry, &rule)?;
-                gridder.add(c.u, c.v, &weight, c.vis)
-            })?;
+            // Gridded a chunk at a time as read (or where its parts live), then released.
+            let images = source_images(&source, &pass(false, self.chunk_rows), &rule)?.normalise(geometry.size)?;
             drop(source);
-            let images = gridder.finish(None)?;
             (images.dirty, images.psf, images.psf_2n, None, None)
         };
         let planes = operator.as_ref().and_then(|op| op.w_planes());

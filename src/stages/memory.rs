@@ -1,17 +1,20 @@
 //! `kind: arrow`: observations handed in by the embedding program as Arrow record batches
 //! (`Engine::run`'s inputs), one job per input, or several with `split_by`. The batches have
 //! the Parquet format's columns and its observation metadata in the schema's metadata, and
-//! are checked exactly as an Arrow IPC stream's are.
+//! are checked exactly as an Arrow IPC stream's are. Observations in parts gridded where they
+//! live (`Engine::image` of an [`Observation::Parts`](crate::Observation)) come in here too,
+//! one job each.
 
 use super::params::ArrowParams;
-use crate::job::{emit_parts, job_id_problem, Truth};
+use crate::job::{emit_parted, emit_parts, job_id_problem, Truth};
 use crate::job::{BuildContext, ImageContext, Job};
 use crate::pipeline::Source;
-use crate::vis::{read_parts, MemoryInput, MemoryTable, SplitBy, TableReader};
+use crate::vis::{read_parts, MemoryInput, MemoryTable, PartedObservation, SplitBy, TableReader};
 use crate::Result;
 
 pub struct MemorySource {
     inputs: Vec<MemoryInput>,
+    parted: Vec<PartedObservation>,
     truth: Option<Truth>,
     split_by: Option<SplitBy>,
     split_key: String,
@@ -25,24 +28,28 @@ impl MemorySource {
             None if ctx.validating() => Vec::new(),
             None => return Err(ctx.error(Some("kind"), "kind 'arrow' reads the run's in-memory inputs, which another source took already")),
         };
-        if inputs.is_empty() && !ctx.validating() {
+        let parted = ctx.take_parted();
+        if inputs.is_empty() && parted.is_empty() && !ctx.validating() {
             return Err(ctx.error(Some("kind"), "kind 'arrow' reads in-memory inputs (Engine::run), and the run was given none"));
         }
         let mut ids = std::collections::HashSet::new();
-        for input in &inputs {
-            if let Some(problem) = job_id_problem(&input.id) {
+        for id in inputs.iter().map(|i| &i.id).chain(parted.iter().map(|p| &p.id)) {
+            if let Some(problem) = job_id_problem(id) {
                 return Err(ctx.error(None, format!("an in-memory input: {problem}")));
             }
-            if !ids.insert(input.id.as_str()) {
-                return Err(ctx.error(None, format!("two in-memory inputs are both job '{}': the second's products would overwrite the first's", input.id)));
+            if !ids.insert(id.as_str()) {
+                return Err(ctx.error(None, format!("two in-memory inputs are both job '{id}': the second's products would overwrite the first's")));
             }
+        }
+        if config.split_by.is_some() && !parted.is_empty() {
+            return Err(ctx.error(Some("split_by"), "an observation in parts is imaged as one job: split it into parts of its own instead"));
         }
         if let Some(split) = &config.split_by {
             split.check().map_err(|m| ctx.error(Some("split_by"), format!("window: {m}")))?;
         }
         let truth = Truth::load(config.truth.as_deref(), ctx.image().size).map_err(|e| ctx.error(Some("truth"), e))?;
         let split_key = format!("stages.{}.split_by", ctx.name());
-        Ok(MemorySource { inputs, truth, split_by: config.split_by, split_key, current_job: None })
+        Ok(MemorySource { inputs, parted, truth, split_by: config.split_by, split_key, current_job: None })
     }
 }
 
@@ -57,6 +64,13 @@ impl Source<Job> for MemorySource {
             };
             stats.log(reader.source());
             emit_parts(reader.id(), reader.meta(), parts, self.truth.as_ref(), None, emit)?;
+        }
+        for observation in std::mem::take(&mut self.parted) {
+            if cancelled() {
+                return Ok(());
+            }
+            self.current_job = Some(observation.id.clone());
+            emit_parted(observation, self.truth.as_ref(), emit)?;
         }
         self.current_job = None;
         Ok(())

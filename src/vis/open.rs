@@ -7,7 +7,7 @@ use super::reader::{TableReader, STDIN};
 use super::error::TableError;
 use super::split::read_parts;
 use super::mat::MatReader;
-use super::{named_telescope, IngestStats, IpcReader, ObservationMeta, VisReader, Visibilities, DEFAULT_BATCH_ROWS};
+use super::{named_telescope, StreamedTable, VisSource, IngestStats, IpcReader, ObservationMeta, VisReader, Visibilities, DEFAULT_BATCH_ROWS};
 use crate::{Error, Result};
 use crate::fits::TempSibling;
 use parquet::arrow::ArrowWriter;
@@ -148,6 +148,20 @@ pub fn read_table(path: &Path, options: &OpenOptions) -> Result<(Visibilities, O
     }
     let vis = parts.pop().map(|p| p.vis).unwrap_or_default();
     Ok((vis, reader.meta().clone(), stats))
+}
+
+/// A table as a job's source, with its metadata: read again from its file at every pass
+/// (Parquet, Arrow IPC, a MeasurementSet), or held where its format is read whole (.mat).
+/// One part of an observation in parts is opened so where it lives.
+pub fn open_source(path: &Path, options: &OpenOptions) -> Result<(ObservationMeta, VisSource)> {
+    if format_of(path)? == TableFormat::Mat {
+        let (vis, meta, _) = read_table(path, options)?;
+        return Ok((meta, VisSource::Held(std::sync::Arc::new(vis))));
+    }
+    let (file, opts) = (path.to_path_buf(), options.clone());
+    let reopen = move || open(&file, &opts);
+    let table = StreamedTable::scan(reopen()?, Box::new(reopen), &|| false)?.expect("never cancelled");
+    Ok((table.meta().clone(), VisSource::Streamed(std::sync::Arc::new(table))))
 }
 
 /// Streams every batch of `reader` into a Parquet table at `out` with `meta` as its metadata

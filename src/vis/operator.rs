@@ -2,9 +2,10 @@
 //! their file at each pass ([`VisSource`]): the total weight of each chunk's samples, and `D`
 //! summed over the chunks where the samples are not held.
 
+use super::parts::{part_apply_normal, part_density, part_images, PartImages, PartPass};
 use super::stream::{VisChunk, VisSource, VisSummary};
 use crate::nufft::NufftParams;
-use crate::operator::{normalise_by_psf_peak, ImageGeometry, ImageGridder, MeasurementOperator};
+use crate::operator::{ImageGeometry, MeasurementOperator};
 use crate::weighting::{DensityGrid, WeightRule, Weighting};
 use crate::{Error, Result};
 
@@ -21,19 +22,19 @@ fn no_given_weights() -> Error {
     )
 }
 
-/// The imaging weight of every sample of `vis` (of which `summary` tells) on `geometry`: for uniform and Briggs, a pass
-/// over the samples gathers the density of the uv-coverage first.
+/// The imaging weight of every sample of `vis` (of which `summary` tells) on `geometry`: for
+/// uniform and Briggs, a pass over the samples (over every part, where in parts) gathers the
+/// density of the uv-coverage first.
 pub fn weight_rule(vis: &VisSource, summary: &VisSummary, geometry: ImageGeometry, weighting: Weighting, grid_factor: f64) -> Result<WeightRule> {
     if let Some(e) = weighting_problem(weighting, summary) {
         return Err(e);
     }
-    let mut density = DensityGrid::new(weighting, geometry.size, grid_factor)?;
-    if weighting.needs_density() {
-        vis.for_each_chunk(1 << 20, &mut |c| {
-            density.add(c.len(), |k| geometry.uv_to_phase(c.u[k], c.v[k]), |k| f64::from(c.weight[k]));
-            Ok(())
-        })?;
-    }
+    let pass = PartPass::new(geometry, weighting, grid_factor, false, NufftParams::default(), 0, 1 << 20);
+    let density = match vis {
+        VisSource::Parts(parts) if weighting.needs_density() => parts.passes.density(&pass)?,
+        VisSource::Parts(_) => DensityGrid::new(weighting, geometry.size, grid_factor)?,
+        _ => part_density(vis, &pass)?,
+    };
     Ok(density.finish())
 }
 
@@ -79,18 +80,15 @@ impl DataOperator {
     }
 }
 
-/// `D` of samples read again from their file at every application, a chunk at a time: each
-/// chunk's operator is planned, applied and dropped, and their images summed (`D` is a sum
-/// over samples), so memory is the images and one chunk's plan, whatever the number of
-/// samples. The price is a pass over the file and each chunk's planning per application.
+/// `D` of samples read again at every application, from their file a chunk at a time or
+/// where their parts live: each chunk's operator is planned, applied and dropped, and their
+/// images summed (`D` is a sum over samples), so memory is the images and one chunk's plan,
+/// whatever the number of samples. The price is a pass over the samples and each chunk's
+/// planning per application.
 pub struct StreamedOperator {
     vis: VisSource,
     rule: WeightRule,
-    geometry: ImageGeometry,
-    w_term: bool,
-    nufft: NufftParams,
-    threads: usize,
-    chunk_rows: usize,
+    pass: PartPass,
     kappa: f64,
     planes: Option<usize>,
 }
@@ -103,48 +101,30 @@ pub struct StreamedGridding {
     pub psf_2n: Vec<f64>,
 }
 
+/// The images of `vis` weighted by `rule`, made as `pass` says, summed over its parts where
+/// in parts, and not yet normalised.
+pub fn source_images(vis: &VisSource, pass: &PartPass, rule: &WeightRule) -> Result<PartImages> {
+    match vis {
+        VisSource::Parts(parts) => parts.passes.images(pass, rule),
+        _ => part_images(vis, pass, rule),
+    }
+}
+
 impl StreamedOperator {
     /// One pass over `vis`: the dirty image and PSF through the operator (with the w-term
-    /// where `w_term`), the coplanar 2N PSF, and `kappa` from the PSF's peak.
-    #[allow(clippy::too_many_arguments)]
-    pub fn grid(
-        vis: VisSource,
-        rule: WeightRule,
-        geometry: ImageGeometry,
-        w_term: bool,
-        nufft: NufftParams,
-        threads: usize,
-        chunk_rows: usize,
-    ) -> Result<StreamedGridding> {
-        let pixels = geometry.pixels();
-        let (mut dirty, mut psf) = (vec![0.0; pixels], vec![0.0; pixels]);
-        let mut doubled = ImageGridder::doubled_psf_only(geometry, nufft, threads)?;
-        let mut planes: Option<usize> = None;
-        vis.for_each_chunk(chunk_rows, &mut |c| {
-            let weight = chunk_weights(&c, geometry, &rule)?;
-            let op = MeasurementOperator::part_for_mode(w_term, geometry, c.u, c.v, c.w, &weight, nufft, threads)?;
-            add_to(&mut dirty, &op.dirty_image(c.vis));
-            add_to(&mut psf, &op.psf());
-            planes = planes.max(op.w_planes());
-            drop(op);
-            doubled.add(c.u, c.v, &weight, c.vis)
-        })?;
-        let kappa = normalise_by_psf_peak(geometry.size, &mut dirty, &mut psf)?;
-        let psf_2n = doubled.finish(Some(kappa))?.psf_2n;
-        let operator = StreamedOperator { vis, rule, geometry, w_term, nufft, threads, chunk_rows, kappa, planes };
-        Ok(StreamedGridding { operator, dirty, psf, psf_2n })
+    /// where `pass.w_term`), the coplanar 2N PSF, and `kappa` from the PSF's peak.
+    pub fn grid(vis: VisSource, rule: WeightRule, pass: PartPass) -> Result<StreamedGridding> {
+        let images = source_images(&vis, &pass, &rule)?.normalise(pass.size)?;
+        let operator = StreamedOperator { vis, rule, pass, kappa: images.kappa, planes: images.planes };
+        Ok(StreamedGridding { operator, dirty: images.dirty, psf: images.psf, psf_2n: images.psf_2n })
     }
 
-    /// `D x = kappa Re{Phi^H Phi x}`, summed over the chunks of a pass.
+    /// `D x = kappa Re{Phi^H Phi x}`, summed over the chunks (or parts) of a pass.
     pub fn apply_normal(&self, x: &[f64]) -> Result<Vec<f64>> {
-        let mut sum = vec![0.0; x.len()];
-        let geometry = self.geometry;
-        self.vis.for_each_chunk(self.chunk_rows, &mut |c| {
-            let weight = chunk_weights(&c, geometry, &self.rule)?;
-            let op = MeasurementOperator::part_for_mode(self.w_term, geometry, c.u, c.v, c.w, &weight, self.nufft, self.threads)?;
-            add_to(&mut sum, &op.apply_normal(x));
-            Ok(())
-        })?;
+        let mut sum = match &self.vis {
+            VisSource::Parts(parts) => parts.passes.apply_normal(&self.pass, &self.rule, x)?,
+            vis => part_apply_normal(vis, &self.pass, &self.rule, x)?,
+        };
         sum.iter_mut().for_each(|p| *p *= self.kappa);
         Ok(sum)
     }
@@ -152,8 +132,4 @@ impl StreamedOperator {
     pub fn kappa(&self) -> f64 {
         self.kappa
     }
-}
-
-fn add_to(sum: &mut [f64], part: &[f64]) {
-    sum.iter_mut().zip(part).for_each(|(s, p)| *s += p);
 }

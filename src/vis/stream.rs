@@ -84,6 +84,16 @@ impl VisSummary {
         self.imaging_weights |= !chunk.imaging_weight.is_empty();
     }
 
+    /// Adds another part's summary to this one (the summary of both parts together).
+    pub fn merge(&mut self, other: &VisSummary) {
+        self.samples += other.samples;
+        self.max_uv = self.max_uv.max(other.max_uv);
+        self.max_abs_w = self.max_abs_w.max(other.max_abs_w);
+        self.lowest_hz = self.lowest_hz.min(other.lowest_hz);
+        self.highest_hz = self.highest_hz.max(other.highest_hz);
+        self.imaging_weights |= other.imaging_weights;
+    }
+
     /// Centre of the observed band and its width (None for a single frequency), Hz.
     pub fn band(&self) -> Option<(f64, Option<f64>)> {
         let (lo, hi) = (self.lowest_hz, self.highest_hz);
@@ -94,11 +104,14 @@ impl VisSummary {
 /// Opens the table again for another pass (its reader, positioned at the first row).
 pub type Reopen = dyn Fn() -> Result<Box<dyn TableReader>> + Send + Sync;
 
-/// A job's visibilities: held in memory, or read again from their file at every pass.
+/// A job's visibilities: held in memory, read again from their file at every pass, or kept
+/// in parts gridded where they live (each pass a sum over the parts, made by the parts' own
+/// [`PartPasses`](super::PartPasses)).
 #[derive(Clone)]
 pub enum VisSource {
     Held(Arc<Visibilities>),
     Streamed(Arc<StreamedTable>),
+    Parts(Arc<super::PartedObservation>),
 }
 
 /// A table read again from its file at every pass. Each pass must find the samples the first
@@ -157,6 +170,7 @@ impl VisSource {
         match self {
             VisSource::Held(vis) => VisSummary::of(vis),
             VisSource::Streamed(table) => table.summary,
+            VisSource::Parts(parts) => parts.summary,
         }
     }
 
@@ -164,6 +178,7 @@ impl VisSource {
         match self {
             VisSource::Held(vis) => vis.len(),
             VisSource::Streamed(table) => table.summary.samples as usize,
+            VisSource::Parts(parts) => parts.summary.samples as usize,
         }
     }
 
@@ -171,9 +186,9 @@ impl VisSource {
         self.len() == 0
     }
 
-    /// Whether each pass reads the file again.
+    /// Whether each pass reads the samples again (from their file, or where their parts live).
     pub fn is_streamed(&self) -> bool {
-        matches!(self, VisSource::Streamed(_))
+        !matches!(self, VisSource::Held(_))
     }
 
     /// Calls `f` with every sample, in chunks of at most `chunk_rows` (held data) or one
@@ -224,6 +239,7 @@ impl VisSource {
                 }
                 Ok(())
             }
+            VisSource::Parts(parts) => Err(not_here(parts)),
         }
     }
 
@@ -241,6 +257,7 @@ impl VisSource {
     pub fn read_all(&self) -> Result<Visibilities> {
         match self {
             VisSource::Held(vis) => Ok(Visibilities::clone(vis)),
+            VisSource::Parts(parts) => Err(not_here(parts)),
             VisSource::Streamed(table) => {
                 let mut all = Visibilities::with_capacity(table.summary.samples as usize);
                 self.for_each_chunk(1 << 20, &mut |c| {
@@ -257,6 +274,18 @@ impl VisSource {
             }
         }
     }
+}
+
+/// The error of a stage that needs the samples of a parted observation in this process.
+fn not_here(parts: &super::PartedObservation) -> Error {
+    Error::parameter(
+        "observation",
+        format!(
+            "job '{}' is kept in {}, which are gridded where they live: this needs its samples in one process (image it with the PSF-convolution residual, and write no model column)",
+            parts.id,
+            parts.passes.describe()
+        ),
+    )
 }
 
 #[cfg(test)]
