@@ -182,7 +182,7 @@ def image(obs, size: int = 512, step: Optional[str] = None, weighting: Optional[
     its errors raise :class:`R2D2Error`."""
     if weighting_grid_factor is None:
         weighting_grid_factor = _native.DEFAULT_WEIGHTING_GRID_FACTOR
-    if not isinstance(obs, (str, os.PathLike)) and not hasattr(obs, "__arrow_c_stream__"):
+    if not isinstance(obs, (str, os.PathLike, _native.Parts)) and not hasattr(obs, "__arrow_c_stream__"):
         raise TypeError(f"obs: expected a path or an Arrow table (pyarrow.Table, RecordBatchReader), got {type(obs).__name__}")
     products = _native.image(
         os.fspath(obs) if isinstance(obs, os.PathLike) else obs,

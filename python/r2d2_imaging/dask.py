@@ -11,10 +11,21 @@ group (one progress bar), each keyed by its job id.
     from r2d2_imaging.dask import image_many
     client = Client("tcp://scheduler:8786")        # or LocalCluster(), or dask-jobqueue
     results = image_many(client, ["a.parquet", "b.parquet"], size=512, prefix="out/{job}")
+
+One observation too big for one machine is imaged by :func:`image_parts`: its parts (files of
+one observation: channels, time ranges, row ranges) are each gridded by a worker that can read
+them, the grids summed here, and the image-domain loop run once, in this process; the products
+are the single-process run's (see :func:`image_parts`).
+
+    products = image_parts(client, ["obs-part0.parquet", "obs-part1.parquet"], size=512)
 """
 
 from __future__ import annotations
 
+import functools
+import hashlib
+import itertools
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +38,7 @@ import pyarrow.parquet as pq
 import r2d2_imaging
 from r2d2_imaging import _native
 
-__all__ = ["Job", "JobResult", "jobs", "split", "image_many", "read_parquet"]
+__all__ = ["Job", "JobResult", "jobs", "split", "image_many", "image_parts", "read_parquet"]
 
 Observation = Union[str, "os.PathLike[str]", pa.Table]
 
@@ -152,3 +163,86 @@ def image_many(client, observations, *, split_by: Optional[Mapping[str, Any]] = 
         from distributed import progress as show
         show(futures)
     return client.gather(futures)
+
+
+class _DaskPasses:
+    """The passes over one observation's parts that the engine asks for (called from its
+    thread): each a task per part on a worker that reads it, their results summed here in
+    part order, so that a run is reproducible to the bit. Each part is a file the workers read
+    (a shared file system, or each part on the worker ``workers`` names for it)."""
+
+    def __init__(self, client, parts, workers, threads):
+        self.client = client
+        self.parts = parts
+        self.workers = workers
+        self.threads = threads
+        self.token = os.urandom(6).hex()
+        self.calls = itertools.count()
+        self.rule = (None, None)
+
+    def describe(self) -> str:
+        return f"{len(self.parts)} parts on a Dask cluster"
+
+    def _pass(self, text: str) -> str:
+        # The part's threads are the worker's, not those of the engine in this process.
+        spec = json.loads(text)
+        spec["threads"] = self.threads
+        return json.dumps(spec)
+
+    def _map(self, function, *args):
+        """``function(part, *args)`` for every part, one task each; the results in part order."""
+        name = f"r2d2-parts-{self.token}-{next(self.calls)}"
+        where = [{} if self.workers is None else {"workers": [self.workers[i]], "allow_other_workers": False} for i in range(len(self.parts))]
+        futures = [self.client.submit(function, part, *args, key=(name, i), pure=False, **where[i]) for i, part in enumerate(self.parts)]
+        return self.client.gather(futures)
+
+    def _scattered_rule(self, density, f2):
+        """The weighting rule on the workers, sent once (every pass after the density's uses it)."""
+        digest = (hashlib.sha1(np.ascontiguousarray(density).view(np.uint8)).hexdigest(), f2)
+        if self.rule[0] != digest:
+            self.rule = (digest, self.client.scatter(np.asarray(density), broadcast=True, hash=False))
+        return self.rule[1]
+
+    def density(self, text):
+        results = self._map(_native.part_density, self._pass(text))
+        return functools.reduce(np.add, [d for d, _ in results]), float(sum(s for _, s in results))
+
+    def images(self, text, density, f2):
+        results = self._map(_native.part_images, self._pass(text), self._scattered_rule(density, f2), f2)
+        dirty, psf, psf_2n = (functools.reduce(np.add, [r[k] for r in results]) for k in range(3))
+        planes = [r[4] for r in results if r[4] is not None]
+        return dirty, psf, psf_2n, int(sum(r[3] for r in results)), max(planes) if planes else None
+
+    def apply_normal(self, text, density, f2, x):
+        x = self.client.scatter(np.asarray(x), broadcast=True, hash=False)
+        return functools.reduce(np.add, self._map(_native.part_apply_normal, self._pass(text), self._scattered_rule(density, f2), f2, x))
+
+
+def image_parts(client, parts: Sequence[Union[str, "os.PathLike[str]"]], *, id: Optional[str] = None,
+                workers: Optional[Sequence[str]] = None, part_threads: int = 0, **params):
+    """Image one observation kept in ``parts`` (files the engine reads: Parquet, Arrow IPC,
+    MeasurementSets; channels, time or row ranges of one observation, with one phase centre)
+    on ``client``'s workers, and return its :class:`r2d2_imaging.Products`.
+
+    Each pass over the samples is a task per part, run where the part is read (``workers``:
+    the worker address holding each part, else any worker, on a shared file system): the
+    summary that fixes the pixel size and the w-term, the uv density of uniform and Briggs
+    weighting, then the dirty image and PSFs, whose sums come back here. The image-domain loop
+    (the networks, CLEAN, the PSF-convolution residual) runs once, in this process. With the
+    w-term, each residual update is one more task per part (the part's operator applied to the
+    model). ``part_threads``: each task's threads (0: every core of its worker).
+
+    The products equal :func:`r2d2_imaging.image` of the parts joined in one table: coplanar to
+    the rounding of the sums, and with the w-term to the NUFFT's accuracy (each part has
+    w-planes of its own). ``params`` are :func:`r2d2_imaging.image`'s (``size``, ``step``,
+    ``weighting`` ...); ``id`` names the job (default: the first part's file name)."""
+    parts = [os.fspath(p) for p in parts]
+    if not parts:
+        raise ValueError("parts: expected at least one part")
+    if workers is not None and len(workers) != len(parts):
+        raise ValueError(f"workers: expected one worker per part ({len(parts)}), got {len(workers)}")
+    passes = _DaskPasses(client, parts, list(workers) if workers is not None else None, part_threads)
+    described = [(part, meta, summary) for part, (meta, summary) in zip(parts, passes._map(_native.part_summary))]
+    name = id or _stem(parts[0], 0)
+    observation = _native.Parts(name, described, passes, passes.describe())
+    return r2d2_imaging.image(observation, id=name, **params)

@@ -11,7 +11,7 @@ use std::path::PathBuf;
 
 
 
-/// Images `obs` (a path, or an object with `__arrow_c_stream__`) as `r2d2 image` does; see the
+/// Images `obs` (a path, an object with `__arrow_c_stream__`, or [`Parts`](crate::parts::Parts)) as `r2d2 image` does; see the
 /// Python wrapper `r2d2_imaging.image` for the parameters.
 #[pyfunction]
 #[pyo3(signature = (obs, *, id, size, step, weighting, robust, superresolution, pixel_arcsec, truth, iterations, threads,
@@ -45,12 +45,13 @@ pub fn image(
     auto_threshold: Option<f64>,
     threshold: Option<f64>,
 ) -> PyResult<Products> {
-    let observation = match obs.extract::<PathBuf>() {
-        Ok(path) => Observation::Path(path),
-        Err(_) => {
-            let stream = arrow_in::stream_of(obs)?;
-            Observation::Batches(MemoryInput::new(id.clone().unwrap_or_else(|| "table".into()), stream))
-        }
+    let observation = if let Ok(parts) = obs.downcast::<crate::parts::Parts>() {
+        Observation::Parts(parts.borrow().take()?)
+    } else if let Ok(path) = obs.extract::<PathBuf>() {
+        Observation::Path(path)
+    } else {
+        let stream = arrow_in::stream_of(obs)?;
+        Observation::Batches(MemoryInput::new(id.clone().unwrap_or_else(|| "table".into()), stream))
     };
     let params = ImageParams {
         size,

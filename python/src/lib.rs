@@ -12,6 +12,7 @@
 mod arrow_in;
 mod image;
 mod logging;
+mod parts;
 mod products;
 
 use numpy::PyArray1;
@@ -256,6 +257,11 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(image::image, m)?)?;
     m.add_function(wrap_pyfunction!(products::_products, m)?)?;
     m.add_class::<products::Products>()?;
+    m.add_class::<parts::Parts>()?;
+    m.add_function(wrap_pyfunction!(parts::part_summary, m)?)?;
+    m.add_function(wrap_pyfunction!(parts::part_density, m)?)?;
+    m.add_function(wrap_pyfunction!(parts::part_images, m)?)?;
+    m.add_function(wrap_pyfunction!(parts::part_apply_normal, m)?)?;
     m.add("DEFAULT_WEIGHTING_GRID_FACTOR", r2d2_imaging::weighting::DEFAULT_GRID_FACTOR)?;
     Ok(())
 }

@@ -6,8 +6,9 @@ from dask.utils import key_split
 import pytest
 from distributed import Client, LocalCluster, get_task_stream
 
+import pyarrow.parquet as pq
 import r2d2_imaging
-from r2d2_imaging.dask import JobResult, image_many, jobs, read_parquet
+from r2d2_imaging.dask import JobResult, image_many, image_parts, jobs, read_parquet
 from conftest import read_fits, simulate
 
 # CLEAN keeps these tests quick; one thread per task, as in the single-process runs they are
@@ -109,3 +110,47 @@ def test_a_single_path_or_table_is_one_job(tmp_path):
     import pyarrow as pa
     (one,) = jobs(pa.table({"u": [0.0]}))
     assert one.id == "table0"
+
+
+@pytest.fixture(scope="module")
+def parted(r2d2_bin, tmp_path_factory):
+    """One observation in one file, and the same rows in three Parquet parts of unequal sizes
+    (as row ranges of a track), each with the observation's metadata."""
+    root = tmp_path_factory.mktemp("parts")
+    whole = simulate(r2d2_bin, root / "whole.parquet", 31)
+    table = read_parquet(whole)
+    bounds = [0, table.num_rows // 5, table.num_rows // 2, table.num_rows]
+    parts = []
+    for k, (start, stop) in enumerate(zip(bounds, bounds[1:])):
+        part = root / f"part{k}.parquet"
+        pq.write_table(table.slice(start, stop - start), part)
+        parts.append(part)
+    return whole, parts
+
+
+@pytest.mark.parametrize("w_term", ["off", "on"])
+def test_an_observation_in_parts_images_as_the_whole_table(client, parted, w_term):
+    """Each part gridded by a worker, the sums imaged here: the products of the whole table in
+    one process, coplanar to the rounding of the sums, with the w-term to the NUFFT's accuracy
+    (each part's w-planes are its own); the parts' tasks ran on both workers."""
+    whole, parts = parted
+    params = dict(PARAMS, w_term=w_term, weighting="briggs", robust=0.0)
+    with get_task_stream(client) as stream:
+        products = image_parts(client, parts, id="whole", part_threads=1, **params)
+    single = r2d2_imaging.image(whole, **params)
+    tolerance = 1e-6 if w_term == "off" else 1e-5
+    for name in ["dirty", "psf", "model", "residual"]:
+        a, b = getattr(single, name), getattr(products, name)
+        assert np.max(np.abs(a - b)) <= tolerance * np.max(np.abs(a)), (w_term, name)
+    assert products.id == "whole"
+    assert products.metrics["settings"]["w_term"]["corrected"] == (w_term == "on")
+    assert figures(products.metrics)[-1][0] == figures(single.metrics)[-1][0]
+    assert len({task["worker"] for task in stream.data}) == 2
+    assert {key_split(task["key"]) for task in stream.data} == {"r2d2-parts"}
+
+
+def test_parts_of_two_observations_are_refused_naming_the_part(client, parted, r2d2_bin, tmp_path):
+    _, parts = parted
+    other = simulate(r2d2_bin, tmp_path / "elsewhere.parquet", 32, dec=10)
+    with pytest.raises(r2d2_imaging.R2D2Error, match="elsewhere.parquet.*another observation"):
+        image_parts(client, [parts[0], other], **PARAMS)
