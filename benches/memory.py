@@ -13,6 +13,16 @@ that grows with the rows (a series' networks cost the same at any row count, and
 peak above the visibilities this comes out below the visibilities' real cost); peak/row is
 the whole peak over the rows, an upper bound. Build first:
 cargo build --release. Prints a table and one JSON object.
+
+    python3 benches/memory.py --dask 1,2 [--rows 1e6,1e8] [--parts 4] [--python PY]
+
+The Dask path instead (no MeasurementSet, no WSClean): each observation is cut into --parts
+Parquet files (row groups, a part at a time) and imaged by `r2d2_imaging.dask.image_parts` on
+a LocalCluster of each count of worker processes (one thread each, the machine's cores shared
+among their tasks), beside `r2d2 image` of the whole file in the same run: wall time, the
+client's peak, each worker's peak, and the largest difference of the dirty image and model
+from the single-process run's, relative to its peak. --python: an interpreter with the
+r2d2_imaging package (default target/python-tests-venv/bin/python, which `cargo test` makes).
 """
 
 import argparse
@@ -105,14 +115,113 @@ def measure(d, name, parquet, ms, size, steps):
     return r2d2, wsclean
 
 
+def split_parts(parquet, count):
+    """`parquet` as `count` files of consecutive rows, nearly equal, written a batch at a time."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    stem = parquet[: -len(".parquet")]
+    paths = [f"{stem}-of{count}-{k}.parquet" for k in range(count)]
+    if all(os.path.exists(p) for p in paths):
+        return paths
+    f = pq.ParquetFile(parquet)
+    rows = f.metadata.num_rows
+    share = -(-rows // count)
+    batches = f.iter_batches(batch_size=1 << 20)
+    pending = None
+    for k, path in enumerate(paths):
+        left = share
+        with pq.ParquetWriter(path + ".tmp", f.schema_arrow, compression="zstd") as writer:
+            while left > 0:
+                batch = pending if pending is not None else next(batches, None)
+                pending = None
+                if batch is None:
+                    break
+                if batch.num_rows > left:
+                    batch, pending = batch.slice(0, left), batch.slice(left)
+                writer.write_table(pa.Table.from_batches([batch], schema=f.schema_arrow))
+                left -= batch.num_rows
+        os.replace(path + ".tmp", path)
+    return paths
+
+
+DASK_CHILD = """
+import json, resource, sys, time
+import numpy as np
+from distributed import Client, LocalCluster
+from r2d2_imaging.dask import image_parts
+from astropy.io import fits
+workers, size, prefix, parts = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4:]
+cores = len(__import__("os").sched_getaffinity(0))
+with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, Client(cluster) as client:
+    start = time.time()
+    products = image_parts(client, parts, id="dask", part_threads=max(1, cores // workers), size=size, step="clean", iterations=1)
+    wall = time.time() - start
+    peaks = client.run(lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+diff = {}
+for name in ["dirty", "model"]:
+    single = np.squeeze(fits.getdata(f"{prefix}-{name}.fits")).astype(np.float64)
+    mine = getattr(products, name).astype(np.float64)
+    diff[name] = float(np.max(np.abs(single - mine)) / np.max(np.abs(single)))
+print(json.dumps({"seconds": wall, "client_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "worker_mb": sorted(peaks.values()), "relative_difference": diff}))
+"""
+
+
+def measure_dask(d, name, parquet, size, counts, parts, python):
+    single = timed([R2D2, "image", parquet, "--size", str(size), "--step", "clean", "--iterations", "1", "--name", f"{name}-single", "-q"], d)
+    paths = split_parts(parquet, parts)
+    runs = {}
+    for workers in counts:
+        out = subprocess.run([python, "-c", DASK_CHILD, str(workers), str(size), os.path.join(d, f"{name}-single")] + paths,
+                             capture_output=True, text=True, cwd=d)
+        if out.returncode != 0:
+            raise SystemExit(f"the Dask run of {name} on {workers} workers failed:\n{out.stderr[-3000:]}")
+        runs[workers] = json.loads(out.stdout.strip().splitlines()[-1])
+    return {"single": {"seconds": single[0], "peak_mb": single[1]}, "dask": runs}
+
+
+def main_dask(args):
+    d = os.path.abspath(args.dir)
+    counts = [int(c) for c in args.dask.split(",")]
+    results = []
+    for target in [float(r) for r in args.rows.split(",")]:
+        channels = max(1, round(target / 1e6))
+        name = f"rows{channels}m"
+        parquet = os.path.join(d, f"{name}.parquet")
+        if not os.path.exists(parquet):
+            if channels <= PART_CHANNELS:
+                observation(d, name, 8, channels)
+            else:
+                join_parts(d, name, 8, channels, parquet)
+        import pyarrow.parquet as pq
+        rows = pq.ParquetFile(parquet).metadata.num_rows
+        results.append({"rows": rows, "parts": args.parts, **measure_dask(d, name, parquet, args.size, counts, args.parts, args.python)})
+    print(f"{args.size} x {args.size}, `--step clean --iterations 1`; Dask: image_parts over {args.parts} Parquet parts, LocalCluster")
+    print(f"{'rows':>10} {'run':>12} {'s':>7} {'client MB':>10} {'worker MB':>16} {'dirty diff':>11} {'model diff':>11}")
+    for r in results:
+        s = r["single"]
+        print(f"{r['rows']:>10} {'r2d2 image':>12} {s['seconds']:>7.1f} {s['peak_mb']:>10.0f} {'-':>16} {'-':>11} {'-':>11}")
+        for workers, run in r["dask"].items():
+            peaks = ", ".join(f"{mb:.0f}" for mb in run["worker_mb"])
+            diff = run["relative_difference"]
+            print(f"{r['rows']:>10} {f'dask x{workers}':>12} {run['seconds']:>7.1f} {run['client_mb']:>10.0f} {peaks:>16} {diff['dirty']:>11.1e} {diff['model']:>11.1e}")
+    print(json.dumps({"size": args.size, "results": results}, indent=2))
+
+
 def main():
     p = argparse.ArgumentParser()
     p.add_argument("--rows", default="1e6,1e7")
     p.add_argument("--size", type=int, default=512)
     p.add_argument("--steps", default="clean,auto", help="r2d2 --step values to measure, comma-separated")
     p.add_argument("--dir", default="bench-out/memory")
+    p.add_argument("--dask", default="", help="worker counts: measure the Dask path (image_parts) instead, e.g. 1,2")
+    p.add_argument("--parts", type=int, default=4, help="Parquet parts of each observation for the Dask path")
+    p.add_argument("--python", default=os.path.join(REPO, "target", "python-tests-venv", "bin", "python"),
+                   help="an interpreter with r2d2_imaging installed (the Dask path)")
     args = p.parse_args()
     os.makedirs(args.dir, exist_ok=True)
+    if args.dask:
+        return main_dask(args)
     steps = args.steps.split(",")
     d = os.path.abspath(args.dir)
     base = observation(d, "base", 0.08, 1)
