@@ -14,7 +14,7 @@ peak above the visibilities this comes out below the visibilities' real cost); p
 the whole peak over the rows, an upper bound. Build first:
 cargo build --release. Prints a table and one JSON object.
 
-    python3 benches/memory.py --dask 1,2 [--rows 1e6,1e8] [--parts 4] [--python PY]
+    python3 benches/memory.py --dask 1,2 [--rows 1e6,1e8] [--parts 4] [--ms] [--python PY]
 
 The Dask path instead (no MeasurementSet, no WSClean): each observation is cut into --parts
 Parquet files (row groups, a part at a time) and imaged by `r2d2_imaging.dask.image_parts` on
@@ -23,6 +23,8 @@ among their tasks), beside `r2d2 image` of the whole file in the same run: wall 
 client's peak, each worker's peak, and the largest difference of the dirty image and model
 from the single-process run's, relative to its peak. --python: an interpreter with the
 r2d2_imaging package (default target/python-tests-venv/bin/python, which `cargo test` makes).
+--ms: each part also converted to a MeasurementSet, imaged by the Dask path and by WSClean
+(`-niter 0`, the parts given together as one observation).
 """
 
 import argparse
@@ -167,17 +169,34 @@ print(json.dumps({"seconds": wall, "client_mb": resource.getrusage(resource.RUSA
 """
 
 
-def measure_dask(d, name, parquet, size, counts, parts, python):
+def dask_run(d, name, size, workers, paths, python):
+    out = subprocess.run([python, "-c", DASK_CHILD, str(workers), str(size), os.path.join(d, f"{name}-single")] + paths,
+                         capture_output=True, text=True, cwd=d)
+    if out.returncode != 0:
+        raise SystemExit(f"the Dask run of {name} on {workers} workers failed:\n{out.stderr[-3000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def measure_dask(d, name, parquet, size, counts, parts, python, ms):
     single = timed([R2D2, "image", parquet, "--size", str(size), "--step", "clean", "--iterations", "1", "--name", f"{name}-single", "-q"], d)
     paths = split_parts(parquet, parts)
-    runs = {}
-    for workers in counts:
-        out = subprocess.run([python, "-c", DASK_CHILD, str(workers), str(size), os.path.join(d, f"{name}-single")] + paths,
-                             capture_output=True, text=True, cwd=d)
-        if out.returncode != 0:
-            raise SystemExit(f"the Dask run of {name} on {workers} workers failed:\n{out.stderr[-3000:]}")
-        runs[workers] = json.loads(out.stdout.strip().splitlines()[-1])
-    return {"single": {"seconds": single[0], "peak_mb": single[1]}, "dask": runs}
+    result = {"single": {"seconds": single[0], "peak_mb": single[1]},
+              "dask": {workers: dask_run(d, name, size, workers, paths, python) for workers in counts}}
+    if ms:
+        # Each part as a MeasurementSet (`r2d2 convert` holds a part whole), imaged by the Dask
+        # path and by WSClean, which takes the parts as one observation.
+        mss = []
+        for path in paths:
+            out = path[: -len(".parquet")] + ".ms"
+            if not os.path.isdir(out):
+                subprocess.run([R2D2, "convert", path, out, "-q"], check=True)
+            mss.append(out)
+        result["dask_ms"] = {workers: dask_run(d, name, size, workers, mss, python) for workers in counts}
+        scale_arcsec = abs(fits_header_value(os.path.join(d, f"{name}-single-dirty.fits"), "CDELT2")) * 3600
+        wsclean = timed(["wsclean", "-quiet", "-size", str(size), str(size), "-scale", f"{scale_arcsec}asec", "-niter", "0", "-j", "2",
+                         "-name", f"{name}-wsclean-parts"] + mss, d)
+        result["wsclean"] = {"seconds": wsclean[0], "peak_mb": wsclean[1]}
+    return result
 
 
 def main_dask(args):
@@ -195,16 +214,20 @@ def main_dask(args):
                 join_parts(d, name, 8, channels, parquet)
         import pyarrow.parquet as pq
         rows = pq.ParquetFile(parquet).metadata.num_rows
-        results.append({"rows": rows, "parts": args.parts, **measure_dask(d, name, parquet, args.size, counts, args.parts, args.python)})
+        results.append({"rows": rows, "parts": args.parts, **measure_dask(d, name, parquet, args.size, counts, args.parts, args.python, args.ms)})
     print(f"{args.size} x {args.size}, `--step clean --iterations 1`; Dask: image_parts over {args.parts} Parquet parts, LocalCluster")
     print(f"{'rows':>10} {'run':>12} {'s':>7} {'client MB':>10} {'worker MB':>16} {'dirty diff':>11} {'model diff':>11}")
     for r in results:
         s = r["single"]
         print(f"{r['rows']:>10} {'r2d2 image':>12} {s['seconds']:>7.1f} {s['peak_mb']:>10.0f} {'-':>16} {'-':>11} {'-':>11}")
-        for workers, run in r["dask"].items():
-            peaks = ", ".join(f"{mb:.0f}" for mb in run["worker_mb"])
-            diff = run["relative_difference"]
-            print(f"{r['rows']:>10} {f'dask x{workers}':>12} {run['seconds']:>7.1f} {run['client_mb']:>10.0f} {peaks:>16} {diff['dirty']:>11.1e} {diff['model']:>11.1e}")
+        for label, runs in [("dask", r["dask"]), ("dask MS", r.get("dask_ms", {}))]:
+            for workers, run in runs.items():
+                peaks = ", ".join(f"{mb:.0f}" for mb in run["worker_mb"])
+                diff = run["relative_difference"]
+                print(f"{r['rows']:>10} {f'{label} x{workers}':>12} {run['seconds']:>7.1f} {run['client_mb']:>10.0f} {peaks:>16} {diff['dirty']:>11.1e} {diff['model']:>11.1e}")
+        if "wsclean" in r:
+            w = r["wsclean"]
+            print(f"{r['rows']:>10} {'WSClean MS':>12} {w['seconds']:>7.1f} {w['peak_mb']:>10.0f} {'-':>16} {'(-niter 0)':>11} {'':>11}")
     print(json.dumps({"size": args.size, "results": results}, indent=2))
 
 
@@ -216,6 +239,7 @@ def main():
     p.add_argument("--dir", default="bench-out/memory")
     p.add_argument("--dask", default="", help="worker counts: measure the Dask path (image_parts) instead, e.g. 1,2")
     p.add_argument("--parts", type=int, default=4, help="Parquet parts of each observation for the Dask path")
+    p.add_argument("--ms", action="store_true", help="the Dask path also over the parts as MeasurementSets, and WSClean on them")
     p.add_argument("--python", default=os.path.join(REPO, "target", "python-tests-venv", "bin", "python"),
                    help="an interpreter with r2d2_imaging installed (the Dask path)")
     args = p.parse_args()

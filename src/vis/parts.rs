@@ -278,3 +278,39 @@ impl PartPasses for LocalParts {
 fn add_to(sum: &mut [f64], part: &[f64]) {
     sum.iter_mut().zip(part).for_each(|(s, p)| *s += p);
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_pass_and_a_weighting_rule_travel_unchanged() {
+        let geometry = ImageGeometry::new(64, 1e-5).unwrap();
+        let pass = PartPass::new(geometry, Weighting::Briggs { robust: -0.5 }, 1.5, true, NufftParams::default(), 3, 1000);
+        assert_eq!(PartPass::from_json(&pass.to_json()).unwrap(), pass);
+        assert_eq!(pass.weighting().unwrap(), Weighting::Briggs { robust: -0.5 });
+        let e = PartPass::from_json("{\"size\": 64}").unwrap_err().to_string();
+        assert!(e.contains("part pass"), "{e}");
+        // A density gathered in two parts, sent as its raw cells and rebuilt, weights every
+        // point as the density of the whole does.
+        let points: Vec<(f64, f64)> = (0..500).map(|k| ((k as f64 * 0.37).sin() * 3.0, (k as f64 * 0.11).cos() * 3.0)).collect();
+        let scheme = pass.weighting().unwrap();
+        let mut whole = DensityGrid::new(scheme, 64, 1.5).unwrap();
+        whole.add(points.len(), |k| points[k], |k| 1.0 + k as f64 % 3.0);
+        let mut first = DensityGrid::new(scheme, 64, 1.5).unwrap();
+        first.add(200, |k| points[k], |k| 1.0 + k as f64 % 3.0);
+        let mut second = DensityGrid::new(scheme, 64, 1.5).unwrap();
+        second.add(300, |k| points[200 + k], |k| 1.0 + (200 + k) as f64 % 3.0);
+        let (cells, sum_w) = second.raw();
+        first.merge(&DensityGrid::from_raw(scheme, 64, 1.5, cells.to_vec(), sum_w).unwrap()).unwrap();
+        let (whole, summed) = (whole.finish(), first.finish());
+        let (cells, f2) = summed.raw();
+        let travelled = WeightRule::from_raw(scheme, cells.to_vec(), f2).unwrap();
+        for &p in &points {
+            let (a, b) = (whole.imaging_weight(p), travelled.imaging_weight(p));
+            assert!((a - b).abs() <= 1e-12 * a.abs(), "{a} {b}");
+        }
+        assert!(WeightRule::from_raw(scheme, vec![1.0; 7], f2).is_err());
+        assert!(DensityGrid::from_raw(scheme, 64, 1.5, vec![1.0; 7], 1.0).is_err());
+    }
+}
