@@ -147,24 +147,32 @@ def split_parts(parquet, count):
 
 
 DASK_CHILD = """
-import json, resource, sys, time
+import json, sys, time
 import numpy as np
 from distributed import Client, LocalCluster
 from r2d2_imaging.dask import image_parts
 from astropy.io import fits
 workers, size, prefix, parts = int(sys.argv[1]), int(sys.argv[2]), sys.argv[3], sys.argv[4:]
 cores = len(__import__("os").sched_getaffinity(0))
+
+
+def peak_mb():
+    # VmHWM: this process's own peak (getrusage's maxrss carries the parent's across exec).
+    for line in open("/proc/self/status"):
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+
 with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, Client(cluster) as client:
     start = time.time()
     products = image_parts(client, parts, id="dask", part_threads=max(1, cores // workers), size=size, step="clean", iterations=1)
     wall = time.time() - start
-    peaks = client.run(lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+    peaks = client.run(peak_mb)
 diff = {}
 for name in ["dirty", "model"]:
     single = np.squeeze(fits.getdata(f"{prefix}-{name}.fits")).astype(np.float64)
     mine = getattr(products, name).astype(np.float64)
     diff[name] = float(np.max(np.abs(single - mine)) / np.max(np.abs(single)))
-print(json.dumps({"seconds": wall, "client_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+print(json.dumps({"seconds": wall, "client_mb": peak_mb(),
                   "worker_mb": sorted(peaks.values()), "relative_difference": diff}))
 """
 

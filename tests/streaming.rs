@@ -138,6 +138,12 @@ fn an_observation_in_parts_images_as_the_whole_table() {
             }
         }
     }
+    // A part that holds other samples when gridded than when first read (written to
+    // meanwhile) stops the job, and nothing is imaged.
+    let shrunk = vec![parts[0].clone(), parts[1].clone(), VisSource::Held(Arc::new(Default::default()))];
+    let changed = PartedObservation::new("obs", &described, Box::new(LocalParts { parts: shrunk })).unwrap();
+    let e = engine.image(Observation::Parts(changed), &ImageParams { size: SIZE, step: StepChoice::Clean, ..ImageParams::default() }).unwrap_err().to_string();
+    assert!(e.contains("where their first reading found") && e.contains("written to meanwhile"), "{e}");
     // A part of another observation (another phase centre) is refused, naming it.
     let mut other = meta.clone();
     other.phase_centre_dec_deg += 1.0;

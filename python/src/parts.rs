@@ -8,7 +8,7 @@ use crate::run_released;
 use numpy::{PyArray1, PyReadonlyArray1};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
-use r2d2_imaging::vis::{self, open_source, ObservationMeta, OpenOptions, PartImages, PartPass, PartPasses, PartedObservation, VisSummary};
+use r2d2_imaging::vis::{self, open_pass, open_source, ObservationMeta, OpenOptions, PartImages, PartPass, PartPasses, PartedObservation, VisSummary};
 use r2d2_imaging::weighting::{DensityGrid, WeightRule};
 use r2d2_imaging::{Error, Result};
 use std::path::PathBuf;
@@ -64,7 +64,7 @@ pub fn part_density(
 ) -> PyResult<(Bound<'_, PyArray1<f64>>, f64)> {
     let (density, sum_w) = run_released(py, move |_| {
         let pass = PartPass::from_json(&pass)?;
-        let (_, source) = open_source(&path, &OpenOptions::default())?;
+        let source = open_pass(&path, &OpenOptions::default())?;
         let grid = vis::part_density(&source, &pass)?;
         let (density, sum_w) = grid.raw();
         Ok((density.to_vec(), sum_w))
@@ -97,7 +97,7 @@ pub fn part_images<'py>(
     let images = run_released(py, move |_| {
         let pass = PartPass::from_json(&pass)?;
         let rule = rule(&pass, density, f2)?;
-        let (_, source) = open_source(&path, &OpenOptions::default())?;
+        let source = open_pass(&path, &OpenOptions::default())?;
         vis::part_images(&source, &pass, &rule)
     })?;
     Ok((
@@ -124,7 +124,7 @@ pub fn part_apply_normal<'py>(
     let out = run_released(py, move |_| {
         let pass = PartPass::from_json(&pass)?;
         let rule = rule(&pass, density, f2)?;
-        let (_, source) = open_source(&path, &OpenOptions::default())?;
+        let source = open_pass(&path, &OpenOptions::default())?;
         vis::part_apply_normal(&source, &pass, &rule, &x)
     })?;
     Ok(PyArray1::from_vec(py, out))

@@ -25,7 +25,7 @@ pub use error::TableError;
 pub use ipc::IpcReader;
 pub use mat::MatReader;
 pub use memory::{memory_table, MemoryInput, MemoryTable};
-pub use open::{format_of, open, open_source, read_table, telescope_of, write_parquet_from, OpenOptions, TableFormat};
+pub use open::{format_of, open, open_pass, open_source, read_table, telescope_of, write_parquet_from, OpenOptions, TableFormat};
 pub use reader::{TableReader, STDIN};
 pub use operator::{chunk_weights, source_images, weight_rule, weighting_problem, DataOperator, StreamedGridding, StreamedOperator};
 pub use parts::{part_apply_normal, part_density, part_images, LocalParts, NormalisedImages, PartImages, PartPass, PartPasses, PartedObservation};

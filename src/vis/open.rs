@@ -164,6 +164,17 @@ pub fn open_source(path: &Path, options: &OpenOptions) -> Result<(ObservationMet
     Ok((table.meta().clone(), VisSource::Streamed(std::sync::Arc::new(table))))
 }
 
+/// A table for one pass of a part of an observation, not read first (see
+/// [`StreamedTable::unscanned`]): its caller checks the samples the pass found.
+pub fn open_pass(path: &Path, options: &OpenOptions) -> Result<VisSource> {
+    if format_of(path)? == TableFormat::Mat {
+        return Ok(VisSource::Held(std::sync::Arc::new(read_table(path, options)?.0)));
+    }
+    let (file, opts) = (path.to_path_buf(), options.clone());
+    let reopen = move || open(&file, &opts);
+    Ok(VisSource::Streamed(std::sync::Arc::new(StreamedTable::unscanned(reopen()?, Box::new(reopen)))))
+}
+
 /// Streams every batch of `reader` into a Parquet table at `out` with `meta` as its metadata
 /// (on the file and on the stored Arrow schema, where pyarrow reads it), replacing `out`
 /// atomically. Returns the samples written.

@@ -105,7 +105,24 @@ pub struct StreamedGridding {
 /// in parts, and not yet normalised.
 pub fn source_images(vis: &VisSource, pass: &PartPass, rule: &WeightRule) -> Result<PartImages> {
     match vis {
-        VisSource::Parts(parts) => parts.passes.images(pass, rule),
+        VisSource::Parts(parts) => {
+            let images = parts.passes.images(pass, rule)?;
+            // Each part is read once more for its images: they must hold the samples their
+            // summaries counted, or a part changed (or went missing) meanwhile.
+            if images.samples != parts.summary.samples {
+                return Err(Error::parameter(
+                    "parts",
+                    format!(
+                        "the parts of job '{}' ({}) gridded {} samples where their first reading found {}: was a part written to meanwhile? nothing was written",
+                        parts.id,
+                        parts.passes.describe(),
+                        images.samples,
+                        parts.summary.samples
+                    ),
+                ));
+            }
+            Ok(images)
+        }
         _ => part_images(vis, pass, rule),
     }
 }

@@ -121,6 +121,9 @@ pub struct StreamedTable {
     reopen: Box<Reopen>,
     meta: ObservationMeta,
     stats: IngestStats,
+    /// Whether `stats` are the first reading's, for later passes to be checked against
+    /// (false for a table opened for one pass without reading it first).
+    scanned: bool,
     summary: VisSummary,
     reader_summary: Option<String>,
 }
@@ -145,9 +148,25 @@ impl StreamedTable {
             reopen,
             meta: reader.meta().clone(),
             stats,
+            scanned: true,
             summary,
             reader_summary: reader.summary(),
         }))
+    }
+
+    /// A table for passes that are not checked against a first reading (nothing is read
+    /// now; its summary is empty): one part of an observation, whose caller checks the
+    /// samples a pass found against those its first reading found.
+    pub fn unscanned(reader: Box<dyn TableReader>, reopen: Box<Reopen>) -> StreamedTable {
+        StreamedTable {
+            path: reader.source().to_path_buf(),
+            reopen,
+            meta: reader.meta().clone(),
+            stats: IngestStats::default(),
+            scanned: false,
+            summary: VisSummary::empty(),
+            reader_summary: None,
+        }
     }
 
     pub fn stats(&self) -> &IngestStats {
@@ -212,7 +231,7 @@ impl VisSource {
                 let mut buffer = Visibilities::default();
                 while let Some(batch) = reader.next_batch() {
                     let vis = record_batch_to_visibilities(&batch?, &mut stats, &source)?;
-                    if stats.kept() > table.stats.kept() {
+                    if table.scanned && stats.kept() > table.stats.kept() {
                         break;
                     }
                     if buffer.is_empty() && vis.len() >= chunk_rows {
@@ -225,7 +244,7 @@ impl VisSource {
                         buffer = Visibilities::default();
                     }
                 }
-                if stats != table.stats {
+                if table.scanned && stats != table.stats {
                     return Err(Error::input(
                         &table.path,
                         format!(
