@@ -353,7 +353,10 @@ fn arrow_ipc_on_stdin_and_from_a_file_images_like_parquet() {
     std::fs::write(d.join("file.yaml"), small_pipeline(Some(&ipc_source("a.arrow", "    id: from-file\n")))).unwrap();
     check(&r2d2(&["run", "pq.yaml"], d));
     check(&r2d2_stdin(&["run", "stdin.yaml"], d, &stream));
-    check(&r2d2(&["run", "file.yaml"], d));
+    let from_file = r2d2(&["run", "file.yaml"], d);
+    check(&from_file);
+    // The file is read in passes, standard input once and held.
+    assert!(stderr(&from_file).contains("read from a.arrow at each pass"), "{}", stderr(&from_file));
     for product in ["dirty", "psf", "model", "residual", "image"] {
         let expected = read_image(&d.join(format!("out/a-{product}.fits"))).unwrap();
         for id in ["stdin", "from-file"] {

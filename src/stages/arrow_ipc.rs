@@ -1,10 +1,12 @@
 //! `kind: arrow-ipc`: visibilities as an Arrow IPC stream (or file) with the Parquet format's
 //! columns and metadata, from a file or from standard input (`path: -`): how a calibration
-//! process upstream streams batches in. One job, or several with `split_by`.
+//! process upstream streams batches in. One job, or several with `split_by`. A job of a
+//! whole regular file is read again at each pass (nothing the size of the table is held);
+//! standard input, a pipe and a split are read once and held.
 
 use super::params::ArrowIpcParams;
-use crate::job::{emit_parts, job_id_problem, stem_id, Truth};
-use crate::vis::{read_parts, IpcReader, SplitBy, TableReader, STDIN};
+use crate::job::{emit_parts, emit_streamed, job_id_problem, stem_id, Truth};
+use crate::vis::{read_parts, IpcReader, SplitBy, StreamedTable, TableReader, STDIN};
 use crate::job::Job;
 use crate::pipeline::{PipelineSpec, Source, StageSpec};
 use crate::Result;
@@ -51,6 +53,17 @@ impl ArrowIpcSource {
 impl Source<Job> for ArrowIpcSource {
     fn produce(&mut self, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<()> {
         self.reading = true;
+        let regular_file = self.path != STDIN && std::fs::metadata(&self.path).is_ok_and(|m| m.is_file());
+        if regular_file && self.split_by.is_none() {
+            let (file, allow_truncated) = (self.path.clone(), self.allow_truncated);
+            let reopen = move || -> Result<Box<dyn TableReader>> { Ok(Box::new(IpcReader::open(&file, allow_truncated)?)) };
+            let Some(table) = StreamedTable::scan(reopen()?, Box::new(reopen), cancelled)? else {
+                return Ok(());
+            };
+            table.stats().log(Path::new(&self.path));
+            self.reading = false;
+            return emit_streamed(&self.id, table, self.truth.as_ref(), emit);
+        }
         let mut reader = IpcReader::open(&self.path, self.allow_truncated)?;
         let Some((parts, stats)) = read_parts(&mut reader, self.split_by.as_ref(), &self.split_key, cancelled)? else {
             return Ok(());
