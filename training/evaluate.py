@@ -27,11 +27,13 @@ from r2d2train import common, series  # noqa: E402
 # the series learn D as the PSF convolution it then is), and this CLEAN row is a model-only
 # baseline beside them. The tables hold visibilities predicted with their w (what other
 # imagers see): `benches/vs_wsclean.py` images them as a user would, w-term included.
+# Each sample's own pixel and Briggs robustness (a set drawn over ranges of settings has one
+# per sample; a set of one setting records it too): CLEAN images the grid the set's PSF is of.
 CLEAN_YAML = """name: clean-test
-image: {{size: {size}, superresolution: 1.5}}
+image: {{size: {size}, pixel_arcsec: {pixel_arcsec!r}}}
 stages:
   read: {{kind: parquet, files: "{parquet}", to: weights}}
-  weights: {{kind: weighting, scheme: briggs, robust: 0, to: grid}}
+  weights: {{kind: weighting, scheme: briggs, robust: {robust!r}, to: grid}}
   grid: {{kind: gridder, epsilon: 1.0e-6, w_term: off, to: step}}
   step: {{kind: clean, gain: 0.1, components_per_cycle: {components}, major_cycles: {cycles}, threshold: {threshold}, to: update}}
   update: {{kind: residual, method: toeplitz, to: step, done: write}}
@@ -52,8 +54,13 @@ def run_clean(r2d2, data, k, workdir, cycles, components):
         raise SystemExit(f"{parquet}: missing; make the test set with `r2d2 trainset --parquet`")
     prefix = os.path.join(workdir, f"{k:05d}")
     yaml_path = os.path.join(workdir, f"clean-{k:05d}.yaml")
+    with open(os.path.join(data.path, "samples.json")) as f:
+        sample = json.load(f)[k]
+    if sample.get("index", k) != k or "pixel_arcsec" not in sample:
+        raise SystemExit(f"{data.path}/samples.json: row {k} has no pixel_arcsec of sample {k}")
     with open(yaml_path, "w") as f:
-        f.write(CLEAN_YAML.format(size=n, parquet=parquet, prefix=prefix, cycles=cycles, components=components, threshold=sigma))
+        f.write(CLEAN_YAML.format(size=n, parquet=parquet, prefix=prefix, cycles=cycles, components=components, threshold=sigma,
+                                  pixel_arcsec=float(sample["pixel_arcsec"]), robust=float(sample.get("robust", 0.0))))
     proc = subprocess.run([r2d2, "-q", "run", yaml_path], capture_output=True, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"r2d2 run {yaml_path} failed:\n{proc.stderr}")
