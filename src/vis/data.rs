@@ -281,3 +281,93 @@ pub fn named_telescope(telescope: &str) -> Option<String> {
 
 /// What readers write as the telescope of data that name none.
 pub const UNKNOWN_TELESCOPE: &str = "unknown";
+
+/// Samples of a pass, borrowed: a slice of held visibilities or one decoded batch.
+#[derive(Clone, Copy, Debug)]
+pub struct VisChunk<'a> {
+    pub u: &'a [f64],
+    pub v: &'a [f64],
+    pub w: &'a [f64],
+    pub vis: &'a [Complex32],
+    pub weight: &'a [f32],
+    pub frequency: &'a [f64],
+    /// Empty when the data carry no imaging weights.
+    pub imaging_weight: &'a [f32],
+}
+
+impl<'a> VisChunk<'a> {
+    pub fn len(&self) -> usize {
+        self.u.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.u.is_empty()
+    }
+}
+
+impl Visibilities {
+    /// Samples `range` of these visibilities, borrowed.
+    pub fn chunk(&self, range: std::ops::Range<usize>) -> VisChunk<'_> {
+        VisChunk {
+            u: &self.u[range.clone()],
+            v: &self.v[range.clone()],
+            w: &self.w[range.clone()],
+            vis: &self.vis[range.clone()],
+            weight: &self.weight[range.clone()],
+            frequency: &self.frequency[range.clone()],
+            imaging_weight: if self.imaging_weight.is_empty() { &[] } else { &self.imaging_weight[range] },
+        }
+    }
+}
+
+/// What imaging needs to know of all the samples before its first pass over them.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct VisSummary {
+    pub samples: u64,
+    /// Longest projected baseline sqrt(u^2 + v^2), wavelengths.
+    pub max_uv: f64,
+    pub max_abs_w: f64,
+    /// Lowest and highest frequency, Hz (`lowest > highest` when empty).
+    pub lowest_hz: f64,
+    pub highest_hz: f64,
+    /// Whether the samples carry imaging weights (the `given` weighting's).
+    pub imaging_weights: bool,
+}
+
+impl VisSummary {
+    pub fn empty() -> VisSummary {
+        VisSummary { lowest_hz: f64::INFINITY, highest_hz: 0.0, ..VisSummary::default() }
+    }
+
+    pub fn of(vis: &Visibilities) -> VisSummary {
+        let mut s = VisSummary::empty();
+        s.add(&vis.chunk(0..vis.len()));
+        s
+    }
+
+    pub fn add(&mut self, chunk: &VisChunk<'_>) {
+        self.samples += chunk.len() as u64;
+        self.max_uv = chunk.u.iter().zip(chunk.v).map(|(u, v)| u.hypot(*v)).fold(self.max_uv, f64::max);
+        self.max_abs_w = chunk.w.iter().fold(self.max_abs_w, |m, w| m.max(w.abs()));
+        for &f in chunk.frequency {
+            self.lowest_hz = self.lowest_hz.min(f);
+            self.highest_hz = self.highest_hz.max(f);
+        }
+        self.imaging_weights |= !chunk.imaging_weight.is_empty();
+    }
+
+    /// Adds another part's summary to this one (the summary of both parts together).
+    pub fn merge(&mut self, other: &VisSummary) {
+        self.samples += other.samples;
+        self.max_uv = self.max_uv.max(other.max_uv);
+        self.max_abs_w = self.max_abs_w.max(other.max_abs_w);
+        self.lowest_hz = self.lowest_hz.min(other.lowest_hz);
+        self.highest_hz = self.highest_hz.max(other.highest_hz);
+        self.imaging_weights |= other.imaging_weights;
+    }
+
+    /// Centre of the observed band and its width (None for a single frequency), Hz.
+    pub fn band(&self) -> Option<(f64, Option<f64>)> {
+        let (lo, hi) = (self.lowest_hz, self.highest_hz);
+        (hi >= lo).then(|| (0.5 * (lo + hi), (hi > lo).then_some(hi - lo)))
+    }
+}

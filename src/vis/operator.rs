@@ -2,8 +2,10 @@
 //! their file at each pass ([`VisSource`]): the total weight of each chunk's samples, and `D`
 //! summed over the chunks where the samples are not held.
 
-use super::parts::{part_apply_normal, part_density, part_images, PartImages, PartPass};
-use super::stream::{VisChunk, VisSource, VisSummary};
+use super::parted::{PartImages, PartPass};
+use super::parts::{no_given_weights, part_apply_normal, part_density, part_images};
+use super::data::VisSummary;
+use super::stream::VisSource;
 use crate::nufft::NufftParams;
 use crate::operator::{ImageGeometry, MeasurementOperator};
 use crate::weighting::{DensityGrid, WeightRule, Weighting};
@@ -15,12 +17,6 @@ pub fn weighting_problem(weighting: Weighting, summary: &VisSummary) -> Option<E
     (weighting == Weighting::Given && !summary.imaging_weights).then(no_given_weights)
 }
 
-fn no_given_weights() -> Error {
-    Error::parameter(
-        "weighting",
-        "`given` uses the imaging weights given with the data (a table's `imaging_weight` column, a .mat file's `nWimag`), and these visibilities carry none: choose natural, uniform or briggs",
-    )
-}
 
 /// The imaging weight of every sample of `vis` (of which `summary` tells) on `geometry`: for
 /// uniform and Briggs, a pass over the samples (over every part, where in parts) gathers the
@@ -36,20 +32,6 @@ pub fn weight_rule(vis: &VisSource, summary: &VisSummary, geometry: ImageGeometr
         _ => part_density(vis, &pass)?,
     };
     Ok(density.finish())
-}
-
-/// Total weights (natural x imaging, x the given imaging weight for `given`) of a chunk's
-/// samples.
-pub fn chunk_weights(chunk: &VisChunk<'_>, geometry: ImageGeometry, rule: &WeightRule) -> Result<Vec<f64>> {
-    let n = chunk.len();
-    let natural = |k: usize| f64::from(chunk.weight[k]);
-    if rule.scheme() == Weighting::Given {
-        if chunk.imaging_weight.len() != n {
-            return Err(no_given_weights());
-        }
-        return Ok((0..n).map(|k| natural(k) * f64::from(chunk.imaging_weight[k])).collect());
-    }
-    Ok((0..n).map(|k| rule.imaging_weight(geometry.uv_to_phase(chunk.u[k], chunk.v[k])) * natural(k)).collect())
 }
 
 /// The operator the residual update runs through where the PSF convolution is not `D` (the
