@@ -72,8 +72,11 @@ pub fn part_density(
     Ok((PyArray1::from_vec(py, density), sum_w))
 }
 
-fn rule(pass: &PartPass, density: Vec<f64>, f2: f64) -> Result<WeightRule> {
-    WeightRule::from_raw(pass.weighting()?, density, f2)
+/// What a worker's pass over a part needs: the pass, the job's weighting rule and the part.
+fn part_inputs(path: &std::path::Path, pass: &str, density: Vec<f64>, f2: f64) -> Result<(PartPass, WeightRule, vis::VisSource)> {
+    let pass = PartPass::from_json(pass)?;
+    let rule = WeightRule::from_raw(pass.weighting()?, density, f2)?;
+    Ok((pass, rule, open_pass(path, &OpenOptions::default())?))
 }
 
 /// A part's images, not normalised: `(dirty, psf, psf_2n, samples, planes)`, the images
@@ -95,9 +98,7 @@ pub fn part_images<'py>(
 )> {
     let density = density.as_slice()?.to_vec();
     let images = run_released(py, move |_| {
-        let pass = PartPass::from_json(&pass)?;
-        let rule = rule(&pass, density, f2)?;
-        let source = open_pass(&path, &OpenOptions::default())?;
+        let (pass, rule, source) = part_inputs(&path, &pass, density, f2)?;
         vis::part_images(&source, &pass, &rule)
     })?;
     Ok((
@@ -122,9 +123,7 @@ pub fn part_apply_normal<'py>(
     let density = density.as_slice()?.to_vec();
     let x = x.as_slice()?.to_vec();
     let out = run_released(py, move |_| {
-        let pass = PartPass::from_json(&pass)?;
-        let rule = rule(&pass, density, f2)?;
-        let source = open_pass(&path, &OpenOptions::default())?;
+        let (pass, rule, source) = part_inputs(&path, &pass, density, f2)?;
         vis::part_apply_normal(&source, &pass, &rule, &x)
     })?;
     Ok(PyArray1::from_vec(py, out))
