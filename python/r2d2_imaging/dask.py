@@ -162,7 +162,18 @@ def image_many(client, observations, *, split_by: Optional[Mapping[str, Any]] = 
     if progress:
         from distributed import progress as show
         show(futures)
-    return client.gather(futures)
+    return _gather(client, futures)
+
+
+def _gather(client, futures):
+    """The futures' results; at the first failure the tasks not yet started are cancelled
+    (their results would be thrown away) before the error is raised. A task already running
+    finishes on its worker: Dask cannot stop a running task."""
+    try:
+        return client.gather(futures)
+    except BaseException:
+        client.cancel(futures)
+        raise
 
 
 class _DaskPasses:
@@ -194,7 +205,7 @@ class _DaskPasses:
         name = f"r2d2-parts-{self.token}-{next(self.calls)}"
         where = [{} if self.workers is None else {"workers": [self.workers[i]], "allow_other_workers": False} for i in range(len(self.parts))]
         futures = [self.client.submit(function, part, *args, key=(name, i), pure=False, **where[i]) for i, part in enumerate(self.parts)]
-        return self.client.gather(futures)
+        return _gather(self.client, futures)
 
     def _scattered_rule(self, density, f2):
         """The weighting rule on the workers, sent once (every pass after the density's uses it)."""

@@ -94,6 +94,10 @@ def test_a_failed_job_raises_the_engines_error(client, observations, tmp_path):
     missing = tmp_path / "missing.parquet"
     with pytest.raises(r2d2_imaging.R2D2Error, match="missing.parquet"):
         image_many(client, [observations[0], missing], **PARAMS)
+    # The other job, still running when the missing one failed, was cancelled: nothing of the
+    # call is left on the cluster (or it would finish into a later call's task stream).
+    left = [key for keys in client.processing().values() for key in keys]
+    assert not [key for key in left if key_split(key) == "r2d2-image"], left
 
 
 def test_prefix_needs_the_job_placeholder(client, observations):
