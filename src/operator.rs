@@ -246,7 +246,9 @@ impl MeasurementOperator {
             if w.len() != u.len() {
                 return Err(Error::parameter("visibilities", "u and w arrays differ in length"));
             }
-            let plan = WGridPlan::new(geometry.size, geometry.pixel_rad, u, v, w, nufft, threads)?;
+            // Images are real: the real-image plan folds negative w onto positive w (fewer
+            // planes) and grids a real image's Hermitian pairs once.
+            let plan = WGridPlan::new_real(geometry.size, geometry.pixel_rad, u, v, w, nufft, threads)?;
             return Ok(MeasurementOperator { geometry, plan: Plan::WGridded(plan), weight: weight.to_vec(), kappa: 1.0 });
         }
         let (x, y): (Vec<f64>, Vec<f64>) = u.iter().zip(v).map(|(&u, &v)| geometry.uv_to_phase(u, v)).unzip();
@@ -314,20 +316,19 @@ impl MeasurementOperator {
                 plan.adjoint_sorted(y_sorted, &mut img);
                 img.iter().map(|c| c.re).collect()
             }
-            Plan::WGridded(plan) => plan.adjoint(y_sorted).iter().map(|c| c.re).collect(),
+            Plan::WGridded(plan) => plan.adjoint_real(y_sorted),
         }
     }
 
     /// `Phi_raw x` in the plan's order.
     fn forward_sorted(&self, x: &[f64]) -> Vec<Complex64> {
-        let image = Self::to_complex(x);
         match &self.plan {
             Plan::Coplanar(plan) => {
                 let mut vis = vec![Complex64::default(); self.len()];
-                plan.forward_sorted(&image, &mut vis);
+                plan.forward_sorted(&Self::to_complex(x), &mut vis);
                 vis
             }
-            Plan::WGridded(plan) => plan.forward(&image),
+            Plan::WGridded(plan) => plan.forward_real(x),
         }
     }
 
@@ -354,7 +355,7 @@ impl MeasurementOperator {
                 plan.forward(&Self::to_complex(x), &mut out);
                 out
             }
-            Plan::WGridded(plan) => plan.forward(&Self::to_complex(x)),
+            Plan::WGridded(plan) => plan.forward_real(x),
         }
     }
 
@@ -413,7 +414,7 @@ pub fn predict(
     let predicted = if inside.is_empty() {
         Vec::new()
     } else if w_term.includes(geometry, max_abs_w, nufft.epsilon) {
-        WGridPlan::new(geometry.size, geometry.pixel_rad, &ui, &vi, &wi, nufft, threads)?.forward(&image)
+        WGridPlan::new_real(geometry.size, geometry.pixel_rad, &ui, &vi, &wi, nufft, threads)?.forward_real(x)
     } else {
         let (px, py): (Vec<f64>, Vec<f64>) = ui.iter().zip(&vi).map(|(&u, &v)| geometry.uv_to_phase(u, v)).unzip();
         let plan = Nufft2d::new(geometry.size, geometry.size, &px, &py, nufft, threads)?;

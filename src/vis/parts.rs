@@ -8,6 +8,7 @@ use super::stream::VisSource;
 use crate::operator::{ImageGeometry, ImageGridder, MeasurementOperator};
 use crate::weighting::{DensityGrid, WeightRule, Weighting};
 use crate::{Error, Result};
+use rayon::prelude::*;
 
 pub(super) fn no_given_weights() -> Error {
     Error::parameter(
@@ -25,9 +26,9 @@ pub fn chunk_weights(chunk: &VisChunk<'_>, geometry: ImageGeometry, rule: &Weigh
         if chunk.imaging_weight.len() != n {
             return Err(no_given_weights());
         }
-        return Ok((0..n).map(|k| natural(k) * f64::from(chunk.imaging_weight[k])).collect());
+        return Ok((0..n).into_par_iter().map(|k| natural(k) * f64::from(chunk.imaging_weight[k])).collect());
     }
-    Ok((0..n).map(|k| rule.imaging_weight(geometry.uv_to_phase(chunk.u[k], chunk.v[k])) * natural(k)).collect())
+    Ok((0..n).into_par_iter().map(|k| rule.imaging_weight(geometry.uv_to_phase(chunk.u[k], chunk.v[k])) * natural(k)).collect())
 }
 
 /// The uv density of a part's samples on the weighting grid (uniform and Briggs; an empty
