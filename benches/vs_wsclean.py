@@ -314,8 +314,15 @@ def one_sky(args, r2d2, data_dir, k, sample, out):
         assert est.shape == truth.shape, f"{key}: {est.shape} vs truth {truth.shape}"
         # A CLEAN model is a set of components: a poor one of a sparse sky can peak a few pixels
         # off in cross-correlation without being flipped; images are held to one pixel.
-        shift = xcorr_shift(truth, est) if key.endswith("_model") else check_orientation(truth, est, f"sky {k} {key}")
         s = score(est, truth, a, res, dirt)
+        # An imager that diverged (its residual above its dirty image: worse than an empty model)
+        # gives an image with no orientation to check; it is scored and marked as such.
+        diverged = s["residual_ratio"] > 1
+        if diverged:
+            s["diverged"] = True
+            print(f"  sky {k} {key}: diverged (residual ratio {s['residual_ratio']:.3g}); scored, orientation not checked")
+        plain = key.endswith("_model") or diverged
+        shift = xcorr_shift(truth, est) if plain else check_orientation(truth, est, f"sky {k} {key}")
         s["xcorr_shift"] = shift
         s.update({"wall_s": runs[TIMED[key]]["wall_s"], "peak_mb": runs[TIMED[key]]["peak_mb"]})
         rec["scores"][key] = s
