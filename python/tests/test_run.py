@@ -107,8 +107,11 @@ def test_an_unreadable_table_raises_table_error(tmp_path):
 def test_ctrl_c_stops_the_engine_cleanly(tmp_path):
     """SIGINT while the engine works (GIL released, on its own threads) raises
     KeyboardInterrupt within a job boundary, and leaves no partial products."""
+    # The child takes Ctrl-C as an interactive Python does, whatever this process inherited
+    # (a shell's background job starts with SIGINT ignored, and Python then leaves it so).
     script = textwrap.dedent(f"""\
-        import sys, time, r2d2_imaging
+        import signal, sys, time, r2d2_imaging
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         pipeline = {PIPELINE!r}.replace("jobs: 2", "jobs: 400").replace("size: 64", "size: 128")
         print("started", flush=True)
         try:
