@@ -409,7 +409,6 @@ pub fn predict(
     let inside: Vec<usize> = (0..u.len()).filter(|&k| u[k].abs() < limit && v[k].abs() < limit && u[k].is_finite() && v[k].is_finite()).collect();
     let pick = |a: &[f64]| -> Vec<f64> { inside.iter().map(|&k| a[k]).collect() };
     let (ui, vi, wi) = (pick(u), pick(v), pick(w));
-    let image: Vec<Complex64> = x.iter().map(|&p| Complex64::new(p, 0.0)).collect();
     let max_abs_w = wi.iter().fold(0.0f64, |m, w| m.max(w.abs()));
     let predicted = if inside.is_empty() {
         Vec::new()
@@ -419,7 +418,7 @@ pub fn predict(
         let (px, py): (Vec<f64>, Vec<f64>) = ui.iter().zip(&vi).map(|(&u, &v)| geometry.uv_to_phase(u, v)).unzip();
         let plan = Nufft2d::new(geometry.size, geometry.size, &px, &py, nufft, threads)?;
         let mut out = vec![Complex64::default(); px.len()];
-        plan.forward(&image, &mut out);
+        plan.forward(&MeasurementOperator::to_complex(x), &mut out);
         out
     };
     let mut all = vec![Complex64::default(); u.len()];

@@ -17,7 +17,6 @@ pub fn weighting_problem(weighting: Weighting, summary: &VisSummary) -> Option<E
     (weighting == Weighting::Given && !summary.imaging_weights).then(no_given_weights)
 }
 
-
 /// The imaging weight of every sample of `vis` (of which `summary` tells) on `geometry`: for
 /// uniform and Briggs, a pass over the samples (over every part, where in parts) gathers the
 /// density of the uv-coverage first.
