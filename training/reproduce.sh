@@ -7,7 +7,8 @@
 # Environment: R2D2 (the engine binary, default target/release/r2d2), SERIES (default
 # models/<recipe>), TRAIN_ARGS (extra train.py options, e.g. "--max-networks 20"),
 # NICE (default 19: training yields the CPU to interactive work), WORK (per-epoch checkpoints,
-# default <data>/work: give a retrain into another SERIES its own).
+# default <data>/work: give a retrain into another SERIES its own), THREADS (CPU threads of
+# training, default 2), EVAL=0 (skip the held-out evaluation, e.g. on a machine lent for training).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 RECIPE=${1:-vla-r2d2-512}
@@ -69,20 +70,25 @@ vla-r2d2-512-broad)
     make_once "$D/train-images" "$R2D2" trainset --truths "$D/truths-train" --source-dr 50 --seed 1000 $SIM
     make_once "$D/train-radio" "$R2D2" trainset --procedural 80 --seed 100000 $SIM
     make_once "$D/train-extended" "$R2D2" trainset --procedural 120 --sky extended --seed 200000 $SIM
+    # 120 more extended skies (seeds 200120..: the samples a 240-sky set from 200000 would hold).
+    make_once "$D/train-extended-more" "$R2D2" trainset --procedural 120 --sky extended --seed 200120 $SIM
     make_once "$D/val-classic" "$R2D2" trainset --procedural 8 --seed 500000 $SIM
     make_once "$D/val-extended" "$R2D2" trainset --procedural 8 --sky extended --seed 510000 $SIM
-    make_once "$D/test" "$R2D2" trainset --procedural 12 --seed 900000 $SIM --parquet
-    make_once "$D/test-extended" "$R2D2" trainset --procedural 12 --sky extended --seed 910000 $SIM --parquet
-    TRAIN=("$D/train-radio" "$D/train-extended" "$D/train-images")
+    if [ "${EVAL:-1}" != 0 ]; then
+        make_once "$D/test" "$R2D2" trainset --procedural 12 --seed 900000 $SIM --parquet
+        make_once "$D/test-extended" "$R2D2" trainset --procedural 12 --sky extended --seed 910000 $SIM --parquet
+    fi
+    TRAIN=("$D/train-radio" "$D/train-extended" "$D/train-extended-more" "$D/train-images")
     VAL=("$D/val-classic" "$D/val-extended")
     # --loss-projection none: with the reference's clipped loss network 1 died on these data
     # (outputs negative everywhere after the first epochs, no gradient, validation 0 dB).
-    ARGS="--norm none --crop 128 --crops-per-sample 4 --epochs-first 10 --epochs 4 --batch 8 --max-networks 15 --loss-projection none"
+    # Sized for a GPU (training/README.md): on 2 CPU cores it takes days, resuming as it goes.
+    ARGS="--norm none --crop 256 --crops-per-sample 2 --epochs-first 40 --epochs 12 --batch 8 --max-networks 30 --loss-projection none"
     ;;
 *) echo "unknown recipe $RECIPE (vla-r2d2-512, meerkat-r2d2-512, vla-r2d2-512-broad or vla-r2d2-128)" >&2; exit 2 ;;
 esac
 RESUME=""
 [ -f "$SERIES/manifest.yaml" ] && RESUME="--resume"
 $RUN python3 training/train.py --train "${TRAIN[@]}" --val "${VAL[@]}" --series "$SERIES" --work "${WORK:-$D/work}" \
-    --name "$RECIPE" --seed 1 --threads 2 $ARGS $RESUME ${TRAIN_ARGS:-}
-$RUN python3 training/evaluate.py --series "$SERIES" --test "$D/test" --r2d2 "$R2D2" --out "$D/eval" --update-manifest
+    --name "$RECIPE" --seed 1 --threads "${THREADS:-2}" $ARGS $RESUME ${TRAIN_ARGS:-}
+[ "${EVAL:-1}" = 0 ] || $RUN python3 training/evaluate.py --series "$SERIES" --test "$D/test" --r2d2 "$R2D2" --out "$D/eval" --update-manifest

@@ -119,8 +119,9 @@ def train_network(i, model, train, x, r, active, args, work, device):
     idx = torch.nonzero(active).flatten()
     inp_all, alpha, prev = common.network_input(i, train.dirty[idx], x[idx], r[idx])
     target = train.truth[idx] / alpha
-    prev = prev.unsqueeze(1)
-    target = target.unsqueeze(1)
+    # On a GPU the whole normalised set stays there: crops are cut on the device, not copied
+    # over at every step.
+    inp_all, prev, target = inp_all.to(device), prev.unsqueeze(1).to(device), target.unsqueeze(1).to(device)
     crop = args.crop or train.size
     loss_value = resumed_loss
     for epoch in range(start_epoch, epochs):
@@ -129,15 +130,15 @@ def train_network(i, model, train, x, r, active, args, work, device):
         gen = torch.Generator().manual_seed(args.seed * 100003 + i * 1009 + epoch)
         total, count = 0.0, 0
         for b, rows, cols in crop_batches(len(idx), train.size, crop, args.crops_per_sample, args.batch, gen):
-            inp = gather_crops(inp_all, b, rows, cols, crop).to(device)
+            inp = gather_crops(inp_all, b, rows, cols, crop)
             with torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.bf16):
                 out = model(inp)
-            pred = gather_crops(prev, b, rows, cols, crop).to(device) + out.float()
+            pred = gather_crops(prev, b, rows, cols, crop) + out.float()
             if args.loss_projection == "clip":
                 # The reference's loss: the positivity projection inside it. Where a network's
                 # output is negative everywhere it passes no gradient (a dead network 1).
                 pred = torch.clamp(pred, min=0.0)
-            loss = torch.nn.functional.l1_loss(pred, gather_crops(target, b, rows, cols, crop).to(device))
+            loss = torch.nn.functional.l1_loss(pred, gather_crops(target, b, rows, cols, crop))
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -207,11 +208,14 @@ def main(argv=None):
     device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
                           ("cpu" if args.device == "auto" else args.device))
     torch.set_num_threads(args.threads)
+    # Images per forward pass when replaying a network over a set: the CPU default bounds the
+    # memory; a GPU takes more at once.
+    ubatch = 16 if device.type == "cuda" else None
     os.makedirs(args.series, exist_ok=True)
     os.makedirs(args.work, exist_ok=True)
 
-    train = common.Dataset(args.train, args.limit_train)
-    val = common.Dataset(args.val, args.limit_val)
+    train = common.Dataset(args.train, args.limit_train).spectra_to(device)
+    val = common.Dataset(args.val, args.limit_val).spectra_to(device)
     size = train.size
     log(f"{len(train)} training and {len(val)} validation samples, {size} x {size}, on {device}")
 
@@ -268,10 +272,10 @@ def main(argv=None):
     for k in range(1, have + 1 if cache is None else 1):
         model = series.load_model(args.series, k, args.base_channels, args.poolings, args.norm, args.arch).to(device)
         run = torch_runner(model, device)
-        x_tr = common.update(k, run, train.dirty, x_tr, r_tr)
+        x_tr = common.update(k, run, train.dirty, x_tr, r_tr, batch=ubatch)
         r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
         active &= r_tr.flatten(1).pow(2).sum(1) > noise_energy
-        x_va = common.update(k, run, val.dirty, x_va, r_va)
+        x_va = common.update(k, run, val.dirty, x_va, r_va, batch=ubatch)
         r_va = common.residual(val.dirty, x_va, val.psf_hat)
         log(f"replayed N{k}: validation {common.metrics(x_va, r_va, val)}; {int(active.sum())} training samples active")
     if cache is None and have:
@@ -293,7 +297,7 @@ def main(argv=None):
         epochs, seconds, loss = train_network(i, new, train, x_tr, r_tr, active, args, args.work, device)
         new.eval()
         run = torch_runner(new, device)
-        x_va_new = common.update(i, run, val.dirty, x_va, r_va)
+        x_va_new = common.update(i, run, val.dirty, x_va, r_va, batch=ubatch)
         r_va_new = common.residual(val.dirty, x_va_new, val.psf_hat)
         m = common.metrics(x_va_new, r_va_new, val)
         log(f"N{i}: validation SNR {m['snr_db']:.2f} dB, logSNR {m['logsnr_db']:.2f} dB, residual ratio {m['residual_ratio']:.4f}")
@@ -308,7 +312,7 @@ def main(argv=None):
         series.save_weights(args.series, i, new)
         series.export_onnx(new.cpu(), os.path.join(args.series, series.onnx_name(i)), size)
         new.to(device)
-        x_tr = common.update(i, run, train.dirty, x_tr, r_tr)
+        x_tr = common.update(i, run, train.dirty, x_tr, r_tr, batch=ubatch)
         r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
         before = int(active.sum())
         active &= r_tr.flatten(1).pow(2).sum(1) > noise_energy

@@ -55,6 +55,11 @@ class Dataset:
         self.meta = parts[0]["meta"] if len(paths) == 1 else {"sets": [part["meta"] for part in parts]}
         self.dynamic_range = torch.tensor([s["dynamic_range"] for s in self.samples], dtype=torch.float64)
 
+    def spectra_to(self, device):
+        """Keep the PSF spectra on `device`: D x then runs there (the images stay on the CPU)."""
+        self.psf_hat = self.psf_hat.to(device)
+        return self
+
     def __len__(self):
         return self.truth.shape[0]
 
@@ -80,12 +85,13 @@ def _load_set(path, limit=None):
 
 
 def apply_d(x, psf_hat):
-    """D x for a batch x [S, N, N] with the rFFT of the 2N PSFs [S, 2N, N+1]; float64."""
+    """D x for a batch x [S, N, N] with the rFFT of the 2N PSFs [S, 2N, N+1]; float64, computed
+    where the spectra are (a GPU when `Dataset.spectra_to` put them there), returned on x's device."""
     n = x.shape[-1]
-    xp = torch.zeros(x.shape[0], 2 * n, 2 * n, dtype=torch.float64)
-    xp[:, :n, :n] = x.to(torch.float64)
+    xp = torch.zeros(x.shape[0], 2 * n, 2 * n, dtype=torch.float64, device=psf_hat.device)
+    xp[:, :n, :n] = x.to(psf_hat.device, torch.float64)
     y = torch.fft.irfft2(torch.fft.rfft2(xp) * psf_hat, s=(2 * n, 2 * n))
-    return y[:, n:, n:]
+    return y[:, n:, n:].to(x.device)
 
 
 def residual(dirty, x, psf_hat, batch=64):
