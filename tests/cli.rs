@@ -553,6 +553,11 @@ fn a_job_outside_the_series_domain_is_pointed_to_one_that_covers_it() {
     let log = String::from_utf8_lossy(&out.stderr).into_owned();
     assert!(log.contains("series 'vla-r2d2-512' was not trained for this job") && log.contains("Briggs robust 1 is outside"), "{log}");
     assert!(log.contains("series 'vla-r2d2-512-broad' was trained for it"), "{log}");
+    // SR 2.5 at Briggs 0: the broad series too (the narrow one's domain stops at SR 2.0).
+    let out = r2d2(&["image", "obs.parquet", "--size", "512", "--superresolution", "2.5", "--iterations", "1", "--name", "e"], d);
+    check(&out);
+    let log = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(log.contains("series 'vla-r2d2-512-broad' chosen for 512 x 512: 'vla-r2d2-512' was not trained for this setting (super-resolution 2.5"), "{log}");
     // Inside the domain there is nothing to point to.
     let out = r2d2(&["image", "obs.parquet", "--size", "512", "--robust", "0", "--iterations", "1", "--name", "c"], d);
     check(&out);

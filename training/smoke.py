@@ -16,7 +16,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
 # Import everything up front so a missing dependency fails here, by name.
-import numpy  # noqa: E402,F401
+import numpy as np  # noqa: E402
 import onnx  # noqa: E402
 import onnxruntime  # noqa: E402,F401
 import scipy  # noqa: E402,F401
@@ -86,6 +86,17 @@ def main(argv=None):
         for k in ("x_tr", "x_va"):
             err = float((cached[k] - fresh[k]).abs().max() / fresh[k].abs().max())
             check(err < 1e-5, f"cached {k} differs from a fresh replay by {err:.2e}")
+        # A series that travelled as manifest + weights (a lent GPU sends back few files): the
+        # ONNX networks rebuilt by export_onnx.py answer as the ones train.py wrote.
+        probe = np.random.default_rng(0).standard_normal((1, 2, 64, 64)).astype(np.float32)
+        answer = lambda path: onnxruntime.InferenceSession(path, providers=["CPUExecutionProvider"]).run(None, {"input": probe})[0]
+        written = {name: answer(os.path.join(sdir, name)) for name in series.read_manifest(sdir)["networks"]}
+        for name in written:
+            os.remove(os.path.join(sdir, name))
+        run([py, os.path.join(HERE, "export_onnx.py"), "--series", sdir])
+        for name, before in written.items():
+            err = float(np.abs(answer(os.path.join(sdir, name)) - before).max() / np.abs(before).max())
+            check(err < 1e-5, f"{name} rebuilt from its weights differs by {err:.2e}")
         # What makes crops valid samples: the bias-free U-Net is local (a crop's interior, beyond
         # the receptive field, gets exactly the full field's output) and positively homogeneous.
         from r2d2train.unet import UNet
