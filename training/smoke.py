@@ -74,13 +74,19 @@ def main(argv=None):
         check(refused.returncode != 0 and "--resume" in refused.stderr, "training over an existing series without --resume")
         run(train + ["--max-networks", "3", "--resume"])
         check(len(series.read_manifest(sdir)["networks"]) == 3, "resume added a third network")
-        # A resume reads the replayed estimates from the cache; they equal a fresh replay.
+        # A stage whose networks all exist has nothing to do: no replay either.
+        idle = subprocess.run(train + ["--max-networks", "3", "--resume"], capture_output=True, text=True, check=True)
+        check("nothing to train" in idle.stdout and "replay" not in idle.stdout, "a resume with every network there replayed")
+        # A resume reads the replayed estimates from the cache; they equal a fresh replay. (A
+        # fourth network is trained and refused by the stopping rule: the series keeps three.)
         cache = f"{d}/work/replay.pt"
-        resumed = subprocess.run(train + ["--max-networks", "3", "--resume"], capture_output=True, text=True, check=True)
+        refuse4 = train + ["--max-networks", "4", "--resume", "--min-gain-db", "1000"]
+        resumed = subprocess.run(refuse4, capture_output=True, text=True, check=True)
         check("read from the cache" in resumed.stdout + resumed.stderr, "resume did not use the replay cache")
+        check(len(series.read_manifest(sdir)["networks"]) == 3, "the stopping rule kept the series at three networks")
         cached = torch.load(cache, weights_only=True)
         os.remove(cache)
-        run(train + ["--max-networks", "3", "--resume"])
+        run(refuse4)
         fresh = torch.load(cache, weights_only=True)
         check(cached["key"] == fresh["key"] and torch.equal(cached["active"], fresh["active"]), "replay cache key / pruning")
         for k in ("x_tr", "x_va"):
@@ -112,9 +118,10 @@ def main(argv=None):
         cdir = f"{d}/series-crops"
         run([py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", f"{d}/val", "--val", f"{d}/val", "--series", cdir,
              "--work", f"{d}/work-crops", "--norm", "none", "--crop", "32", "--crops-per-sample", "2", "--epochs-first", "1",
-             "--batch", "2", "--max-networks", "1", "--min-gain-db", "-1000"])
+             "--batch", "2", "--max-networks", "1", "--min-gain-db", "-1000", "--loss-projection", "leaky"])
         mc = series.read_manifest(cdir)
         check(mc["network"]["norm"] == "none" and mc["provenance"]["crops"] == {"side": 32, "per_sample_and_epoch": 2}, "crop manifest")
+        check(mc["provenance"]["networks"][0]["loss_projection"] == "leaky", "the network's loss projection is recorded")
         check(not any(os.path.isabs(p) for p in mc["provenance"]["train_data"]["path"]), "provenance paths are not absolute")
         crop_only = subprocess.run([py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", "--val", f"{d}/val", "--series",
                                     f"{d}/series-bad", "--work", f"{d}/work-bad", "--crop", "32"], capture_output=True, text=True)

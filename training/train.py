@@ -26,6 +26,11 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from r2d2train import common, series  # noqa: E402
 
 
+# The slope of `--loss-projection leaky` below zero: small enough that the loss treats a
+# negative output almost as the clipped loss does (as zero), large enough to leave a gradient.
+LEAKY_SLOPE = 0.01
+
+
 def log(msg):
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
@@ -138,6 +143,8 @@ def train_network(i, model, train, x, r, active, args, work, device):
                 # The reference's loss: the positivity projection inside it. Where a network's
                 # output is negative everywhere it passes no gradient (a dead network 1).
                 pred = torch.clamp(pred, min=0.0)
+            elif args.loss_projection == "leaky":
+                pred = torch.where(pred > 0, pred, LEAKY_SLOPE * pred)
             loss = torch.nn.functional.l1_loss(pred, gather_crops(target, b, rows, cols, crop))
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -175,10 +182,12 @@ def main(argv=None):
     p.add_argument("--epochs", type=int, default=8, help="epochs of networks 2, 3, ...")
     p.add_argument("--batch", type=int, default=4)
     p.add_argument("--lr", type=float, default=1e-4)
-    p.add_argument("--loss-projection", choices=["clip", "none"], default="clip",
+    p.add_argument("--loss-projection", choices=["clip", "none", "leaky"], default="clip",
                    help="clip: L1 to max(0, x + N), the reference's loss; none: L1 to x + N (positivity at inference "
                         "only), which keeps a gradient where the output is negative (a network 1 that outputs only "
-                        "negatives under `clip` never recovers)")
+                        "negatives under `clip` never recovers); leaky: negative outputs scaled by "
+                        f"{LEAKY_SLOPE} inside the L1, a gradient everywhere and a background pushed below 0, which "
+                        "positivity then clears (under `none` half the empty sky comes out as small positive specks)")
     p.add_argument("--base-channels", type=int, default=16)
     p.add_argument("--poolings", type=int, default=3)
     p.add_argument("--arch", choices=series.KINDS, default="unet",
@@ -214,14 +223,19 @@ def main(argv=None):
     os.makedirs(args.series, exist_ok=True)
     os.makedirs(args.work, exist_ok=True)
 
+    manifest = series.read_manifest(args.series)
+    if manifest and manifest["networks"] and not args.resume:
+        raise SystemExit(f"{args.series} already holds {len(manifest['networks'])} networks: pass --resume to add to it, or choose a new --series")
+    if manifest and len(manifest["networks"]) >= args.max_networks:
+        # A recipe in stages reruns each stage: one whose networks exist has nothing to add
+        # (and no replay to pay for).
+        log(f"{args.series} already holds {len(manifest['networks'])} networks (--max-networks {args.max_networks}): nothing to train")
+        return
+
     train = common.Dataset(args.train, args.limit_train).spectra_to(device)
     val = common.Dataset(args.val, args.limit_val).spectra_to(device)
     size = train.size
     log(f"{len(train)} training and {len(val)} validation samples, {size} x {size}, on {device}")
-
-    manifest = series.read_manifest(args.series)
-    if manifest and manifest["networks"] and not args.resume:
-        raise SystemExit(f"{args.series} already holds {len(manifest['networks'])} networks: pass --resume to add to it, or choose a new --series")
     if manifest is None or not manifest["networks"]:
         name = args.name or os.path.basename(os.path.normpath(args.series))
         provenance = {
@@ -320,7 +334,8 @@ def main(argv=None):
         manifest["networks"].append(series.onnx_name(i))
         manifest["validation"].append({"iteration": i, **{k: round(v, 4) for k, v in m.items()}})
         manifest["provenance"]["networks"].append({
-            "iteration": i, "epochs": epochs, "train_seconds": round(seconds, 1), "train_samples": before,
+            "iteration": i, "epochs": epochs, "train_seconds": round(seconds, 1), "train_samples": before, "loss_projection": args.loss_projection,
+            "limit_train": args.limit_train, "device": device.type,
             "pruned_after": before - int(active.sum()), "final_l1": round(loss, 6) if math.isfinite(loss) else None, "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         })
         series.write_manifest(args.series, manifest)
