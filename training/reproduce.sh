@@ -87,7 +87,7 @@ vla-r2d2-512-broad)
     ARGS="--norm none --crop 256 --crops-per-sample 2 --epochs-first 40 --epochs 12 --batch 8 --max-networks 14 --loss-projection none"
     # Networks 15..: the leaky-clipped loss, which clears the empty sky the unclipped loss
     # leaves specked (training/README.md), on the first 120 training samples, 4 epochs each.
-    STAGE2="--norm none --crop 256 --crops-per-sample 2 --epochs 4 --batch 8 --max-networks ${STAGE2_NETWORKS:-18} --loss-projection leaky --limit-train 120"
+    STAGE2="--norm none --crop 256 --crops-per-sample 2 --epochs 4 --batch 8 --max-networks ${STAGE2_NETWORKS:-17} --loss-projection leaky --limit-train 120"
     ;;
 *) echo "unknown recipe $RECIPE (vla-r2d2-512, meerkat-r2d2-512, vla-r2d2-512-broad or vla-r2d2-128)" >&2; exit 2 ;;
 esac
