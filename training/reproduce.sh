@@ -91,12 +91,14 @@ vla-r2d2-512-broad)
     ;;
 *) echo "unknown recipe $RECIPE (vla-r2d2-512, meerkat-r2d2-512, vla-r2d2-512-broad or vla-r2d2-128)" >&2; exit 2 ;;
 esac
+# train WORK OPTIONS...: one training stage of the recipe into $SERIES.
+train() {
+    local work=$1; shift
+    $RUN python3 training/train.py --train "${TRAIN[@]}" --val "${VAL[@]}" --series "$SERIES" --work "$work" \
+        --name "$RECIPE" --seed 1 --threads "${THREADS:-2}" "$@" ${TRAIN_ARGS:-}
+}
 RESUME=""
 [ -f "$SERIES/manifest.yaml" ] && RESUME="--resume"
-$RUN python3 training/train.py --train "${TRAIN[@]}" --val "${VAL[@]}" --series "$SERIES" --work "${WORK:-$D/work}" \
-    --name "$RECIPE" --seed 1 --threads "${THREADS:-2}" $ARGS $RESUME ${TRAIN_ARGS:-}
-if [ -n "${STAGE2:-}" ]; then
-    $RUN python3 training/train.py --train "${TRAIN[@]}" --val "${VAL[@]}" --series "$SERIES" --work "${WORK:-$D/work}-stage2" \
-        --name "$RECIPE" --seed 1 --threads "${THREADS:-2}" $STAGE2 --resume ${TRAIN_ARGS:-}
-fi
+train "${WORK:-$D/work}" $ARGS $RESUME
+[ -z "${STAGE2:-}" ] || train "${WORK:-$D/work}-stage2" $STAGE2 --resume
 [ "${EVAL:-1}" = 0 ] || $RUN python3 training/evaluate.py --series "$SERIES" --test "$D/test" --r2d2 "$R2D2" --out "$D/eval" --update-manifest

@@ -56,7 +56,7 @@ def main(argv=None):
         run([a.r2d2, "-q", "trainset", "--procedural", "2", "--seed", "90", "--parquet", *common, "--out", f"{d}/test"])
         sdir = f"{d}/series"
         train = [py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", "--val", f"{d}/val", "--series", sdir,
-                 "--work", f"{d}/work", "--epochs-first", "1", "--epochs", "1", "--batch", "2", "--bf16",
+                 "--work", f"{d}/checkpoints", "--epochs-first", "1", "--epochs", "1", "--batch", "2", "--bf16",
                  "--min-gain-db", "-1000"]  # accept every network: the check is the path, not the quality
         run(train + ["--max-networks", "2"])
         m = series.read_manifest(sdir)
@@ -79,7 +79,7 @@ def main(argv=None):
         check("nothing to train" in idle.stdout and "replay" not in idle.stdout, "a resume with every network there replayed")
         # A resume reads the replayed estimates from the cache; they equal a fresh replay. (A
         # fourth network is trained and refused by the stopping rule: the series keeps three.)
-        cache = f"{d}/work/replay.pt"
+        cache = f"{d}/checkpoints/replay.pt"
         refuse4 = train + ["--max-networks", "4", "--resume", "--min-gain-db", "1000"]
         resumed = subprocess.run(refuse4, capture_output=True, text=True, check=True)
         check("read from the cache" in resumed.stdout + resumed.stderr, "resume did not use the replay cache")
@@ -117,18 +117,18 @@ def main(argv=None):
         # The crop path (local, bias-free U-Net; crops of the full-field samples).
         cdir = f"{d}/series-crops"
         run([py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", f"{d}/val", "--val", f"{d}/val", "--series", cdir,
-             "--work", f"{d}/work-crops", "--norm", "none", "--crop", "32", "--crops-per-sample", "2", "--epochs-first", "1",
+             "--work", f"{d}/checkpoints-crops", "--norm", "none", "--crop", "32", "--crops-per-sample", "2", "--epochs-first", "1",
              "--batch", "2", "--max-networks", "1", "--min-gain-db", "-1000", "--loss-projection", "leaky"])
         mc = series.read_manifest(cdir)
         check(mc["network"]["norm"] == "none" and mc["provenance"]["crops"] == {"side": 32, "per_sample_and_epoch": 2}, "crop manifest")
         check(mc["provenance"]["networks"][0]["loss_projection"] == "leaky", "the network's loss projection is recorded")
         check(not any(os.path.isabs(p) for p in mc["provenance"]["train_data"]["path"]), "provenance paths are not absolute")
         crop_only = subprocess.run([py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", "--val", f"{d}/val", "--series",
-                                    f"{d}/series-bad", "--work", f"{d}/work-bad", "--crop", "32"], capture_output=True, text=True)
+                                    f"{d}/series-bad", "--work", f"{d}/checkpoints-bad", "--crop", "32"], capture_output=True, text=True)
         check(crop_only.returncode != 0 and "--norm none" in crop_only.stderr, "--crop with instance normalisation is refused")
         # The reference's U-WDSR trains through the same path (--arch uwdsr; local, so crops).
         wdir = f"{d}/series-uwdsr"
-        run([py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", "--val", f"{d}/val", "--series", wdir, "--work", f"{d}/work-uwdsr",
+        run([py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", "--val", f"{d}/val", "--series", wdir, "--work", f"{d}/checkpoints-uwdsr",
              "--arch", "uwdsr", "--base-channels", "4", "--poolings", "2", "--crop", "32", "--epochs-first", "1", "--batch", "2",
              "--max-networks", "1", "--min-gain-db", "-1000"])
         mw = series.read_manifest(wdir)
