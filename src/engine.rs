@@ -324,7 +324,7 @@ impl Default for ImageParams {
             iterations: None,
             backend: BackendChoice::Auto,
             prefetch: true,
-            graph_optimization: GraphOptimization::Extended,
+            graph_optimization: GraphOptimization::default(),
             truth: None,
             write: None,
             model_column: None,

@@ -3,7 +3,7 @@
 
 use super::ImageOptions;
 use r2d2_imaging::steps::series::AUTO_SERIES;
-use r2d2_imaging::{BackendChoice, CleanControls, Error, GraphOptimization, ImageParams, Result, StepChoice};
+use r2d2_imaging::{BackendChoice, CleanControls, Error, ImageParams, Result, StepChoice};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -53,9 +53,10 @@ pub struct Args {
     /// (one network resident instead of two; loading then adds to the wall time).
     #[arg(long)]
     no_prefetch: bool,
-    /// ONNX Runtime graph optimisation: extended (least memory) or all (faster inference:
-    /// weights copied into a blocked layout, larger activations).
-    #[arg(long, default_value = "extended", value_parser = ["extended", "all"])]
+    /// ONNX Runtime graph optimisation: auto (all for small networks, extended for large
+    /// ones), extended (least memory) or all (faster inference: weights copied into a blocked
+    /// layout, larger activations).
+    #[arg(long, default_value = "auto", value_parser = ["auto", "extended", "all"])]
     graph_optimization: String,
     /// Ground truth (FITS) for SNR/logSNR per iteration.
     #[arg(long)]
@@ -87,7 +88,7 @@ fn image_params(args: &Args) -> Result<ImageParams> {
         clean: CleanControls { niter: args.niter, gain: args.gain, mgain: args.mgain, auto_threshold: args.auto_threshold, threshold: args.threshold },
         backend: args.backend.parse()?,
         prefetch: !args.no_prefetch,
-        graph_optimization: if args.graph_optimization == "all" { GraphOptimization::All } else { GraphOptimization::Extended },
+        graph_optimization: args.graph_optimization.parse()?,
         truth: args.truth.clone(),
         write: Some(args.name.clone()),
         model_column: args.model_column.clone(),

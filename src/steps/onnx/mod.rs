@@ -48,8 +48,8 @@ pub struct OnnxConfig {
     /// costs about 20 MB until it runs).
     #[serde(default = "yes")]
     pub prefetch: bool,
-    /// ONNX Runtime's graph optimisation: `extended` (least memory) or `all` (faster
-    /// inference, more memory); see `runtime::GraphOptimization`.
+    /// ONNX Runtime's graph optimisation: `auto` (by the network's size), `extended` (least
+    /// memory) or `all` (faster inference, more memory); see `runtime::GraphOptimization`.
     #[serde(default)]
     pub graph_optimization: GraphOptimization,
     /// A series of several realisations: run only this one (1-based) instead of all of them.

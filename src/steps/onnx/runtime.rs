@@ -43,16 +43,55 @@ impl std::str::FromStr for BackendChoice {
 /// U-Net (31 M parameters, 512^2, 2 threads, weights mapped from the file): `all` infers 12 % faster (1.80 s
 /// against 2.03 s) but copies every weight into its blocked layout at load (0.31 s against
 /// 0.03 s; 136 MB resident against 21 MB before the first run) and needs 130 MB more at the
-/// inference peak (528 MB against 396 MB).
+/// inference peak (528 MB against 396 MB). On the shipped series' small U-Nets (16 channels,
+/// 2 MB) the copy costs nothing worth saving and `all` with the CPU arena is about a third
+/// faster than `extended` without it: `auto` chooses by the network's weight bytes.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum GraphOptimization {
+    /// `all` with the CPU arena for networks of at most [`SMALL_NETWORK_BYTES`] of weights,
+    /// `extended` for larger ones.
+    #[default]
+    Auto,
     /// Node fusions, no layout change: weights stay as they are in the file (mapped). The
     /// least memory.
-    #[default]
     Extended,
     /// Also the layout optimisations (convolutions in ONNX Runtime's blocked NCHWc layout).
     All,
+}
+
+/// Networks with at most this many bytes of weights count as small for
+/// [`GraphOptimization::Auto`]: copying their weights into the blocked layout and keeping an
+/// arena for one inference's activations costs tens of MB, against hundreds for the
+/// reference U-Net (118 MB of weights), where the arena added 200 MB for a 4 % gain.
+pub const SMALL_NETWORK_BYTES: u64 = 16 << 20;
+
+impl std::str::FromStr for GraphOptimization {
+    type Err = Error;
+    fn from_str(s: &str) -> Result<Self> {
+        match s {
+            "auto" => Ok(GraphOptimization::Auto),
+            "extended" => Ok(GraphOptimization::Extended),
+            "all" => Ok(GraphOptimization::All),
+            other => Err(Error::parameter("graph_optimization", format!("expected auto, extended or all, got '{other}'"))),
+        }
+    }
+}
+
+impl GraphOptimization {
+    /// The level and whether ONNX Runtime's CPU arena is used, for a network with
+    /// `weight_bytes` of weights. The arena reuses freed activation buffers within a run
+    /// instead of mapping fresh pages for each (the allocator policy unmaps large blocks at
+    /// once); it only pays where the activations are small beside the work on them.
+    fn resolve(self, weight_bytes: u64) -> (GraphOptimization, bool) {
+        let small = weight_bytes <= SMALL_NETWORK_BYTES;
+        let level = match self {
+            GraphOptimization::Auto if small => GraphOptimization::All,
+            GraphOptimization::Auto => GraphOptimization::Extended,
+            explicit => explicit,
+        };
+        (level, small && level == GraphOptimization::All)
+    }
 }
 
 /// An ONNX network with one `[1, 2, N, N]` input and one `[1, 1, N, N]` output (float32).
@@ -182,18 +221,24 @@ impl OrtNetwork {
     fn load(path: &Path, size: usize, threads: usize, optimization: GraphOptimization, signature: &Signature, map_weights: bool) -> Result<OrtNetwork> {
         let (_, env) = ort_environment().map_err(OnnxError::RuntimeUnavailable)?;
         let fail = |e: ort::Error| OnnxError::Load { path: path.to_path_buf(), runtime: "ONNX Runtime", source: e.into() };
-        // No CPU arena: an arena keeps the peak activation memory of every resident session
-        // allocated between runs (measured with the reference U-Net at 512^2: 1.95 GB peak with
-        // it). Freed buffers go back to the system instead; inference time is unchanged.
-        let cpu = ort::ep::CPU::default().with_arena_allocator(false).build();
-        // By default extended graph optimisations (level 2), not the layout ones: those rewrite
-        // every convolution to a blocked NCHWc layout, which copies every weight and adds
-        // reorder buffers to the activations (see GraphOptimization for the measured trade).
+        // The weights the level and the arena are chosen by: the file (inline weights) and
+        // its external-data side files.
+        let weight_bytes = std::fs::metadata(path).map_or(0, |m| m.len()) + signature.external_bytes;
+        let (level, arena) = optimization.resolve(weight_bytes);
+        log::debug!("{}: {} MB of weights, graph optimisation {level:?}, CPU arena {}", path.display(), weight_bytes >> 20, if arena { "on" } else { "off" });
+        // No CPU arena for large networks: an arena keeps the peak activation memory of every
+        // resident session allocated between runs (measured with the reference U-Net at 512^2:
+        // 1.95 GB peak with it). Freed buffers go back to the system instead; inference time
+        // is barely changed there.
+        let cpu = ort::ep::CPU::default().with_arena_allocator(arena).build();
+        // Extended graph optimisations (level 2) keep the weights as they are; the layout
+        // ones rewrite every convolution to a blocked NCHWc layout, which copies every weight
+        // and adds reorder buffers to the activations (see GraphOptimization for the trade).
         // No memory pattern: it kept one inference's peak allocated between runs (+110 MB).
         use ort::session::builder::GraphOptimizationLevel as Level;
-        let level = match optimization {
-            GraphOptimization::Extended => Level::Level2,
+        let level = match level {
             GraphOptimization::All => Level::All,
+            _ => Level::Level2,
         };
         let mut builder = ort::session::Session::builder(env)
             .map_err(|e| fail(e.into()))?
@@ -202,6 +247,11 @@ impl OrtNetwork {
             .with_optimization_level(level)
             .map_err(|e| fail(e.into()))?
             .with_memory_pattern(false)
+            .map_err(|e| fail(e.into()))?
+            // Idle intra-op threads sleep instead of spinning: between two inferences the
+            // engine grids and updates the residual on the same cores, and spinning threads
+            // slowed both (by a sixth on 2 cores).
+            .with_config_entry("session.intra_op.allow_spinning", "0")
             .map_err(|e| fail(e.into()))?;
         // Symbolic dimensions take the one shape this pipeline feeds: static shapes let ONNX
         // Runtime plan and reuse activation buffers.
@@ -314,6 +364,21 @@ mod tests {
     use super::*;
 
     #[test]
+    fn auto_graph_optimisation_takes_the_layout_and_arena_for_small_networks_only() {
+        use GraphOptimization::*;
+        assert_eq!(Auto.resolve(2 << 20), (All, true));
+        assert_eq!(Auto.resolve(SMALL_NETWORK_BYTES), (All, true));
+        assert_eq!(Auto.resolve(SMALL_NETWORK_BYTES + 1), (Extended, false));
+        // An explicit level is kept; `extended` (the least memory) never takes the arena.
+        assert_eq!(Extended.resolve(2 << 20), (Extended, false));
+        assert_eq!(All.resolve(2 << 20), (All, true));
+        assert_eq!(All.resolve(118 << 20), (All, false));
+        assert_eq!("auto".parse::<GraphOptimization>().unwrap(), Auto);
+        let e = "fast".parse::<GraphOptimization>().unwrap_err().to_string();
+        assert!(e.contains("graph_optimization") && e.contains("'fast'"), "{e}");
+    }
+
+    #[test]
     fn a_file_that_is_not_onnx_is_unreadable_keeping_the_decoder_error() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("net.onnx");
@@ -350,7 +415,8 @@ mod tests {
         assert!((mapped.skeleton.len() as u64) < std::fs::metadata(&path).unwrap().len() - mapped.bytes + 1024);
         let input = super::super::tests::unet_input();
         { use_onnx_runtime_for_tests(); Runtime::select(BackendChoice::Ort, 1) }.expect("native ONNX Runtime (pip install onnxruntime)");
-        let opt = GraphOptimization::default();
+        // `extended`: the level that keeps the weights where they are (`all` copies them).
+        let opt = GraphOptimization::Extended;
         let mut copied = OrtNetwork::load(&path, 64, 1, opt, &signature, false).unwrap();
         let mut from_file = OrtNetwork::load(&path, 64, 1, opt, &signature, true).unwrap();
         assert_eq!(from_file.run(&input).unwrap(), copied.run(&input).unwrap(), "mapping changes no output value");
