@@ -38,8 +38,8 @@
 //! plan uses a single plane at the mean `w` with no w-kernel: the 2D NUFFT and a phase
 //! screen, exact up to the neglected `|2 pi (w - w_mean) tc|`.
 //!
-//! Points are sorted once, by uv tile and within a tile by `w`, so that the points of a tile
-//! on a given plane are a contiguous run. Planes are processed one after the other, each
+//! Points are sorted once, by uv tile and within a tile by the first plane they reach, so that
+//! the points of a tile on a given plane are a contiguous run. Planes are processed one after the other, each
 //! with all the plan's threads, so only one oversampled grid is held at a time. Results do
 //! not depend on the number of threads or their scheduling: tiles are added to the grid row
 //! by row in a fixed order.
@@ -162,7 +162,7 @@ impl WKernel {
     }
 }
 
-/// The points of one uv tile, in the plan's order (sorted by `w` inside the tile).
+/// The points of one uv tile, in the plan's order (sorted by first plane inside the tile).
 #[derive(Clone, Debug)]
 struct TileSpan {
     tx: usize,
@@ -171,7 +171,7 @@ struct TileSpan {
 }
 
 /// A w-gridding plan: image geometry, the uv NUFFT machinery, the w-planes, and the points
-/// sorted by tile and `w`.
+/// sorted by tile and first plane.
 pub struct WGridPlan {
     size: usize,
     /// The 2D NUFFT without points: kernel, grid, FFTs, corrections and thread pool.
@@ -394,8 +394,8 @@ impl WGridPlan {
         self.engine.grid_size()
     }
 
-    /// Sort the points by tile, and inside a tile by `w` (then caller index, so the order is
-    /// reproducible); record each point's grid position.
+    /// Sort the points by tile, and inside a tile by the first plane they reach (then caller
+    /// index, so the order is reproducible); record each point's grid position.
     fn sort_points(&mut self, x: &[f64], y: &[f64], w: &[f64]) {
         let support = self.engine.shape.support;
         let (gx, gy) = (self.engine.grid_nx, self.engine.grid_ny);
@@ -433,7 +433,10 @@ impl WGridPlan {
                 tiles.push(TileSpan { tx: t % tiles_x, ty: t / tiles_x, points: starts[t]..starts[t + 1] });
             }
         }
-        // Inside each tile, by w.
+        // Inside each tile, by first plane: the keys `(first plane, caller index)` packed in
+        // one integer, sorted where they lie in cache (comparing the points' `w` through
+        // their indices reached all over the chunk's arrays).
+        let first_plane: Vec<u32> = w.par_iter().map(|&w| self.first_plane_of(w) as u32).collect();
         let mut slices = Vec::with_capacity(tiles.len());
         let mut rest = order.as_mut_slice();
         for tile in &tiles {
@@ -441,11 +444,18 @@ impl WGridPlan {
             slices.push(head);
             rest = tail;
         }
-        slices.into_par_iter().for_each(|s| s.sort_unstable_by(|&a, &b| w[a as usize].total_cmp(&w[b as usize]).then(a.cmp(&b))));
+        slices.into_par_iter().for_each_init(Vec::new, |keys: &mut Vec<u64>, s| {
+            keys.clear();
+            keys.extend(s.iter().map(|&k| (u64::from(first_plane[k as usize]) << 32) | u64::from(k)));
+            keys.sort_unstable();
+            for (o, key) in s.iter_mut().zip(keys.iter()) {
+                *o = *key as u32;
+            }
+        });
 
         self.positions = order.par_iter().map(|&k| positions[k as usize]).collect();
         self.w = order.par_iter().map(|&k| w[k as usize]).collect();
-        self.first_plane = self.w.par_iter().map(|&w| self.first_plane_of(w) as u32).collect();
+        self.first_plane = order.par_iter().map(|&k| first_plane[k as usize]).collect();
         let mut rank = vec![0u32; m];
         for (i, &k) in order.iter().enumerate() {
             rank[k as usize] = i as u32;

@@ -224,6 +224,18 @@ impl Visibilities {
         (hi >= lo).then(|| (0.5 * (lo + hi), (hi > lo).then_some(hi - lo)))
     }
 
+    /// Empties it, keeping the room it has: a reader gathering chunk after chunk into one
+    /// buffer then touches fresh memory for the first chunk only.
+    pub fn clear(&mut self) {
+        self.u.clear();
+        self.v.clear();
+        self.w.clear();
+        self.vis.clear();
+        self.weight.clear();
+        self.frequency.clear();
+        self.imaging_weight.clear();
+    }
+
     /// Appends another batch, moving its samples.
     pub fn push_batch(&mut self, mut other: Visibilities) {
         self.u.append(&mut other.u);

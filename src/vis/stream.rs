@@ -137,7 +137,8 @@ impl VisSource {
                 let source = reader.source().display().to_string();
                 let mut stats = IngestStats::default();
                 // Batches are gathered into chunks of `chunk_rows`: a consumer's cost per call
-                // (sorting, merging grids) is then paid per chunk, not per batch.
+                // (sorting, merging grids) is then paid per chunk, not per batch. One buffer for
+                // every chunk: fresh pages cost a fault each, chunk after chunk otherwise.
                 let mut buffer = Visibilities::default();
                 while let Some(batch) = reader.next_batch() {
                     let vis = record_batch_to_visibilities(&batch?, &mut stats, &source)?;
@@ -151,7 +152,7 @@ impl VisSource {
                     buffer.push_batch(vis);
                     if buffer.len() >= chunk_rows {
                         f(buffer.chunk(0..buffer.len()))?;
-                        buffer = Visibilities::default();
+                        buffer.clear();
                     }
                 }
                 if table.scanned && stats != table.stats {
