@@ -2,7 +2,7 @@
 """Smoke run of the whole training path in seconds (CI: tests/training.rs runs it).
 
 Tiny data (4 training truths, 2 validation and 2 test procedural skies, 64 x 64) made by the
-engine, two networks of one epoch, ONNX export, manifest, a resume that adds a third network,
+engine, two networks of one epoch, ONNX export, manifest, a resume that adds a third network (a second stage: early_stop_from),
 and the evaluation (series, engine CLEAN, dirty) -- with checks that fail loudly: a missing
 Python package is an ImportError and a non-zero exit, never a skip.
 """
@@ -72,8 +72,12 @@ def main(argv=None):
         # Refuses to overwrite without --resume; --resume adds network 3.
         refused = subprocess.run(train + ["--max-networks", "3"], capture_output=True, text=True)
         check(refused.returncode != 0 and "--resume" in refused.stderr, "training over an existing series without --resume")
-        run(train + ["--max-networks", "3", "--resume"])
-        check(len(series.read_manifest(sdir)["networks"]) == 3, "resume added a third network")
+        # Network 3 is a second stage (another loss): the early stop applies from it on.
+        check("early_stop_from" not in series.read_manifest(sdir), "a one-stage series has no early_stop_from")
+        run(train + ["--max-networks", "3", "--resume", "--loss-projection", "leaky"])
+        m = series.read_manifest(sdir)
+        check(len(m["networks"]) == 3, "resume added a third network")
+        check(m.get("early_stop_from") == 3, f"a second stage from network 3: early_stop_from {m.get('early_stop_from')}")
         # A stage whose networks all exist has nothing to do: no replay either.
         idle = subprocess.run(train + ["--max-networks", "3", "--resume"], capture_output=True, text=True, check=True)
         check("nothing to train" in idle.stdout and "replay" not in idle.stdout, "a resume with every network there replayed")

@@ -332,6 +332,12 @@ def main(argv=None):
         active &= r_tr.flatten(1).pow(2).sum(1) > noise_energy
         x_va, r_va, model = x_va_new, r_va_new, new
         manifest["networks"].append(series.onnx_name(i))
+        # The first network of a later stage (resumed with another loss): it and those after
+        # trade a little residual for fewer artefacts, so the engine's early stop (ratio
+        # stalled) applies from it on, not before, where it would skip the stage.
+        before_it = manifest["provenance"]["networks"][-1] if manifest["provenance"]["networks"] else None
+        if before_it and before_it.get("loss_projection") != args.loss_projection and "early_stop_from" not in manifest:
+            manifest["early_stop_from"] = i
         manifest["validation"].append({"iteration": i, **{k: round(v, 4) for k, v in m.items()}})
         manifest["provenance"]["networks"].append({
             "iteration": i, "epochs": epochs, "train_seconds": round(seconds, 1), "train_samples": before, "loss_projection": args.loss_projection,

@@ -129,6 +129,9 @@ pub struct Job {
     pub series_finished: bool,
     /// The steps the network step will run at most (its series' length; 0 before the first).
     pub series_length: usize,
+    /// The iteration from which the early stop may end the loop (the step's
+    /// [`early_stop_from`](crate::steps::NetworkStep::early_stop_from)).
+    pub early_stop_from: usize,
     /// Name of the step that made the model (products are named after what made them).
     pub step_kind: Option<String>,
     /// Whether that step's model is restored (a CLEAN-like step: `-image.fits` is written),
@@ -180,6 +183,7 @@ impl Job {
             iteration: 0,
             series_finished: false,
             series_length: 0,
+            early_stop_from: 1,
             step_kind: None,
             restores: false,
             restored: None,

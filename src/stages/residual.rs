@@ -31,9 +31,10 @@ impl ResidualStage {
     }
 
     /// Whether the loop stops after the latest iteration, and why: divergence first (the
-    /// guard), then the reference v2 criterion. `finished`: the series ran its last network, so
-    /// a tolerated overshoot has no next network to keep its promise.
-    fn stop_reason(&self, ratios: &[f64], finished: bool) -> Option<StopReason> {
+    /// guard), then the reference v2 criterion from iteration `early_stop_from` on. `finished`:
+    /// the series ran its last network, so a tolerated overshoot has no next network to keep
+    /// its promise.
+    fn stop_reason(&self, ratios: &[f64], finished: bool, early_stop_from: usize) -> Option<StopReason> {
         let n = ratios.len();
         let last = *ratios.last()?;
         let rose_twice = n >= 3 && ratios[n - 1] > ratios[n - 2] && ratios[n - 2] > ratios[n - 3];
@@ -45,7 +46,7 @@ impl ResidualStage {
                 return Some(StopReason::Rising);
             }
         }
-        if !self.config.early_stop {
+        if !self.config.early_stop || n < early_stop_from {
             return None;
         }
         if rose_twice {
@@ -160,7 +161,7 @@ impl Stage<Job> for ResidualStage {
         // ratios of several realisations' iterations are not one sequence either).
         let several = job.realisation > 0 || !job.realisation_models.is_empty();
         let ratios: Vec<f64> = job.metrics.iter().map(|m| m.residual_ratio).collect();
-        let reason = if several { None } else { self.stop_reason(&ratios, job.series_finished) };
+        let reason = if several { None } else { self.stop_reason(&ratios, job.series_finished, job.early_stop_from) };
         match reason {
             Some(reason @ (StopReason::Diverged | StopReason::Rising)) if self.config.divergence_guard => fall_back(&mut job, reason)?,
             Some(reason) => {
@@ -199,41 +200,60 @@ mod tests {
     #[test]
     fn the_guard_stops_above_one_and_on_a_second_rise_and_the_v2_rule_on_convergence_but_lets_a_first_overshoot_recover() {
         let guarded = stage(true, true);
-        assert_eq!(guarded.stop_reason(&[0.5, 0.3], false), None);
-        assert_eq!(guarded.stop_reason(&[2.5], false), Some(StopReason::Diverged));
-        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 1.01], false), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3], false, 1), None);
+        assert_eq!(guarded.stop_reason(&[2.5], false, 1), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 1.01], false, 1), Some(StopReason::Diverged));
         // A first network's overshoot from the empty model may stand while the next ones
         // bring the ratio down (below the ceiling, for two iterations at most).
-        assert_eq!(guarded.stop_reason(&[1.34], false), None);
-        assert_eq!(guarded.stop_reason(&[1.34, 1.06], false), None);
-        assert_eq!(guarded.stop_reason(&[1.34, 1.06, 0.36], false), None);
-        assert_eq!(guarded.stop_reason(&[1.34, 1.4], false), Some(StopReason::Diverged));
-        assert_eq!(guarded.stop_reason(&[1.34, 1.2, 1.1], false), Some(StopReason::Diverged));
-        assert_eq!(guarded.stop_reason(&[0.9, 1.2], false), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[1.34], false, 1), None);
+        assert_eq!(guarded.stop_reason(&[1.34, 1.06], false, 1), None);
+        assert_eq!(guarded.stop_reason(&[1.34, 1.06, 0.36], false, 1), None);
+        assert_eq!(guarded.stop_reason(&[1.34, 1.4], false, 1), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[1.34, 1.2, 1.1], false, 1), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[0.9, 1.2], false, 1), Some(StopReason::Diverged));
         // A series that ends on a tolerated overshoot diverged.
-        assert_eq!(guarded.stop_reason(&[1.34], true), Some(StopReason::Diverged));
-        assert_eq!(guarded.stop_reason(&[1.34, 0.5], true), None);
+        assert_eq!(guarded.stop_reason(&[1.34], true, 1), Some(StopReason::Diverged));
+        assert_eq!(guarded.stop_reason(&[1.34, 0.5], true, 1), None);
         // One rise is allowed (a network may trade residual for precision); two in a row by
         // more than half, above a ratio of 0.05, are divergence; others the v2 stop at the noise floor
         // (a held-out MeerKAT sky: 0.0019 -> 0.0021 -> 0.0023).
-        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.31], false), None);
-        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.4, 0.46], false), Some(StopReason::Rising));
-        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.32, 0.34], false), Some(StopReason::Stalled));
-        assert_eq!(guarded.stop_reason(&[0.0019, 0.0021, 0.0023], false), Some(StopReason::Stalled));
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.31], false, 1), None);
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.4, 0.46], false, 1), Some(StopReason::Rising));
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.32, 0.34], false, 1), Some(StopReason::Stalled));
+        assert_eq!(guarded.stop_reason(&[0.0019, 0.0021, 0.0023], false, 1), Some(StopReason::Stalled));
         // Near the noise floor no rise is divergence; above the floor the same rise is.
-        assert_eq!(guarded.stop_reason(&[0.0024, 0.004, 0.0057], false), Some(StopReason::Stalled));
-        assert_eq!(guarded.stop_reason(&[0.024, 0.04, 0.057], false), Some(StopReason::Rising));
-        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.301, 0.302], false), Some(StopReason::Stalled));
-        assert_eq!(stage(false, true).stop_reason(&[0.5, 0.3, 0.301, 0.302], false), None, "no v2 stop without early_stop");
-        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.3 * (1.0 + 5e-5)], false), Some(StopReason::Converged));
+        assert_eq!(guarded.stop_reason(&[0.0024, 0.004, 0.0057], false, 1), Some(StopReason::Stalled));
+        assert_eq!(guarded.stop_reason(&[0.024, 0.04, 0.057], false, 1), Some(StopReason::Rising));
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.301, 0.302], false, 1), Some(StopReason::Stalled));
+        assert_eq!(stage(false, true).stop_reason(&[0.5, 0.3, 0.301, 0.302], false, 1), None, "no v2 stop without early_stop");
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.3 * (1.0 + 5e-5)], false, 1), Some(StopReason::Converged));
         // Without the guard and the early stop, nothing stops the series.
         let plain = stage(false, false);
-        assert_eq!(plain.stop_reason(&[3.0, 4.0, 5.0], false), None);
+        assert_eq!(plain.stop_reason(&[3.0, 4.0, 5.0], false, 1), None);
         // The v2 rule alone stops a rising series too (and keeps the last iterate, as the
         // reference does), but not one above 1 that has not risen twice.
         let v2 = stage(true, false);
-        assert_eq!(v2.stop_reason(&[3.0], false), None);
-        assert_eq!(v2.stop_reason(&[0.5, 0.6, 0.7], false), Some(StopReason::Stalled));
+        assert_eq!(v2.stop_reason(&[3.0], false, 1), None);
+        assert_eq!(v2.stop_reason(&[0.5, 0.6, 0.7], false, 1), Some(StopReason::Stalled));
+    }
+
+    #[test]
+    fn a_series_early_stop_waits_for_its_first_network_to_stop_from_but_the_guard_does_not() {
+        let guarded = stage(true, true);
+        // Stalled at 12 and 13 of a series whose clean-up stage starts at 15: it runs on.
+        let stalled = [0.5, 0.3, 0.2, 0.1, 0.05, 0.03, 0.02, 0.01, 0.008, 0.006, 0.005, 0.0052, 0.0054];
+        assert_eq!(guarded.stop_reason(&stalled, false, 1), Some(StopReason::Stalled));
+        assert_eq!(guarded.stop_reason(&stalled, false, 15), None);
+        // From network 15 on, the rule applies again.
+        let mut later = stalled.to_vec();
+        later.extend([0.0049, 0.0051, 0.0053]);
+        assert_eq!(guarded.stop_reason(&later[..15], false, 15), None);
+        assert_eq!(guarded.stop_reason(&later, false, 15), Some(StopReason::Stalled));
+        let converged = [0.5, 0.3, 0.3 * (1.0 + 5e-5)];
+        assert_eq!(guarded.stop_reason(&converged, false, 4), None);
+        // Divergence is stopped wherever it happens.
+        assert_eq!(guarded.stop_reason(&[0.5, 0.3, 0.4, 0.46], false, 15), Some(StopReason::Rising));
+        assert_eq!(guarded.stop_reason(&[0.5, 1.3], false, 15), Some(StopReason::Diverged));
     }
 
     #[test]

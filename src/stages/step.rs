@@ -93,6 +93,7 @@ impl Stage<Job> for StepStage {
         job.iteration = iteration;
         job.series_finished = realisations == 1 && iteration >= self.step.series_length();
         job.series_length = self.step.series_length();
+        job.early_stop_from = self.step.early_stop_from();
         job.step_kind = Some(self.kind.to_string());
         job.restores = self.step.restores();
         job.last_step_seconds = began.elapsed().as_secs_f64();

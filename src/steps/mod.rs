@@ -64,6 +64,11 @@ pub trait NetworkStep: Send {
     fn realisations(&self) -> usize {
         1
     }
+    /// The iteration from which the residual stage's early stop (stalled, converged) may end
+    /// the series (a series' manifest `early_stop_from`; 1: from the first).
+    fn early_stop_from(&self) -> usize {
+        1
+    }
     /// Iteration `iteration` (1-based): the new estimate `x_i`.
     fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>>;
     /// Whether the products include a restored image (`-image.fits`: the model convolved with

@@ -354,6 +354,10 @@ impl NetworkStep for OnnxStep {
         self.iterations / self.per_realisation
     }
 
+    fn early_stop_from(&self) -> usize {
+        self.series.early_stop_from
+    }
+
     fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>> {
         if iteration == 0 || iteration > self.iterations {
             return Err(Error::parameter("iteration", format!("expected 1..={}, got {iteration}", self.iterations)));

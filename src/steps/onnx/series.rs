@@ -68,6 +68,13 @@ pub struct Manifest {
     /// Layers per component (J) for R3D3; 1 for R2D2.
     #[serde(default = "one")]
     pub layers: usize,
+    /// The network (1-based) from which the reference v2 early stop (residual ratio stalled or
+    /// converged) may end the series; the networks before it always run (the divergence guard
+    /// still stops a diverging series anywhere). The trainer sets it to the first network of a
+    /// later training stage (a clean-up stage trained to trade a little residual for fewer
+    /// artefacts), so that a stall in the stage before does not skip it. Default 1.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub early_stop_from: Option<usize>,
     #[serde(default)]
     pub provenance: serde_yaml::Value,
     #[serde(default)]
@@ -228,6 +235,8 @@ pub struct Series {
     pub realisations: usize,
     pub image_sizes: Vec<usize>,
     pub any_size: bool,
+    /// The manifest's `early_stop_from` (1 without one).
+    pub early_stop_from: usize,
     pub manifest: Option<Manifest>,
     /// How the series was read (for the log and `r2d2 models`).
     pub origin: String,
@@ -298,6 +307,10 @@ impl Series {
         if manifest.layers == 0 {
             return Err(invalid(path, "layers: expected at least 1"));
         }
+        let per_realisation = lists[0].1.len();
+        if let Some(from) = manifest.early_stop_from.filter(|&f| f == 0 || f > per_realisation) {
+            return Err(invalid(path, format!("early_stop_from: expected a network of the series, 1 to {per_realisation}, got {from}")));
+        }
         let mut files = Vec::new();
         for (key, list) in &lists {
             if list.len() != lists[0].1.len() || list.is_empty() {
@@ -314,6 +327,7 @@ impl Series {
             files,
             image_sizes: manifest.image_sizes.clone(),
             any_size: manifest.any_size,
+            early_stop_from: manifest.early_stop_from.unwrap_or(1),
             realisations: lists.len(),
             origin: format!("manifest {}", path.display()),
             manifest: Some(manifest),
@@ -358,6 +372,7 @@ impl Series {
                 files,
                 image_sizes: Vec::new(),
                 any_size: true,
+                early_stop_from: 1,
                 realisations: 1,
                 manifest: None,
                 origin: "reference file names R2D2_UNet_N{i}.onnx (no manifest)".into(),
@@ -387,6 +402,7 @@ impl Series {
                 files,
                 image_sizes: Vec::new(),
                 any_size: true,
+                early_stop_from: 1,
                 realisations: 1,
                 manifest: None,
                 origin: format!("reference file names R3D3_R2D2Net_{j}Layers_N{{i}} (no manifest)"),
@@ -685,6 +701,26 @@ mod tests {
             "format: 1\nname: {name}\narchitecture: r2d2\nimage_sizes: {sizes}\nany_size: {any_size}\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx]\n"
         );
         std::fs::write(dir.join("manifest.yaml"), manifest).unwrap();
+    }
+
+    #[test]
+    fn early_stop_from_is_read_and_must_name_a_network_of_the_series() {
+        let root = tempfile::tempdir().unwrap();
+        series_dir(root.path(), "plain", "[512]", true);
+        assert_eq!(Series::open(&root.path().join("plain")).unwrap().early_stop_from, 1);
+        let dir = root.path().join("staged");
+        touch(&dir.join("a.onnx"));
+        touch(&dir.join("b.onnx"));
+        let manifest = |from: usize| format!(
+            "format: 1\nname: staged\narchitecture: r2d2\nimage_sizes: [512]\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx, b.onnx]\nearly_stop_from: {from}\n"
+        );
+        std::fs::write(dir.join("manifest.yaml"), manifest(2)).unwrap();
+        assert_eq!(Series::open(&dir).unwrap().early_stop_from, 2);
+        for from in [0, 3] {
+            std::fs::write(dir.join("manifest.yaml"), manifest(from)).unwrap();
+            let e = Series::open(&dir).err().expect("refused").to_string();
+            assert!(e.contains("manifest.yaml") && e.contains("early_stop_from: expected a network of the series, 1 to 2"), "{e}");
+        }
     }
 
     #[test]
