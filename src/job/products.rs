@@ -487,4 +487,22 @@ mod tests {
         let longest = product_suffixes().into_iter().map(|s| s.len() + 1).max().unwrap();
         assert_eq!(longest, crate::fits::LONGEST_PRODUCT_SUFFIX.len());
     }
+
+    #[test]
+    fn metrics_floats_read_back_from_json_to_the_bit() {
+        // A residual noise whose shortest decimal serde_json's fast parser read back one ulp
+        // off (a pickled Products then differed from its original); and a sweep of others.
+        let mut values = vec![0.006_479_778_501_561_288_4_f64];
+        let mut state = 0x9e37_79b9_7f4a_7c15_u64;
+        for _ in 0..20_000 {
+            state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1_442_695_040_888_963_407);
+            let x = f64::from_bits((state >> 2) | 0x3000_0000_0000_0000);
+            values.push(if x.is_finite() { x } else { 1.0 });
+        }
+        for x in values {
+            let text = serde_json::json!({ "x": x }).to_string();
+            let back: serde_json::Value = serde_json::from_str(&text).unwrap();
+            assert_eq!(back["x"].as_f64().unwrap().to_bits(), x.to_bits(), "{text}");
+        }
+    }
 }
