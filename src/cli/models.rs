@@ -77,6 +77,9 @@ fn describe(dir: &std::path::Path, s: &r2d2_imaging::steps::series::Series) -> R
     out!("    {} iterations{realisations}, {arch}; {}", s.len(), s.origin)?;
     let sizes = if s.image_sizes.is_empty() { "unknown".to_string() } else { format!("{:?}", s.image_sizes) };
     out!("    trained for image sizes {sizes}{}", if s.any_size { ", runs at any size" } else { " only" })?;
+    if s.edge_padding > 0 {
+        out!("    network inputs mirrored {} pixels past each image edge (outputs cropped)", s.edge_padding)?;
+    }
     if s.early_stop_from > 1 {
         out!("    networks 1 to {} always run; the early stop (stalled, converged) applies from network {} on", s.early_stop_from - 1, s.early_stop_from)?;
     }

@@ -80,6 +80,8 @@ pub struct OnnxStep {
     series: Series,
     runtime: Runtime,
     size: usize,
+    /// The series' `edge_padding`: networks run on `size + 2 pad` images.
+    pad: usize,
     /// Network steps in all: `per_realisation` times the realisations run.
     iterations: usize,
     per_realisation: usize,
@@ -136,9 +138,16 @@ impl OnnxStep {
         };
         let plan: Vec<Vec<PathBuf>> = chosen.iter().flat_map(|&r| series.realisation(r)[..per_realisation].to_vec()).collect();
         let iterations = plan.len();
+        let pad = series.edge_padding;
+        if pad >= size {
+            return Err(Error::parameter(
+                "edge_padding",
+                format!("series '{}' pads its networks' inputs by {pad} pixels, which a {size} x {size} image cannot mirror (at most {})", series.name, size - 1),
+            ));
+        }
         let signatures = plan
             .iter()
-            .map(|layers| layers.iter().map(|file| check_network(file, size)).collect::<Result<Vec<_>>>())
+            .map(|layers| layers.iter().map(|file| check_network(file, size + 2 * pad)).collect::<Result<Vec<_>>>())
             .collect::<Result<Vec<_>>>()?;
         crate::limits::check_threads(config.threads).map_err(|m| Error::parameter("threads", m))?;
         let threads = if config.threads > 0 { config.threads } else { pipeline_threads };
@@ -160,6 +169,7 @@ impl OnnxStep {
             series,
             runtime,
             size,
+            pad,
             iterations,
             per_realisation,
             plan,
@@ -239,7 +249,7 @@ impl OnnxStep {
     fn load(&self, key: Key) -> Result<Box<dyn Network>> {
         let started = std::time::Instant::now();
         let path = self.file(key);
-        let net = self.runtime.load(&path, self.size, &self.signatures[key.0 - 1][key.1])?;
+        let net = self.runtime.load(&path, self.size + 2 * self.pad, &self.signatures[key.0 - 1][key.1])?;
         // Part of the step's seconds; logged so inference and loading can be told apart.
         log::debug!("loaded {} in {:.3} s", path.display(), started.elapsed().as_secs_f64());
         Ok(net)
@@ -248,7 +258,7 @@ impl OnnxStep {
     /// Start loading the network after `key` on a background thread (only `key` is resident).
     fn prefetch_after(&mut self, key: Key) {
         let Some(next) = self.successor(key) else { return };
-        let (runtime, path, size, signature) = (self.runtime.clone(), self.file(next), self.size, self.signatures[next.0 - 1][next.1].clone());
+        let (runtime, path, size, signature) = (self.runtime.clone(), self.file(next), self.size + 2 * self.pad, self.signatures[next.0 - 1][next.1].clone());
         let spawned = std::thread::Builder::new().name("r2d2-prefetch".into()).spawn(move || {
             let started = std::time::Instant::now();
             let net = runtime.load(&path, size, &signature);
@@ -266,7 +276,13 @@ impl OnnxStep {
         let mut input = Vec::with_capacity(2 * first.len());
         input.extend(first.iter().map(|v| (v / alpha) as f32));
         input.extend(second.iter().map(|v| (v / alpha) as f32));
-        let output = self.network(job, iteration, layer)?.run(&input)?;
+        let output = if self.pad == 0 {
+            self.network(job, iteration, layer)?.run(&input)?
+        } else {
+            let (n, pad) = (self.size, self.pad);
+            let padded: Vec<f32> = input.chunks_exact(n * n).flat_map(|channel| mirror_pad(channel, n, pad)).collect();
+            crop(&self.network(job, iteration, layer)?.run(&padded)?, n + 2 * pad, pad)
+        };
         if let Some(bad) = output.iter().position(|v| !v.is_finite()) {
             let path = self.plan[iteration - 1][layer].clone();
             return Err(runtime::OnnxError::Output { path, message: format!("network output is not finite at pixel {bad} (iteration {iteration})") }.into());
@@ -283,6 +299,29 @@ impl Drop for OnnxStep {
             let _ = handle.join();
         }
     }
+}
+
+/// The `n x n` image extended by `pad` pixels on every side, mirrored about its edge rows and
+/// columns (`pad < n`): the edge pixel is not repeated, as numpy's `reflect`.
+fn mirror_pad(image: &[f32], n: usize, pad: usize) -> Vec<f32> {
+    let m = n + 2 * pad;
+    let source = |k: usize| -> usize {
+        let k = k as isize - pad as isize;
+        let last = n as isize - 1;
+        (if k < 0 { -k } else if k > last { 2 * last - k } else { k }) as usize
+    };
+    let mut out = Vec::with_capacity(m * m);
+    for i in 0..m {
+        let row = &image[source(i) * n..][..n];
+        out.extend((0..m).map(|j| row[source(j)]));
+    }
+    out
+}
+
+/// The central `(m - 2 pad)^2` pixels of an `m x m` image.
+fn crop(image: &[f32], m: usize, pad: usize) -> Vec<f32> {
+    let n = m - 2 * pad;
+    (pad..pad + n).flat_map(|i| image[i * m + pad..][..n].iter().copied()).collect()
 }
 
 fn arch_name(a: Architecture) -> &'static str {
@@ -539,6 +578,42 @@ pub(crate) mod tests {
         let r1: f64 = residual(&psf, &dirty, &expected[0]).iter().map(|v| v * v).sum();
         let r4: f64 = residual(&psf, &dirty, &expected[3]).iter().map(|v| v * v).sum();
         assert!(r4 < 0.5 * r1, "Landweber reduces the residual: {r1} -> {r4}");
+    }
+
+    #[test]
+    fn edge_padding_mirrors_each_input_and_crops_each_output() {
+        // As numpy's `reflect`: for a pad of 2 the rows and columns are 2 1 0 1 2 1 0.
+        let image: Vec<f32> = (0..9).map(|v| v as f32).collect();
+        let padded = mirror_pad(&image, 3, 2);
+        let source = [2usize, 1, 0, 1, 2, 1, 0];
+        for i in 0..7 {
+            for j in 0..7 {
+                assert_eq!(padded[i * 7 + j], image[source[i] * 3 + source[j]], "({i}, {j})");
+            }
+        }
+        assert_eq!(crop(&padded, 7, 2), image);
+        // A series of pixelwise networks (1x1 convolutions) padded: the same models as unpadded.
+        let dir = test_models();
+        let series = tempfile::tempdir().unwrap();
+        for f in ["lw1.onnx", "lw2.onnx", "lw3.onnx", "lw4.onnx"] {
+            std::fs::copy(dir.join("landweber").join(f), series.path().join(f)).unwrap();
+        }
+        let manifest = std::fs::read_to_string(dir.join("landweber/manifest.yaml")).unwrap();
+        std::fs::write(series.path().join("manifest.yaml"), format!("{manifest}edge_padding: 8\n")).unwrap();
+        let psf = psf_2n();
+        let dirty = direct_d(&psf, &sky());
+        for backend in [BackendChoice::Ort, BackendChoice::Tract] {
+            let padded = run_series(series.path(), backend, &psf, &dirty, true);
+            let plain = run_series(&dir.join("landweber"), backend, &psf, &dirty, true);
+            for (i, (a, b)) in padded.iter().zip(&plain).enumerate() {
+                assert!(rel(a, b) < 1e-6, "{backend:?} iteration {}: {:.2e}", i + 1, rel(a, b));
+            }
+        }
+        // More padding than the image can mirror: refused, naming the field.
+        std::fs::write(series.path().join("manifest.yaml"), format!("{manifest}edge_padding: {N}\n")).unwrap();
+        let config = OnnxConfig { series: series.path().into(), backend: BackendChoice::Tract, threads: 1, networks: None, prefetch: true, graph_optimization: GraphOptimization::default(), realisation: None, validity: ValidityMode::Warn };
+        let e = OnnxStep::new(&config, N, 1, &ImagingSetup::default()).err().expect("refused").to_string();
+        assert!(e.contains("edge_padding") && e.contains(&format!("{N} pixels")), "{e}");
     }
 
     #[test]

@@ -75,6 +75,13 @@ pub struct Manifest {
     /// artefacts), so that a stall in the stage before does not skip it. Default 1.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub early_stop_from: Option<usize>,
+    /// Pixels by which each network's input is extended on every side, mirroring the image
+    /// at its edges, and its output cropped back: a series whose networks make faint false
+    /// emission along the image edges (their own zero padding) then makes it outside the
+    /// image. Where set, `image size + 2 x edge_padding` must suit the networks (a multiple
+    /// of 2^poolings for a U-Net). Default 0.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub edge_padding: usize,
     #[serde(default)]
     pub provenance: serde_yaml::Value,
     #[serde(default)]
@@ -85,6 +92,10 @@ pub struct Manifest {
 
 fn one() -> usize {
     1
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 /// The observations a series was trained for (`validity:` in the manifest: its domain).
@@ -237,6 +248,8 @@ pub struct Series {
     pub any_size: bool,
     /// The manifest's `early_stop_from` (1 without one).
     pub early_stop_from: usize,
+    /// The manifest's `edge_padding` (0 without one).
+    pub edge_padding: usize,
     pub manifest: Option<Manifest>,
     /// How the series was read (for the log and `r2d2 models`).
     pub origin: String,
@@ -328,6 +341,7 @@ impl Series {
             image_sizes: manifest.image_sizes.clone(),
             any_size: manifest.any_size,
             early_stop_from: manifest.early_stop_from.unwrap_or(1),
+            edge_padding: manifest.edge_padding,
             realisations: lists.len(),
             origin: format!("manifest {}", path.display()),
             manifest: Some(manifest),
@@ -373,6 +387,7 @@ impl Series {
                 image_sizes: Vec::new(),
                 any_size: true,
                 early_stop_from: 1,
+                edge_padding: 0,
                 realisations: 1,
                 manifest: None,
                 origin: "reference file names R2D2_UNet_N{i}.onnx (no manifest)".into(),
@@ -403,6 +418,7 @@ impl Series {
                 image_sizes: Vec::new(),
                 any_size: true,
                 early_stop_from: 1,
+                edge_padding: 0,
                 realisations: 1,
                 manifest: None,
                 origin: format!("reference file names R3D3_R2D2Net_{j}Layers_N{{i}} (no manifest)"),
