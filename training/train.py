@@ -335,8 +335,11 @@ def main(argv=None):
         # The first network of a later stage (resumed with another loss): it and those after
         # trade a little residual for fewer artefacts, so the engine's early stop (ratio
         # stalled) applies from it on, not before, where it would skip the stage.
+        # The loss of the network before: its own record, else the series' (older manifests
+        # record it once); where neither says, no stage boundary is assumed.
         before_it = manifest["provenance"]["networks"][-1] if manifest["provenance"]["networks"] else None
-        if before_it and before_it.get("loss_projection") != args.loss_projection and "early_stop_from" not in manifest:
+        previous = before_it and before_it.get("loss_projection", (manifest["provenance"].get("loss") or {}).get("projection"))
+        if previous and previous != args.loss_projection and "early_stop_from" not in manifest:
             manifest["early_stop_from"] = i
         manifest["validation"].append({"iteration": i, **{k: round(v, 4) for k, v in m.items()}})
         manifest["provenance"]["networks"].append({

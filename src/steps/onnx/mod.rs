@@ -246,10 +246,16 @@ impl OnnxStep {
         self.plan[iteration - 1][layer].clone()
     }
 
+    /// The edge of the images the networks run on: the job's, padded by the series'
+    /// `edge_padding` on each side.
+    fn network_size(&self) -> usize {
+        self.size + 2 * self.pad
+    }
+
     fn load(&self, key: Key) -> Result<Box<dyn Network>> {
         let started = std::time::Instant::now();
         let path = self.file(key);
-        let net = self.runtime.load(&path, self.size + 2 * self.pad, &self.signatures[key.0 - 1][key.1])?;
+        let net = self.runtime.load(&path, self.network_size(), &self.signatures[key.0 - 1][key.1])?;
         // Part of the step's seconds; logged so inference and loading can be told apart.
         log::debug!("loaded {} in {:.3} s", path.display(), started.elapsed().as_secs_f64());
         Ok(net)
@@ -258,7 +264,7 @@ impl OnnxStep {
     /// Start loading the network after `key` on a background thread (only `key` is resident).
     fn prefetch_after(&mut self, key: Key) {
         let Some(next) = self.successor(key) else { return };
-        let (runtime, path, size, signature) = (self.runtime.clone(), self.file(next), self.size + 2 * self.pad, self.signatures[next.0 - 1][next.1].clone());
+        let (runtime, path, size, signature) = (self.runtime.clone(), self.file(next), self.network_size(), self.signatures[next.0 - 1][next.1].clone());
         let spawned = std::thread::Builder::new().name("r2d2-prefetch".into()).spawn(move || {
             let started = std::time::Instant::now();
             let net = runtime.load(&path, size, &signature);
@@ -281,7 +287,7 @@ impl OnnxStep {
         } else {
             let (n, pad) = (self.size, self.pad);
             let padded: Vec<f32> = input.chunks_exact(n * n).flat_map(|channel| mirror_pad(channel, n, pad)).collect();
-            crop(&self.network(job, iteration, layer)?.run(&padded)?, n + 2 * pad, pad)
+            crop(&self.network(job, iteration, layer)?.run(&padded)?, self.network_size(), pad)
         };
         if let Some(bad) = output.iter().position(|v| !v.is_finite()) {
             let path = self.plan[iteration - 1][layer].clone();
