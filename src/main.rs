@@ -3,6 +3,10 @@
 
 mod cli;
 
+/// Large blocks on transparent huge pages (see the type).
+#[global_allocator]
+static ALLOCATOR: r2d2_imaging::allocator::LargeBlocksOnHugePages = r2d2_imaging::allocator::LargeBlocksOnHugePages;
+
 fn main() -> std::process::ExitCode {
     cli::main()
 }

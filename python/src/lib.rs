@@ -15,6 +15,10 @@ mod logging;
 mod parts;
 mod products;
 
+/// Large blocks on transparent huge pages, as in the `r2d2` binary (see the type).
+#[global_allocator]
+static ALLOCATOR: r2d2_imaging::allocator::LargeBlocksOnHugePages = r2d2_imaging::allocator::LargeBlocksOnHugePages;
+
 use numpy::PyArray1;
 use pyo3::create_exception;
 use pyo3::exceptions::PyRuntimeError;

@@ -191,6 +191,9 @@ pub struct WGridPlan {
     /// plan order.
     w: Vec<f64>,
     first_plane: Vec<u32>,
+    /// The w-kernel's variable `z` in `[-1, 1]` of each point (plan order; empty without
+    /// w-planes): worked out once, where each plane would otherwise divide by `dw` again.
+    w_cell: Vec<f64>,
     /// A real-image plan ([`WGridPlan::new_real`]); `flip[k]`: plan point `k` is mirrored.
     real: bool,
     flip: Vec<bool>,
@@ -349,6 +352,7 @@ impl WGridPlan {
             rank: Vec::new(),
             w: Vec::new(),
             first_plane: Vec::new(),
+            w_cell: Vec::new(),
             real,
             flip: Vec::new(),
             tiles: Vec::new(),
@@ -456,6 +460,14 @@ impl WGridPlan {
         self.positions = order.par_iter().map(|&k| positions[k as usize]).collect();
         self.w = order.par_iter().map(|&k| w[k as usize]).collect();
         self.first_plane = order.par_iter().map(|&k| first_plane[k as usize]).collect();
+        if let Some(wk) = &self.wkernel {
+            self.w_cell = self
+                .w
+                .par_iter()
+                .zip(self.first_plane.par_iter())
+                .map(|(&w, &p0)| 2.0 * (f64::from(p0) - self.plane_offset(wk, w)) - 1.0)
+                .collect();
+        }
         let mut rank = vec![0u32; m];
         for (i, &k) in order.iter().enumerate() {
             rank[k as usize] = i as u32;
@@ -514,11 +526,7 @@ impl WGridPlan {
     fn weight(&self, k: usize, p: usize) -> f64 {
         match &self.wkernel {
             None => 1.0,
-            Some(wk) => {
-                let p0 = self.first_plane[k] as usize;
-                let z = 2.0 * (p0 as f64 - self.plane_offset(wk, self.w[k])) - 1.0;
-                wk.cell(p - p0, z)
-            }
+            Some(wk) => wk.cell(p - self.first_plane[k] as usize, self.w_cell[k]),
         }
     }
 

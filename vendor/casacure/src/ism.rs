@@ -202,7 +202,7 @@ impl IsmFile {
         let start = DATA_START + bucket as usize * size;
         self.data
             .get(start..start + size)
-            .ok_or(IsmError::InvalidBucket(bucket, self.header.nbucket))
+            .ok_or_else(|| IsmError::InvalidBucket(bucket, self.header.nbucket))
     }
 
     fn column_index(&self, bucket: u32, column: usize) -> Result<ColumnIndex, IsmError> {
@@ -260,7 +260,7 @@ impl IsmFile {
             )?);
             Ok::<(), IsmError>(())
         })?;
-        out.ok_or(IsmError::RowOutOfRange { row })
+        out.ok_or_else(|| IsmError::RowOutOfRange { row })
     }
 
     /// Visit the raw stored bytes (data-file byte order, [`ism_cell_size`]
@@ -291,7 +291,7 @@ impl IsmFile {
             let (bucket, intra_row, bucket_rows) = self
                 .index
                 .bucket_for(row)
-                .ok_or(IsmError::RowOutOfRange { row })?;
+                .ok_or_else(|| IsmError::RowOutOfRange { row })?;
             if intra_row >= bucket_rows {
                 return Err(IsmError::RowOutOfRange { row }.into());
             }
@@ -303,7 +303,7 @@ impl IsmFile {
                 lb
             } else {
                 lb.checked_sub(1)
-                    .ok_or(IsmError::ColumnEmpty { column, row })?
+                    .ok_or_else(|| IsmError::ColumnEmpty { column, row })?
             };
             let stop = (bucket_rows - intra_row).min(end - row);
             for k in 0..stop {
@@ -312,7 +312,7 @@ impl IsmFile {
                     inx += 1;
                 }
                 let offset = data_off + ci.offsets[inx] as usize;
-                let cell = b.get(offset..offset + want).ok_or(IsmError::ColumnEmpty {
+                let cell = b.get(offset..offset + want).ok_or_else(|| IsmError::ColumnEmpty {
                     column,
                     row: row + k,
                 })?;

@@ -219,7 +219,7 @@ impl StandardStManFile {
         let start =
             DATA_START
                 .checked_add(number as usize * size)
-                .ok_or(AipsIoError::Truncated {
+                .ok_or_else(|| AipsIoError::Truncated {
                     needed: size,
                     offset: DATA_START,
                     len: self.data.len(),
@@ -227,7 +227,7 @@ impl StandardStManFile {
         self.data
             .get(start..start + size)
             .map(|b| &b[..size])
-            .ok_or(SsmError::InvalidBucket(number))
+            .ok_or_else(|| SsmError::InvalidBucket(number))
     }
 
     /// Bytes of one row's cell in the given column group's index.
@@ -242,11 +242,11 @@ impl StandardStManFile {
         row: u64,
         cell_size: u32,
     ) -> Result<(&[u8], usize), SsmError> {
-        let index = self.indices.get(index_nr).ok_or(SsmError::IndexMissing {
+        let index = self.indices.get(index_nr).ok_or_else(|| SsmError::IndexMissing {
             index: index_nr,
             count: self.indices.len(),
         })?;
-        let bucket = index.find(row).ok_or(SsmError::RowOutOfRange { row })?;
+        let bucket = index.find(row).ok_or_else(|| SsmError::RowOutOfRange { row })?;
         self.cell_bytes_in_bucket(column_offset, row, cell_size, bucket)
     }
 
@@ -284,7 +284,7 @@ impl StandardStManFile {
         })?;
         let end = start_us
             .checked_add(nbytes)
-            .ok_or(SsmError::CellOutOfRange {
+            .ok_or_else(|| SsmError::CellOutOfRange {
                 bucket: bucket.number,
                 offset: bit_offset / 8,
                 len: nbytes64,
@@ -292,7 +292,7 @@ impl StandardStManFile {
         let slice = self
             .data
             .get(start_us..end)
-            .ok_or(SsmError::CellOutOfRange {
+            .ok_or_else(|| SsmError::CellOutOfRange {
                 bucket: bucket.number,
                 offset: bit_offset / 8,
                 len: nbytes64,
@@ -310,11 +310,11 @@ impl StandardStManFile {
         row: u64,
         nbits: u64,
     ) -> Result<(&[u8], usize), SsmError> {
-        let index = self.indices.get(index_nr).ok_or(SsmError::IndexMissing {
+        let index = self.indices.get(index_nr).ok_or_else(|| SsmError::IndexMissing {
             index: index_nr,
             count: self.indices.len(),
         })?;
-        let bucket = index.find(row).ok_or(SsmError::RowOutOfRange { row })?;
+        let bucket = index.find(row).ok_or_else(|| SsmError::RowOutOfRange { row })?;
         let bit_offset = u64::from(column_offset) * 8 + (row - bucket.start_row) * nbits;
         let base =
             (DATA_START as u64) + u64::from(bucket.number) * u64::from(self.header.bucket_size);
@@ -324,7 +324,7 @@ impl StandardStManFile {
         let slice = self
             .data
             .get(start..start + len)
-            .ok_or(SsmError::CellOutOfRange {
+            .ok_or_else(|| SsmError::CellOutOfRange {
                 bucket: bucket.number,
                 offset: bit_offset / 8,
                 len: len as u64,
@@ -426,14 +426,14 @@ impl StandardStManFile {
             .col_index_map
             .get(col_idx)
             .copied()
-            .ok_or(SsmError::IndexMissing {
+            .ok_or_else(|| SsmError::IndexMissing {
                 index: col_idx,
                 count: spec.col_index_map.len(),
             })? as usize;
         let column_offset = spec
             .column_offset
             .get(col_idx)
-            .ok_or(SsmError::IndexMissing {
+            .ok_or_else(|| SsmError::IndexMissing {
                 index: col_idx,
                 count: spec.column_offset.len(),
             })?;
@@ -556,14 +556,14 @@ impl StandardStManFile {
             .col_index_map
             .get(col_idx)
             .copied()
-            .ok_or(SsmError::IndexMissing {
+            .ok_or_else(|| SsmError::IndexMissing {
                 index: col_idx,
                 count: spec.col_index_map.len(),
             })? as usize;
         let column_offset = spec
             .column_offset
             .get(col_idx)
-            .ok_or(SsmError::IndexMissing {
+            .ok_or_else(|| SsmError::IndexMissing {
                 index: col_idx,
                 count: spec.column_offset.len(),
             })?;
@@ -582,14 +582,14 @@ impl StandardStManFile {
             .col_index_map
             .get(col_idx)
             .copied()
-            .ok_or(SsmError::IndexMissing {
+            .ok_or_else(|| SsmError::IndexMissing {
                 index: col_idx,
                 count: spec.col_index_map.len(),
             })? as usize;
         let column_offset = spec
             .column_offset
             .get(col_idx)
-            .ok_or(SsmError::IndexMissing {
+            .ok_or_else(|| SsmError::IndexMissing {
                 index: col_idx,
                 count: spec.column_offset.len(),
             })?;
@@ -662,7 +662,7 @@ impl StandardStManFile {
         } else {
             nelem
                 .checked_mul(array_elem_size(desc.data_type))
-                .ok_or(SsmError::BadArrayRef {
+                .ok_or_else(|| SsmError::BadArrayRef {
                     offset,
                     len: f0i.len(),
                 })?
@@ -670,7 +670,7 @@ impl StandardStManFile {
         let data_start = p;
         let data_end = data_start
             .checked_add(region_size)
-            .ok_or(SsmError::BadArrayRef {
+            .ok_or_else(|| SsmError::BadArrayRef {
                 offset,
                 len: f0i.len(),
             })?;
@@ -785,14 +785,14 @@ pub fn read_array_cell(
         .col_index_map
         .get(col_idx)
         .copied()
-        .ok_or(SsmError::IndexMissing {
+        .ok_or_else(|| SsmError::IndexMissing {
             index: col_idx,
             count: spec.col_index_map.len(),
         })? as usize;
     let column_offset = spec
         .column_offset
         .get(col_idx)
-        .ok_or(SsmError::IndexMissing {
+        .ok_or_else(|| SsmError::IndexMissing {
             index: col_idx,
             count: spec.column_offset.len(),
         })?;
@@ -1032,7 +1032,7 @@ fn u32_from(data: &[u8], off: usize, big_endian: bool) -> u32 {
 }
 
 fn u32_at(data: &[u8], off: usize, big_endian: bool) -> Result<u32, SsmError> {
-    let b = data.get(off..off + 4).ok_or(SsmError::CellOutOfRange {
+    let b = data.get(off..off + 4).ok_or_else(|| SsmError::CellOutOfRange {
         bucket: 0,
         offset: off as u64,
         len: 4,
@@ -1091,7 +1091,7 @@ fn reader(data: &[u8], big_endian: bool) -> Reader<'_> {
 fn read_i32_at(data: &[u8], offset: usize, big_endian: bool) -> Result<i32, SsmError> {
     let b = data
         .get(offset..offset + 4)
-        .ok_or(SsmError::CellOutOfRange {
+        .ok_or_else(|| SsmError::CellOutOfRange {
             bucket: 0,
             offset: offset as u64,
             len: 4,
@@ -1132,7 +1132,7 @@ fn read_index(
         let bp = bucket_start(bucket_size, bucket_nr);
         let bucket = data
             .get(bp..bp + bucket_size)
-            .ok_or(SsmError::InvalidBucket(bucket_nr))?;
+            .ok_or_else(|| SsmError::InvalidBucket(bucket_nr))?;
         // [checkNr][nextBucket] at the start of each index bucket.
         // [checkNr][nextBucket] at the start of each index bucket; like the
         // string-bucket headers, they use big-endian canonical regardless

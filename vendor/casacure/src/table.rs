@@ -1480,7 +1480,7 @@ impl Table {
                     let s = *v
                         .rows
                         .get(r as usize)
-                        .ok_or(TableReadError::RowOutOfRange {
+                        .ok_or_else(|| TableReadError::RowOutOfRange {
                             row: r,
                             column: format!("<reference table of {} rows>", v.rows.len()),
                         })?;
@@ -2007,7 +2007,7 @@ impl Table {
         v.rows
             .get(row as usize)
             .copied()
-            .ok_or(TableReadError::RowOutOfRange {
+            .ok_or_else(|| TableReadError::RowOutOfRange {
                 row,
                 column: self
                     .dat
