@@ -57,7 +57,7 @@ impl Source<Job> for ArrowIpcSource {
         if regular_file && self.split_by.is_none() {
             let (file, allow_truncated) = (self.path.clone(), self.allow_truncated);
             let reopen = move || -> Result<Box<dyn TableReader>> { Ok(Box::new(IpcReader::open(&file, allow_truncated)?)) };
-            let Some(table) = StreamedTable::scan(reopen()?, Box::new(reopen), cancelled)? else {
+            let Some(table) = StreamedTable::scan(reopen()?, Box::new(reopen), Some(&crate::vis::spill_dir()), cancelled)? else {
                 return Ok(());
             };
             table.stats().log(Path::new(&self.path));

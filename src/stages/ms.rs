@@ -90,7 +90,7 @@ impl MsSource {
             let reopen = move || -> Result<Box<dyn TableReader>> { Ok(Box::new(MsReader::open(&path, &chosen, batch_rows)?)) };
             let reader = MsReader::open(&self.path, selection, self.batch_rows)?;
             let (field, field_name) = (reader.field().0, reader.field().1.to_string());
-            let Some(table) = StreamedTable::scan(Box::new(reader), Box::new(reopen), cancelled)? else {
+            let Some(table) = StreamedTable::scan(Box::new(reader), Box::new(reopen), Some(&crate::vis::spill_dir()), cancelled)? else {
                 return Ok(false);
             };
             let column = table.meta().extra.get("ms_data_column").cloned().unwrap_or_default();

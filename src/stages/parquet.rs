@@ -84,7 +84,7 @@ impl Source<Job> for ParquetSource {
                 // table is held (a .mat file is read whole by its format).
                 let (file, batch_rows) = (path.clone(), self.batch_rows);
                 let reopen = move || open(&file, &OpenOptions { batch_rows, ..OpenOptions::default() });
-                let Some(table) = StreamedTable::scan(reopen()?, Box::new(reopen), cancelled)? else {
+                let Some(table) = StreamedTable::scan(reopen()?, Box::new(reopen), Some(&crate::vis::spill_dir()), cancelled)? else {
                     return Ok(());
                 };
                 table.stats().log(path);

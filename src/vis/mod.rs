@@ -18,6 +18,7 @@ mod parted;
 mod parts;
 mod reader;
 mod split;
+mod spill;
 mod stream;
 mod table;
 
@@ -31,6 +32,7 @@ pub use reader::{TableReader, STDIN};
 pub use operator::{source_images, weight_rule, weighting_problem, DataOperator, StreamedGridding, StreamedOperator};
 pub use parted::{NormalisedImages, PartImages, PartPass, PartPasses, PartedObservation};
 pub use parts::{chunk_weights, part_apply_normal, part_density, part_images, LocalParts};
+pub use spill::spill_dir;
 pub use stream::{Reopen, StreamedTable, VisSource};
 pub use split::{nothing_to_image, read_parts, split_rows, Part, SplitBy, MAX_SPLIT_PARTS};
 pub use convert::*;

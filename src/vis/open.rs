@@ -160,7 +160,7 @@ pub fn open_source(path: &Path, options: &OpenOptions) -> Result<(ObservationMet
     }
     let (file, opts) = (path.to_path_buf(), options.clone());
     let reopen = move || open(&file, &opts);
-    let table = StreamedTable::scan(reopen()?, Box::new(reopen), &|| false)?.expect("never cancelled");
+    let table = StreamedTable::scan(reopen()?, Box::new(reopen), Some(&super::spill_dir()), &|| false)?.expect("never cancelled");
     Ok((table.meta().clone(), VisSource::Streamed(std::sync::Arc::new(table))))
 }
 

@@ -7,6 +7,7 @@ use super::convert::{record_batch_to_visibilities, IngestStats};
 use super::data::{ObservationMeta, VisChunk, Visibilities, VisSummary};
 use super::parted::PartedObservation;
 use super::reader::TableReader;
+use super::spill::Spill;
 use crate::{Error, Result};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -36,23 +37,48 @@ pub struct StreamedTable {
     scanned: bool,
     summary: VisSummary,
     reader_summary: Option<String>,
+    /// The samples as the first reading decoded them, read back by every later pass in place
+    /// of the file (`None`: the file is read again at each pass).
+    spill: Option<Spill>,
 }
 
 impl StreamedTable {
     /// Reads the table once through `reader`, counting its samples and what imaging needs to
-    /// know of them; the samples are not kept. `reopen` gives the table's reader again for
-    /// each later pass. `cancelled` is polled at every batch (`None`: it turned true).
-    pub fn scan(mut reader: Box<dyn TableReader>, reopen: Box<Reopen>, cancelled: &dyn Fn() -> bool) -> Result<Option<StreamedTable>> {
+    /// know of them. The samples are not kept in memory: where `spill_in` names a directory
+    /// fit for it, they are kept decoded in a temporary file there ([`super::spill`]) for
+    /// the later passes; otherwise `reopen` gives the table's reader again for each later
+    /// pass. `cancelled` is polled at every batch (`None`: it turned true).
+    pub fn scan(mut reader: Box<dyn TableReader>, reopen: Box<Reopen>, spill_in: Option<&Path>, cancelled: &dyn Fn() -> bool) -> Result<Option<StreamedTable>> {
         let mut stats = IngestStats::default();
         let mut summary = VisSummary::empty();
         let source = reader.source().display().to_string();
+        let mut spill = spill_in.map(Spill::create);
         while let Some(batch) = reader.next_batch() {
             if cancelled() {
                 return Ok(None);
             }
             let vis = record_batch_to_visibilities(&batch?, &mut stats, &source)?;
             summary.add(&vis.chunk(0..vis.len()));
+            if let Some(Ok(kept)) = &mut spill {
+                if let Err(why) = kept.append(&vis) {
+                    spill = Some(Err(why)); // the incomplete copy is dropped (and its space freed) here
+                }
+            }
         }
+        let spill = match spill {
+            Some(Ok(kept)) => {
+                log::info!(
+                    "{source}: the samples are kept decoded in a temporary file ({}) for the passes after the first",
+                    crate::limits::format_bytes(kept.bytes() as f64)
+                );
+                Some(kept)
+            }
+            Some(Err(why)) => {
+                log::info!("{source}: each pass reads the table again (no temporary copy of its samples: {why})");
+                None
+            }
+            None => None,
+        };
         Ok(Some(StreamedTable {
             path: reader.source().to_path_buf(),
             reopen,
@@ -61,6 +87,7 @@ impl StreamedTable {
             scanned: true,
             summary,
             reader_summary: reader.summary(),
+            spill,
         }))
     }
 
@@ -76,6 +103,7 @@ impl StreamedTable {
             scanned: false,
             summary: VisSummary::empty(),
             reader_summary: None,
+            spill: None,
         }
     }
 
@@ -131,6 +159,10 @@ impl VisSource {
                     f(vis.chunk(start..(start + step).min(n)))?;
                 }
                 Ok(())
+            }
+            VisSource::Streamed(table) if table.spill.is_some() => {
+                let spill = table.spill.as_ref().expect("matched");
+                spill.for_each_chunk(chunk_rows, &table.path, &mut |buffer| f(buffer.chunk(0..buffer.len())))
             }
             VisSource::Streamed(table) => {
                 let mut reader = (table.reopen)()?;
@@ -280,13 +312,13 @@ mod tests {
         // The first reading finds 10 samples, every later one 9: a file written meanwhile.
         let reopen = move || Ok(table(if counter.fetch_add(1, Ordering::SeqCst) == 0 { 10 } else { 9 }));
         let first = reopen().unwrap();
-        let streamed = StreamedTable::scan(first, Box::new(reopen), &|| false).unwrap().unwrap();
+        let streamed = StreamedTable::scan(first, Box::new(reopen), None, &|| false).unwrap().unwrap();
         assert_eq!((streamed.stats().kept(), streamed.summary.samples), (10, 10));
         let source = VisSource::Streamed(Arc::new(streamed));
         let e = source.for_each_chunk(3, &mut |_| Ok(())).unwrap_err().to_string();
         assert!(e.contains("t:") && e.contains("changed while it was imaged"), "{e}");
         // One that stays the same is read whole in chunks of at least 3 (its batches of 4).
-        let same = StreamedTable::scan(table(10), Box::new(|| Ok(table(10))), &|| false).unwrap().unwrap();
+        let same = StreamedTable::scan(table(10), Box::new(|| Ok(table(10))), None, &|| false).unwrap().unwrap();
         let mut sizes = Vec::new();
         VisSource::Streamed(Arc::new(same)).for_each_chunk(3, &mut |c| {
             sizes.push(c.len());
@@ -294,5 +326,36 @@ mod tests {
         })
         .unwrap();
         assert_eq!(sizes, vec![4, 4, 2]);
+    }
+
+    /// With a temporary copy, later passes read the samples the first reading decoded, and
+    /// never the file again: the same samples pass after pass, in chunks as without it.
+    #[test]
+    fn a_spilled_table_is_never_read_again() {
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        let opened = Arc::new(AtomicUsize::new(0));
+        let counter = opened.clone();
+        let reopen = move || Ok(table(if counter.fetch_add(1, Ordering::SeqCst) == 0 { 10 } else { 9 }));
+        let first = reopen().unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        let streamed = StreamedTable::scan(first, Box::new(reopen), Some(dir.path()), &|| false).unwrap().unwrap();
+        let source = VisSource::Streamed(Arc::new(streamed));
+        let held = {
+            let reopened = table(10);
+            let only = StreamedTable::scan(reopened, Box::new(|| Ok(table(10))), None, &|| false).unwrap().unwrap();
+            VisSource::Streamed(Arc::new(only)).read_all().unwrap()
+        };
+        for _ in 0..2 {
+            let mut sizes = Vec::new();
+            source
+                .for_each_chunk(3, &mut |c| {
+                    sizes.push(c.len());
+                    Ok(())
+                })
+                .unwrap();
+            assert_eq!(sizes, vec![4, 4, 2]);
+            assert_eq!(source.read_all().unwrap(), held);
+        }
+        assert_eq!(opened.load(Ordering::SeqCst), 1, "the file was opened again");
     }
 }
