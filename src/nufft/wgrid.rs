@@ -146,19 +146,33 @@ pub(crate) fn n_minus_one(r2: f64) -> f64 {
 /// The w-direction kernel: one polynomial per covered plane, as [`super::kernel::PolynomialKernel`].
 struct WKernel {
     support: usize,
-    /// `(degree + 1) * support` coefficients, highest degree first.
-    coeffs: Vec<f64>,
+    /// Coefficients per cell (`terms` each, highest degree first, an even number: a zero
+    /// leads where the degree is even), cell after cell.
+    by_cell: Vec<f64>,
+    terms: usize,
 }
 
 impl WKernel {
-    /// The kernel value for cell `b` (plane `p0 + b`) at sub-cell variable `z`.
+    /// From the fit's `(degree + 1) * support` coefficients, degree-major, highest first.
+    fn new(support: usize, coeffs: &[f64]) -> WKernel {
+        let degrees = coeffs.len() / support;
+        let terms = degrees + degrees % 2;
+        let mut by_cell = vec![0.0; terms * support];
+        for (d, row) in coeffs.chunks_exact(support).enumerate() {
+            for (b, &c) in row.iter().enumerate() {
+                by_cell[b * terms + (terms - degrees) + d] = c;
+            }
+        }
+        WKernel { support, by_cell, terms }
+    }
+
+    /// The kernel value for cell `b` (plane `p0 + b`) at sub-cell variable `z`: Horner's rule
+    /// in `z^2` over pairs of coefficients, whose own products do not wait on the sum (half
+    /// the dependent steps of Horner in `z`; this runs once per point and plane).
     #[inline(always)]
     fn cell(&self, b: usize, z: f64) -> f64 {
-        let mut acc = 0.0;
-        for c in self.coeffs.chunks_exact(self.support) {
-            acc = acc * z + c[b];
-        }
-        acc
+        let z2 = z * z;
+        self.by_cell[b * self.terms..][..self.terms].chunks_exact(2).fold(0.0, |acc, c| acc * z2 + (c[0] * z + c[1]))
     }
 }
 
@@ -320,7 +334,7 @@ impl WGridPlan {
             let planes = planes as usize;
             let w_first = w_mid - 0.5 * (planes - 1) as f64 * dw;
             let coeffs = fit_kernel(&shape, uv_epsilon / 20.0);
-            (Some(WKernel { support: shape.support, coeffs }), planes, w_first, dw)
+            (Some(WKernel::new(shape.support, &coeffs)), planes, w_first, dw)
         };
 
         let h = size / 2 + 1;

@@ -244,3 +244,22 @@ fn suggested_oversampling_follows_the_cost() {
     // An invalid field falls back to the default.
     assert_eq!(suggested_oversampling(16, 0.1, &c.w, false, 1e-5), 2.0);
 }
+
+/// The per-cell layout and the pairwise Horner give the fit's polynomials, for an even and an
+/// odd number of coefficients per cell.
+#[test]
+fn w_kernel_cells_evaluate_the_fitted_polynomials() {
+    let naive = |coeffs: &[f64], support: usize, b: usize, z: f64| coeffs.chunks_exact(support).fold(0.0, |acc, c| acc * z + c[b]);
+    let shape = KernelShape::for_accuracy(1e-6, 2.0).unwrap();
+    let fitted = super::super::fit_kernel(&shape, 1e-7);
+    let odd: Vec<f64> = (0..5 * 3).map(|i| (i as f64 * 0.37).sin()).collect();
+    for (coeffs, support) in [(fitted, shape.support), (odd, 3)] {
+        let wk = WKernel::new(support, &coeffs);
+        for b in 0..support {
+            for z in [-1.0, -0.43, 0.0, 0.2, 0.999] {
+                let (want, got) = (naive(&coeffs, support, b, z), wk.cell(b, z));
+                assert!((want - got).abs() <= 1e-14 * (1.0 + want.abs()), "cell {b} at {z}: {got} against {want}");
+            }
+        }
+    }
+}
