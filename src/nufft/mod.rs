@@ -824,6 +824,58 @@ fn spread_tile_impl<const W: usize, const W2: usize, const L: usize, const FMA: 
 }
 
 multiversion! {
+    /// [`spread_tile`] of two values per point (`a[k]`, `b[k]`, the tile's points in order)
+    /// into two buffers of the same layout: the kernel is evaluated once for both.
+    fn spread_tile_pair<const W: usize, const W2: usize, const L: usize>(
+        kernel: &SymKernel<W, W2, L>,
+        positions: &[GridPosition],
+        a: &[Complex64],
+        b: &[Complex64],
+        buf_a: &mut [f64],
+        buf_b: &mut [f64],
+        bw2: usize,
+        origin: (u32, u32),
+    ) => spread_tile_pair_impl
+}
+
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn spread_tile_pair_impl<const W: usize, const W2: usize, const L: usize, const FMA: bool>(
+    kernel: &SymKernel<W, W2, L>,
+    positions: &[GridPosition],
+    a: &[Complex64],
+    b: &[Complex64],
+    buf_a: &mut [f64],
+    buf_b: &mut [f64],
+    bw2: usize,
+    (x0, y0): (u32, u32),
+) {
+    for ((p, va), vb) in positions.iter().zip(a).zip(b) {
+        let kxy = kernel.eval::<FMA>(p.zx(), p.zy());
+        let (kx, ky) = kxy.split_at(W);
+        let (mut ka, mut kb) = ([0.0f64; W2], [0.0f64; W2]);
+        for j in 0..W {
+            ka[2 * j] = va.re * kx[j];
+            ka[2 * j + 1] = va.im * kx[j];
+            kb[2 * j] = vb.re * kx[j];
+            kb[2 * j + 1] = vb.im * kx[j];
+        }
+        let base = (p.py() - y0 as usize) * bw2 + 2 * (p.px() - x0 as usize);
+        let span = (W - 1) * bw2 + W2;
+        let (fa, fb) = (&mut buf_a[base..base + span], &mut buf_b[base..base + span]);
+        for (r, &kyr) in ky.iter().enumerate() {
+            let (ra, rb) = (&mut fa[r * bw2..r * bw2 + W2], &mut fb[r * bw2..r * bw2 + W2]);
+            for (cell, &v) in ra.iter_mut().zip(&ka) {
+                *cell = madd::<FMA>(v, kyr, *cell);
+            }
+            for (cell, &v) in rb.iter_mut().zip(&kb) {
+                *cell = madd::<FMA>(v, kyr, *cell);
+            }
+        }
+    }
+}
+
+multiversion! {
     /// Interpolate the padded grid (interleaved `re, im` reals in rows of `pw2`) at the
     /// points: sum the `W` kernel rows weighted by the y kernel into `2 W` reals, then
     /// contract with the x kernel.

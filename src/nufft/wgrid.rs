@@ -46,7 +46,7 @@
 
 use super::kernel::{gauss_legendre, KernelShape, SymKernel};
 use super::{
-    fit_kernel, grid_position, interp_points, par_filled, spread_tile, GridPosition, Nufft2d, NufftParams, Sink,
+    fit_kernel, grid_position, interp_points, par_filled, spread_tile, spread_tile_pair, GridPosition, Nufft2d, NufftParams, Sink,
     Source, MAX_COORDINATE, TILE,
 };
 use crate::{Error, Result};
@@ -603,15 +603,38 @@ impl WGridPlan {
     /// `exp(-2 pi i w t0)`, mirrored points conjugated (their real part is what counts).
     fn grid(&self, vis: &[Complex64]) -> Vec<Complex64> {
         assert_eq!(vis.len(), self.len(), "number of visibilities");
-        let values: Vec<Complex64> = (0..self.len())
+        let values = self.gridding_values(|k| vis[k]);
+        let mut images = dispatch_support!(self.engine.shape.support, W, W2, L => self.adjoint_impl::<W, W2, L>(&[&values]));
+        images.pop().expect("one image per set of values")
+    }
+
+    /// [`WGridPlan::adjoint_real`] of two sets of visibilities at once (a dirty image and
+    /// its PSF), given as functions of the caller's index (no copy of them is made): the
+    /// points' kernels and w-weights are evaluated once for both.
+    pub fn adjoint_real_pair(
+        &self,
+        a: impl Fn(usize) -> Complex64 + Send + Sync,
+        b: impl Fn(usize) -> Complex64 + Send + Sync,
+    ) -> (Vec<f64>, Vec<f64>) {
+        self.engine.install(|| {
+            let (va, vb) = (self.gridding_values(a), self.gridding_values(b));
+            let images = dispatch_support!(self.engine.shape.support, W, W2, L => self.adjoint_impl::<W, W2, L>(&[&va, &vb]));
+            let mut real = images.into_iter().map(|img| img.par_iter().map(|v| v.re).collect::<Vec<f64>>());
+            (real.next().expect("two images"), real.next().expect("two images"))
+        })
+    }
+
+    /// The values gridding spreads, from the visibility of each caller's index: in plan
+    /// order, times `exp(-2 pi i w t0)`, mirrored points conjugated.
+    fn gridding_values(&self, vis: impl Fn(usize) -> Complex64 + Sync) -> Vec<Complex64> {
+        (0..self.len())
             .into_par_iter()
             .map(|i| {
-                let c = vis[self.order[i] as usize];
+                let c = vis(self.order[i] as usize);
                 let c = if self.flip.get(i) == Some(&true) { c.conj() } else { c };
                 c * Complex64::from_polar(1.0, -2.0 * PI * self.w[i] * self.t0)
             })
-            .collect();
-        dispatch_support!(self.engine.shape.support, W, W2, L => self.adjoint_impl::<W, W2, L>(&values))
+            .collect()
     }
 
     /// Degridding to the caller's order, with the per-point phase `exp(+2 pi i w t0)`,
@@ -640,13 +663,15 @@ impl WGridPlan {
         self.engine.correction_x[ix] * self.engine.correction_y[iy] * self.w_correction[a * h + b]
     }
 
-    fn adjoint_impl<const W: usize, const W2: usize, const L: usize>(&self, values: &[Complex64]) -> Vec<Complex64> {
+    /// The images of one or two sets of values (plan order), spread together plane by plane.
+    fn adjoint_impl<const W: usize, const W2: usize, const L: usize>(&self, sets: &[&[Complex64]]) -> Vec<Vec<Complex64>> {
+        assert!(matches!(sets.len(), 1 | 2), "one or two sets of values");
         let n = self.size;
         let (gx, gy) = (self.engine.grid_nx, self.engine.grid_ny);
         let kernel = self.engine.kernel::<W, W2, L>();
-        let mut grid = par_filled(Complex64::default(), gx * gy);
-        // Column-major accumulator: acc[ix * n + iy].
-        let mut acc = par_filled(Complex64::default(), n * n);
+        let mut grids: Vec<Vec<Complex64>> = sets.iter().map(|_| par_filled(Complex64::default(), gx * gy)).collect();
+        // Column-major accumulators: acc[ix * n + iy].
+        let mut accs: Vec<Vec<Complex64>> = sets.iter().map(|_| par_filled(Complex64::default(), n * n)).collect();
         let mut staging = par_filled(Complex64::default(), gy.div_ceil(ROW_BLOCK) * ROW_BLOCK * n);
         let mut screen = self.phase_screen(0);
         let step = if self.planes > 1 { self.step_screen() } else { Vec::new() };
@@ -656,34 +681,41 @@ impl WGridPlan {
             let spans: Vec<(usize, Range<usize>)> =
                 ranges.iter().enumerate().filter(|(_, r)| !r.is_empty()).map(|(i, r)| (i, r.clone())).collect();
             if !spans.is_empty() {
-                self.spread_plane::<W, W2, L>(&kernel, p, &spans, values, &mut grid);
-                self.grid_to_accumulator(&mut grid, &mut staging, &screen, &mut acc);
+                self.spread_plane::<W, W2, L>(&kernel, p, &spans, sets, &mut grids);
+                for (grid, acc) in grids.iter_mut().zip(accs.iter_mut()) {
+                    self.grid_to_accumulator(grid, &mut staging, &screen, acc);
+                }
             }
             if p + 1 < self.planes {
                 self.advance_screen(&mut screen, &step, p + 1);
             }
         }
-        acc.par_chunks_mut(n).enumerate().for_each(|(ix, col)| {
-            for (iy, v) in col.iter_mut().enumerate() {
-                *v *= self.total_correction(ix, iy);
-            }
-        });
-        let mut out = par_filled(Complex64::default(), n * n);
-        crate::fft2::transpose(&acc, &mut out, n, n);
-        out
+        drop(grids);
+        accs.into_iter()
+            .map(|mut acc| {
+                acc.par_chunks_mut(n).enumerate().for_each(|(ix, col)| {
+                    for (iy, v) in col.iter_mut().enumerate() {
+                        *v *= self.total_correction(ix, iy);
+                    }
+                });
+                let mut out = par_filled(Complex64::default(), n * n);
+                crate::fft2::transpose(&acc, &mut out, n, n);
+                out
+            })
+            .collect()
     }
 
     /// Spread the points of plane `p` (`spans`: tile index and plan-order range, in tile
-    /// order) onto the zeroed grid, weighted by the w-kernel: tiles go into private buffers a
-    /// batch at a time, then the buffers are added to the grid row by row in parallel, each
-    /// grid row taking its buffers in tile order.
+    /// order) onto the zeroed grids, one per set of values, weighted by the w-kernel: tiles go
+    /// into private buffers a batch at a time, then the buffers are added to the grids row by
+    /// row in parallel, each grid row taking its buffers in tile order.
     fn spread_plane<const W: usize, const W2: usize, const L: usize>(
         &self,
         kernel: &SymKernel<W, W2, L>,
         p: usize,
         spans: &[(usize, Range<usize>)],
-        values: &[Complex64],
-        grid: &mut [Complex64],
+        sets: &[&[Complex64]],
+        grids: &mut [Vec<Complex64>],
     ) {
         let (gx, gy) = (self.engine.grid_nx, self.engine.grid_ny);
         let bw = TILE + W;
@@ -691,51 +723,73 @@ impl WGridPlan {
         let padded_y = gy + 2 * W;
         let batch = TILES_PER_THREAD * rayon::current_num_threads().max(1);
         let spare = std::sync::Mutex::new(Vec::<Vec<f64>>::new());
+        let fresh = || {
+            let mut buf = spare.lock().expect("no task panics holding the buffers").pop().unwrap_or_default();
+            buf.clear();
+            buf.resize(bw * bw2, 0.0);
+            buf
+        };
         for chunk in spans.chunks(batch) {
-            let buffers: Vec<Vec<f64>> = chunk
+            // Per tile, one buffer per set.
+            let buffers: Vec<Vec<Vec<f64>>> = chunk
                 .par_iter()
-                .map_init(Vec::new, |weighted, (i, range)| {
-                    let tile = &self.tiles[*i];
-                    let mut buf = spare.lock().expect("no task panics holding the buffers").pop().unwrap_or_default();
-                    buf.clear();
-                    buf.resize(bw * bw2, 0.0);
-                    weighted.clear();
-                    weighted.extend(range.clone().map(|k| values[k] * self.weight(k, p)));
-                    let origin = ((tile.tx * TILE) as u32, (tile.ty * TILE) as u32);
-                    let local = 0..weighted.len();
-                    let mut source = Source::Sorted(&weighted[..]);
-                    spread_tile::<W, W2, L>(self.engine.simd, kernel, &self.positions[range.clone()], &mut source, local, &[], 0, &mut buf, bw2, origin);
-                    buf
-                })
+                .map_init(
+                    || (Vec::new(), Vec::new(), Vec::new()),
+                    |(weights, wa, wb): &mut (Vec<f64>, Vec<Complex64>, Vec<Complex64>), (i, range)| {
+                        let tile = &self.tiles[*i];
+                        let origin = ((tile.tx * TILE) as u32, (tile.ty * TILE) as u32);
+                        let positions = &self.positions[range.clone()];
+                        weights.clear();
+                        weights.extend(range.clone().map(|k| self.weight(k, p)));
+                        let weighted = |set: &[Complex64], out: &mut Vec<Complex64>| {
+                            out.clear();
+                            out.extend(set[range.clone()].iter().zip(weights.iter()).map(|(v, &q)| v * q));
+                        };
+                        weighted(sets[0], wa);
+                        let mut first = fresh();
+                        if let Some(second_set) = sets.get(1) {
+                            weighted(second_set, wb);
+                            let mut second = fresh();
+                            spread_tile_pair::<W, W2, L>(self.engine.simd, kernel, positions, wa, wb, &mut first, &mut second, bw2, origin);
+                            vec![first, second]
+                        } else {
+                            let mut source = Source::Sorted(&wa[..]);
+                            spread_tile::<W, W2, L>(self.engine.simd, kernel, positions, &mut source, 0..wa.len(), &[], 0, &mut first, bw2, origin);
+                            vec![first]
+                        }
+                    },
+                )
                 .collect();
             let tys: Vec<usize> = chunk.iter().map(|(i, _)| self.tiles[*i].ty).collect();
             let (q_lo, q_hi) = (tys[0] * TILE, (tys[tys.len() - 1] * TILE + bw).min(padded_y));
-            grid.par_chunks_mut(gx).enumerate().for_each(|(r, row)| {
-                // Padded rows that wrap onto grid row r.
-                for q in [r + W + gy, r + W, (r + W).wrapping_sub(gy)] {
-                    if q < q_lo || q >= q_hi {
-                        continue;
-                    }
-                    // Tiles whose buffer rows cover q: ty * TILE <= q < ty * TILE + bw.
-                    let first = tys.partition_point(|&ty| ty * TILE + bw <= q);
-                    let last = tys.partition_point(|&ty| ty * TILE <= q);
-                    for j in first..last {
-                        let tile = &self.tiles[chunk[j].0];
-                        let src = &buffers[j][(q - tile.ty * TILE) * bw2..][..bw2];
-                        let start = (tile.tx * TILE + gx - W) % gx;
-                        if start + bw <= gx {
-                            for (d, s) in row[start..start + bw].iter_mut().zip(src.chunks_exact(2)) {
-                                *d += Complex64::new(s[0], s[1]);
-                            }
-                        } else {
-                            for (c, s) in src.chunks_exact(2).enumerate() {
-                                row[(start + c) % gx] += Complex64::new(s[0], s[1]);
+            for (s, grid) in grids.iter_mut().enumerate() {
+                grid.par_chunks_mut(gx).enumerate().for_each(|(r, row)| {
+                    // Padded rows that wrap onto grid row r.
+                    for q in [r + W + gy, r + W, (r + W).wrapping_sub(gy)] {
+                        if q < q_lo || q >= q_hi {
+                            continue;
+                        }
+                        // Tiles whose buffer rows cover q: ty * TILE <= q < ty * TILE + bw.
+                        let first = tys.partition_point(|&ty| ty * TILE + bw <= q);
+                        let last = tys.partition_point(|&ty| ty * TILE <= q);
+                        for j in first..last {
+                            let tile = &self.tiles[chunk[j].0];
+                            let src = &buffers[j][s][(q - tile.ty * TILE) * bw2..][..bw2];
+                            let start = (tile.tx * TILE + gx - W) % gx;
+                            if start + bw <= gx {
+                                for (d, s) in row[start..start + bw].iter_mut().zip(src.chunks_exact(2)) {
+                                    *d += Complex64::new(s[0], s[1]);
+                                }
+                            } else {
+                                for (c, s) in src.chunks_exact(2).enumerate() {
+                                    row[(start + c) % gx] += Complex64::new(s[0], s[1]);
+                                }
                             }
                         }
                     }
-                }
-            });
-            spare.lock().expect("no task panics holding the buffers").extend(buffers);
+                });
+            }
+            spare.lock().expect("no task panics holding the buffers").extend(buffers.into_iter().flatten());
         }
     }
 

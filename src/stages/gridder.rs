@@ -107,14 +107,14 @@ impl Stage<Job> for GridderStage {
                 self.nufft,
                 self.threads,
             )?;
-            let dirty = operator.dirty_image(&vis.vis);
+            let (dirty, psf) = operator.dirty_image_and_psf(&vis.vis);
             if !self.keep_operator {
                 vis.vis = Vec::new();
                 vis.w = Vec::new();
             }
             let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, operator.kappa(), self.nufft, self.threads)?;
             let kept = self.keep_operator.then_some(vis);
-            (dirty, operator.psf(), psf_2n, Some(Arc::new(DataOperator::Held(operator))), kept)
+            (dirty, psf, psf_2n, Some(Arc::new(DataOperator::Held(operator))), kept)
         } else {
             // Gridded a chunk at a time as read (or where its parts live), then released.
             let images = source_images(&source, &pass(false, self.chunk_rows), &rule)?.normalise(geometry.size)?;

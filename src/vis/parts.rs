@@ -67,8 +67,9 @@ pub fn part_images(vis: &VisSource, pass: &PartPass, rule: &WeightRule) -> Resul
     vis.for_each_chunk(pass.chunk_rows, &mut |c| {
         let weight = chunk_weights(&c, geometry, rule)?;
         let op = MeasurementOperator::part_for_mode(true, geometry, c.u, c.v, c.w, &weight, nufft, pass.threads)?;
-        add_to(&mut dirty, &op.dirty_image(c.vis));
-        add_to(&mut psf, &op.psf());
+        let (chunk_dirty, chunk_psf) = op.dirty_image_and_psf(c.vis);
+        add_to(&mut dirty, &chunk_dirty);
+        add_to(&mut psf, &chunk_psf);
         planes = planes.max(op.w_planes());
         samples += c.len() as u64;
         drop(op);
