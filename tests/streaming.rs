@@ -39,7 +39,8 @@ fn a_table_read_in_passes_images_as_the_same_table_held() {
         // Coplanar: gridded in chunks of 257 samples as read, against one pass over the held table.
         let coplanar = "    w_term: off\n    chunk_rows: 257\n";
         let log = run(dir, &format!("streamed-{scheme}"), &pipeline(&format!("streamed-{scheme}"), "", coplanar, scheme));
-        assert!(log.contains("read from obs.parquet at each pass"), "{log}");
+        // A decoded copy unless the temporary directory is on tmpfs.
+        assert!(log.contains("read from a decoded copy of obs.parquet at each pass") || log.contains("read from obs.parquet at each pass"), "{log}");
         assert_eq!(log.contains("reads the table once more for the density"), scheme != "natural", "{log}");
         run(dir, &format!("held-{scheme}"), &pipeline(&format!("held-{scheme}"), held_source, "    w_term: off\n", scheme));
         for product in ["dirty", "psf", "model", "residual"] {
@@ -50,7 +51,7 @@ fn a_table_read_in_passes_images_as_the_same_table_held() {
     // With the w-term: the operator planned per chunk and applied at each update, reading
     // the file again (hold_mb 0), against one operator of the held table.
     let streamed = run(dir, "wstream", &pipeline("wstream", "", "    w_term: on\n    hold_mb: 0\n    chunk_rows: 500\n", "briggs"));
-    assert!(streamed.contains("reads the") && streamed.contains("again from the file at each residual update"), "{streamed}");
+    assert!(streamed.contains("reads the") && streamed.contains("at each residual update") && streamed.contains("obs.parquet"), "{streamed}");
     let held = run(dir, "wheld", &pipeline("wheld", "", "    w_term: on\n", "briggs"));
     assert!(held.contains("the operator holds the"), "{held}");
     for product in ["dirty", "psf", "model", "residual"] {

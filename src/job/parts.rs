@@ -72,7 +72,7 @@ pub fn emit_streamed(
     if table.stats().kept() == 0 {
         return Err(Error::input(table.path(), crate::vis::nothing_to_image(table.stats())));
     }
-    log::info!("job {id}: {} visibilities, read from {} at each pass", table.stats().kept(), table.path().display());
+    log::info!("job {id}: {} visibilities, read from {} at each pass", table.stats().kept(), table.read_by_each_pass());
     let path = table.path().to_path_buf();
     let meta = table.meta().clone();
     let mut job = Job::from_source(id, meta, VisSource::Streamed(Arc::new(table)));

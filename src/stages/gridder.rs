@@ -71,8 +71,12 @@ impl Stage<Job> for GridderStage {
             if let VisSource::Parts(parts) = &source {
                 log::info!("job {}: the operator applies to the {} samples where they live ({}) at each residual update", job.id, summary.samples, parts.passes.describe());
             } else {
+                let from = match &source {
+                    VisSource::Streamed(table) => table.read_by_each_pass(),
+                    _ => "the file".into(),
+                };
                 log::info!(
-                    "job {}: the operator reads the {} samples again from the file at each residual update (holding them would take about {}, above the gridder's hold_mb {})",
+                    "job {}: the operator reads the {} samples again from {from} at each residual update (holding them would take about {}, above the gridder's hold_mb {})",
                     job.id,
                     summary.samples,
                     crate::limits::format_bytes(held_bytes),

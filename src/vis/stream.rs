@@ -116,6 +116,14 @@ impl StreamedTable {
     pub fn meta(&self) -> &ObservationMeta {
         &self.meta
     }
+    /// What each pass after the first reads: the table's decoded temporary copy, or the file.
+    pub fn read_by_each_pass(&self) -> String {
+        match &self.spill {
+            Some(_) => format!("a decoded copy of {}", self.path.display()),
+            None => self.path.display().to_string(),
+        }
+    }
+
     /// What the reader had to say of the table once read (a MeasurementSet's rows skipped).
     pub fn reader_summary(&self) -> Option<&str> {
         self.reader_summary.as_deref()
