@@ -807,18 +807,25 @@ fn spread_tile_impl<const W: usize, const W2: usize, const L: usize, const FMA: 
         };
         let kxy = kernel.eval::<FMA>(p.zx(), p.zy());
         let (kx, ky) = kxy.split_at(W);
-        let mut vk = [0.0f64; W2];
-        for b in 0..W {
-            vk[2 * b] = v.re * kx[b];
-            vk[2 * b + 1] = v.im * kx[b];
-        }
         let base = (p.py() - y0 as usize) * bw2 + 2 * (p.px() - x0 as usize);
-        let footprint = &mut buf[base..base + (W - 1) * bw2 + W2];
-        for (a, &kya) in ky.iter().enumerate() {
-            let row = &mut footprint[a * bw2..a * bw2 + W2];
-            for (cell, &vkj) in row.iter_mut().zip(&vk) {
-                *cell = madd::<FMA>(vkj, kya, *cell);
-            }
+        spread_point::<W, W2, FMA>(v, kx, ky, &mut buf[base..], bw2);
+    }
+}
+
+/// Add `v kx[b] ky[a]` to the `W x W` footprint whose first cell starts `footprint`
+/// (interleaved `re, im` reals in rows of `bw2`).
+#[inline(always)]
+fn spread_point<const W: usize, const W2: usize, const FMA: bool>(v: Complex64, kx: &[f64], ky: &[f64], footprint: &mut [f64], bw2: usize) {
+    let mut vk = [0.0f64; W2];
+    for b in 0..W {
+        vk[2 * b] = v.re * kx[b];
+        vk[2 * b + 1] = v.im * kx[b];
+    }
+    let footprint = &mut footprint[..(W - 1) * bw2 + W2];
+    for (a, &kya) in ky.iter().enumerate() {
+        let row = &mut footprint[a * bw2..a * bw2 + W2];
+        for (cell, &vkj) in row.iter_mut().zip(&vk) {
+            *cell = madd::<FMA>(vkj, kya, *cell);
         }
     }
 }
@@ -850,28 +857,12 @@ fn spread_tile_pair_impl<const W: usize, const W2: usize, const L: usize, const 
     bw2: usize,
     (x0, y0): (u32, u32),
 ) {
-    for ((p, va), vb) in positions.iter().zip(a).zip(b) {
+    for ((p, &va), &vb) in positions.iter().zip(a).zip(b) {
         let kxy = kernel.eval::<FMA>(p.zx(), p.zy());
         let (kx, ky) = kxy.split_at(W);
-        let (mut ka, mut kb) = ([0.0f64; W2], [0.0f64; W2]);
-        for j in 0..W {
-            ka[2 * j] = va.re * kx[j];
-            ka[2 * j + 1] = va.im * kx[j];
-            kb[2 * j] = vb.re * kx[j];
-            kb[2 * j + 1] = vb.im * kx[j];
-        }
         let base = (p.py() - y0 as usize) * bw2 + 2 * (p.px() - x0 as usize);
-        let span = (W - 1) * bw2 + W2;
-        let (fa, fb) = (&mut buf_a[base..base + span], &mut buf_b[base..base + span]);
-        for (r, &kyr) in ky.iter().enumerate() {
-            let (ra, rb) = (&mut fa[r * bw2..r * bw2 + W2], &mut fb[r * bw2..r * bw2 + W2]);
-            for (cell, &v) in ra.iter_mut().zip(&ka) {
-                *cell = madd::<FMA>(v, kyr, *cell);
-            }
-            for (cell, &v) in rb.iter_mut().zip(&kb) {
-                *cell = madd::<FMA>(v, kyr, *cell);
-            }
-        }
+        spread_point::<W, W2, FMA>(va, kx, ky, &mut buf_a[base..], bw2);
+        spread_point::<W, W2, FMA>(vb, kx, ky, &mut buf_b[base..], bw2);
     }
 }
 

@@ -168,11 +168,10 @@ impl VisSource {
                 }
                 Ok(())
             }
-            VisSource::Streamed(table) if table.spill.is_some() => {
-                let spill = table.spill.as_ref().expect("matched");
-                spill.for_each_chunk(chunk_rows, &table.path, &mut |buffer| f(buffer.chunk(0..buffer.len())))
-            }
             VisSource::Streamed(table) => {
+                if let Some(spill) = &table.spill {
+                    return spill.for_each_chunk(chunk_rows, &table.path, &mut |buffer| f(buffer.chunk(0..buffer.len())));
+                }
                 let mut reader = (table.reopen)()?;
                 let source = reader.source().display().to_string();
                 let mut stats = IngestStats::default();
@@ -312,41 +311,48 @@ mod tests {
         Box::new(super::super::memory_table(input, "t").unwrap())
     }
 
-    #[test]
-    fn a_table_that_changes_between_passes_is_an_error_naming_it() {
+    /// A table whose first reading finds 10 samples and every later one 9 (a file written
+    /// meanwhile), read once and scanned (its copy kept in `spill_in`); and how many times it
+    /// was opened.
+    fn changing_table(spill_in: Option<&Path>) -> (StreamedTable, Arc<std::sync::atomic::AtomicUsize>) {
         use std::sync::atomic::{AtomicUsize, Ordering};
         let opened = Arc::new(AtomicUsize::new(0));
         let counter = opened.clone();
-        // The first reading finds 10 samples, every later one 9: a file written meanwhile.
         let reopen = move || Ok(table(if counter.fetch_add(1, Ordering::SeqCst) == 0 { 10 } else { 9 }));
         let first = reopen().unwrap();
-        let streamed = StreamedTable::scan(first, Box::new(reopen), None, &|| false).unwrap().unwrap();
+        (StreamedTable::scan(first, Box::new(reopen), spill_in, &|| false).unwrap().unwrap(), opened)
+    }
+
+    /// The sizes of the chunks of at least 3 samples a pass gives.
+    fn chunk_sizes(source: &VisSource) -> Vec<usize> {
+        let mut sizes = Vec::new();
+        source
+            .for_each_chunk(3, &mut |c| {
+                sizes.push(c.len());
+                Ok(())
+            })
+            .unwrap();
+        sizes
+    }
+
+    #[test]
+    fn a_table_that_changes_between_passes_is_an_error_naming_it() {
+        let (streamed, _) = changing_table(None);
         assert_eq!((streamed.stats().kept(), streamed.summary.samples), (10, 10));
         let source = VisSource::Streamed(Arc::new(streamed));
         let e = source.for_each_chunk(3, &mut |_| Ok(())).unwrap_err().to_string();
         assert!(e.contains("t:") && e.contains("changed while it was imaged"), "{e}");
         // One that stays the same is read whole in chunks of at least 3 (its batches of 4).
         let same = StreamedTable::scan(table(10), Box::new(|| Ok(table(10))), None, &|| false).unwrap().unwrap();
-        let mut sizes = Vec::new();
-        VisSource::Streamed(Arc::new(same)).for_each_chunk(3, &mut |c| {
-            sizes.push(c.len());
-            Ok(())
-        })
-        .unwrap();
-        assert_eq!(sizes, vec![4, 4, 2]);
+        assert_eq!(chunk_sizes(&VisSource::Streamed(Arc::new(same))), vec![4, 4, 2]);
     }
 
     /// With a temporary copy, later passes read the samples the first reading decoded, and
     /// never the file again: the same samples pass after pass, in chunks as without it.
     #[test]
     fn a_spilled_table_is_never_read_again() {
-        use std::sync::atomic::{AtomicUsize, Ordering};
-        let opened = Arc::new(AtomicUsize::new(0));
-        let counter = opened.clone();
-        let reopen = move || Ok(table(if counter.fetch_add(1, Ordering::SeqCst) == 0 { 10 } else { 9 }));
-        let first = reopen().unwrap();
         let dir = tempfile::tempdir().unwrap();
-        let streamed = StreamedTable::scan(first, Box::new(reopen), Some(dir.path()), &|| false).unwrap().unwrap();
+        let (streamed, opened) = changing_table(Some(dir.path()));
         let source = VisSource::Streamed(Arc::new(streamed));
         let held = {
             let reopened = table(10);
@@ -354,16 +360,9 @@ mod tests {
             VisSource::Streamed(Arc::new(only)).read_all().unwrap()
         };
         for _ in 0..2 {
-            let mut sizes = Vec::new();
-            source
-                .for_each_chunk(3, &mut |c| {
-                    sizes.push(c.len());
-                    Ok(())
-                })
-                .unwrap();
-            assert_eq!(sizes, vec![4, 4, 2]);
+            assert_eq!(chunk_sizes(&source), vec![4, 4, 2]);
             assert_eq!(source.read_all().unwrap(), held);
         }
-        assert_eq!(opened.load(Ordering::SeqCst), 1, "the file was opened again");
+        assert_eq!(opened.load(std::sync::atomic::Ordering::SeqCst), 1, "the file was opened again");
     }
 }
