@@ -25,6 +25,16 @@ pub enum VisSource {
     Parts(Arc<PartedObservation>),
 }
 
+/// Decoded batches a first reading holds between decoding and keeping them.
+const BATCHES_IN_FLIGHT: usize = 2;
+
+/// What a first reading keeps of a table: its counts, its summary and its decoded copy.
+struct Kept {
+    stats: IngestStats,
+    summary: VisSummary,
+    spill: Option<std::result::Result<Spill, super::spill::NoSpill>>,
+}
+
 /// A table read again from its file at every pass. Each pass must find the samples the first
 /// found: a file changed under a running job is an error, not an image of two tables.
 pub struct StreamedTable {
@@ -49,22 +59,54 @@ impl StreamedTable {
     /// the later passes; otherwise `reopen` gives the table's reader again for each later
     /// pass. `cancelled` is polled at every batch (`None`: it turned true).
     pub fn scan(mut reader: Box<dyn TableReader>, reopen: Box<Reopen>, spill_in: Option<&Path>, cancelled: &dyn Fn() -> bool) -> Result<Option<StreamedTable>> {
-        let mut stats = IngestStats::default();
-        let mut summary = VisSummary::empty();
         let source = reader.source().display().to_string();
-        let mut spill = spill_in.map(Spill::create);
-        while let Some(batch) = reader.next_batch() {
-            if cancelled() {
-                return Ok(None);
-            }
-            let vis = record_batch_to_visibilities(&batch?, &mut stats, &source)?;
-            summary.add(&vis.chunk(0..vis.len()));
-            if let Some(Ok(kept)) = &mut spill {
-                if let Err(why) = kept.append(&vis) {
-                    spill = Some(Err(why)); // the incomplete copy is dropped (and its space freed) here
+        // Two threads: this one decodes the file's batches, the keeper converts them, sums them
+        // up and writes the decoded copy; neither waits on the other's system calls (a
+        // MeasurementSet's mapped pages, the copy's writes) but for a batch or two in flight.
+        let kept = std::thread::scope(|scope| -> Result<Option<Kept>> {
+            let (to_keeper, batches) = std::sync::mpsc::sync_channel::<arrow::array::RecordBatch>(BATCHES_IN_FLIGHT);
+            let source = source.as_str();
+            let keeper = scope.spawn(move || -> Result<Kept> {
+                let mut kept = Kept { stats: IngestStats::default(), summary: VisSummary::empty(), spill: spill_in.map(Spill::create) };
+                for batch in batches {
+                    let vis = record_batch_to_visibilities(&batch, &mut kept.stats, source)?;
+                    kept.summary.add(&vis.chunk(0..vis.len()));
+                    if let Some(Ok(copy)) = &mut kept.spill {
+                        if let Err(why) = copy.append(&vis) {
+                            kept.spill = Some(Err(why)); // the incomplete copy is dropped (and its space freed) here
+                        }
+                    }
+                }
+                Ok(kept)
+            });
+            let mut outcome = Ok(true);
+            while let Some(batch) = reader.next_batch() {
+                if cancelled() {
+                    outcome = Ok(false);
+                    break;
+                }
+                match batch {
+                    // A send fails only where the keeper stopped on an error, reported below.
+                    Ok(batch) => {
+                        if to_keeper.send(batch).is_err() {
+                            break;
+                        }
+                    }
+                    Err(e) => {
+                        outcome = Err(e);
+                        break;
+                    }
                 }
             }
-        }
+            drop(to_keeper);
+            let kept = keeper.join().map_err(|payload| {
+                Error::input(reader.source(), format!("converting its samples failed: {}", crate::error::panic_message(payload.as_ref())))
+            })?;
+            // The keeper's error is of an earlier batch than any the reading met after it.
+            let kept = kept?;
+            Ok(outcome?.then_some(kept))
+        })?;
+        let Some(Kept { stats, summary, spill }) = kept else { return Ok(None) };
         let spill = match spill {
             Some(Ok(kept)) => {
                 log::info!(
@@ -333,6 +375,69 @@ mod tests {
             })
             .unwrap();
         sizes
+    }
+
+    /// `table(10)` (batches of 4) whose batch `at` is replaced: by a read error, or by a
+    /// batch the conversion refuses (no sample columns).
+    struct Faulty {
+        inner: Box<dyn TableReader>,
+        served: usize,
+        at: usize,
+        read_error: bool,
+    }
+
+    impl TableReader for Faulty {
+        fn source(&self) -> &Path {
+            self.inner.source()
+        }
+        fn meta(&self) -> &ObservationMeta {
+            self.inner.meta()
+        }
+        fn schema(&self) -> arrow::datatypes::SchemaRef {
+            self.inner.schema()
+        }
+        fn next_batch(&mut self) -> Option<Result<arrow::array::RecordBatch>> {
+            let batch = self.inner.next_batch()?;
+            self.served += 1;
+            if self.served - 1 != self.at {
+                return Some(batch);
+            }
+            Some(if self.read_error {
+                Err(Error::input("t", "the disk failed at batch 2"))
+            } else {
+                let column: arrow::array::ArrayRef = Arc::new(arrow::array::Float64Array::from(vec![1.0; 4]));
+                Ok(arrow::array::RecordBatch::try_from_iter([("unrelated", column)]).unwrap())
+            })
+        }
+    }
+
+    #[test]
+    fn the_first_reading_reports_a_failed_batch_and_stops_when_cancelled() {
+        let faulty = |read_error| -> Box<dyn TableReader> { Box::new(Faulty { inner: table(10), served: 0, at: 1, read_error }) };
+        let dir = tempfile::tempdir().unwrap();
+        for spill_in in [None, Some(dir.path())] {
+            // A batch that cannot be read, and one the keeping thread cannot convert, are each
+            // the scan's error; a cancelled scan returns no table.
+            let e = StreamedTable::scan(faulty(true), Box::new(|| Ok(table(10))), spill_in, &|| false).err().unwrap().to_string();
+            assert!(e.contains("the disk failed at batch 2"), "{e}");
+            let e = StreamedTable::scan(faulty(false), Box::new(|| Ok(table(10))), spill_in, &|| false).err().unwrap().to_string();
+            assert!(e.contains("t: missing required column `u`"), "{e}");
+            let seen = std::sync::atomic::AtomicUsize::new(0);
+            let cancel_after_one = || seen.fetch_add(1, std::sync::atomic::Ordering::SeqCst) >= 1;
+            assert!(StreamedTable::scan(table(10), Box::new(|| Ok(table(10))), spill_in, &cancel_after_one).unwrap().is_none());
+            // Untouched, every sample is counted once, in order.
+            let whole = StreamedTable::scan(table(10), Box::new(|| Ok(table(10))), spill_in, &|| false).unwrap().unwrap();
+            assert_eq!((whole.stats().kept(), whole.summary.samples), (10, 10));
+            let mut u = Vec::new();
+            VisSource::Streamed(Arc::new(whole))
+                .for_each_chunk(1, &mut |c| {
+                    u.extend_from_slice(c.u);
+                    Ok(())
+                })
+                .unwrap();
+            assert_eq!(u.len(), 10);
+            assert!(u.windows(2).all(|p| p[0] < p[1]), "{u:?}");
+        }
     }
 
     #[test]
