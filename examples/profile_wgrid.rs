@@ -23,7 +23,7 @@ fn main() {
     let (u, v, w, c) = synthetic_uvw(n, pixel, 1.0, 1);
     let params = NufftParams { epsilon, oversampling };
     let plan = WGridPlan::new(size, pixel, &u, &v, &w, params, threads).unwrap();
-    eprintln!("{} planes, support {}, grid {:?}", plan.planes(), plan.kernel_support(), plan.grid_size());
+    eprintln!("{} planes, support {} (w {}), grid {:?}", plan.planes(), plan.kernel_support(), plan.w_support(), plan.grid_size());
     let image = vec![Complex64::new(0.5, -0.25); size * size];
     for _ in 0..reps {
         let t = Instant::now();

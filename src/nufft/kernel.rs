@@ -12,7 +12,9 @@ use crate::{Error, Result};
 pub const MAX_SUPPORT: usize = 16;
 
 /// Measured kernel tables: `(oversampling, [(beta / w, relative error) for w = 2 ..= 16])`.
-const KERNEL_TABLES: [(f64, [(f64, f64); 15]); 3] = [
+/// Oversamplings above 4 serve the w direction of w-gridding (see [`super::wgrid`]), where a
+/// finer plane spacing costs only more plane FFTs.
+const KERNEL_TABLES: [(f64, [(f64, f64); 15]); 7] = [
     (
         1.25,
         [
@@ -35,6 +37,38 @@ const KERNEL_TABLES: [(f64, [(f64, f64); 15]); 3] = [
             (2.18, 7.86e-2), (2.18, 7.20e-3), (2.22, 7.79e-4), (2.26, 8.94e-5), (2.29, 1.01e-5),
             (2.30, 1.16e-6), (2.31, 1.35e-7), (2.32, 1.50e-8), (2.32, 1.69e-9), (2.33, 1.76e-10),
             (2.33, 1.89e-11), (2.34, 2.10e-12), (2.34, 1.84e-13), (2.34, 2.16e-14), (2.34, 7.71e-15),
+        ],
+    ),
+    (
+        2.5,
+        [
+            (2.00, 4.76e-2), (2.28, 4.50e-3), (2.40, 4.20e-4), (2.44, 3.93e-5), (2.44, 3.73e-6),
+            (2.48, 3.77e-7), (2.48, 3.22e-8), (2.48, 2.92e-9), (2.48, 2.69e-10), (2.48, 2.54e-11),
+            (2.48, 2.35e-12), (2.48, 2.17e-13), (2.48, 2.11e-14), (2.48, 8.10e-15), (2.48, 7.83e-15),
+        ],
+    ),
+    (
+        3.0,
+        [
+            (2.16, 4.03e-2), (2.40, 3.44e-3), (2.48, 2.93e-4), (2.52, 2.53e-5), (2.56, 1.98e-6),
+            (2.56, 1.68e-7), (2.56, 1.50e-8), (2.52, 1.19e-9), (2.56, 9.33e-11), (2.56, 6.93e-12),
+            (2.60, 5.30e-13), (2.60, 4.05e-14), (2.60, 6.90e-15), (2.56, 6.17e-15), (2.48, 6.09e-15),
+        ],
+    ),
+    (
+        4.0,
+        [
+            (2.28, 3.23e-2), (2.56, 2.50e-3), (2.64, 1.93e-4), (2.68, 1.37e-5), (2.68, 9.91e-7),
+            (2.72, 7.44e-8), (2.72, 4.77e-9), (2.72, 3.25e-10), (2.72, 2.32e-11), (2.72, 1.63e-12),
+            (2.72, 1.11e-13), (2.72, 9.88e-15), (2.72, 6.55e-15), (2.56, 6.56e-15), (2.48, 6.52e-15),
+        ],
+    ),
+    (
+        6.0,
+        [
+            (2.40, 2.32e-2), (2.68, 2.08e-3), (2.76, 1.26e-4), (2.80, 8.40e-6), (2.84, 5.27e-7),
+            (2.84, 3.12e-8), (2.84, 1.97e-9), (2.80, 1.20e-10), (2.84, 7.40e-12), (2.84, 4.30e-13),
+            (2.84, 2.45e-14), (2.84, 6.12e-15), (2.76, 6.00e-15), (2.48, 5.99e-15), (2.48, 5.99e-15),
         ],
     ),
 ];
@@ -70,23 +104,15 @@ impl KernelShape {
                 format!("expected an oversampling factor between 1.25 and 4, got {sigma}"),
             ));
         }
-        let table = KERNEL_TABLES
-            .iter()
-            .rev()
-            .find(|(s, _)| *s <= sigma + 1e-12)
-            .map(|(_, t)| t)
-            .expect("the table for 1.25 covers every allowed sigma");
-        match table.iter().enumerate().find(|(_, (_, err))| *err <= epsilon) {
-            Some((i, (beta_over_w, _))) => {
-                let support = i + 2;
-                Ok(KernelShape { support, beta: beta_over_w * support as f64 })
-            }
+        match Self::tabulated(epsilon, sigma) {
+            Some(shape) => Ok(shape),
             None => {
                 let needed = KERNEL_TABLES
                     .iter()
+                    .filter(|(s, _)| *s <= 4.0)
                     .find(|(_, t)| t.last().expect("tables are not empty").1 <= epsilon)
                     .map(|(s, _)| format!("{s}"))
-                    .unwrap_or_else(|| "more than 2".into());
+                    .unwrap_or_else(|| "more than 4".into());
                 Err(Error::parameter(
                     "epsilon",
                     format!(
@@ -96,6 +122,21 @@ impl KernelShape {
                 ))
             }
         }
+    }
+
+    /// The narrowest tabulated kernel reaching `epsilon` at oversampling `sigma` (at least the
+    /// lowest tabulated one), from the table of the next lower tabulated oversampling; `None`
+    /// if none up to [`MAX_SUPPORT`] does.
+    pub(crate) fn tabulated(epsilon: f64, sigma: f64) -> Option<KernelShape> {
+        let table = KERNEL_TABLES.iter().rev().find(|(s, _)| *s <= sigma + 1e-12).map(|(_, t)| t)?;
+        let (i, (beta_over_w, _)) = table.iter().enumerate().find(|(_, (_, err))| *err <= epsilon)?;
+        let support = i + 2;
+        Some(KernelShape { support, beta: beta_over_w * support as f64 })
+    }
+
+    /// The oversamplings the kernel is tabulated for.
+    pub(crate) fn tabulated_oversamplings() -> impl Iterator<Item = f64> {
+        KERNEL_TABLES.iter().map(|(s, _)| *s)
     }
 
     /// The kernel at `z in [-1, 1]` (zero outside).

@@ -22,8 +22,8 @@
 //! `exp(-2 pi i w tc) ~= sum_p psi((w - w_p) / dw) exp(-2 pi i w_p tc) / psi_hat(dw tc)`,
 //!
 //! exact up to aliasing terms `psi_hat(dw tc + j)`, `j != 0`, which the plane spacing
-//! `dw = 1 / (2 sigma dt)` keeps as small as the uv kernel's aliasing on a grid oversampled
-//! by `sigma`. Gridding therefore spreads each visibility (times `exp(-2 pi i w t0)`) onto
+//! `dw = 1 / (2 sigma_w dt)` keeps as small as a kernel's aliasing on a grid oversampled by
+//! `sigma_w`. Gridding therefore spreads each visibility (times `exp(-2 pi i w t0)`) onto
 //! the `support` planes nearest its `w`, weighted by `psi`; each plane is a 2D NUFFT onto the
 //! image, multiplied by its phase screen `exp(-2 pi i w_p tc)` and accumulated; the sum is
 //! divided by `psi_hat(dw tc)` pixel by pixel. Degridding is the same steps transposed.
@@ -32,8 +32,11 @@
 //! visibility at `-(u, v, w)` is the conjugate of that at `(u, v, w)`: points of negative `w`
 //! are mirrored and conjugated, so the planes only span `|w|`.
 //!
-//! One kernel shape serves both the uv grid and the w direction, chosen for a slightly
-//! tighter accuracy than asked since three dimensions now contribute error. Where the w-term
+//! The uv kernel and the w-kernel are chosen for a slightly tighter accuracy than asked,
+//! since three dimensions now contribute error. The uv grid's oversampling is the caller's;
+//! the w direction's `sigma_w` is chosen by a cost model: a finer plane spacing (up to 6
+//! times oversampled) narrows the w-kernel, so each point reaches fewer planes, for a few
+//! more planes in all. Where the w-term
 //! is too small to matter at the requested accuracy (all `w` equal, or a tiny field) the
 //! plan uses a single plane at the mean `w` with no w-kernel: the 2D NUFFT and a phase
 //! screen, exact up to the neglected `|2 pi (w - w_mean) tc|`.
@@ -85,15 +88,13 @@ pub fn max_w_phase(size: usize, pixel_rad: f64, w_max_abs: f64) -> f64 {
 }
 
 /// The oversampling (among the tabulated 1.25, 1.5 and 2) that a cost model puts fastest
-/// for these data: spreading or interpolation costs about `support^3` per visibility (one
-/// `support^2` footprint on each of `support` planes), each plane an FFT of the oversampled
-/// grid. A lower oversampling means fewer planes and smaller FFTs but a wider kernel; the
+/// for these data: spreading or interpolation costs about `support^2` per visibility and
+/// plane it reaches (one footprint on each of the w-kernel's `w_support` planes), each plane
+/// an FFT of the oversampled grid (the w-kernel as [`WGridPlan`] chooses it). A lower oversampling means fewer planes and smaller FFTs but a wider kernel; the
 /// model's two constants were measured on this code (their ratio is what matters), and near
 /// a tie either choice is about as fast. `real`: for a [`WGridPlan::new_real`] plan.
 /// Falls back to 2 if nothing else reaches `epsilon` (or the field is not valid).
 pub fn suggested_oversampling(size: usize, pixel_rad: f64, w: &[f64], real: bool, epsilon: f64) -> f64 {
-    const SPREAD_COST: f64 = 1.6;
-    const FFT_COST: f64 = 1.0;
     let Some(t_min) = t_min(size, pixel_rad) else { return 2.0 };
     let dt = -0.5 * t_min;
     let folded = |w: f64| if real { w.abs() } else { w };
@@ -101,17 +102,53 @@ pub fn suggested_oversampling(size: usize, pixel_rad: f64, w: &[f64], real: bool
     let span = if w.is_empty() { 0.0 } else { hi - lo };
     let single = negligible_w(span, dt, epsilon);
     let cost = |sigma: f64| -> Option<f64> {
-        let shape = KernelShape::for_accuracy(kernel_epsilon(single, epsilon), sigma).ok()?;
-        let support = shape.support as f64;
-        let g = super::good_fft_size((size as f64 * sigma).ceil() as usize) as f64;
-        let (planes, w_support) = if single { (1.0, 1.0) } else { ((span * 2.0 * sigma * dt).ceil() + support, support) };
-        Some(SPREAD_COST * w.len() as f64 * w_support * support * support + FFT_COST * planes * g * g * g.log2())
+        let eps = kernel_epsilon(single, epsilon);
+        let shape = KernelShape::for_accuracy(eps, sigma).ok()?;
+        let g = super::good_fft_size((size as f64 * sigma).ceil() as usize);
+        if single {
+            let g = g as f64;
+            return Some(SPREAD_COST * w.len() as f64 * (shape.support * shape.support) as f64 + FFT_COST * g * g * g.log2());
+        }
+        w_kernel_choice(eps, span, dt, w.len(), shape.support, g).map(|c| c.cost)
     };
     [1.25, 1.5, 2.0]
         .into_iter()
         .filter_map(|sigma| cost(sigma).map(|c| (sigma, c)))
         .min_by(|a, b| a.1.total_cmp(&b.1))
         .map_or(2.0, |(sigma, _)| sigma)
+}
+
+/// Relative costs of the cost model: spreading one value onto one cell, and one FFT per
+/// `g^2 log2 g` of an oversampled `g x g` grid (measured on this code; their ratio is what
+/// matters).
+const SPREAD_COST: f64 = 1.6;
+const FFT_COST: f64 = 1.0;
+
+/// The w direction's kernel and its oversampling (plane spacing `1 / (2 sigma dt)`), as a
+/// cost model puts fastest, and that cost.
+struct WKernelChoice {
+    shape: KernelShape,
+    sigma: f64,
+    cost: f64,
+}
+
+/// Chooses the w-kernel for `points` visibilities over a w range `span` (`|tc| <= dt`), with
+/// a uv kernel of support `uv_support` on a `g x g` grid: each point costs `uv_support^2` on
+/// each of the w-kernel's planes, each plane an FFT. The w direction need not share the uv
+/// grid's oversampling: a finer plane spacing narrows the w-kernel (fewer planes per point)
+/// for a few more planes, which pays where the points outnumber the grid's cells. `None` if
+/// no tabulated kernel reaches `epsilon`.
+fn w_kernel_choice(epsilon: f64, span: f64, dt: f64, points: usize, uv_support: usize, g: usize) -> Option<WKernelChoice> {
+    let g = g as f64;
+    KernelShape::tabulated_oversamplings()
+        .filter_map(|sigma| {
+            let shape = KernelShape::tabulated(epsilon, sigma)?;
+            let planes = (span * 2.0 * sigma * dt).ceil() + shape.support as f64;
+            let spread = SPREAD_COST * points as f64 * (shape.support * uv_support * uv_support) as f64;
+            let cost = spread + FFT_COST * planes * g * g * g.log2();
+            Some(WKernelChoice { shape, sigma, cost })
+        })
+        .min_by(|a, b| a.cost.total_cmp(&b.cost))
 }
 
 /// Whether the phase the single-plane reduction neglects, `2 pi (span / 2) dt` for a w
@@ -238,7 +275,7 @@ impl WGridPlan {
         params: NufftParams,
         threads: usize,
     ) -> Result<WGridPlan> {
-        Self::build(size, pixel_rad, u, v, w, params, threads, false)
+        Self::build(size, pixel_rad, u, v, w, params, threads, false, None)
     }
 
     /// A plan for real images only ([`WGridPlan::forward_real`], [`WGridPlan::adjoint_real`]):
@@ -254,7 +291,24 @@ impl WGridPlan {
         params: NufftParams,
         threads: usize,
     ) -> Result<WGridPlan> {
-        Self::build(size, pixel_rad, u, v, w, params, threads, true)
+        Self::build(size, pixel_rad, u, v, w, params, threads, true, None)
+    }
+
+    /// [`WGridPlan::new`] with the w direction oversampled by `w_oversampling` (a tabulated
+    /// one) instead of the cost model's choice, for tests of every w-kernel.
+    #[cfg(test)]
+    #[allow(clippy::too_many_arguments)]
+    pub(crate) fn with_w_oversampling(
+        size: usize,
+        pixel_rad: f64,
+        u: &[f64],
+        v: &[f64],
+        w: &[f64],
+        params: NufftParams,
+        threads: usize,
+        w_oversampling: f64,
+    ) -> Result<WGridPlan> {
+        Self::build(size, pixel_rad, u, v, w, params, threads, false, Some(w_oversampling))
     }
 
     #[allow(clippy::too_many_arguments)]
@@ -267,6 +321,7 @@ impl WGridPlan {
         params: NufftParams,
         threads: usize,
         real: bool,
+        w_oversampling: Option<f64>,
     ) -> Result<WGridPlan> {
         if u.len() != v.len() || u.len() != w.len() {
             return Err(Error::parameter(
@@ -318,11 +373,17 @@ impl WGridPlan {
         let shape = KernelShape::for_accuracy(uv_epsilon, params.oversampling)?;
         let engine = Nufft2d::with_kernel(size, size, &[], &[], shape.clone(), NufftParams { epsilon: uv_epsilon, ..params }, threads)?;
 
-        let (wkernel, planes, w_first, dw) = if single {
-            (None, 1, w_mid, 1.0)
+        let (wkernel, planes, w_first, dw, w_shape) = if single {
+            (None, 1, w_mid, 1.0, None)
         } else {
-            let dw = 1.0 / (2.0 * params.oversampling * dt);
-            let planes = ((w_hi - w_lo) / dw).ceil() + shape.support as f64;
+            let g = engine.grid_nx.max(engine.grid_ny);
+            let choice = match w_oversampling {
+                Some(sigma) => KernelShape::tabulated(uv_epsilon, sigma).map(|shape| WKernelChoice { shape, sigma, cost: 0.0 }),
+                None => w_kernel_choice(uv_epsilon, w_hi - w_lo, dt, u.len(), shape.support, g),
+            }
+            .ok_or_else(|| Error::parameter("epsilon", format!("no tabulated w-kernel reaches an accuracy of {uv_epsilon:e}")))?;
+            let dw = 1.0 / (2.0 * choice.sigma * dt);
+            let planes = ((w_hi - w_lo) / dw).ceil() + choice.shape.support as f64;
             if planes > MAX_PLANES as f64 {
                 return Err(Error::parameter(
                     "uvw",
@@ -333,8 +394,8 @@ impl WGridPlan {
             }
             let planes = planes as usize;
             let w_first = w_mid - 0.5 * (planes - 1) as f64 * dw;
-            let coeffs = fit_kernel(&shape, uv_epsilon / 20.0);
-            (Some(WKernel::new(shape.support, &coeffs)), planes, w_first, dw)
+            let coeffs = fit_kernel(&choice.shape, uv_epsilon / 20.0);
+            (Some(WKernel::new(choice.shape.support, &coeffs)), planes, w_first, dw, Some((choice.shape, choice.sigma)))
         };
 
         let h = size / 2 + 1;
@@ -345,10 +406,10 @@ impl WGridPlan {
                 tc[a * h + b] = n_minus_one(l * l + m * m) - t0;
             }
         }
-        let w_correction = match &wkernel {
+        let w_correction = match &w_shape {
             None => vec![1.0; h * h],
-            Some(_) => {
-                let fit = Chebyshev::fit(|eta| psi_hat(&shape, eta), 0.5 / params.oversampling, PSI_HAT_NODES);
+            Some((w_shape, w_sigma)) => {
+                let fit = Chebyshev::fit(|eta| psi_hat(w_shape, eta), 0.5 / w_sigma, PSI_HAT_NODES);
                 tc.iter().map(|&t| 1.0 / fit.eval(dw * t)).collect()
             }
         };
@@ -404,9 +465,13 @@ impl WGridPlan {
     pub fn planes(&self) -> usize {
         self.planes
     }
-    /// Kernel support (uv and w) and oversampled grid edge, for logging.
+    /// Support of the uv kernel and of the w-kernel (1 without w-planes), and the oversampled
+    /// grid's edges, for logging.
     pub fn kernel_support(&self) -> usize {
         self.engine.shape.support
+    }
+    pub fn w_support(&self) -> usize {
+        self.wkernel.as_ref().map_or(1, |wk| wk.support)
     }
     pub fn grid_size(&self) -> (usize, usize) {
         self.engine.grid_size()

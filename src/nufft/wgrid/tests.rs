@@ -87,6 +87,41 @@ fn matches_direct_sum_very_wide_field() {
     check(45.0, 40, (-1.0, 1.0), 1e-5);
 }
 
+/// Every tabulated w-kernel, forced, meets the accuracy on a wide field; a finer plane
+/// spacing reaches fewer planes per point.
+#[test]
+fn every_w_oversampling_matches_direct_sum() {
+    let c = case(20.0, 48, 300, (-1.0, 1.0), 5);
+    let f = random_complex(c.size * c.size, 1);
+    let vis = random_complex(c.u.len(), 2);
+    let (want_fwd, want_adj) = (forward_w(c.size, c.pixel, &c.u, &c.v, &c.w, &f), adjoint_w(c.size, c.pixel, &c.u, &c.v, &c.w, &vis));
+    for epsilon in [1e-4, 1e-7] {
+        let mut supports = Vec::new();
+        for sigma in KernelShape::tabulated_oversamplings() {
+            let params = NufftParams { epsilon, oversampling: 2.0 };
+            let p = WGridPlan::with_w_oversampling(c.size, c.pixel, &c.u, &c.v, &c.w, params, 2, sigma).unwrap();
+            let (fwd, adj) = (relative_error(&p.forward(&f), &want_fwd), relative_error(&p.adjoint(&vis), &want_adj));
+            eprintln!("eps {epsilon:e}, w oversampling {sigma}: w support {}, {} planes, forward {fwd:.2e}, adjoint {adj:.2e}", p.w_support(), p.planes());
+            assert!(fwd <= 2.0 * epsilon && adj <= 2.0 * epsilon, "w oversampling {sigma}: forward {fwd:e}, adjoint {adj:e}");
+            supports.push(p.w_support());
+        }
+        assert!(supports.windows(2).all(|s| s[1] <= s[0]) && supports[supports.len() - 1] < supports[0], "{supports:?}");
+    }
+}
+
+/// The cost model: on a field whose w range needs few planes, the finest spacing (the
+/// narrowest w-kernel, and here even fewer planes); where the w range needs many planes
+/// and the points are few, their FFTs dominate and a coarse spacing wins.
+#[test]
+fn w_kernel_choice_follows_the_cost() {
+    // A 512-pixel field of 2.9" pixels (dt 6.5e-6), |w| up to 1.6e4 wavelengths, a 1024 grid.
+    let (dt, g, uv_support) = (6.5e-6, 1024, 8);
+    let vla = w_kernel_choice(8e-7, 1.6e4, dt, 2_000_000, uv_support, g).unwrap();
+    assert_eq!((vla.sigma, vla.shape.support), (6.0, 6));
+    let deep_w = w_kernel_choice(8e-7, 1e6, dt, 1000, uv_support, g).unwrap();
+    assert!(deep_w.sigma <= 2.0 && deep_w.shape.support > vla.shape.support, "{} {}", deep_w.sigma, deep_w.shape.support);
+}
+
 #[test]
 fn forward_and_adjoint_are_adjoint() {
     let c = case(30.0, 48, 2000, (-1.0, 1.0), 8);
@@ -204,7 +239,7 @@ fn real_plan_matches_direct_sum_with_fewer_planes() {
     let complex = plan(&c, eps, 2);
     let real = WGridPlan::new_real(c.size, c.pixel, &c.u, &c.v, &c.w, params, 2).unwrap();
     // Planes beyond the kernel support span the w range, which mirroring halves.
-    let span = |p: &WGridPlan| p.planes() - p.kernel_support();
+    let span = |p: &WGridPlan| p.planes() - p.w_support();
     assert!(span(&real) <= span(&complex) / 2 + 1, "{} vs {} planes", real.planes(), complex.planes());
     let mut rng = ChaCha8Rng::seed_from_u64(13);
     let f: Vec<f64> = (0..c.size * c.size).map(|_| rng.gen_range(-1.0..1.0)).collect();
