@@ -294,23 +294,6 @@ impl WGridPlan {
         Self::build(size, pixel_rad, u, v, w, params, threads, true, None)
     }
 
-    /// [`WGridPlan::new`] with the w direction oversampled by `w_oversampling` (a tabulated
-    /// one) instead of the cost model's choice, for tests of every w-kernel.
-    #[cfg(test)]
-    #[allow(clippy::too_many_arguments)]
-    pub(crate) fn with_w_oversampling(
-        size: usize,
-        pixel_rad: f64,
-        u: &[f64],
-        v: &[f64],
-        w: &[f64],
-        params: NufftParams,
-        threads: usize,
-        w_oversampling: f64,
-    ) -> Result<WGridPlan> {
-        Self::build(size, pixel_rad, u, v, w, params, threads, false, Some(w_oversampling))
-    }
-
     #[allow(clippy::too_many_arguments)]
     fn build(
         size: usize,
@@ -321,6 +304,7 @@ impl WGridPlan {
         params: NufftParams,
         threads: usize,
         real: bool,
+        // The w direction's oversampling, a tabulated one (`None`: the cost model's choice).
         w_oversampling: Option<f64>,
     ) -> Result<WGridPlan> {
         if u.len() != v.len() || u.len() != w.len() {

@@ -99,7 +99,7 @@ fn every_w_oversampling_matches_direct_sum() {
         let mut supports = Vec::new();
         for sigma in KernelShape::tabulated_oversamplings() {
             let params = NufftParams { epsilon, oversampling: 2.0 };
-            let p = WGridPlan::with_w_oversampling(c.size, c.pixel, &c.u, &c.v, &c.w, params, 2, sigma).unwrap();
+            let p = WGridPlan::build(c.size, c.pixel, &c.u, &c.v, &c.w, params, 2, false, Some(sigma)).unwrap();
             let (fwd, adj) = (relative_error(&p.forward(&f), &want_fwd), relative_error(&p.adjoint(&vis), &want_adj));
             eprintln!("eps {epsilon:e}, w oversampling {sigma}: w support {}, {} planes, forward {fwd:.2e}, adjoint {adj:.2e}", p.w_support(), p.planes());
             assert!(fwd <= 2.0 * epsilon && adj <= 2.0 * epsilon, "w oversampling {sigma}: forward {fwd:e}, adjoint {adj:e}");
