@@ -260,8 +260,8 @@ pub struct WGridderBenchParams {
     /// `|w|` up to this times the largest `|(u, v)|`.
     pub w_factor: f64,
     pub epsilon: f64,
-    /// Oversampling of the uv grid (and of the w-planes); 0: [`suggested_oversampling`]
-    /// for each kind of plan.
+    /// Oversampling of the uv grid (w-gridding chooses the w-planes' own); 0:
+    /// [`suggested_oversampling`] for each kind of plan.
     pub oversampling: f64,
     /// Worker threads (0: all cores).
     pub threads: usize,

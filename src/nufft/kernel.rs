@@ -12,8 +12,8 @@ use crate::{Error, Result};
 pub const MAX_SUPPORT: usize = 16;
 
 /// Measured kernel tables: `(oversampling, [(beta / w, relative error) for w = 2 ..= 16])`.
-/// Oversamplings above 4 serve the w direction of w-gridding (see [`super::wgrid`]), where a
-/// finer plane spacing costs only more plane FFTs.
+/// Those up to 4 serve the uv grid's oversampling as asked; all of them the w direction of
+/// w-gridding (see [`super::wgrid`]), where a finer plane spacing costs only more plane FFTs.
 const KERNEL_TABLES: [(f64, [(f64, f64); 15]); 7] = [
     (
         1.25,

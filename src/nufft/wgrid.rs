@@ -137,13 +137,16 @@ struct WKernelChoice {
 /// each of the w-kernel's planes, each plane an FFT. The w direction need not share the uv
 /// grid's oversampling: a finer plane spacing narrows the w-kernel (fewer planes per point)
 /// for a few more planes, which pays where the points outnumber the grid's cells. `None` if
-/// no tabulated kernel reaches `epsilon`.
+/// no tabulated kernel reaches `epsilon` within [`MAX_PLANES`].
 fn w_kernel_choice(epsilon: f64, span: f64, dt: f64, points: usize, uv_support: usize, g: usize) -> Option<WKernelChoice> {
     let g = g as f64;
     KernelShape::tabulated_oversamplings()
         .filter_map(|sigma| {
             let shape = KernelShape::tabulated(epsilon, sigma)?;
             let planes = (span * 2.0 * sigma * dt).ceil() + shape.support as f64;
+            if planes > MAX_PLANES as f64 {
+                return None;
+            }
             let spread = SPREAD_COST * points as f64 * (shape.support * uv_support * uv_support) as f64;
             let cost = spread + FFT_COST * planes * g * g * g.log2();
             Some(WKernelChoice { shape, sigma, cost })
@@ -365,7 +368,14 @@ impl WGridPlan {
                 Some(sigma) => KernelShape::tabulated(uv_epsilon, sigma).map(|shape| WKernelChoice { shape, sigma, cost: 0.0 }),
                 None => w_kernel_choice(uv_epsilon, w_hi - w_lo, dt, u.len(), shape.support, g),
             }
-            .ok_or_else(|| Error::parameter("epsilon", format!("no tabulated w-kernel reaches an accuracy of {uv_epsilon:e}")))?;
+            .ok_or_else(|| {
+                Error::parameter(
+                    "uvw",
+                    format!(
+                        "w from {w_lo} to {w_hi} needs more than {MAX_PLANES} w-planes on this field at an accuracy of {uv_epsilon:e}"
+                    ),
+                )
+            })?;
             let dw = 1.0 / (2.0 * choice.sigma * dt);
             let planes = ((w_hi - w_lo) / dw).ceil() + choice.shape.support as f64;
             if planes > MAX_PLANES as f64 {

@@ -66,7 +66,7 @@ impl StreamedTable {
         let kept = std::thread::scope(|scope| -> Result<Option<Kept>> {
             let (to_keeper, batches) = std::sync::mpsc::sync_channel::<arrow::array::RecordBatch>(BATCHES_IN_FLIGHT);
             let source = source.as_str();
-            let keeper = scope.spawn(move || -> Result<Kept> {
+            let keeper = std::thread::Builder::new().name("r2d2-keeper".into()).spawn_scoped(scope, move || -> Result<Kept> {
                 let mut kept = Kept { stats: IngestStats::default(), summary: VisSummary::empty(), spill: spill_in.map(Spill::create) };
                 for batch in batches {
                     let vis = record_batch_to_visibilities(&batch, &mut kept.stats, source)?;
@@ -79,6 +79,7 @@ impl StreamedTable {
                 }
                 Ok(kept)
             });
+            let keeper = keeper.map_err(|e| Error::OutOfMemory(format!("cannot start the thread that keeps {source}'s samples: {e} (is the address space limited? ulimit -v)")))?;
             let mut outcome = Ok(true);
             while let Some(batch) = reader.next_batch() {
                 if cancelled() {
@@ -99,9 +100,9 @@ impl StreamedTable {
                 }
             }
             drop(to_keeper);
-            let kept = keeper.join().map_err(|payload| {
-                Error::input(reader.source(), format!("converting its samples failed: {}", crate::error::panic_message(payload.as_ref())))
-            })?;
+            // A panic of the keeper is a bug, not a fault of the file: it goes on to the stage's
+            // containment, as it would have on one thread.
+            let kept = keeper.join().unwrap_or_else(|payload| std::panic::resume_unwind(payload));
             // The keeper's error is of an earlier batch than any the reading met after it.
             let kept = kept?;
             Ok(outcome?.then_some(kept))

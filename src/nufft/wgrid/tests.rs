@@ -120,6 +120,11 @@ fn w_kernel_choice_follows_the_cost() {
     assert_eq!((vla.sigma, vla.shape.support), (6.0, 6));
     let deep_w = w_kernel_choice(8e-7, 1e6, dt, 1000, uv_support, g).unwrap();
     assert!(deep_w.sigma <= 2.0 && deep_w.shape.support > vla.shape.support, "{} {}", deep_w.sigma, deep_w.shape.support);
+    // No choice beyond the planes a plan may have; a plan that would need more is an error.
+    assert!(w_kernel_choice(8e-7, 1e12, dt, 1000, uv_support, g).is_none());
+    let pixel = 20f64.to_radians() / 48.0;
+    let e = WGridPlan::new(48, pixel, &[1.0, 2.0], &[1.0, 2.0], &[0.0, 1e9], NufftParams::default(), 1).err().unwrap().to_string();
+    assert!(e.contains("w-planes on this field"), "{e}");
 }
 
 #[test]
