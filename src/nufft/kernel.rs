@@ -124,9 +124,9 @@ impl KernelShape {
         }
     }
 
-    /// The narrowest tabulated kernel reaching `epsilon` at oversampling `sigma` (at least the
-    /// lowest tabulated one), from the table of the next lower tabulated oversampling; `None`
-    /// if none up to [`MAX_SUPPORT`] does.
+    /// The narrowest tabulated kernel reaching `epsilon` at oversampling `sigma`, from the
+    /// table of the highest tabulated oversampling not above `sigma`; `None` below the lowest
+    /// table, or if no support up to [`MAX_SUPPORT`] reaches `epsilon`.
     pub(crate) fn tabulated(epsilon: f64, sigma: f64) -> Option<KernelShape> {
         let table = KERNEL_TABLES.iter().rev().find(|(s, _)| *s <= sigma + 1e-12).map(|(_, t)| t)?;
         let (i, (beta_over_w, _)) = table.iter().enumerate().find(|(_, (_, err))| *err <= epsilon)?;

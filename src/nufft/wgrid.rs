@@ -89,8 +89,9 @@ pub fn max_w_phase(size: usize, pixel_rad: f64, w_max_abs: f64) -> f64 {
 
 /// The oversampling (among the tabulated 1.25, 1.5 and 2) that a cost model puts fastest
 /// for these data: spreading or interpolation costs about `support^2` per visibility and
-/// plane it reaches (one footprint on each of the w-kernel's `w_support` planes), each plane
-/// an FFT of the oversampled grid (the w-kernel as [`WGridPlan`] chooses it). A lower oversampling means fewer planes and smaller FFTs but a wider kernel; the
+/// plane it reaches (one footprint on each of the w-kernel's planes), each plane an FFT of
+/// the oversampled grid (the w-kernel as [`WGridPlan`] chooses it). A lower oversampling
+/// means fewer planes and smaller FFTs but a wider kernel; the
 /// model's two constants were measured on this code (their ratio is what matters), and near
 /// a tie either choice is about as fast. `real`: for a [`WGridPlan::new_real`] plan.
 /// Falls back to 2 if nothing else reaches `epsilon` (or the field is not valid).
@@ -109,7 +110,7 @@ pub fn suggested_oversampling(size: usize, pixel_rad: f64, w: &[f64], real: bool
             let g = g as f64;
             return Some(SPREAD_COST * w.len() as f64 * (shape.support * shape.support) as f64 + FFT_COST * g * g * g.log2());
         }
-        w_kernel_choice(eps, span, dt, w.len(), shape.support, g).map(|c| c.cost)
+        w_kernel_choice(eps, span, dt, w.len(), shape.support, g).map(|c| c.cost(w.len(), shape.support, g))
     };
     [1.25, 1.5, 2.0]
         .into_iter()
@@ -124,34 +125,46 @@ pub fn suggested_oversampling(size: usize, pixel_rad: f64, w: &[f64], real: bool
 const SPREAD_COST: f64 = 1.6;
 const FFT_COST: f64 = 1.0;
 
-/// The w direction's kernel and its oversampling (plane spacing `1 / (2 sigma dt)`), as a
-/// cost model puts fastest, and that cost.
+/// A w-kernel: its shape at oversampling `sigma`, the plane spacing `dw = 1 / (2 sigma dt)`,
+/// and the planes a w range needs with it.
 struct WKernelChoice {
     shape: KernelShape,
     sigma: f64,
-    cost: f64,
+    dw: f64,
+    planes: usize,
 }
 
-/// Chooses the w-kernel for `points` visibilities over a w range `span` (`|tc| <= dt`), with
-/// a uv kernel of support `uv_support` on a `g x g` grid: each point costs `uv_support^2` on
-/// each of the w-kernel's planes, each plane an FFT. The w direction need not share the uv
-/// grid's oversampling: a finer plane spacing narrows the w-kernel (fewer planes per point)
-/// for a few more planes, which pays where the points outnumber the grid's cells. `None` if
-/// no tabulated kernel reaches `epsilon` within [`MAX_PLANES`].
+impl WKernelChoice {
+    /// The tabulated kernel reaching `epsilon` at `sigma` for a w range `span` (`|tc| <=
+    /// dt`); `None` if none does, or it would need more than [`MAX_PLANES`] planes.
+    fn new(epsilon: f64, sigma: f64, span: f64, dt: f64) -> Option<WKernelChoice> {
+        let shape = KernelShape::tabulated(epsilon, sigma)?;
+        let dw = 1.0 / (2.0 * sigma * dt);
+        let planes = (span / dw).ceil() + shape.support as f64;
+        (planes <= MAX_PLANES as f64).then(|| WKernelChoice { shape, sigma, dw, planes: planes as usize })
+    }
+
+    /// The cost model's time for `points` visibilities with a uv kernel of support
+    /// `uv_support` on a `g x g` grid: `uv_support^2` per point on each of the w-kernel's
+    /// planes, and each plane an FFT.
+    fn cost(&self, points: usize, uv_support: usize, g: usize) -> f64 {
+        let g = g as f64;
+        let spread = SPREAD_COST * points as f64 * (self.shape.support * uv_support * uv_support) as f64;
+        spread + FFT_COST * self.planes as f64 * g * g * g.log2()
+    }
+}
+
+/// Chooses the w-kernel the cost model puts fastest ([`WKernelChoice::cost`]). The w
+/// direction need not share the uv grid's oversampling: a finer plane spacing narrows the
+/// w-kernel (fewer planes per point) for a few more planes, which pays where the points
+/// outnumber the grid's cells. `None` if no tabulated kernel reaches `epsilon` within
+/// [`MAX_PLANES`].
 fn w_kernel_choice(epsilon: f64, span: f64, dt: f64, points: usize, uv_support: usize, g: usize) -> Option<WKernelChoice> {
-    let g = g as f64;
     KernelShape::tabulated_oversamplings()
-        .filter_map(|sigma| {
-            let shape = KernelShape::tabulated(epsilon, sigma)?;
-            let planes = (span * 2.0 * sigma * dt).ceil() + shape.support as f64;
-            if planes > MAX_PLANES as f64 {
-                return None;
-            }
-            let spread = SPREAD_COST * points as f64 * (shape.support * uv_support * uv_support) as f64;
-            let cost = spread + FFT_COST * planes * g * g * g.log2();
-            Some(WKernelChoice { shape, sigma, cost })
-        })
-        .min_by(|a, b| a.cost.total_cmp(&b.cost))
+        .filter_map(|sigma| WKernelChoice::new(epsilon, sigma, span, dt))
+        .map(|choice| (choice.cost(points, uv_support, g), choice))
+        .min_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, choice)| choice)
 }
 
 /// Whether the phase the single-plane reduction neglects, `2 pi (span / 2) dt` for a w
@@ -365,7 +378,7 @@ impl WGridPlan {
         } else {
             let g = engine.grid_nx.max(engine.grid_ny);
             let choice = match w_oversampling {
-                Some(sigma) => KernelShape::tabulated(uv_epsilon, sigma).map(|shape| WKernelChoice { shape, sigma, cost: 0.0 }),
+                Some(sigma) => WKernelChoice::new(uv_epsilon, sigma, w_hi - w_lo, dt),
                 None => w_kernel_choice(uv_epsilon, w_hi - w_lo, dt, u.len(), shape.support, g),
             }
             .ok_or_else(|| {
@@ -376,17 +389,7 @@ impl WGridPlan {
                     ),
                 )
             })?;
-            let dw = 1.0 / (2.0 * choice.sigma * dt);
-            let planes = ((w_hi - w_lo) / dw).ceil() + choice.shape.support as f64;
-            if planes > MAX_PLANES as f64 {
-                return Err(Error::parameter(
-                    "uvw",
-                    format!(
-                        "w from {w_lo} to {w_hi} needs {planes} w-planes on this field (at most {MAX_PLANES} are supported)"
-                    ),
-                ));
-            }
-            let planes = planes as usize;
+            let (dw, planes) = (choice.dw, choice.planes);
             let w_first = w_mid - 0.5 * (planes - 1) as f64 * dw;
             let coeffs = fit_kernel(&choice.shape, uv_epsilon / 20.0);
             (Some(WKernel::new(choice.shape.support, &coeffs)), planes, w_first, dw, Some((choice.shape, choice.sigma)))
@@ -459,14 +462,15 @@ impl WGridPlan {
     pub fn planes(&self) -> usize {
         self.planes
     }
-    /// Support of the uv kernel and of the w-kernel (1 without w-planes), and the oversampled
-    /// grid's edges, for logging.
+    /// Support of the uv kernel, for logging.
     pub fn kernel_support(&self) -> usize {
         self.engine.shape.support
     }
+    /// Support of the w-kernel (1 without w-planes): the planes each visibility reaches.
     pub fn w_support(&self) -> usize {
         self.wkernel.as_ref().map_or(1, |wk| wk.support)
     }
+    /// The oversampled grid's edges, for logging.
     pub fn grid_size(&self) -> (usize, usize) {
         self.engine.grid_size()
     }
