@@ -234,6 +234,13 @@ impl Nufft2d {
         let w = shape.support;
         let grid_nx = good_fft_size(((nx as f64) * params.oversampling).ceil() as usize).max(2 * w);
         let grid_ny = good_fft_size(((ny as f64) * params.oversampling).ceil() as usize).max(2 * w);
+        Self::with_grid((nx, ny), (grid_nx, grid_ny), (x, y), shape, params, threads)
+    }
+
+    /// Like [`Nufft2d::with_kernel`] on a grid of `grid_nx x grid_ny` cells given by the
+    /// caller (a window of a larger grid: [`ChunkedAdjoint::windowed`]).
+    fn with_grid((nx, ny): (usize, usize), (grid_nx, grid_ny): (usize, usize), (x, y): (&[f64], &[f64]), shape: KernelShape, params: NufftParams, threads: usize) -> Result<Nufft2d> {
+        let w = shape.support;
         if grid_nx.max(grid_ny) + 2 * w > MAX_PADDED_GRID {
             return Err(Error::parameter(
                 "image size",
@@ -715,20 +722,67 @@ impl Nufft2d {
 /// The grids accumulate over the chunks; the images are the sums over all points, equal to
 /// one transform of all points up to the order of floating-point additions.
 pub struct ChunkedAdjoint {
+    /// The plan the points are spread with: the image's own, or a window's.
     plan: Nufft2d,
     grids: Vec<Vec<Complex64>>,
     /// Grid rows touched by any chunk's points.
     row_used: Vec<bool>,
+    /// Where the grids are a window of the image's grid: that grid.
+    window: Option<GridWindow>,
+}
+
+/// The image's grid of a windowed [`ChunkedAdjoint`], whose grids hold only the cells within a
+/// window around the origin of it: cell `s` (signed) of the image's grid is cell `s mod g'` of
+/// the window's `g'`, the same cell for every point whose kernel stays within `|s| < g'/2`.
+/// Points are spread on the window's plan at coordinates scaled by `g / g'`, so that they fall
+/// on the same cells; at the end the window is put back in the image's grid, which is
+/// transformed and corrected as the image's.
+struct GridWindow {
+    full: Nufft2d,
+    /// Largest point coordinate magnitude (radians per pixel) the window holds.
+    max_phase: f64,
 }
 
 impl ChunkedAdjoint {
     /// `transforms` sums on an `nx x ny` image (see [`Nufft2d::new`]).
     pub fn new(nx: usize, ny: usize, transforms: usize, params: NufftParams, threads: usize) -> Result<ChunkedAdjoint> {
         let plan = Nufft2d::new(nx, ny, &[], &[], params, threads)?;
+        Ok(Self::on_plan(plan, transforms, None))
+    }
+
+    /// As [`new`](Self::new) for points of coordinates `|x|, |y| <= max_phase` (radians per
+    /// pixel) only: the grids hold the window of the image's grid that their kernels reach
+    /// (the data of a small uv extent on a finely sampled image occupy a small part of its
+    /// grid), so they take less memory; the images are the same (to rounding).
+    pub fn windowed(nx: usize, ny: usize, transforms: usize, max_phase: f64, params: NufftParams, threads: usize) -> Result<ChunkedAdjoint> {
+        let full = Nufft2d::new(nx, ny, &[], &[], params, threads)?;
+        if !(max_phase >= 0.0 && max_phase.is_finite()) {
+            return Err(Error::parameter("points", format!("expected a finite coordinate bound, got {max_phase}")));
+        }
+        let support = full.shape.support;
+        // Cells (signed) a point's kernel reaches, and the window holding them all apart.
+        let window = |g: usize| {
+            let reach = (max_phase * g as f64 / (2.0 * std::f64::consts::PI)).ceil() as usize + support / 2 + 2;
+            good_fft_size(2 * reach + 2).max(2 * support)
+        };
+        let (wx, wy) = (window(full.grid_nx), window(full.grid_ny));
+        if wx >= full.grid_nx || wy >= full.grid_ny {
+            return Ok(Self::on_plan(full, transforms, None));
+        }
+        let plan = Nufft2d::with_grid((2, 2), (wx, wy), (&[], &[]), full.shape.clone(), params, threads)?;
+        Ok(Self::on_plan(plan, transforms, Some(GridWindow { full, max_phase })))
+    }
+
+    fn on_plan(plan: Nufft2d, transforms: usize, window: Option<GridWindow>) -> ChunkedAdjoint {
         let cells = plan.grid_nx * plan.grid_ny;
         let grids = plan.install(|| (0..transforms).map(|_| par_filled(Complex64::default(), cells)).collect());
         let row_used = vec![false; plan.grid_ny];
-        Ok(ChunkedAdjoint { plan, grids, row_used })
+        ChunkedAdjoint { plan, grids, row_used, window }
+    }
+
+    /// Bytes of the grids.
+    pub fn grid_bytes(&self) -> usize {
+        self.grids.len() * self.plan.grid_nx * self.plan.grid_ny * std::mem::size_of::<Complex64>()
     }
 
     /// Adds the points `(x[k], y[k])` (as in [`Nufft2d::new`]) with value `value(t, k)` in
@@ -737,7 +791,23 @@ impl ChunkedAdjoint {
         if x.len() > u32::MAX as usize {
             return Err(Error::parameter("points", "more than 2^32 points in one chunk"));
         }
-        self.plan.sort_points(x, y, false)?;
+        match &self.window {
+            None => self.plan.sort_points(x, y, false)?,
+            Some(window) => {
+                let bound = window.max_phase;
+                if let Some(k) = (0..x.len()).find(|&k| !(x[k].abs() <= bound && y[k].abs() <= bound)) {
+                    return Err(Error::parameter(
+                        "points",
+                        format!("point ({}, {}) lies beyond the coordinate bound {bound} its gridder was made for", x[k], y[k]),
+                    ));
+                }
+                let sx = window.full.grid_nx as f64 / self.plan.grid_nx as f64;
+                let sy = window.full.grid_ny as f64 / self.plan.grid_ny as f64;
+                let xs: Vec<f64> = x.iter().map(|&x| x * sx).collect();
+                let ys: Vec<f64> = y.iter().map(|&y| y * sy).collect();
+                self.plan.sort_points(&xs, &ys, false)?
+            }
+        }
         let plan = &self.plan;
         for (t, grid) in self.grids.iter_mut().enumerate() {
             plan.install(|| {
@@ -752,16 +822,43 @@ impl ChunkedAdjoint {
 
     /// The transforms' images, in the order of the values' `t`.
     pub fn finish(self) -> Vec<Vec<Complex64>> {
-        let ChunkedAdjoint { plan, grids, row_used } = self;
-        let pixels = plan.nx * plan.ny;
-        grids
-            .into_iter()
-            .map(|grid| {
-                let mut out = vec![Complex64::default(); pixels];
+        let mut images = Vec::new();
+        self.finish_each(|_, image| images.push(image));
+        images
+    }
+
+    /// Hands each transform's image to `f` (with its `t`) as soon as it is made, each grid
+    /// released as it is transformed.
+    pub fn finish_each(self, mut f: impl FnMut(usize, Vec<Complex64>)) {
+        let ChunkedAdjoint { plan, grids, row_used, window } = self;
+        let Some(GridWindow { full, .. }) = window else {
+            for (t, grid) in grids.into_iter().enumerate() {
+                let mut out = vec![Complex64::default(); plan.nx * plan.ny];
                 plan.install(|| plan.grid_to_image(grid, &row_used, &mut out));
-                out
-            })
-            .collect()
+                f(t, out);
+            }
+            return;
+        };
+        let (wx, wy, gx, gy) = (plan.grid_nx, plan.grid_ny, full.grid_nx, full.grid_ny);
+        // Window cell -> the image grid's cell of the same signed index.
+        let to_full = |c: usize, w: usize, g: usize| if c < w / 2 { c } else { c + g - w };
+        let mut full_row_used = vec![false; gy];
+        for (r, &used) in row_used.iter().enumerate() {
+            full_row_used[to_full(r, wy, gy)] = used;
+        }
+        for (t, grid) in grids.into_iter().enumerate() {
+            let mut cells = full.install(|| par_filled(Complex64::default(), gx * gy));
+            for r in (0..wy).filter(|&r| row_used[r]) {
+                let dst = &mut cells[to_full(r, wy, gy) * gx..][..gx];
+                let src = &grid[r * wx..][..wx];
+                dst[..wx / 2].copy_from_slice(&src[..wx / 2]);
+                dst[gx - (wx - wx / 2)..].copy_from_slice(&src[wx / 2..]);
+            }
+            drop(grid);
+            let mut out = vec![Complex64::default(); full.nx * full.ny];
+            full.install(|| full.grid_to_image(cells, &full_row_used, &mut out));
+            f(t, out);
+        }
     }
 }
 

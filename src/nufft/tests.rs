@@ -187,3 +187,31 @@ fn every_supported_simd_level_gives_the_same_result() {
         }
     }
 }
+
+#[test]
+fn a_windowed_chunked_adjoint_gives_the_direct_sums_and_refuses_points_beyond_its_bound() {
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let (nx, ny, m) = (96, 64, 3000);
+    let bound = 0.8;
+    let x: Vec<f64> = (0..m).map(|_| rng.gen_range(-bound..bound)).collect();
+    let y: Vec<f64> = (0..m).map(|_| rng.gen_range(-bound..bound)).collect();
+    let c = random_complex(m, &mut rng);
+    let params = NufftParams { epsilon: 1e-9, oversampling: 2.0 };
+    let mut windowed = ChunkedAdjoint::windowed(nx, ny, 2, bound, params, 2).unwrap();
+    let plain = ChunkedAdjoint::new(nx, ny, 2, params, 2).unwrap();
+    // The window is a part of the grid (here about a quarter of it each way).
+    assert!(4 * windowed.grid_bytes() < plain.grid_bytes(), "{} {}", windowed.grid_bytes(), plain.grid_bytes());
+    for part in [0..1000, 1000..m] {
+        windowed.add(&x[part.clone()], &y[part.clone()], |t, k| if t == 0 { c[part.start + k] } else { c[part.start + k] * 2.0 }).unwrap();
+    }
+    let images = windowed.finish();
+    let truth = direct_adjoint(nx, ny, &x, &y, &c);
+    assert!(relative_error(&images[0], &truth) < 1e-8, "{}", relative_error(&images[0], &truth));
+    let twice: Vec<Complex64> = truth.iter().map(|t| t * 2.0).collect();
+    assert!(relative_error(&images[1], &twice) < 1e-8);
+    let mut windowed = ChunkedAdjoint::windowed(nx, ny, 1, bound, params, 1).unwrap();
+    let e = windowed.add(&[0.1, 0.9], &[0.0, 0.0], |_, _| Complex64::new(1.0, 0.0)).unwrap_err().to_string();
+    assert!(e.contains("beyond the coordinate bound"), "{e}");
+    // A bound the whole grid needs: no window.
+    assert_eq!(ChunkedAdjoint::windowed(nx, ny, 1, 3.0, params, 1).unwrap().grid_bytes(), ChunkedAdjoint::new(nx, ny, 1, params, 1).unwrap().grid_bytes());
+}

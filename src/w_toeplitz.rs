@@ -1,0 +1,559 @@
+//! The normal operator `D x = kappa Re{Phi^H diag(omega) Phi x}` with the w-term, as a short
+//! sum of convolutions: once one pass over the samples has built its kernels, applying it
+//! costs a few FFTs per w-plane, whatever the number of samples (the coplanar case is
+//! [`PsfConvolution`](crate::operator::PsfConvolution), one kernel).
+//!
+//! Conventions are `crate::nufft::wgrid`'s: `D x (p) = Re sum_k omega_k sum_q x_q
+//! exp(-2 pi i (u_k (l_p - l_q) + v_k (m_p - m_q) + w_k (t_p - t_q)))`, `t = n - 1`. The image
+//! being real, a sample at `-(u, v, w)` adds the same as one at `(u, v, w)`: every `w` is
+//! taken `>= 0`. Over the image `|t_p - t_q| <= T = max(-t)`; write
+//!
+//! `exp(-2 pi i w dt) ~= sum_j a_j(w) exp(-2 pi i w_j dt)` for `|dt| <= T`,
+//!
+//! with planes `w_j = j delta` and real coefficients `a_j(w)`, non-zero on the `taps` planes
+//! nearest `w` ([`WTaps`]: least squares over the band, which `delta = 1 / (2 sigma T)`
+//! makes a fraction `1 / sigma` of the period). The sum separates in `p` and `q`:
+//!
+//! `D x (p) = Re sum_j exp(-2 pi i w_j t_p) [P_j * (exp(+2 pi i w_j t) x)] (p)`,
+//! `P_j (dl, dm) = sum_k omega_k a_j(w_k) exp(-2 pi i (u_k dl + v_k dm))`,
+//!
+//! a linear convolution with each plane's kernel `P_j` over the `2N x 2N` offsets, which is
+//! the 2N PSF of the weights `omega_k a_j(w_k)`: one gridding pass makes them all
+//! ([`WToeplitzBuilder`]). The coefficients carry no correction factor (it would depend on `dt`,
+//! which does not separate), so their accuracy is the least-squares fit's; the taps are as many
+//! as that fit needs to meet the NUFFT's accuracy.
+
+use crate::fft2::Fft2;
+use crate::nufft::wgrid::n_minus_one;
+use crate::nufft::{ChunkedAdjoint, NufftParams};
+use crate::operator::ImageGeometry;
+use crate::{Error, Result};
+use num_complex::Complex64;
+use rayon::prelude::*;
+use rustfft::FftDirection;
+use std::f64::consts::PI;
+use std::sync::Arc;
+
+/// Most taps a fit may take.
+const MAX_TAPS: usize = 24;
+
+/// Oversamplings of the period the band may have (the plane spacing's `sigma`).
+const SIGMAS: [f64; 6] = [1.5, 2.0, 3.0, 4.0, 6.0, 8.0];
+
+/// Intervals of the coefficient table over a plane spacing (cubic interpolation: its error is
+/// far below any accuracy asked, see [`WTaps::new`]).
+const TABLE_STEPS: usize = 256;
+
+/// Least-squares coefficients `a_m(f)`, `m = 1 - taps/2 ..= taps/2`, of
+/// `exp(-2 pi i f s) ~= sum_m a_m(f) exp(-2 pi i m s)` over `|s| <= 1 / (2 sigma)`, for a
+/// plane offset `f` in `[0, 1]`, tabulated.
+pub struct WTaps {
+    sigma: f64,
+    taps: usize,
+    /// `table[(i + 1) * taps + m]`: the coefficients at `f = i / TABLE_STEPS`, `i = -1 ..=
+    /// TABLE_STEPS + 1`.
+    table: Vec<f64>,
+    /// Largest error of the fit measured over the band.
+    error: f64,
+}
+
+impl WTaps {
+    /// The fit of `taps` (even) coefficients over the band of `sigma`.
+    pub fn new(sigma: f64, taps: usize) -> Result<WTaps> {
+        if taps < 2 || taps % 2 != 0 || taps > MAX_TAPS || !(sigma > 1.0 && sigma.is_finite()) {
+            return Err(Error::parameter("w taps", format!("expected an even number of taps in 2..={MAX_TAPS} and an oversampling above 1, got {taps} and {sigma}")));
+        }
+        let fit = LeastSquares::new(sigma, taps);
+        let table = (0..TABLE_STEPS + 3).flat_map(|i| fit.solve((i as f64 - 1.0) / TABLE_STEPS as f64)).collect();
+        let mut w = WTaps { sigma, taps, table, error: 0.0 };
+        w.error = w.measured_error();
+        Ok(w)
+    }
+
+    /// The fewest taps over the band of `sigma` whose fit is within `epsilon`, if any is.
+    pub fn for_accuracy(sigma: f64, epsilon: f64) -> Option<WTaps> {
+        (1..=MAX_TAPS / 2).map(|h| 2 * h).filter_map(|taps| WTaps::new(sigma, taps).ok()).find(|w| w.error <= epsilon)
+    }
+
+    pub fn sigma(&self) -> f64 {
+        self.sigma
+    }
+    pub fn taps(&self) -> usize {
+        self.taps
+    }
+    /// Largest error of the fit (tabulated and interpolated) measured over the band.
+    pub fn error(&self) -> f64 {
+        self.error
+    }
+
+    /// Tap `m` (`0 .. taps`, for plane offset `m + 1 - taps/2`) at plane offset `f` in `[0, 1)`.
+    #[inline]
+    pub fn coefficient(&self, f: f64, m: usize) -> f64 {
+        let u = f * TABLE_STEPS as f64;
+        let i = (u.floor().max(0.0) as usize).min(TABLE_STEPS - 1);
+        let r = u - i as f64;
+        // Cubic Lagrange weights on nodes i - 1 ..= i + 2 (stored at i ..= i + 3).
+        let (a, b, c, d) = ((r + 1.0), r, (r - 1.0), (r - 2.0));
+        let l = [-b * c * d / 6.0, a * c * d / 2.0, -a * b * d / 2.0, a * b * c / 6.0];
+        let t = self.taps;
+        (0..4).map(|k| l[k] * self.table[(i + k) * t + m]).sum()
+    }
+
+    /// Largest `|sum_m a_m(f) exp(-2 pi i m s) - exp(-2 pi i f s)|` over offsets `f` between
+    /// the table's nodes and a fine grid of the band.
+    fn measured_error(&self) -> f64 {
+        let half = 0.5 / self.sigma;
+        let points = 64 * self.taps + 1;
+        let mut worst = 0.0f64;
+        // The fit at f and 1 - f are mirror images: half the offsets suffice.
+        for step in 0..=40 {
+            let f = (step as f64 + 0.37) / 80.0;
+            let a: Vec<f64> = (0..self.taps).map(|m| self.coefficient(f, m)).collect();
+            for i in 0..points {
+                let s = -half + 2.0 * half * i as f64 / (points - 1) as f64;
+                let approx: Complex64 = a.iter().enumerate().map(|(m, &a)| a * Complex64::cis(-2.0 * PI * self.offset(m) as f64 * s)).sum();
+                worst = worst.max((approx - Complex64::cis(-2.0 * PI * f * s)).norm());
+            }
+        }
+        worst
+    }
+
+    /// The plane offset of tap `m`.
+    fn offset(&self, m: usize) -> i64 {
+        m as i64 + 1 - (self.taps / 2) as i64
+    }
+}
+
+/// The real least-squares problem of [`WTaps`] on a grid of the band, factored once
+/// (Householder QR: the condition of the fit, not its square) and solved for each offset.
+struct LeastSquares {
+    /// Band points `s_i`.
+    s: Vec<f64>,
+    /// Householder vector `k`, over rows `k..` (scaled so that reflecting is `b -= v (v . b)`).
+    reflectors: Vec<Vec<f64>>,
+    /// `R`, row-major `taps x taps`.
+    r: Vec<f64>,
+}
+
+impl LeastSquares {
+    fn new(sigma: f64, taps: usize) -> LeastSquares {
+        let half = 0.5 / sigma;
+        let npoints = 16 * taps + 1;
+        let s: Vec<f64> = (0..npoints).map(|i| -half + 2.0 * half * i as f64 / (npoints - 1) as f64).collect();
+        // Columns (one per tap): the real parts, then the imaginary parts, of exp(-2 pi i m s_i).
+        let mut columns: Vec<Vec<f64>> = (0..taps)
+            .map(|m| {
+                let o = (m as i64 + 1 - (taps / 2) as i64) as f64;
+                s.iter().map(|&si| (2.0 * PI * o * si).cos()).chain(s.iter().map(|&si| -(2.0 * PI * o * si).sin())).collect()
+            })
+            .collect();
+        let mut reflectors = Vec::with_capacity(taps);
+        let mut r = vec![0.0; taps * taps];
+        for k in 0..taps {
+            let x = &columns[k][k..];
+            let norm = x.iter().map(|a| a * a).sum::<f64>().sqrt();
+            let alpha = if x[0] > 0.0 { -norm } else { norm };
+            let mut v = x.to_vec();
+            v[0] -= alpha;
+            let vn = v.iter().map(|a| a * a).sum::<f64>().sqrt();
+            if vn > 0.0 {
+                // |v|^2 = 2: the reflection I - v v^T.
+                v.iter_mut().for_each(|a| *a *= std::f64::consts::SQRT_2 / vn);
+            }
+            r[k * taps + k] = alpha;
+            for j in k + 1..taps {
+                let c = &mut columns[j][k..];
+                let dot: f64 = v.iter().zip(c.iter()).map(|(a, b)| a * b).sum();
+                c.iter_mut().zip(&v).for_each(|(c, a)| *c -= dot * a);
+                r[k * taps + j] = c[0];
+            }
+            reflectors.push(v);
+        }
+        LeastSquares { s, reflectors, r }
+    }
+
+    /// The coefficients for offset `f`.
+    fn solve(&self, f: f64) -> Vec<f64> {
+        let taps = self.reflectors.len();
+        let mut b: Vec<f64> = self.s.iter().map(|&si| (2.0 * PI * f * si).cos()).chain(self.s.iter().map(|&si| -(2.0 * PI * f * si).sin())).collect();
+        for (k, v) in self.reflectors.iter().enumerate() {
+            let dot: f64 = v.iter().zip(&b[k..]).map(|(a, b)| a * b).sum();
+            b[k..].iter_mut().zip(v).for_each(|(b, a)| *b -= dot * a);
+        }
+        let mut a = vec![0.0; taps];
+        for k in (0..taps).rev() {
+            let sum: f64 = (k + 1..taps).map(|j| self.r[k * taps + j] * a[j]).sum();
+            a[k] = (b[k] - sum) / self.r[k * taps + k];
+        }
+        a
+    }
+}
+
+/// The planes of a w-aware Toeplitz form for an image and a `|w|` range: their spacing, the
+/// first one's index and their number, and the fit of the coefficients. Cheap to make: the
+/// memory it will take is known before anything is gridded.
+pub struct WToeplitzPlan {
+    pub taps: WTaps,
+    /// Plane spacing (wavelengths).
+    pub delta: f64,
+    /// Index `j` of the first plane (`w_j = j delta`).
+    pub first: i64,
+    pub planes: usize,
+    size: usize,
+}
+
+impl WToeplitzPlan {
+    /// The plan of fewest planes for `geometry` and samples of `|w| <= max_abs_w` at relative
+    /// accuracy `epsilon`; `None` where no fit of at most [`MAX_TAPS`] taps is accurate
+    /// enough, or the image reaches the edge of the projection.
+    pub fn new(geometry: ImageGeometry, max_abs_w: f64, epsilon: f64) -> Option<WToeplitzPlan> {
+        let span = max_t_difference(geometry)?;
+        if !(max_abs_w.is_finite() && max_abs_w >= 0.0) {
+            return None;
+        }
+        SIGMAS
+            .iter()
+            .filter_map(|&sigma| {
+                let taps = WTaps::for_accuracy(sigma, epsilon / 2.0)?;
+                let delta = 1.0 / (2.0 * sigma * span);
+                let last = (max_abs_w / delta).floor() as i64 + (taps.taps() / 2) as i64;
+                let first = 1 - (taps.taps() / 2) as i64;
+                let planes = usize::try_from(last - first + 1).ok()?;
+                Some(WToeplitzPlan { taps, delta, first, planes, size: geometry.size })
+            })
+            .min_by_key(|p| (p.planes, p.taps.taps()))
+    }
+
+    /// Bytes the applied operator keeps: a real `2N x 2N` kernel per plane.
+    pub fn kept_bytes(&self) -> f64 {
+        let m = 2.0 * self.size as f64;
+        self.planes as f64 * m * m * 8.0
+    }
+}
+
+/// Largest `|t_p - t_q|` over the image: `-t` at the farthest corner (`t = 0` at the centre).
+fn max_t_difference(geometry: ImageGeometry) -> Option<f64> {
+    let half = geometry.size as f64 / 2.0 * geometry.pixel_rad;
+    let r2 = 2.0 * half * half;
+    (r2 < 1.0).then(|| -n_minus_one(r2))
+}
+
+/// Builds the kernels of [`WToeplitz`] from samples given a chunk at a time: each sample's
+/// weight, times each of its taps, gridded on the `2N` image of its plane; two planes share
+/// one complex grid (the kernels' Fourier transforms are real, so plane `2i` is the real part
+/// and `2i + 1` the imaginary part of the pair's), and the grids hold only the window of the
+/// uv-plane the samples reach.
+pub struct WToeplitzBuilder {
+    geometry: ImageGeometry,
+    plan: WToeplitzPlan,
+    adjoint: ChunkedAdjoint,
+    threads: usize,
+    samples: u64,
+}
+
+impl WToeplitzBuilder {
+    /// For samples of `sqrt(u^2 + v^2) <= max_uv` (beyond it they are refused).
+    pub fn new(geometry: ImageGeometry, plan: WToeplitzPlan, max_uv: f64, nufft: NufftParams, threads: usize) -> Result<WToeplitzBuilder> {
+        if plan.size != geometry.size {
+            return Err(Error::parameter("w-Toeplitz plan", format!("planned for {} pixels a side, the image has {}", plan.size, geometry.size)));
+        }
+        let doubled = geometry.doubled();
+        crate::limits::check_memory(plan.kept_bytes() * 1.5, &format!("the {} w-planes of a w-aware Toeplitz form", plan.planes)).map_err(|m| Error::parameter("w-Toeplitz plan", m))?;
+        let max_phase = 2.0 * PI * geometry.pixel_rad * max_uv * (1.0 + 1e-12);
+        let adjoint = ChunkedAdjoint::windowed(doubled.size, doubled.size, plan.planes.div_ceil(2), max_phase, nufft, threads)?;
+        Ok(WToeplitzBuilder { geometry, plan, adjoint, threads, samples: 0 })
+    }
+
+    /// Bytes of the grids being built.
+    pub fn grid_bytes(&self) -> usize {
+        self.adjoint.grid_bytes()
+    }
+
+    /// Adds samples at `(u, v, w)` (wavelengths) with total weights `weight`.
+    pub fn add(&mut self, u: &[f64], v: &[f64], w: &[f64], weight: &[f64]) -> Result<()> {
+        let n = u.len();
+        if v.len() != n || w.len() != n || weight.len() != n {
+            return Err(Error::parameter("visibilities", "u, v, w and weight arrays differ in length"));
+        }
+        let (geometry, plan) = (self.geometry, &self.plan);
+        // Mirrored to w >= 0; each sample's plane offset and its first plane.
+        let mut x = vec![0.0; n];
+        let mut y = vec![0.0; n];
+        let mut frac = vec![0.0; n];
+        let mut base = vec![0i64; n];
+        let mut bad = None;
+        for k in 0..n {
+            let sign = if w[k] < 0.0 { -1.0 } else { 1.0 };
+            (x[k], y[k]) = geometry.uv_to_phase(sign * u[k], sign * v[k]);
+            let z = w[k].abs() / plan.delta;
+            let j0 = z.floor();
+            if !(j0.is_finite()) {
+                bad = Some(k);
+                break;
+            }
+            frac[k] = z - j0;
+            base[k] = j0 as i64 + 1 - (plan.taps.taps() / 2) as i64 - plan.first;
+            if base[k] < 0 || base[k] as usize + plan.taps.taps() > plan.planes {
+                bad = Some(k);
+                break;
+            }
+        }
+        if let Some(k) = bad {
+            return Err(Error::parameter("w", format!("w = {} wavelengths lies outside the planes planned for |w| up to {}", w[k], plan.delta * (plan.planes as f64 + plan.first as f64))));
+        }
+        let taps = plan.taps.taps();
+        let tap = |k: usize, j: usize| -> f64 {
+            let m = j as i64 - base[k];
+            if m >= 0 && (m as usize) < taps {
+                plan.taps.coefficient(frac[k], m as usize)
+            } else {
+                0.0
+            }
+        };
+        self.adjoint.add(&x, &y, |t, k| Complex64::new(weight[k] * tap(k, 2 * t), weight[k] * tap(k, 2 * t + 1)))?;
+        self.samples += n as u64;
+        Ok(())
+    }
+
+    /// The operator (not normalised: `kappa` 1) and the coplanar 2N PSF of the weights (as
+    /// [`doubled_psf`](crate::operator::doubled_psf), unscaled; its row and column 0, offsets
+    /// `-N` that no `N x N` image reaches, are zero).
+    pub fn finish(self) -> Result<(WToeplitz, Vec<f64>)> {
+        let WToeplitzBuilder { geometry, plan, adjoint, threads, .. } = self;
+        let (n, m) = (geometry.size, 2 * geometry.size);
+        let pool = crate::parallel::shared_pool(threads)?;
+        let forward = Fft2::new(m, m, FftDirection::Forward);
+        let inverse = Fft2::new(m, m, FftDirection::Inverse);
+        let scale = 1.0 / (m * m) as f64;
+        let mut kernels: Vec<Vec<f64>> = Vec::with_capacity(plan.planes);
+        let mut coplanar = vec![0.0; m * m];
+        adjoint.finish_each(|_, mut pair| {
+            pool.install(|| {
+                // Offsets -N (row and column 0) have no partner at +N in a 2N grid, and no
+                // N x N image needs them: zero, the pair's transforms are exactly real.
+                pair[..m].iter_mut().for_each(|c| *c = Complex64::default());
+                pair.iter_mut().step_by(m).for_each(|c| *c = Complex64::default());
+                forward.process(&mut pair);
+                let re: Vec<f64> = pair.par_iter().map(|c| c.re * scale).collect();
+                coplanar.par_iter_mut().zip(&re).for_each(|(s, k)| *s += k);
+                kernels.push(re);
+                if kernels.len() < plan.planes {
+                    let im: Vec<f64> = pair.par_iter().map(|c| c.im * scale).collect();
+                    coplanar.par_iter_mut().zip(&im).for_each(|(s, k)| *s += k);
+                    kernels.push(im);
+                }
+            })
+        });
+        let mut psf_2n: Vec<Complex64> = coplanar.into_iter().map(|k| Complex64::new(k, 0.0)).collect();
+        pool.install(|| inverse.process(&mut psf_2n));
+        let psf_2n = psf_2n.into_iter().map(|c| c.re).collect();
+        let planes = kernels.into_iter().enumerate().map(|(j, kernel_hat)| WPlane { w: (plan.first + j as i64) as f64 * plan.delta, kernel_hat }).collect();
+        let half = n as f64 / 2.0;
+        let t = (0..n * n)
+            .map(|p| {
+                let (l, mm) = ((p % n) as f64 - half, (p / n) as f64 - half);
+                n_minus_one((l * l + mm * mm) * geometry.pixel_rad * geometry.pixel_rad)
+            })
+            .collect();
+        Ok((WToeplitz { size: n, planes, t, forward, inverse, pool, taps: plan.taps.taps(), sigma: plan.taps.sigma() }, psf_2n))
+    }
+}
+
+/// One plane of [`WToeplitz`]: its `w` and the FFT of its kernel (real; divided by `(2N)^2`
+/// for the unnormalised inverse FFT).
+struct WPlane {
+    w: f64,
+    kernel_hat: Vec<f64>,
+}
+
+/// `D` with the w-term as a sum of convolutions (see the module's documentation).
+pub struct WToeplitz {
+    size: usize,
+    planes: Vec<WPlane>,
+    /// `t = n - 1` per pixel.
+    t: Vec<f64>,
+    forward: Fft2,
+    inverse: Fft2,
+    pool: Arc<rayon::ThreadPool>,
+    taps: usize,
+    sigma: f64,
+}
+
+impl WToeplitz {
+    pub fn size(&self) -> usize {
+        self.size
+    }
+    pub fn planes(&self) -> usize {
+        self.planes.len()
+    }
+    pub fn taps(&self) -> usize {
+        self.taps
+    }
+    /// The band's oversampling of the plane spacing.
+    pub fn sigma(&self) -> f64 {
+        self.sigma
+    }
+    /// Bytes of its kernels.
+    pub fn bytes(&self) -> usize {
+        self.planes.iter().map(|p| p.kernel_hat.len() * 8).sum()
+    }
+
+    /// Multiplies the operator by `kappa`.
+    pub fn scale(&mut self, kappa: f64) {
+        self.pool.install(|| self.planes.par_iter_mut().for_each(|p| p.kernel_hat.iter_mut().for_each(|k| *k *= kappa)));
+    }
+
+    /// `D x` for an `N x N` image.
+    pub fn apply(&self, x: &[f64]) -> Vec<f64> {
+        let (n, m) = (self.size, 2 * self.size);
+        assert_eq!(x.len(), n * n, "image size");
+        let mut out = vec![0.0; n * n];
+        self.pool.install(|| {
+            let mut z = vec![Complex64::default(); m * m];
+            for plane in &self.planes {
+                let turn = 2.0 * PI * plane.w;
+                z.par_chunks_mut(m).enumerate().for_each(|(iy, row)| {
+                    row.iter_mut().for_each(|c| *c = Complex64::default());
+                    if iy < n {
+                        for ix in 0..n {
+                            let p = iy * n + ix;
+                            row[ix] = Complex64::cis(turn * self.t[p]) * x[p];
+                        }
+                    }
+                });
+                self.forward.process(&mut z);
+                z.par_iter_mut().zip(&plane.kernel_hat).for_each(|(c, k)| *c *= k);
+                self.inverse.process(&mut z);
+                // The linear convolution with a kernel centred at (N, N): pixel p is at p + N.
+                out.par_chunks_mut(n).enumerate().for_each(|(iy, row)| {
+                    let src = &z[(iy + n) * m + n..][..n];
+                    for (ix, o) in row.iter_mut().enumerate() {
+                        *o += (Complex64::cis(-turn * self.t[iy * n + ix]) * src[ix]).re;
+                    }
+                });
+            }
+        });
+        out
+    }
+
+    /// The PSF `D delta` with the delta at `(N/2, N/2)` (peak at the centre).
+    pub fn psf(&self) -> Vec<f64> {
+        let n = self.size;
+        let mut delta = vec![0.0; n * n];
+        delta[(n / 2) * n + n / 2] = 1.0;
+        self.apply(&delta)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nufft::direct;
+    use crate::operator::{doubled_psf, MeasurementOperator};
+
+    /// A wide field (30 degrees: the w-term turns phases by radians) with samples in the uv
+    /// disc of half the Nyquist radius and |w| up to the disc's radius, in both signs.
+    fn wide_field(n: usize, samples: usize, seed: u64) -> (ImageGeometry, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>) {
+        let geometry = ImageGeometry::new(n, (30.0f64 / n as f64).to_radians()).unwrap();
+        let radius = 0.25 / geometry.pixel_rad;
+        let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let (mut u, mut v, mut w, mut weight) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for _ in 0..samples {
+            let (r, a) = (radius * next().sqrt(), 2.0 * PI * next());
+            u.push(r * a.cos());
+            v.push(r * a.sin());
+            w.push(radius * (2.0 * next() - 1.0));
+            weight.push(0.5 + next());
+        }
+        (geometry, u, v, w, weight)
+    }
+
+    fn relative(a: &[f64], b: &[f64]) -> f64 {
+        let d: f64 = a.iter().zip(b).map(|(a, b)| (a - b) * (a - b)).sum();
+        let r: f64 = b.iter().map(|b| b * b).sum();
+        (d / r).sqrt()
+    }
+
+    #[test]
+    fn the_tap_fit_meets_its_accuracy_at_offsets_and_points_it_was_not_measured_on() {
+        for (sigma, epsilon) in [(2.0, 1e-4), (4.0, 1e-7), (6.0, 1e-9)] {
+            let taps = WTaps::for_accuracy(sigma, epsilon).expect("a fit");
+            assert!(taps.error() <= epsilon, "{sigma} {epsilon}: {}", taps.error());
+            // Fewer taps would not do.
+            assert!(WTaps::new(sigma, taps.taps() - 2).unwrap().error() > epsilon);
+            let half = 0.5 / sigma;
+            let mut worst = 0.0f64;
+            for i in 0..97 {
+                let f = (i as f64 * 0.618_034).fract();
+                let s = half * ((i as f64 * 0.414_214).fract() * 2.0 - 1.0);
+                let approx: Complex64 = (0..taps.taps()).map(|m| taps.coefficient(f, m) * Complex64::cis(-2.0 * PI * taps.offset(m) as f64 * s)).sum();
+                worst = worst.max((approx - Complex64::cis(-2.0 * PI * f * s)).norm());
+            }
+            assert!(worst <= 1.5 * epsilon, "{sigma}: {worst:e} against {epsilon:e}");
+        }
+        assert!(WTaps::new(4.0, 3).is_err() && WTaps::new(1.0, 4).is_err());
+    }
+
+    #[test]
+    fn the_w_toeplitz_form_is_the_normal_operator_of_the_direct_sums() {
+        let (geometry, u, v, w, weight) = wide_field(32, 300, 3);
+        let (n, pixel) = (geometry.size, geometry.pixel_rad);
+        let max_uv = u.iter().zip(&v).map(|(u, v)| u.hypot(*v)).fold(0.0, f64::max);
+        let max_w = w.iter().fold(0.0f64, |m, w| m.max(w.abs()));
+        assert!(2.0 * PI * max_w * max_t_difference(geometry).unwrap() > 2.0, "the w-term must matter here");
+        let x: Vec<f64> = (0..n * n).map(|p| ((p as f64 * 0.37).sin() + 1.2) * if p % 7 == 0 { 3.0 } else { 1.0 }).collect();
+        let xc: Vec<Complex64> = x.iter().map(|&a| Complex64::new(a, 0.0)).collect();
+        let vis = direct::forward_w(n, pixel, &u, &v, &w, &xc);
+        let weighted: Vec<Complex64> = vis.iter().zip(&weight).map(|(v, w)| v * w).collect();
+        let truth: Vec<f64> = direct::adjoint_w(n, pixel, &u, &v, &w, &weighted).into_iter().map(|c| c.re).collect();
+        for epsilon in [1e-4, 1e-7] {
+            let nufft = NufftParams { epsilon, oversampling: 2.0 };
+            let plan = WToeplitzPlan::new(geometry, max_w, epsilon).unwrap();
+            let mut builder = WToeplitzBuilder::new(geometry, plan, max_uv, nufft, 2).unwrap();
+            // In two chunks, as read.
+            builder.add(&u[..120], &v[..120], &w[..120], &weight[..120]).unwrap();
+            builder.add(&u[120..], &v[120..], &w[120..], &weight[120..]).unwrap();
+            let (op, psf_2n) = builder.finish().unwrap();
+            let error = relative(&op.apply(&x), &truth);
+            assert!(error < 3.0 * epsilon, "epsilon {epsilon:e}: {error:e} ({} planes, {} taps)", op.planes(), op.taps());
+            // The PSF is D of a delta; the 2N PSF the coplanar one.
+            let ones: Vec<Complex64> = weight.iter().map(|&w| Complex64::new(w, 0.0)).collect();
+            let psf_truth: Vec<f64> = direct::adjoint_w(n, pixel, &u, &v, &w, &ones).into_iter().map(|c| c.re).collect();
+            assert!(relative(&op.psf(), &psf_truth) < 3.0 * epsilon);
+            let mut coplanar = doubled_psf(geometry, &u, &v, &weight, 1.0, nufft, 2).unwrap();
+            let m = 2 * n;
+            for i in 0..m {
+                coplanar[i] = 0.0;
+                coplanar[i * m] = 0.0;
+            }
+            assert!(relative(&psf_2n, &coplanar) < 3.0 * epsilon);
+            // The w-gridded operator agrees as well.
+            let wgridded = MeasurementOperator::part_for_mode(true, geometry, &u, &v, &w, &weight, nufft, 2).unwrap();
+            assert!(relative(&op.apply(&x), &wgridded.apply_normal(&x)) < 4.0 * epsilon);
+        }
+    }
+
+    #[test]
+    fn a_sample_outside_the_planned_range_is_refused() {
+        let (geometry, u, v, w, weight) = wide_field(32, 50, 5);
+        let max_uv = u.iter().zip(&v).map(|(u, v)| u.hypot(*v)).fold(0.0, f64::max);
+        let plan = WToeplitzPlan::new(geometry, 1.0, 1e-6).unwrap();
+        let mut builder = WToeplitzBuilder::new(geometry, plan, max_uv, NufftParams::default(), 1).unwrap();
+        let e = builder.add(&u, &v, &w, &weight).unwrap_err().to_string();
+        assert!(e.contains("outside the planes"), "{e}");
+        // Beyond memory: refused before anything is allocated.
+        let plan = WToeplitzPlan::new(geometry, 1e12, 1e-6).unwrap();
+        let e = WToeplitzBuilder::new(geometry, plan, max_uv, NufftParams::default(), 1).err().unwrap().to_string();
+        assert!(e.contains("w-planes"), "{e}");
+        let plan = WToeplitzPlan::new(geometry, 1e3, 1e-6).unwrap();
+        let mut builder = WToeplitzBuilder::new(geometry, plan, max_uv / 2.0, NufftParams::default(), 1).unwrap();
+        let e = builder.add(&u, &v, &w, &weight).unwrap_err().to_string();
+        assert!(e.contains("beyond the coordinate bound"), "{e}");
+    }
+}
