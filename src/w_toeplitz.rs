@@ -264,6 +264,17 @@ impl WToeplitzBuilder {
         Ok(WToeplitzBuilder { geometry, plan, adjoint, threads, samples: 0 })
     }
 
+    pub fn planes(&self) -> usize {
+        self.plan.planes
+    }
+    pub fn taps(&self) -> usize {
+        self.plan.taps.taps()
+    }
+    /// The band's oversampling of the plane spacing.
+    pub fn sigma(&self) -> f64 {
+        self.plan.taps.sigma()
+    }
+
     /// Bytes of the grids being built.
     pub fn grid_bytes(&self) -> usize {
         self.adjoint.grid_bytes()

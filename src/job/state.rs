@@ -8,6 +8,7 @@ use crate::metrics;
 use crate::nufft::NufftParams;
 use crate::operator::{ImageGeometry, PsfConvolution};
 use crate::vis::{DataOperator, ObservationMeta, VisSource, Visibilities};
+use crate::w_toeplitz::WToeplitz;
 use crate::weighting::WeightRule;
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
@@ -29,6 +30,9 @@ pub struct Imaging {
     /// Why the PSF convolution is not `D` to the NUFFT's accuracy for this job (the operator
     /// includes the w-term), so the residual update must use the operator; `None` where it is.
     pub toeplitz_inexact: Option<String>,
+    /// `D` with the w-term as one convolution per w-plane, where it was built in the gridding
+    /// pass: the residual update's, in place of the operator.
+    pub w_toeplitz: Option<Arc<WToeplitz>>,
     /// The NUFFT the images were made with and whether it included the w-term: what a
     /// prediction from the model (`MODEL_DATA`) must use.
     pub nufft: NufftParams,

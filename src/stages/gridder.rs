@@ -4,10 +4,12 @@
 
 use super::params::GridderParams;
 use crate::nufft::NufftParams;
-use crate::operator::{doubled_psf, MeasurementOperator, PsfConvolution, WTermMode};
+use crate::operator::{doubled_psf, normalise_by_psf_peak, ImageGeometry, MeasurementOperator, PsfConvolution, WTermMode};
+use crate::w_toeplitz::{WToeplitz, WToeplitzBuilder, WToeplitzPlan};
+use crate::weighting::WeightRule;
 use crate::job::{Emit, Imaging, Job};
 use crate::pipeline::{Port, Stage};
-use crate::vis::{chunk_weights, source_images, DataOperator, PartPass, StreamedOperator, VisSource};
+use crate::vis::{check_gridded_samples, chunk_weights, source_images, w_toeplitz_images, DataOperator, PartPass, StreamedOperator, VisSource};
 use crate::{Error, Result};
 use std::sync::Arc;
 
@@ -42,6 +44,66 @@ impl GridderStage {
     }
 }
 
+impl GridderStage {
+    /// The builder of the w-aware Toeplitz form of `D` for a job whose samples reach `|w| <=
+    /// max_abs_w` and `sqrt(u^2 + v^2) <= max_uv`, if one is accurate enough and fits in memory
+    /// (otherwise the residual update runs through the operator, and the log says why).
+    fn w_toeplitz_builder(&self, id: &str, geometry: ImageGeometry, max_abs_w: f64, max_uv: f64) -> Option<WToeplitzBuilder> {
+        let Some(plan) = WToeplitzPlan::new(geometry, max_abs_w, self.nufft.epsilon) else {
+            log::info!("job {id}: no w-aware Toeplitz form reaches the accuracy {:e} on this field: the residual update runs through the operator", self.nufft.epsilon);
+            return None;
+        };
+        WToeplitzBuilder::new(geometry, plan, max_uv, self.nufft, self.threads)
+            .map_err(|e| log::info!("job {id}: the residual update runs through the operator: {e}"))
+            .ok()
+    }
+
+    /// One pass over `source` for the dirty image and the kernels of `D`'s w-aware Toeplitz
+    /// form, normalised: the samples are not needed again. `None` where the source's parts
+    /// cannot add to one builder (they live in other processes).
+    fn w_toeplitz_pass(&self, id: &str, source: &VisSource, rule: &WeightRule, mut builder: WToeplitzBuilder, pass: PartPass) -> Result<Option<ToeplitzImages>> {
+        let geometry = pass.geometry()?;
+        let (planes, taps, sigma) = (builder.planes(), builder.taps(), builder.sigma());
+        let grid_bytes = builder.grid_bytes() as f64;
+        // The chunks take what the hold limit leaves beside the kernels' grids.
+        let room = (self.hold_bytes - grid_bytes).max(0.0);
+        let pass = PartPass { chunk_rows: self.chunk_rows.max((room / STREAMED_BYTES_PER_SAMPLE) as usize), ..pass };
+        let images = match source {
+            VisSource::Parts(parts) => match parts.passes.w_toeplitz_images(&pass, rule, &mut builder)? {
+                Some(images) => images,
+                None => {
+                    log::info!("job {id}: the parts ({}) cannot add to one w-aware Toeplitz form: the residual update runs through the operator", parts.passes.describe());
+                    return Ok(None);
+                }
+            },
+            _ => w_toeplitz_images(source, &pass, rule, &mut builder)?,
+        };
+        check_gridded_samples(source, images.samples)?;
+        let (mut op, mut psf_2n) = builder.finish()?;
+        let mut dirty = images.dirty;
+        let mut psf = op.psf();
+        let kappa = normalise_by_psf_peak(geometry.size, &mut dirty, &mut psf)?;
+        psf_2n.iter_mut().for_each(|p| *p *= kappa);
+        op.scale(kappa);
+        log::info!(
+            "job {id}: the residual update convolves with the kernels of {planes} w-planes ({taps} taps at oversampling {sigma}; {} kept, {} of grids while gridding), built in the gridding pass: the samples are read once",
+            crate::limits::format_bytes(op.bytes() as f64),
+            crate::limits::format_bytes(grid_bytes)
+        );
+        Ok(Some(ToeplitzImages { dirty, psf, psf_2n, planes: images.planes, operator: op }))
+    }
+}
+
+/// What [`GridderStage::w_toeplitz_pass`] makes.
+struct ToeplitzImages {
+    dirty: Vec<f64>,
+    psf: Vec<f64>,
+    psf_2n: Vec<f64>,
+    /// The most w-planes of a chunk's operator (the dirty image's).
+    planes: Option<usize>,
+    operator: WToeplitz,
+}
+
 impl Stage<Job> for GridderStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
         let (geometry, rule) = job.take_weights("gridder")?;
@@ -67,7 +129,20 @@ impl Stage<Job> for GridderStage {
         let stream_operator = needs_operator && (in_parts || (source.is_streamed() && held_bytes > self.hold_bytes));
         let scheme = rule.scheme();
         let pass = |w_term: bool, chunk_rows: usize| PartPass::new(geometry, scheme, 0.0, w_term, self.nufft, self.threads, chunk_rows);
-        let (dirty, psf, psf_2n, operator, kept) = if stream_operator {
+        // With the w-term and the convolution form of the residual update, one pass makes the
+        // dirty image and the kernels of D's w-aware Toeplitz form: the samples are not needed
+        // again, whatever their number.
+        let builder = if w_term && !self.keep_operator { self.w_toeplitz_builder(&job.id, geometry, max_abs_w, summary.max_uv) } else { None };
+        let toeplitz = match builder {
+            Some(builder) => self.w_toeplitz_pass(&job.id, &source, &rule, builder, pass(true, self.chunk_rows))?,
+            None => None,
+        };
+        let mut dirty_planes = None;
+        let (dirty, psf, psf_2n, operator, kept, w_toeplitz) = if let Some(images) = toeplitz {
+            drop(source);
+            dirty_planes = images.planes;
+            (images.dirty, images.psf, images.psf_2n, None, None, Some(Arc::new(images.operator)))
+        } else if stream_operator {
             if let VisSource::Parts(parts) = &source {
                 log::info!("job {}: the operator applies to the {} samples where they live ({}) at each residual update", job.id, summary.samples, parts.passes.describe());
             } else {
@@ -86,7 +161,7 @@ impl Stage<Job> for GridderStage {
             // Chunks as large as the hold limit allows: each costs its w-planes' FFTs.
             let chunk_rows = self.chunk_rows.max((self.hold_bytes / STREAMED_BYTES_PER_SAMPLE) as usize);
             let g = StreamedOperator::grid(source, rule, pass(w_term, chunk_rows))?;
-            (g.dirty, g.psf, g.psf_2n, Some(Arc::new(DataOperator::Streamed(g.operator))), None)
+            (g.dirty, g.psf, g.psf_2n, Some(Arc::new(DataOperator::Streamed(g.operator))), None, None)
         } else if needs_operator {
             if source.is_streamed() {
                 crate::limits::check_memory(held_bytes, &format!("the {} samples of job '{}' held for the operator", summary.samples, job.id))
@@ -118,14 +193,14 @@ impl Stage<Job> for GridderStage {
             }
             let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, operator.kappa(), self.nufft, self.threads)?;
             let kept = self.keep_operator.then_some(vis);
-            (dirty, psf, psf_2n, Some(Arc::new(DataOperator::Held(operator))), kept)
+            (dirty, psf, psf_2n, Some(Arc::new(DataOperator::Held(operator))), kept, None)
         } else {
             // Gridded a chunk at a time as read (or where its parts live), then released.
             let images = source_images(&source, &pass(false, self.chunk_rows), &rule)?.normalise(geometry.size)?;
             drop(source);
-            (images.dirty, images.psf, images.psf_2n, None, None)
+            (images.dirty, images.psf, images.psf_2n, None, None, None)
         };
-        let planes = operator.as_ref().and_then(|op| op.w_planes());
+        let planes = operator.as_ref().and_then(|op| op.w_planes()).or(dirty_planes);
         let toeplitz_inexact = w_term.then(|| {
             format!("the operator includes the w-term (phase up to {max_phase:.3} rad over the field), which a PSF convolution does not")
         });
@@ -144,7 +219,8 @@ impl Stage<Job> for GridderStage {
         }
         job.settings.insert(
             "w_term".into(),
-            serde_json::json!({"mode": self.w_term.name(), "corrected": w_term, "planes": planes, "max_abs_w": max_abs_w, "max_phase_rad": max_phase}),
+            serde_json::json!({"mode": self.w_term.name(), "corrected": w_term, "planes": planes, "max_abs_w": max_abs_w, "max_phase_rad": max_phase,
+                "toeplitz_planes": w_toeplitz.as_ref().map(|op| op.planes())}),
         );
         crate::sanity::check_image(&dirty, geometry.size, "dirty image", "the visibilities or weights hold values too large to image (check the data column and the weights)")?;
         let psf_convolution = PsfConvolution::new(geometry.size, &psf_2n)?;
@@ -170,6 +246,7 @@ impl Stage<Job> for GridderStage {
             psf_2n: Arc::new(psf_2n),
             operator,
             toeplitz_inexact,
+            w_toeplitz,
             nufft: self.nufft,
             w_term,
             model: vec![0.0; n],

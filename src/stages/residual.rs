@@ -1,8 +1,9 @@
 //! `kind: residual`: `r = x_d - D x` after each network step, the per-iteration metrics, and
 //! the loop exit (series finished or early stop).
 //!
-//! `method: toeplitz` (default) convolves with the 2N PSF: once gridding is done, memory no
-//! longer grows with the number of visibilities. `method: nufft` is the exact round trip
+//! `method: toeplitz` (default) convolves with the 2N PSF, or with the w-term with one kernel
+//! per w-plane (`crate::w_toeplitz`): once gridding is done, memory no longer grows with the
+//! number of visibilities. `method: nufft` is the exact round trip
 //! through the kept visibilities (the reference's choice).
 
 use super::params::{ResidualMethod, ResidualParams};
@@ -127,17 +128,18 @@ impl Stage<Job> for ResidualStage {
         let iteration = job.iteration;
         let id = job.id.clone();
         let im = job.imaging_mut("residual")?;
-        let d_x = match (method, &im.toeplitz_inexact, &im.operator) {
-            (ResidualMethod::Toeplitz, None, _) => im.psf_convolution.apply(&im.model),
-            (ResidualMethod::Toeplitz, Some(why), Some(op)) => {
+        let d_x = match (method, &im.w_toeplitz, &im.toeplitz_inexact, &im.operator) {
+            (ResidualMethod::Toeplitz, Some(w_toeplitz), _, _) => w_toeplitz.apply(&im.model),
+            (ResidualMethod::Toeplitz, None, None, _) => im.psf_convolution.apply(&im.model),
+            (ResidualMethod::Toeplitz, None, Some(why), Some(op)) => {
                 if iteration == 1 {
                     log::info!("job {id}: the residual update runs through the operator instead of the PSF convolution: {why}");
                 }
                 op.apply_normal(&im.model)?
             }
-            (_, _, Some(op)) => op.apply_normal(&im.model)?,
-            (ResidualMethod::Nufft, _, None) => return Err(Error::parameter("method", "nufft needs the visibilities, which the gridder released")),
-            (ResidualMethod::Toeplitz, Some(why), None) => {
+            (_, _, _, Some(op)) => op.apply_normal(&im.model)?,
+            (ResidualMethod::Nufft, _, _, None) => return Err(Error::parameter("method", "nufft needs the visibilities, which the gridder released")),
+            (ResidualMethod::Toeplitz, None, Some(why), None) => {
                 return Err(Error::parameter("method", format!("the PSF convolution is not exact here ({why}) and the gridder kept no operator")))
             }
         };

@@ -88,24 +88,31 @@ pub fn source_images(vis: &VisSource, pass: &PartPass, rule: &WeightRule) -> Res
     match vis {
         VisSource::Parts(parts) => {
             let images = parts.passes.images(pass, rule)?;
-            // Each part is read once more for its images: they must hold the samples their
-            // summaries counted, or a part changed (or went missing) meanwhile.
-            if images.samples != parts.summary.samples {
-                return Err(Error::parameter(
-                    "parts",
-                    format!(
-                        "the parts of job '{}' ({}) gridded {} samples where their first reading found {}: was a part written to meanwhile? nothing was written",
-                        parts.id,
-                        parts.passes.describe(),
-                        images.samples,
-                        parts.summary.samples
-                    ),
-                ));
-            }
+            check_gridded_samples(vis, images.samples)?;
             Ok(images)
         }
         _ => part_images(vis, pass, rule),
     }
+}
+
+/// An error where a pass over `vis` gridded another number of samples than its first reading
+/// found: a part (or the file) changed, or went missing, meanwhile.
+pub fn check_gridded_samples(vis: &VisSource, gridded: u64) -> Result<()> {
+    let found = vis.summary().samples;
+    if gridded == found {
+        return Ok(());
+    }
+    Err(match vis {
+        VisSource::Parts(parts) => Error::parameter(
+            "parts",
+            format!(
+                "the parts of job '{}' ({}) gridded {gridded} samples where their first reading found {found}: was a part written to meanwhile? nothing was written",
+                parts.id,
+                parts.passes.describe(),
+            ),
+        ),
+        _ => Error::parameter("visibilities", format!("the gridding pass read {gridded} samples where the first reading found {found}: was the input written to meanwhile? nothing was written")),
+    })
 }
 
 impl StreamedOperator {

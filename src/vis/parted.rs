@@ -7,6 +7,7 @@
 use super::data::{ObservationMeta, VisSummary};
 use crate::nufft::NufftParams;
 use crate::operator::{normalise_by_psf_peak, ImageGeometry};
+use crate::w_toeplitz::WToeplitzBuilder;
 use crate::weighting::{DensityGrid, WeightRule, Weighting, WeightingScheme};
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
@@ -129,6 +130,13 @@ pub trait PartPasses: Send + Sync {
     fn density(&self, pass: &PartPass) -> Result<DensityGrid>;
     /// The summed images of the parts.
     fn images(&self, pass: &PartPass, rule: &WeightRule) -> Result<PartImages>;
+    /// The parts' dirty images (as [`w_toeplitz_images`](super::w_toeplitz_images)), with
+    /// the kernels of the w-aware Toeplitz form of their `D` added to `builder` in the same
+    /// pass; `None` where the parts cannot add to one builder (they live in other processes):
+    /// the residual update then runs through the operator over the parts.
+    fn w_toeplitz_images(&self, _pass: &PartPass, _rule: &WeightRule, _builder: &mut WToeplitzBuilder) -> Result<Option<PartImages>> {
+        Ok(None)
+    }
     /// The summed `Re{Phi^H Phi x}` of the parts.
     fn apply_normal(&self, pass: &PartPass, rule: &WeightRule, x: &[f64]) -> Result<Vec<f64>>;
 }

@@ -6,6 +6,7 @@ use super::data::VisChunk;
 use super::parted::{add_to, PartImages, PartPass, PartPasses};
 use super::stream::VisSource;
 use crate::operator::{ImageGeometry, ImageGridder, MeasurementOperator};
+use crate::w_toeplitz::WToeplitzBuilder;
 use crate::weighting::{DensityGrid, WeightRule, Weighting};
 use crate::{Error, Result};
 use rayon::prelude::*;
@@ -79,6 +80,26 @@ pub fn part_images(vis: &VisSource, pass: &PartPass, rule: &WeightRule) -> Resul
     Ok(PartImages { dirty, psf, psf_2n, samples, planes })
 }
 
+/// The dirty image of `vis` weighted by `rule` through each chunk's w-gridded operator, with
+/// the kernels of the w-aware Toeplitz form gridded by `builder` in the same pass (the
+/// residual update's `D` thereafter: the samples are not needed again); not normalised, the
+/// PSFs left empty (the finished kernels give them).
+pub fn w_toeplitz_images(vis: &VisSource, pass: &PartPass, rule: &WeightRule, builder: &mut WToeplitzBuilder) -> Result<PartImages> {
+    let (geometry, nufft) = (pass.geometry()?, pass.nufft());
+    let mut dirty = vec![0.0; geometry.pixels()];
+    let (mut samples, mut planes) = (0u64, None);
+    vis.for_each_chunk(pass.chunk_rows, &mut |c| {
+        let weight = chunk_weights(&c, geometry, rule)?;
+        let op = MeasurementOperator::part_for_mode(true, geometry, c.u, c.v, c.w, &weight, nufft, pass.threads)?;
+        add_to(&mut dirty, &op.dirty_image(c.vis));
+        planes = planes.max(op.w_planes());
+        samples += c.len() as u64;
+        drop(op);
+        builder.add(c.u, c.v, c.w, &weight)
+    })?;
+    Ok(PartImages { dirty, psf: Vec::new(), psf_2n: Vec::new(), samples, planes })
+}
+
 /// `Re{Phi^H Phi x}` over a part's samples (not scaled by `kappa`, which is the whole's), each
 /// chunk's operator planned, applied and dropped.
 pub fn part_apply_normal(vis: &VisSource, pass: &PartPass, rule: &WeightRule, x: &[f64]) -> Result<Vec<f64>> {
@@ -123,6 +144,13 @@ impl PartPasses for LocalParts {
             sum.add(&part_images(part, pass, rule)?)?;
         }
         Ok(sum)
+    }
+    fn w_toeplitz_images(&self, pass: &PartPass, rule: &WeightRule, builder: &mut WToeplitzBuilder) -> Result<Option<PartImages>> {
+        let mut sum = PartImages::default();
+        for part in &self.parts {
+            sum.add(&w_toeplitz_images(part, pass, rule, builder)?)?;
+        }
+        Ok(Some(sum))
     }
     fn apply_normal(&self, pass: &PartPass, rule: &WeightRule, x: &[f64]) -> Result<Vec<f64>> {
         let mut sum = vec![0.0; x.len()];
