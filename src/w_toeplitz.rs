@@ -199,6 +199,8 @@ pub struct WToeplitzPlan {
     /// Index `j` of the first plane (`w_j = j delta`).
     pub first: i64,
     pub planes: usize,
+    /// The `|w|` bound it was made for.
+    pub max_abs_w: f64,
     size: usize,
 }
 
@@ -219,7 +221,7 @@ impl WToeplitzPlan {
                 let last = (max_abs_w / delta).floor() as i64 + (taps.taps() / 2) as i64;
                 let first = 1 - (taps.taps() / 2) as i64;
                 let planes = usize::try_from(last - first + 1).ok()?;
-                Some(WToeplitzPlan { taps, delta, first, planes, size: geometry.size })
+                Some(WToeplitzPlan { taps, delta, first, planes, max_abs_w, size: geometry.size })
             })
             .min_by_key(|p| (p.planes, p.taps.taps()))
     }
@@ -249,6 +251,11 @@ pub struct WToeplitzBuilder {
     adjoint: ChunkedAdjoint,
     threads: usize,
     samples: u64,
+    /// The uv radius it grids up to.
+    max_uv: f64,
+    /// Kernels (planes after one another) and coplanar 2N PSF finished elsewhere (parts built
+    /// in other processes), added to these at the end.
+    finished: Option<(Vec<f64>, Vec<f64>)>,
 }
 
 impl WToeplitzBuilder {
@@ -261,11 +268,37 @@ impl WToeplitzBuilder {
         crate::limits::check_memory(plan.kept_bytes() * 1.5, &format!("the {} w-planes of a w-aware Toeplitz form", plan.planes)).map_err(|m| Error::parameter("w-Toeplitz plan", m))?;
         let max_phase = 2.0 * PI * geometry.pixel_rad * max_uv * (1.0 + 1e-12);
         let adjoint = ChunkedAdjoint::windowed(doubled.size, doubled.size, plan.planes.div_ceil(2), max_phase, nufft, threads)?;
-        Ok(WToeplitzBuilder { geometry, plan, adjoint, threads, samples: 0 })
+        Ok(WToeplitzBuilder { geometry, plan, adjoint, threads, samples: 0, max_uv, finished: None })
     }
 
     pub fn planes(&self) -> usize {
         self.plan.planes
+    }
+    /// The `|w|` and uv radius bounds it was made for: a builder of a part in another process
+    /// made for the same (and the same image and accuracy) has the same planes.
+    pub fn bounds(&self) -> (f64, f64) {
+        (self.plan.max_abs_w, self.max_uv)
+    }
+
+    /// Adds the kernels (`planes x (2N)^2`, planes after one another, as
+    /// [`WToeplitz::kernels`]) and coplanar 2N PSF of samples built by another builder of the
+    /// same plan (a part in another process).
+    pub fn add_finished(&mut self, kernels: &[f64], psf_2n: &[f64]) -> Result<()> {
+        let m = 2 * self.geometry.size;
+        if kernels.len() != self.plan.planes * m * m || psf_2n.len() != m * m {
+            return Err(Error::parameter(
+                "w-Toeplitz kernels",
+                format!("expected {} planes of {m} x {m} and a {m} x {m} PSF, got {} and {} values", self.plan.planes, kernels.len(), psf_2n.len()),
+            ));
+        }
+        match &mut self.finished {
+            Some((k, p)) => {
+                k.iter_mut().zip(kernels).for_each(|(a, b)| *a += b);
+                p.iter_mut().zip(psf_2n).for_each(|(a, b)| *a += b);
+            }
+            None => self.finished = Some((kernels.to_vec(), psf_2n.to_vec())),
+        }
+        Ok(())
     }
     pub fn taps(&self) -> usize {
         self.plan.taps.taps()
@@ -330,7 +363,7 @@ impl WToeplitzBuilder {
     /// [`doubled_psf`](crate::operator::doubled_psf), unscaled; its row and column 0, offsets
     /// `-N` that no `N x N` image reaches, are zero).
     pub fn finish(self) -> Result<(WToeplitz, Vec<f64>)> {
-        let WToeplitzBuilder { geometry, plan, adjoint, threads, .. } = self;
+        let WToeplitzBuilder { geometry, plan, adjoint, threads, finished, .. } = self;
         let (n, m) = (geometry.size, 2 * geometry.size);
         let pool = crate::parallel::shared_pool(threads)?;
         let forward = Fft2::new(m, m, FftDirection::Forward);
@@ -357,7 +390,13 @@ impl WToeplitzBuilder {
         });
         let mut psf_2n: Vec<Complex64> = coplanar.into_iter().map(|k| Complex64::new(k, 0.0)).collect();
         pool.install(|| inverse.process(&mut psf_2n));
-        let psf_2n = psf_2n.into_iter().map(|c| c.re).collect();
+        let mut psf_2n: Vec<f64> = psf_2n.into_iter().map(|c| c.re).collect();
+        if let Some((other, other_psf)) = finished {
+            for (kernel, other) in kernels.iter_mut().zip(other.chunks_exact(m * m)) {
+                kernel.iter_mut().zip(other).for_each(|(a, b)| *a += b);
+            }
+            psf_2n.iter_mut().zip(&other_psf).for_each(|(a, b)| *a += b);
+        }
         let planes = kernels.into_iter().enumerate().map(|(j, kernel_hat)| WPlane { w: (plan.first + j as i64) as f64 * plan.delta, kernel_hat }).collect();
         let half = n as f64 / 2.0;
         let t = (0..n * n)
@@ -407,6 +446,12 @@ impl WToeplitz {
     /// Bytes of its kernels.
     pub fn bytes(&self) -> usize {
         self.planes.iter().map(|p| p.kernel_hat.len() * 8).sum()
+    }
+
+    /// The kernels' FFTs, planes after one another (what [`WToeplitzBuilder::add_finished`]
+    /// takes).
+    pub fn kernels(&self) -> Vec<f64> {
+        self.planes.iter().flat_map(|p| p.kernel_hat.iter().copied()).collect()
     }
 
     /// Multiplies the operator by `kappa`.

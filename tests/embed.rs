@@ -61,11 +61,14 @@ fn image_from_record_batches_returns_the_products_as_arrays() {
     let products = engine().image(input("obs", &obs), &clean_params()).unwrap();
     assert_eq!(products.id, "obs");
     assert_eq!(products.size, SIZE);
-    // The dirty image is the library's, made from the same visibilities directly.
+    // The dirty image is the library's, made from the same visibilities directly, to the
+    // NUFFT's accuracy: with the w-term the job grids it beside the kernels of the w-aware
+    // Toeplitz form, and its PSF (whose peak normalises it) is that form's.
     let (vis, _) = obs.table.to_visibilities("table").unwrap();
     let reference = dirty_image(&vis, &DirtyParams { size: SIZE, threads: 2, ..DirtyParams::default() }).unwrap();
-    let expected: Vec<f32> = reference.dirty.iter().map(|&v| v as f32).collect();
-    assert_eq!(products.dirty, expected);
+    let peak = reference.dirty.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let worst = products.dirty.iter().zip(&reference.dirty).fold(0.0f64, |m, (a, b)| m.max((f64::from(*a) - b).abs()));
+    assert!(worst <= 1e-5 * peak, "{worst:e} of {peak}");
     assert_eq!(products.psf.len(), SIZE * SIZE);
     let peak = products.psf[SIZE / 2 * SIZE + SIZE / 2];
     assert!((peak - 1.0).abs() < 1e-5, "PSF peak {peak}");

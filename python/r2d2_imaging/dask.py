@@ -224,6 +224,12 @@ class _DaskPasses:
         planes = [r[4] for r in results if r[4] is not None]
         return dirty, psf, psf_2n, int(sum(r[3] for r in results)), max(planes) if planes else None
 
+    def w_toeplitz_images(self, text, density, f2, max_abs_w, max_uv):
+        results = self._map(_native.part_w_toeplitz, self._pass(text), self._scattered_rule(density, f2), f2, max_abs_w, max_uv)
+        dirty, kernels, psf_2n = (functools.reduce(np.add, [r[k] for r in results]) for k in (0, 3, 4))
+        planes = [r[2] for r in results if r[2] is not None]
+        return dirty, int(sum(r[1] for r in results)), max(planes) if planes else None, kernels, psf_2n
+
     def apply_normal(self, text, density, f2, x):
         x = self.client.scatter(np.asarray(x), broadcast=True, hash=False)
         return functools.reduce(np.add, self._map(_native.part_apply_normal, self._pass(text), self._scattered_rule(density, f2), f2, x))
@@ -240,12 +246,15 @@ def image_parts(client, parts: Sequence[Union[str, "os.PathLike[str]"]], *, id: 
     summary that fixes the pixel size and the w-term, the uv density of uniform and Briggs
     weighting, then the dirty image and PSFs, whose sums come back here. The image-domain loop
     (the networks, CLEAN, the PSF-convolution residual) runs once, in this process. With the
-    w-term, each residual update is one more task per part (the part's operator applied to the
-    model). ``part_threads``: each task's threads (0: every core of its worker).
+    w-term, each part also sends the kernels of its w-aware Toeplitz form (8 bytes x (2N)^2 a
+    w-plane), summed here, so the residual update needs the parts no more; where that form does
+    not fit or reach the accuracy, each residual update is one more task per part (the part's
+    operator applied to the model). ``part_threads``: each task's threads (0: every core of its
+    worker).
 
     The products equal :func:`r2d2_imaging.image` of the parts joined in one table: coplanar to
     the rounding of the sums, and with the w-term to the NUFFT's accuracy (each part has
-    w-planes of its own). ``params`` are :func:`r2d2_imaging.image`'s (``size``, ``step``,
+    w-planes of its own for its dirty image). ``params`` are :func:`r2d2_imaging.image`'s (``size``, ``step``,
     ``weighting`` ...); ``id`` names the job (default: the first part's file name)."""
     parts = [os.fspath(p) for p in parts]
     if not parts:

@@ -265,6 +265,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(parts::part_summary, m)?)?;
     m.add_function(wrap_pyfunction!(parts::part_density, m)?)?;
     m.add_function(wrap_pyfunction!(parts::part_images, m)?)?;
+    m.add_function(wrap_pyfunction!(parts::part_w_toeplitz, m)?)?;
     m.add_function(wrap_pyfunction!(parts::part_apply_normal, m)?)?;
     m.add("DEFAULT_WEIGHTING_GRID_FACTOR", r2d2_imaging::weighting::DEFAULT_GRID_FACTOR)?;
     Ok(())

@@ -9,6 +9,7 @@ use numpy::{PyArray1, PyReadonlyArray1};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use r2d2_imaging::vis::{self, open_pass, open_source, ObservationMeta, OpenOptions, PartImages, PartPass, PartPasses, PartedObservation, VisSummary};
+use r2d2_imaging::w_toeplitz::{WToeplitzBuilder, WToeplitzPlan};
 use r2d2_imaging::weighting::{DensityGrid, WeightRule};
 use r2d2_imaging::{Error, Result};
 use std::path::PathBuf;
@@ -110,6 +111,34 @@ pub fn part_images<'py>(
     ))
 }
 
+/// A part's dirty image with the kernels of its w-aware Toeplitz form, for the job's bounds
+/// `max_abs_w` and `max_uv` (the same planes on every part), not normalised: `(dirty, samples,
+/// planes, kernels, psf_2n)`, flattened row-major (the kernels plane after plane).
+#[pyfunction]
+#[allow(clippy::type_complexity, clippy::too_many_arguments)]
+pub fn part_w_toeplitz<'py>(
+    py: Python<'py>,
+    path: PathBuf,
+    pass: String,
+    density: PyReadonlyArray1<'py, f64>,
+    f2: f64,
+    max_abs_w: f64,
+    max_uv: f64,
+) -> PyResult<(Bound<'py, PyArray1<f64>>, u64, Option<usize>, Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
+    let density = density.as_slice()?.to_vec();
+    let (images, kernels, psf_2n) = run_released(py, move |_| {
+        let (pass, rule, source) = part_inputs(&path, &pass, density, f2)?;
+        let geometry = pass.geometry()?;
+        let plan = WToeplitzPlan::new(geometry, max_abs_w, pass.epsilon)
+            .ok_or_else(|| Error::parameter("w-Toeplitz plan", "no w-aware Toeplitz form reaches the accuracy on this part"))?;
+        let mut builder = WToeplitzBuilder::new(geometry, plan, max_uv, pass.nufft(), pass.threads)?;
+        let images = vis::w_toeplitz_images(&source, &pass, &rule, &mut builder)?;
+        let (op, psf_2n) = builder.finish()?;
+        Ok((images, op.kernels(), psf_2n))
+    })?;
+    Ok((PyArray1::from_vec(py, images.dirty), images.samples, images.planes, PyArray1::from_vec(py, kernels), PyArray1::from_vec(py, psf_2n)))
+}
+
 /// `Re{Phi^H Phi x}` over a part's samples (`x` flattened row-major), not scaled.
 #[pyfunction]
 pub fn part_apply_normal<'py>(
@@ -195,6 +224,24 @@ impl PartPasses for PythonPasses {
         })
         .map_err(|e| Python::with_gil(|py| python_error(py, "the parts' gridding pass", e)))
         .and_then(|images| check_sizes(pass, images))
+    }
+
+    fn w_toeplitz_images(&self, pass: &PartPass, rule: &WeightRule, builder: &mut WToeplitzBuilder) -> Result<Option<PartImages>> {
+        let (density, f2) = rule.raw();
+        let (max_abs_w, max_uv) = builder.bounds();
+        let (images, kernels, psf_2n) = Python::with_gil(|py| -> PyResult<(PartImages, Vec<f64>, Vec<f64>)> {
+            let density = PyArray1::from_slice(py, density);
+            let out = self.passes.call_method1(py, "w_toeplitz_images", (pass.to_json(), density, f2, max_abs_w, max_uv))?;
+            let (dirty, samples, planes, kernels, psf_2n): (PyReadonlyArray1<f64>, u64, Option<usize>, PyReadonlyArray1<f64>, PyReadonlyArray1<f64>) = out.extract(py)?;
+            let images = PartImages { dirty: dirty.as_slice()?.to_vec(), psf: Vec::new(), psf_2n: Vec::new(), samples, planes };
+            Ok((images, kernels.as_slice()?.to_vec(), psf_2n.as_slice()?.to_vec()))
+        })
+        .map_err(|e| Python::with_gil(|py| python_error(py, "the parts' gridding pass", e)))?;
+        if images.dirty.len() != pass.size * pass.size {
+            return Err(Error::parameter("parts", format!("the parts' gridding pass gave a dirty image of {} pixels where {} were expected", images.dirty.len(), pass.size * pass.size)));
+        }
+        builder.add_finished(&kernels, &psf_2n)?;
+        Ok(Some(images))
     }
 
     fn apply_normal(&self, pass: &PartPass, rule: &WeightRule, x: &[f64]) -> Result<Vec<f64>> {

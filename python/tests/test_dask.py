@@ -136,7 +136,8 @@ def parted(r2d2_bin, tmp_path_factory):
 def test_an_observation_in_parts_images_as_the_whole_table(client, parted, w_term):
     """Each part gridded by a worker, the sums imaged here: the products of the whole table in
     one process, coplanar to the rounding of the sums, with the w-term to the NUFFT's accuracy
-    (each part's w-planes are its own); the parts' tasks ran on both workers."""
+    (each part's w-planes are its own; the kernels of the residual update's w-aware Toeplitz
+    form summed over the parts); the parts' tasks ran on both workers."""
     whole, parts = parted
     params = dict(PARAMS, w_term=w_term, weighting="briggs", robust=0.0)
     with get_task_stream(client) as stream:
@@ -148,6 +149,10 @@ def test_an_observation_in_parts_images_as_the_whole_table(client, parted, w_ter
         assert np.max(np.abs(a - b)) <= tolerance * np.max(np.abs(a)), (w_term, name)
     assert products.id == "whole"
     assert products.metrics["settings"]["w_term"]["corrected"] == (w_term == "on")
+    # With the w-term, each part sent the kernels of its w-aware Toeplitz form: the residual
+    # update convolved, as the single process's did.
+    for run in (products, single):
+        assert (run.metrics["settings"]["w_term"]["toeplitz_planes"] is not None) == (w_term == "on")
     assert figures(products.metrics)[-1][0] == figures(single.metrics)[-1][0]
     assert len({task["worker"] for task in stream.data}) == 2
     assert {key_split(task["key"]) for task in stream.data} == {"r2d2-parts"}

@@ -192,9 +192,10 @@ pub struct GridderParams {
     /// than `epsilon` over the field), `on` or `off` (coplanar, for comparison).
     pub w_term: WTermMode,
     /// Most memory (MB) the samples of a job read from a file may take held in an operator
-    /// (the residual update through the operator: the w-term, `method: nufft`); above it
-    /// they are read again from the file at every update instead, in chunks as large as
-    /// this allows. Default 256.
+    /// (the residual update through the operator: `method: nufft`, or the w-term where its
+    /// Toeplitz form is not built); above it they are read again from the file at every
+    /// update instead, in chunks as large as this allows. With the w-term's Toeplitz form, the
+    /// gridding pass's chunks take what this leaves beside the kernels' grids. Default 256.
     pub hold_mb: f64,
     /// Samples per chunk of a pass over the data: what gridding holds beside its grids (about
     /// 100 bytes a sample). Default 1048576.
