@@ -87,16 +87,26 @@ impl WTaps {
     }
 
     /// Tap `m` (`0 .. taps`, for plane offset `m + 1 - taps/2`) at plane offset `f` in `[0, 1)`.
-    #[inline]
     pub fn coefficient(&self, f: f64, m: usize) -> f64 {
+        self.interpolated(&self.interpolation(f, 1.0), m)
+    }
+
+    /// Where offset `f` falls in the table and its cubic Lagrange weights (times `scale`).
+    #[inline]
+    fn interpolation(&self, f: f64, scale: f64) -> TapInterpolation {
         let u = f * TABLE_STEPS as f64;
         let i = (u.floor().max(0.0) as usize).min(TABLE_STEPS - 1);
         let r = u - i as f64;
-        // Cubic Lagrange weights on nodes i - 1 ..= i + 2 (stored at i ..= i + 3).
+        // On nodes i - 1 ..= i + 2 (stored at i ..= i + 3).
         let (a, b, c, d) = ((r + 1.0), r, (r - 1.0), (r - 2.0));
         let l = [-b * c * d / 6.0, a * c * d / 2.0, -a * b * d / 2.0, a * b * c / 6.0];
-        let t = self.taps;
-        (0..4).map(|k| l[k] * self.table[(i + k) * t + m]).sum()
+        TapInterpolation { row: (i * self.taps) as u32, base: 0, weights: l.map(|l| l * scale) }
+    }
+
+    #[inline]
+    fn interpolated(&self, p: &TapInterpolation, m: usize) -> f64 {
+        let (t, row) = (self.taps, p.row as usize + m);
+        p.weights[0] * self.table[row] + p.weights[1] * self.table[row + t] + p.weights[2] * self.table[row + 2 * t] + p.weights[3] * self.table[row + 3 * t]
     }
 
     /// Largest `|sum_m a_m(f) exp(-2 pi i m s) - exp(-2 pi i f s)|` over offsets `f` between
@@ -122,6 +132,15 @@ impl WTaps {
     fn offset(&self, m: usize) -> i64 {
         m as i64 + 1 - (self.taps / 2) as i64
     }
+}
+
+/// One sample's taps: its row of the table, its first plane, and the interpolation weights
+/// (times its weight).
+#[derive(Clone, Copy, Default)]
+struct TapInterpolation {
+    row: u32,
+    base: i32,
+    weights: [f64; 4],
 }
 
 /// The real least-squares problem of [`WTaps`] on a grid of the band, factored once
@@ -320,41 +339,45 @@ impl WToeplitzBuilder {
             return Err(Error::parameter("visibilities", "u, v, w and weight arrays differ in length"));
         }
         let (geometry, plan) = (self.geometry, &self.plan);
-        // Mirrored to w >= 0; each sample's plane offset and its first plane.
-        let mut x = vec![0.0; n];
-        let mut y = vec![0.0; n];
-        let mut frac = vec![0.0; n];
-        let mut base = vec![0i64; n];
-        let mut bad = None;
-        for k in 0..n {
-            let sign = if w[k] < 0.0 { -1.0 } else { 1.0 };
-            (x[k], y[k]) = geometry.uv_to_phase(sign * u[k], sign * v[k]);
+        let taps = plan.taps.taps();
+        let half = (taps / 2) as i64;
+        // Mirrored to w >= 0: its uv coordinates, and its first plane (`None`: outside the
+        // planes planned).
+        let first_plane = |k: usize| -> Option<(i64, f64)> {
             let z = w[k].abs() / plan.delta;
             let j0 = z.floor();
-            if !(j0.is_finite()) {
-                bad = Some(k);
-                break;
-            }
-            frac[k] = z - j0;
-            base[k] = j0 as i64 + 1 - (plan.taps.taps() / 2) as i64 - plan.first;
-            if base[k] < 0 || base[k] as usize + plan.taps.taps() > plan.planes {
-                bad = Some(k);
-                break;
-            }
-        }
-        if let Some(k) = bad {
+            let base = j0 as i64 + 1 - half - plan.first;
+            (j0.is_finite() && base >= 0 && base as usize + taps <= plan.planes).then_some((base, z - j0))
+        };
+        if let Some(k) = (0..n).find(|&k| first_plane(k).is_none()) {
             return Err(Error::parameter("w", format!("w = {} wavelengths lies outside the planes planned for |w| up to {}", w[k], plan.delta * (plan.planes as f64 + plan.first as f64))));
         }
-        let taps = plan.taps.taps();
-        let tap = |k: usize, j: usize| -> f64 {
-            let m = j as i64 - base[k];
+        let (x, y): (Vec<f64>, Vec<f64>) = (0..n)
+            .map(|k| {
+                let sign = if w[k] < 0.0 { -1.0 } else { 1.0 };
+                geometry.uv_to_phase(sign * u[k], sign * v[k])
+            })
+            .unzip();
+        // Each sample's taps, gathered in the gridder's order once for all the grids.
+        let prepare = |order: &[u32]| -> Vec<TapInterpolation> {
+            order
+                .par_iter()
+                .map(|&k| {
+                    let k = k as usize;
+                    let (base, frac) = first_plane(k).expect("checked");
+                    TapInterpolation { base: base as i32, ..plan.taps.interpolation(frac, weight[k]) }
+                })
+                .collect()
+        };
+        let tap = |p: &TapInterpolation, j: usize| -> f64 {
+            let m = j as i64 - i64::from(p.base);
             if m >= 0 && (m as usize) < taps {
-                plan.taps.coefficient(frac[k], m as usize)
+                plan.taps.interpolated(p, m as usize)
             } else {
                 0.0
             }
         };
-        self.adjoint.add(&x, &y, |t, k| Complex64::new(weight[k] * tap(k, 2 * t), weight[k] * tap(k, 2 * t + 1)))?;
+        self.adjoint.add_in_order(&x, &y, prepare, |points, t, i| Complex64::new(tap(&points[i], 2 * t), tap(&points[i], 2 * t + 1)))?;
         self.samples += n as u64;
         Ok(())
     }

@@ -788,6 +788,20 @@ impl ChunkedAdjoint {
     /// Adds the points `(x[k], y[k])` (as in [`Nufft2d::new`]) with value `value(t, k)` in
     /// transform `t`.
     pub fn add(&mut self, x: &[f64], y: &[f64], value: impl Fn(usize, usize) -> Complex64 + Sync) -> Result<()> {
+        self.add_in_order(x, y, |order| order.to_vec(), |order, t, i| value(t, order[i] as usize))
+    }
+
+    /// As [`add`](Self::add), with the values in the plan's order: `prepare` is given the
+    /// caller's index of each point in that order (once per chunk), and `value(prepared, t, i)`
+    /// is the `i`-th point's value in transform `t`. What each point needs is then gathered
+    /// once, not once per transform.
+    pub fn add_in_order<S: Send + Sync>(
+        &mut self,
+        x: &[f64],
+        y: &[f64],
+        prepare: impl FnOnce(&[u32]) -> S + Send,
+        value: impl Fn(&S, usize, usize) -> Complex64 + Sync,
+    ) -> Result<()> {
         if x.len() > u32::MAX as usize {
             return Err(Error::parameter("points", "more than 2^32 points in one chunk"));
         }
@@ -809,9 +823,10 @@ impl ChunkedAdjoint {
             }
         }
         let plan = &self.plan;
+        let prepared = plan.install(|| prepare(&plan.order));
         for (t, grid) in self.grids.iter_mut().enumerate() {
             plan.install(|| {
-                let sorted: Vec<Complex64> = plan.order.par_iter().map(|&k| value(t, k as usize)).collect();
+                let sorted: Vec<Complex64> = (0..plan.order.len()).into_par_iter().map(|i| value(&prepared, t, i)).collect();
                 let sources = plan.tasks.iter().map(|task| Source::Sorted(&sorted[task.points.clone()])).collect();
                 dispatch_support!(plan.shape.support, W, W2, L => plan.grid::<W, W2, L>(sources, grid));
             });
