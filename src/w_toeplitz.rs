@@ -252,6 +252,11 @@ impl WToeplitzPlan {
     }
 }
 
+/// The largest coordinate (radians per pixel) of samples up to `max_uv` on `geometry`.
+fn max_phase(geometry: ImageGeometry, max_uv: f64) -> f64 {
+    2.0 * PI * geometry.pixel_rad * max_uv * (1.0 + 1e-12)
+}
+
 /// Largest `|t_p - t_q|` over the image: `-t` at the farthest corner (`t = 0` at the centre).
 fn max_t_difference(geometry: ImageGeometry) -> Option<f64> {
     let half = geometry.size as f64 / 2.0 * geometry.pixel_rad;
@@ -278,6 +283,14 @@ pub struct WToeplitzBuilder {
 }
 
 impl WToeplitzBuilder {
+    /// Bytes a builder for samples up to `max_uv` would take while gridding (its grids) and the
+    /// operator it makes (its kernels), allocating nothing.
+    pub fn estimated_bytes(geometry: ImageGeometry, plan: &WToeplitzPlan, max_uv: f64, nufft: NufftParams) -> Result<(f64, f64)> {
+        let doubled = geometry.doubled();
+        let grids = ChunkedAdjoint::windowed_grid_bytes(doubled.size, doubled.size, plan.planes.div_ceil(2), max_phase(geometry, max_uv), nufft)?;
+        Ok((grids, plan.kept_bytes()))
+    }
+
     /// For samples of `sqrt(u^2 + v^2) <= max_uv` (beyond it they are refused).
     pub fn new(geometry: ImageGeometry, plan: WToeplitzPlan, max_uv: f64, nufft: NufftParams, threads: usize) -> Result<WToeplitzBuilder> {
         if plan.size != geometry.size {
@@ -285,8 +298,7 @@ impl WToeplitzBuilder {
         }
         let doubled = geometry.doubled();
         crate::limits::check_memory(plan.kept_bytes() * 1.5, &format!("the {} w-planes of a w-aware Toeplitz form", plan.planes)).map_err(|m| Error::parameter("w-Toeplitz plan", m))?;
-        let max_phase = 2.0 * PI * geometry.pixel_rad * max_uv * (1.0 + 1e-12);
-        let adjoint = ChunkedAdjoint::windowed(doubled.size, doubled.size, plan.planes.div_ceil(2), max_phase, nufft, threads)?;
+        let adjoint = ChunkedAdjoint::windowed(doubled.size, doubled.size, plan.planes.div_ceil(2), max_phase(geometry, max_uv), nufft, threads)?;
         Ok(WToeplitzBuilder { geometry, plan, adjoint, threads, samples: 0, max_uv, finished: None })
     }
 

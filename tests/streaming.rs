@@ -61,6 +61,14 @@ fn a_table_read_in_passes_images_as_the_same_table_held() {
     // in chunks, the samples not read again.
     let toeplitz = run(dir, "wtoeplitz", &pipeline("wtoeplitz", "", "    w_term: on\n    chunk_rows: 500\n", "briggs"));
     assert!(toeplitz.contains("the residual update convolves with the kernels of") && !toeplitz.contains("at each residual update"), "{toeplitz}");
+    // Where the kernels would take more than hold_mb and more than the samples held, the
+    // residual update runs through the operator (here reading the file again).
+    let small = run(dir, "wsmall", &pipeline("wsmall", "", "    w_term: on\n    hold_mb: 0.001\n", "briggs"));
+    assert!(small.contains("w-aware Toeplitz form") && small.contains("would take") && small.contains("at each residual update"), "{small}");
+    for product in ["model", "residual"] {
+        let d = relative(dir, &format!("obs-wheld-{product}.fits"), &format!("obs-wsmall-{product}.fits"));
+        assert!(d < 1e-5, "w-term through the operator {product}: {d:e}");
+    }
     let dirty_peak = max_abs(&read(&dir.join("obs-wheld-dirty.fits")));
     for product in ["dirty", "psf", "model", "residual"] {
         let (held, streamed, toeplitz) = (read(&dir.join(format!("obs-wheld-{product}.fits"))), read(&dir.join(format!("obs-wstream-{product}.fits"))), read(&dir.join(format!("obs-wtoeplitz-{product}.fits"))));

@@ -756,6 +756,23 @@ impl ChunkedAdjoint {
     /// grid), so they take less memory; the images are the same (to rounding).
     pub fn windowed(nx: usize, ny: usize, transforms: usize, max_phase: f64, params: NufftParams, threads: usize) -> Result<ChunkedAdjoint> {
         let full = Nufft2d::new(nx, ny, &[], &[], params, threads)?;
+        let Some((wx, wy)) = Self::window(&full, max_phase)? else {
+            return Ok(Self::on_plan(full, transforms, None));
+        };
+        let plan = Nufft2d::with_grid((2, 2), (wx, wy), (&[], &[]), full.shape.clone(), params, threads)?;
+        Ok(Self::on_plan(plan, transforms, Some(GridWindow { full, max_phase })))
+    }
+
+    /// Bytes the grids of [`windowed`](Self::windowed) would take, allocating nothing.
+    pub fn windowed_grid_bytes(nx: usize, ny: usize, transforms: usize, max_phase: f64, params: NufftParams) -> Result<f64> {
+        let full = Nufft2d::new(nx, ny, &[], &[], params, 1)?;
+        let (gx, gy) = Self::window(&full, max_phase)?.unwrap_or((full.grid_nx, full.grid_ny));
+        Ok(transforms as f64 * (gx * gy) as f64 * std::mem::size_of::<Complex64>() as f64)
+    }
+
+    /// The window of `full`'s grid that points of coordinates up to `max_phase` reach with
+    /// their kernels (all apart); `None` where that is the whole grid.
+    fn window(full: &Nufft2d, max_phase: f64) -> Result<Option<(usize, usize)>> {
         if !(max_phase >= 0.0 && max_phase.is_finite()) {
             return Err(Error::parameter("points", format!("expected a finite coordinate bound, got {max_phase}")));
         }
@@ -766,11 +783,7 @@ impl ChunkedAdjoint {
             good_fft_size(2 * reach + 2).max(2 * support)
         };
         let (wx, wy) = (window(full.grid_nx), window(full.grid_ny));
-        if wx >= full.grid_nx || wy >= full.grid_ny {
-            return Ok(Self::on_plan(full, transforms, None));
-        }
-        let plan = Nufft2d::with_grid((2, 2), (wx, wy), (&[], &[]), full.shape.clone(), params, threads)?;
-        Ok(Self::on_plan(plan, transforms, Some(GridWindow { full, max_phase })))
+        Ok((wx < full.grid_nx && wy < full.grid_ny).then_some((wx, wy)))
     }
 
     fn on_plan(plan: Nufft2d, transforms: usize, window: Option<GridWindow>) -> ChunkedAdjoint {

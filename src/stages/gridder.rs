@@ -48,11 +48,31 @@ impl GridderStage {
     /// The builder of the w-aware Toeplitz form of `D` for a job whose samples reach `|w| <=
     /// max_abs_w` and `sqrt(u^2 + v^2) <= max_uv`, if one is accurate enough and fits in memory
     /// (otherwise the residual update runs through the operator, and the log says why).
-    fn w_toeplitz_builder(&self, id: &str, geometry: ImageGeometry, max_abs_w: f64, max_uv: f64) -> Option<WToeplitzBuilder> {
+    /// It is chosen where it takes at most `hold_mb`, or less than the samples would held in
+    /// the operator (reading them again at every update instead being the slow alternative).
+    fn w_toeplitz_builder(&self, id: &str, geometry: ImageGeometry, max_abs_w: f64, max_uv: f64, samples: u64) -> Option<WToeplitzBuilder> {
         let Some(plan) = WToeplitzPlan::new(geometry, max_abs_w, self.nufft.epsilon) else {
             log::info!("job {id}: no w-aware Toeplitz form reaches the accuracy {:e} on this field: the residual update runs through the operator", self.nufft.epsilon);
             return None;
         };
+        let bytes = match WToeplitzBuilder::estimated_bytes(geometry, &plan, max_uv, self.nufft) {
+            Ok((grids, kept)) => grids + kept,
+            Err(e) => {
+                log::info!("job {id}: the residual update runs through the operator: {e}");
+                return None;
+            }
+        };
+        let held = OPERATOR_BYTES_PER_SAMPLE * samples as f64;
+        if bytes > self.hold_bytes && bytes > held {
+            log::info!(
+                "job {id}: the residual update runs through the operator: the kernels of its w-aware Toeplitz form ({} w-planes) would take {} while gridding, above the gridder's hold_mb {} and above the {} the samples take held",
+                plan.planes,
+                crate::limits::format_bytes(bytes),
+                self.hold_bytes / 1e6,
+                crate::limits::format_bytes(held)
+            );
+            return None;
+        }
         WToeplitzBuilder::new(geometry, plan, max_uv, self.nufft, self.threads)
             .map_err(|e| log::info!("job {id}: the residual update runs through the operator: {e}"))
             .ok()
@@ -132,7 +152,7 @@ impl Stage<Job> for GridderStage {
         // With the w-term and the convolution form of the residual update, one pass makes the
         // dirty image and the kernels of D's w-aware Toeplitz form: the samples are not needed
         // again, whatever their number.
-        let builder = if w_term && !self.keep_operator { self.w_toeplitz_builder(&job.id, geometry, max_abs_w, summary.max_uv) } else { None };
+        let builder = if w_term && !self.keep_operator { self.w_toeplitz_builder(&job.id, geometry, max_abs_w, summary.max_uv, summary.samples) } else { None };
         let toeplitz = match builder {
             Some(builder) => self.w_toeplitz_pass(&job.id, &source, &rule, builder, pass(true, self.chunk_rows))?,
             None => None,
