@@ -40,6 +40,9 @@ const MAX_TAPS: usize = 24;
 /// Oversamplings of the period the band may have (the plane spacing's `sigma`).
 const SIGMAS: [f64; 6] = [1.5, 2.0, 3.0, 4.0, 6.0, 8.0];
 
+/// Largest `max |w| / delta` a plan is made for.
+const MAX_PLANE_SPAN: f64 = (1u64 << 32) as f64;
+
 /// Intervals of the coefficient table over a plane spacing (cubic interpolation: its error is
 /// far below any accuracy asked, see [`WTaps::new`]).
 const TABLE_STEPS: usize = 256;
@@ -237,12 +240,22 @@ impl WToeplitzPlan {
             .filter_map(|&sigma| {
                 let taps = WTaps::for_accuracy(sigma, epsilon / 2.0)?;
                 let delta = 1.0 / (2.0 * sigma * span);
+                // Beyond this many planes no plan fits in any memory (and the casts stay exact).
+                if max_abs_w / delta > MAX_PLANE_SPAN {
+                    return None;
+                }
                 let last = (max_abs_w / delta).floor() as i64 + (taps.taps() / 2) as i64;
                 let first = 1 - (taps.taps() / 2) as i64;
                 let planes = usize::try_from(last - first + 1).ok()?;
                 Some(WToeplitzPlan { taps, delta, first, planes, max_abs_w, size: geometry.size })
             })
             .min_by_key(|p| (p.planes, p.taps.taps()))
+    }
+
+    /// What makes two plans the same (kernels of parts built in other processes are summed
+    /// only where their plans' keys agree).
+    pub fn key(&self) -> String {
+        format!("{} planes from {} spaced {:e}, {} taps at oversampling {}, {} pixels", self.planes, self.first, self.delta, self.taps.taps(), self.taps.sigma(), self.size)
     }
 
     /// Bytes the applied operator keeps: a real `2N x 2N` kernel per plane.
@@ -272,9 +285,11 @@ fn max_t_difference(geometry: ImageGeometry) -> Option<f64> {
 pub struct WToeplitzBuilder {
     geometry: ImageGeometry,
     plan: WToeplitzPlan,
-    adjoint: ChunkedAdjoint,
+    /// Made at the first samples (a builder that only sums kernels finished elsewhere, as
+    /// where parts live in other processes, needs no grids).
+    adjoint: Option<ChunkedAdjoint>,
+    nufft: NufftParams,
     threads: usize,
-    samples: u64,
     /// The uv radius it grids up to.
     max_uv: f64,
     /// Kernels (planes after one another) and coplanar 2N PSF finished elsewhere (parts built
@@ -283,28 +298,46 @@ pub struct WToeplitzBuilder {
 }
 
 impl WToeplitzBuilder {
-    /// Bytes a builder for samples up to `max_uv` would take while gridding (its grids) and the
-    /// operator it makes (its kernels), allocating nothing.
-    pub fn estimated_bytes(geometry: ImageGeometry, plan: &WToeplitzPlan, max_uv: f64, nufft: NufftParams) -> Result<(f64, f64)> {
+    /// Bytes a builder for samples up to `max_uv` would take at most: its grids while gridding
+    /// beside the kernels and the transforms' work space when it finishes, allocating nothing.
+    pub fn estimated_bytes(geometry: ImageGeometry, plan: &WToeplitzPlan, max_uv: f64, nufft: NufftParams) -> Result<f64> {
         let doubled = geometry.doubled();
-        let grids = ChunkedAdjoint::windowed_grid_bytes(doubled.size, doubled.size, plan.planes.div_ceil(2), max_phase(geometry, max_uv), nufft)?;
-        Ok((grids, plan.kept_bytes()))
+        let (grids, full) = ChunkedAdjoint::windowed_grid_bytes(doubled.size, doubled.size, plan.planes.div_ceil(2), max_phase(geometry, max_uv), nufft)?;
+        // Finishing: the grids, one full grid and an image pair in work, the kernels, and
+        // (summing parts) as much again.
+        let m = 2.0 * geometry.size as f64;
+        Ok(grids + full + 4.0 * m * m * 16.0 + 2.0 * plan.kept_bytes())
     }
 
-    /// For samples of `sqrt(u^2 + v^2) <= max_uv` (beyond it they are refused).
+    /// For samples of `sqrt(u^2 + v^2) <= max_uv` (beyond it they are refused where the grids
+    /// are a window of the uv-plane). An error where the memory it would take is beyond the
+    /// machine's budget (checked before anything is allocated).
     pub fn new(geometry: ImageGeometry, plan: WToeplitzPlan, max_uv: f64, nufft: NufftParams, threads: usize) -> Result<WToeplitzBuilder> {
         if plan.size != geometry.size {
             return Err(Error::parameter("w-Toeplitz plan", format!("planned for {} pixels a side, the image has {}", plan.size, geometry.size)));
         }
-        let doubled = geometry.doubled();
-        crate::limits::check_memory(plan.kept_bytes() * 1.5, &format!("the {} w-planes of a w-aware Toeplitz form", plan.planes)).map_err(|m| Error::parameter("w-Toeplitz plan", m))?;
-        let adjoint = ChunkedAdjoint::windowed(doubled.size, doubled.size, plan.planes.div_ceil(2), max_phase(geometry, max_uv), nufft, threads)?;
-        Ok(WToeplitzBuilder { geometry, plan, adjoint, threads, samples: 0, max_uv, finished: None })
+        let bytes = Self::estimated_bytes(geometry, &plan, max_uv, nufft)?;
+        crate::limits::check_memory(bytes, &format!("the {} w-planes of a w-aware Toeplitz form", plan.planes)).map_err(|m| Error::parameter("w-Toeplitz plan", m))?;
+        Ok(WToeplitzBuilder { geometry, plan, adjoint: None, nufft, threads, max_uv, finished: None })
+    }
+
+    fn adjoint(&mut self) -> Result<&mut ChunkedAdjoint> {
+        if self.adjoint.is_none() {
+            let doubled = self.geometry.doubled();
+            let phase = max_phase(self.geometry, self.max_uv);
+            self.adjoint = Some(ChunkedAdjoint::windowed(doubled.size, doubled.size, self.plan.planes.div_ceil(2), phase, self.nufft, self.threads)?);
+        }
+        Ok(self.adjoint.as_mut().expect("made above"))
     }
 
     pub fn planes(&self) -> usize {
         self.plan.planes
     }
+    /// Its plan's [`key`](WToeplitzPlan::key).
+    pub fn plan_key(&self) -> String {
+        self.plan.key()
+    }
+
     /// The `|w|` and uv radius bounds it was made for: a builder of a part in another process
     /// made for the same (and the same image and accuracy) has the same planes.
     pub fn bounds(&self) -> (f64, f64) {
@@ -314,7 +347,7 @@ impl WToeplitzBuilder {
     /// Adds the kernels (`planes x (2N)^2`, planes after one another, as
     /// [`WToeplitz::kernels`]) and coplanar 2N PSF of samples built by another builder of the
     /// same plan (a part in another process).
-    pub fn add_finished(&mut self, kernels: &[f64], psf_2n: &[f64]) -> Result<()> {
+    pub fn add_finished(&mut self, kernels: Vec<f64>, psf_2n: Vec<f64>) -> Result<()> {
         let m = 2 * self.geometry.size;
         if kernels.len() != self.plan.planes * m * m || psf_2n.len() != m * m {
             return Err(Error::parameter(
@@ -324,10 +357,10 @@ impl WToeplitzBuilder {
         }
         match &mut self.finished {
             Some((k, p)) => {
-                k.iter_mut().zip(kernels).for_each(|(a, b)| *a += b);
-                p.iter_mut().zip(psf_2n).for_each(|(a, b)| *a += b);
+                k.iter_mut().zip(&kernels).for_each(|(a, b)| *a += b);
+                p.iter_mut().zip(&psf_2n).for_each(|(a, b)| *a += b);
             }
-            None => self.finished = Some((kernels.to_vec(), psf_2n.to_vec())),
+            None => self.finished = Some((kernels, psf_2n)),
         }
         Ok(())
     }
@@ -339,9 +372,9 @@ impl WToeplitzBuilder {
         self.plan.taps.sigma()
     }
 
-    /// Bytes of the grids being built.
+    /// Bytes of the grids being built (none before the first samples).
     pub fn grid_bytes(&self) -> usize {
-        self.adjoint.grid_bytes()
+        self.adjoint.as_ref().map_or(0, |a| a.grid_bytes())
     }
 
     /// Adds samples at `(u, v, w)` (wavelengths) with total weights `weight`.
@@ -350,19 +383,23 @@ impl WToeplitzBuilder {
         if v.len() != n || w.len() != n || weight.len() != n {
             return Err(Error::parameter("visibilities", "u, v, w and weight arrays differ in length"));
         }
-        let (geometry, plan) = (self.geometry, &self.plan);
+        self.adjoint()?;
+        let (geometry, plan, adjoint) = (self.geometry, &self.plan, self.adjoint.as_mut().expect("made above"));
         let taps = plan.taps.taps();
         let half = (taps / 2) as i64;
         // Mirrored to w >= 0: its uv coordinates, and its first plane (`None`: outside the
         // planes planned).
         let first_plane = |k: usize| -> Option<(i64, f64)> {
             let z = w[k].abs() / plan.delta;
+            if !(z <= MAX_PLANE_SPAN) {
+                return None;
+            }
             let j0 = z.floor();
             let base = j0 as i64 + 1 - half - plan.first;
-            (j0.is_finite() && base >= 0 && base as usize + taps <= plan.planes).then_some((base, z - j0))
+            (base >= 0 && base as usize + taps <= plan.planes).then_some((base, z - j0))
         };
         if let Some(k) = (0..n).find(|&k| first_plane(k).is_none()) {
-            return Err(Error::parameter("w", format!("w = {} wavelengths lies outside the planes planned for |w| up to {}", w[k], plan.delta * (plan.planes as f64 + plan.first as f64))));
+            return Err(Error::parameter("w", format!("w = {} wavelengths lies outside the planes planned for |w| up to {}", w[k], plan.max_abs_w)));
         }
         let (x, y): (Vec<f64>, Vec<f64>) = (0..n)
             .map(|k| {
@@ -389,8 +426,7 @@ impl WToeplitzBuilder {
                 0.0
             }
         };
-        self.adjoint.add_in_order(&x, &y, prepare, |points, t, i| Complex64::new(tap(&points[i], 2 * t), tap(&points[i], 2 * t + 1)))?;
-        self.samples += n as u64;
+        adjoint.add_in_order(&x, &y, prepare, |points, t, i| Complex64::new(tap(&points[i], 2 * t), tap(&points[i], 2 * t + 1)))?;
         Ok(())
     }
 
@@ -406,6 +442,13 @@ impl WToeplitzBuilder {
         let scale = 1.0 / (m * m) as f64;
         let mut kernels: Vec<Vec<f64>> = Vec::with_capacity(plan.planes);
         let mut coplanar = vec![0.0; m * m];
+        let Some(adjoint) = adjoint else {
+            // Kernels finished elsewhere only (or none at all).
+            let (other, psf_2n) = finished.unwrap_or_else(|| (vec![0.0; plan.planes * m * m], vec![0.0; m * m]));
+            let planes = other.chunks_exact(m * m).enumerate().map(|(j, k)| WPlane { w: (plan.first + j as i64) as f64 * plan.delta, kernel_hat: k.to_vec() }).collect();
+            let t = pixel_t(geometry);
+            return Ok((WToeplitz { size: n, planes, t, forward, inverse, pool, taps: plan.taps.taps(), sigma: plan.taps.sigma() }, psf_2n));
+        };
         adjoint.finish_each(|_, mut pair| {
             pool.install(|| {
                 // Offsets -N (row and column 0) have no partner at +N in a 2N grid, and no
@@ -433,15 +476,21 @@ impl WToeplitzBuilder {
             psf_2n.iter_mut().zip(&other_psf).for_each(|(a, b)| *a += b);
         }
         let planes = kernels.into_iter().enumerate().map(|(j, kernel_hat)| WPlane { w: (plan.first + j as i64) as f64 * plan.delta, kernel_hat }).collect();
-        let half = n as f64 / 2.0;
-        let t = (0..n * n)
-            .map(|p| {
-                let (l, mm) = ((p % n) as f64 - half, (p / n) as f64 - half);
-                n_minus_one((l * l + mm * mm) * geometry.pixel_rad * geometry.pixel_rad)
-            })
-            .collect();
+        let t = pixel_t(geometry);
         Ok((WToeplitz { size: n, planes, t, forward, inverse, pool, taps: plan.taps.taps(), sigma: plan.taps.sigma() }, psf_2n))
     }
+}
+
+/// `t = n - 1` of each pixel of `geometry`'s image.
+fn pixel_t(geometry: ImageGeometry) -> Vec<f64> {
+    let n = geometry.size;
+    let half = n as f64 / 2.0;
+    (0..n * n)
+        .map(|p| {
+            let (l, m) = ((p % n) as f64 - half, (p / n) as f64 - half);
+            n_minus_one((l * l + m * m) * geometry.pixel_rad * geometry.pixel_rad)
+        })
+        .collect()
 }
 
 /// One plane of [`WToeplitz`]: its `w` and the FFT of its kernel (real; divided by `(2N)^2`
@@ -639,9 +688,15 @@ mod tests {
         let e = builder.add(&u, &v, &w, &weight).unwrap_err().to_string();
         assert!(e.contains("outside the planes"), "{e}");
         // Beyond memory: refused before anything is allocated.
-        let plan = WToeplitzPlan::new(geometry, 1e12, 1e-6).unwrap();
+        let plan = WToeplitzPlan::new(geometry, 1e8, 1e-6).unwrap();
         let e = WToeplitzBuilder::new(geometry, plan, max_uv, NufftParams::default(), 1).err().unwrap().to_string();
         assert!(e.contains("w-planes"), "{e}");
+        // A |w| no plan could span (a corrupt value): no plan, no overflow.
+        assert!(WToeplitzPlan::new(geometry, 1e300, 1e-6).is_none() && WToeplitzPlan::new(geometry, f64::INFINITY, 1e-6).is_none());
+        let plan = WToeplitzPlan::new(geometry, 100.0, 1e-6).unwrap();
+        let mut builder = WToeplitzBuilder::new(geometry, plan, max_uv, NufftParams::default(), 1).unwrap();
+        let e = builder.add(&u[..1], &v[..1], &[1e300], &weight[..1]).unwrap_err().to_string();
+        assert!(e.contains("outside the planes"), "{e}");
         let plan = WToeplitzPlan::new(geometry, 1e3, 1e-6).unwrap();
         let mut builder = WToeplitzBuilder::new(geometry, plan, max_uv / 2.0, NufftParams::default(), 1).unwrap();
         let e = builder.add(&u, &v, &w, &weight).unwrap_err().to_string();

@@ -200,12 +200,15 @@ class _DaskPasses:
         spec["threads"] = self.threads
         return json.dumps(spec)
 
-    def _map(self, function, *args):
-        """``function(part, *args)`` for every part, one task each; the results in part order."""
+    def _submit(self, function, *args):
+        """``function(part, *args)`` for every part, one task each: the futures in part order."""
         name = f"r2d2-parts-{self.token}-{next(self.calls)}"
         where = [{} if self.workers is None else {"workers": [self.workers[i]], "allow_other_workers": False} for i in range(len(self.parts))]
-        futures = [self.client.submit(function, part, *args, key=(name, i), pure=False, **where[i]) for i, part in enumerate(self.parts)]
-        return _gather(self.client, futures)
+        return [self.client.submit(function, part, *args, key=(name, i), pure=False, **where[i]) for i, part in enumerate(self.parts)]
+
+    def _map(self, function, *args):
+        """``function(part, *args)`` for every part, one task each; the results in part order."""
+        return _gather(self.client, self._submit(function, *args))
 
     def _scattered_rule(self, density, f2):
         """The weighting rule on the workers, sent once (every pass after the density's uses it)."""
@@ -225,10 +228,37 @@ class _DaskPasses:
         return dirty, psf, psf_2n, int(sum(r[3] for r in results)), max(planes) if planes else None
 
     def w_toeplitz_images(self, text, density, f2, max_abs_w, max_uv):
-        results = self._map(_native.part_w_toeplitz, self._pass(text), self._scattered_rule(density, f2), f2, max_abs_w, max_uv)
-        dirty, kernels, psf_2n = (functools.reduce(np.add, [r[k] for r in results]) for k in (0, 3, 4))
-        planes = [r[2] for r in results if r[2] is not None]
-        return dirty, int(sum(r[1] for r in results)), max(planes) if planes else None, kernels, psf_2n
+        """The parts' dirty images and the kernels of their w-aware Toeplitz forms, summed in
+        part order as each arrives (one part's kernels held here at a time beside the sum)."""
+        futures = self._submit(_native.part_w_toeplitz, self._pass(text), self._scattered_rule(density, f2), f2, max_abs_w, max_uv)
+        total, samples, planes, keys = None, 0, [], set()
+        try:
+            for future in futures:
+                result = future.result()
+                future.release()
+                if result is None:
+                    # A part cannot build the form (accuracy, or its worker's memory): the
+                    # residual update runs through the operator over the parts instead.
+                    self.client.cancel(futures)
+                    return None
+                dirty, count, chunk_planes, kernels, psf_2n, key = result
+                del result
+                keys.add(key)
+                if total is None:
+                    total = [dirty, kernels, psf_2n]
+                else:
+                    for acc, part in zip(total, (dirty, kernels, psf_2n)):
+                        np.add(acc, part, out=acc)
+                del dirty, kernels, psf_2n
+                samples += int(count)
+                if chunk_planes is not None:
+                    planes.append(chunk_planes)
+        except BaseException:
+            self.client.cancel(futures)
+            raise
+        if len(keys) != 1:
+            raise RuntimeError(f"the parts built their w-Toeplitz kernels on different planes: {sorted(keys)}")
+        return total[0], samples, max(planes) if planes else None, total[1], total[2], keys.pop()
 
     def apply_normal(self, text, density, f2, x):
         x = self.client.scatter(np.asarray(x), broadcast=True, hash=False)

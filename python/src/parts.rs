@@ -112,8 +112,9 @@ pub fn part_images<'py>(
 }
 
 /// A part's dirty image with the kernels of its w-aware Toeplitz form, for the job's bounds
-/// `max_abs_w` and `max_uv` (the same planes on every part), not normalised: `(dirty, samples,
-/// planes, kernels, psf_2n)`, flattened row-major (the kernels plane after plane).
+/// `max_abs_w` and `max_uv`, not normalised: `(dirty, samples, planes, kernels, psf_2n,
+/// plan_key)`, flattened row-major (the kernels plane after plane); `None` where no such form
+/// can be built here (no fit reaches the accuracy, or it would not fit in this worker's memory).
 #[pyfunction]
 #[allow(clippy::type_complexity, clippy::too_many_arguments)]
 pub fn part_w_toeplitz<'py>(
@@ -124,19 +125,25 @@ pub fn part_w_toeplitz<'py>(
     f2: f64,
     max_abs_w: f64,
     max_uv: f64,
-) -> PyResult<(Bound<'py, PyArray1<f64>>, u64, Option<usize>, Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>)> {
+) -> PyResult<Option<(Bound<'py, PyArray1<f64>>, u64, Option<usize>, Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>, String)>> {
     let density = density.as_slice()?.to_vec();
-    let (images, kernels, psf_2n) = run_released(py, move |_| {
+    let built = run_released(py, move |_| {
         let (pass, rule, source) = part_inputs(&path, &pass, density, f2)?;
         let geometry = pass.geometry()?;
-        let plan = WToeplitzPlan::new(geometry, max_abs_w, pass.epsilon)
-            .ok_or_else(|| Error::parameter("w-Toeplitz plan", "no w-aware Toeplitz form reaches the accuracy on this part"))?;
-        let mut builder = WToeplitzBuilder::new(geometry, plan, max_uv, pass.nufft(), pass.threads)?;
+        let Some(plan) = WToeplitzPlan::new(geometry, max_abs_w, pass.epsilon) else {
+            return Ok(None);
+        };
+        let Ok(mut builder) = WToeplitzBuilder::new(geometry, plan, max_uv, pass.nufft(), pass.threads) else {
+            return Ok(None);
+        };
+        let key = builder.plan_key();
         let images = vis::w_toeplitz_images(&source, &pass, &rule, &mut builder)?;
         let (op, psf_2n) = builder.finish()?;
-        Ok((images, op.kernels(), psf_2n))
+        Ok(Some((images, op.kernels(), psf_2n, key)))
     })?;
-    Ok((PyArray1::from_vec(py, images.dirty), images.samples, images.planes, PyArray1::from_vec(py, kernels), PyArray1::from_vec(py, psf_2n)))
+    Ok(built.map(|(images, kernels, psf_2n, key)| {
+        (PyArray1::from_vec(py, images.dirty), images.samples, images.planes, PyArray1::from_vec(py, kernels), PyArray1::from_vec(py, psf_2n), key)
+    }))
 }
 
 /// `Re{Phi^H Phi x}` over a part's samples (`x` flattened row-major), not scaled.
@@ -229,18 +236,28 @@ impl PartPasses for PythonPasses {
     fn w_toeplitz_images(&self, pass: &PartPass, rule: &WeightRule, builder: &mut WToeplitzBuilder) -> Result<Option<PartImages>> {
         let (density, f2) = rule.raw();
         let (max_abs_w, max_uv) = builder.bounds();
-        let (images, kernels, psf_2n) = Python::with_gil(|py| -> PyResult<(PartImages, Vec<f64>, Vec<f64>)> {
+        type Built = (PartImages, Vec<f64>, Vec<f64>, String);
+        let built = Python::with_gil(|py| -> PyResult<Option<Built>> {
             let density = PyArray1::from_slice(py, density);
             let out = self.passes.call_method1(py, "w_toeplitz_images", (pass.to_json(), density, f2, max_abs_w, max_uv))?;
-            let (dirty, samples, planes, kernels, psf_2n): (PyReadonlyArray1<f64>, u64, Option<usize>, PyReadonlyArray1<f64>, PyReadonlyArray1<f64>) = out.extract(py)?;
+            let out: Option<(PyReadonlyArray1<f64>, u64, Option<usize>, PyReadonlyArray1<f64>, PyReadonlyArray1<f64>, String)> = out.extract(py)?;
+            let Some((dirty, samples, planes, kernels, psf_2n, key)) = out else {
+                return Ok(None);
+            };
             let images = PartImages { dirty: dirty.as_slice()?.to_vec(), psf: Vec::new(), psf_2n: Vec::new(), samples, planes };
-            Ok((images, kernels.as_slice()?.to_vec(), psf_2n.as_slice()?.to_vec()))
+            Ok(Some((images, kernels.as_slice()?.to_vec(), psf_2n.as_slice()?.to_vec(), key)))
         })
         .map_err(|e| Python::with_gil(|py| python_error(py, "the parts' gridding pass", e)))?;
+        let Some((images, kernels, psf_2n, key)) = built else {
+            return Ok(None);
+        };
         if images.dirty.len() != pass.size * pass.size {
             return Err(Error::parameter("parts", format!("the parts' gridding pass gave a dirty image of {} pixels where {} were expected", images.dirty.len(), pass.size * pass.size)));
         }
-        builder.add_finished(&kernels, &psf_2n)?;
+        if key != builder.plan_key() {
+            return Err(Error::parameter("parts", format!("the parts built their w-Toeplitz kernels on {key}, this process on {}: another version of the engine on the workers?", builder.plan_key())));
+        }
+        builder.add_finished(kernels, psf_2n)?;
         Ok(Some(images))
     }
 

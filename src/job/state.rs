@@ -25,10 +25,11 @@ pub struct Imaging {
     /// The doubled PSF itself (2N x 2N), for steps that subtract shifted PSFs.
     pub psf_2n: Arc<Vec<f64>>,
     /// Kept when the residual update runs through the operator: asked for (`method: nufft`),
-    /// or needed because the operator includes the w-term.
+    /// or with the w-term where its Toeplitz form (`w_toeplitz`) was not built.
     pub operator: Option<Arc<DataOperator>>,
     /// Why the PSF convolution is not `D` to the NUFFT's accuracy for this job (the operator
-    /// includes the w-term), so the residual update must use the operator; `None` where it is.
+    /// includes the w-term), so the residual update uses `w_toeplitz` or the operator; `None`
+    /// where it is.
     pub toeplitz_inexact: Option<String>,
     /// `D` with the w-term as one convolution per w-plane, where it was built in the gridding
     /// pass: the residual update's, in place of the operator.

@@ -763,11 +763,13 @@ impl ChunkedAdjoint {
         Ok(Self::on_plan(plan, transforms, Some(GridWindow { full, max_phase })))
     }
 
-    /// Bytes the grids of [`windowed`](Self::windowed) would take, allocating nothing.
-    pub fn windowed_grid_bytes(nx: usize, ny: usize, transforms: usize, max_phase: f64, params: NufftParams) -> Result<f64> {
-        let full = Nufft2d::new(nx, ny, &[], &[], params, 1)?;
+    /// Bytes the grids of [`windowed`](Self::windowed) would take, and one grid of the
+    /// image's (what finishing adds), allocating no grid.
+    pub fn windowed_grid_bytes(nx: usize, ny: usize, transforms: usize, max_phase: f64, params: NufftParams) -> Result<(f64, f64)> {
+        let full = Nufft2d::new(nx, ny, &[], &[], params, 0)?;
         let (gx, gy) = Self::window(&full, max_phase)?.unwrap_or((full.grid_nx, full.grid_ny));
-        Ok(transforms as f64 * (gx * gy) as f64 * std::mem::size_of::<Complex64>() as f64)
+        let cell = std::mem::size_of::<Complex64>() as f64;
+        Ok((transforms as f64 * (gx * gy) as f64 * cell, (full.grid_nx * full.grid_ny) as f64 * cell))
     }
 
     /// The window of `full`'s grid that points of coordinates up to `max_phase` reach with

@@ -48,15 +48,18 @@ impl GridderStage {
     /// The builder of the w-aware Toeplitz form of `D` for a job whose samples reach `|w| <=
     /// max_abs_w` and `sqrt(u^2 + v^2) <= max_uv`, if one is accurate enough and fits in memory
     /// (otherwise the residual update runs through the operator, and the log says why).
-    /// It is chosen where it takes at most `hold_mb`, or less than the samples would held in
+    /// It is chosen where it takes at most `hold_mb`, or less than the samples would take held in
     /// the operator (reading them again at every update instead being the slow alternative).
     fn w_toeplitz_builder(&self, id: &str, geometry: ImageGeometry, max_abs_w: f64, max_uv: f64, samples: u64) -> Option<WToeplitzBuilder> {
         let Some(plan) = WToeplitzPlan::new(geometry, max_abs_w, self.nufft.epsilon) else {
-            log::info!("job {id}: no w-aware Toeplitz form reaches the accuracy {:e} on this field: the residual update runs through the operator", self.nufft.epsilon);
+            log::info!(
+                "job {id}: no w-aware Toeplitz form of at most 24 taps reaches the accuracy {:e} for |w| up to {max_abs_w:e} on this field (or the field reaches the edge of the projection): the residual update runs through the operator",
+                self.nufft.epsilon
+            );
             return None;
         };
         let bytes = match WToeplitzBuilder::estimated_bytes(geometry, &plan, max_uv, self.nufft) {
-            Ok((grids, kept)) => grids + kept,
+            Ok(bytes) => bytes,
             Err(e) => {
                 log::info!("job {id}: the residual update runs through the operator: {e}");
                 return None;
