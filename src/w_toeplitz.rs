@@ -292,6 +292,8 @@ pub struct WToeplitzBuilder {
     threads: usize,
     /// The uv radius it grids up to.
     max_uv: f64,
+    /// Bytes its grids take once made.
+    grid_bytes: f64,
     /// Kernels (planes after one another) and coplanar 2N PSF finished elsewhere (parts built
     /// in other processes), added to these at the end.
     finished: Option<(Vec<f64>, Vec<f64>)>,
@@ -318,7 +320,9 @@ impl WToeplitzBuilder {
         }
         let bytes = Self::estimated_bytes(geometry, &plan, max_uv, nufft)?;
         crate::limits::check_memory(bytes, &format!("the {} w-planes of a w-aware Toeplitz form", plan.planes)).map_err(|m| Error::parameter("w-Toeplitz plan", m))?;
-        Ok(WToeplitzBuilder { geometry, plan, adjoint: None, nufft, threads, max_uv, finished: None })
+        let doubled = geometry.doubled();
+        let (grid_bytes, _) = ChunkedAdjoint::windowed_grid_bytes(doubled.size, doubled.size, plan.planes.div_ceil(2), max_phase(geometry, max_uv), nufft)?;
+        Ok(WToeplitzBuilder { geometry, plan, adjoint: None, nufft, threads, max_uv, finished: None, grid_bytes })
     }
 
     fn adjoint(&mut self) -> Result<&mut ChunkedAdjoint> {
@@ -372,9 +376,9 @@ impl WToeplitzBuilder {
         self.plan.taps.sigma()
     }
 
-    /// Bytes of the grids being built (none before the first samples).
+    /// Bytes of the grids it builds (made at the first samples).
     pub fn grid_bytes(&self) -> usize {
-        self.adjoint.as_ref().map_or(0, |a| a.grid_bytes())
+        self.grid_bytes as usize
     }
 
     /// Adds samples at `(u, v, w)` (wavelengths) with total weights `weight`.
