@@ -3,6 +3,7 @@
 
 Tiny data (4 training truths, 2 validation and 2 test procedural skies, 64 x 64) made by the
 engine, two networks of one epoch, ONNX export, manifest, a resume that adds a third network (a second stage: early_stop_from),
+a fourth validated on another set (the stopping rule's baseline replayed on it),
 and the evaluation (series, engine CLEAN, dirty) -- with checks that fail loudly: a missing
 Python package is an ImportError and a non-zero exit, never a skip.
 """
@@ -96,6 +97,17 @@ def main(argv=None):
         for k in ("x_tr", "x_va"):
             err = float((cached[k] - fresh[k]).abs().max() / fresh[k].abs().max())
             check(err < 1e-5, f"cached {k} differs from a fresh replay by {err:.2e}")
+        # A later stage validated on other skies: its networks are compared with the series
+        # replayed on that set (rows measured on another set are not comparable), and each
+        # records the stage's sets.
+        other_val = [f"{d}/test" if x == f"{d}/val" else x for x in train]
+        stage = subprocess.run(other_val + ["--max-networks", "4", "--resume"], capture_output=True, text=True, check=True)
+        check("the baseline is the replayed series on it" in stage.stdout, "a stage on another validation set: baseline")
+        m = series.read_manifest(sdir)
+        check(len(m["networks"]) == 4, "the stage added network 4")
+        rec = m["provenance"]["networks"][-1]
+        check(rec.get("validation_data", [""])[0].endswith("test") and "train_data" not in rec,
+              f"network 4 records the stage's validation set only: {rec}")
         # A series that travelled as manifest + weights (a lent GPU sends back few files): the
         # ONNX networks rebuilt by export_onnx.py answer as the ones train.py wrote.
         probe = np.random.default_rng(0).standard_normal((1, 2, 64, 64)).astype(np.float32)
@@ -138,7 +150,7 @@ def main(argv=None):
         mw = series.read_manifest(wdir)
         check(mw["network"]["kind"] == "uwdsr" and mw["network"]["norm"] == "none" and len(mw["networks"]) == 1, f"uwdsr series {mw['network']}")
         report = evaluate.evaluate(sdir, f"{d}/test", a.r2d2, f"{d}/eval", clean_cycles=2, clean_components=50)
-        check([r["method"] for r in report["rows"]] == ["dirty", "r2d2", "r2d2", "r2d2", "clean"], "evaluation rows")
+        check([r["method"] for r in report["rows"]] == ["dirty"] + ["r2d2"] * 4 + ["clean"], "evaluation rows")
         # The package's D against the engine's Toeplitz residual on the same CLEAN model.
         check(report["python_d_vs_engine_residual_max_rel"] < 1e-5,
               f"Python D differs from the engine: {report['python_d_vs_engine_residual_max_rel']:.2e}")

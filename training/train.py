@@ -295,9 +295,22 @@ def main(argv=None):
     if cache is None and have:
         save_replay(args.work, replay_key(args, have), x_tr, x_va, active)
 
+    # The stopping rule compares with the best validation so far on this run's validation
+    # set: the rows measured on it (a later stage may validate on other skies), else, where
+    # none were, the replayed series measured on it now.
+    train_paths = [common.repo_relative(t) for t in args.train]
+    val_paths = [common.repo_relative(v) for v in args.val]
+    series_val_paths = manifest["provenance"]["validation_data"]["path"]
+    series_val_paths = series_val_paths if isinstance(series_val_paths, list) else [series_val_paths]
+    val_of = {n["iteration"]: n.get("validation_data", series_val_paths) for n in manifest["provenance"]["networks"]}
+    same_set = [h for h in history if val_of.get(h["iteration"], series_val_paths) == val_paths]
     best = {"snr_db": -1e9, "logsnr_db": -1e9}
-    for h in history:
+    for h in same_set:
         best = {key: max(best[key], h[key]) for key in best}
+    if history and not same_set:
+        best = {key: v for key, v in common.metrics(x_va, r_va, val).items() if key in best}
+        log(f"validation set {val_paths} is not the one the series' networks were selected on: "
+            f"the baseline is the replayed series on it")
     if history:
         log(f"series so far: best validation SNR {best['snr_db']:.2f} dB, logSNR {best['logsnr_db']:.2f} dB")
     for i in range(len(manifest["networks"]) + 1, args.max_networks + 1):
@@ -345,6 +358,9 @@ def main(argv=None):
         manifest["provenance"]["networks"].append({
             "iteration": i, "epochs": epochs, "train_seconds": round(seconds, 1), "train_samples": before, "loss_projection": args.loss_projection,
             "limit_train": args.limit_train, "device": device.type,
+            # A later stage's own data (the series-level record is the first stage's).
+            **({"train_data": train_paths} if train_paths != manifest["provenance"]["train_data"]["path"] else {}),
+            **({"validation_data": val_paths} if val_paths != series_val_paths else {}),
             "pruned_after": before - int(active.sum()), "final_l1": round(loss, 6) if math.isfinite(loss) else None, "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         })
         series.write_manifest(args.series, manifest)
