@@ -303,12 +303,17 @@ impl WToeplitzBuilder {
     /// Bytes a builder for samples up to `max_uv` would take at most: its grids while gridding
     /// beside the kernels and the transforms' work space when it finishes, allocating nothing.
     pub fn estimated_bytes(geometry: ImageGeometry, plan: &WToeplitzPlan, max_uv: f64, nufft: NufftParams) -> Result<f64> {
+        Ok(Self::sizes(geometry, plan, max_uv, nufft)?.1)
+    }
+
+    /// (bytes of the grids once made, bytes of the whole builder at most).
+    fn sizes(geometry: ImageGeometry, plan: &WToeplitzPlan, max_uv: f64, nufft: NufftParams) -> Result<(f64, f64)> {
         let doubled = geometry.doubled();
         let (grids, full) = ChunkedAdjoint::windowed_grid_bytes(doubled.size, doubled.size, plan.planes.div_ceil(2), max_phase(geometry, max_uv), nufft)?;
         // Finishing: the grids, one full grid and an image pair in work, the kernels, and
         // (summing parts) as much again.
         let m = 2.0 * geometry.size as f64;
-        Ok(grids + full + 4.0 * m * m * 16.0 + 2.0 * plan.kept_bytes())
+        Ok((grids, grids + full + 4.0 * m * m * 16.0 + 2.0 * plan.kept_bytes()))
     }
 
     /// For samples of `sqrt(u^2 + v^2) <= max_uv` (beyond it they are refused where the grids
@@ -318,10 +323,8 @@ impl WToeplitzBuilder {
         if plan.size != geometry.size {
             return Err(Error::parameter("w-Toeplitz plan", format!("planned for {} pixels a side, the image has {}", plan.size, geometry.size)));
         }
-        let bytes = Self::estimated_bytes(geometry, &plan, max_uv, nufft)?;
+        let (grid_bytes, bytes) = Self::sizes(geometry, &plan, max_uv, nufft)?;
         crate::limits::check_memory(bytes, &format!("the {} w-planes of a w-aware Toeplitz form", plan.planes)).map_err(|m| Error::parameter("w-Toeplitz plan", m))?;
-        let doubled = geometry.doubled();
-        let (grid_bytes, _) = ChunkedAdjoint::windowed_grid_bytes(doubled.size, doubled.size, plan.planes.div_ceil(2), max_phase(geometry, max_uv), nufft)?;
         Ok(WToeplitzBuilder { geometry, plan, adjoint: None, nufft, threads, max_uv, finished: None, grid_bytes })
     }
 

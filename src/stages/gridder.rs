@@ -42,9 +42,7 @@ impl GridderStage {
         }
         Ok(GridderStage { nufft, w_term: config.w_term, hold_bytes: config.hold_mb * 1e6, chunk_rows: config.chunk_rows, threads, keep_operator })
     }
-}
 
-impl GridderStage {
     /// The builder of the w-aware Toeplitz form of `D` for a job whose samples reach `|w| <=
     /// max_abs_w` and `sqrt(u^2 + v^2) <= max_uv`, if one is accurate enough and fits in memory
     /// (otherwise the residual update runs through the operator, and the log says why).
