@@ -54,6 +54,17 @@ vla-r2d2-512|meerkat-r2d2-512)
     TRAIN=("$D/train-radio" "$D/train-images")
     VAL=("$D/val")
     ARGS="--norm none --crop 128 --crops-per-sample 4 --epochs-first 10 --epochs 4 --batch 8 --max-networks 15"
+    if [ "$TELESCOPE" = vla ]; then
+        # Stage 2 (networks 16..): faint extended emission. Skies of extended emission (seeds
+        # 200000.., validation 510000.., test 910000..) beside the classic ones, at the series'
+        # own setting; validated on both kinds (training/README.md, "Stage 2 of vla-r2d2-512").
+        make_once "$D/train-extended" "$R2D2" trainset --procedural 120 --sky extended --seed 200000 $SIM
+        make_once "$D/val-extended" "$R2D2" trainset --procedural 8 --sky extended --seed 510000 $SIM
+        [ "${EVAL:-1}" = 0 ] || make_once "$D/test-extended" "$R2D2" trainset --procedural 12 --sky extended --seed 910000 $SIM --parquet
+        STAGE2_TRAIN=("$D/train-radio" "$D/train-extended")
+        STAGE2_VAL=("$D/val" "$D/val-extended")
+        STAGE2="--norm none --crop 128 --crops-per-sample 4 --epochs 4 --batch 8 --max-networks ${STAGE2_NETWORKS:-20}"
+    fi
     ;;
 vla-r2d2-512-broad)
     # The reference v2's range of settings in one series: SR 1.5..2.5, Briggs -1..1 and
@@ -100,5 +111,10 @@ train() {
 RESUME=""
 [ -f "$SERIES/manifest.yaml" ] && RESUME="--resume"
 train "${WORK:-$D/work}" $ARGS $RESUME
-[ -z "${STAGE2:-}" ] || train "${WORK:-$D/work}-stage2" $STAGE2 --resume
+if [ -n "${STAGE2:-}" ]; then
+    # A stage may train and validate on sets of its own.
+    [ -z "${STAGE2_TRAIN:-}" ] || TRAIN=("${STAGE2_TRAIN[@]}")
+    [ -z "${STAGE2_VAL:-}" ] || VAL=("${STAGE2_VAL[@]}")
+    train "${WORK:-$D/work}-stage2" $STAGE2 --resume
+fi
 [ "${EVAL:-1}" = 0 ] || $RUN python3 training/evaluate.py --series "$SERIES" --test "$D/test" --r2d2 "$R2D2" --out "$D/eval" --update-manifest

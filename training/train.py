@@ -345,16 +345,22 @@ def main(argv=None):
         active &= r_tr.flatten(1).pow(2).sum(1) > noise_energy
         x_va, r_va, model = x_va_new, r_va_new, new
         manifest["networks"].append(series.onnx_name(i))
-        # The first network of a later stage (resumed with another loss): it and those after
-        # trade a little residual for fewer artefacts, so the engine's early stop (ratio
-        # stalled) applies from it on, not before, where it would skip the stage.
-        # The loss of the network before: its own record, else the series' (older manifests
-        # record it once); where neither says, no stage boundary is assumed.
+        # The first network of a later stage (resumed with another loss or other data): it and
+        # those after trade a little residual for fewer artefacts or for emission the first
+        # stage missed, so the engine's early stop (ratio stalled) applies from it on, not
+        # before, where it would skip the stage. The loss of the network before: its own
+        # record, else the series' (older manifests record it once); where neither says, no
+        # stage boundary is assumed from the loss.
         before_it = manifest["provenance"]["networks"][-1] if manifest["provenance"]["networks"] else None
-        previous = before_it and before_it.get("loss_projection", (manifest["provenance"].get("loss") or {}).get("projection"))
-        if previous and previous != args.loss_projection and "early_stop_from" not in manifest:
-            manifest["early_stop_from"] = i
-        manifest["validation"].append({"iteration": i, **{k: round(v, 4) for k, v in m.items()}})
+        if before_it and "early_stop_from" not in manifest:
+            previous = before_it.get("loss_projection", (manifest["provenance"].get("loss") or {}).get("projection"))
+            other_loss = previous is not None and previous != args.loss_projection
+            other_data = (before_it.get("train_data", manifest["provenance"]["train_data"]["path"]) != train_paths
+                          or before_it.get("validation_data", series_val_paths) != val_paths)
+            if other_loss or other_data:
+                manifest["early_stop_from"] = i
+        manifest["validation"].append({"iteration": i, **{k: round(v, 4) for k, v in m.items()},
+                                       **({"validation_data": val_paths} if val_paths != series_val_paths else {})})
         manifest["provenance"]["networks"].append({
             "iteration": i, "epochs": epochs, "train_seconds": round(seconds, 1), "train_samples": before, "loss_projection": args.loss_projection,
             "limit_train": args.limit_train, "device": device.type,
