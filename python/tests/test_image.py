@@ -192,7 +192,8 @@ def test_series_are_found_without_environment_variables(tmp_path):
     assert {"vla-r2d2-512", "vla-r2d2-128", "vla-r2d2-512-broad"} <= set(names), info
     package = os.path.dirname(r2d2_imaging.__file__)
     assert names["vla-r2d2-512"]["path"].startswith(os.path.join(package, "models")), names["vla-r2d2-512"]
-    assert names["vla-r2d2-512"]["domain"]["telescopes"] == ["vla"] and names["vla-r2d2-512"]["networks"] == 15
+    shipped = len([f for f in os.listdir(names["vla-r2d2-512"]["path"]) if f.endswith(".onnx")])
+    assert names["vla-r2d2-512"]["domain"]["telescopes"] == ["vla"] and names["vla-r2d2-512"]["networks"] == shipped > 0
     assert info["version"] == r2d2_imaging.__version__ and info["threads"] >= 1 and info["onnx_backend"]
 
 
