@@ -5,7 +5,8 @@
 # Steps whose output exists are skipped, so rerunning the script resumes it; training itself
 # resumes from its per-epoch checkpoint and adds networks to the series (--resume).
 # Environment: R2D2 (the engine binary, default target/release/r2d2), SERIES (default
-# models/<recipe>), TRAIN_ARGS (extra train.py options, e.g. "--max-networks 20"),
+# models/<recipe>), TRAIN_ARGS (extra train.py options for every stage of the recipe, e.g.
+# "--device cpu"; a stage's network count: STAGE2_NETWORKS, or edit the recipe's ARGS),
 # NICE (default 19: training yields the CPU to interactive work), WORK (per-epoch checkpoints,
 # default <data>/work: give a retrain into another SERIES its own), THREADS (CPU threads of
 # training, default 2), EVAL=0 (skip the held-out evaluation, e.g. on a machine lent for training).

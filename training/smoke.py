@@ -3,11 +3,12 @@
 
 Tiny data (4 training truths, 2 validation and 2 test procedural skies, 64 x 64) made by the
 engine, two networks of one epoch, ONNX export, manifest, a resume that adds a third network (a second stage: early_stop_from),
-a third on other data instead (the stopping rule's baseline replayed on its validation set),
+on a copy, a stage validated on other skies (its baseline replayed on them) and one on other training data,
 and the evaluation (series, engine CLEAN, dirty) -- with checks that fail loudly: a missing
 Python package is an ImportError and a non-zero exit, never a skip.
 """
 import argparse
+import ast
 import os
 import shutil
 import subprocess
@@ -99,19 +100,34 @@ def main(argv=None):
         for k in ("x_tr", "x_va"):
             err = float((cached[k] - fresh[k]).abs().max() / fresh[k].abs().max())
             check(err < 1e-5, f"cached {k} differs from a fresh replay by {err:.2e}")
-        # A later stage validated on other skies (same loss): its networks are compared with
-        # the series replayed on that set (rows measured on another set are not comparable),
-        # each records the stage's sets, and the early stop applies from the stage on.
+        # A later stage validated on other skies (same loss and training data): its networks
+        # are compared with the series replayed on that set (rows measured on another set are
+        # not comparable) and record the set; a validation set alone is no stage boundary.
         odir = f"{d}/series-other-data"
-        other_val = [x.replace(f"{d}/val", f"{d}/test").replace(sdir, odir).replace(f"{d}/checkpoints", f"{d}/checkpoints-other")
-                     for x in train]
+        other = lambda x: x.replace(sdir, odir).replace(f"{d}/checkpoints", f"{d}/checkpoints-other")
+        other_val = [other(x).replace(f"{d}/val", f"{d}/test") for x in train]
         stage = subprocess.run(other_val + ["--max-networks", "3", "--resume"], capture_output=True, text=True, check=True)
         check("the baseline is the replayed series on it" in stage.stdout, "a stage on another validation set: baseline")
+        replayed = [ln for ln in stage.stdout.splitlines() if "replayed N2: validation" in ln]
+        so_far = [ln for ln in stage.stdout.splitlines() if "series so far" in ln]
+        check(len(replayed) == 1 and len(so_far) == 1, f"replay and baseline lines: {stage.stdout}")
+        metrics = ast.literal_eval(replayed[0].split("validation ", 1)[1].split("; ")[0])
+        logged = [float(so_far[0].split(key)[1].split(" dB")[0]) for key in ("SNR ", "logSNR ")]
+        check(abs(logged[0] - metrics["snr_db"]) < 0.006 and abs(logged[1] - metrics["logsnr_db"]) < 0.006,
+              f"the baseline {logged} is not the replayed series on the new set {metrics}")
         mo = series.read_manifest(odir)
         rec = mo["provenance"]["networks"][-1]
         check(len(mo["networks"]) == 3 and rec.get("validation_data", [""])[0].endswith("test") and "train_data" not in rec,
               f"network 3 of the other stage records its validation set only: {rec}")
-        check(mo.get("early_stop_from") == 3, f"a stage on other data from network 3: early_stop_from {mo.get('early_stop_from')}")
+        check("early_stop_from" not in mo, "another validation set alone made a stage boundary")
+        # Then a stage on other training data: the early stop applies from it on.
+        at = other_val.index("--train") + 2
+        other_train = other_val[:at] + [f"{d}/val"] + other_val[at:]
+        run(other_train + ["--max-networks", "4", "--resume"])
+        mo = series.read_manifest(odir)
+        check(len(mo["networks"]) == 4 and mo["provenance"]["networks"][-1].get("train_data", [""])[-1].endswith("val"),
+              f"network 4 records the stage's training sets: {mo['provenance']['networks'][-1]}")
+        check(mo.get("early_stop_from") == 4, f"a stage on other training data from network 4: early_stop_from {mo.get('early_stop_from')}")
         # A series that travelled as manifest + weights (a lent GPU sends back few files): the
         # ONNX networks rebuilt by export_onnx.py answer as the ones train.py wrote.
         probe = np.random.default_rng(0).standard_normal((1, 2, 64, 64)).astype(np.float32)

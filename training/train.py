@@ -296,22 +296,25 @@ def main(argv=None):
         save_replay(args.work, replay_key(args, have), x_tr, x_va, active)
 
     # The stopping rule compares with the best validation so far on this run's validation
-    # set: the rows measured on it (a later stage may validate on other skies), else, where
-    # none were, the replayed series measured on it now.
+    # set: the rows measured on it, where the series' last network was (a later stage may
+    # validate on other skies), else the replayed series measured on it now.
+    as_list = lambda p: p if isinstance(p, list) else [p] if p is not None else []
     train_paths = [common.repo_relative(t) for t in args.train]
     val_paths = [common.repo_relative(v) for v in args.val]
-    series_val_paths = manifest["provenance"]["validation_data"]["path"]
-    series_val_paths = series_val_paths if isinstance(series_val_paths, list) else [series_val_paths]
-    val_of = {n["iteration"]: n.get("validation_data", series_val_paths) for n in manifest["provenance"]["networks"]}
-    same_set = [h for h in history if val_of.get(h["iteration"], series_val_paths) == val_paths]
+    series_train_paths = as_list((manifest["provenance"].get("train_data") or {}).get("path")) or train_paths
+    series_val_paths = as_list((manifest["provenance"].get("validation_data") or {}).get("path")) or val_paths
+    val_of = {n["iteration"]: as_list(n.get("validation_data", series_val_paths)) for n in manifest["provenance"]["networks"]}
+    on_this_set = lambda h: val_of.get(h["iteration"], series_val_paths) == val_paths
     best = {"snr_db": -1e9, "logsnr_db": -1e9}
-    for h in same_set:
-        best = {key: max(best[key], h[key]) for key in best}
-    if history and not same_set:
+    if history and on_this_set(history[-1]):
+        for h in history:
+            if on_this_set(h):
+                best = {key: max(best[key], h[key]) for key in best}
+    elif have:
         best = {key: v for key, v in common.metrics(x_va, r_va, val).items() if key in best}
-        log(f"validation set {val_paths} is not the one the series' networks were selected on: "
+        log(f"validation set {val_paths} is not the one the series' last network was selected on: "
             f"the baseline is the replayed series on it")
-    if history:
+    if have:
         log(f"series so far: best validation SNR {best['snr_db']:.2f} dB, logSNR {best['logsnr_db']:.2f} dB")
     for i in range(len(manifest["networks"]) + 1, args.max_networks + 1):
         if int(active.sum()) < args.batch:
@@ -345,18 +348,18 @@ def main(argv=None):
         active &= r_tr.flatten(1).pow(2).sum(1) > noise_energy
         x_va, r_va, model = x_va_new, r_va_new, new
         manifest["networks"].append(series.onnx_name(i))
-        # The first network of a later stage (resumed with another loss or other data): it and
-        # those after trade a little residual for fewer artefacts or for emission the first
-        # stage missed, so the engine's early stop (ratio stalled) applies from it on, not
-        # before, where it would skip the stage. The loss of the network before: its own
-        # record, else the series' (older manifests record it once); where neither says, no
-        # stage boundary is assumed from the loss.
+        # The first network of a later stage (resumed with another loss or other training
+        # data): it and those after trade a little residual for fewer artefacts or for
+        # emission the first stage missed, so the engine's early stop (ratio stalled) applies
+        # from it on, not before, where it would skip the stage. The loss of the network
+        # before: its own record, else the series' (older manifests record it once); where
+        # neither says, no stage boundary is assumed from the loss. Another validation set
+        # alone trains nothing differently: no boundary.
         before_it = manifest["provenance"]["networks"][-1] if manifest["provenance"]["networks"] else None
         if before_it and "early_stop_from" not in manifest:
             previous = before_it.get("loss_projection", (manifest["provenance"].get("loss") or {}).get("projection"))
             other_loss = previous is not None and previous != args.loss_projection
-            other_data = (before_it.get("train_data", manifest["provenance"]["train_data"]["path"]) != train_paths
-                          or before_it.get("validation_data", series_val_paths) != val_paths)
+            other_data = as_list(before_it.get("train_data", series_train_paths)) != train_paths
             if other_loss or other_data:
                 manifest["early_stop_from"] = i
         manifest["validation"].append({"iteration": i, **{k: round(v, 4) for k, v in m.items()},
@@ -365,7 +368,7 @@ def main(argv=None):
             "iteration": i, "epochs": epochs, "train_seconds": round(seconds, 1), "train_samples": before, "loss_projection": args.loss_projection,
             "limit_train": args.limit_train, "device": device.type,
             # A later stage's own data (the series-level record is the first stage's).
-            **({"train_data": train_paths} if train_paths != manifest["provenance"]["train_data"]["path"] else {}),
+            **({"train_data": train_paths} if train_paths != series_train_paths else {}),
             **({"validation_data": val_paths} if val_paths != series_val_paths else {}),
             "pruned_after": before - int(active.sum()), "final_l1": round(loss, 6) if math.isfinite(loss) else None, "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         })
