@@ -446,42 +446,45 @@ impl WToeplitzBuilder {
         let pool = crate::parallel::shared_pool(threads)?;
         let forward = Fft2::new(m, m, FftDirection::Forward);
         let inverse = Fft2::new(m, m, FftDirection::Inverse);
-        let scale = 1.0 / (m * m) as f64;
-        let mut kernels: Vec<Vec<f64>> = Vec::with_capacity(plan.planes);
-        let mut coplanar = vec![0.0; m * m];
-        let Some(adjoint) = adjoint else {
+        let (kernels, psf_2n) = match adjoint {
             // Kernels finished elsewhere only (or none at all).
-            let (other, psf_2n) = finished.unwrap_or_else(|| (vec![0.0; plan.planes * m * m], vec![0.0; m * m]));
-            let planes = other.chunks_exact(m * m).enumerate().map(|(j, k)| WPlane { w: (plan.first + j as i64) as f64 * plan.delta, kernel_hat: k.to_vec() }).collect();
-            let t = pixel_t(geometry);
-            return Ok((WToeplitz { size: n, planes, t, forward, inverse, pool, taps: plan.taps.taps(), sigma: plan.taps.sigma() }, psf_2n));
-        };
-        adjoint.finish_each(|_, mut pair| {
-            pool.install(|| {
-                // Offsets -N (row and column 0) have no partner at +N in a 2N grid, and no
-                // N x N image needs them: zero, the pair's transforms are exactly real.
-                pair[..m].iter_mut().for_each(|c| *c = Complex64::default());
-                pair.iter_mut().step_by(m).for_each(|c| *c = Complex64::default());
-                forward.process(&mut pair);
-                let re: Vec<f64> = pair.par_iter().map(|c| c.re * scale).collect();
-                coplanar.par_iter_mut().zip(&re).for_each(|(s, k)| *s += k);
-                kernels.push(re);
-                if kernels.len() < plan.planes {
-                    let im: Vec<f64> = pair.par_iter().map(|c| c.im * scale).collect();
-                    coplanar.par_iter_mut().zip(&im).for_each(|(s, k)| *s += k);
-                    kernels.push(im);
-                }
-            })
-        });
-        let mut psf_2n: Vec<Complex64> = coplanar.into_iter().map(|k| Complex64::new(k, 0.0)).collect();
-        pool.install(|| inverse.process(&mut psf_2n));
-        let mut psf_2n: Vec<f64> = psf_2n.into_iter().map(|c| c.re).collect();
-        if let Some((other, other_psf)) = finished {
-            for (kernel, other) in kernels.iter_mut().zip(other.chunks_exact(m * m)) {
-                kernel.iter_mut().zip(other).for_each(|(a, b)| *a += b);
+            None => {
+                let (other, psf_2n) = finished.unwrap_or_else(|| (vec![0.0; plan.planes * m * m], vec![0.0; m * m]));
+                (other.chunks_exact(m * m).map(<[f64]>::to_vec).collect(), psf_2n)
             }
-            psf_2n.iter_mut().zip(&other_psf).for_each(|(a, b)| *a += b);
-        }
+            Some(adjoint) => {
+                let scale = 1.0 / (m * m) as f64;
+                let mut kernels: Vec<Vec<f64>> = Vec::with_capacity(plan.planes);
+                let mut coplanar = vec![0.0; m * m];
+                adjoint.finish_each(|_, mut pair| {
+                    pool.install(|| {
+                        // Offsets -N (row and column 0) have no partner at +N in a 2N grid, and no
+                        // N x N image needs them: zero, the pair's transforms are exactly real.
+                        pair[..m].iter_mut().for_each(|c| *c = Complex64::default());
+                        pair.iter_mut().step_by(m).for_each(|c| *c = Complex64::default());
+                        forward.process(&mut pair);
+                        let re: Vec<f64> = pair.par_iter().map(|c| c.re * scale).collect();
+                        coplanar.par_iter_mut().zip(&re).for_each(|(s, k)| *s += k);
+                        kernels.push(re);
+                        if kernels.len() < plan.planes {
+                            let im: Vec<f64> = pair.par_iter().map(|c| c.im * scale).collect();
+                            coplanar.par_iter_mut().zip(&im).for_each(|(s, k)| *s += k);
+                            kernels.push(im);
+                        }
+                    })
+                });
+                let mut psf_2n: Vec<Complex64> = coplanar.into_iter().map(|k| Complex64::new(k, 0.0)).collect();
+                pool.install(|| inverse.process(&mut psf_2n));
+                let mut psf_2n: Vec<f64> = psf_2n.into_iter().map(|c| c.re).collect();
+                if let Some((other, other_psf)) = finished {
+                    for (kernel, other) in kernels.iter_mut().zip(other.chunks_exact(m * m)) {
+                        kernel.iter_mut().zip(other).for_each(|(a, b)| *a += b);
+                    }
+                    psf_2n.iter_mut().zip(&other_psf).for_each(|(a, b)| *a += b);
+                }
+                (kernels, psf_2n)
+            }
+        };
         let planes = kernels.into_iter().enumerate().map(|(j, kernel_hat)| WPlane { w: (plan.first + j as i64) as f64 * plan.delta, kernel_hat }).collect();
         let t = pixel_t(geometry);
         Ok((WToeplitz { size: n, planes, t, forward, inverse, pool, taps: plan.taps.taps(), sigma: plan.taps.sigma() }, psf_2n))
