@@ -4,11 +4,13 @@
                                   [--integration-s 300] [--series SERIES] [--threads 2]
                                   [--keep-data DIR] [--r2d2 target/release/r2d2] [--wsclean wsclean]
                                   [--robust R] [--superresolution SR] [--dr LOW HIGH]
-                                  [--sky classic|extended]
+                                  [--sky classic|extended] [--truth-fwhm-px F]
 
 Settings a user chooses (issue 21's table): `--robust -1` / `--robust 1` (Briggs), `--superresolution
 2` / `2.5`, `--dr 1e5 1e5`, `--size 1024`, and `--sky extended` (skies of extended emission:
-textured lobes, spiral disks, halos and relics; test seeds 910000..). The observations are
+textured lobes, spiral disks, halos and relics; test seeds 910000..), with `--truth-fwhm-px 2`
+for those skies as imaged at a resolution of 2 pixels (real radio images used as truths are:
+no texture finer than the data measure). The observations are
 simulated at that setting (noise for its weighting, pixel from its SR) and every imager uses it:
 WSClean `-weight briggs R` at the engine's pixel, `r2d2 image --robust R --superresolution SR`.
 
@@ -184,9 +186,10 @@ def make_data(args, r2d2, data_dir):
     if os.path.exists(info):
         with open(info) as f:
             have = json.load(f)
-        wanted = (args.telescope, args.seed, args.size, args.superresolution, args.robust, list(args.dr), args.sky)
+        wanted = (args.telescope, args.seed, args.size, args.superresolution, args.robust, list(args.dr), args.sky, args.truth_fwhm_px)
         found = (have.get("telescope"), have.get("seed"), have.get("size"), have.get("superresolution"),
-                 have.get("weighting", {}).get("robust"), have.get("dynamic_range"), have.get("sky") or "classic")
+                 have.get("weighting", {}).get("robust"), have.get("dynamic_range"), have.get("sky") or "classic",
+                 have.get("truth_fwhm_px"))
         if args.integration_s is not None and have.get("integration_s") != args.integration_s:
             found = None
         if found == wanted and have.get("samples", 0) >= args.skies and os.path.isdir(os.path.join(data_dir, "vis")):
@@ -195,8 +198,9 @@ def make_data(args, r2d2, data_dir):
     log(f"simulating {args.skies} observations into {data_dir} ...")
     os.makedirs(os.path.dirname(os.path.abspath(data_dir)), exist_ok=True)
     integration = [] if args.integration_s is None else ["--integration-s", args.integration_s]
+    smooth = [] if args.truth_fwhm_px is None else ["--truth-fwhm-px", args.truth_fwhm_px]
     _, wall, _ = run([r2d2, "trainset", "--telescope", args.telescope, "--procedural", args.skies, "--sky", args.sky, "--seed", args.seed,
-                      "--size", args.size, *integration, "--superresolution", args.superresolution,
+                      "--size", args.size, *integration, *smooth, "--superresolution", args.superresolution,
                       f"--robust={args.robust:g}", "--dr-min", args.dr[0], "--dr-max", args.dr[1], "--epsilon", "1e-5",
                       "--threads", args.threads, "--parquet", "--out", data_dir])
     log(f"  {wall:.1f} s")
@@ -437,6 +441,8 @@ def main():
                     help="target dynamic ranges of the skies (log-uniform)")
     ap.add_argument("--sky", choices=["classic", "extended"], default="classic",
                     help="procedural skies (classic) or extended emission (test seeds 910000.. by default)")
+    ap.add_argument("--truth-fwhm-px", type=float, default=None,
+                    help="convolve each true sky with a Gaussian of this FWHM (pixels): a sky as imaged at that resolution")
     args = ap.parse_args()
     if args.integration_s is None and args.telescope == "vla":
         args.integration_s = 300.0
@@ -479,8 +485,10 @@ def main():
     result = {
         "telescope": args.telescope, "skies": args.skies, "seed": args.seed, "size": args.size, "integration_s": args.integration_s,
         "threads": args.threads, "data": data_dir,
-        "setting": {"robust": args.robust, "superresolution": args.superresolution, "dynamic_range": args.dr, "sky": args.sky},
+        "setting": {"robust": args.robust, "superresolution": args.superresolution, "dynamic_range": args.dr, "sky": args.sky,
+                    "truth_fwhm_px": args.truth_fwhm_px},
         "trainset_command": f"r2d2 trainset --telescope {args.telescope} --procedural {args.skies} --sky {args.sky} --seed {args.seed} --size {args.size} "
+                            f"{'' if args.truth_fwhm_px is None else f'--truth-fwhm-px {args.truth_fwhm_px:g} '}"
                             f"{'' if args.integration_s is None else f'--integration-s {args.integration_s:g} '}--superresolution {args.superresolution:g} "
                             f"--robust={args.robust:g} --dr-min {args.dr[0]:g} --dr-max {args.dr[1]:g} --epsilon 1e-5 --parquet --out {data_dir}",
         "wsclean_paper_command": "wsclean -niter 2000000 -weight briggs 0 -j 1 -multiscale -mgain 0.8 -gain 0.1 "
@@ -498,7 +506,7 @@ def main():
     }
     md = table_md(means, args.skies)
     integration = "the telescope's training preset" if args.integration_s is None else f"{args.integration_s:g} s"
-    header = (f"Held-out {args.size} x {args.size} {args.telescope} observations (its training preset's tracks), {args.sky} skies, seeds {args.seed}..{args.seed + args.skies - 1} "
+    header = (f"Held-out {args.size} x {args.size} {args.telescope} observations (its training preset's tracks), {args.sky} skies{'' if args.truth_fwhm_px is None else f' smoothed to {args.truth_fwhm_px:g} px FWHM'}, seeds {args.seed}..{args.seed + args.skies - 1} "
               f"(`r2d2 trainset --procedural`, integration {integration}), Briggs {args.robust:g}, SR {args.superresolution:g}, "
               f"DR {args.dr[0]:g}..{args.dr[1]:g}; means over {args.skies} skies, {args.threads} threads each.\n\n")
     warned = [l for l in series_log if "WARN" in l]

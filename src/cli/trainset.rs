@@ -28,6 +28,11 @@ pub struct Args {
     /// halos and relics: emission over decades of brightness across large areas).
     #[arg(long, value_enum, default_value_t = SkyKind::Classic)]
     sky: SkyKind,
+    /// Convolve each truth with a Gaussian of this FWHM in pixels (then peak 1, cut at 1/DR),
+    /// or `LOW..HIGH` drawn per sample: the sky as imaged at that resolution, as real radio
+    /// images are, with no texture finer than the data measure (`training/README.md`).
+    #[arg(long, value_parser = parse_range)]
+    truth_fwhm_px: Option<(f64, f64)>,
     /// Image size N.
     #[arg(long, default_value_t = 128)]
     size: usize,
@@ -190,6 +195,7 @@ pub fn run(args: Args) -> Result<()> {
         robust: args.robust,
         dynamic_range: (args.dr_min, args.dr_max),
         integration_s,
+        truth_fwhm_px: args.truth_fwhm_px,
         nufft: NufftParams { epsilon: args.epsilon, oversampling: 2.0 },
     };
     params.validate()?;
@@ -298,6 +304,7 @@ pub fn run(args: Args) -> Result<()> {
             "source_dr": args.truths.as_ref().map(|_| args.source_dr),
             "procedural": args.procedural,
             "sky": args.procedural.map(|_| format!("{:?}", args.sky).to_lowercase()),
+            "truth_fwhm_px": args.truth_fwhm_px.map(range_json),
             "telescope": telescope.key,
             "track_hours": telescope.training.configurations.iter().cloned().zip(telescope.training.hours.iter().copied()).collect::<std::collections::BTreeMap<_, _>>(),
             "dynamic_range": [args.dr_min, args.dr_max],

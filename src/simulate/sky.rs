@@ -525,6 +525,46 @@ fn diffuse_emission(
     out
 }
 
+/// The sky as an instrument of resolution `fwhm_px` (Gaussian FWHM, pixels) images it:
+/// convolved with that Gaussian (zero outside the image, so nothing wraps), renormalised to
+/// peak 1 and cut below `1 / dynamic_range`, so it keeps the sky contract (peak 1, no negative
+/// pixels, nothing fainter than the dynamic range) with its support widened by the blur.
+pub fn smooth_to_resolution(image: Vec<f64>, n: usize, fwhm_px: f64, dynamic_range: f64) -> Vec<f64> {
+    let sigma = fwhm_px / (8.0 * std::f64::consts::LN_2).sqrt();
+    let reach = ((4.0 * sigma).ceil() as usize).min(n - 1);
+    let kernel: Vec<f64> = (0..=reach).map(|k| (-0.5 * (k as f64 / sigma).powi(2)).exp()).collect();
+    let norm = kernel[0] + 2.0 * kernel[1..].iter().sum::<f64>();
+    let blur_line = |line: &[f64], out: &mut [f64]| {
+        for (i, o) in out.iter_mut().enumerate() {
+            let lo = i.saturating_sub(reach);
+            let hi = (i + reach).min(n - 1);
+            *o = (lo..=hi).map(|j| line[j] * kernel[i.abs_diff(j)]).sum::<f64>() / norm;
+        }
+    };
+    let mut rows = vec![0.0; n * n];
+    for iy in 0..n {
+        blur_line(&image[iy * n..(iy + 1) * n], &mut rows[iy * n..(iy + 1) * n]);
+    }
+    let mut out = vec![0.0; n * n];
+    let (mut column, mut blurred) = (vec![0.0; n], vec![0.0; n]);
+    for ix in 0..n {
+        for iy in 0..n {
+            column[iy] = rows[iy * n + ix];
+        }
+        blur_line(&column, &mut blurred);
+        for iy in 0..n {
+            out[iy * n + ix] = blurred[iy];
+        }
+    }
+    let peak = out.iter().copied().fold(0.0, f64::max);
+    if peak > 0.0 {
+        let floor = 1.0 / dynamic_range;
+        for v in out.iter_mut() {
+            *v = if *v / peak < floor { 0.0 } else { *v / peak };
+        }
+    }
+    out
+}
 /// Approximate Gaussian smoothing with standard deviation `sigma` (pixels) by four passes of
 /// a periodic running-box mean along each axis. Four boxes of half-width r have variance
 /// `4 r (r + 1) / 3`, so r is chosen to match sigma^2. The cost is O(n^2) whatever sigma,
@@ -593,6 +633,32 @@ pub(super) fn taper_window(n: usize, lo: f64, hi: f64, taper: f64) -> Vec<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A point smoothed to FWHM F is the Gaussian of that FWHM: it falls to half its peak F/2
+    /// pixels from the centre (interpolated between pixels), and the result keeps the sky
+    /// contract; emission cut below 1/DR after the blur is zero.
+    #[test]
+    fn smoothing_to_a_resolution_gives_that_fwhm_and_keeps_the_sky_contract() {
+        let n = 64;
+        let mut point = vec![0.0; n * n];
+        point[32 * n + 32] = 1.0;
+        for fwhm in [1.5, 3.0, 6.0] {
+            let out = smooth_to_resolution(point.clone(), n, fwhm, 1e4);
+            assert!((out[32 * n + 32] - 1.0).abs() < 1e-12);
+            let row = &out[32 * n..33 * n];
+            let k = (32..n).find(|&i| row[i] < 0.5).unwrap();
+            let half = (k - 1) as f64 + (row[k - 1] - 0.5) / (row[k - 1] - row[k]) - 32.0;
+            let exact = 0.5 * fwhm;
+            // Linear interpolation of a Gaussian between pixels errs by a small fraction of a pixel.
+            assert!((half - exact).abs() < 0.06 * fwhm.max(1.0), "FWHM {fwhm}: half maximum at {half}, expected {exact}");
+            let column: Vec<f64> = (0..n).map(|iy| out[iy * n + 32]).collect();
+            assert!(column.iter().zip(row).all(|(a, b)| (a - b).abs() < 1e-12), "the blur is isotropic");
+            assert!(out.iter().all(|&v| v == 0.0 || (1e-4..=1.0).contains(&v)));
+        }
+        let smooth = smooth_to_resolution(procedural_sky(&SkyParams::new(n, 1e3, 5)).unwrap(), n, 2.0, 1e3);
+        assert_eq!(smooth.iter().copied().fold(0.0, f64::max), 1.0);
+        assert!(smooth.iter().all(|&v| v == 0.0 || (1e-3..=1.0).contains(&v)));
+    }
     use std::time::Instant;
 
     fn stats(img: &[f64]) -> (f64, f64, f64, f64) {

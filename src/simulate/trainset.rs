@@ -16,7 +16,7 @@
 
 use super::observe::{frequency_channels, sample_coverage, simulate_visibilities, NoiseModel, ObservationSpec};
 use super::extended::extended_sky;
-use super::sky::{exponentiate, procedural_sky, SkyParams};
+use super::sky::{exponentiate, procedural_sky, smooth_to_resolution, SkyParams};
 use super::telescope::Telescope;
 use crate::imaging::{dirty_image, DirtyParams, PixelScale};
 use crate::nufft::NufftParams;
@@ -28,6 +28,10 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 use std::collections::BTreeMap;
+
+/// Random stream of the truth's resolution (apart from the observation's draws, which stay
+/// those of a set made without it).
+const STREAM_TRUTH_RESOLUTION: u64 = 12;
 
 /// Random stream of the observation parameters (the simulator's own streams use the seed
 /// with other stream numbers, so the choices stay independent).
@@ -47,6 +51,10 @@ pub struct TrainsetParams {
     pub dynamic_range: (f64, f64),
     /// Integration time, seconds: sets the number of points per observation.
     pub integration_s: (f64, f64),
+    /// FWHM in pixels of the Gaussian each truth is convolved with (`None`: as generated),
+    /// drawn per sample: the sky as an instrument of that resolution would image it, as real
+    /// radio images used as truths are, so that it holds no texture finer than the data measure.
+    pub truth_fwhm_px: Option<(f64, f64)>,
     pub nufft: NufftParams,
 }
 
@@ -73,6 +81,11 @@ impl TrainsetParams {
         let (low, high) = crate::weighting::ROBUST_RANGE;
         if !range_ok(self.robust, low, high) {
             return Err(Error::parameter("robust", format!("expected {low} <= low <= high <= {high}, got {r0}..{r1}")));
+        }
+        if let Some((f0, f1)) = self.truth_fwhm_px {
+            if !(range_ok((f0, f1), f64::MIN_POSITIVE, self.size as f64 / 8.0)) {
+                return Err(Error::parameter("truth-fwhm-px", format!("expected 0 < low <= high <= {} pixels (an eighth of the image), got {f0}..{f1}", self.size / 8)));
+            }
         }
         ImageGeometry::new(self.size, 1e-6).map(|_| ())
     }
@@ -183,6 +196,9 @@ pub struct SampleInfo {
     /// Unflagged visibilities imaged.
     pub points: usize,
     pub pixel_arcsec: f64,
+    /// FWHM (pixels) the truth was smoothed to, if it was.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub truth_fwhm_px: Option<f64>,
     #[serde(flatten)]
     pub observation: ObservationDraw,
 }
@@ -208,6 +224,15 @@ pub fn make_sample(truth: TruthSource, params: &TrainsetParams, seed: u64, threa
         }
         TruthSource::Procedural { seed } => procedural_sky(&SkyParams::new(n, dr, seed))?,
         TruthSource::Extended { seed } => extended_sky(&SkyParams::new(n, dr, seed))?,
+    };
+    let truth_fwhm_px = params.truth_fwhm_px.map(|(lo, hi)| {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        rng.set_stream(STREAM_TRUTH_RESOLUTION);
+        if hi > lo { rng.gen_range(lo..=hi) } else { lo }
+    });
+    let sky = match truth_fwhm_px {
+        Some(fwhm) => smooth_to_resolution(sky, n, fwhm, dr),
+        None => sky,
     };
     let coverage = sample_coverage(&draw.spec(seed)?)?;
     let geometry = ImageGeometry::from_superresolution(n, draw.superresolution, coverage.max_uv())?;
@@ -269,6 +294,7 @@ pub fn make_sample(truth: TruthSource, params: &TrainsetParams, seed: u64, threa
             kappa,
             points: vis.len(),
             pixel_arcsec: geometry.pixel_arcsec(),
+            truth_fwhm_px,
             observation: draw,
         },
         table: kept_table,
@@ -289,8 +315,30 @@ mod tests {
             robust: (0.0, 0.0),
             dynamic_range: (1e3, 1e5),
             integration_s: (1800.0, 1800.0),
+            truth_fwhm_px: None,
             nufft: NufftParams { epsilon: 1e-8, oversampling: 2.0 },
         }
+    }
+
+    /// The truth's resolution is drawn per sample from its own stream: the observation is that
+    /// of the set made without it, and the truth is the plain one smoothed to the drawn FWHM.
+    #[test]
+    fn a_truth_resolution_is_drawn_per_sample_and_leaves_the_observation_alone() {
+        let smooth = TrainsetParams { truth_fwhm_px: Some((1.0, 3.0)), ..params() };
+        let mut drawn = Vec::new();
+        for seed in [3, 4] {
+            let plain = make_sample(TruthSource::Procedural { seed }, &params(), seed, 1, false).unwrap();
+            let s = make_sample(TruthSource::Procedural { seed }, &smooth, seed, 1, false).unwrap();
+            assert_eq!(plain.info.observation, s.info.observation);
+            assert!(plain.info.truth_fwhm_px.is_none());
+            let fwhm = s.info.truth_fwhm_px.unwrap();
+            assert!((1.0..=3.0).contains(&fwhm), "{fwhm}");
+            assert_eq!(s.truth, smooth_to_resolution(plain.truth, 32, fwhm, s.info.observation.dynamic_range));
+            drawn.push(fwhm);
+        }
+        assert_ne!(drawn[0], drawn[1]);
+        assert!(TrainsetParams { truth_fwhm_px: Some((0.0, 2.0)), ..params() }.validate().is_err());
+        assert!(TrainsetParams { truth_fwhm_px: Some((1.0, 5.0)), ..params() }.validate().is_err());
     }
 
     #[test]
