@@ -517,7 +517,8 @@ def main():
         json.dump(result, f, indent=1)
     with open(os.path.join(out, "vs_wsclean.md"), "w") as f:
         f.write(header + md + footer)
-    plot(os.path.join(out, "vs_wsclean.png"), panels, records[:len(panels)], f"{args.size} x {args.size} {args.telescope}")
+    plot(os.path.join(out, "vs_wsclean.png"), panels, records[:len(panels)],
+         f"{args.size} x {args.size} {args.telescope} {args.sky}" + ("" if args.truth_fwhm_px is None else f" (smoothed to {args.truth_fwhm_px:g} px)"))
     print(header + md + footer)
 
 
