@@ -19,7 +19,7 @@
 //! Like `sky`, a sky is a pure function of its parameters, has peak 1, no negative pixels, and
 //! an exactly empty border outside the support box.
 
-use super::sky::{box_blur_periodic, exponentiate, taper_window, uniform_in, Canvas, SkyParams};
+use super::sky::{box_blur_periodic, exponentiate, normalise_and_cut, taper_window, uniform_in, Canvas, SkyParams};
 use crate::error::Result;
 use rand::Rng;
 use rand_chacha::rand_core::SeedableRng;
@@ -72,11 +72,7 @@ pub fn extended_sky(p: &SkyParams) -> Result<Vec<f64>> {
             _ => halo_and_relic(&mut img, &mut compact, &mut rng, n, &shape, &texture),
         }
     }
-    let peak = img.iter().copied().fold(0.0, f64::max);
-    let floor = 1.0 / SOURCE_DR;
-    for v in img.iter_mut() {
-        *v = if *v / peak < floor { 0.0 } else { *v / peak };
-    }
+    normalise_and_cut(&mut img, SOURCE_DR);
     exponentiate(&mut img, SOURCE_DR, dr)?;
     let compact_peak = compact.data.iter().copied().fold(0.0, f64::max);
     if compact_peak > 0.0 {
@@ -110,11 +106,7 @@ pub fn extended_sky(p: &SkyParams) -> Result<Vec<f64>> {
             img[iy * n + ix] *= w[iy] * w[ix];
         }
     }
-    let peak = img.iter().copied().fold(0.0, f64::max);
-    let floor = 1.0 / dr;
-    for v in img.iter_mut() {
-        *v = if *v / peak < floor { 0.0 } else { *v / peak };
-    }
+    normalise_and_cut(&mut img, dr);
     Ok(img)
 }
 

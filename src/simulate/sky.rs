@@ -169,15 +169,8 @@ pub fn procedural_sky(p: &SkyParams) -> Result<Vec<f64>> {
             img[iy * n + ix] *= w[iy] * w[ix];
         }
     }
-    let peak = img.iter().copied().fold(0.0, f64::max);
-    debug_assert!(peak > 0.0);
-    let floor = 1.0 / dr;
-    for v in img.iter_mut() {
-        *v /= peak;
-        if *v < floor {
-            *v = 0.0;
-        }
-    }
+    debug_assert!(img.iter().any(|&v| v > 0.0));
+    normalise_and_cut(&mut img, dr);
     Ok(img)
 }
 
@@ -556,15 +549,22 @@ pub fn smooth_to_resolution(image: Vec<f64>, n: usize, fwhm_px: f64, dynamic_ran
             out[iy * n + ix] = blurred[iy];
         }
     }
-    let peak = out.iter().copied().fold(0.0, f64::max);
+    normalise_and_cut(&mut out, dynamic_range);
+    out
+}
+
+/// Divide by the peak and zero what falls below `1 / dynamic_range` of it: the sky contract's
+/// last step (peak 1, nothing fainter than the dynamic range). An all-zero image stays zero.
+pub(super) fn normalise_and_cut(image: &mut [f64], dynamic_range: f64) {
+    let peak = image.iter().copied().fold(0.0, f64::max);
     if peak > 0.0 {
         let floor = 1.0 / dynamic_range;
-        for v in out.iter_mut() {
+        for v in image.iter_mut() {
             *v = if *v / peak < floor { 0.0 } else { *v / peak };
         }
     }
-    out
 }
+
 /// Approximate Gaussian smoothing with standard deviation `sigma` (pixels) by four passes of
 /// a periodic running-box mean along each axis. Four boxes of half-width r have variance
 /// `4 r (r + 1) / 3`, so r is chosen to match sigma^2. The cost is O(n^2) whatever sigma,
@@ -633,6 +633,7 @@ pub(super) fn taper_window(n: usize, lo: f64, hi: f64, taper: f64) -> Vec<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::time::Instant;
 
     /// A point smoothed to FWHM F is the Gaussian of that FWHM: it falls to half its peak F/2
     /// pixels from the centre (interpolated between pixels), and the result keeps the sky
@@ -659,7 +660,6 @@ mod tests {
         assert_eq!(smooth.iter().copied().fold(0.0, f64::max), 1.0);
         assert!(smooth.iter().all(|&v| v == 0.0 || (1e-3..=1.0).contains(&v)));
     }
-    use std::time::Instant;
 
     fn stats(img: &[f64]) -> (f64, f64, f64, f64) {
         let peak = img.iter().copied().fold(f64::NEG_INFINITY, f64::max);
