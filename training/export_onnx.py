@@ -20,15 +20,14 @@ def main(argv=None):
     manifest = series.read_manifest(args.series)
     if manifest is None:
         raise SystemExit(f"{args.series}: no {series.MANIFEST}")
-    net = manifest["network"]
     for i, name in enumerate(manifest["networks"], start=1):
         if name != series.onnx_name(i):
             raise SystemExit(f"{args.series}: network {i} is listed as {name}, expected {series.onnx_name(i)}")
         out = os.path.join(args.series, name)
         if os.path.exists(out) and not args.force:
             continue
-        model = series.load_model(args.series, i, net["base_channels"], net["poolings"], series.network_norm(manifest),
-                                  series.network_kind(manifest))
+        kind, channels, poolings, norm = series.network_config(manifest, i)
+        model = series.load_model(args.series, i, channels, poolings, norm, kind)
         series.export_onnx(model, out, manifest["image_sizes"][0])
         print(f"wrote {out}", flush=True)
 

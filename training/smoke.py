@@ -159,6 +159,25 @@ def main(argv=None):
         check(mc["network"]["norm"] == "none" and mc["provenance"]["crops"] == {"side": 32, "per_sample_and_epoch": 2}, "crop manifest")
         check(mc["provenance"]["networks"][0]["loss_projection"] == "leaky", "the network's loss projection is recorded")
         check(not any(os.path.isabs(p) for p in mc["provenance"]["train_data"]["path"]), "provenance paths are not absolute")
+        # A later stage of another width (--fresh-start): refused without the flag, recorded per
+        # network; the next resume warm-starts from it and replays each network at its own width.
+        crops = [py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", f"{d}/val", "--val", f"{d}/val", "--series", cdir,
+                 "--work", f"{d}/checkpoints-crops", "--norm", "none", "--crop", "32", "--crops-per-sample", "2", "--epochs", "1",
+                 "--batch", "2", "--min-gain-db", "-1000", "--resume"]
+        narrow = subprocess.run(crops + ["--max-networks", "2", "--base-channels", "8"], capture_output=True, text=True)
+        check(narrow.returncode != 0 and "--fresh-start" in narrow.stderr, "another width without --fresh-start is refused")
+        deeper = subprocess.run(crops + ["--max-networks", "2", "--poolings", "4", "--fresh-start"], capture_output=True, text=True)
+        check(deeper.returncode != 0 and "may not pool more" in deeper.stderr, "a later network pooling more than the series is refused")
+        run(crops + ["--max-networks", "2", "--base-channels", "8", "--fresh-start"])
+        os.remove(f"{d}/checkpoints-crops/replay.pt")
+        run(crops + ["--max-networks", "3", "--base-channels", "8"])
+        mc = series.read_manifest(cdir)
+        recs = mc["provenance"]["networks"]
+        check(len(mc["networks"]) == 3 and mc["network"]["base_channels"] == 16 and "network" not in recs[0]
+              and recs[1]["network"]["base_channels"] == 8 and recs[1].get("fresh_start") is True
+              and recs[2]["network"]["base_channels"] == 8 and "fresh_start" not in recs[2],
+              f"per-network widths and fresh start recorded: {recs}")
+        check(series.network_config(mc, 1)[1] == 16 and series.network_config(mc, 3)[1] == 8, "network_config per network")
         crop_only = subprocess.run([py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", "--val", f"{d}/val", "--series",
                                     f"{d}/series-bad", "--work", f"{d}/checkpoints-bad", "--crop", "32"], capture_output=True, text=True)
         check(crop_only.returncode != 0 and "--norm none" in crop_only.stderr, "--crop with instance normalisation is refused")

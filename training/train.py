@@ -206,6 +206,10 @@ def main(argv=None):
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--commit", action="store_true", help="git-commit the series directory after each network")
+    p.add_argument("--fresh-start", action="store_true",
+                   help="the first network of this run starts from random weights, not from the network before; "
+                        "with it a resumed series may go on with another architecture (--arch, --base-channels, "
+                        "--poolings, --norm), recorded per network in the manifest")
     args = p.parse_args(argv)
     if args.arch == "uwdsr":
         args.norm = "none"  # U-WDSR has no feature normalisation: local, crops are valid samples
@@ -259,11 +263,16 @@ def main(argv=None):
                 f"SR {fmt(validity['superresolution'])}, trained at {size}x{size}; H and W must be multiples of {2 ** args.poolings}")
         model = series.make_network(args.arch, args.base_channels, args.poolings, args.norm)
         manifest = series.new_manifest(name, model, size, desc, provenance, validity)
-    net_cfg = manifest["network"]
-    have = (series.network_kind(manifest), net_cfg["base_channels"], net_cfg["poolings"], series.network_norm(manifest))
-    if have != (args.arch, args.base_channels, args.poolings, args.norm):
-        raise SystemExit(f"{args.series}: the series has {have[0]}, {have[1]} channels / {have[2]} poolings / norm {have[3]}; "
-                         f"got --arch {args.arch} --base-channels {args.base_channels} --poolings {args.poolings} --norm {args.norm}")
+    last = series.network_config(manifest, len(manifest["networks"]))
+    wanted = (args.arch, args.base_channels, args.poolings, args.norm)
+    if last != wanted and not args.fresh_start:
+        raise SystemExit(f"{args.series}: the series' last network is {last[0]}, {last[1]} channels / {last[2]} poolings / norm {last[3]}; "
+                         f"got --arch {args.arch} --base-channels {args.base_channels} --poolings {args.poolings} --norm {args.norm} "
+                         f"(--fresh-start trains a network of another architecture from random weights)")
+    if args.poolings > manifest["network"]["poolings"]:
+        # The engine checks a job's image size against `network.poolings` (a multiple of 2^P).
+        raise SystemExit(f"{args.series}: the series pools {manifest['network']['poolings']} times (network.poolings); "
+                         f"a later network may not pool more (got --poolings {args.poolings})")
 
     # Replay the existing networks: x, r of every sample, the pruned training set. The replayed
     # estimates are cached in --work (keyed by the networks' weights and the data), so that a
@@ -275,16 +284,21 @@ def main(argv=None):
     history = [dict(v) for v in manifest["validation"]]
     model = None
     have = len(manifest["networks"])
+
+    def load_network(k):
+        kind, channels, poolings, norm = series.network_config(manifest, k)
+        return series.load_model(args.series, k, channels, poolings, norm, kind)
+
     cache = load_replay(args.work, replay_key(args, have))
     if cache is not None:
         x_tr, x_va, active = cache["x_tr"], cache["x_va"], cache["active"]
         r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
         r_va = common.residual(val.dirty, x_va, val.psf_hat)
         if have:
-            model = series.load_model(args.series, have, args.base_channels, args.poolings, args.norm, args.arch).to(device)
+            model = load_network(have).to(device)
         log(f"replay of N1-N{have} read from the cache: validation {common.metrics(x_va, r_va, val)}; {int(active.sum())} training samples active")
     for k in range(1, have + 1 if cache is None else 1):
-        model = series.load_model(args.series, k, args.base_channels, args.poolings, args.norm, args.arch).to(device)
+        model = load_network(k).to(device)
         run = torch_runner(model, device)
         x_tr = common.update(k, run, train.dirty, x_tr, r_tr, batch=ubatch)
         r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
@@ -316,14 +330,19 @@ def main(argv=None):
             f"the baseline is the replayed series on it")
     if have:
         log(f"series so far: best validation SNR {best['snr_db']:.2f} dB, logSNR {best['logsnr_db']:.2f} dB")
-    for i in range(len(manifest["networks"]) + 1, args.max_networks + 1):
+    first_of_run = len(manifest["networks"]) + 1
+    for i in range(first_of_run, args.max_networks + 1):
         if int(active.sum()) < args.batch:
             log(f"stop: only {int(active.sum())} training samples left after pruning")
             break
         torch.manual_seed(args.seed * 7919 + i)
         new = series.make_network(args.arch, args.base_channels, args.poolings, args.norm).to(device)
-        if model is not None:
+        fresh = model is None or (args.fresh_start and i == first_of_run)
+        if not fresh:
             new.load_state_dict(model.state_dict())  # network i starts from network i-1
+        else:
+            log(f"N{i}: {args.arch}, {args.base_channels} channels / {args.poolings} poolings, norm {args.norm}, "
+                f"{series.parameter_count(new)} parameters, from random weights")
         epochs, seconds, loss = train_network(i, new, train, x_tr, r_tr, active, args, args.work, device)
         new.eval()
         run = torch_runner(new, device)
@@ -367,6 +386,9 @@ def main(argv=None):
         manifest["provenance"]["networks"].append({
             "iteration": i, "epochs": epochs, "train_seconds": round(seconds, 1), "train_samples": before, "loss_projection": args.loss_projection,
             "limit_train": args.limit_train, "device": device.type,
+            # An architecture other than the series' (a later stage's, --fresh-start).
+            **({"network": series.config_record(new)} if series.config_record(new) != manifest["network"] else {}),
+            **({"fresh_start": True} if fresh and i > 1 else {}),
             # A later stage's own data (the series-level record is the first stage's).
             **({"train_data": train_paths} if train_paths != series_train_paths else {}),
             **({"validation_data": val_paths} if val_paths != series_val_paths else {}),

@@ -106,8 +106,7 @@ def new_manifest(name, model, size, description, provenance, validity):
         "description": description,
         "telescope": validity["telescopes"][0],
         "architecture": "r2d2",
-        "network": {"kind": "uwdsr" if isinstance(model, UWDSR) else "unet", "base_channels": model.base_channels,
-                    "poolings": model.poolings, "norm": getattr(model, "norm", "none"), "parameters": parameter_count(model)},
+        "network": config_record(model),
         "image_sizes": [size],
         "any_size": True,
         "superresolution": sr,
@@ -134,6 +133,22 @@ def save_weights(series_dir, i, model):
 def network_norm(manifest):
     """The U-Net's normalisation ("instance" for series written before the option existed)."""
     return manifest["network"].get("norm", "instance")
+
+
+def network_config(manifest, i):
+    """(kind, base_channels, poolings, norm) of network i: its own record where a later stage
+    changed the architecture (`provenance.networks[].network`), else the series'."""
+    for n in manifest["provenance"]["networks"]:
+        if n["iteration"] == i and "network" in n:
+            c = n["network"]
+            return c.get("kind", "unet"), c["base_channels"], c["poolings"], c.get("norm", "instance")
+    return network_kind(manifest), manifest["network"]["base_channels"], manifest["network"]["poolings"], network_norm(manifest)
+
+
+def config_record(model):
+    """The manifest's description of a network: kind, channels, poolings, norm, parameters."""
+    return {"kind": "uwdsr" if isinstance(model, UWDSR) else "unet", "base_channels": model.base_channels,
+            "poolings": model.poolings, "norm": getattr(model, "norm", "none"), "parameters": parameter_count(model)}
 
 
 def load_model(series_dir, i, base_channels, poolings, norm="instance", kind="unet"):
