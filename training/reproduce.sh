@@ -6,7 +6,7 @@
 # resumes from its per-epoch checkpoint and adds networks to the series (--resume).
 # Environment: R2D2 (the engine binary, default target/release/r2d2), SERIES (default
 # models/<recipe>), TRAIN_ARGS (extra train.py options for every stage of the recipe, e.g.
-# "--device cpu"; a stage's network count: STAGE2_NETWORKS, or edit the recipe's ARGS),
+# "--device cpu"; a stage's network count: STAGE2_NETWORKS, STAGE3_NETWORKS, or edit the recipe's ARGS),
 # NICE (default 19: training yields the CPU to interactive work), WORK (per-epoch checkpoints,
 # default <data>/work: give a retrain into another SERIES its own), THREADS (CPU threads of
 # training, default 2), EVAL=0 (skip the held-out evaluation, e.g. on a machine lent for training).
@@ -72,7 +72,12 @@ vla-r2d2-512|meerkat-r2d2-512)
         fi
         STAGE2_TRAIN=("$D/train-radio" "$D/train-extended-resolved")
         STAGE2_VAL=("$D/val" "$D/val-extended-resolved")
-        STAGE2="--norm none --crop 128 --crops-per-sample 4 --epochs 4 --batch 8 --max-networks ${STAGE2_NETWORKS:-20}"
+        # The stopping rule ended it at network 18 (a 19th did not improve validation): capped
+        # there, so that a recipe resumed during stage 3 does not add 4-epoch networks.
+        STAGE2="--norm none --crop 128 --crops-per-sample 4 --epochs 4 --batch 8 --max-networks ${STAGE2_NETWORKS:-18}"
+        # Stage 3 (networks 19..): the same data, 8 epochs a network. Once the 4-epoch stage
+        # stopped improving (network 19 rejected), longer training of each network still did.
+        STAGE3="--norm none --crop 128 --crops-per-sample 4 --epochs 8 --batch 8 --max-networks ${STAGE3_NETWORKS:-22}"
     fi
     ;;
 vla-r2d2-512-broad)
@@ -125,5 +130,7 @@ if [ -n "${STAGE2:-}" ]; then
     [ -z "${STAGE2_TRAIN:-}" ] || TRAIN=("${STAGE2_TRAIN[@]}")
     [ -z "${STAGE2_VAL:-}" ] || VAL=("${STAGE2_VAL[@]}")
     train "${WORK:-$D/work}-stage2" $STAGE2 --resume
+    # A stage 3 goes on from stage 2 on its sets, in its work directory (its replay cache).
+    [ -z "${STAGE3:-}" ] || train "${WORK:-$D/work}-stage2" $STAGE3 --resume
 fi
 [ "${EVAL:-1}" = 0 ] || $RUN python3 training/evaluate.py --series "$SERIES" --test "$D/test" --r2d2 "$R2D2" --out "$D/eval" --update-manifest
