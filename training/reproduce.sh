@@ -111,7 +111,15 @@ vla-r2d2-512-broad)
     # goes. Networks 1-14 (the stopping rule rejected a 15th); then STAGE2.
     ARGS="--norm none --crop 256 --crops-per-sample 2 --epochs-first 40 --epochs 12 --batch 8 --max-networks 14 --loss-projection none"
     # Networks 15..: the leaky-clipped loss, which clears the empty sky the unclipped loss
-    # leaves specked (training/README.md), on the first 120 training samples, 4 epochs each.
+    # leaves specked (training/README.md), 4 epochs each, on the 80 classic training skies and
+    # 40 extended ones smoothed to a resolution of 1.5..3 pixels (as in vla-r2d2-512's stage
+    # 2: skies as generated hold texture finer than the data measure), validated on the
+    # classic and 8 smoothed extended skies.
+    RESOLVED="--truth-fwhm-px 1.5..3"
+    make_once "$D/train-extended-resolved" "$R2D2" trainset --procedural 40 --sky extended --seed 200000 $RESOLVED $SIM
+    make_once "$D/val-extended-resolved" "$R2D2" trainset --procedural 8 --sky extended --seed 510000 $RESOLVED $SIM
+    STAGE2_TRAIN=("$D/train-radio" "$D/train-extended-resolved")
+    STAGE2_VAL=("$D/val-classic" "$D/val-extended-resolved")
     STAGE2="--norm none --crop 256 --crops-per-sample 2 --epochs 4 --batch 8 --max-networks ${STAGE2_NETWORKS:-17} --loss-projection leaky --limit-train 120"
     ;;
 *) echo "unknown recipe $RECIPE (vla-r2d2-512, meerkat-r2d2-512, vla-r2d2-512-broad or vla-r2d2-128)" >&2; exit 2 ;;
