@@ -77,7 +77,7 @@ vla-r2d2-512|meerkat-r2d2-512)
         STAGE2="--norm none --crop 128 --crops-per-sample 4 --epochs 4 --batch 8 --max-networks ${STAGE2_NETWORKS:-18}"
         # Stage 3 (networks 19..): the same data, 8 epochs a network. Once the 4-epoch stage
         # stopped improving (network 19 rejected), longer training of each network still did.
-        STAGE3="--norm none --crop 128 --crops-per-sample 4 --epochs 8 --batch 8 --max-networks ${STAGE3_NETWORKS:-22}"
+        STAGE3="--norm none --crop 128 --crops-per-sample 4 --epochs 8 --batch 8 --max-networks ${STAGE3_NETWORKS:-25}"
     fi
     ;;
 vla-r2d2-512-broad)
