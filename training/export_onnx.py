@@ -26,8 +26,7 @@ def main(argv=None):
         out = os.path.join(args.series, name)
         if os.path.exists(out) and not args.force:
             continue
-        kind, channels, poolings, norm = series.network_config(manifest, i)
-        model = series.load_model(args.series, i, channels, poolings, norm, kind)
+        model = series.load_network(args.series, manifest, i)
         series.export_onnx(model, out, manifest["image_sizes"][0])
         print(f"wrote {out}", flush=True)
 

@@ -284,21 +284,16 @@ def main(argv=None):
     history = [dict(v) for v in manifest["validation"]]
     model = None
     have = len(manifest["networks"])
-
-    def load_network(k):
-        kind, channels, poolings, norm = series.network_config(manifest, k)
-        return series.load_model(args.series, k, channels, poolings, norm, kind)
-
     cache = load_replay(args.work, replay_key(args, have))
     if cache is not None:
         x_tr, x_va, active = cache["x_tr"], cache["x_va"], cache["active"]
         r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
         r_va = common.residual(val.dirty, x_va, val.psf_hat)
         if have:
-            model = load_network(have).to(device)
+            model = series.load_network(args.series, manifest, have).to(device)
         log(f"replay of N1-N{have} read from the cache: validation {common.metrics(x_va, r_va, val)}; {int(active.sum())} training samples active")
     for k in range(1, have + 1 if cache is None else 1):
-        model = load_network(k).to(device)
+        model = series.load_network(args.series, manifest, k).to(device)
         run = torch_runner(model, device)
         x_tr = common.update(k, run, train.dirty, x_tr, r_tr, batch=ubatch)
         r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
@@ -383,11 +378,12 @@ def main(argv=None):
                 manifest["early_stop_from"] = i
         manifest["validation"].append({"iteration": i, **{k: round(v, 4) for k, v in m.items()},
                                        **({"validation_data": val_paths} if val_paths != series_val_paths else {})})
+        record = series.config_record(new)
         manifest["provenance"]["networks"].append({
             "iteration": i, "epochs": epochs, "train_seconds": round(seconds, 1), "train_samples": before, "loss_projection": args.loss_projection,
             "limit_train": args.limit_train, "device": device.type,
             # An architecture other than the series' (a later stage's, --fresh-start).
-            **({"network": series.config_record(new)} if series.config_record(new) != manifest["network"] else {}),
+            **({"network": record} if record != manifest["network"] else {}),
             **({"fresh_start": True} if fresh and i > 1 else {}),
             # A later stage's own data (the series-level record is the first stage's).
             **({"train_data": train_paths} if train_paths != series_train_paths else {}),

@@ -151,6 +151,12 @@ def config_record(model):
             "poolings": model.poolings, "norm": getattr(model, "norm", "none"), "parameters": parameter_count(model)}
 
 
+def load_network(series_dir, manifest, i):
+    """Network i of a series, built with its own architecture (`network_config`)."""
+    kind, channels, poolings, norm = network_config(manifest, i)
+    return load_model(series_dir, i, channels, poolings, norm, kind)
+
+
 def load_model(series_dir, i, base_channels, poolings, norm="instance", kind="unet"):
     model = make_network(kind, base_channels, poolings, norm)
     model.load_state_dict(torch.load(os.path.join(series_dir, weights_name(i)), weights_only=True, map_location="cpu"))
