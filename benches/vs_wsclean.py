@@ -5,6 +5,7 @@
                                   [--keep-data DIR] [--r2d2 target/release/r2d2] [--wsclean wsclean]
                                   [--robust R] [--superresolution SR] [--dr LOW HIGH]
                                   [--sky classic|extended] [--truth-fwhm-px F]
+                                  [--sky-fits FITS ... [--hours A,C]]
 
 Settings a user chooses (issue 21's table): `--robust -1` / `--robust 1` (Briggs), `--superresolution
 2` / `2.5`, `--dr 1e5 1e5`, `--size 1024`, and `--sky extended` (skies of extended emission:
@@ -13,6 +14,12 @@ for those skies as imaged at a resolution of 2 pixels (real radio images used as
 no texture finer than the data measure). The observations are
 simulated at that setting (noise for its weighting, pixel from its SR) and every imager uses it:
 WSClean `-weight briggs R` at the engine's pixel, `r2d2 image --robust R --superresolution SR`.
+
+`--sky-fits FITS ...` benchmarks on skies of one's own (FITS images in Jy/pixel, --size square,
+e.g. real radio images): each is observed by `r2d2 simulate --sky FITS` at the setting (its DR
+drawn in --dr, the telescope's typical tracks or --hours, --integration-s) and scored as the
+procedural skies are. The reference's example sky 3C353 (`data/3c353_gdth.fits` in
+basp-group/R2D2-RI) is such test material: never trained or selected on.
 
 Needs `wsclean` (Debian: apt-get install -y wsclean), GNU time at /usr/bin/time (apt package
 `time`) and the Python packages in benches/requirements.txt (python-casacore, pyarrow, astropy,
@@ -206,6 +213,47 @@ def make_data(args, r2d2, data_dir):
     log(f"  {wall:.1f} s")
 
 
+def make_data_fits(args, r2d2, data_dir):
+    """Observations of the user's own skies (--sky-fits: FITS images in Jy/pixel, e.g. real radio
+    images), simulated by `r2d2 simulate` at the benchmark's setting, one per file; the truth
+    is written beside each table with the engine's pixel grid (the simulation sets the pixel
+    from --superresolution unless the file has one). Always made afresh: the files may change."""
+    from astropy.io import fits
+    vis = os.path.join(data_dir, "vis")
+    if os.path.isdir(vis):
+        shutil.rmtree(vis)
+    os.makedirs(vis)
+    rng = np.random.default_rng(args.seed)
+    samples = []
+    for k, path in enumerate(args.sky_fits):
+        truth, header = read_fits(path)
+        if truth.shape != (args.size, args.size):
+            sys.exit(f"{path}: a {truth.shape[1]} x {truth.shape[0]} image; this benchmark images --size {args.size}")
+        if not np.isfinite(truth).all() or truth.min() < 0 or truth.max() <= 0:
+            sys.exit(f"{path}: expected a finite, non-negative sky with emission (Jy/pixel)")
+        dr = float(np.exp(rng.uniform(np.log(args.dr[0]), np.log(args.dr[1]))))
+        obs = os.path.join(vis, f"{k:05d}.parquet")
+        hours = [] if args.hours is None else ["--hours", args.hours]
+        integration = [] if args.integration_s is None else ["--integration-s", args.integration_s]
+        text, _, _ = run([r2d2, "simulate", "--sky", os.path.abspath(path), "--telescope", args.telescope, *hours, *integration,
+                          "--dr", f"{dr:.6g}", "--superresolution", args.superresolution, f"--robust={args.robust:g}",
+                          "--epsilon", "1e-5", "--seed", args.seed + k, "--threads", args.threads, "--out", obs])
+        m = re.search(r"(\d+) visibilities", text)
+        # The engine's pixel grid for the truth: its dirty image's header (the scale and centre).
+        run([r2d2, "dirty", obs, "--size", args.size, "--weighting", "natural", "--superresolution", args.superresolution,
+             "--name", os.path.join(vis, "grid"), "--threads", args.threads])
+        _, grid = read_fits(os.path.join(vis, "grid-dirty.fits"))
+        for f in ("grid-dirty.fits", "grid-psf.fits"):
+            if os.path.exists(os.path.join(vis, f)):
+                os.remove(os.path.join(vis, f))
+        grid["BUNIT"] = "JY/PIXEL"
+        fits.PrimaryHDU(truth.astype(np.float32), header=grid).writeto(os.path.join(vis, f"{k:05d}.sky.fits"), overwrite=True)
+        samples.append({"index": k, "source": os.path.basename(path), "seed": args.seed + k, "dynamic_range": dr,
+                        "points": int(m.group(1)) if m else None, "pixel_arcsec": abs(grid["CDELT2"]) * 3600})
+    with open(os.path.join(data_dir, "samples.json"), "w") as f:
+        json.dump(samples, f, indent=1)
+
+
 def fits_pixel_arcsec(path):
     _, h = read_fits(path)
     return abs(h["CDELT2"]) * 3600, h
@@ -395,7 +443,7 @@ def plot(path, panels, records, title):
     cax = fig.add_axes([0.9, 0.1, 0.02, 0.8])
     cb = fig.colorbar(im, cax=cax)
     cb.set_label("log10(image / truth peak)")
-    fig.suptitle(f"held-out {title} skies (SNR / logSNR); north up, east left", fontsize=10, y=0.995)
+    fig.suptitle(f"{title} (SNR / logSNR); north up, east left", fontsize=10, y=0.995)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -443,6 +491,11 @@ def main():
                     help="procedural skies (classic) or extended emission (test seeds 910000.. by default)")
     ap.add_argument("--truth-fwhm-px", type=float, default=None,
                     help="convolve each true sky with a Gaussian of this FWHM (pixels): a sky as imaged at that resolution")
+    ap.add_argument("--sky-fits", nargs="+", default=None, metavar="FITS",
+                    help="image these skies (FITS, Jy/pixel, --size square, e.g. real radio images) instead of procedural ones: "
+                         "each observed by `r2d2 simulate` at the setting, its DR drawn in --dr")
+    ap.add_argument("--hours", default=None,
+                    help="with --sky-fits: hours per array configuration (`r2d2 simulate --hours`, VLA A,C e.g. 5.5,1.1)")
     args = ap.parse_args()
     if args.integration_s is None and args.telescope == "vla":
         args.integration_s = 300.0
@@ -459,7 +512,11 @@ def main():
     out = os.path.abspath(args.out)
     os.makedirs(out, exist_ok=True)
     data_dir = os.path.abspath(args.keep_data or os.path.join(out, "data"))
-    make_data(args, r2d2, data_dir)
+    if args.sky_fits:
+        args.skies = len(args.sky_fits)
+        make_data_fits(args, r2d2, data_dir)
+    else:
+        make_data(args, r2d2, data_dir)
     with open(os.path.join(data_dir, "samples.json")) as f:
         samples = json.load(f)
 
@@ -504,11 +561,27 @@ def main():
         "means": means,
         "per_sky": records,
     }
+    if args.sky_fits:
+        result["setting"]["sky"] = "fits"
+        result["sky_fits"] = [os.path.basename(p) for p in args.sky_fits]
+        del result["trainset_command"]
+        result["simulate_command"] = (f"r2d2 simulate --sky FITS --telescope {args.telescope} "
+                                      f"{'' if args.hours is None else f'--hours {args.hours} '}"
+                                      f"{'' if args.integration_s is None else f'--integration-s {args.integration_s:g} '}"
+                                      f"--dr D --superresolution {args.superresolution:g} --robust={args.robust:g} --epsilon 1e-5 --seed S")
     md = table_md(means, args.skies)
     integration = "the telescope's training preset" if args.integration_s is None else f"{args.integration_s:g} s"
-    header = (f"Held-out {args.size} x {args.size} {args.telescope} observations (its training preset's tracks), {args.sky} skies{'' if args.truth_fwhm_px is None else f' smoothed to {args.truth_fwhm_px:g} px FWHM'}, seeds {args.seed}..{args.seed + args.skies - 1} "
-              f"(`r2d2 trainset --procedural`, integration {integration}), Briggs {args.robust:g}, SR {args.superresolution:g}, "
-              f"DR {args.dr[0]:g}..{args.dr[1]:g}; means over {args.skies} skies, {args.threads} threads each.\n\n")
+    if args.sky_fits:
+        sky_what = f"the skies {', '.join(os.path.basename(p) for p in args.sky_fits)}"
+        data_how = f"`r2d2 simulate`{'' if args.hours is None else f', {args.hours} h'}, integration {integration}, seeds {args.seed}.."
+        title = f"{args.size} x {args.size} {args.telescope}, the skies of {', '.join(os.path.basename(p) for p in args.sky_fits)}"
+    else:
+        sky_what = (f"held-out {args.sky} skies{'' if args.truth_fwhm_px is None else f' smoothed to {args.truth_fwhm_px:g} px FWHM'}, "
+                    f"seeds {args.seed}..{args.seed + args.skies - 1}")
+        data_how = f"`r2d2 trainset --procedural`, its training preset's tracks, integration {integration}"
+        title = f"held-out {args.size} x {args.size} {args.telescope} {args.sky} skies" + ("" if args.truth_fwhm_px is None else f" (smoothed to {args.truth_fwhm_px:g} px)")
+    header = (f"{args.size} x {args.size} {args.telescope} observations of {sky_what} ({data_how}), Briggs {args.robust:g}, "
+              f"SR {args.superresolution:g}, DR {args.dr[0]:g}..{args.dr[1]:g}; means over {args.skies} skies, {args.threads} threads each.\n\n")
     warned = [l for l in series_log if "WARN" in l]
     footer = (f"\n\nR2D2 series: {', '.join(series_used)}{' (' + warned[0].split('] ', 1)[-1] + ')' if warned else ''}. "
               f"MS round trip (WSClean natural dirty of the MS vs `r2d2 dirty` of the Parquet): relative difference "
@@ -517,8 +590,7 @@ def main():
         json.dump(result, f, indent=1)
     with open(os.path.join(out, "vs_wsclean.md"), "w") as f:
         f.write(header + md + footer)
-    plot(os.path.join(out, "vs_wsclean.png"), panels, records[:len(panels)],
-         f"{args.size} x {args.size} {args.telescope} {args.sky}" + ("" if args.truth_fwhm_px is None else f" (smoothed to {args.truth_fwhm_px:g} px)"))
+    plot(os.path.join(out, "vs_wsclean.png"), panels, records[:len(panels)], title)
     print(header + md + footer)
 
 
