@@ -6,7 +6,7 @@
 # resumes from its per-epoch checkpoint and adds networks to the series (--resume).
 # Environment: R2D2 (the engine binary, default target/release/r2d2), SERIES (default
 # models/<recipe>), TRAIN_ARGS (extra train.py options for every stage of the recipe, e.g.
-# "--device cpu"; a stage's network count: STAGE2_NETWORKS, STAGE3_NETWORKS, or edit the recipe's ARGS),
+# "--device cpu"; a stage's network count: STAGE2_NETWORKS, STAGE3_NETWORKS, STAGE4_NETWORKS, or edit the recipe's ARGS),
 # NICE (default 19: training yields the CPU to interactive work), WORK (per-epoch checkpoints,
 # default <data>/work: give a retrain into another SERIES its own), THREADS (CPU threads of
 # training, default 2), EVAL=0 (skip the held-out evaluation, e.g. on a machine lent for training).
@@ -78,6 +78,9 @@ vla-r2d2-512|meerkat-r2d2-512)
         # Stage 3 (networks 19..): the same data, 8 epochs a network. Once the 4-epoch stage
         # stopped improving (network 19 rejected), longer training of each network still did.
         STAGE3="--norm none --crop 128 --crops-per-sample 4 --epochs 8 --batch 8 --max-networks ${STAGE3_NETWORKS:-25}"
+        # Stage 4 (network 26): the same, the loss adding 0.1 x the L1 of the rlog images (the
+        # faint emission's share); a 27th was refused by the stopping rule.
+        STAGE4="--norm none --crop 128 --crops-per-sample 4 --epochs 8 --batch 8 --max-networks ${STAGE4_NETWORKS:-26} --loss-log-weight 0.1"
     fi
     ;;
 vla-r2d2-512-broad)
@@ -102,6 +105,7 @@ vla-r2d2-512-broad)
     if [ "${EVAL:-1}" != 0 ]; then
         make_once "$D/test" "$R2D2" trainset --procedural 12 --seed 900000 $SIM --parquet
         make_once "$D/test-extended" "$R2D2" trainset --procedural 12 --sky extended --seed 910000 $SIM --parquet
+        make_once "$D/test-extended-fwhm2" "$R2D2" trainset --procedural 12 --sky extended --seed 910000 --truth-fwhm-px 2 $SIM --parquet
     fi
     TRAIN=("$D/train-radio" "$D/train-extended" "$D/train-extended-more" "$D/train-images")
     VAL=("$D/val-classic" "$D/val-extended")
@@ -121,6 +125,8 @@ vla-r2d2-512-broad)
     STAGE2_TRAIN=("$D/train-radio" "$D/train-extended-resolved")
     STAGE2_VAL=("$D/val-classic" "$D/val-extended-resolved")
     STAGE2="--norm none --crop 256 --crops-per-sample 2 --epochs 4 --batch 8 --max-networks ${STAGE2_NETWORKS:-17} --loss-projection leaky --limit-train 120"
+    # Stage 3 (networks 18..): the same data, 8 epochs a network, as vla-r2d2-512's stage 3.
+    STAGE3="--norm none --crop 256 --crops-per-sample 2 --epochs 8 --batch 8 --max-networks ${STAGE3_NETWORKS:-21} --loss-projection leaky --limit-train 120"
     ;;
 *) echo "unknown recipe $RECIPE (vla-r2d2-512, meerkat-r2d2-512, vla-r2d2-512-broad or vla-r2d2-128)" >&2; exit 2 ;;
 esac
@@ -140,5 +146,6 @@ if [ -n "${STAGE2:-}" ]; then
     train "${WORK:-$D/work}-stage2" $STAGE2 --resume
     # A stage 3 goes on from stage 2 on its sets, in its work directory (its replay cache).
     [ -z "${STAGE3:-}" ] || train "${WORK:-$D/work}-stage2" $STAGE3 --resume
+    [ -z "${STAGE4:-}" ] || train "${WORK:-$D/work}-stage2" $STAGE4 --resume
 fi
 [ "${EVAL:-1}" = 0 ] || $RUN python3 training/evaluate.py --series "$SERIES" --test "$D/test" --r2d2 "$R2D2" --out "$D/eval" --update-manifest

@@ -30,7 +30,7 @@ import astropy  # noqa: E402,F401
 import matplotlib  # noqa: E402,F401
 
 import evaluate  # noqa: E402
-from r2d2train import series  # noqa: E402
+from r2d2train import common, series  # noqa: E402
 
 
 def run(cmd):
@@ -178,6 +178,22 @@ def main(argv=None):
               and recs[2]["network"]["base_channels"] == 8 and "fresh_start" not in recs[2],
               f"per-network widths and fresh start recorded: {recs}")
         check(series.network_config(mc, 1)[1] == 16 and series.network_config(mc, 3)[1] == 8, "network_config per network")
+        # --loss-log-weight: the loss adds the L1 of the logSNR's rlog images (common.rlog), and
+        # the network records its weight.
+        run(crops + ["--max-networks", "4", "--base-channels", "8", "--loss-log-weight", "0.1"])
+        check(series.read_manifest(cdir)["provenance"]["networks"][3].get("loss_log_weight") == 0.1, "the log weight is recorded")
+        from train import crop_loss
+        g = torch.Generator().manual_seed(3)
+        truth, pred = torch.rand(2, 1, 16, 16, generator=g) ** 4, torch.rand(2, 1, 16, 16, generator=g) ** 4 - 0.1
+        a = torch.tensor([1e3, 1e4], dtype=torch.float64)
+        peak = truth.amax(dim=(-2, -1), keepdim=True)
+        # The loss normalises both images by the truth's peak; common.rlog each by its own: equal
+        # peaks make the two the same transform.
+        pred = torch.minimum(pred, 0.9 * peak)
+        pred[..., 0, 0] = peak[..., 0, 0]
+        want = (pred - truth).abs().mean() + 0.5 * (common.rlog(pred[:, 0], a) - common.rlog(truth[:, 0], a)).abs().mean()
+        got = crop_loss(pred, truth, peak, a.float().view(-1, 1, 1, 1), 0.5)
+        check(abs(float(got) - float(want)) < 1e-5 * float(want), f"crop_loss {float(got)} against L1 + rlog L1 {float(want)}")
         crop_only = subprocess.run([py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", "--val", f"{d}/val", "--series",
                                     f"{d}/series-bad", "--work", f"{d}/checkpoints-bad", "--crop", "32"], capture_output=True, text=True)
         check(crop_only.returncode != 0 and "--norm none" in crop_only.stderr, "--crop with instance normalisation is refused")

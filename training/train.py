@@ -103,6 +103,19 @@ def gather_crops(images, samples, rows, cols, crop):
     return torch.stack([images[k, ..., y:y + crop, x:x + crop] for k, y, x in zip(samples.tolist(), rows.tolist(), cols.tolist())])
 
 
+def crop_loss(pred, truth, peak, a, log_weight=0.0):
+    """Mean L1 between prediction and truth [B, 1, H, W], plus `log_weight` times the mean L1
+    between their rlog images (the logSNR's transform, common.rlog: peak log(1 + a x / peak) /
+    log a, with each sample's full-field truth peak and dynamic range a [B, 1, 1, 1]). Both
+    images are normalised by the truth's peak (the logSNR takes each image's own, which a crop
+    does not hold; the two agree where the estimate's peak is right)."""
+    loss = torch.nn.functional.l1_loss(pred, truth)
+    if log_weight > 0:
+        rlog = lambda v: peak * torch.log1p(a * v.clamp(min=0) / peak) / torch.log(a)
+        loss = loss + log_weight * torch.nn.functional.l1_loss(rlog(pred), rlog(truth))
+    return loss
+
+
 def train_network(i, model, train, x, r, active, args, work, device):
     """Train network i in place on the active samples; returns (epochs, seconds, last loss).
 
@@ -127,6 +140,10 @@ def train_network(i, model, train, x, r, active, args, work, device):
     # On a GPU the whole normalised set stays there: crops are cut on the device, not copied
     # over at every step.
     inp_all, prev, target = inp_all.to(device), prev.unsqueeze(1).to(device), target.unsqueeze(1).to(device)
+    # The log term (--loss-log-weight) compares rlog images, each with its sample's dynamic
+    # range and full-field truth peak (a crop may not hold the peak).
+    log_peak = target.amax(dim=(-2, -1), keepdim=True).clamp(min=1e-30)
+    log_a = train.dynamic_range[idx].to(device=device, dtype=torch.float32).view(-1, 1, 1, 1)
     crop = args.crop or train.size
     loss_value = resumed_loss
     for epoch in range(start_epoch, epochs):
@@ -145,7 +162,7 @@ def train_network(i, model, train, x, r, active, args, work, device):
                 pred = torch.clamp(pred, min=0.0)
             elif args.loss_projection == "leaky":
                 pred = torch.where(pred > 0, pred, LEAKY_SLOPE * pred)
-            loss = torch.nn.functional.l1_loss(pred, gather_crops(target, b, rows, cols, crop))
+            loss = crop_loss(pred, gather_crops(target, b, rows, cols, crop), log_peak[b], log_a[b], args.loss_log_weight)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -188,6 +205,9 @@ def main(argv=None):
                         "negatives under `clip` never recovers); leaky: negative outputs scaled by "
                         f"{LEAKY_SLOPE} inside the L1, a gradient everywhere and a background pushed below 0, which "
                         "positivity then clears (under `none` half the empty sky comes out as small positive specks)")
+    p.add_argument("--loss-log-weight", type=float, default=0.0,
+                   help="add this weight times the L1 between the rlog images (the logSNR's transform, each sample's "
+                        "dynamic range): the faint emission's share of the loss, which the linear L1 all but ignores")
     p.add_argument("--base-channels", type=int, default=16)
     p.add_argument("--poolings", type=int, default=3)
     p.add_argument("--arch", choices=series.KINDS, default="unet",
@@ -249,7 +269,7 @@ def main(argv=None):
             "torch": str(torch.__version__),
             "seed": args.seed,
             "optimizer": {"kind": "rmsprop", "lr": args.lr, "batch": args.batch, "bf16_autocast": args.bf16},
-            "loss": {"kind": "l1", "projection": args.loss_projection},
+            "loss": {"kind": "l1", "projection": args.loss_projection, **({"log_weight": args.loss_log_weight} if args.loss_log_weight else {})},
             "crops": {"side": args.crop, "per_sample_and_epoch": args.crops_per_sample} if args.crop else None,
             "device": device.type,
             "train_data": {"path": [common.repo_relative(t) for t in args.train], "samples": len(train), **common.portable(train.meta)},
@@ -372,7 +392,8 @@ def main(argv=None):
         before_it = manifest["provenance"]["networks"][-1] if manifest["provenance"]["networks"] else None
         if before_it and "early_stop_from" not in manifest:
             previous = before_it.get("loss_projection", (manifest["provenance"].get("loss") or {}).get("projection"))
-            other_loss = previous is not None and previous != args.loss_projection
+            other_loss = (previous is not None and previous != args.loss_projection) or \
+                before_it.get("loss_log_weight", 0.0) != args.loss_log_weight
             other_data = as_list(before_it.get("train_data", series_train_paths)) != train_paths
             if other_loss or other_data:
                 manifest["early_stop_from"] = i
@@ -382,6 +403,7 @@ def main(argv=None):
         manifest["provenance"]["networks"].append({
             "iteration": i, "epochs": epochs, "train_seconds": round(seconds, 1), "train_samples": before, "loss_projection": args.loss_projection,
             "limit_train": args.limit_train, "device": device.type,
+            **({"loss_log_weight": args.loss_log_weight} if args.loss_log_weight else {}),
             # An architecture other than the series' (a later stage's, --fresh-start).
             **({"network": record} if record != manifest["network"] else {}),
             **({"fresh_start": True} if fresh and i > 1 else {}),
