@@ -30,7 +30,7 @@ import astropy  # noqa: E402,F401
 import matplotlib  # noqa: E402,F401
 
 import evaluate  # noqa: E402
-from r2d2train import common, series  # noqa: E402
+from r2d2train import series  # noqa: E402
 
 
 def run(cmd):
@@ -41,6 +41,23 @@ def run(cmd):
 def check(cond, msg):
     if not cond:
         raise SystemExit(f"smoke check failed: {msg}")
+
+
+def check_crop_loss():
+    """train.crop_loss with a log weight equals the L1 plus the weighted L1 of common.rlog images."""
+    from train import crop_loss
+    from r2d2train.common import rlog
+    g = torch.Generator().manual_seed(3)
+    truth, pred = torch.rand(2, 1, 16, 16, generator=g) ** 4, torch.rand(2, 1, 16, 16, generator=g) ** 4 - 0.1
+    a = torch.tensor([1e3, 1e4], dtype=torch.float64)
+    peak = truth.amax(dim=(-2, -1), keepdim=True)
+    # The loss normalises both images by the truth's peak; rlog each by its own: equal
+    # peaks make the two the same transform.
+    pred = torch.minimum(pred, 0.9 * peak)
+    pred[..., 0, 0] = peak[..., 0, 0]
+    want = (pred - truth).abs().mean() + 0.5 * (rlog(pred[:, 0], a) - rlog(truth[:, 0], a)).abs().mean()
+    got = crop_loss(pred, truth, peak, a.float().view(-1, 1, 1, 1), 0.5)
+    check(abs(float(got) - float(want)) < 1e-5 * float(want), f"crop_loss {float(got)} against L1 + rlog L1 {float(want)}")
 
 
 def main(argv=None):
@@ -182,18 +199,7 @@ def main(argv=None):
         # the network records its weight.
         run(crops + ["--max-networks", "4", "--base-channels", "8", "--loss-log-weight", "0.1"])
         check(series.read_manifest(cdir)["provenance"]["networks"][3].get("loss_log_weight") == 0.1, "the log weight is recorded")
-        from train import crop_loss
-        g = torch.Generator().manual_seed(3)
-        truth, pred = torch.rand(2, 1, 16, 16, generator=g) ** 4, torch.rand(2, 1, 16, 16, generator=g) ** 4 - 0.1
-        a = torch.tensor([1e3, 1e4], dtype=torch.float64)
-        peak = truth.amax(dim=(-2, -1), keepdim=True)
-        # The loss normalises both images by the truth's peak; common.rlog each by its own: equal
-        # peaks make the two the same transform.
-        pred = torch.minimum(pred, 0.9 * peak)
-        pred[..., 0, 0] = peak[..., 0, 0]
-        want = (pred - truth).abs().mean() + 0.5 * (common.rlog(pred[:, 0], a) - common.rlog(truth[:, 0], a)).abs().mean()
-        got = crop_loss(pred, truth, peak, a.float().view(-1, 1, 1, 1), 0.5)
-        check(abs(float(got) - float(want)) < 1e-5 * float(want), f"crop_loss {float(got)} against L1 + rlog L1 {float(want)}")
+        check_crop_loss()
         crop_only = subprocess.run([py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", "--val", f"{d}/val", "--series",
                                     f"{d}/series-bad", "--work", f"{d}/checkpoints-bad", "--crop", "32"], capture_output=True, text=True)
         check(crop_only.returncode != 0 and "--norm none" in crop_only.stderr, "--crop with instance normalisation is refused")
