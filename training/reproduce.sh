@@ -127,8 +127,6 @@ vla-r2d2-512-broad)
     STAGE2="--norm none --crop 256 --crops-per-sample 2 --epochs 4 --batch 8 --max-networks ${STAGE2_NETWORKS:-17} --loss-projection leaky --limit-train 120"
     # Stage 3 (networks 18..): the same data, 8 epochs a network, as vla-r2d2-512's stage 3.
     STAGE3="--norm none --crop 256 --crops-per-sample 2 --epochs 8 --batch 8 --max-networks ${STAGE3_NETWORKS:-21} --loss-projection leaky --limit-train 120"
-    # Stage 4 (network 22): the same with the rlog term of vla-r2d2-512's stage 4.
-    STAGE4="--norm none --crop 256 --crops-per-sample 2 --epochs 8 --batch 8 --max-networks ${STAGE4_NETWORKS:-22} --loss-projection leaky --limit-train 120 --loss-log-weight 0.1"
     ;;
 *) echo "unknown recipe $RECIPE (vla-r2d2-512, meerkat-r2d2-512, vla-r2d2-512-broad or vla-r2d2-128)" >&2; exit 2 ;;
 esac
