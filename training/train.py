@@ -236,6 +236,8 @@ def main(argv=None):
     if args.crop is not None and args.norm != "none":
         p.error("--crop needs --norm none: instance normalisation takes statistics over the whole input, "
                 "so a crop would not see what the full field gives the network")
+    if not (args.loss_log_weight >= 0 and math.isfinite(args.loss_log_weight)):
+        p.error(f"--loss-log-weight must be a finite weight >= 0, got {args.loss_log_weight}")
     if args.crop is not None and args.crop % (2 ** args.poolings):
         p.error(f"--crop must be a multiple of {2 ** args.poolings}")
     device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
