@@ -105,14 +105,13 @@ def gather_crops(images, samples, rows, cols, crop):
 
 def crop_loss(pred, truth, peak, a, log_weight=0.0):
     """Mean L1 between prediction and truth [B, 1, H, W], plus `log_weight` times the mean L1
-    between their rlog images (the logSNR's transform, common.rlog: peak log(1 + a x / peak) /
-    log a, with each sample's full-field truth peak and dynamic range a [B, 1, 1, 1]). Both
-    images are normalised by the truth's peak (the logSNR takes each image's own, which a crop
-    does not hold; the two agree where the estimate's peak is right)."""
+    between their rlog images (`common.rlog_at`, with each sample's full-field truth peak and
+    dynamic range a [B, 1, 1, 1]). Both images are normalised by the truth's peak (the logSNR
+    takes each image's own, which a crop does not hold; the two agree where the estimate's peak
+    is right)."""
     loss = torch.nn.functional.l1_loss(pred, truth)
     if log_weight > 0:
-        rlog = lambda v: peak * torch.log1p(a * v.clamp(min=0) / peak) / torch.log(a)
-        loss = loss + log_weight * torch.nn.functional.l1_loss(rlog(pred), rlog(truth))
+        loss = loss + log_weight * torch.nn.functional.l1_loss(common.rlog_at(pred, a, peak), common.rlog_at(truth, a, peak))
     return loss
 
 

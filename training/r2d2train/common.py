@@ -138,11 +138,18 @@ def snr(est, truth):
     return 20 * torch.log10(truth.flatten(1).norm(dim=1) / (truth - est).flatten(1).norm(dim=1))
 
 
+def rlog_at(x, a, peak):
+    """peak log(1 + a x / peak) / log a of max(x, 0), with a and peak broadcast against x (the
+    dtype is the inputs'): the logSNR's transform at a given peak, which a loss on crops takes
+    from the full-field truth."""
+    return peak * torch.log1p(a * x.clamp(min=0) / peak) / torch.log(a)
+
+
 def rlog(x, a):
+    """The logSNR's transform of images [B, N, N], each at its own peak, in float64."""
     x = x.to(torch.float64).clamp(min=0)
     peak = x.flatten(1).max(dim=1).values.clamp(min=1e-300).view(-1, 1, 1)
-    a = a.view(-1, 1, 1)
-    return peak * torch.log1p(a * x / peak) / torch.log(a)
+    return rlog_at(x, a.view(-1, 1, 1), peak)
 
 
 def log_snr(est, truth, a):
