@@ -54,7 +54,9 @@ vla-r2d2-512|meerkat-r2d2-512)
     make_once "$D/test" "$R2D2" trainset --procedural 12 --seed 900000 $SIM --parquet
     TRAIN=("$D/train-radio" "$D/train-images")
     VAL=("$D/val")
-    ARGS="--norm none --crop 128 --crops-per-sample 4 --epochs-first 10 --epochs 4 --batch 8 --max-networks 15"
+    # Every stage: bias-free U-Nets on 4 crops of 128 a sample and epoch, batches of 8.
+    CROPS="--norm none --crop 128 --crops-per-sample 4 --batch 8"
+    ARGS="$CROPS --epochs-first 10 --epochs 4 --max-networks 15"
     if [ "$TELESCOPE" = vla ]; then
         # Stage 2 (networks 16..): faint extended emission. Skies of extended emission (seeds
         # 200000.., validation 510000.., test 910000..) beside the classic ones, at the series'
@@ -74,13 +76,13 @@ vla-r2d2-512|meerkat-r2d2-512)
         STAGE2_VAL=("$D/val" "$D/val-extended-resolved")
         # The stopping rule ended it at network 18 (a 19th did not improve validation): capped
         # there, so that a recipe resumed during stage 3 does not add 4-epoch networks.
-        STAGE2="--norm none --crop 128 --crops-per-sample 4 --epochs 4 --batch 8 --max-networks ${STAGE2_NETWORKS:-18}"
+        STAGE2="$CROPS --epochs 4 --max-networks ${STAGE2_NETWORKS:-18}"
         # Stage 3 (networks 19..): the same data, 8 epochs a network. Once the 4-epoch stage
         # stopped improving (network 19 rejected), longer training of each network still did.
-        STAGE3="--norm none --crop 128 --crops-per-sample 4 --epochs 8 --batch 8 --max-networks ${STAGE3_NETWORKS:-25}"
+        STAGE3="$CROPS --epochs 8 --max-networks ${STAGE3_NETWORKS:-25}"
         # Stage 4 (network 26): the same, the loss adding 0.1 x the L1 of the rlog images (the
         # faint emission's share); a 27th was refused by the stopping rule.
-        STAGE4="--norm none --crop 128 --crops-per-sample 4 --epochs 8 --batch 8 --max-networks ${STAGE4_NETWORKS:-26} --loss-log-weight 0.1"
+        STAGE4="$CROPS --epochs 8 --max-networks ${STAGE4_NETWORKS:-26} --loss-log-weight 0.1"
     fi
     ;;
 vla-r2d2-512-broad)
@@ -113,7 +115,9 @@ vla-r2d2-512-broad)
     # (outputs negative everywhere after the first epochs, no gradient, validation 0 dB).
     # Sized for a GPU (training/README.md): on 2 CPU cores it takes about a day, resuming as it
     # goes. Networks 1-14 (the stopping rule rejected a 15th); then STAGE2.
-    ARGS="--norm none --crop 256 --crops-per-sample 2 --epochs-first 40 --epochs 12 --batch 8 --max-networks 14 --loss-projection none"
+    # Every stage: bias-free U-Nets on 2 crops of 256 a sample and epoch, batches of 8.
+    CROPS="--norm none --crop 256 --crops-per-sample 2 --batch 8"
+    ARGS="$CROPS --epochs-first 40 --epochs 12 --max-networks 14 --loss-projection none"
     # Networks 15..: the leaky-clipped loss, which clears the empty sky the unclipped loss
     # leaves specked (training/README.md), 4 epochs each, on the 80 classic training skies and
     # 40 extended ones smoothed to a resolution of 1.5..3 pixels (as in vla-r2d2-512's stage
@@ -124,9 +128,9 @@ vla-r2d2-512-broad)
     make_once "$D/val-extended-resolved" "$R2D2" trainset --procedural 8 --sky extended --seed 510000 $RESOLVED $SIM
     STAGE2_TRAIN=("$D/train-radio" "$D/train-extended-resolved")
     STAGE2_VAL=("$D/val-classic" "$D/val-extended-resolved")
-    STAGE2="--norm none --crop 256 --crops-per-sample 2 --epochs 4 --batch 8 --max-networks ${STAGE2_NETWORKS:-17} --loss-projection leaky --limit-train 120"
+    STAGE2="$CROPS --loss-projection leaky --limit-train 120 --epochs 4 --max-networks ${STAGE2_NETWORKS:-17}"
     # Stage 3 (networks 18..): the same data, 8 epochs a network, as vla-r2d2-512's stage 3.
-    STAGE3="--norm none --crop 256 --crops-per-sample 2 --epochs 8 --batch 8 --max-networks ${STAGE3_NETWORKS:-21} --loss-projection leaky --limit-train 120"
+    STAGE3="$CROPS --loss-projection leaky --limit-train 120 --epochs 8 --max-networks ${STAGE3_NETWORKS:-21}"
     ;;
 *) echo "unknown recipe $RECIPE (vla-r2d2-512, meerkat-r2d2-512, vla-r2d2-512-broad or vla-r2d2-128)" >&2; exit 2 ;;
 esac
@@ -143,9 +147,9 @@ if [ -n "${STAGE2:-}" ]; then
     # A stage may train and validate on sets of its own.
     [ -z "${STAGE2_TRAIN:-}" ] || TRAIN=("${STAGE2_TRAIN[@]}")
     [ -z "${STAGE2_VAL:-}" ] || VAL=("${STAGE2_VAL[@]}")
-    train "${WORK:-$D/work}-stage2" $STAGE2 --resume
-    # A stage 3 goes on from stage 2 on its sets, in its work directory (its replay cache).
-    [ -z "${STAGE3:-}" ] || train "${WORK:-$D/work}-stage2" $STAGE3 --resume
-    [ -z "${STAGE4:-}" ] || train "${WORK:-$D/work}-stage2" $STAGE4 --resume
+    # Stages 3 and 4 go on from stage 2 on its sets, in its work directory (its replay cache).
+    for stage in "$STAGE2" "${STAGE3:-}" "${STAGE4:-}"; do
+        [ -z "$stage" ] || train "${WORK:-$D/work}-stage2" $stage --resume
+    done
 fi
 [ "${EVAL:-1}" = 0 ] || $RUN python3 training/evaluate.py --series "$SERIES" --test "$D/test" --r2d2 "$R2D2" --out "$D/eval" --update-manifest
