@@ -561,6 +561,7 @@ def main():
         "means": means,
         "per_sky": records,
     }
+    fits_names = ", ".join(os.path.basename(p) for p in args.sky_fits or [])
     if args.sky_fits:
         result["setting"]["sky"] = "fits"
         result["sky_fits"] = [os.path.basename(p) for p in args.sky_fits]
@@ -572,9 +573,9 @@ def main():
     md = table_md(means, args.skies)
     integration = "the telescope's training preset" if args.integration_s is None else f"{args.integration_s:g} s"
     if args.sky_fits:
-        sky_what = f"the skies {', '.join(os.path.basename(p) for p in args.sky_fits)}"
+        sky_what = f"the skies {fits_names}"
         data_how = f"`r2d2 simulate`{'' if args.hours is None else f', {args.hours} h'}, integration {integration}, seeds {args.seed}.."
-        title = f"{args.size} x {args.size} {args.telescope}, the skies of {', '.join(os.path.basename(p) for p in args.sky_fits)}"
+        title = f"{args.size} x {args.size} {args.telescope}, the skies of {fits_names}"
     else:
         sky_what = (f"held-out {args.sky} skies{'' if args.truth_fwhm_px is None else f' smoothed to {args.truth_fwhm_px:g} px FWHM'}, "
                     f"seeds {args.seed}..{args.seed + args.skies - 1}")
