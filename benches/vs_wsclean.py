@@ -4,12 +4,13 @@
                                   [--integration-s 300] [--series SERIES] [--threads 2]
                                   [--keep-data DIR] [--r2d2 target/release/r2d2] [--wsclean wsclean]
                                   [--robust R] [--superresolution SR] [--dr LOW HIGH]
-                                  [--sky classic|extended] [--truth-fwhm-px F]
+                                  [--sky classic|extended|field-filling] [--truth-fwhm-px F]
                                   [--sky-fits FITS ... [--hours A,C]]
 
 Settings a user chooses (issue 21's table): `--robust -1` / `--robust 1` (Briggs), `--superresolution
 2` / `2.5`, `--dr 1e5 1e5`, `--size 1024`, and `--sky extended` (skies of extended emission:
-textured lobes, spiral disks, halos and relics; test seeds 910000..), with `--truth-fwhm-px 2`
+textured lobes, spiral disks, halos and relics; test seeds 910000..) or `--sky field-filling`
+(the same objects, one spanning the field inside a faint cocoon; 930000..), with `--truth-fwhm-px 2`
 for those skies as imaged at a resolution of 2 pixels (real radio images used as truths are:
 no texture finer than the data measure). The observations are
 simulated at that setting (noise for its weighting, pixel from its SR) and every imager uses it:
@@ -487,8 +488,9 @@ def main():
     ap.add_argument("--superresolution", type=float, default=1.5, help="pixel = 1 / (SR 2 max_uv), for every imager")
     ap.add_argument("--dr", type=float, nargs=2, default=[1e3, 1e5], metavar=("LOW", "HIGH"),
                     help="target dynamic ranges of the skies (log-uniform)")
-    ap.add_argument("--sky", choices=["classic", "extended"], default="classic",
-                    help="procedural skies (classic) or extended emission (test seeds 910000.. by default)")
+    ap.add_argument("--sky", choices=["classic", "extended", "field-filling"], default="classic",
+                    help="procedural skies (classic), extended emission (test seeds 910000.. by default) or "
+                         "field-filling extended emission in a faint cocoon (930000..)")
     ap.add_argument("--truth-fwhm-px", type=float, default=None,
                     help="convolve each true sky with a Gaussian of this FWHM (pixels): a sky as imaged at that resolution")
     ap.add_argument("--sky-fits", nargs="+", default=None, metavar="FITS",
@@ -499,8 +501,8 @@ def main():
     args = ap.parse_args()
     if args.integration_s is None and args.telescope == "vla":
         args.integration_s = 300.0
-    if args.sky == "extended" and args.seed == 900000:
-        args.seed = 910000
+    if args.sky != "classic" and args.seed == 900000:
+        args.seed = {"extended": 910000, "field-filling": 930000}[args.sky]
 
     r2d2 = os.path.abspath(args.r2d2)
     if not os.path.exists(r2d2):

@@ -6,7 +6,7 @@
 # resumes from its per-epoch checkpoint and adds networks to the series (--resume).
 # Environment: R2D2 (the engine binary, default target/release/r2d2), SERIES (default
 # models/<recipe>), TRAIN_ARGS (extra train.py options for every stage of the recipe, e.g.
-# "--device cpu"; a stage's network count: STAGE2_NETWORKS, STAGE3_NETWORKS, STAGE4_NETWORKS, or edit the recipe's ARGS),
+# "--device cpu"; a stage's network count: STAGE2_NETWORKS .. STAGE5_NETWORKS, or edit the recipe's ARGS),
 # NICE (default 19: training yields the CPU to interactive work), WORK (per-epoch checkpoints,
 # default <data>/work: give a retrain into another SERIES its own), THREADS (CPU threads of
 # training, default 2), EVAL=0 (skip the held-out evaluation, e.g. on a machine lent for training).
@@ -83,6 +83,20 @@ vla-r2d2-512|meerkat-r2d2-512)
         # Stage 4 (network 26): the same, the loss adding 0.1 x the L1 of the rlog images (the
         # faint emission's share); a 27th was refused by the stopping rule.
         STAGE4="$CROPS --epochs 8 --max-networks ${STAGE4_NETWORKS:-26} --loss-log-weight 0.1"
+        # Stage 5 (networks 27..): field-filling skies (one object spanning the field inside a
+        # faint cocoon, seeds 220000.., validation 520000.., test 930000..), the plateau at
+        # 1e-4..1e-3 of the peak that real radio galaxies have over a third of the field,
+        # first and then stage 2's extended skies, up to 200 samples (the replay of the series
+        # over each costs a network's inference and residual); validated on stage 2's sets
+        # and the field-filling ones. Stage 4's loss.
+        make_once "$D/train-field-filling-resolved" "$R2D2" trainset --procedural 120 --sky field-filling --seed 220000 $RESOLVED $SIM
+        make_once "$D/val-field-filling-resolved" "$R2D2" trainset --procedural 8 --sky field-filling --seed 520000 $RESOLVED $SIM
+        if [ "${EVAL:-1}" != 0 ]; then
+            make_once "$D/test-field-filling-fwhm2" "$R2D2" trainset --procedural 12 --sky field-filling --seed 930000 --truth-fwhm-px 2 $SIM --parquet
+        fi
+        STAGE5_TRAIN=("$D/train-field-filling-resolved" "$D/train-extended-resolved")
+        STAGE5_VAL=("${STAGE2_VAL[@]}" "$D/val-field-filling-resolved")
+        STAGE5="$CROPS --epochs 8 --limit-train 200 --max-networks ${STAGE5_NETWORKS:-30} --loss-log-weight 0.1"
     fi
     ;;
 vla-r2d2-512-broad)
@@ -151,5 +165,10 @@ if [ -n "${STAGE2:-}" ]; then
     for stage in "$STAGE2" "${STAGE3:-}" "${STAGE4:-}"; do
         [ -z "$stage" ] || train "${WORK:-$D/work}-stage2" $stage --resume
     done
+fi
+if [ -n "${STAGE5:-}" ]; then
+    TRAIN=("${STAGE5_TRAIN[@]}")
+    VAL=("${STAGE5_VAL[@]}")
+    train "${WORK:-$D/work}-stage5" $STAGE5 --resume
 fi
 [ "${EVAL:-1}" = 0 ] || $RUN python3 training/evaluate.py --series "$SERIES" --test "$D/test" --r2d2 "$R2D2" --out "$D/eval" --update-manifest

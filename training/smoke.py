@@ -104,6 +104,8 @@ def main(argv=None):
         check("nothing to train" in idle.stdout and "replay" not in idle.stdout, "a resume with every network there replayed")
         # A resume reads the replayed estimates from the cache; they equal a fresh replay. (A
         # fourth network is trained and refused by the stopping rule: the series keeps three.)
+        # The cache holds the training's own PyTorch updates; a fresh replay on the CPU runs the
+        # ONNX exports through ONNX Runtime, so this also checks that both give the same x.
         cache = f"{d}/checkpoints/replay.pt"
         refuse4 = train + ["--max-networks", "4", "--resume", "--min-gain-db", "1000"]
         resumed = subprocess.run(refuse4, capture_output=True, text=True, check=True)

@@ -24,8 +24,9 @@ pub struct Args {
     #[arg(long)]
     procedural: Option<usize>,
     /// Kind of procedural sky: `classic` (compact sources, Gaussian complexes, double-lobed
-    /// galaxies, thresholded diffuse patches) or `extended` (textured lobes, spiral disks,
-    /// halos and relics: emission over decades of brightness across large areas).
+    /// galaxies, thresholded diffuse patches), `extended` (textured lobes, spiral disks,
+    /// halos and relics: emission over decades of brightness across large areas) or
+    /// `field-filling` (the same objects, one spanning the field inside a faint cocoon).
     #[arg(long, value_enum, default_value_t = SkyKind::Classic)]
     sky: SkyKind,
     /// Convolve each truth with a Gaussian of this FWHM in pixels (then peak 1, cut at 1/DR),
@@ -77,6 +78,7 @@ pub struct Args {
 enum SkyKind {
     Classic,
     Extended,
+    FieldFilling,
 }
 
 /// `X` (a fixed value) or `LOW..HIGH` (a range drawn from per sample).
@@ -218,6 +220,7 @@ pub fn run(args: Args) -> Result<()> {
             let kind = match args.sky {
                 SkyKind::Classic => "procedural",
                 SkyKind::Extended => "extended",
+                SkyKind::FieldFilling => "field-filling",
             };
             ((0..count).map(|k| format!("{kind}:{}", args.seed + k as u64)).collect(), vec![None; count])
         }
@@ -242,8 +245,11 @@ pub fn run(args: Args) -> Result<()> {
                 let seed = args.seed + k as u64;
                 let source = match &truths[k] {
                     Some(data) => TruthSource::Image { data, source_dr: args.source_dr },
-                    None if args.sky == SkyKind::Extended => TruthSource::Extended { seed },
-                    None => TruthSource::Procedural { seed },
+                    None => match args.sky {
+                        SkyKind::Classic => TruthSource::Procedural { seed },
+                        SkyKind::Extended => TruthSource::Extended { seed },
+                        SkyKind::FieldFilling => TruthSource::FieldFilling { seed },
+                    },
                 };
                 let sample = make_sample(source, &params, seed, 1, args.parquet)
                     .map_err(|e| Error::parameter(format!("sample {k} ({})", sources[k]), e.to_string()));
@@ -303,7 +309,7 @@ pub fn run(args: Args) -> Result<()> {
             "truths": args.truths.as_ref().map(|p| p.display().to_string()),
             "source_dr": args.truths.as_ref().map(|_| args.source_dr),
             "procedural": args.procedural,
-            "sky": args.procedural.map(|_| format!("{:?}", args.sky).to_lowercase()),
+            "sky": args.procedural.and_then(|_| clap::ValueEnum::to_possible_value(&args.sky)).map(|v| v.get_name().to_string()),
             "truth_fwhm_px": args.truth_fwhm_px.map(range_json),
             "telescope": telescope.key,
             "track_hours": telescope.training.configurations.iter().cloned().zip(telescope.training.hours.iter().copied()).collect::<std::collections::BTreeMap<_, _>>(),

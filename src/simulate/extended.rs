@@ -16,6 +16,11 @@
 //! in one or two pixels and a series was selected on delta recovery. Background compact
 //! sources follow, with the Euclidean power law on `[1/DR, 1]` of the classic skies.
 //!
+//! [`field_filling_sky`] draws the same objects larger, one of them spanning the support box,
+//! inside a smooth faint cocoon at `1e-4 .. 1e-3` of the peak: the plateau around and between
+//! a real radio galaxy's lobes, which covers a third of a field such as 3C353's and which
+//! [`extended_sky`] (faint emission over a tenth of the field) leaves rare.
+//!
 //! Like `sky`, a sky is a pure function of its parameters, has peak 1, no negative pixels, and
 //! an exactly empty border outside the support box.
 
@@ -37,16 +42,42 @@ const COMPACT_TO_DIFFUSE: std::ops::Range<f64> = 0.2..1.5;
 /// Random stream of extended skies (the classic skies use stream 0 of the same seed).
 const STREAM_EXTENDED: u64 = 21;
 
+/// Random stream of field-filling skies.
+const STREAM_FIELD_FILLING: u64 = 22;
+
+/// Range of a field-filling sky's cocoon level, linear before exponentiation (log-uniform):
+/// at the default dynamic ranges, `1e-4 .. 1e-3` of the peak after it.
+const COCOON_LEVEL: std::ops::Range<f64> = 0.008..0.06;
+
+/// How a sky's objects are laid out.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Layout {
+    /// One to three objects, the largest 0.45..0.9 of the support.
+    Extended,
+    /// One or two objects, the first 0.7..0.9 of the support inside a faint cocoon.
+    FieldFilling,
+}
+
 /// An extended-emission sky, row-major, peak 1, background exactly 0, faintest nonzero pixel
 /// at or above `1 / dynamic_range`. The target dynamic range must exceed `e * SOURCE_DR`
 /// (the exponentiation's limit), so at least 600.
 pub fn extended_sky(p: &SkyParams) -> Result<Vec<f64>> {
+    draw(p, Layout::Extended)
+}
+
+/// A field-filling sky: as [`extended_sky`], with its first object spanning the support box
+/// inside a smooth textured cocoon (its level drawn in [`COCOON_LEVEL`]). Same contract.
+pub fn field_filling_sky(p: &SkyParams) -> Result<Vec<f64>> {
+    draw(p, Layout::FieldFilling)
+}
+
+fn draw(p: &SkyParams, layout: Layout) -> Result<Vec<f64>> {
     p.validate()?;
     let n = p.size;
     let nf = n as f64;
     let dr = p.dynamic_range;
     let mut rng = ChaCha8Rng::seed_from_u64(p.seed);
-    rng.set_stream(STREAM_EXTENDED);
+    rng.set_stream(if layout == Layout::Extended { STREAM_EXTENDED } else { STREAM_FIELD_FILLING });
 
     let lo = 0.5 * (1.0 - p.support_fraction) * nf;
     let hi = nf - lo;
@@ -58,21 +89,34 @@ pub fn extended_sky(p: &SkyParams) -> Result<Vec<f64>> {
     let mut img = vec![0.0; n * n];
     let mut compact = Canvas::new(n, 1e-4);
     // One dominant object, then up to two smaller ones of lower brightness.
-    let objects = rng.gen_range(1..=3);
+    let (objects, first_scale, style) = match layout {
+        Layout::Extended => (rng.gen_range(1..=3), 0.45..0.9, Style::COMPACT_LOBES),
+        // Less than the support: the wide lobes' and the cocoon's wings fade out inside it.
+        Layout::FieldFilling => (rng.gen_range(1..=2), 0.7..0.9, Style::WIDE_LOBES),
+    };
+    let mut first = None;
     for k in 0..objects {
-        let (scale, amp) = if k == 0 { (rng.gen_range(0.45..0.9), 1.0) } else { (rng.gen_range(0.15..0.4), rng.gen_range(0.2..0.7)) };
+        let (scale, amp) = if k == 0 { (rng.gen_range(first_scale.clone()), 1.0) } else { (rng.gen_range(0.15..0.4), rng.gen_range(0.2..0.7)) };
         let extent = scale * span;
         let cx = uniform_in(&mut rng, inner_lo + 0.5 * extent, inner_hi - 0.5 * extent);
         let cy = uniform_in(&mut rng, inner_lo + 0.5 * extent, inner_hi - 0.5 * extent);
         let shape = Placement { cx, cy, extent, amp, theta: rng.gen_range(0.0..PI) };
         match rng.gen_range(0..4) {
-            0 => fr2_galaxy(&mut img, &mut compact, &mut rng, n, &shape, &texture),
+            0 => fr2_galaxy(&mut img, &mut compact, &mut rng, n, &shape, &texture, &style),
             1 => fr1_galaxy(&mut img, &mut compact, &mut rng, n, &shape, &texture),
             2 => spiral_disk(&mut img, &mut compact, &mut rng, n, &shape, &texture),
             _ => halo_and_relic(&mut img, &mut compact, &mut rng, n, &shape, &texture),
         }
+        first = first.or(Some(shape));
     }
     normalise_and_cut(&mut img, SOURCE_DR);
+    if let (Layout::FieldFilling, Some(at)) = (layout, first) {
+        // Added to the normalised drawing, so that its level (not the objects' brightness
+        // draws) sets where it lands after the exponentiation.
+        let level = (rng.gen_range(COCOON_LEVEL.start.ln()..COCOON_LEVEL.end.ln())).exp();
+        cocoon(&mut img, &mut rng, n, &at, level, &texture);
+        normalise_and_cut(&mut img, SOURCE_DR);
+    }
     exponentiate(&mut img, SOURCE_DR, dr)?;
     let compact_peak = compact.data.iter().copied().fold(0.0, f64::max);
     if compact_peak > 0.0 {
@@ -112,6 +156,7 @@ pub fn extended_sky(p: &SkyParams) -> Result<Vec<f64>> {
 
 /// Where an object sits: centre, overall size (pixels), peak brightness (linear) and
 /// orientation (radians from the x axis).
+#[derive(Clone, Copy)]
 struct Placement {
     cx: f64,
     cy: f64,
@@ -157,6 +202,36 @@ fn add_textured(img: &mut [f64], n: usize, cx: f64, cy: f64, reach: f64, amp: f6
     }
 }
 
+/// Shape ranges of an FR II's lobes (drawn per lobe, in the same order for every style, so
+/// that a style changes shapes, not the random sequence).
+struct Style {
+    /// Lobe length as a fraction of the core-to-hotspot distance.
+    lobe_len: std::ops::Range<f64>,
+    /// Lobe width as a fraction of its length.
+    lobe_width: std::ops::Range<f64>,
+    /// How far a lobe is drawn, in units of its semi-major axis (its wings are cut there).
+    lobe_reach: f64,
+}
+
+impl Style {
+    const COMPACT_LOBES: Style = Style { lobe_len: 0.35..0.6, lobe_width: 0.4..0.9, lobe_reach: 4.0 };
+    /// Lobes reaching back towards the core, as the backflow of a large FR II does.
+    const WIDE_LOBES: Style = Style { lobe_len: 0.6..1.0, lobe_width: 0.5..1.0, lobe_reach: 8.0 };
+}
+
+/// A smooth faint envelope around an object, at `level` of the normalised drawing: elongated
+/// along the object's axis, with broad wings and the filaments' texture.
+fn cocoon(img: &mut [f64], rng: &mut ChaCha8Rng, n: usize, at: &Placement, level: f64, texture: &[f64]) {
+    // Sized so that at the highest level the wings fade out inside the object's extent (the
+    // support box's taper would otherwise cut them along straight lines).
+    let sa = 0.5 * at.extent * rng.gen_range(0.4..0.6);
+    let sb = sa * rng.gen_range(0.35..0.8);
+    let p = rng.gen_range(0.65..0.9);
+    let base = rng.gen_range(0.5..0.8);
+    let (cx, cy, theta) = (at.cx, at.cy, at.theta);
+    add_textured(img, n, cx, cy, 0.75 * at.extent, level, base, texture, |x, y| soft_blob(x - cx, y - cy, theta, sa, sb, p));
+}
+
 /// A soft elliptical blob with broad wings: `exp(-q^p)`, `q` the squared elliptical radius,
 /// `p < 1` flattening the top and widening the wings as real lobes do.
 fn soft_blob(dx: f64, dy: f64, theta: f64, sa: f64, sb: f64, p: f64) -> f64 {
@@ -168,7 +243,7 @@ fn soft_blob(dx: f64, dy: f64, theta: f64, sa: f64, sb: f64, p: f64) -> f64 {
 
 /// An FR II radio galaxy: a core, thin jets, and two textured lobes bent off the axis with
 /// compact hotspots at their outer ends.
-fn fr2_galaxy(img: &mut [f64], canvas: &mut Canvas, rng: &mut ChaCha8Rng, n: usize, at: &Placement, texture: &[f64]) {
+fn fr2_galaxy(img: &mut [f64], canvas: &mut Canvas, rng: &mut ChaCha8Rng, n: usize, at: &Placement, texture: &[f64], style: &Style) {
     let half = 0.5 * at.extent;
     let (s, c) = at.theta.sin_cos();
     canvas.add_gaussian(at.cx, at.cy, at.amp, 1.0, 1.0, 0.0);
@@ -178,12 +253,12 @@ fn fr2_galaxy(img: &mut [f64], canvas: &mut Canvas, rng: &mut ChaCha8Rng, n: usi
         let axis = at.theta + bend * side;
         let (sa, ca) = axis.sin_cos();
         let (hx, hy) = (at.cx + side * reach * ca, at.cy + side * reach * sa);
-        let lobe_len = reach * rng.gen_range(0.35..0.6);
+        let lobe_len = reach * rng.gen_range(style.lobe_len.clone());
         let (lx, ly) = (hx - side * 0.5 * lobe_len * ca, hy - side * 0.5 * lobe_len * sa);
-        let (la, lb) = (0.55 * lobe_len, 0.55 * lobe_len * rng.gen_range(0.4..0.9));
+        let (la, lb) = (0.55 * lobe_len, 0.55 * lobe_len * rng.gen_range(style.lobe_width.clone()));
         let p = rng.gen_range(0.6..0.9);
         let lobe_amp = at.amp * rng.gen_range(0.08..0.35);
-        add_textured(img, n, lx, ly, 4.0 * la, lobe_amp, 0.3, texture, |x, y| soft_blob(x - lx, y - ly, axis, la, lb, p));
+        add_textured(img, n, lx, ly, style.lobe_reach * la, lobe_amp, 0.3, texture, |x, y| soft_blob(x - lx, y - ly, axis, la, lb, p));
         canvas.add_gaussian(hx, hy, at.amp * rng.gen_range(0.2..0.9), rng.gen_range(0.8..2.0), rng.gen_range(0.6..1.2), axis);
         // A thin jet of small Gaussians from the core towards the hotspot, fading outwards.
         let jet = at.amp * rng.gen_range(0.01..0.05) * if side > 0.0 { 1.0 } else { 0.3 };
@@ -321,6 +396,31 @@ mod tests {
             let brightest: f64 = v[..16].iter().sum();
             assert!(brightest < 0.3 * total, "seed {seed}: the 16 brightest pixels hold {:.0} % of the flux", 100.0 * brightest / total);
         }
+    }
+
+    #[test]
+    fn field_filling_skies_keep_the_contract_and_cover_a_large_part_of_the_field_faintly() {
+        // What they are for: a plateau at 1e-4..1e-3 of the peak over a far larger area than
+        // the extended skies have (3C353: a third of its field above 1e-4 of the peak).
+        let (n, dr) = (256, 1e4);
+        let above = |img: &[f64], t: f64| img.iter().filter(|&&v| v > t).count() as f64 / img.len() as f64;
+        let (mut filled, mut extended) = (0.0, 0.0);
+        for seed in 0..8 {
+            let img = field_filling_sky(&SkyParams::new(n, dr, seed)).unwrap();
+            assert_eq!(img, field_filling_sky(&SkyParams::new(n, dr, seed)).unwrap(), "a pure function of the seed");
+            assert!((img.iter().copied().fold(0.0, f64::max) - 1.0).abs() < 1e-12);
+            assert!(img.iter().all(|&v| v == 0.0 || (v >= 1.0 / dr * (1.0 - 1e-12) && v.is_finite())));
+            let edge = (0.075 * n as f64).floor() as usize;
+            for iy in (0..n).filter(|&i| i < edge || i >= n - edge) {
+                assert!(img[iy * n..(iy + 1) * n].iter().all(|&v| v == 0.0), "seed {seed}: emission outside the support");
+            }
+            assert_ne!(img, extended_sky(&SkyParams::new(n, dr, seed)).unwrap());
+            let plateau = above(&img, 1e-4) - above(&img, 1e-3);
+            assert!(plateau > 0.05, "seed {seed}: only {:.1} % of the field at 1e-4..1e-3 of the peak", 100.0 * plateau);
+            filled += above(&img, 1e-4) / 8.0;
+            extended += above(&extended_sky(&SkyParams::new(n, dr, seed)).unwrap(), 1e-4) / 8.0;
+        }
+        assert!(filled > 0.2 && filled > 1.5 * extended, "field-filling {:.1} % above 1e-4 of the peak, extended {:.1} %", 100.0 * filled, 100.0 * extended);
     }
 
     #[test]

@@ -15,7 +15,7 @@
 //! inputs and can be regenerated alone.
 
 use super::observe::{frequency_channels, sample_coverage, simulate_visibilities, NoiseModel, ObservationSpec};
-use super::extended::extended_sky;
+use super::extended::{extended_sky, field_filling_sky};
 use super::sky::{exponentiate, procedural_sky, smooth_to_resolution, SkyParams};
 use super::telescope::Telescope;
 use crate::imaging::{dirty_image, DirtyParams, PixelScale};
@@ -169,6 +169,8 @@ pub enum TruthSource<'a> {
     Procedural { seed: u64 },
     /// A sky of extended emission (`simulate::extended`) made at the sample's dynamic range.
     Extended { seed: u64 },
+    /// A field-filling sky (`simulate::extended::field_filling_sky`) at the sample's dynamic range.
+    FieldFilling { seed: u64 },
 }
 
 /// One training sample (images row-major, `N x N` except the `2N x 2N` PSF).
@@ -224,6 +226,7 @@ pub fn make_sample(truth: TruthSource, params: &TrainsetParams, seed: u64, threa
         }
         TruthSource::Procedural { seed } => procedural_sky(&SkyParams::new(n, dr, seed))?,
         TruthSource::Extended { seed } => extended_sky(&SkyParams::new(n, dr, seed))?,
+        TruthSource::FieldFilling { seed } => field_filling_sky(&SkyParams::new(n, dr, seed))?,
     };
     let truth_fwhm_px = params.truth_fwhm_px.map(|(lo, hi)| {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
