@@ -217,8 +217,10 @@ def make_data(args, r2d2, data_dir):
 def make_data_fits(args, r2d2, data_dir):
     """Observations of the user's own skies (--sky-fits: FITS images in Jy/pixel, e.g. real radio
     images), simulated by `r2d2 simulate` at the benchmark's setting, one per file; the truth
-    is written beside each table with the engine's pixel grid (the simulation sets the pixel
-    from --superresolution unless the file has one). Always made afresh: the files may change."""
+    is written beside each table with the engine's pixel grid. The sky is observed on the grid
+    the setting's --superresolution makes: a file's own pixel and centre are dropped (the
+    simulation would keep them, and the images made at the setting's pixel would not match
+    the truth). Always made afresh: the files may change."""
     from astropy.io import fits
     vis = os.path.join(data_dir, "vis")
     if os.path.isdir(vis):
@@ -236,7 +238,9 @@ def make_data_fits(args, r2d2, data_dir):
         obs = os.path.join(vis, f"{k:05d}.parquet")
         hours = [] if args.hours is None else ["--hours", args.hours]
         integration = [] if args.integration_s is None else ["--integration-s", args.integration_s]
-        text, _, _ = run([r2d2, "simulate", "--sky", os.path.abspath(path), "--telescope", args.telescope, *hours, *integration,
+        pixels_only = os.path.join(vis, f"{k:05d}.input.fits")
+        fits.PrimaryHDU(truth.astype(np.float64), header=fits.Header([("BUNIT", "JY/PIXEL")])).writeto(pixels_only, overwrite=True)
+        text, _, _ = run([r2d2, "simulate", "--sky", pixels_only, "--telescope", args.telescope, *hours, *integration,
                           "--dr", f"{dr:.6g}", "--superresolution", args.superresolution, f"--robust={args.robust:g}",
                           "--epsilon", "1e-5", "--seed", args.seed + k, "--threads", args.threads, "--out", obs])
         m = re.search(r"(\d+) visibilities", text)

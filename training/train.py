@@ -61,6 +61,13 @@ def replay_key(args, networks):
             h.update(hashlib.sha256(f.read()).digest())
     for d in list(args.train) + list(args.val):
         h.update(os.path.abspath(d).encode())
+        # A set regenerated at the same path (another generator, other seeds) is other data:
+        # its records (trainset.json holds the run's parameters and timings) change the key.
+        for record in ("samples.json", "trainset.json"):
+            path = os.path.join(d, record)
+            if os.path.exists(path):
+                with open(path, "rb") as f:
+                    h.update(hashlib.sha256(f.read()).digest())
     h.update(repr((args.limit_train, args.limit_val, networks)).encode())
     return h.hexdigest()
 
