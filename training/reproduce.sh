@@ -83,12 +83,13 @@ vla-r2d2-512|meerkat-r2d2-512)
         # Stage 4 (network 26): the same, the loss adding 0.1 x the L1 of the rlog images (the
         # faint emission's share); a 27th was refused by the stopping rule.
         STAGE4="$CROPS --epochs 8 --max-networks ${STAGE4_NETWORKS:-26} --loss-log-weight 0.1"
-        # Stage 5 (networks 27..): field-filling skies (one object spanning the field inside a
-        # faint cocoon, seeds 220000.., validation 520000.., test 930000..), the plateau at
-        # 1e-4..1e-3 of the peak that real radio galaxies have over a third of the field,
-        # first and then stage 2's extended skies, up to 200 samples (the replay of the series
-        # over each costs a network's inference and residual); validated on stage 2's sets
-        # and the field-filling ones. Stage 4's loss.
+        # Stage 5 (network 27): field-filling skies (one object spanning the field inside a
+        # faint cocoon, lumpy with turbulence; seeds 220000.., validation 520000.., test
+        # 930000..), the plateau at 1e-4..1e-3 of the peak that real radio galaxies have over
+        # a large part of the field, first and then stage 2's extended skies, 200 samples in
+        # all (the replay of the series over each costs a network's inference and residual);
+        # validated on stage 2's sets and the field-filling ones; stage 4's loss. A 28th
+        # network was refused by the stopping rule.
         make_once "$D/train-field-filling-resolved" "$R2D2" trainset --procedural 120 --sky field-filling --seed 220000 $RESOLVED $SIM
         make_once "$D/val-field-filling-resolved" "$R2D2" trainset --procedural 8 --sky field-filling --seed 520000 $RESOLVED $SIM
         if [ "${EVAL:-1}" != 0 ]; then
@@ -96,7 +97,7 @@ vla-r2d2-512|meerkat-r2d2-512)
         fi
         STAGE5_TRAIN=("$D/train-field-filling-resolved" "$D/train-extended-resolved")
         STAGE5_VAL=("${STAGE2_VAL[@]}" "$D/val-field-filling-resolved")
-        STAGE5="$CROPS --epochs 8 --limit-train 200 --max-networks ${STAGE5_NETWORKS:-30} --loss-log-weight 0.1"
+        STAGE5="$CROPS --epochs 8 --limit-train 200 --max-networks ${STAGE5_NETWORKS:-27} --loss-log-weight 0.1"
     fi
     ;;
 vla-r2d2-512-broad)
