@@ -20,7 +20,6 @@ import subprocess
 import sys
 import time
 
-import numpy as np
 import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -90,26 +89,6 @@ def torch_runner(model, device):
     def run(batch):
         with torch.no_grad():
             return model(batch.to(device)).float().cpu()
-    return run
-
-
-def onnx_runner(path, threads):
-    """Network `path` (the series' own ONNX export, what the engine runs) through ONNX
-    Runtime, an image at a time (the exports have batch 1): on a CPU it runs these U-Nets
-    several times faster than PyTorch, and the replay of a long series over a few hundred
-    samples is most of a resumed stage's time. None where onnxruntime is missing."""
-    try:
-        import onnxruntime as ort
-    except ImportError:
-        return None
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    session = ort.InferenceSession(path, options, providers=["CPUExecutionProvider"])
-    name = session.get_inputs()[0].name
-
-    def run(batch):
-        out = [session.run(None, {name: image[None].float().numpy()})[0] for image in batch.cpu()]
-        return torch.from_numpy(np.concatenate(out))
     return run
 
 
@@ -343,8 +322,11 @@ def main(argv=None):
         log(f"replay of N1-N{have} read from the cache: validation {common.metrics(x_va, r_va, val)}; {int(active.sum())} training samples active")
     for k in range(1, have + 1 if cache is None else 1):
         model = series.load_network(args.series, manifest, k).to(device)
+        # On a CPU the series' own ONNX exports (what the engine runs) go through ONNX Runtime,
+        # several times faster than PyTorch here: the replay of a long series over a few hundred
+        # samples is most of a resumed stage's time.
         onnx = os.path.join(args.series, manifest["networks"][k - 1])
-        run = (onnx_runner(onnx, args.threads) if device.type == "cpu" and os.path.exists(onnx) else None) or torch_runner(model, device)
+        run = series.onnx_runner(onnx, args.threads) if device.type == "cpu" and os.path.exists(onnx) else torch_runner(model, device)
         x_tr = common.update(k, run, train.dirty, x_tr, r_tr, batch=ubatch)
         r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
         active &= r_tr.flatten(1).pow(2).sum(1) > noise_energy

@@ -182,13 +182,18 @@ fn filaments(rng: &mut ChaCha8Rng, n: usize) -> Vec<f64> {
     for (weight, corr, width) in [(0.6, rng.gen_range(0.015..0.03) * nf, 0.3), (0.4, rng.gen_range(0.005..0.012) * nf, 0.25)] {
         let mut field: Vec<f64> = (0..n * n).map(|_| rng.sample::<f64, _>(StandardNormal)).collect();
         box_blur_periodic(&mut field, n, corr);
-        let sd = (field.iter().map(|v| v * v).sum::<f64>() / (n * n) as f64).sqrt().max(f64::MIN_POSITIVE);
+        let sd = rms(&field);
         for (o, f) in out.iter_mut().zip(&field) {
             let ridge = (1.0 - (f / sd).abs() / width).max(0.0);
             *o += weight * ridge * ridge;
         }
     }
     out
+}
+
+/// Root mean square of a random field (kept above 0: fields are divided by it).
+fn rms(field: &[f64]) -> f64 {
+    (field.iter().map(|v| v * v).sum::<f64>() / field.len() as f64).sqrt().max(f64::MIN_POSITIVE)
 }
 
 /// Add `amp * envelope(x, y) * (base + (1 - base) * texture)` over the pixels within `reach`
@@ -251,14 +256,14 @@ fn turbulence(rng: &mut ChaCha8Rng, n: usize, depth: f64) -> Vec<f64> {
     for corr in [0.005, 0.012, 0.03, 0.08] {
         let mut field: Vec<f64> = (0..n * n).map(|_| rng.sample::<f64, _>(StandardNormal)).collect();
         box_blur_periodic(&mut field, n, (corr * nf).max(1.0));
-        let sd = (field.iter().map(|v| v * v).sum::<f64>() / (n * n) as f64).sqrt().max(f64::MIN_POSITIVE);
+        let sd = rms(&field);
         // Larger scales carry more of the variance, as in a turbulent medium.
         let weight = corr.sqrt();
         for (o, f) in g.iter_mut().zip(&field) {
             *o += weight * f / sd;
         }
     }
-    let sd = (g.iter().map(|v| v * v).sum::<f64>() / (n * n) as f64).sqrt().max(f64::MIN_POSITIVE);
+    let sd = rms(&g);
     g.iter().map(|v| (depth * v / sd).exp()).collect()
 }
 
@@ -390,25 +395,30 @@ fn halo_and_relic(img: &mut [f64], canvas: &mut Canvas, rng: &mut ChaCha8Rng, n:
 mod tests {
     use super::*;
 
+    /// The sky contract: a pure function of the seed, peak 1, nothing below 1/DR but exact
+    /// zeros, nothing outside the support box (default 0.85 of the side).
+    fn assert_sky_contract(sky: fn(&SkyParams) -> Result<Vec<f64>>, n: usize, dr: f64, seed: u64) -> Vec<f64> {
+        let img = sky(&SkyParams::new(n, dr, seed)).unwrap();
+        assert_eq!(img, sky(&SkyParams::new(n, dr, seed)).unwrap(), "a pure function of the seed");
+        let peak = img.iter().copied().fold(0.0, f64::max);
+        assert!((peak - 1.0).abs() < 1e-12);
+        assert!(img.iter().all(|&v| v == 0.0 || (v >= 1.0 / dr * (1.0 - 1e-12) && v.is_finite())));
+        let edge = (0.075 * n as f64).floor() as usize;
+        for iy in 0..n {
+            for ix in 0..n {
+                if ix < edge || iy < edge || ix >= n - edge || iy >= n - edge {
+                    assert_eq!(img[iy * n + ix], 0.0, "seed {seed}: emission at ({ix}, {iy}) outside the support");
+                }
+            }
+        }
+        img
+    }
+
     #[test]
     fn extended_skies_keep_the_sky_contract_and_spread_faint_emission_over_large_areas() {
         for seed in 0..12 {
             let n = 128;
-            let dr = 1e4;
-            let img = extended_sky(&SkyParams::new(n, dr, seed)).unwrap();
-            assert_eq!(img, extended_sky(&SkyParams::new(n, dr, seed)).unwrap(), "a pure function of the seed");
-            let peak = img.iter().copied().fold(0.0, f64::max);
-            assert!((peak - 1.0).abs() < 1e-12);
-            assert!(img.iter().all(|&v| v == 0.0 || (v >= 1.0 / dr * (1.0 - 1e-12) && v.is_finite())));
-            // Nothing outside the support box (default 0.85 of the side).
-            let edge = (0.075 * n as f64).floor() as usize;
-            for iy in 0..n {
-                for ix in 0..n {
-                    if ix < edge || iy < edge || ix >= n - edge || iy >= n - edge {
-                        assert_eq!(img[iy * n + ix], 0.0, "seed {seed}: emission at ({ix}, {iy}) outside the support");
-                    }
-                }
-            }
+            let img = assert_sky_contract(extended_sky, n, 1e4, seed);
             // Faint emission (1e-4 .. 1e-2 of the peak) over a large area, not just a few
             // compact sources: the point of these skies.
             let faint = img.iter().filter(|&&v| v > 0.0 && v < 1e-2).count() as f64 / (n * n) as f64;
@@ -436,19 +446,13 @@ mod tests {
         let above = |img: &[f64], t: f64| img.iter().filter(|&&v| v > t).count() as f64 / img.len() as f64;
         let (mut filled, mut extended) = (0.0, 0.0);
         for seed in 0..8 {
-            let img = field_filling_sky(&SkyParams::new(n, dr, seed)).unwrap();
-            assert_eq!(img, field_filling_sky(&SkyParams::new(n, dr, seed)).unwrap(), "a pure function of the seed");
-            assert!((img.iter().copied().fold(0.0, f64::max) - 1.0).abs() < 1e-12);
-            assert!(img.iter().all(|&v| v == 0.0 || (v >= 1.0 / dr * (1.0 - 1e-12) && v.is_finite())));
-            let edge = (0.075 * n as f64).floor() as usize;
-            for iy in (0..n).filter(|&i| i < edge || i >= n - edge) {
-                assert!(img[iy * n..(iy + 1) * n].iter().all(|&v| v == 0.0), "seed {seed}: emission outside the support");
-            }
-            assert_ne!(img, extended_sky(&SkyParams::new(n, dr, seed)).unwrap());
+            let img = assert_sky_contract(field_filling_sky, n, dr, seed);
+            let other = extended_sky(&SkyParams::new(n, dr, seed)).unwrap();
+            assert_ne!(img, other);
             let plateau = above(&img, 1e-4) - above(&img, 1e-3);
             assert!(plateau > 0.05, "seed {seed}: only {:.1} % of the field at 1e-4..1e-3 of the peak", 100.0 * plateau);
             filled += above(&img, 1e-4) / 8.0;
-            extended += above(&extended_sky(&SkyParams::new(n, dr, seed)).unwrap(), 1e-4) / 8.0;
+            extended += above(&other, 1e-4) / 8.0;
         }
         assert!(filled > 0.2 && filled > 1.25 * extended, "field-filling {:.1} % above 1e-4 of the peak, extended {:.1} %", 100.0 * filled, 100.0 * extended);
     }
