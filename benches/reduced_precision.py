@@ -35,7 +35,8 @@ def final_metrics(series_dir, data, threads):
     manifest = series.read_manifest(series_dir)
     x, r = torch.zeros_like(data.dirty), data.dirty.clone()
     for i, name in enumerate(manifest["networks"], start=1):
-        x = common.update(i, series.onnx_runner(os.path.join(series_dir, name), threads), data.dirty, x, r)
+        run = series.oriented(series.onnx_runner(os.path.join(series_dir, name), threads), series.orientation(manifest, i))
+        x = common.update(i, run, data.dirty, x, r)
         r = common.residual(data.dirty, x, data.psf_hat)
     snr = common.snr(x, data.truth)
     logsnr = common.log_snr(x, data.truth, data.dynamic_range)

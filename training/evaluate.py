@@ -85,7 +85,7 @@ def evaluate(series_dir, test_dir, r2d2, out, clean_cycles=10, clean_components=
     x, r = torch.zeros_like(data.dirty), data.dirty.clone()
     per_sample_final = None
     for i, name in enumerate(manifest["networks"], start=1):
-        run = series.onnx_runner(os.path.join(series_dir, name), threads)
+        run = series.oriented(series.onnx_runner(os.path.join(series_dir, name), threads), series.orientation(manifest, i))
         x = common.update(i, run, data.dirty, x, r)
         r = common.residual(data.dirty, x, data.psf_hat)
         row("r2d2", i, x, r)

@@ -55,9 +55,12 @@ def commit_series(series_dir, message):
 def replay_key(args, networks):
     """What the replayed estimates depend on: each network's weights and the data sets."""
     h = hashlib.sha256()
+    manifest = series.read_manifest(args.series) or {}
     for k in range(1, networks + 1):
         with open(os.path.join(args.series, series.weights_name(k)), "rb") as f:
             h.update(hashlib.sha256(f.read()).digest())
+        if series.orientation(manifest, k) != "identity":
+            h.update(series.orientation(manifest, k).encode())
     for d in list(args.train) + list(args.val):
         h.update(os.path.abspath(d).encode())
         # A set regenerated at the same path (another generator, other seeds) is other data:
@@ -327,6 +330,7 @@ def main(argv=None):
         # samples is most of a resumed stage's time.
         onnx = os.path.join(args.series, manifest["networks"][k - 1])
         run = series.onnx_runner(onnx, args.threads) if device.type == "cpu" and os.path.exists(onnx) else torch_runner(model, device)
+        run = series.oriented(run, series.orientation(manifest, k))
         x_tr = common.update(k, run, train.dirty, x_tr, r_tr, batch=ubatch)
         r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
         active &= r_tr.flatten(1).pow(2).sum(1) > noise_energy
@@ -372,7 +376,9 @@ def main(argv=None):
                 f"{series.parameter_count(new)} parameters, from random weights")
         epochs, seconds, loss = train_network(i, new, train, x_tr, r_tr, active, args, args.work, device)
         new.eval()
-        run = torch_runner(new, device)
+        # Validated (and replayed) as the engine will run it: in its orientation of the
+        # manifest's cycle (it is trained as drawn, in none).
+        run = series.oriented(torch_runner(new, device), series.orientation(manifest, i))
         x_va_new = common.update(i, run, val.dirty, x_va, r_va, batch=ubatch)
         r_va_new = common.residual(val.dirty, x_va_new, val.psf_hat)
         m = common.metrics(x_va_new, r_va_new, val)

@@ -32,11 +32,12 @@ def _inputs_along_series(src, manifest, calibration, threads):
         seen = []
         run = series.onnx_runner(os.path.join(src, name), threads)
 
+        # The inputs as the network sees them (turned to its orientation).
         def recording(batch, run=run, seen=seen):
             seen.extend(batch[k:k + 1].numpy().astype(np.float32) for k in range(batch.shape[0]))
             return run(batch)
 
-        x = common.update(i, recording, data.dirty, x, r)
+        x = common.update(i, series.oriented(recording, series.orientation(manifest, i)), data.dirty, x, r)
         r = common.residual(data.dirty, x, data.psf_hat)
         inputs[name] = seen
     return inputs

@@ -184,6 +184,46 @@ def export_onnx(model, path, size):
     os.replace(tmp, path)
 
 
+# The manifest's `orientation_cycle` entries (the engine's `series::Orientation`, images
+# [..., y, x]): the axes reversed first, then whether the image is transposed.
+ORIENTATIONS = {
+    "identity": ((), False), "mirror_x": ((-1,), False), "mirror_y": ((-2,), False), "rotate_180": ((-2, -1), False),
+    "transpose": ((), True), "rotate_90": ((-1,), True), "rotate_270": ((-2,), True), "anti_transpose": ((-2, -1), True),
+}
+
+
+def orientation(manifest, i):
+    """The orientation network i (1-based) sees its images in, as the engine turns them: entry
+    (i - 1) mod the length of the manifest's `orientation_cycle` (none: `identity`)."""
+    cycle = manifest.get("orientation_cycle") or []
+    name = cycle[(i - 1) % len(cycle)] if cycle else "identity"
+    if name not in ORIENTATIONS:
+        raise SystemExit(f"orientation_cycle: unknown orientation {name!r} (expected one of {', '.join(ORIENTATIONS)})")
+    return name
+
+
+def turn(batch, name):
+    """A batch of images [..., y, x] turned to orientation `name`."""
+    axes, transposed = ORIENTATIONS[name]
+    out = torch.flip(batch, axes) if axes else batch
+    return out.transpose(-2, -1) if transposed else out
+
+
+def turn_back(batch, name):
+    """The inverse of `turn`."""
+    axes, transposed = ORIENTATIONS[name]
+    out = batch.transpose(-2, -1) if transposed else batch
+    return torch.flip(out, axes) if axes else out
+
+
+def oriented(run, name):
+    """`run` (a batch of network inputs -> outputs) with its inputs turned to orientation `name`
+    and its outputs turned back."""
+    if name == "identity":
+        return run
+    return lambda batch: turn_back(run(turn(batch, name).contiguous()), name)
+
+
 def onnx_runner(path, threads=2):
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads

@@ -278,10 +278,24 @@ impl OnnxStep {
         }
     }
 
+    /// The orientation network `iteration` of the plan sees its images in (the series'
+    /// cycle restarts with each realisation).
+    fn orientation(&self, iteration: usize) -> series::Orientation {
+        let cycle = &self.series.orientation_cycle;
+        if cycle.is_empty() {
+            return series::Orientation::Identity;
+        }
+        cycle[((iteration - 1) % self.per_realisation) % cycle.len()]
+    }
+
     fn run_network(&mut self, job: &str, iteration: usize, layer: usize, first: &[f64], second: &[f64], alpha: f64) -> Result<Vec<f64>> {
+        let orientation = self.orientation(iteration);
         let mut input = Vec::with_capacity(2 * first.len());
         input.extend(first.iter().map(|v| (v / alpha) as f32));
         input.extend(second.iter().map(|v| (v / alpha) as f32));
+        if orientation != series::Orientation::Identity {
+            input = input.chunks_exact(self.size * self.size).flat_map(|channel| orientation.apply(channel, self.size)).collect();
+        }
         let output = if self.pad == 0 {
             self.network(job, iteration, layer)?.run(&input)?
         } else {
@@ -289,6 +303,7 @@ impl OnnxStep {
             let padded: Vec<f32> = input.chunks_exact(n * n).flat_map(|channel| mirror_pad(channel, n, pad)).collect();
             crop(&self.network(job, iteration, layer)?.run(&padded)?, self.network_size(), pad)
         };
+        let output = orientation.inverse().apply(&output, self.size);
         if let Some(bad) = output.iter().position(|v| !v.is_finite()) {
             let path = self.plan[iteration - 1][layer].clone();
             return Err(runtime::OnnxError::Output { path, message: format!("network output is not finite at pixel {bad} (iteration {iteration})") }.into());
@@ -584,6 +599,35 @@ pub(crate) mod tests {
         let r1: f64 = residual(&psf, &dirty, &expected[0]).iter().map(|v| v * v).sum();
         let r4: f64 = residual(&psf, &dirty, &expected[3]).iter().map(|v| v * v).sum();
         assert!(r4 < 0.5 * r1, "Landweber reduces the residual: {r1} -> {r4}");
+    }
+
+    #[test]
+    fn an_orientation_cycle_turns_each_networks_images_and_turns_the_output_back() {
+        // The Landweber networks act pixel by pixel, so whatever turn a network's images are
+        // given in, the series' models are unchanged, provided each output is turned back by
+        // the inverse of its input's turn (a quarter turn undone by the same quarter turn, or
+        // by none, would leave the model turned).
+        let dir = test_models();
+        let series = tempfile::tempdir().unwrap();
+        for f in ["lw1.onnx", "lw2.onnx", "lw3.onnx", "lw4.onnx"] {
+            std::fs::copy(dir.join("landweber").join(f), series.path().join(f)).unwrap();
+        }
+        let manifest = std::fs::read_to_string(dir.join("landweber/manifest.yaml")).unwrap();
+        std::fs::write(series.path().join("manifest.yaml"), format!("{manifest}orientation_cycle: [rotate_90, mirror_x, rotate_270]\n")).unwrap();
+        let psf = psf_2n();
+        // An asymmetric sky: a model left turned would differ from the plain series'.
+        let dirty = direct_d(&psf, &sky());
+        for backend in [BackendChoice::Ort, BackendChoice::Tract] {
+            let turned = run_series(series.path(), backend, &psf, &dirty, true);
+            let plain = run_series(&dir.join("landweber"), backend, &psf, &dirty, true);
+            for (i, (a, b)) in turned.iter().zip(&plain).enumerate() {
+                assert!(rel(a, b) < 1e-6, "{backend:?} iteration {}: {:.2e}", i + 1, rel(a, b));
+            }
+        }
+        let config = OnnxConfig { series: series.path().into(), backend: BackendChoice::Tract, threads: 1, networks: None, prefetch: true, graph_optimization: GraphOptimization::default(), realisation: None, validity: ValidityMode::Warn };
+        let step = OnnxStep::new(&config, N, 1, &ImagingSetup::default()).unwrap();
+        use series::Orientation::*;
+        assert_eq!((1..=4).map(|i| step.orientation(i)).collect::<Vec<_>>(), [Rotate90, MirrorX, Rotate270, Rotate90], "network k takes entry (k - 1) mod 3");
     }
 
     #[test]

@@ -82,6 +82,13 @@ pub struct Manifest {
     /// of 2^poolings for a U-Net). Default 0.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub edge_padding: usize,
+    /// The orientation each network sees its images in, network k taking entry (k - 1) mod
+    /// the list's length (R2D2 only): its inputs are turned so, and its output turned back.
+    /// The networks' own artefacts (stripes, mottling) then lie differently from one network
+    /// to the next and do not build up along one direction (training/README.md, "Orientation
+    /// cycle"). Default: every network as trained.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub orientation_cycle: Vec<Orientation>,
     #[serde(default)]
     pub provenance: serde_yaml::Value,
     #[serde(default)]
@@ -92,6 +99,74 @@ pub struct Manifest {
 
 fn one() -> usize {
     1
+}
+
+/// A symmetry of the square image grid: the turn network k's images are given in
+/// (`orientation_cycle`). Image `f[y][x]` (row-major, `x` the column) is turned to `g`:
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Orientation {
+    /// `g[y][x] = f[y][x]`.
+    Identity,
+    /// `g[y][x] = f[y][n-1-x]`: columns reversed.
+    MirrorX,
+    /// `g[y][x] = f[n-1-y][x]`: rows reversed.
+    MirrorY,
+    /// `g[y][x] = f[n-1-y][n-1-x]`: a half turn.
+    #[serde(rename = "rotate_180")]
+    Rotate180,
+    /// `g[y][x] = f[x][y]`.
+    Transpose,
+    /// `g[y][x] = f[x][n-1-y]`: a quarter turn (columns reversed, then transposed).
+    #[serde(rename = "rotate_90")]
+    Rotate90,
+    /// `g[y][x] = f[n-1-x][y]`: the opposite quarter turn (rows reversed, then transposed).
+    #[serde(rename = "rotate_270")]
+    Rotate270,
+    /// `g[y][x] = f[n-1-x][n-1-y]`: the transpose about the other diagonal.
+    AntiTranspose,
+}
+
+impl Orientation {
+    /// The source pixel `(y, x)` of `f` that lands on `(y, x)` of the turned `n x n` image.
+    fn source(self, y: usize, x: usize, n: usize) -> (usize, usize) {
+        let last = n - 1;
+        match self {
+            Orientation::Identity => (y, x),
+            Orientation::MirrorX => (y, last - x),
+            Orientation::MirrorY => (last - y, x),
+            Orientation::Rotate180 => (last - y, last - x),
+            Orientation::Transpose => (x, y),
+            Orientation::Rotate90 => (x, last - y),
+            Orientation::Rotate270 => (last - x, y),
+            Orientation::AntiTranspose => (last - x, last - y),
+        }
+    }
+
+    /// The orientation that turns the image back.
+    pub fn inverse(self) -> Orientation {
+        match self {
+            Orientation::Rotate90 => Orientation::Rotate270,
+            Orientation::Rotate270 => Orientation::Rotate90,
+            other => other,
+        }
+    }
+
+    /// The row-major `n x n` image turned to this orientation.
+    pub fn apply<T: Copy>(self, image: &[T], n: usize) -> Vec<T> {
+        assert_eq!(image.len(), n * n, "an n x n image");
+        if self == Orientation::Identity {
+            return image.to_vec();
+        }
+        let mut out = Vec::with_capacity(n * n);
+        for y in 0..n {
+            out.extend((0..n).map(|x| {
+                let (sy, sx) = self.source(y, x, n);
+                image[sy * n + sx]
+            }));
+        }
+        out
+    }
 }
 
 fn is_zero(n: &usize) -> bool {
@@ -250,6 +325,8 @@ pub struct Series {
     pub early_stop_from: usize,
     /// The manifest's `edge_padding` (0 without one).
     pub edge_padding: usize,
+    /// The manifest's `orientation_cycle` (empty: every network as trained).
+    pub orientation_cycle: Vec<Orientation>,
     pub manifest: Option<Manifest>,
     /// How the series was read (for the log and `r2d2 models`).
     pub origin: String,
@@ -311,6 +388,10 @@ impl Series {
         if manifest.normalisation != "mean" {
             return Err(invalid(path, format!("normalisation: expected 'mean', got '{}'", manifest.normalisation)));
         }
+        if !manifest.orientation_cycle.is_empty() && manifest.architecture != Architecture::R2d2 {
+            // R3D3's data-fidelity layers between the networks would need the PSF turned too.
+            return Err(invalid(path, "orientation_cycle: only an R2D2 series may turn its networks' images"));
+        }
         let lists: Vec<(String, &Vec<NetworkFiles>)> = match (manifest.networks.is_empty(), manifest.realisations.is_empty()) {
             (false, true) => vec![("networks".to_string(), &manifest.networks)],
             (true, false) => manifest.realisations.iter().enumerate().map(|(r, list)| (format!("realisations[{r}]"), list)).collect(),
@@ -342,6 +423,7 @@ impl Series {
             any_size: manifest.any_size,
             early_stop_from: manifest.early_stop_from.unwrap_or(1),
             edge_padding: manifest.edge_padding,
+            orientation_cycle: manifest.orientation_cycle.clone(),
             realisations: lists.len(),
             origin: format!("manifest {}", path.display()),
             manifest: Some(manifest),
@@ -388,6 +470,7 @@ impl Series {
                 any_size: true,
                 early_stop_from: 1,
                 edge_padding: 0,
+                orientation_cycle: Vec::new(),
                 realisations: 1,
                 manifest: None,
                 origin: "reference file names R2D2_UNet_N{i}.onnx (no manifest)".into(),
@@ -419,6 +502,7 @@ impl Series {
                 any_size: true,
                 early_stop_from: 1,
                 edge_padding: 0,
+                orientation_cycle: Vec::new(),
                 realisations: 1,
                 manifest: None,
                 origin: format!("reference file names R3D3_R2D2Net_{j}Layers_N{{i}} (no manifest)"),
@@ -821,6 +905,55 @@ mod tests {
         assert_eq!(pick(256, "VLA"), root.path().join("vla-r2d2-512"));
         // Data naming no telescope keep the project's order.
         assert_eq!(pick(512, "unknown"), root.path().join("vla-r2d2-512"));
+    }
+
+    #[test]
+    fn orientations_turn_the_grid_as_documented_and_back() {
+        use Orientation::*;
+        // f = [[0, 1, 2], [3, 4, 5], [6, 7, 8]] turned, written out by hand.
+        let f: Vec<u8> = (0..9).collect();
+        let expected: [(Orientation, [u8; 9]); 8] = [
+            (Identity, [0, 1, 2, 3, 4, 5, 6, 7, 8]),
+            (MirrorX, [2, 1, 0, 5, 4, 3, 8, 7, 6]),
+            (MirrorY, [6, 7, 8, 3, 4, 5, 0, 1, 2]),
+            (Rotate180, [8, 7, 6, 5, 4, 3, 2, 1, 0]),
+            (Transpose, [0, 3, 6, 1, 4, 7, 2, 5, 8]),
+            (Rotate90, [2, 5, 8, 1, 4, 7, 0, 3, 6]),
+            (Rotate270, [6, 3, 0, 7, 4, 1, 8, 5, 2]),
+            (AntiTranspose, [8, 5, 2, 7, 4, 1, 6, 3, 0]),
+        ];
+        for (o, want) in expected {
+            assert_eq!(o.apply(&f, 3), want, "{o:?}");
+        }
+        // Each is undone by its inverse, on an even size too; the eight are distinct.
+        let g: Vec<u16> = (0..16).collect();
+        let turned: Vec<Vec<u16>> = expected.iter().map(|(o, _)| o.apply(&g, 4)).collect();
+        for ((o, _), t) in expected.iter().zip(&turned) {
+            assert_eq!(o.inverse().apply(t, 4), g, "{o:?}");
+        }
+        for (i, a) in turned.iter().enumerate() {
+            assert!(turned[i + 1..].iter().all(|b| b != a), "orientation {i} repeats another");
+        }
+    }
+
+    #[test]
+    fn an_orientation_cycle_is_read_by_name_and_only_for_r2d2() {
+        let dir = tempfile::tempdir().unwrap();
+        touch(&dir.path().join("a.onnx"));
+        let base = "format: 1\nname: t\narchitecture: r2d2\nimage_sizes: [64]\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx]\n";
+        let write = |extra: &str| std::fs::write(dir.path().join("manifest.yaml"), format!("{base}{extra}")).unwrap();
+        write("orientation_cycle: [identity, mirror_x, rotate_90, anti_transpose]\n");
+        let s = Series::open(dir.path()).unwrap();
+        assert_eq!(s.orientation_cycle, [Orientation::Identity, Orientation::MirrorX, Orientation::Rotate90, Orientation::AntiTranspose]);
+        write("");
+        assert!(Series::open(dir.path()).unwrap().orientation_cycle.is_empty(), "none: every network as trained");
+        write("orientation_cycle: [identity, flip]\n");
+        let e = Series::open(dir.path()).err().expect("unknown orientation refused").to_string();
+        assert!(e.contains("orientation_cycle") && e.contains("flip") && e.contains("rotate_90"), "{e}");
+        let r3d3 = base.replace("architecture: r2d2", "architecture: r3d3\nlayers: 1");
+        std::fs::write(dir.path().join("manifest.yaml"), format!("{r3d3}orientation_cycle: [identity, mirror_x]\n")).unwrap();
+        let e = Series::open(dir.path()).err().expect("R3D3 with a cycle refused").to_string();
+        assert!(e.contains("orientation_cycle") && e.contains("R2D2"), "{e}");
     }
 
     #[test]
