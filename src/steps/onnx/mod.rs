@@ -601,6 +601,18 @@ pub(crate) mod tests {
         assert!(r4 < 0.5 * r1, "Landweber reduces the residual: {r1} -> {r4}");
     }
 
+    /// A copy of the Landweber test series with `extra` added to its manifest.
+    fn landweber_with(extra: &str) -> tempfile::TempDir {
+        let dir = test_models().join("landweber");
+        let series = tempfile::tempdir().unwrap();
+        for f in ["lw1.onnx", "lw2.onnx", "lw3.onnx", "lw4.onnx"] {
+            std::fs::copy(dir.join(f), series.path().join(f)).unwrap();
+        }
+        let manifest = std::fs::read_to_string(dir.join("manifest.yaml")).unwrap();
+        std::fs::write(series.path().join("manifest.yaml"), format!("{manifest}{extra}")).unwrap();
+        series
+    }
+
     #[test]
     fn an_orientation_cycle_turns_each_networks_images_and_turns_the_output_back() {
         // The Landweber networks act pixel by pixel, so whatever turn a network's images are
@@ -608,12 +620,7 @@ pub(crate) mod tests {
         // the inverse of its input's turn (a quarter turn undone by the same quarter turn, or
         // by none, would leave the model turned).
         let dir = test_models();
-        let series = tempfile::tempdir().unwrap();
-        for f in ["lw1.onnx", "lw2.onnx", "lw3.onnx", "lw4.onnx"] {
-            std::fs::copy(dir.join("landweber").join(f), series.path().join(f)).unwrap();
-        }
-        let manifest = std::fs::read_to_string(dir.join("landweber/manifest.yaml")).unwrap();
-        std::fs::write(series.path().join("manifest.yaml"), format!("{manifest}orientation_cycle: [rotate_90, mirror_x, rotate_270]\n")).unwrap();
+        let series = landweber_with("orientation_cycle: [rotate_90, mirror_x, rotate_270]\n");
         let psf = psf_2n();
         // An asymmetric sky: a model left turned would differ from the plain series'.
         let dirty = direct_d(&psf, &sky());
@@ -644,12 +651,8 @@ pub(crate) mod tests {
         assert_eq!(crop(&padded, 7, 2), image);
         // A series of pixelwise networks (1x1 convolutions) padded: the same models as unpadded.
         let dir = test_models();
-        let series = tempfile::tempdir().unwrap();
-        for f in ["lw1.onnx", "lw2.onnx", "lw3.onnx", "lw4.onnx"] {
-            std::fs::copy(dir.join("landweber").join(f), series.path().join(f)).unwrap();
-        }
+        let series = landweber_with("edge_padding: 8\n");
         let manifest = std::fs::read_to_string(dir.join("landweber/manifest.yaml")).unwrap();
-        std::fs::write(series.path().join("manifest.yaml"), format!("{manifest}edge_padding: 8\n")).unwrap();
         let psf = psf_2n();
         let dirty = direct_d(&psf, &sky());
         for backend in [BackendChoice::Ort, BackendChoice::Tract] {
