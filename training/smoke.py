@@ -60,6 +60,25 @@ def check_crop_loss():
     check(abs(float(got) - float(want)) < 1e-5 * float(want), f"crop_loss {float(got)} against L1 + rlog L1 {float(want)}")
 
 
+def check_orientations():
+    """series.turn puts f[y][x] where the engine's `series::Orientation` does (the same
+    hand-written turns of [[0, 1, 2], [3, 4, 5], [6, 7, 8]] as its test), and turn_back undoes it."""
+    f = torch.arange(9.0).reshape(1, 1, 3, 3)
+    expected = {
+        "identity": [0, 1, 2, 3, 4, 5, 6, 7, 8], "mirror_x": [2, 1, 0, 5, 4, 3, 8, 7, 6],
+        "mirror_y": [6, 7, 8, 3, 4, 5, 0, 1, 2], "rotate_180": [8, 7, 6, 5, 4, 3, 2, 1, 0],
+        "transpose": [0, 3, 6, 1, 4, 7, 2, 5, 8], "rotate_90": [2, 5, 8, 1, 4, 7, 0, 3, 6],
+        "rotate_270": [6, 3, 0, 7, 4, 1, 8, 5, 2], "anti_transpose": [8, 5, 2, 7, 4, 1, 6, 3, 0],
+    }
+    check(sorted(expected) == sorted(series.ORIENTATIONS), f"orientations {sorted(series.ORIENTATIONS)}")
+    for name, want in expected.items():
+        got = series.turn(f, name)
+        check(got.flatten().tolist() == want, f"turn {name}: {got.flatten().tolist()} against {want}")
+        check(torch.equal(series.turn_back(got, name), f), f"turn_back {name} does not undo turn")
+    m = {"orientation_cycle": ["mirror_x", "rotate_90"]}
+    check([series.orientation(m, i) for i in (1, 2, 3)] == ["mirror_x", "rotate_90", "mirror_x"], "network k takes entry (k-1) mod the cycle's length")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--r2d2", required=True, help="the engine's binary")
@@ -202,6 +221,7 @@ def main(argv=None):
         run(crops + ["--max-networks", "4", "--base-channels", "8", "--loss-log-weight", "0.1"])
         check(series.read_manifest(cdir)["provenance"]["networks"][3].get("loss_log_weight") == 0.1, "the log weight is recorded")
         check_crop_loss()
+        check_orientations()
         crop_only = subprocess.run([py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", "--val", f"{d}/val", "--series",
                                     f"{d}/series-bad", "--work", f"{d}/checkpoints-bad", "--crop", "32"], capture_output=True, text=True)
         check(crop_only.returncode != 0 and "--norm none" in crop_only.stderr, "--crop with instance normalisation is refused")
