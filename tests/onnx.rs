@@ -98,10 +98,20 @@ fn image_command_takes_a_series_and_models_lists_them() {
     let v: serde_json::Value = serde_json::from_str(&metrics).unwrap();
     assert_eq!(v["iterations"].as_array().unwrap().len(), 2);
 
+    // A series whose networks see their images turned says so.
+    let turned = d.join("models/landweber-turned");
+    std::fs::create_dir_all(&turned).unwrap();
+    for entry in std::fs::read_dir(d.join("models/landweber")).unwrap() {
+        let path = entry.unwrap().path();
+        std::fs::copy(&path, turned.join(path.file_name().unwrap())).unwrap();
+    }
+    let manifest = std::fs::read_to_string(turned.join("manifest.yaml")).unwrap().replace("name: landweber\n", "name: landweber-turned\n");
+    std::fs::write(turned.join("manifest.yaml"), format!("{manifest}orientation_cycle: [mirror_x, rotate_90]\n")).unwrap();
     let out = r2d2(&["models", "models"], d);
     check(&out);
     let listing = text(&out);
     assert!(listing.contains("landweber") && listing.contains("4 iterations, R2D2"), "{listing}");
+    assert!(listing.contains("landweber-turned") && listing.contains("turned by entry (k - 1) mod 2 of [mirror_x, rotate_90]"), "{listing}");
     assert!(listing.contains("reference file names"), "a series without manifest says so: {listing}");
     assert!(listing.contains("R3D3, 3 layers"), "{listing}");
 

@@ -80,6 +80,10 @@ fn describe(dir: &std::path::Path, s: &r2d2_imaging::steps::series::Series) -> R
     if s.edge_padding > 0 {
         out!("    network inputs mirrored {} pixels past each image edge (outputs cropped)", s.edge_padding)?;
     }
+    if !s.orientation_cycle.is_empty() {
+        let turns: Vec<String> = s.orientation_cycle.iter().map(|o| serde_yaml::to_string(o).unwrap_or_default().trim().to_string()).collect();
+        out!("    network k sees its images turned by entry (k - 1) mod {} of [{}]", turns.len(), turns.join(", "))?;
+    }
     if s.early_stop_from > 1 {
         out!("    networks 1 to {} always run; the early stop (stalled, converged) applies from network {} on", s.early_stop_from - 1, s.early_stop_from)?;
     }
