@@ -172,4 +172,13 @@ if [ -n "${STAGE5:-}" ]; then
     VAL=("${STAGE5_VAL[@]}")
     train "${WORK:-$D/work}-stage5" $STAGE5 --resume
 fi
+# The 512 series run with the orientation cycle, chosen on their validation sets after their
+# networks were trained (training/README.md, "Orientation cycle"); from here on `train.py
+# --resume` validates new networks turned as the engine runs them.
+case "$RECIPE" in
+*-512|*-512-broad)
+    grep -q '^orientation_cycle:' "$SERIES/manifest.yaml" ||
+        sed -i 's/^normalisation: mean$/&\norientation_cycle: [identity, mirror_x, mirror_y, rotate_180, transpose, rotate_90, rotate_270, anti_transpose]/' "$SERIES/manifest.yaml"
+    ;;
+esac
 [ "${EVAL:-1}" = 0 ] || $RUN python3 training/evaluate.py --series "$SERIES" --test "$D/test" --r2d2 "$R2D2" --out "$D/eval" --update-manifest
