@@ -52,10 +52,10 @@ def commit_series(series_dir, message):
         log(f"warning: could not commit {series_dir}: {e}")
 
 
-def replay_key(args, networks):
-    """What the replayed estimates depend on: each network's weights and the data sets."""
+def replay_key(args, manifest, networks):
+    """What the replayed estimates depend on: each network's weights and orientation, and the
+    data sets."""
     h = hashlib.sha256()
-    manifest = series.read_manifest(args.series) or {}
     for k in range(1, networks + 1):
         with open(os.path.join(args.series, series.weights_name(k)), "rb") as f:
             h.update(hashlib.sha256(f.read()).digest())
@@ -315,7 +315,7 @@ def main(argv=None):
     history = [dict(v) for v in manifest["validation"]]
     model = None
     have = len(manifest["networks"])
-    cache = load_replay(args.work, replay_key(args, have))
+    cache = load_replay(args.work, replay_key(args, manifest, have))
     if cache is not None:
         x_tr, x_va, active = cache["x_tr"], cache["x_va"], cache["active"]
         r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
@@ -338,7 +338,7 @@ def main(argv=None):
         r_va = common.residual(val.dirty, x_va, val.psf_hat)
         log(f"replayed N{k}: validation {common.metrics(x_va, r_va, val)}; {int(active.sum())} training samples active")
     if cache is None and have:
-        save_replay(args.work, replay_key(args, have), x_tr, x_va, active)
+        save_replay(args.work, replay_key(args, manifest, have), x_tr, x_va, active)
 
     # The stopping rule compares with the best validation so far on this run's validation
     # set: the rows measured on it, where the series' last network was (a later stage may
@@ -432,7 +432,7 @@ def main(argv=None):
         })
         series.write_manifest(args.series, manifest)
         os.remove(os.path.join(args.work, "current.pt"))
-        save_replay(args.work, replay_key(args, i), x_tr, x_va, active)
+        save_replay(args.work, replay_key(args, manifest, i), x_tr, x_va, active)
         log(f"N{i} added to {args.series}; {int(active.sum())} of {len(train)} training samples remain after pruning")
         if args.commit:
             commit_series(args.series, f"models: {manifest['name']} network {i} (validation SNR {m['snr_db']:.2f} dB, logSNR {m['logsnr_db']:.2f} dB)")

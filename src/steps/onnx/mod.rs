@@ -293,9 +293,7 @@ impl OnnxStep {
         let mut input = Vec::with_capacity(2 * first.len());
         input.extend(first.iter().map(|v| (v / alpha) as f32));
         input.extend(second.iter().map(|v| (v / alpha) as f32));
-        if orientation != series::Orientation::Identity {
-            input = input.chunks_exact(self.size * self.size).flat_map(|channel| orientation.apply(channel, self.size)).collect();
-        }
+        let input = orientation.apply(input, self.size);
         let output = if self.pad == 0 {
             self.network(job, iteration, layer)?.run(&input)?
         } else {
@@ -303,7 +301,7 @@ impl OnnxStep {
             let padded: Vec<f32> = input.chunks_exact(n * n).flat_map(|channel| mirror_pad(channel, n, pad)).collect();
             crop(&self.network(job, iteration, layer)?.run(&padded)?, self.network_size(), pad)
         };
-        let output = orientation.inverse().apply(&output, self.size);
+        let output = orientation.inverse().apply(output, self.size);
         if let Some(bad) = output.iter().position(|v| !v.is_finite()) {
             let path = self.plan[iteration - 1][layer].clone();
             return Err(runtime::OnnxError::Output { path, message: format!("network output is not finite at pixel {bad} (iteration {iteration})") }.into());
@@ -550,11 +548,25 @@ pub(crate) mod tests {
         (num / den).sqrt()
     }
 
+    /// The step's configuration in the tests: tract, one thread, prefetching, warnings only.
+    fn test_config(series: &Path) -> OnnxConfig {
+        OnnxConfig {
+            series: series.to_path_buf(),
+            backend: BackendChoice::Tract,
+            threads: 1,
+            networks: None,
+            prefetch: true,
+            graph_optimization: GraphOptimization::default(),
+            realisation: None,
+            validity: ValidityMode::Warn,
+        }
+    }
+
     fn run_series(series: &Path, backend: BackendChoice, psf: &[f64], dirty: &[f64], prefetch: bool) -> Vec<Vec<f64>> {
         if backend != BackendChoice::Tract {
             runtime::use_onnx_runtime_for_tests();
         }
-        let config = OnnxConfig { series: series.to_path_buf(), backend, threads: 1, networks: None, prefetch, graph_optimization: GraphOptimization::default(), realisation: None, validity: ValidityMode::Warn };
+        let config = OnnxConfig { backend, prefetch, ..test_config(series) };
         let mut step = OnnxStep::new(&config, N, 1, &ImagingSetup::default()).unwrap();
         let psf_n = vec![0.0; N * N];
         let convolution = PsfConvolution::new(N, psf).unwrap();
@@ -613,25 +625,30 @@ pub(crate) mod tests {
         series
     }
 
+    /// `series` (a variant of the pixelwise Landweber series) gives the plain series' models
+    /// on both backends.
+    fn assert_models_as_plain_landweber(series: &Path) {
+        let psf = psf_2n();
+        let dirty = direct_d(&psf, &sky());
+        for backend in [BackendChoice::Ort, BackendChoice::Tract] {
+            let variant = run_series(series, backend, &psf, &dirty, true);
+            let plain = run_series(&test_models().join("landweber"), backend, &psf, &dirty, true);
+            for (i, (a, b)) in variant.iter().zip(&plain).enumerate() {
+                assert!(rel(a, b) < 1e-6, "{} {backend:?} iteration {}: {:.2e}", series.display(), i + 1, rel(a, b));
+            }
+        }
+    }
+
     #[test]
     fn an_orientation_cycle_turns_each_networks_images_and_turns_the_output_back() {
         // The Landweber networks act pixel by pixel, so whatever turn a network's images are
         // given in, the series' models are unchanged, provided each output is turned back by
         // the inverse of its input's turn (a quarter turn undone by the same quarter turn, or
         // by none, would leave the model turned).
-        let dir = test_models();
         let series = landweber_with("orientation_cycle: [rotate_90, mirror_x, rotate_270]\n");
-        let psf = psf_2n();
-        // An asymmetric sky: a model left turned would differ from the plain series'.
-        let dirty = direct_d(&psf, &sky());
-        for backend in [BackendChoice::Ort, BackendChoice::Tract] {
-            let turned = run_series(series.path(), backend, &psf, &dirty, true);
-            let plain = run_series(&dir.join("landweber"), backend, &psf, &dirty, true);
-            for (i, (a, b)) in turned.iter().zip(&plain).enumerate() {
-                assert!(rel(a, b) < 1e-6, "{backend:?} iteration {}: {:.2e}", i + 1, rel(a, b));
-            }
-        }
-        let config = OnnxConfig { series: series.path().into(), backend: BackendChoice::Tract, threads: 1, networks: None, prefetch: true, graph_optimization: GraphOptimization::default(), realisation: None, validity: ValidityMode::Warn };
+        // The sky is asymmetric: a model left turned would differ from the plain series'.
+        assert_models_as_plain_landweber(series.path());
+        let config = test_config(series.path());
         let step = OnnxStep::new(&config, N, 1, &ImagingSetup::default()).unwrap();
         use series::Orientation::*;
         assert_eq!((1..=4).map(|i| step.orientation(i)).collect::<Vec<_>>(), [Rotate90, MirrorX, Rotate270, Rotate90], "network k takes entry (k - 1) mod 3");
@@ -650,21 +667,12 @@ pub(crate) mod tests {
         }
         assert_eq!(crop(&padded, 7, 2), image);
         // A series of pixelwise networks (1x1 convolutions) padded: the same models as unpadded.
-        let dir = test_models();
         let series = landweber_with("edge_padding: 8\n");
-        let manifest = std::fs::read_to_string(dir.join("landweber/manifest.yaml")).unwrap();
-        let psf = psf_2n();
-        let dirty = direct_d(&psf, &sky());
-        for backend in [BackendChoice::Ort, BackendChoice::Tract] {
-            let padded = run_series(series.path(), backend, &psf, &dirty, true);
-            let plain = run_series(&dir.join("landweber"), backend, &psf, &dirty, true);
-            for (i, (a, b)) in padded.iter().zip(&plain).enumerate() {
-                assert!(rel(a, b) < 1e-6, "{backend:?} iteration {}: {:.2e}", i + 1, rel(a, b));
-            }
-        }
+        assert_models_as_plain_landweber(series.path());
+        let manifest = std::fs::read_to_string(test_models().join("landweber/manifest.yaml")).unwrap();
         // More padding than the image can mirror: refused, naming the field.
         std::fs::write(series.path().join("manifest.yaml"), format!("{manifest}edge_padding: {N}\n")).unwrap();
-        let config = OnnxConfig { series: series.path().into(), backend: BackendChoice::Tract, threads: 1, networks: None, prefetch: true, graph_optimization: GraphOptimization::default(), realisation: None, validity: ValidityMode::Warn };
+        let config = test_config(series.path());
         let e = OnnxStep::new(&config, N, 1, &ImagingSetup::default()).err().expect("refused").to_string();
         assert!(e.contains("edge_padding") && e.contains(&format!("{N} pixels")), "{e}");
     }
@@ -702,7 +710,7 @@ pub(crate) mod tests {
         let dirty = direct_d(&psf, &sky());
         let series = test_models().join("landweber");
         let alone = run_series(&series, BackendChoice::Tract, &psf, &dirty, true);
-        let config = OnnxConfig { series, backend: BackendChoice::Tract, threads: 1, networks: None, prefetch: true, graph_optimization: GraphOptimization::default(), realisation: None, validity: ValidityMode::Warn };
+        let config = test_config(&series);
         let mut step = OnnxStep::new(&config, N, 1, &ImagingSetup::default()).unwrap();
         let psf_n = vec![0.0; N * N];
         let convolution = PsfConvolution::new(N, &psf).unwrap();
@@ -728,7 +736,7 @@ pub(crate) mod tests {
     fn one_job_keeps_only_the_running_network_and_its_successor() {
         let series = test_models().join("landweber");
         for prefetch in [true, false] {
-            let config = OnnxConfig { series: series.clone(), backend: BackendChoice::Tract, threads: 1, networks: None, prefetch, graph_optimization: GraphOptimization::default(), realisation: None, validity: ValidityMode::Warn };
+            let config = OnnxConfig { prefetch, ..test_config(&series) };
             let mut step = OnnxStep::new(&config, N, 1, &ImagingSetup::default()).unwrap();
             for job in 0..2 {
                 for i in 1..=4 {
@@ -840,7 +848,7 @@ pub(crate) mod tests {
         }
         let text = std::fs::read_to_string(dir.join("landweber/manifest.yaml")).unwrap().replace("any_size: true", "any_size: false");
         std::fs::write(series.path().join("manifest.yaml"), text).unwrap();
-        let config = OnnxConfig { series: series.path().into(), backend: BackendChoice::Tract, threads: 1, networks: None, prefetch: true, graph_optimization: GraphOptimization::default(), realisation: None, validity: ValidityMode::Warn };
+        let config = test_config(series.path());
         let e = OnnxStep::new(&config, 128, 1, &ImagingSetup::default()).err().expect("size refused").to_string();
         assert!(e.contains("[64]") && e.contains("128 x 128"), "{e}");
         let e = OnnxStep::new(&OnnxConfig { networks: Some(9), ..config.clone() }, 64, 1, &ImagingSetup::default()).err().expect("too many").to_string();

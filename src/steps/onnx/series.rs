@@ -152,18 +152,21 @@ impl Orientation {
         }
     }
 
-    /// The row-major `n x n` image turned to this orientation.
-    pub fn apply<T: Copy>(self, image: &[T], n: usize) -> Vec<T> {
-        assert_eq!(image.len(), n * n, "an n x n image");
+    /// Each row-major `n x n` image of a stack (`images.len()` a multiple of `n * n`) turned
+    /// to this orientation; the identity hands the stack back as it is.
+    pub fn apply<T: Copy>(self, images: Vec<T>, n: usize) -> Vec<T> {
+        assert!(n > 0 && images.len().is_multiple_of(n * n), "a stack of n x n images");
         if self == Orientation::Identity {
-            return image.to_vec();
+            return images;
         }
-        let mut out = Vec::with_capacity(n * n);
-        for y in 0..n {
-            out.extend((0..n).map(|x| {
-                let (sy, sx) = self.source(y, x, n);
-                image[sy * n + sx]
-            }));
+        let mut out = Vec::with_capacity(images.len());
+        for image in images.chunks_exact(n * n) {
+            for y in 0..n {
+                out.extend((0..n).map(|x| {
+                    let (sy, sx) = self.source(y, x, n);
+                    image[sy * n + sx]
+                }));
+            }
         }
         out
     }
@@ -923,13 +926,15 @@ mod tests {
             (AntiTranspose, [8, 5, 2, 7, 4, 1, 6, 3, 0]),
         ];
         for (o, want) in expected {
-            assert_eq!(o.apply(&f, 3), want, "{o:?}");
+            assert_eq!(o.apply(f.clone(), 3), want, "{o:?}");
+            // A stack (a network's two input channels): each image turned on its own.
+            assert_eq!(o.apply([f.clone(), f.clone()].concat(), 3), [want, want].concat(), "{o:?} on a stack");
         }
         // Each is undone by its inverse, on an even size too; the eight are distinct.
         let g: Vec<u16> = (0..16).collect();
-        let turned: Vec<Vec<u16>> = expected.iter().map(|(o, _)| o.apply(&g, 4)).collect();
+        let turned: Vec<Vec<u16>> = expected.iter().map(|(o, _)| o.apply(g.clone(), 4)).collect();
         for ((o, _), t) in expected.iter().zip(&turned) {
-            assert_eq!(o.inverse().apply(t, 4), g, "{o:?}");
+            assert_eq!(o.inverse().apply(t.clone(), 4), g, "{o:?}");
         }
         for (i, a) in turned.iter().enumerate() {
             assert!(turned[i + 1..].iter().all(|b| b != a), "orientation {i} repeats another");
