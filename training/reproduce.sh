@@ -181,11 +181,16 @@ if [ -n "${STAGE2:-}" ]; then
         [ -z "$stage" ] || train "${WORK:-$D/work}-stage2" $stage --resume
     done
 fi
-if [ -n "${STAGE5:-}" ]; then
-    TRAIN=("${STAGE5_TRAIN[@]}")
-    VAL=("${STAGE5_VAL[@]}")
-    train "${WORK:-$D/work}-stage5" $STAGE5 --resume
-fi
+# train_stage K: the recipe's stage K (options STAGEK) on its own sets (STAGEK_TRAIN,
+# STAGEK_VAL), in its own work directory (its replay cache); nothing where the recipe has none.
+train_stage() {
+    local options="STAGE$1" train_sets="STAGE$1_TRAIN[@]" val_sets="STAGE$1_VAL[@]"
+    [ -n "${!options:-}" ] || return 0
+    TRAIN=("${!train_sets}")
+    VAL=("${!val_sets}")
+    train "${WORK:-$D/work}-stage$1" ${!options} --resume
+}
+train_stage 5
 # The 512 series run with the orientation cycle, chosen on their validation sets after their
 # networks were trained (training/README.md, "Orientation cycle"); from here on `train.py
 # --resume` validates new networks turned as the engine runs them.
@@ -198,9 +203,7 @@ esac
 # Stage 6 was trained after the cycle was written: its replay and validation run the series
 # turned, as the engine runs it.
 if [ -n "${STAGE6:-}" ]; then
-    TRAIN=("${STAGE6_TRAIN[@]}")
-    VAL=("${STAGE6_VAL[@]}")
-    train "${WORK:-$D/work}-stage6" $STAGE6 --resume
+    train_stage 6
     # Every network of stages 5-6 raised validation: the engine runs them all (its early stop
     # would end most skies at network 28).
     N=$(python3 -c 'import sys, yaml; print(len(yaml.safe_load(open(sys.argv[1]))["networks"]))' "$SERIES/manifest.yaml")
