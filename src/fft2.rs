@@ -22,12 +22,35 @@ impl Fft2 {
 
     /// Transform `data` (`ny * nx`, row-major) in place, using the current rayon pool.
     pub fn process(&self, data: &mut [Complex64]) {
+        self.process_from_rows(data, self.ny);
+    }
+
+    /// [`Fft2::process`] of data whose rows from `nonzero_rows` on are zero (a zero-padded
+    /// image): their row transforms, zero too, are skipped.
+    pub fn process_from_rows(&self, data: &mut [Complex64], nonzero_rows: usize) {
         assert_eq!(data.len(), self.nx * self.ny);
-        let (nx, ny) = (self.nx, self.ny);
-        data.par_chunks_mut(nx).for_each_init(
+        self.transform_rows(&mut data[..nonzero_rows.min(self.ny) * self.nx]);
+        self.transform_columns(data);
+    }
+
+    /// [`Fft2::process`] where only rows `first_row..` of the result are used: the row
+    /// transforms of the others are skipped (columns first; the 2D transform is separable), and
+    /// those rows hold the columns' transforms only.
+    pub fn process_to_rows(&self, data: &mut [Complex64], first_row: usize) {
+        assert_eq!(data.len(), self.nx * self.ny);
+        self.transform_columns(data);
+        self.transform_rows(&mut data[first_row.min(self.ny) * self.nx..]);
+    }
+
+    fn transform_rows(&self, rows: &mut [Complex64]) {
+        rows.par_chunks_mut(self.nx).for_each_init(
             || vec![Complex64::default(); self.rows.get_inplace_scratch_len()],
             |scratch, row| self.rows.process_with_scratch(row, scratch),
         );
+    }
+
+    fn transform_columns(&self, data: &mut [Complex64]) {
+        let (nx, ny) = (self.nx, self.ny);
         let mut transposed = vec![Complex64::default(); nx * ny];
         transpose(data, &mut transposed, ny, nx);
         transposed.par_chunks_mut(ny).for_each_init(
@@ -77,6 +100,26 @@ mod tests {
                     }
                 }
                 assert!((s - out[ky * nx + kx]).norm() < 1e-12);
+            }
+        }
+    }
+
+    #[test]
+    fn the_pruned_transforms_are_the_full_one_where_they_say() {
+        let (ny, nx) = (12, 10);
+        let mut data: Vec<Complex64> = (0..nx * ny).map(|k| Complex64::new((k as f64 * 0.37).sin(), (k as f64 * 0.11).cos())).collect();
+        data[5 * nx..].iter_mut().for_each(|c| *c = Complex64::default());
+        let fft = Fft2::new(ny, nx, FftDirection::Inverse);
+        let mut full = data.clone();
+        fft.process(&mut full);
+        let mut from_rows = data.clone();
+        fft.process_from_rows(&mut from_rows, 5);
+        let mut to_rows = data.clone();
+        fft.process_to_rows(&mut to_rows, 7);
+        for k in 0..nx * ny {
+            assert!((full[k] - from_rows[k]).norm() < 1e-12);
+            if k >= 7 * nx {
+                assert!((full[k] - to_rows[k]).norm() < 1e-12);
             }
         }
     }

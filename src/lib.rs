@@ -32,6 +32,7 @@ pub mod simulate;
 mod stages;
 pub mod steps;
 pub mod vis;
+pub mod w_taylor;
 pub mod w_toeplitz;
 pub mod weighting;
 

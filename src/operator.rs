@@ -571,7 +571,23 @@ pub fn doubled_psf(
     nufft: NufftParams,
     threads: usize,
 ) -> Result<Vec<f64>> {
-    let value = |_, k: usize| Complex64::new(weight[k] * kappa, 0.0);
+    doubled_psf_of(geometry, u, v, weight, |_| Complex64::new(1.0, 0.0), kappa, nufft, threads)
+}
+
+/// [`doubled_psf`] of the samples' weights times `factor(k)` (complex: the real part of the
+/// transform is kept, as for the PSF): the kernels of [`crate::w_taylor`].
+#[allow(clippy::too_many_arguments)]
+pub fn doubled_psf_of(
+    geometry: ImageGeometry,
+    u: &[f64],
+    v: &[f64],
+    weight: &[f64],
+    factor: impl Fn(usize) -> Complex64 + Sync,
+    kappa: f64,
+    nufft: NufftParams,
+    threads: usize,
+) -> Result<Vec<f64>> {
+    let value = |_, k: usize| factor(k) * (weight[k] * kappa);
     let [psf]: [Vec<f64>; 1] = grid_in_chunks(geometry.doubled(), u, v, weight, 1, value, nufft, threads, chunk_points(u.len()))?
         .try_into()
         .expect("one transform");
@@ -717,9 +733,10 @@ impl PsfConvolution {
                 padded[iy * m + ix] = Complex64::new(x[iy * n + ix], 0.0);
             }
         }
-        self.forward.process(&mut padded);
+        // The image fills the first N rows; the result is read from the last N.
+        self.forward.process_from_rows(&mut padded, n);
         padded.par_iter_mut().zip(self.kernel_hat.par_iter()).for_each(|(a, k)| *a *= k);
-        self.inverse.process(&mut padded);
+        self.inverse.process_to_rows(&mut padded, n);
         // Linear convolution with a kernel centred at (N, N): output pixel p sits at p + N.
         let mut out = vec![0.0; n * n];
         for iy in 0..n {

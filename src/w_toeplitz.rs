@@ -492,7 +492,7 @@ impl WToeplitzBuilder {
 }
 
 /// `t = n - 1` of each pixel of `geometry`'s image.
-fn pixel_t(geometry: ImageGeometry) -> Vec<f64> {
+pub(crate) fn pixel_t(geometry: ImageGeometry) -> Vec<f64> {
     let n = geometry.size;
     let half = n as f64 / 2.0;
     (0..n * n)
@@ -571,9 +571,9 @@ impl WToeplitz {
                         }
                     }
                 });
-                self.forward.process(&mut z);
+                self.forward.process_from_rows(&mut z, n);
                 z.par_iter_mut().zip(&plane.kernel_hat).for_each(|(c, k)| *c *= k);
-                self.inverse.process(&mut z);
+                self.inverse.process_to_rows(&mut z, n);
                 // The linear convolution with a kernel centred at (N, N): pixel p is at p + N.
                 out.par_chunks_mut(n).enumerate().for_each(|(iy, row)| {
                     let src = &z[(iy + n) * m + n..][..n];
@@ -595,6 +595,39 @@ impl WToeplitz {
     }
 }
 
+/// A field of `degrees` over `n` pixels with samples in the uv disc of half the Nyquist radius,
+/// `|w|` up to `w_fraction` of the disc's radius in both signs and weights in 0.5..1.5
+/// (`u, v, w, weight`): the w-term's forms are tested on it.
+#[cfg(test)]
+pub(crate) fn test_field(n: usize, degrees: f64, w_fraction: f64, samples: usize, seed: u64) -> (ImageGeometry, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>) {
+    let geometry = ImageGeometry::new(n, (degrees / n as f64).to_radians()).unwrap();
+    let radius = 0.25 / geometry.pixel_rad;
+    let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+    let mut next = || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let (mut u, mut v, mut w, mut weight) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for _ in 0..samples {
+        let (r, a) = (radius * next().sqrt(), 2.0 * PI * next());
+        u.push(r * a.cos());
+        v.push(r * a.sin());
+        w.push(w_fraction * radius * (2.0 * next() - 1.0));
+        weight.push(0.5 + next());
+    }
+    (geometry, u, v, w, weight)
+}
+
+/// `||a - b|| / ||b||`.
+#[cfg(test)]
+pub(crate) fn relative(a: &[f64], b: &[f64]) -> f64 {
+    let d: f64 = a.iter().zip(b).map(|(a, b)| (a - b) * (a - b)).sum();
+    let r: f64 = b.iter().map(|b| b * b).sum();
+    (d / r).sqrt()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -604,30 +637,7 @@ mod tests {
     /// A wide field (30 degrees: the w-term turns phases by radians) with samples in the uv
     /// disc of half the Nyquist radius and |w| up to the disc's radius, in both signs.
     fn wide_field(n: usize, samples: usize, seed: u64) -> (ImageGeometry, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>) {
-        let geometry = ImageGeometry::new(n, (30.0f64 / n as f64).to_radians()).unwrap();
-        let radius = 0.25 / geometry.pixel_rad;
-        let mut state = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-        let mut next = || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
-        let (mut u, mut v, mut w, mut weight) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        for _ in 0..samples {
-            let (r, a) = (radius * next().sqrt(), 2.0 * PI * next());
-            u.push(r * a.cos());
-            v.push(r * a.sin());
-            w.push(radius * (2.0 * next() - 1.0));
-            weight.push(0.5 + next());
-        }
-        (geometry, u, v, w, weight)
-    }
-
-    fn relative(a: &[f64], b: &[f64]) -> f64 {
-        let d: f64 = a.iter().zip(b).map(|(a, b)| (a - b) * (a - b)).sum();
-        let r: f64 = b.iter().map(|b| b * b).sum();
-        (d / r).sqrt()
+        test_field(n, 30.0, 1.0, samples, seed)
     }
 
     #[test]

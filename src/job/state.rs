@@ -8,6 +8,7 @@ use crate::metrics;
 use crate::nufft::NufftParams;
 use crate::operator::{ImageGeometry, PsfConvolution};
 use crate::vis::{DataOperator, ObservationMeta, VisSource, Visibilities};
+use crate::w_taylor::WTaylor;
 use crate::w_toeplitz::WToeplitz;
 use crate::weighting::WeightRule;
 use crate::{Error, Result};
@@ -34,6 +35,9 @@ pub struct Imaging {
     /// `D` with the w-term as one convolution per w-plane, where it was built in the gridding
     /// pass: the residual update's, in place of the operator.
     pub w_toeplitz: Option<Arc<WToeplitz>>,
+    /// `D` with the w-term as a Taylor series in `w` of the PSF convolution, where the gridder
+    /// found one that agrees with the operator (kept beside it): the residual update's.
+    pub w_taylor: Option<Arc<WTaylor>>,
     /// The NUFFT the images were made with and whether it included the w-term: what a
     /// prediction from the model (`MODEL_DATA`) must use.
     pub nufft: NufftParams,

@@ -4,7 +4,8 @@
 
 use super::params::GridderParams;
 use crate::nufft::NufftParams;
-use crate::operator::{doubled_psf, normalise_by_psf_peak, ImageGeometry, MeasurementOperator, PsfConvolution, WTermMode};
+use crate::operator::{doubled_psf, doubled_psf_of, normalise_by_psf_peak, ImageGeometry, MeasurementOperator, PsfConvolution, WTermMode};
+use crate::w_taylor::{self, WTaylor};
 use crate::w_toeplitz::{WToeplitz, WToeplitzBuilder, WToeplitzPlan};
 use crate::weighting::WeightRule;
 use crate::job::{Emit, Imaging, Job};
@@ -77,6 +78,47 @@ impl GridderStage {
         WToeplitzBuilder::new(geometry, plan, max_uv, self.nufft, self.threads)
             .map_err(|e| log::info!("job {id}: the residual update runs through the operator: {e}"))
             .ok()
+    }
+
+    /// The residual update's Taylor series in `w` of the PSF convolution (`crate::w_taylor`)
+    /// for samples held with their operator: of the lowest order whose `D` of the dirty image
+    /// agrees with the operator's to [`TAYLOR_TOLERANCE`] times the NUFFT's accuracy, with that
+    /// deviation. `None` where no order up to [`w_taylor::MAX_ORDER`] does within the gridder's
+    /// hold_mb (the operator then runs at each update, and the log says why).
+    fn w_taylor(&self, id: &str, geometry: ImageGeometry, held: HeldSamples<'_>, psf_2n: &[f64], dirty: &[f64], operator: &MeasurementOperator) -> Result<Option<(WTaylor, f64)>> {
+        let tolerance = TAYLOR_TOLERANCE * self.nufft.epsilon;
+        let reference = operator.apply_normal(dirty);
+        // Each order keeps one more complex 2N x 2N kernel, and applying it takes two more
+        // such arrays per two orders.
+        let kernel_bytes = (4 * geometry.pixels() * std::mem::size_of::<num_complex::Complex64>()) as f64;
+        let mut kernels = vec![psf_2n.to_vec()];
+        let mut closest = None;
+        for order in 1..=w_taylor::MAX_ORDER {
+            let bytes = kernel_bytes * (order + 1 + 2 * (order + 1).div_ceil(2)) as f64;
+            if bytes > self.hold_bytes {
+                break;
+            }
+            let HeldSamples { u, v, w, weight } = held;
+            kernels.push(doubled_psf_of(geometry, u, v, weight, |k| w_taylor::kernel_factor(w[k], order), operator.kappa(), self.nufft, self.threads)?);
+            let form = WTaylor::new(geometry, &kernels, self.threads)?;
+            let deviation = form.deviation(dirty, &reference);
+            log::debug!("job {id}: a Taylor series in w of order {order} differs from the operator by {deviation:.2e} on the dirty image");
+            if deviation <= tolerance {
+                log::info!(
+                    "job {id}: the residual update convolves with the kernels of a Taylor series in w of order {order} ({} kept): on the dirty image it differs from the operator by {deviation:.1e}, within {tolerance:.0e} (the written residual is the operator's)",
+                    crate::limits::format_bytes(form.bytes() as f64)
+                );
+                return Ok(Some((form, deviation)));
+            }
+            closest = Some((order, deviation));
+        }
+        match closest {
+            Some((order, deviation)) => log::info!(
+                "job {id}: the residual update runs through the operator: no Taylor series in w up to order {order} comes within {tolerance:.0e} of it on the dirty image ({deviation:.1e}: the w-term is too large for it here)"
+            ),
+            None => log::info!("job {id}: the residual update runs through the operator: the kernels of a Taylor series in w would take more than the gridder's hold_mb {}", self.hold_bytes / 1e6),
+        }
+        Ok(None)
     }
 
     /// One pass over `source` for the dirty image and the kernels of `D`'s w-aware Toeplitz
@@ -159,6 +201,7 @@ impl Stage<Job> for GridderStage {
             None => None,
         };
         let mut dirty_planes = None;
+        let mut w_taylor = None;
         let (dirty, psf, psf_2n, operator, kept, w_toeplitz) = if let Some(images) = toeplitz {
             drop(source);
             dirty_planes = images.planes;
@@ -208,11 +251,15 @@ impl Stage<Job> for GridderStage {
                 self.threads,
             )?;
             let (dirty, psf) = operator.dirty_image_and_psf(&vis.vis);
+            let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, operator.kappa(), self.nufft, self.threads)?;
+            if w_term && !self.keep_operator {
+                let held = HeldSamples { u: &vis.u, v: &vis.v, w: &vis.w, weight: &weight };
+                w_taylor = self.w_taylor(&job.id, geometry, held, &psf_2n, &dirty, &operator)?;
+            }
             if !self.keep_operator {
                 vis.vis = Vec::new();
                 vis.w = Vec::new();
             }
-            let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, operator.kappa(), self.nufft, self.threads)?;
             let kept = self.keep_operator.then_some(vis);
             (dirty, psf, psf_2n, Some(Arc::new(DataOperator::Held(operator))), kept, None)
         } else {
@@ -241,7 +288,9 @@ impl Stage<Job> for GridderStage {
         job.settings.insert(
             "w_term".into(),
             serde_json::json!({"mode": self.w_term.name(), "corrected": w_term, "planes": planes, "max_abs_w": max_abs_w, "max_phase_rad": max_phase,
-                "toeplitz_planes": w_toeplitz.as_ref().map(|op| op.planes())}),
+                "toeplitz_planes": w_toeplitz.as_ref().map(|op| op.planes()),
+                "taylor_order": w_taylor.as_ref().map(|(form, _): &(WTaylor, f64)| form.order()),
+                "taylor_deviation": w_taylor.as_ref().map(|(_, deviation)| *deviation)}),
         );
         crate::sanity::check_image(&dirty, geometry.size, "dirty image", "the visibilities or weights hold values too large to image (check the data column and the weights)")?;
         let psf_convolution = PsfConvolution::new(geometry.size, &psf_2n)?;
@@ -268,6 +317,7 @@ impl Stage<Job> for GridderStage {
             operator,
             toeplitz_inexact,
             w_toeplitz,
+            w_taylor: w_taylor.map(|(form, _)| Arc::new(form)),
             nufft: self.nufft,
             w_term,
             model: vec![0.0; n],
@@ -281,4 +331,19 @@ impl Stage<Job> for GridderStage {
         }
         emit(Port::Next, job)
     }
+}
+
+/// How far, in units of the NUFFT's accuracy, the residual update's Taylor series in `w` may
+/// be from the operator on the dirty image. Its error reaches only the networks' input (the
+/// written residual is the operator's): at the default accuracy, `1e-5` of `D x`, about a
+/// hundredth of the residual a series leaves at its noise floor.
+const TAYLOR_TOLERANCE: f64 = 10.0;
+
+/// The coordinates (wavelengths) and total weights of samples held in memory.
+#[derive(Clone, Copy)]
+struct HeldSamples<'a> {
+    u: &'a [f64],
+    v: &'a [f64],
+    w: &'a [f64],
+    weight: &'a [f64],
 }
