@@ -28,17 +28,28 @@ impl Fft2 {
     /// [`Fft2::process`] of data whose rows from `nonzero_rows` on are zero (a zero-padded
     /// image): their row transforms, zero too, are skipped.
     pub fn process_from_rows(&self, data: &mut [Complex64], nonzero_rows: usize) {
+        self.process_from_rows_with(data, nonzero_rows, &mut vec![Complex64::default(); data.len()]);
+    }
+
+    /// [`Fft2::process_from_rows`] with `scratch` (as long as `data`) for the transposes: a
+    /// caller transforming arrays of one size again and again keeps one.
+    pub fn process_from_rows_with(&self, data: &mut [Complex64], nonzero_rows: usize, scratch: &mut [Complex64]) {
         assert_eq!(data.len(), self.nx * self.ny);
         self.transform_rows(&mut data[..nonzero_rows.min(self.ny) * self.nx]);
-        self.transform_columns(data);
+        self.transform_columns(data, scratch);
     }
 
     /// [`Fft2::process`] where only rows `first_row..` of the result are used: the row
     /// transforms of the others are skipped (columns first; the 2D transform is separable), and
     /// those rows hold the columns' transforms only.
     pub fn process_to_rows(&self, data: &mut [Complex64], first_row: usize) {
+        self.process_to_rows_with(data, first_row, &mut vec![Complex64::default(); data.len()]);
+    }
+
+    /// [`Fft2::process_to_rows`] with `scratch` (as long as `data`) for the transposes.
+    pub fn process_to_rows_with(&self, data: &mut [Complex64], first_row: usize, scratch: &mut [Complex64]) {
         assert_eq!(data.len(), self.nx * self.ny);
-        self.transform_columns(data);
+        self.transform_columns(data, scratch);
         self.transform_rows(&mut data[first_row.min(self.ny) * self.nx..]);
     }
 
@@ -49,15 +60,15 @@ impl Fft2 {
         );
     }
 
-    fn transform_columns(&self, data: &mut [Complex64]) {
+    fn transform_columns(&self, data: &mut [Complex64], transposed: &mut [Complex64]) {
         let (nx, ny) = (self.nx, self.ny);
-        let mut transposed = vec![Complex64::default(); nx * ny];
-        transpose(data, &mut transposed, ny, nx);
+        assert_eq!(transposed.len(), nx * ny, "scratch size");
+        transpose(data, transposed, ny, nx);
         transposed.par_chunks_mut(ny).for_each_init(
             || vec![Complex64::default(); self.cols.get_inplace_scratch_len()],
             |scratch, col| self.cols.process_with_scratch(col, scratch),
         );
-        transpose(&transposed, data, nx, ny);
+        transpose(transposed, data, nx, ny);
     }
 }
 

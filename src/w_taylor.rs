@@ -30,7 +30,7 @@ use num_complex::Complex64;
 use rayon::prelude::*;
 use rustfft::FftDirection;
 use std::f64::consts::PI;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 /// Highest order tried: its four terms fill two complex FFTs each way.
 pub const MAX_ORDER: usize = 3;
@@ -45,6 +45,17 @@ pub struct WTaylor {
     forward: Fft2,
     inverse: Fft2,
     pool: Arc<rayon::ThreadPool>,
+    /// The transforms' arrays, kept from one update to the next: made afresh, their pages were
+    /// mapped and zeroed at every update.
+    buffers: Mutex<Buffers>,
+}
+
+/// Arrays of `(2N)^2` an application works in.
+#[derive(Default)]
+struct Buffers {
+    spectra: Vec<Vec<Complex64>>,
+    sums: Vec<Vec<Complex64>>,
+    scratch: Vec<Complex64>,
 }
 
 /// The value each sample adds to `R_m` (`m >= 1`), beside its weight: `(-2 pi i w)^m`, real
@@ -78,7 +89,7 @@ impl WTaylor {
                 })
                 .collect()
         });
-        Ok(WTaylor { size: n, kernel_hats, t: pixel_t(geometry), forward, inverse, pool })
+        Ok(WTaylor { size: n, kernel_hats, t: pixel_t(geometry), forward, inverse, pool, buffers: Mutex::new(Buffers::default()) })
     }
 
     pub fn order(&self) -> usize {
@@ -98,23 +109,32 @@ impl WTaylor {
         let pairs = terms.div_ceil(2);
         let t = &self.t;
         let power = |p: usize, e: usize| t[p].powi(e as i32);
+        // A poisoned lock only means an earlier application panicked: its arrays are rewritten here.
+        let mut buffers = self.buffers.lock().unwrap_or_else(|e| e.into_inner());
+        let Buffers { spectra, sums, scratch } = &mut *buffers;
+        for arrays in [&mut *spectra, &mut *sums] {
+            arrays.resize_with(pairs, || vec![Complex64::default(); m * m]);
+        }
+        scratch.resize(m * m, Complex64::default());
         self.pool.install(|| {
             // z_j = pad(t^{2j} x) + i pad(t^{2j+1} x), transformed.
-            let spectra: Vec<Vec<Complex64>> = (0..pairs)
-                .map(|j| {
-                    let (re, im) = (2 * j, 2 * j + 1);
-                    let mut z = vec![Complex64::default(); m * m];
-                    z.par_chunks_mut(m).take(n).enumerate().for_each(|(iy, row)| {
-                        for ix in 0..n {
-                            let p = iy * n + ix;
-                            let b = if im < terms { x[p] * power(p, im) } else { 0.0 };
-                            row[ix] = Complex64::new(x[p] * power(p, re), b);
-                        }
-                    });
-                    self.forward.process_from_rows(&mut z, n);
-                    z
-                })
-                .collect();
+            for (j, z) in spectra.iter_mut().enumerate() {
+                let (re, im) = (2 * j, 2 * j + 1);
+                z.par_chunks_mut(m).enumerate().for_each(|(iy, row)| {
+                    if iy >= n {
+                        row.fill(Complex64::default());
+                        return;
+                    }
+                    row[n..].fill(Complex64::default());
+                    for ix in 0..n {
+                        let p = iy * n + ix;
+                        let b = if im < terms { x[p] * power(p, im) } else { 0.0 };
+                        row[ix] = Complex64::new(x[p] * power(p, re), b);
+                    }
+                });
+                self.forward.process_from_rows_with(z, n, scratch);
+            }
+            let spectra = &*spectra;
             // Per frequency: the spectra Y_b of the real images t^b x (from z at the frequency
             // and at its mirror), the sums S_a = sum_b (-1)^b / (a! b!) R_{a+b} Y_b, packed two
             // to an array for the inverse transforms (each S_a is the spectrum of a real image).
@@ -122,7 +142,6 @@ impl WTaylor {
                 let sign = if b % 2 == 0 { 1.0 } else { -1.0 };
                 sign / (factorial(a) * factorial(b))
             };
-            let mut sums: Vec<Vec<Complex64>> = (0..pairs).map(|_| vec![Complex64::default(); m * m]).collect();
             let mut rows: Vec<Vec<&mut [Complex64]>> = (0..m).map(|_| Vec::with_capacity(pairs)).collect();
             for sum in sums.iter_mut() {
                 for (row, chunk) in rows.iter_mut().zip(sum.chunks_mut(m)) {
@@ -156,8 +175,8 @@ impl WTaylor {
             });
             drop(rows);
             let mut result = vec![0.0; n * n];
-            for (pair, mut s) in sums.into_iter().enumerate() {
-                self.inverse.process_to_rows(&mut s, n);
+            for (pair, s) in sums.iter_mut().enumerate() {
+                self.inverse.process_to_rows_with(s, n, scratch);
                 let (re, im) = (2 * pair, 2 * pair + 1);
                 // The linear convolution with kernels centred at (N, N): pixel p is at p + N.
                 result.par_chunks_mut(n).enumerate().for_each(|(iy, row)| {
