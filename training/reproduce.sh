@@ -111,7 +111,7 @@ vla-r2d2-512|meerkat-r2d2-512)
         fi
         STAGE6_TRAIN=("$D/train-field-filling-sharp" "$D/train-field-filling-resolved")
         STAGE6_VAL=("${STAGE5_VAL[@]}" "$D/val-field-filling-sharp")
-        STAGE6="$CROPS --epochs 8 --limit-train 200 --max-networks ${STAGE6_NETWORKS:-33}"
+        STAGE6="$CROPS --epochs 8 --limit-train 200 --max-networks ${STAGE6_NETWORKS:-37}"
     fi
     ;;
 vla-r2d2-512-broad)
