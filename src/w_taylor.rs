@@ -35,6 +35,12 @@ use std::sync::{Arc, Mutex};
 /// Highest order tried: its four terms fill two complex FFTs each way.
 pub const MAX_ORDER: usize = 3;
 
+/// How far, in units of the NUFFT's accuracy, the series may be from the operator on the dirty
+/// image. Its error reaches only the networks' input (the residual written at the end is the
+/// operator's): at the default accuracy, `1e-5` of `D x`, about a hundredth of the residual a
+/// series leaves at its noise floor. Ten times more on the final model is worth a warning.
+pub const TOLERANCE: f64 = 10.0;
+
 /// `D` as a Taylor series in `w` of the PSF convolution (see the module's documentation).
 pub struct WTaylor {
     size: usize,

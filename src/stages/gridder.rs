@@ -82,11 +82,11 @@ impl GridderStage {
 
     /// The residual update's Taylor series in `w` of the PSF convolution (`crate::w_taylor`)
     /// for samples held with their operator: of the lowest order whose `D` of the dirty image
-    /// agrees with the operator's to [`TAYLOR_TOLERANCE`] times the NUFFT's accuracy, with that
+    /// agrees with the operator's to [`w_taylor::TOLERANCE`] times the NUFFT's accuracy, with that
     /// deviation. `None` where no order up to [`w_taylor::MAX_ORDER`] does within the gridder's
     /// hold_mb (the operator then runs at each update, and the log says why).
     fn w_taylor(&self, id: &str, geometry: ImageGeometry, held: HeldSamples<'_>, psf_2n: &[f64], dirty: &[f64], operator: &MeasurementOperator) -> Result<Option<(WTaylor, f64)>> {
-        let tolerance = TAYLOR_TOLERANCE * self.nufft.epsilon;
+        let tolerance = w_taylor::TOLERANCE * self.nufft.epsilon;
         let reference = operator.apply_normal(dirty);
         // Each order keeps one more complex 2N x 2N kernel, and applying it takes two more
         // such arrays per two orders.
@@ -332,12 +332,6 @@ impl Stage<Job> for GridderStage {
         emit(Port::Next, job)
     }
 }
-
-/// How far, in units of the NUFFT's accuracy, the residual update's Taylor series in `w` may
-/// be from the operator on the dirty image. Its error reaches only the networks' input (the
-/// written residual is the operator's): at the default accuracy, `1e-5` of `D x`, about a
-/// hundredth of the residual a series leaves at its noise floor.
-const TAYLOR_TOLERANCE: f64 = 10.0;
 
 /// The coordinates (wavelengths) and total weights of samples held in memory.
 #[derive(Clone, Copy)]

@@ -183,6 +183,7 @@ impl Stage<Job> for ResidualStage {
             None => {}
         }
         let finished = job.series_finished || reason.is_some();
+        let mut taylor_off = None;
         if finished {
             if let Some(im) = job.imaging.as_mut() {
                 im.best = None;
@@ -194,13 +195,18 @@ impl Stage<Job> for ResidualStage {
                     let residual: Vec<f64> = im.dirty.iter().zip(&exact).map(|(d, x)| d - x).collect();
                     let change: f64 = residual.iter().zip(&im.residual).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
                     let norm: f64 = exact.iter().map(|x| x * x).sum::<f64>().sqrt();
-                    log::info!(
-                        "job {id}: the final residual through the operator: the Taylor series in w was {:.1e} of D x from it on the final model",
-                        if norm > 0.0 { change / norm } else { 0.0 }
-                    );
+                    let deviation = if norm > 0.0 { change / norm } else { 0.0 };
+                    log::info!("job {id}: the final residual through the operator: the Taylor series in w was {deviation:.1e} of D x from it on the final model");
+                    let limit = 10.0 * crate::w_taylor::TOLERANCE * im.nufft.epsilon;
+                    taylor_off = (deviation > limit).then_some((deviation, limit));
                     im.residual = residual;
                 }
             }
+        }
+        if let Some((deviation, limit)) = taylor_off {
+            job.warn(format!(
+                "the residual update's Taylor series in w was {deviation:.1e} of D x from the operator on the final model (above {limit:.0e}): the networks saw residuals that far off (the written residual is the operator's); the residual stage's `method: nufft` updates through the operator at every iteration"
+            ));
         }
         emit(if finished { Port::Done } else { Port::Next }, job)
     }
