@@ -75,27 +75,37 @@ impl WTaylor {
     /// centre at `(N, N)`, scaled alike: `R_0` the 2N PSF as the PSF convolution takes it).
     pub fn new(geometry: ImageGeometry, kernels: &[Vec<f64>], threads: usize) -> Result<WTaylor> {
         let (n, m) = (geometry.size, 2 * geometry.size);
-        if kernels.is_empty() || kernels.len() > MAX_ORDER + 1 {
+        let Some((first, next)) = kernels.split_first().filter(|_| kernels.len() <= MAX_ORDER + 1) else {
             return Err(Error::parameter("w_taylor", format!("expected 1 to {} kernels, got {}", MAX_ORDER + 1, kernels.len())));
-        }
-        if let Some(k) = kernels.iter().find(|k| k.len() != m * m) {
-            return Err(Error::parameter("w_taylor", format!("expected {m} x {m} kernels for a {n} x {n} image, got {} pixels", k.len())));
-        }
+        };
         let pool = crate::parallel::shared_pool(threads)?;
         let forward = Fft2::new(m, m, FftDirection::Forward);
         let inverse = Fft2::new(m, m, FftDirection::Inverse);
+        let mut form = WTaylor { size: n, kernel_hats: Vec::new(), t: pixel_t(geometry), forward, inverse, pool, buffers: Mutex::new(Buffers::default()) };
+        for kernel in std::iter::once(first).chain(next) {
+            form.push_kernel(kernel)?;
+        }
+        Ok(form)
+    }
+
+    /// Raises the order by one with the next kernel `R_{order + 1}` (as [`WTaylor::new`] takes
+    /// them): the kernels it has are kept as transformed.
+    pub fn push_kernel(&mut self, kernel: &[f64]) -> Result<()> {
+        let (n, m) = (self.size, 2 * self.size);
+        if self.kernel_hats.len() > MAX_ORDER {
+            return Err(Error::parameter("w_taylor", format!("expected 1 to {} kernels, got {}", MAX_ORDER + 1, self.kernel_hats.len() + 1)));
+        }
+        if kernel.len() != m * m {
+            return Err(Error::parameter("w_taylor", format!("expected {m} x {m} kernels for a {n} x {n} image, got {} pixels", kernel.len())));
+        }
         let scale = 1.0 / (m * m) as f64;
-        let kernel_hats = pool.install(|| {
-            kernels
-                .iter()
-                .map(|kernel| {
-                    let mut hat: Vec<Complex64> = kernel.par_iter().map(|&k| Complex64::new(k * scale, 0.0)).collect();
-                    forward.process(&mut hat);
-                    hat
-                })
-                .collect()
+        let hat = self.pool.install(|| {
+            let mut hat: Vec<Complex64> = kernel.par_iter().map(|&k| Complex64::new(k * scale, 0.0)).collect();
+            self.forward.process(&mut hat);
+            hat
         });
-        Ok(WTaylor { size: n, kernel_hats, t: pixel_t(geometry), forward, inverse, pool, buffers: Mutex::new(Buffers::default()) })
+        self.kernel_hats.push(hat);
+        Ok(())
     }
 
     pub fn order(&self) -> usize {
@@ -200,19 +210,24 @@ impl WTaylor {
         })
     }
 
-    /// `|| apply(x) - reference || / || reference ||`: the form against `D x` computed
+    /// [`relative_deviation`] of `apply(x)` from `reference`: the form against `D x` computed
     /// otherwise (the operator's), on an image `x` of the sky it will image.
     pub fn deviation(&self, x: &[f64], reference: &[f64]) -> f64 {
-        let ours = self.apply(x);
-        let d: f64 = ours.iter().zip(reference).map(|(a, b)| (a - b) * (a - b)).sum();
-        let r: f64 = reference.iter().map(|b| b * b).sum();
-        if r > 0.0 {
-            (d / r).sqrt()
-        } else if d > 0.0 {
-            f64::INFINITY
-        } else {
-            0.0
-        }
+        relative_deviation(&self.apply(x), reference)
+    }
+}
+
+/// `|| ours - reference || / || reference ||` (0 where both are 0, infinite where only the
+/// reference is).
+pub fn relative_deviation(ours: &[f64], reference: &[f64]) -> f64 {
+    let d: f64 = ours.iter().zip(reference).map(|(a, b)| (a - b) * (a - b)).sum();
+    let r: f64 = reference.iter().map(|b| b * b).sum();
+    if r > 0.0 {
+        (d / r).sqrt()
+    } else if d > 0.0 {
+        f64::INFINITY
+    } else {
+        0.0
     }
 }
 

@@ -87,27 +87,32 @@ impl GridderStage {
     /// hold_mb (the operator then runs at each update, and the log says why).
     fn w_taylor(&self, id: &str, geometry: ImageGeometry, held: HeldSamples<'_>, psf_2n: &[f64], dirty: &[f64], operator: &MeasurementOperator) -> Result<Option<(WTaylor, f64)>> {
         let tolerance = w_taylor::TOLERANCE * self.nufft.epsilon;
-        let reference = operator.apply_normal(dirty);
         // Each order keeps one more complex 2N x 2N kernel, and applying it takes two more
         // such arrays per two orders.
         let kernel_bytes = (4 * geometry.pixels() * std::mem::size_of::<num_complex::Complex64>()) as f64;
-        let mut kernels = vec![psf_2n.to_vec()];
+        // The form so far and the operator's D of the dirty image, made at the first order
+        // that fits.
+        let mut made: Option<(WTaylor, Vec<f64>)> = None;
         let mut closest = None;
         for order in 1..=w_taylor::MAX_ORDER {
             let bytes = kernel_bytes * (order + 1 + 2 * (order + 1).div_ceil(2)) as f64;
             if bytes > self.hold_bytes {
                 break;
             }
+            let (form, reference) = match &mut made {
+                Some(made) => made,
+                None => made.insert((WTaylor::new(geometry, &[psf_2n.to_vec()], self.threads)?, operator.apply_normal(dirty))),
+            };
             let HeldSamples { u, v, w, weight } = held;
-            kernels.push(doubled_psf_of(geometry, u, v, weight, |k| w_taylor::kernel_factor(w[k], order), operator.kappa(), self.nufft, self.threads)?);
-            let form = WTaylor::new(geometry, &kernels, self.threads)?;
-            let deviation = form.deviation(dirty, &reference);
+            form.push_kernel(&doubled_psf_of(geometry, u, v, weight, |k| w_taylor::kernel_factor(w[k], order), operator.kappa(), self.nufft, self.threads)?)?;
+            let deviation = form.deviation(dirty, reference);
             log::debug!("job {id}: a Taylor series in w of order {order} differs from the operator by {deviation:.2e} on the dirty image");
             if deviation <= tolerance {
                 log::info!(
                     "job {id}: the residual update convolves with the kernels of a Taylor series in w of order {order} ({} kept): on the dirty image it differs from the operator by {deviation:.1e}, within {tolerance:.0e} (the written residual is the operator's)",
                     crate::limits::format_bytes(form.bytes() as f64)
                 );
+                let (form, _) = made.expect("made above");
                 return Ok(Some((form, deviation)));
             }
             closest = Some((order, deviation));

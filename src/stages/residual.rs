@@ -128,19 +128,19 @@ impl Stage<Job> for ResidualStage {
         let iteration = job.iteration;
         let id = job.id.clone();
         let im = job.imaging_mut("residual")?;
-        let d_x = match (method, &im.w_toeplitz, &im.toeplitz_inexact, &im.operator) {
-            (ResidualMethod::Toeplitz, Some(w_toeplitz), _, _) => w_toeplitz.apply(&im.model),
-            (ResidualMethod::Toeplitz, None, Some(_), _) if im.w_taylor.is_some() => im.w_taylor.as_ref().expect("matched").apply(&im.model),
-            (ResidualMethod::Toeplitz, None, None, _) => im.psf_convolution.apply(&im.model),
-            (ResidualMethod::Toeplitz, None, Some(why), Some(op)) => {
+        let d_x = match (method, &im.w_toeplitz, &im.w_taylor, &im.toeplitz_inexact, &im.operator) {
+            (ResidualMethod::Toeplitz, Some(w_toeplitz), _, _, _) => w_toeplitz.apply(&im.model),
+            (ResidualMethod::Toeplitz, None, Some(w_taylor), _, _) => w_taylor.apply(&im.model),
+            (ResidualMethod::Toeplitz, None, None, None, _) => im.psf_convolution.apply(&im.model),
+            (ResidualMethod::Toeplitz, None, None, Some(why), Some(op)) => {
                 if iteration == 1 {
                     log::info!("job {id}: the residual update runs through the operator instead of the PSF convolution: {why}");
                 }
                 op.apply_normal(&im.model)?
             }
-            (_, _, _, Some(op)) => op.apply_normal(&im.model)?,
-            (ResidualMethod::Nufft, _, _, None) => return Err(Error::parameter("method", "nufft needs the visibilities, which the gridder released")),
-            (ResidualMethod::Toeplitz, None, Some(why), None) => {
+            (_, _, _, _, Some(op)) => op.apply_normal(&im.model)?,
+            (ResidualMethod::Nufft, _, _, _, None) => return Err(Error::parameter("method", "nufft needs the visibilities, which the gridder released")),
+            (ResidualMethod::Toeplitz, None, None, Some(why), None) => {
                 return Err(Error::parameter("method", format!("the PSF convolution is not exact here ({why}) and the gridder kept no operator")))
             }
         };
@@ -192,10 +192,10 @@ impl Stage<Job> for ResidualStage {
                 // was from it on the final model.
                 if let (ResidualMethod::Toeplitz, None, Some(_), Some(op)) = (method, &im.w_toeplitz, &im.w_taylor, &im.operator) {
                     let exact = op.apply_normal(&im.model)?;
+                    // The form's D x, as the last update left it in the residual.
+                    let by_taylor: Vec<f64> = im.dirty.iter().zip(&im.residual).map(|(d, r)| d - r).collect();
+                    let deviation = crate::w_taylor::relative_deviation(&by_taylor, &exact);
                     let residual: Vec<f64> = im.dirty.iter().zip(&exact).map(|(d, x)| d - x).collect();
-                    let change: f64 = residual.iter().zip(&im.residual).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
-                    let norm: f64 = exact.iter().map(|x| x * x).sum::<f64>().sqrt();
-                    let deviation = if norm > 0.0 { change / norm } else { 0.0 };
                     log::info!("job {id}: the final residual through the operator: the Taylor series in w was {deviation:.1e} of D x from it on the final model");
                     let limit = 10.0 * crate::w_taylor::TOLERANCE * im.nufft.epsilon;
                     taylor_off = (deviation > limit).then_some((deviation, limit));
