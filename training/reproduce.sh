@@ -90,11 +90,18 @@ vla-r2d2-512|meerkat-r2d2-512)
         # all (the replay of the series over each costs a network's inference and residual);
         # validated on stage 2's sets and the field-filling ones; stage 4's loss. A 28th
         # network was refused by the stopping rule.
-        make_once "$D/train-field-filling-resolved" "$R2D2" trainset --procedural 120 --sky field-filling --seed 220000 $RESOLVED $SIM
-        make_once "$D/val-field-filling-resolved" "$R2D2" trainset --procedural 8 --sky field-filling --seed 520000 $RESOLVED $SIM
-        if [ "${EVAL:-1}" != 0 ]; then
-            make_once "$D/test-field-filling-fwhm2" "$R2D2" trainset --procedural 12 --sky field-filling --seed 930000 --truth-fwhm-px 2 $SIM --parquet
-        fi
+        # field_filling_sets NAME SEED TEST_SEED TEST_FWHM SMOOTH...: 120 training skies
+        # (seeds SEED.., train-field-filling-NAME) and 8 validation skies (SEED + 300000..)
+        # smoothed as SMOOTH says, and 12 held-out ones (TEST_SEED..) smoothed to TEST_FWHM pixels.
+        field_filling_sets() {
+            local name=$1 seed=$2 test_seed=$3 test_fwhm=$4; shift 4
+            make_once "$D/train-field-filling-$name" "$R2D2" trainset --procedural 120 --sky field-filling --seed "$seed" "$@" $SIM
+            make_once "$D/val-field-filling-$name" "$R2D2" trainset --procedural 8 --sky field-filling --seed $((seed + 300000)) "$@" $SIM
+            if [ "${EVAL:-1}" != 0 ]; then
+                make_once "$D/test-field-filling-fwhm$test_fwhm" "$R2D2" trainset --procedural 12 --sky field-filling --seed "$test_seed" --truth-fwhm-px "$test_fwhm" $SIM --parquet
+            fi
+        }
+        field_filling_sets resolved 220000 930000 2 $RESOLVED
         STAGE5_TRAIN=("$D/train-field-filling-resolved" "$D/train-extended-resolved")
         STAGE5_VAL=("${STAGE2_VAL[@]}" "$D/val-field-filling-resolved")
         STAGE5="$CROPS --epochs 8 --limit-train 200 --max-networks ${STAGE5_NETWORKS:-27} --loss-log-weight 0.1"
@@ -103,12 +110,7 @@ vla-r2d2-512|meerkat-r2d2-512)
         # radio images do, a share of their energy beyond the longest baseline; 120 of them
         # and the first 80 of stage 5's field-filling skies, the linear loss, validated on
         # stage 5's sets and the sharp ones (training/README.md, "Stage 6").
-        SHARP="--truth-fwhm-px 1.2..1.8"
-        make_once "$D/train-field-filling-sharp" "$R2D2" trainset --procedural 120 --sky field-filling --seed 240000 $SHARP $SIM
-        make_once "$D/val-field-filling-sharp" "$R2D2" trainset --procedural 8 --sky field-filling --seed 540000 $SHARP $SIM
-        if [ "${EVAL:-1}" != 0 ]; then
-            make_once "$D/test-field-filling-fwhm1.5" "$R2D2" trainset --procedural 12 --sky field-filling --seed 940000 --truth-fwhm-px 1.5 $SIM --parquet
-        fi
+        field_filling_sets sharp 240000 940000 1.5 --truth-fwhm-px 1.2..1.8
         STAGE6_TRAIN=("$D/train-field-filling-sharp" "$D/train-field-filling-resolved")
         STAGE6_VAL=("${STAGE5_VAL[@]}" "$D/val-field-filling-sharp")
         STAGE6="$CROPS --epochs 8 --limit-train 200 --max-networks ${STAGE6_NETWORKS:-37}"
