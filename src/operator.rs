@@ -594,6 +594,40 @@ pub fn doubled_psf_of(
     Ok(psf)
 }
 
+/// [`doubled_psf_of`] of samples given a chunk at a time, as a table is read (the kernels of
+/// [`crate::w_taylor`] where the samples are not held): memory is the grid and one chunk.
+pub struct DoubledKernelGridder {
+    geometry: ImageGeometry,
+    adjoint: ChunkedAdjoint,
+}
+
+impl DoubledKernelGridder {
+    pub fn new(geometry: ImageGeometry, nufft: NufftParams, threads: usize) -> Result<DoubledKernelGridder> {
+        let doubled = geometry.doubled();
+        Ok(DoubledKernelGridder { geometry, adjoint: ChunkedAdjoint::new(doubled.size, doubled.size, 1, nufft, threads)? })
+    }
+
+    /// Adds samples at `(u, v)` (wavelengths) with total weights `weight`, each times
+    /// `factor(k)`. Baselines beyond the image's Nyquist limit are refused.
+    pub fn add(&mut self, u: &[f64], v: &[f64], weight: &[f64], factor: impl Fn(usize) -> Complex64 + Sync) -> Result<()> {
+        check_points(self.geometry, u, v, weight)?;
+        // As ImageGridder::add: the caller's chunk whole, up to where larger ones save no time.
+        let step = u.len().clamp(1, 1 << 20);
+        for start in (0..u.len()).step_by(step) {
+            let end = (start + step).min(u.len());
+            let (x, y): (Vec<f64>, Vec<f64>) =
+                u[start..end].iter().zip(&v[start..end]).map(|(&u, &v)| self.geometry.uv_to_phase(u, v)).unzip();
+            self.adjoint.add(&x, &y, |_, k| factor(start + k) * weight[start + k])?;
+        }
+        Ok(())
+    }
+
+    /// The kernel (`2N x 2N`, centre at `(N, N)`), scaled by `kappa`.
+    pub fn finish(self, kappa: f64) -> Vec<f64> {
+        self.adjoint.finish().into_iter().next().unwrap_or_default().into_iter().map(|c| c.re * kappa).collect()
+    }
+}
+
 /// The dirty image, the PSF, the 2N PSF and `kappa` of samples given a chunk at a time, as a
 /// table is read: one pass over the data makes every image the imaging needs, and memory is
 /// the grids and one chunk, whatever the number of samples. The same sums as [`dirty_and_psf`]

@@ -46,13 +46,14 @@ impl GridderStage {
 
     /// The builder of the w-aware Toeplitz form of `D` for a job whose samples reach `|w| <=
     /// max_abs_w` and `sqrt(u^2 + v^2) <= max_uv`, if one is accurate enough and fits in memory
-    /// (otherwise the residual update runs through the operator, and the log says why).
+    /// (otherwise the residual update is a Taylor series in w or runs through the operator, and
+    /// the log says why).
     /// It is chosen where it takes at most `hold_mb`, or less than the samples would take held in
     /// the operator (reading them again at every update instead being the slow alternative).
     fn w_toeplitz_builder(&self, id: &str, geometry: ImageGeometry, max_abs_w: f64, max_uv: f64, samples: u64) -> Option<WToeplitzBuilder> {
         let Some(plan) = WToeplitzPlan::new(geometry, max_abs_w, self.nufft.epsilon) else {
             log::info!(
-                "job {id}: no w-aware Toeplitz form of at most 24 taps reaches the accuracy {:e} for |w| up to {max_abs_w:e} on this field (or the field reaches the edge of the projection): the residual update runs through the operator",
+                "job {id}: no w-aware Toeplitz form of at most 24 taps reaches the accuracy {:e} for |w| up to {max_abs_w:e} on this field (or the field reaches the edge of the projection)",
                 self.nufft.epsilon
             );
             return None;
@@ -60,14 +61,14 @@ impl GridderStage {
         let bytes = match WToeplitzBuilder::estimated_bytes(geometry, &plan, max_uv, self.nufft) {
             Ok(bytes) => bytes,
             Err(e) => {
-                log::info!("job {id}: the residual update runs through the operator: {e}");
+                log::info!("job {id}: no w-aware Toeplitz form for the residual update: {e}");
                 return None;
             }
         };
         let held = OPERATOR_BYTES_PER_SAMPLE * samples as f64;
         if bytes > self.hold_bytes && bytes > held {
             log::info!(
-                "job {id}: the residual update runs through the operator: the kernels of its w-aware Toeplitz form ({} w-planes) would take {} while gridding, above the gridder's hold_mb {} and above the {} the samples take held",
+                "job {id}: no w-aware Toeplitz form for the residual update: its kernels ({} w-planes) would take {} while gridding, above the gridder's hold_mb {} and above the {} the samples take held",
                 plan.planes,
                 crate::limits::format_bytes(bytes),
                 self.hold_bytes / 1e6,
@@ -76,16 +77,25 @@ impl GridderStage {
             return None;
         }
         WToeplitzBuilder::new(geometry, plan, max_uv, self.nufft, self.threads)
-            .map_err(|e| log::info!("job {id}: the residual update runs through the operator: {e}"))
+            .map_err(|e| log::info!("job {id}: no w-aware Toeplitz form for the residual update: {e}"))
             .ok()
     }
 
-    /// The residual update's Taylor series in `w` of the PSF convolution (`crate::w_taylor`)
-    /// for samples held with their operator: of the lowest order whose `D` of the dirty image
-    /// agrees with the operator's to [`w_taylor::TOLERANCE`] times the NUFFT's accuracy, with that
-    /// deviation. `None` where no order up to [`w_taylor::MAX_ORDER`] does within the gridder's
-    /// hold_mb (the operator then runs at each update, and the log says why).
-    fn w_taylor(&self, id: &str, geometry: ImageGeometry, held: HeldSamples<'_>, psf_2n: &[f64], dirty: &[f64], operator: &MeasurementOperator) -> Result<Option<(WTaylor, f64)>> {
+    /// The residual update's Taylor series in `w` of the PSF convolution (`crate::w_taylor`),
+    /// of the lowest order whose `D` of the dirty image agrees with the operator's
+    /// (`reference`, made once the first order fits) to [`w_taylor::TOLERANCE`] times the
+    /// NUFFT's accuracy, with that deviation; `kernel(m)` grids `R_m` from the samples, held
+    /// or read again from their file. `None` where no order up to [`w_taylor::MAX_ORDER`] does
+    /// within the gridder's hold_mb (the operator then runs at each update, and the log says why).
+    fn w_taylor(
+        &self,
+        id: &str,
+        geometry: ImageGeometry,
+        psf_2n: &[f64],
+        dirty: &[f64],
+        reference: impl FnOnce() -> Result<Vec<f64>>,
+        mut kernel: impl FnMut(usize) -> Result<Vec<f64>>,
+    ) -> Result<Option<(WTaylor, f64)>> {
         let tolerance = w_taylor::TOLERANCE * self.nufft.epsilon;
         // Each order keeps one more complex 2N x 2N kernel, and applying it takes two more
         // such arrays per two orders.
@@ -93,6 +103,7 @@ impl GridderStage {
         // The form so far and the operator's D of the dirty image, made at the first order
         // that fits.
         let mut made: Option<(WTaylor, Vec<f64>)> = None;
+        let mut reference = Some(reference);
         let mut closest = None;
         for order in 1..=w_taylor::MAX_ORDER {
             let bytes = kernel_bytes * (order + 1 + 2 * (order + 1).div_ceil(2)) as f64;
@@ -101,10 +112,12 @@ impl GridderStage {
             }
             let (form, reference) = match &mut made {
                 Some(made) => made,
-                None => made.insert((WTaylor::new(geometry, &[psf_2n.to_vec()], self.threads)?, operator.apply_normal(dirty))),
+                None => {
+                    let reference = reference.take().expect("taken once, with the first order")()?;
+                    made.insert((WTaylor::new(geometry, &[psf_2n.to_vec()], self.threads)?, reference))
+                }
             };
-            let HeldSamples { u, v, w, weight } = held;
-            form.push_kernel(&doubled_psf_of(geometry, u, v, weight, |k| w_taylor::kernel_factor(w[k], order), operator.kappa(), self.nufft, self.threads)?)?;
+            form.push_kernel(&kernel(order)?)?;
             let deviation = form.deviation(dirty, reference);
             log::debug!("job {id}: a Taylor series in w of order {order} differs from the operator by {deviation:.2e} on the dirty image");
             if deviation <= tolerance {
@@ -212,24 +225,33 @@ impl Stage<Job> for GridderStage {
             dirty_planes = images.planes;
             (images.dirty, images.psf, images.psf_2n, None, None, Some(Arc::new(images.operator)))
         } else if stream_operator {
-            if let VisSource::Parts(parts) = &source {
-                log::info!("job {}: the operator applies to the {} samples where they live ({}) at each residual update", job.id, summary.samples, parts.passes.describe());
-            } else {
-                let from = match &source {
-                    VisSource::Streamed(table) => table.read_by_each_pass(),
-                    _ => "the file".into(),
-                };
+            let from = match &source {
+                VisSource::Parts(parts) => {
+                    log::info!("job {}: the operator applies to the {} samples where they live ({}) at each residual update", job.id, summary.samples, parts.passes.describe());
+                    None
+                }
+                VisSource::Streamed(table) => Some(table.read_by_each_pass()),
+                _ => Some("the file".into()),
+            };
+            // Chunks as large as the hold limit allows: each costs its w-planes' FFTs.
+            let chunk_rows = self.chunk_rows.max((self.hold_bytes / STREAMED_BYTES_PER_SAMPLE) as usize);
+            let g = StreamedOperator::grid(source, rule, pass(w_term, chunk_rows))?;
+            if w_term && !self.keep_operator && !in_parts {
+                // A pass over the samples per order, against one for every update after.
+                let op = &g.operator;
+                let kernel = |order| op.doubled_psf_of(|w| w_taylor::kernel_factor(w, order));
+                w_taylor = self.w_taylor(&job.id, geometry, &g.psf_2n, &g.dirty, || op.apply_normal(&g.dirty), kernel)?;
+            }
+            if let Some(from) = from {
+                let when = if w_taylor.is_some() { "for the final residual" } else { "at each residual update" };
                 log::info!(
-                    "job {}: the operator reads the {} samples again from {from} at each residual update (holding them would take about {}, above the gridder's hold_mb {})",
+                    "job {}: the operator reads the {} samples again from {from} {when} (holding them would take about {}, above the gridder's hold_mb {})",
                     job.id,
                     summary.samples,
                     crate::limits::format_bytes(held_bytes),
                     self.hold_bytes / 1e6
                 );
             }
-            // Chunks as large as the hold limit allows: each costs its w-planes' FFTs.
-            let chunk_rows = self.chunk_rows.max((self.hold_bytes / STREAMED_BYTES_PER_SAMPLE) as usize);
-            let g = StreamedOperator::grid(source, rule, pass(w_term, chunk_rows))?;
             (g.dirty, g.psf, g.psf_2n, Some(Arc::new(DataOperator::Streamed(g.operator))), None, None)
         } else if needs_operator {
             if source.is_streamed() {
@@ -258,8 +280,9 @@ impl Stage<Job> for GridderStage {
             let (dirty, psf) = operator.dirty_image_and_psf(&vis.vis);
             let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, operator.kappa(), self.nufft, self.threads)?;
             if w_term && !self.keep_operator {
-                let held = HeldSamples { u: &vis.u, v: &vis.v, w: &vis.w, weight: &weight };
-                w_taylor = self.w_taylor(&job.id, geometry, held, &psf_2n, &dirty, &operator)?;
+                let (u, v, w, kappa) = (&vis.u, &vis.v, &vis.w, operator.kappa());
+                let kernel = |order| doubled_psf_of(geometry, u, v, &weight, |k| w_taylor::kernel_factor(w[k], order), kappa, self.nufft, self.threads);
+                w_taylor = self.w_taylor(&job.id, geometry, &psf_2n, &dirty, || Ok(operator.apply_normal(&dirty)), kernel)?;
             }
             if !self.keep_operator {
                 vis.vis = Vec::new();
@@ -336,13 +359,4 @@ impl Stage<Job> for GridderStage {
         }
         emit(Port::Next, job)
     }
-}
-
-/// The coordinates (wavelengths) and total weights of samples held in memory.
-#[derive(Clone, Copy)]
-struct HeldSamples<'a> {
-    u: &'a [f64],
-    v: &'a [f64],
-    w: &'a [f64],
-    weight: &'a [f64],
 }

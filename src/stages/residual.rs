@@ -194,19 +194,16 @@ impl Stage<Job> for ResidualStage {
                     let exact = op.apply_normal(&im.model)?;
                     // The form's D x, as the last update left it in the residual.
                     let by_taylor: Vec<f64> = im.dirty.iter().zip(&im.residual).map(|(d, r)| d - r).collect();
-                    let deviation = crate::w_taylor::relative_deviation(&by_taylor, &exact);
+                    let (deviation, warning) = crate::w_taylor::final_deviation(&by_taylor, &exact, im.nufft.epsilon);
                     let residual: Vec<f64> = im.dirty.iter().zip(&exact).map(|(d, x)| d - x).collect();
                     log::info!("job {id}: the final residual through the operator: the Taylor series in w was {deviation:.1e} of D x from it on the final model");
-                    let limit = 10.0 * crate::w_taylor::TOLERANCE * im.nufft.epsilon;
-                    taylor_off = (deviation > limit).then_some((deviation, limit));
+                    taylor_off = warning;
                     im.residual = residual;
                 }
             }
         }
-        if let Some((deviation, limit)) = taylor_off {
-            job.warn(format!(
-                "the residual update's Taylor series in w was {deviation:.1e} of D x from the operator on the final model (above {limit:.0e}): the networks saw residuals that far off (the written residual is the operator's); the residual stage's `method: nufft` updates through the operator at every iteration"
-            ));
+        if let Some(warning) = taylor_off {
+            job.warn(warning);
         }
         emit(if finished { Port::Done } else { Port::Next }, job)
     }

@@ -3,13 +3,14 @@
 //! summed over the chunks where the samples are not held.
 
 use super::parted::{PartImages, PartPass};
-use super::parts::{no_given_weights, part_apply_normal, part_density, part_images};
+use super::parts::{no_given_weights, part_apply_normal, part_density, part_doubled_psf_of, part_images};
 use super::data::VisSummary;
 use super::stream::VisSource;
 use crate::nufft::NufftParams;
 use crate::operator::{ImageGeometry, MeasurementOperator};
 use crate::weighting::{DensityGrid, WeightRule, Weighting};
 use crate::{Error, Result};
+use num_complex::Complex64;
 
 /// Why `weighting` cannot weight samples of which `summary` tells, if it cannot: `given`
 /// needs imaging weights given with the data.
@@ -136,5 +137,17 @@ impl StreamedOperator {
 
     pub fn kappa(&self) -> f64 {
         self.kappa
+    }
+
+    /// The 2N PSF with each sample's total weight times `factor(w)`, scaled as `D` (a kernel of
+    /// the Taylor series in w, `crate::w_taylor`), in one more pass over the samples read from
+    /// their file (not where they live in parts elsewhere).
+    pub fn doubled_psf_of(&self, factor: impl Fn(f64) -> Complex64 + Sync) -> Result<Vec<f64>> {
+        if let VisSource::Parts(parts) = &self.vis {
+            return Err(Error::parameter("parts", format!("the parts ({}) make no kernels of the Taylor series in w", parts.passes.describe())));
+        }
+        let mut kernel = part_doubled_psf_of(&self.vis, &self.pass, &self.rule, factor)?;
+        kernel.iter_mut().for_each(|k| *k *= self.kappa);
+        Ok(kernel)
     }
 }

@@ -5,7 +5,8 @@
 use super::data::VisChunk;
 use super::parted::{add_to, PartImages, PartPass, PartPasses};
 use super::stream::VisSource;
-use crate::operator::{ImageGeometry, ImageGridder, MeasurementOperator};
+use crate::operator::{DoubledKernelGridder, ImageGeometry, ImageGridder, MeasurementOperator};
+use num_complex::Complex64;
 use crate::w_toeplitz::WToeplitzBuilder;
 use crate::weighting::{DensityGrid, WeightRule, Weighting};
 use crate::{Error, Result};
@@ -98,6 +99,19 @@ pub fn w_toeplitz_images(vis: &VisSource, pass: &PartPass, rule: &WeightRule, bu
         builder.add(c.u, c.v, c.w, &weight)
     })?;
     Ok(PartImages { dirty, psf: Vec::new(), psf_2n: Vec::new(), samples, planes })
+}
+
+/// The 2N PSF of a part's samples with each total weight times `factor(w)` (not scaled by
+/// `kappa`): a kernel of the residual update's Taylor series in w (`crate::w_taylor`) where
+/// the samples are read from their file at each pass.
+pub fn part_doubled_psf_of(vis: &VisSource, pass: &PartPass, rule: &WeightRule, factor: impl Fn(f64) -> Complex64 + Sync) -> Result<Vec<f64>> {
+    let geometry = pass.geometry()?;
+    let mut gridder = DoubledKernelGridder::new(geometry, pass.nufft(), pass.threads)?;
+    vis.for_each_chunk(pass.chunk_rows, &mut |c| {
+        let weight = chunk_weights(&c, geometry, rule)?;
+        gridder.add(c.u, c.v, &weight, |k| factor(c.w[k]))
+    })?;
+    Ok(gridder.finish(1.0))
 }
 
 /// `Re{Phi^H Phi x}` over a part's samples (not scaled by `kappa`, which is the whole's), each
