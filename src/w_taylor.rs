@@ -32,8 +32,9 @@ use rustfft::FftDirection;
 use std::f64::consts::PI;
 use std::sync::{Arc, Mutex};
 
-/// Highest order tried: its four terms fill two complex FFTs each way.
-pub const MAX_ORDER: usize = 3;
+/// Highest order tried: its six terms fill three complex FFTs each way, still fewer than the
+/// operator's w-planes where an order this high is needed (a MeerKAT field of 1-2 rad).
+pub const MAX_ORDER: usize = 5;
 
 /// How far, in units of the NUFFT's accuracy, the series may be from the operator on the dirty
 /// image. Its error reaches only the networks' input (the residual written at the end is the
