@@ -283,7 +283,8 @@ pub struct ImageParams {
     /// The w-term (default `auto`: corrected where it matters at `epsilon`).
     pub w_term: crate::operator::WTermMode,
     /// Most memory (MB) a file's samples may take held for an operator (the w-corrected
-    /// residual); above it they are read again at each update (the gridder's `hold_mb`).
+    /// residual); above it they are read again at each update, or only for the kernels and the
+    /// final residual of a Taylor series in w (the gridder's `hold_mb`).
     pub hold_mb: f64,
     pub step: StepChoice,
     /// CLEAN major cycles (default 5, or 20 when `clean.max_components` bounds the work), the

@@ -65,7 +65,8 @@ pub struct Args {
     #[arg(long, default_value = "r2d2")]
     name: String,
     /// Most memory (MB) the samples may take held in memory where the residual update needs
-    /// them (the w-term); above it they are read again from the file at each update.
+    /// them (the w-term); above it they are read again from the file at each update (or only
+    /// for the kernels and the final residual where a Taylor series in w replaces the operator).
     #[arg(long, default_value_t = r2d2_imaging::params::DEFAULT_HOLD_MB)]
     hold_mb: f64,
 }

@@ -194,7 +194,9 @@ pub struct GridderParams {
     /// Most memory (MB) the samples of a job read from a file may take held in an operator
     /// (the residual update through the operator: `method: nufft`, or the w-term where its
     /// Toeplitz form is not built); above it they are read again from the file at every
-    /// update instead, in chunks as large as this allows. With the w-term's Toeplitz form, the
+    /// update instead (or, for the w-term's Taylor series, once per kernel and for the final
+    /// residual), in chunks as large as this allows. The Taylor series' kernels take at most
+    /// this much too. With the w-term's Toeplitz form, the
     /// gridding pass's chunks take what this leaves beside the kernels' grids. Default 256.
     pub hold_mb: f64,
     /// Samples per chunk of a pass over the data: what gridding holds beside its grids (about
