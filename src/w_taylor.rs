@@ -1,7 +1,7 @@
 //! The normal operator `D` with a small w-term, as a Taylor series in `w` about the coplanar
 //! PSF convolution: where the w-term turns phases by a fraction of a radian over the field
 //! (a VLA field of a few arcminutes), a few more kernels of the PSF convolution's kind make
-//! `D` to the NUFFT's accuracy at the cost of one or two pairs of FFTs, where the operator
+//! `D` to the NUFFT's accuracy at the cost of one to three pairs of FFTs, where the operator
 //! grids and degrids every sample on its w-planes at each residual update.
 //!
 //! Conventions are `crate::w_toeplitz`'s: `D x (p) = Re sum_k omega_k sum_q x_q exp(-2 pi i

@@ -105,9 +105,12 @@ impl GridderStage {
         let mut made: Option<(WTaylor, Vec<f64>)> = None;
         let mut reference = Some(reference);
         let mut closest = None;
+        // The order whose kernels would not fit in hold_mb, where that ended the search.
+        let mut capped = None;
         for order in 1..=w_taylor::MAX_ORDER {
             let bytes = kernel_bytes * (order + 1 + 2 * (order + 1).div_ceil(2)) as f64;
             if bytes > self.hold_bytes {
+                capped = Some(order);
                 break;
             }
             let (form, reference) = match &mut made {
@@ -130,11 +133,15 @@ impl GridderStage {
             }
             closest = Some((order, deviation));
         }
-        match closest {
-            Some((order, deviation)) => log::info!(
+        let hold_mb = self.hold_bytes / 1e6;
+        match (closest, capped) {
+            (Some((order, deviation)), None) => log::info!(
                 "job {id}: the residual update runs through the operator: no Taylor series in w up to order {order} comes within {tolerance:.0e} of it on the dirty image ({deviation:.1e}: the w-term is too large for it here)"
             ),
-            None => log::info!("job {id}: the residual update runs through the operator: the kernels of a Taylor series in w would take more than the gridder's hold_mb {}", self.hold_bytes / 1e6),
+            (Some((order, deviation)), Some(next)) => log::info!(
+                "job {id}: the residual update runs through the operator: a Taylor series in w of order {order} is {deviation:.1e} from it on the dirty image (above {tolerance:.0e}), and the kernels of order {next} would take more than the gridder's hold_mb {hold_mb}"
+            ),
+            (None, _) => log::info!("job {id}: the residual update runs through the operator: the kernels of a Taylor series in w would take more than the gridder's hold_mb {hold_mb}"),
         }
         Ok(None)
     }
