@@ -736,6 +736,9 @@ pub struct PsfConvolution {
     kernel_hat: Vec<Complex64>,
     forward: Fft2,
     inverse: Fft2,
+    /// The padded image and the transposes' scratch, kept from one application to the next
+    /// (made afresh, their pages were mapped and zeroed at every update).
+    buffers: std::sync::Mutex<(Vec<Complex64>, Vec<Complex64>)>,
 }
 
 impl PsfConvolution {
@@ -750,7 +753,7 @@ impl PsfConvolution {
         let scale = 1.0 / (m * m) as f64;
         let mut kernel_hat: Vec<Complex64> = psf_2n.iter().map(|&p| Complex64::new(p * scale, 0.0)).collect();
         forward.process(&mut kernel_hat);
-        Ok(PsfConvolution { size, kernel_hat, forward, inverse })
+        Ok(PsfConvolution { size, kernel_hat, forward, inverse, buffers: Default::default() })
     }
 
     pub fn size(&self) -> usize {
@@ -761,23 +764,28 @@ impl PsfConvolution {
     pub fn apply(&self, x: &[f64]) -> Vec<f64> {
         let (n, m) = (self.size, 2 * self.size);
         assert_eq!(x.len(), n * n, "image size");
-        let mut padded = vec![Complex64::default(); m * m];
-        for iy in 0..n {
-            for ix in 0..n {
-                padded[iy * m + ix] = Complex64::new(x[iy * n + ix], 0.0);
+        // A poisoned lock only means an earlier application panicked: its arrays are rewritten here.
+        let mut buffers = self.buffers.lock().unwrap_or_else(|e| e.into_inner());
+        let (padded, scratch) = &mut *buffers;
+        padded.resize(m * m, Complex64::default());
+        scratch.resize(m * m, Complex64::default());
+        padded.par_chunks_mut(m).enumerate().for_each(|(iy, row)| {
+            if iy < n {
+                row[..n].iter_mut().zip(&x[iy * n..][..n]).for_each(|(p, &v)| *p = Complex64::new(v, 0.0));
+                row[n..].fill(Complex64::default());
+            } else {
+                row.fill(Complex64::default());
             }
-        }
+        });
         // The image fills the first N rows; the result is read from the last N.
-        self.forward.process_from_rows(&mut padded, n);
+        self.forward.process_from_rows_with(padded, n, scratch);
         padded.par_iter_mut().zip(self.kernel_hat.par_iter()).for_each(|(a, k)| *a *= k);
-        self.inverse.process_to_rows(&mut padded, n);
+        self.inverse.process_to_rows_with(padded, n, scratch);
         // Linear convolution with a kernel centred at (N, N): output pixel p sits at p + N.
         let mut out = vec![0.0; n * n];
-        for iy in 0..n {
-            for ix in 0..n {
-                out[iy * n + ix] = padded[(iy + n) * m + ix + n].re;
-            }
-        }
+        out.par_chunks_mut(n).enumerate().for_each(|(iy, row)| {
+            row.iter_mut().zip(&padded[(iy + n) * m + n..][..n]).for_each(|(o, p)| *o = p.re);
+        });
         out
     }
 }
