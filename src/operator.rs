@@ -492,13 +492,27 @@ fn grid_in_chunks(
 ) -> Result<Vec<Vec<f64>>> {
     check_points(geometry, u, v, weight)?;
     let mut gridder = ChunkedAdjoint::new(geometry.size, geometry.size, transforms, nufft, threads)?;
-    for start in (0..u.len()).step_by(chunk) {
-        let end = (start + chunk).min(u.len());
+    add_in_steps(&mut gridder, geometry, u, v, chunk, value)?;
+    Ok(gridder.finish().into_iter().map(|image| image.into_iter().map(|c| c.re).collect()).collect())
+}
+
+/// Adds the samples at `(u, v)` (wavelengths) to `gridder`, `step` at a time (each step's
+/// sorting is its memory), `value(t, k)` for transform `t` of sample `k`.
+fn add_in_steps(
+    gridder: &mut ChunkedAdjoint,
+    geometry: ImageGeometry,
+    u: &[f64],
+    v: &[f64],
+    step: usize,
+    value: impl Fn(usize, usize) -> Complex64 + Sync,
+) -> Result<()> {
+    for start in (0..u.len()).step_by(step) {
+        let end = (start + step).min(u.len());
         let (x, y): (Vec<f64>, Vec<f64>) =
             u[start..end].iter().zip(&v[start..end]).map(|(&u, &v)| geometry.uv_to_phase(u, v)).unzip();
         gridder.add(&x, &y, |t, k| value(t, start + k))?;
     }
-    Ok(gridder.finish().into_iter().map(|image| image.into_iter().map(|c| c.re).collect()).collect())
+    Ok(())
 }
 
 /// The dirty image, PSF and `kappa` of [`MeasurementOperator`] (to the NUFFT's accuracy; the
@@ -612,14 +626,7 @@ impl DoubledKernelGridder {
     pub fn add(&mut self, u: &[f64], v: &[f64], weight: &[f64], factor: impl Fn(usize) -> Complex64 + Sync) -> Result<()> {
         check_points(self.geometry, u, v, weight)?;
         // As ImageGridder::add: the caller's chunk whole, up to where larger ones save no time.
-        let step = u.len().clamp(1, 1 << 20);
-        for start in (0..u.len()).step_by(step) {
-            let end = (start + step).min(u.len());
-            let (x, y): (Vec<f64>, Vec<f64>) =
-                u[start..end].iter().zip(&v[start..end]).map(|(&u, &v)| self.geometry.uv_to_phase(u, v)).unzip();
-            self.adjoint.add(&x, &y, |_, k| factor(start + k) * weight[start + k])?;
-        }
-        Ok(())
+        add_in_steps(&mut self.adjoint, self.geometry, u, v, u.len().clamp(1, 1 << 20), |_, k| factor(k) * weight[k])
     }
 
     /// The kernel (`2N x 2N`, centre at `(N, N)`), scaled by `kappa`.
