@@ -125,19 +125,39 @@ def main(argv=None):
         # fourth network is trained and refused by the stopping rule: the series keeps three.)
         # The cache holds the training's own PyTorch updates; a fresh replay on the CPU runs the
         # ONNX exports through ONNX Runtime, so this also checks that both give the same x.
-        cache = f"{d}/checkpoints/replay.pt"
+        cache = f"{d}/checkpoints/replay"
+        read_cache = lambda where: {name: torch.load(os.path.join(where, name), weights_only=True) for name in sorted(os.listdir(where))}
         refuse4 = train + ["--max-networks", "4", "--resume", "--min-gain-db", "1000"]
         resumed = subprocess.run(refuse4, capture_output=True, text=True, check=True)
-        check("read from the cache" in resumed.stdout + resumed.stderr, "resume did not use the replay cache")
+        check("(6 of 6 samples read from the cache)" in resumed.stdout and "replayed N" not in resumed.stdout,
+              f"resume did not use the replay cache: {resumed.stdout}")
         check(len(series.read_manifest(sdir)["networks"]) == 3, "the stopping rule kept the series at three networks")
-        cached = torch.load(cache, weights_only=True)
-        os.remove(cache)
+        cached = read_cache(cache)
+        check(len(cached) == 2, f"one cache file per set (training, validation): {sorted(cached)}")
+        shutil.rmtree(cache)
         run(refuse4)
-        fresh = torch.load(cache, weights_only=True)
-        check(cached["key"] == fresh["key"] and torch.equal(cached["active"], fresh["active"]), "replay cache key / pruning")
-        for k in ("x_tr", "x_va"):
-            err = float((cached[k] - fresh[k]).abs().max() / fresh[k].abs().max())
-            check(err < 1e-5, f"cached {k} differs from a fresh replay by {err:.2e}")
+        fresh = read_cache(cache)
+        check(sorted(cached) == sorted(fresh), "replay cache keys")
+        for name in fresh:
+            check(torch.equal(cached[name]["active"], fresh[name]["active"]), f"{name}: pruning")
+            err = float((cached[name]["x"] - fresh[name]["x"]).abs().max() / fresh[name]["x"].abs().max())
+            check(err < 1e-5, f"cached {name} differs from a fresh replay by {err:.2e}")
+        # A stage that adds a set to the training data replays that set only, and what it
+        # replays equals a fresh replay of the set alone.
+        at = train.index("--train") + 2
+        added = subprocess.run(train[:at] + [f"{d}/test"] + train[at:] + ["--max-networks", "4", "--resume", "--min-gain-db", "1000"],
+                               capture_output=True, text=True, check=True)
+        check("replayed N3 over 2 training samples" in added.stdout and "(6 of 8 samples read from the cache)" in added.stdout,
+              f"a set added to the training data: {added.stdout}")
+        with_test = read_cache(cache)
+        only_test = train[:at - 1] + [f"{d}/test"] + train[at:]
+        only_test[only_test.index("--work") + 1] = f"{d}/checkpoints-test"
+        run(only_test + ["--max-networks", "4", "--resume", "--min-gain-db", "1000"])
+        alone = read_cache(f"{d}/checkpoints-test/replay")
+        new_sets = [name for name in with_test if name not in fresh]
+        check(len(new_sets) == 1 and new_sets[0] in alone, f"the added set's cache: {sorted(with_test)} against {sorted(alone)}")
+        err = float((with_test[new_sets[0]]["x"] - alone[new_sets[0]]["x"]).abs().max() / alone[new_sets[0]]["x"].abs().max())
+        check(err < 1e-6, f"the added set replayed beside cached sets differs from its replay alone by {err:.2e}")
         # A later stage validated on other skies (same loss and training data): its networks
         # are compared with the series replayed on that set (rows measured on another set are
         # not comparable) and record the set; a validation set alone is no stage boundary.
@@ -146,7 +166,7 @@ def main(argv=None):
         other_val = [other(x).replace(f"{d}/val", f"{d}/test") for x in train]
         stage = subprocess.run(other_val + ["--max-networks", "3", "--resume"], capture_output=True, text=True, check=True)
         check("the baseline is the replayed series on it" in stage.stdout, "a stage on another validation set: baseline")
-        replayed = [ln for ln in stage.stdout.splitlines() if "replayed N2: validation" in ln]
+        replayed = [ln for ln in stage.stdout.splitlines() if "replay of N1-N2: validation" in ln]
         so_far = [ln for ln in stage.stdout.splitlines() if "series so far" in ln]
         check(len(replayed) == 1 and len(so_far) == 1, f"replay and baseline lines: {stage.stdout}")
         metrics = ast.literal_eval(replayed[0].split("validation ", 1)[1].split("; ")[0])
@@ -207,7 +227,7 @@ def main(argv=None):
         deeper = subprocess.run(crops + ["--max-networks", "2", "--poolings", "4", "--fresh-start"], capture_output=True, text=True)
         check(deeper.returncode != 0 and "may not pool more" in deeper.stderr, "a later network pooling more than the series is refused")
         run(crops + ["--max-networks", "2", "--base-channels", "8", "--fresh-start"])
-        os.remove(f"{d}/checkpoints-crops/replay.pt")
+        shutil.rmtree(f"{d}/checkpoints-crops/replay")
         run(crops + ["--max-networks", "3", "--base-channels", "8"])
         mc = series.read_manifest(cdir)
         recs = mc["provenance"]["networks"]

@@ -14,6 +14,7 @@ networks to an existing series (the previous networks are replayed to rebuild x 
 """
 import argparse
 import hashlib
+import itertools
 import math
 import os
 import subprocess
@@ -52,40 +53,78 @@ def commit_series(series_dir, message):
         log(f"warning: could not commit {series_dir}: {e}")
 
 
-def replay_key(args, manifest, networks):
-    """What the replayed estimates depend on: each network's weights and orientation, and the
-    data sets."""
+def replay_keys(args, manifest, networks, data):
+    """One key per set of `data`: what the set's replayed estimates depend on (each network's
+    weights and orientation, the set's records and how many of its samples are taken). Cached
+    per set, a stage that adds a set to those of the last replays only the new one."""
     h = hashlib.sha256()
     for k in range(1, networks + 1):
         with open(os.path.join(args.series, series.weights_name(k)), "rb") as f:
             h.update(hashlib.sha256(f.read()).digest())
         if series.orientation(manifest, k) != "identity":
             h.update(series.orientation(manifest, k).encode())
-    for d in list(args.train) + list(args.val):
-        h.update(os.path.abspath(d).encode())
+    keys = []
+    for path, count in data.parts:
+        key = h.copy()
+        key.update(os.path.abspath(path).encode())
         # A set regenerated at the same path (another generator, other seeds) is other data:
         # its records (trainset.json holds the run's parameters and timings) change the key.
         for record in ("samples.json", "trainset.json"):
-            path = os.path.join(d, record)
-            if os.path.exists(path):
-                with open(path, "rb") as f:
-                    h.update(hashlib.sha256(f.read()).digest())
-    h.update(repr((args.limit_train, args.limit_val, networks)).encode())
-    return h.hexdigest()
+            record_path = os.path.join(path, record)
+            if os.path.exists(record_path):
+                with open(record_path, "rb") as f:
+                    key.update(hashlib.sha256(f.read()).digest())
+        key.update(repr((count, networks)).encode())
+        keys.append(key.hexdigest())
+    return keys
 
 
-def load_replay(work, key):
-    path = os.path.join(work, "replay.pt")
-    if not os.path.exists(path):
-        return None
-    cache = torch.load(path, weights_only=True, map_location="cpu")
-    return cache if cache.get("key") == key else None
+def spans(data):
+    """(start, end) of each set's samples in `data`."""
+    ends = list(itertools.accumulate(count for _, count in data.parts))
+    return list(zip([0] + ends[:-1], ends))
 
 
-def save_replay(work, key, x_tr, x_va, active):
-    path = os.path.join(work, "replay.pt")
-    torch.save({"key": key, "x_tr": x_tr.cpu(), "x_va": x_va.cpu(), "active": active.cpu()}, path + ".tmp")
-    os.replace(path + ".tmp", path)
+def replay_path(work, key):
+    return os.path.join(work, "replay", f"{key}.pt")
+
+
+def load_replay(work, data, keys):
+    """The replayed estimates x and pruning mask of the sets of `data` found in the cache, and
+    which samples are still to replay (x 0, active everywhere else)."""
+    x = torch.zeros_like(data.dirty)
+    active = torch.ones(len(data), dtype=torch.bool)
+    missing = torch.ones(len(data), dtype=torch.bool)
+    for (start, end), key in zip(spans(data), keys):
+        path = replay_path(work, key)
+        if not os.path.exists(path):
+            continue
+        cache = torch.load(path, weights_only=True, map_location="cpu")
+        if cache.get("key") == key and cache["x"].shape == x[start:end].shape:
+            x[start:end], active[start:end], missing[start:end] = cache["x"], cache["active"], False
+    return x, active, missing
+
+
+def save_replay(work, sets):
+    """Caches each set's estimates (`sets`: (data, keys, x, active) per dataset) and removes the
+    cached sets no longer current (those of fewer networks or of sets left out)."""
+    os.makedirs(os.path.join(work, "replay"), exist_ok=True)
+    current = set()
+    for data, keys, x, active in sets:
+        for (start, end), key in zip(spans(data), keys):
+            path = replay_path(work, key)
+            current.add(os.path.basename(path))
+            if not os.path.exists(path):
+                torch.save({"key": key, "x": x[start:end].cpu().clone(), "active": active[start:end].cpu().clone()}, path + ".tmp")
+                os.replace(path + ".tmp", path)
+    for name in os.listdir(os.path.join(work, "replay")):
+        if name not in current:
+            os.remove(os.path.join(work, "replay", name))
+
+
+def above_noise(data, r):
+    """The samples whose residual is still above the noise level (the others are pruned)."""
+    return r.flatten(1).pow(2).sum(1) > data.noise_dirty.flatten(1).pow(2).sum(1)
 
 
 def torch_runner(model, device):
@@ -306,39 +345,44 @@ def main(argv=None):
                          f"a later network may not pool more (got --poolings {args.poolings})")
 
     # Replay the existing networks: x, r of every sample, the pruned training set. The replayed
-    # estimates are cached in --work (keyed by the networks' weights and the data), so that a
-    # resumed series does not run every network over the training set again.
-    x_tr, r_tr = torch.zeros_like(train.dirty), train.dirty.clone()
-    x_va, r_va = torch.zeros_like(val.dirty), val.dirty.clone()
-    noise_energy = train.noise_dirty.flatten(1).pow(2).sum(1)
-    active = torch.ones(len(train), dtype=torch.bool)
+    # estimates are cached in --work per set (keyed by the networks' weights and the set), so
+    # that a resumed series does not run every network over the data again, and a stage that
+    # adds a set replays only that one.
     history = [dict(v) for v in manifest["validation"]]
-    model = None
     have = len(manifest["networks"])
-    cache = load_replay(args.work, replay_key(args, manifest, have))
-    if cache is not None:
-        x_tr, x_va, active = cache["x_tr"], cache["x_va"], cache["active"]
-        r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
-        r_va = common.residual(val.dirty, x_va, val.psf_hat)
-        if have:
-            model = series.load_network(args.series, manifest, have).to(device)
-        log(f"replay of N1-N{have} read from the cache: validation {common.metrics(x_va, r_va, val)}; {int(active.sum())} training samples active")
-    for k in range(1, have + 1 if cache is None else 1):
-        model = series.load_network(args.series, manifest, k).to(device)
+    keys_tr, keys_va = replay_keys(args, manifest, have, train), replay_keys(args, manifest, have, val)
+    x_tr, active, todo_tr = load_replay(args.work, train, keys_tr)
+    x_va, active_va, todo_va = load_replay(args.work, val, keys_va)
+    cached = len(train) + len(val) - int(todo_tr.sum()) - int(todo_va.sum())
+    # The samples still to replay (their indices, x and r), run through every network in turn.
+    todo = [{"kind": kind, "data": data, "x_all": x_all, "active": act, "idx": idx,
+             "x": torch.zeros_like(data.dirty[idx]), "r": data.dirty[idx].clone()}
+            for kind, data, x_all, act, idx in (("training", train, x_tr, active, todo_tr.nonzero().squeeze(1)),
+                                                ("validation", val, x_va, active_va, todo_va.nonzero().squeeze(1))) if have and len(idx)]
+    for k in range(1, have + 1 if todo else 1):
         # On a CPU the series' own ONNX exports (what the engine runs) go through ONNX Runtime,
         # several times faster than PyTorch here: the replay of a long series over a few hundred
         # samples is most of a resumed stage's time.
         onnx = os.path.join(args.series, manifest["networks"][k - 1])
-        run = series.onnx_runner(onnx, args.threads) if device.type == "cpu" and os.path.exists(onnx) else torch_runner(model, device)
+        run = series.onnx_runner(onnx, args.threads) if device.type == "cpu" and os.path.exists(onnx) else \
+            torch_runner(series.load_network(args.series, manifest, k).to(device), device)
         run = series.oriented(run, series.orientation(manifest, k))
-        x_tr = common.update(k, run, train.dirty, x_tr, r_tr, batch=ubatch)
-        r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
-        active &= r_tr.flatten(1).pow(2).sum(1) > noise_energy
-        x_va = common.update(k, run, val.dirty, x_va, r_va, batch=ubatch)
-        r_va = common.residual(val.dirty, x_va, val.psf_hat)
-        log(f"replayed N{k}: validation {common.metrics(x_va, r_va, val)}; {int(active.sum())} training samples active")
-    if cache is None and have:
-        save_replay(args.work, replay_key(args, manifest, have), x_tr, x_va, active)
+        for part in todo:
+            data, idx = part["data"], part["idx"]
+            part["x"] = common.update(k, run, data.dirty[idx], part["x"], part["r"], batch=ubatch)
+            part["r"] = common.residual(data.dirty[idx], part["x"], data.psf_hat[idx])
+            part["active"][idx] &= part["r"].flatten(1).pow(2).sum(1) > data.noise_dirty[idx].flatten(1).pow(2).sum(1)
+        log(f"replayed N{k} over " + " and ".join(f"{len(part['idx'])} {part['kind']}" for part in todo) + " samples")
+    for part in todo:
+        part["x_all"][part["idx"]] = part["x"]
+    r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
+    r_va = common.residual(val.dirty, x_va, val.psf_hat)
+    model = series.load_network(args.series, manifest, have).to(device) if have else None
+    if have:
+        log(f"replay of N1-N{have}: validation {common.metrics(x_va, r_va, val)}; {int(active.sum())} training samples active"
+            f" ({cached} of {len(train) + len(val)} samples read from the cache)")
+    if todo:
+        save_replay(args.work, [(train, keys_tr, x_tr, active), (val, keys_va, x_va, active_va)])
 
     # The stopping rule compares with the best validation so far on this run's validation
     # set: the rows measured on it, where the series' last network was (a later stage may
@@ -397,7 +441,8 @@ def main(argv=None):
         x_tr = common.update(i, run, train.dirty, x_tr, r_tr, batch=ubatch)
         r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
         before = int(active.sum())
-        active &= r_tr.flatten(1).pow(2).sum(1) > noise_energy
+        active &= above_noise(train, r_tr)
+        active_va &= above_noise(val, r_va_new)
         x_va, r_va, model = x_va_new, r_va_new, new
         manifest["networks"].append(series.onnx_name(i))
         # The first network of a later stage (resumed with another loss or other training
@@ -432,7 +477,8 @@ def main(argv=None):
         })
         series.write_manifest(args.series, manifest)
         os.remove(os.path.join(args.work, "current.pt"))
-        save_replay(args.work, replay_key(args, manifest, i), x_tr, x_va, active)
+        save_replay(args.work, [(train, replay_keys(args, manifest, i, train), x_tr, active),
+                                (val, replay_keys(args, manifest, i, val), x_va, active_va)])
         log(f"N{i} added to {args.series}; {int(active.sum())} of {len(train)} training samples remain after pruning")
         if args.commit:
             commit_series(args.series, f"models: {manifest['name']} network {i} (validation SNR {m['snr_db']:.2f} dB, logSNR {m['logsnr_db']:.2f} dB)")

@@ -52,6 +52,8 @@ class Dataset:
         self.truth, self.dirty, self.noise_dirty = cat("truth"), cat("dirty"), cat("noise_dirty")
         self.psf_hat = cat("psf_hat")  # [S, 2N, N+1] complex128
         self.samples = [s for part in parts for s in part["samples"]]
+        # Each set's directory and how many of its samples were taken, in order.
+        self.parts = [(p, len(part["samples"])) for p, part in zip(paths, parts)]
         self.meta = parts[0]["meta"] if len(paths) == 1 else {"sets": [part["meta"] for part in parts]}
         self.dynamic_range = torch.tensor([s["dynamic_range"] for s in self.samples], dtype=torch.float64)
 
