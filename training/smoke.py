@@ -127,6 +127,7 @@ def main(argv=None):
         # ONNX exports through ONNX Runtime, so this also checks that both give the same x.
         cache = f"{d}/checkpoints/replay"
         read_cache = lambda where: {name: torch.load(os.path.join(where, name), weights_only=True) for name in sorted(os.listdir(where))}
+        max_relative = lambda ours, reference: float((ours - reference).abs().max() / reference.abs().max())
         refuse4 = train + ["--max-networks", "4", "--resume", "--min-gain-db", "1000"]
         resumed = subprocess.run(refuse4, capture_output=True, text=True, check=True)
         check("(6 of 6 samples read from the cache)" in resumed.stdout and "replayed N" not in resumed.stdout,
@@ -140,7 +141,7 @@ def main(argv=None):
         check(sorted(cached) == sorted(fresh), "replay cache keys")
         for name in fresh:
             check(torch.equal(cached[name]["active"], fresh[name]["active"]), f"{name}: pruning")
-            err = float((cached[name]["x"] - fresh[name]["x"]).abs().max() / fresh[name]["x"].abs().max())
+            err = max_relative(cached[name]["x"], fresh[name]["x"])
             check(err < 1e-5, f"cached {name} differs from a fresh replay by {err:.2e}")
         # A stage that adds a set to the training data replays that set only, and what it
         # replays equals a fresh replay of the set alone.
@@ -156,7 +157,7 @@ def main(argv=None):
         alone = read_cache(f"{d}/checkpoints-test/replay")
         new_sets = [name for name in with_test if name not in fresh]
         check(len(new_sets) == 1 and new_sets[0] in alone, f"the added set's cache: {sorted(with_test)} against {sorted(alone)}")
-        err = float((with_test[new_sets[0]]["x"] - alone[new_sets[0]]["x"]).abs().max() / alone[new_sets[0]]["x"].abs().max())
+        err = max_relative(with_test[new_sets[0]]["x"], alone[new_sets[0]]["x"])
         check(err < 1e-6, f"the added set replayed beside cached sets differs from its replay alone by {err:.2e}")
         # A later stage validated on other skies (same loss and training data): its networks
         # are compared with the series replayed on that set (rows measured on another set are

@@ -91,17 +91,20 @@ def replay_path(work, key):
 
 def load_replay(work, data, keys):
     """The replayed estimates x and pruning mask of the sets of `data` found in the cache, and
-    which samples are still to replay (x 0, active everywhere else)."""
+    the ranges of samples still to replay: the sets not found, adjacent ones merged (x 0 there,
+    active everywhere but where the cache pruned)."""
     x = torch.zeros_like(data.dirty)
     active = torch.ones(len(data), dtype=torch.bool)
-    missing = torch.ones(len(data), dtype=torch.bool)
+    missing = []
     for (start, end), key in zip(spans(data), keys):
         path = replay_path(work, key)
-        if not os.path.exists(path):
-            continue
-        cache = torch.load(path, weights_only=True, map_location="cpu")
+        cache = torch.load(path, weights_only=True, map_location="cpu") if os.path.exists(path) else {}
         if cache.get("key") == key and cache["x"].shape == x[start:end].shape:
-            x[start:end], active[start:end], missing[start:end] = cache["x"], cache["active"], False
+            x[start:end], active[start:end] = cache["x"], cache["active"]
+        elif missing and missing[-1][1] == start:
+            missing[-1] = (missing[-1][0], end)
+        else:
+            missing.append((start, end))
     return x, active, missing
 
 
@@ -122,9 +125,9 @@ def save_replay(work, sets):
             os.remove(os.path.join(work, "replay", name))
 
 
-def above_noise(data, r):
-    """The samples whose residual is still above the noise level (the others are pruned)."""
-    return r.flatten(1).pow(2).sum(1) > data.noise_dirty.flatten(1).pow(2).sum(1)
+def energy(images):
+    """Per sample, the sum of squares of its image."""
+    return images.flatten(1).pow(2).sum(1)
 
 
 def torch_runner(model, device):
@@ -351,14 +354,18 @@ def main(argv=None):
     history = [dict(v) for v in manifest["validation"]]
     have = len(manifest["networks"])
     keys_tr, keys_va = replay_keys(args, manifest, have, train), replay_keys(args, manifest, have, val)
-    x_tr, active, todo_tr = load_replay(args.work, train, keys_tr)
-    x_va, active_va, todo_va = load_replay(args.work, val, keys_va)
-    cached = len(train) + len(val) - int(todo_tr.sum()) - int(todo_va.sum())
-    # The samples still to replay (their indices, x and r), run through every network in turn.
-    todo = [{"kind": kind, "data": data, "x_all": x_all, "active": act, "idx": idx,
-             "x": torch.zeros_like(data.dirty[idx]), "r": data.dirty[idx].clone()}
-            for kind, data, x_all, act, idx in (("training", train, x_tr, active, todo_tr.nonzero().squeeze(1)),
-                                                ("validation", val, x_va, active_va, todo_va.nonzero().squeeze(1))) if have and len(idx)]
+    x_tr, active, missing_tr = load_replay(args.work, train, keys_tr)
+    x_va, active_va, missing_va = load_replay(args.work, val, keys_va)
+    # The pruning's noise levels, once: each network compares its residuals with them.
+    noise_tr, noise_va = energy(train.noise_dirty), energy(val.noise_dirty)
+    # The ranges still to replay, run through every network in turn: their x in place (views
+    # of the sets' arrays), their residuals beside.
+    todo = [{"kind": kind, "data": data, "x": x, "active": act, "noise": noise, "at": slice(start, end),
+             "r": data.dirty[start:end].clone()}
+            for kind, data, x, act, noise, missing in (("training", train, x_tr, active, noise_tr, missing_tr),
+                                                       ("validation", val, x_va, active_va, noise_va, missing_va))
+            for start, end in (missing if have else [])]
+    replayed = {kind: sum(p["at"].stop - p["at"].start for p in todo if p["kind"] == kind) for kind in ("training", "validation")}
     for k in range(1, have + 1 if todo else 1):
         # On a CPU the series' own ONNX exports (what the engine runs) go through ONNX Runtime,
         # several times faster than PyTorch here: the replay of a long series over a few hundred
@@ -368,19 +375,17 @@ def main(argv=None):
             torch_runner(series.load_network(args.series, manifest, k).to(device), device)
         run = series.oriented(run, series.orientation(manifest, k))
         for part in todo:
-            data, idx = part["data"], part["idx"]
-            part["x"] = common.update(k, run, data.dirty[idx], part["x"], part["r"], batch=ubatch)
-            part["r"] = common.residual(data.dirty[idx], part["x"], data.psf_hat[idx])
-            part["active"][idx] &= part["r"].flatten(1).pow(2).sum(1) > data.noise_dirty[idx].flatten(1).pow(2).sum(1)
-        log(f"replayed N{k} over " + " and ".join(f"{len(part['idx'])} {part['kind']}" for part in todo) + " samples")
-    for part in todo:
-        part["x_all"][part["idx"]] = part["x"]
+            data, at = part["data"], part["at"]
+            part["x"][at] = common.update(k, run, data.dirty[at], part["x"][at], part["r"], batch=ubatch)
+            part["r"] = common.residual(data.dirty[at], part["x"][at], data.psf_hat[at])
+            part["active"][at] &= energy(part["r"]) > part["noise"][at]
+        log(f"replayed N{k} over " + " and ".join(f"{n} {kind}" for kind, n in replayed.items() if n) + " samples")
     r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
     r_va = common.residual(val.dirty, x_va, val.psf_hat)
     model = series.load_network(args.series, manifest, have).to(device) if have else None
     if have:
         log(f"replay of N1-N{have}: validation {common.metrics(x_va, r_va, val)}; {int(active.sum())} training samples active"
-            f" ({cached} of {len(train) + len(val)} samples read from the cache)")
+            f" ({len(train) + len(val) - sum(replayed.values())} of {len(train) + len(val)} samples read from the cache)")
     if todo:
         save_replay(args.work, [(train, keys_tr, x_tr, active), (val, keys_va, x_va, active_va)])
 
@@ -441,8 +446,8 @@ def main(argv=None):
         x_tr = common.update(i, run, train.dirty, x_tr, r_tr, batch=ubatch)
         r_tr = common.residual(train.dirty, x_tr, train.psf_hat)
         before = int(active.sum())
-        active &= above_noise(train, r_tr)
-        active_va &= above_noise(val, r_va_new)
+        active &= energy(r_tr) > noise_tr
+        active_va &= energy(r_va_new) > noise_va
         x_va, r_va, model = x_va_new, r_va_new, new
         manifest["networks"].append(series.onnx_name(i))
         # The first network of a later stage (resumed with another loss or other training
