@@ -53,6 +53,42 @@ impl Fft2 {
         self.transform_rows(&mut data[first_row.min(self.ny) * self.nx..]);
     }
 
+    /// [`Fft2::process_from_rows_with`] that leaves the spectrum transposed in `data` (`nx x ny`:
+    /// frequency `(ky, kx)` at `kx * ny + ky`), skipping the transpose back. A convolution
+    /// multiplies spectra pointwise, in any layout, and [`Fft2::process_transposed_to_rows`]
+    /// takes the product back: two of the four transposes of a convolution are saved.
+    /// `scratch` (as long as `data`) is exchanged with `data`.
+    pub fn process_from_rows_transposed(&self, data: &mut Vec<Complex64>, nonzero_rows: usize, scratch: &mut Vec<Complex64>) {
+        assert_eq!(data.len(), self.nx * self.ny);
+        assert_eq!(scratch.len(), data.len(), "scratch size");
+        self.transform_rows(&mut data[..nonzero_rows.min(self.ny) * self.nx]);
+        transpose(data, scratch, self.ny, self.nx);
+        self.transform_contiguous_columns(scratch);
+        std::mem::swap(data, scratch);
+    }
+
+    /// [`Fft2::process_to_rows_with`] of a spectrum laid out as
+    /// [`Fft2::process_from_rows_transposed`] leaves it: the result in `data` is row-major
+    /// (`ny x nx`), right in rows `first_row..` only; only those are transposed back.
+    /// `scratch` (as long as `data`) is exchanged with `data`.
+    pub fn process_transposed_to_rows(&self, data: &mut Vec<Complex64>, first_row: usize, scratch: &mut Vec<Complex64>) {
+        assert_eq!(data.len(), self.nx * self.ny);
+        assert_eq!(scratch.len(), data.len(), "scratch size");
+        let first_row = first_row.min(self.ny);
+        self.transform_contiguous_columns(data);
+        transpose_from(data, scratch, self.nx, self.ny, first_row);
+        self.transform_rows(&mut scratch[first_row * self.nx..]);
+        std::mem::swap(data, scratch);
+    }
+
+    /// Column transforms of a transposed array (`nx` contiguous columns of `ny`).
+    fn transform_contiguous_columns(&self, transposed: &mut [Complex64]) {
+        transposed.par_chunks_mut(self.ny).for_each_init(
+            || vec![Complex64::default(); self.cols.get_inplace_scratch_len()],
+            |scratch, col| self.cols.process_with_scratch(col, scratch),
+        );
+    }
+
     fn transform_rows(&self, rows: &mut [Complex64]) {
         rows.par_chunks_mut(self.nx).for_each_init(
             || vec![Complex64::default(); self.rows.get_inplace_scratch_len()],
@@ -64,20 +100,25 @@ impl Fft2 {
         let (nx, ny) = (self.nx, self.ny);
         assert_eq!(transposed.len(), nx * ny, "scratch size");
         transpose(data, transposed, ny, nx);
-        transposed.par_chunks_mut(ny).for_each_init(
-            || vec![Complex64::default(); self.cols.get_inplace_scratch_len()],
-            |scratch, col| self.cols.process_with_scratch(col, scratch),
-        );
+        self.transform_contiguous_columns(transposed);
         transpose(transposed, data, nx, ny);
     }
 }
 
 /// `dst (cols x rows) = src (rows x cols)^T`, in cache-sized blocks, rows of `dst` in parallel.
 pub fn transpose(src: &[Complex64], dst: &mut [Complex64], rows: usize, cols: usize) {
+    transpose_from(src, dst, rows, cols, 0);
+}
+
+/// [`transpose`] of columns `first_col..` of `src` only (rows `first_col..` of `dst`; the
+/// others are left as they were).
+fn transpose_from(src: &[Complex64], dst: &mut [Complex64], rows: usize, cols: usize, first_col: usize) {
     const B: usize = 16;
-    dst.par_chunks_mut(rows * B).enumerate().for_each(|(block, chunk)| {
+    assert_eq!(src.len(), rows * cols);
+    assert_eq!(dst.len(), rows * cols);
+    dst[first_col * rows..].par_chunks_mut(rows * B).enumerate().for_each(|(block, chunk)| {
         // `chunk` holds rows c0 .. c0+B of dst, i.e. columns c0 .. c0+B of src.
-        let c0 = block * B;
+        let c0 = first_col + block * B;
         let nc = chunk.len() / rows;
         for r0 in (0..rows).step_by(B) {
             for r in r0..(r0 + B).min(rows) {
@@ -132,6 +173,35 @@ mod tests {
             if k >= 7 * nx {
                 assert!((full[k] - to_rows[k]).norm() < 1e-12);
             }
+        }
+    }
+
+    #[test]
+    fn a_convolution_through_transposed_spectra_is_the_one_through_row_major_spectra() {
+        let (ny, nx) = (12, 10);
+        let image = |seed: f64| -> Vec<Complex64> {
+            (0..nx * ny).map(|k| if k < 5 * nx { Complex64::new((k as f64 * seed).sin(), 0.0) } else { Complex64::default() }).collect()
+        };
+        let (forward, inverse) = (Fft2::new(ny, nx, FftDirection::Forward), Fft2::new(ny, nx, FftDirection::Inverse));
+        let (mut x, mut kernel) = (image(0.37), image(0.91));
+        let mut x_t = x.clone();
+        let mut kernel_t = kernel.clone();
+        forward.process(&mut x);
+        forward.process(&mut kernel);
+        let mut scratch = vec![Complex64::default(); nx * ny];
+        forward.process_from_rows_transposed(&mut x_t, 5, &mut scratch);
+        forward.process_from_rows_transposed(&mut kernel_t, ny, &mut scratch);
+        for ky in 0..ny {
+            for kx in 0..nx {
+                assert!((x[ky * nx + kx] - x_t[kx * ny + ky]).norm() < 1e-12, "the transposed spectrum at ({ky}, {kx})");
+            }
+        }
+        x.iter_mut().zip(&kernel).for_each(|(a, k)| *a *= k);
+        x_t.iter_mut().zip(&kernel_t).for_each(|(a, k)| *a *= k);
+        inverse.process(&mut x);
+        inverse.process_transposed_to_rows(&mut x_t, 7, &mut scratch);
+        for k in 7 * nx..nx * ny {
+            assert!((x[k] - x_t[k]).norm() < 1e-10, "pixel {k}: {} against {}", x_t[k], x[k]);
         }
     }
 

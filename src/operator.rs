@@ -739,7 +739,8 @@ impl ImageGridder {
 /// once built its cost no longer depends on the number of visibilities.
 pub struct PsfConvolution {
     size: usize,
-    /// FFT of the 2N x 2N PSF, divided by (2N)^2 for the unnormalised inverse FFT.
+    /// FFT of the 2N x 2N PSF, divided by (2N)^2 for the unnormalised inverse FFT, transposed
+    /// as the image's spectrum is (`Fft2::process_from_rows_transposed`).
     kernel_hat: Vec<Complex64>,
     forward: Fft2,
     inverse: Fft2,
@@ -759,7 +760,7 @@ impl PsfConvolution {
         let inverse = Fft2::new(m, m, FftDirection::Inverse);
         let scale = 1.0 / (m * m) as f64;
         let mut kernel_hat: Vec<Complex64> = psf_2n.iter().map(|&p| Complex64::new(p * scale, 0.0)).collect();
-        forward.process(&mut kernel_hat);
+        forward.process_from_rows_transposed(&mut kernel_hat, m, &mut vec![Complex64::default(); m * m]);
         Ok(PsfConvolution { size, kernel_hat, forward, inverse, buffers: Default::default() })
     }
 
@@ -785,9 +786,9 @@ impl PsfConvolution {
             }
         });
         // The image fills the first N rows; the result is read from the last N.
-        self.forward.process_from_rows_with(padded, n, scratch);
+        self.forward.process_from_rows_transposed(padded, n, scratch);
         padded.par_iter_mut().zip(self.kernel_hat.par_iter()).for_each(|(a, k)| *a *= k);
-        self.inverse.process_to_rows_with(padded, n, scratch);
+        self.inverse.process_transposed_to_rows(padded, n, scratch);
         // Linear convolution with a kernel centred at (N, N): output pixel p sits at p + N.
         let mut out = vec![0.0; n * n];
         out.par_chunks_mut(n).enumerate().for_each(|(iy, row)| {

@@ -45,7 +45,8 @@ pub const TOLERANCE: f64 = 10.0;
 /// `D` as a Taylor series in `w` of the PSF convolution (see the module's documentation).
 pub struct WTaylor {
     size: usize,
-    /// FFTs of `R_0 ..= R_order`, each divided by `(2N)^2` for the unnormalised inverse FFT.
+    /// FFTs of `R_0 ..= R_order`, each divided by `(2N)^2` for the unnormalised inverse FFT,
+    /// transposed as the images' spectra are (`Fft2::process_from_rows_transposed`).
     kernel_hats: Vec<Vec<Complex64>>,
     /// `t = n - 1` per pixel.
     t: Vec<f64>,
@@ -102,7 +103,7 @@ impl WTaylor {
         let scale = 1.0 / (m * m) as f64;
         let hat = self.pool.install(|| {
             let mut hat: Vec<Complex64> = kernel.par_iter().map(|&k| Complex64::new(k * scale, 0.0)).collect();
-            self.forward.process(&mut hat);
+            self.forward.process_from_rows_transposed(&mut hat, m, &mut vec![Complex64::default(); m * m]);
             hat
         });
         self.kernel_hats.push(hat);
@@ -149,12 +150,13 @@ impl WTaylor {
                         row[ix] = Complex64::new(x[p] * power(p, re), b);
                     }
                 });
-                self.forward.process_from_rows_with(z, n, scratch);
+                self.forward.process_from_rows_transposed(z, n, scratch);
             }
             let spectra = &*spectra;
             // Per frequency: the spectra Y_b of the real images t^b x (from z at the frequency
             // and at its mirror), the sums S_a = sum_b (-1)^b / (a! b!) R_{a+b} Y_b, packed two
             // to an array for the inverse transforms (each S_a is the spectrum of a real image).
+            // The spectra are transposed (rows of kx); the mirror of (kx, ky) is found alike.
             let coefficient = |a: usize, b: usize| {
                 let sign = if b % 2 == 0 { 1.0 } else { -1.0 };
                 sign / (factorial(a) * factorial(b))
@@ -165,11 +167,11 @@ impl WTaylor {
                     row.push(chunk);
                 }
             }
-            rows.par_iter_mut().enumerate().for_each(|(ky, out)| {
-                let mirror_y = (m - ky) % m;
+            rows.par_iter_mut().enumerate().for_each(|(kx, out)| {
+                let mirror_x = (m - kx) % m;
                 let mut y = [Complex64::default(); MAX_ORDER + 1];
-                for kx in 0..m {
-                    let (i, j) = (ky * m + kx, mirror_y * m + (m - kx) % m);
+                for ky in 0..m {
+                    let (i, j) = (kx * m + ky, mirror_x * m + (m - ky) % m);
                     for (pair, z) in spectra.iter().enumerate() {
                         let (zi, zj) = (z[i], z[j].conj());
                         y[2 * pair] = 0.5 * (zi + zj);
@@ -186,14 +188,14 @@ impl WTaylor {
                             let s: Complex64 = (0..terms - a).map(|b| coefficient(a, b) * self.kernel_hats[a + b][i] * y[b]).sum();
                             packed += unit * s;
                         }
-                        row[kx] = packed;
+                        row[ky] = packed;
                     }
                 }
             });
             drop(rows);
             let mut result = vec![0.0; n * n];
             for (pair, s) in sums.iter_mut().enumerate() {
-                self.inverse.process_to_rows_with(s, n, scratch);
+                self.inverse.process_transposed_to_rows(s, n, scratch);
                 let (re, im) = (2 * pair, 2 * pair + 1);
                 // The linear convolution with kernels centred at (N, N): pixel p is at p + N.
                 result.par_chunks_mut(n).enumerate().for_each(|(iy, row)| {
