@@ -485,7 +485,16 @@ impl WToeplitzBuilder {
                 (kernels, psf_2n)
             }
         };
-        let planes = kernels.into_iter().enumerate().map(|(j, kernel_hat)| WPlane { w: (plan.first + j as i64) as f64 * plan.delta, kernel_hat }).collect();
+        // Transposed as the images' spectra are (`Fft2::process_from_rows_transposed`).
+        let planes = kernels
+            .into_iter()
+            .enumerate()
+            .map(|(j, kernel)| {
+                let mut kernel_hat = vec![0.0; m * m];
+                crate::fft2::transpose(&kernel, &mut kernel_hat, m, m);
+                WPlane { w: (plan.first + j as i64) as f64 * plan.delta, kernel_hat }
+            })
+            .collect();
         let t = pixel_t(geometry);
         Ok((WToeplitz { size: n, planes, t, forward, inverse, pool, taps: plan.taps.taps(), sigma: plan.taps.sigma() }, psf_2n))
     }
@@ -504,7 +513,7 @@ pub(crate) fn pixel_t(geometry: ImageGeometry) -> Vec<f64> {
 }
 
 /// One plane of [`WToeplitz`]: its `w` and the FFT of its kernel (real; divided by `(2N)^2`
-/// for the unnormalised inverse FFT).
+/// for the unnormalised inverse FFT; transposed as the images' spectra are).
 struct WPlane {
     w: f64,
     kernel_hat: Vec<f64>,
@@ -542,10 +551,15 @@ impl WToeplitz {
         self.planes.iter().map(|p| p.kernel_hat.len() * 8).sum()
     }
 
-    /// The kernels' FFTs, planes after one another (what [`WToeplitzBuilder::add_finished`]
-    /// takes).
+    /// The kernels' FFTs, row-major, planes after one another (what
+    /// [`WToeplitzBuilder::add_finished`] takes).
     pub fn kernels(&self) -> Vec<f64> {
-        self.planes.iter().flat_map(|p| p.kernel_hat.iter().copied()).collect()
+        let m = 2 * self.size;
+        let mut out = vec![0.0; self.planes.len() * m * m];
+        for (plane, kernel) in self.planes.iter().zip(out.chunks_exact_mut(m * m)) {
+            crate::fft2::transpose(&plane.kernel_hat, kernel, m, m);
+        }
+        out
     }
 
     /// Multiplies the operator by `kappa`.
@@ -560,6 +574,7 @@ impl WToeplitz {
         let mut out = vec![0.0; n * n];
         self.pool.install(|| {
             let mut z = vec![Complex64::default(); m * m];
+            let mut scratch = vec![Complex64::default(); m * m];
             for plane in &self.planes {
                 let turn = 2.0 * PI * plane.w;
                 z.par_chunks_mut(m).enumerate().for_each(|(iy, row)| {
@@ -571,9 +586,9 @@ impl WToeplitz {
                         }
                     }
                 });
-                self.forward.process_from_rows(&mut z, n);
+                self.forward.process_from_rows_transposed(&mut z, n, &mut scratch);
                 z.par_iter_mut().zip(&plane.kernel_hat).for_each(|(c, k)| *c *= k);
-                self.inverse.process_to_rows(&mut z, n);
+                self.inverse.process_transposed_to_rows(&mut z, n, &mut scratch);
                 // The linear convolution with a kernel centred at (N, N): pixel p is at p + N.
                 out.par_chunks_mut(n).enumerate().for_each(|(iy, row)| {
                     let src = &z[(iy + n) * m + n..][..n];
@@ -681,6 +696,10 @@ mod tests {
             builder.add(&u[120..], &v[120..], &w[120..], &weight[120..]).unwrap();
             let (op, psf_2n) = builder.finish().unwrap();
             let error = relative(&op.apply(&x), &truth);
+            // Its kernels as exported to another process's builder give the same operator.
+            let mut other = WToeplitzBuilder::new(geometry, WToeplitzPlan::new(geometry, max_w, epsilon).unwrap(), max_uv, nufft, 2).unwrap();
+            other.add_finished(op.kernels(), psf_2n.clone()).unwrap();
+            assert_eq!(other.finish().unwrap().0.apply(&x), op.apply(&x), "epsilon {epsilon:e}: the exported kernels");
             assert!(error < 3.0 * epsilon, "epsilon {epsilon:e}: {error:e} ({} planes, {} taps)", op.planes(), op.taps());
             // The PSF is D of a delta; the 2N PSF the coplanar one.
             let ones: Vec<Complex64> = weight.iter().map(|&w| Complex64::new(w, 0.0)).collect();
