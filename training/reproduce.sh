@@ -6,7 +6,7 @@
 # resumes from its per-epoch checkpoint and adds networks to the series (--resume).
 # Environment: R2D2 (the engine binary, default target/release/r2d2), SERIES (default
 # models/<recipe>), TRAIN_ARGS (extra train.py options for every stage of the recipe, e.g.
-# "--device cpu"; a stage's network count: STAGE2_NETWORKS .. STAGE8_NETWORKS, or edit the recipe's ARGS),
+# "--device cpu"; a stage's network count: STAGE2_NETWORKS .. STAGE9_NETWORKS, or edit the recipe's ARGS),
 # NICE (default 19: training yields the CPU to interactive work), WORK (per-epoch checkpoints,
 # default <data>/work: give a retrain into another SERIES its own), THREADS (CPU threads of
 # training, default 2), EVAL=0 (skip the held-out evaluation, e.g. on a machine lent for training).
@@ -128,6 +128,12 @@ vla-r2d2-512|meerkat-r2d2-512)
         STAGE8_TRAIN=("$D/train-field-filling-sharp" "$D/train-field-filling-sharp-b" "$D/train-field-filling-sharp-c" "$D/train-field-filling-resolved" "$D/train-extended-resolved")
         STAGE8_VAL=("${STAGE6_VAL[@]}")
         STAGE8="$CROPS --epochs 8 --limit-train 520 --max-networks ${STAGE8_NETWORKS:-41}"
+        # Stage 9 (networks 42..): 120 more (seeds 320000..), 640 in all (training/README.md,
+        # "Stage 9").
+        make_once "$D/train-field-filling-sharp-d" "$R2D2" trainset --procedural 120 --sky field-filling --seed 320000 --truth-fwhm-px 1.2..1.8 $SIM
+        STAGE9_TRAIN=("$D/train-field-filling-sharp" "$D/train-field-filling-sharp-b" "$D/train-field-filling-sharp-c" "$D/train-field-filling-sharp-d" "$D/train-field-filling-resolved" "$D/train-extended-resolved")
+        STAGE9_VAL=("${STAGE6_VAL[@]}")
+        STAGE9="$CROPS --epochs 8 --limit-train 640 --max-networks ${STAGE9_NETWORKS:-43}"
     fi
     ;;
 vla-r2d2-512-broad)
@@ -216,13 +222,14 @@ case "$RECIPE" in
         sed -i 's/^normalisation: mean$/&\norientation_cycle: [identity, mirror_x, mirror_y, rotate_180, transpose, rotate_90, rotate_270, anti_transpose]/' "$SERIES/manifest.yaml"
     ;;
 esac
-# Stages 6-8 were trained after the cycle was written: their replay and validation run the series
+# Stages 6-9 were trained after the cycle was written: their replay and validation run the series
 # turned, as the engine runs it.
 if [ -n "${STAGE6:-}" ]; then
     train_stage 6
     train_stage 7
     train_stage 8
-    # Every network of stages 5-8 raised validation: the engine runs them all (its early stop
+    train_stage 9
+    # Every network of stages 5-9 raised validation: the engine runs them all (its early stop
     # would end most skies at network 28).
     N=$(python3 -c 'import sys, yaml; print(len(yaml.safe_load(open(sys.argv[1]))["networks"]))' "$SERIES/manifest.yaml")
     sed -i "s/^early_stop_from: [0-9]*/early_stop_from: $N/" "$SERIES/manifest.yaml"
