@@ -118,19 +118,24 @@ vla-r2d2-512|meerkat-r2d2-512)
         # skies was refused; on 400 (120 more sharp field-filling skies, seeds 280000.., and
         # 40 of stage 2's extended ones beside stage 6's sets) networks 38 and 39 raised
         # validation and a 40th was refused (training/README.md, "Stage 7").
-        make_once "$D/train-field-filling-sharp-b" "$R2D2" trainset --procedural 120 --sky field-filling --seed 280000 --truth-fwhm-px 1.2..1.8 $SIM
+        # more_sharp_skies NAME SEED: 120 more training skies like stage 6's sharp ones (seeds
+        # SEED..), train-field-filling-sharp-NAME.
+        more_sharp_skies() {
+            make_once "$D/train-field-filling-sharp-$1" "$R2D2" trainset --procedural 120 --sky field-filling --seed "$2" --truth-fwhm-px 1.2..1.8 $SIM
+        }
+        more_sharp_skies b 280000
         STAGE7_TRAIN=("$D/train-field-filling-sharp" "$D/train-field-filling-sharp-b" "$D/train-field-filling-resolved" "$D/train-extended-resolved")
         STAGE7_VAL=("${STAGE6_VAL[@]}")
         STAGE7="$CROPS --epochs 8 --limit-train 400 --max-networks ${STAGE7_NETWORKS:-39}"
         # Stage 8 (networks 40..): 120 more sharp field-filling skies (seeds 300000..), 520 in
         # all, the recipe otherwise stage 7's (training/README.md, "Stage 8").
-        make_once "$D/train-field-filling-sharp-c" "$R2D2" trainset --procedural 120 --sky field-filling --seed 300000 --truth-fwhm-px 1.2..1.8 $SIM
+        more_sharp_skies c 300000
         STAGE8_TRAIN=("$D/train-field-filling-sharp" "$D/train-field-filling-sharp-b" "$D/train-field-filling-sharp-c" "$D/train-field-filling-resolved" "$D/train-extended-resolved")
         STAGE8_VAL=("${STAGE6_VAL[@]}")
         STAGE8="$CROPS --epochs 8 --limit-train 520 --max-networks ${STAGE8_NETWORKS:-41}"
         # Stage 9 (networks 42..): 120 more (seeds 320000..), 640 in all (training/README.md,
         # "Stage 9").
-        make_once "$D/train-field-filling-sharp-d" "$R2D2" trainset --procedural 120 --sky field-filling --seed 320000 --truth-fwhm-px 1.2..1.8 $SIM
+        more_sharp_skies d 320000
         STAGE9_TRAIN=("$D/train-field-filling-sharp" "$D/train-field-filling-sharp-b" "$D/train-field-filling-sharp-c" "$D/train-field-filling-sharp-d" "$D/train-field-filling-resolved" "$D/train-extended-resolved")
         STAGE9_VAL=("${STAGE6_VAL[@]}")
         STAGE9="$CROPS --epochs 8 --limit-train 640 --max-networks ${STAGE9_NETWORKS:-43}"
