@@ -79,6 +79,21 @@ def check_orientations():
     check([series.orientation(m, i) for i in (1, 2, 3)] == ["mirror_x", "rotate_90", "mirror_x"], "network k takes entry (k-1) mod the cycle's length")
 
 
+def check_manifest_comments():
+    """Rewriting a manifest keeps the comments that end its key lines (the why of a hand-chosen
+    value), on the same key path, and takes no '#' inside quotes for one."""
+    with tempfile.TemporaryDirectory() as d:
+        with open(os.path.join(d, series.MANIFEST), "w") as f:
+            f.write("format: 1\nvalidity:\n  robust: [-1.0, 0.0]  # -1 measured\nnote: 'a  # b'\nrobust: 2\n")
+        m = series.read_manifest(d)
+        m["test"] = [{"iteration": 1}]
+        series.write_manifest(d, m)
+        text = open(os.path.join(d, series.MANIFEST)).read()
+        check("  robust: [-1.0, 0.0]  # -1 measured\n" in text, f"the nested key's comment is kept:\n{text}")
+        check("\nrobust: 2\n" in text, f"the same key elsewhere gets no comment:\n{text}")
+        check(series.read_manifest(d) == m, "the rewritten manifest reads back as written")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--r2d2", required=True, help="the engine's binary")
@@ -243,6 +258,7 @@ def main(argv=None):
         check(series.read_manifest(cdir)["provenance"]["networks"][3].get("loss_log_weight") == 0.1, "the log weight is recorded")
         check_crop_loss()
         check_orientations()
+        check_manifest_comments()
         crop_only = subprocess.run([py, os.path.join(HERE, "train.py"), "--train", f"{d}/train", "--val", f"{d}/val", "--series",
                                     f"{d}/series-bad", "--work", f"{d}/checkpoints-bad", "--crop", "32"], capture_output=True, text=True)
         check(crop_only.returncode != 0 and "--norm none" in crop_only.stderr, "--crop with instance normalisation is refused")

@@ -1,6 +1,7 @@
 """A series directory (models/<series>/): manifest (format 1, docs/models.md), ONNX
 networks, PyTorch weights for resuming, all written to a temporary name and renamed."""
 import os
+import re
 
 import onnx
 import onnxruntime as ort
@@ -53,13 +54,64 @@ class _PlainDumper(yaml.SafeDumper):
         return True
 
 
+_KEY_LINE = re.compile(r"^( *)([A-Za-z_][\w-]*):")
+
+
+def _key_lines(lines):
+    """(line index, key path) of each `key:` line of block-style YAML, the path from the
+    indentation of the keys above it."""
+    stack = []
+    for i, line in enumerate(lines):
+        m = _KEY_LINE.match(line)
+        if not m:
+            continue
+        indent = len(m.group(1))
+        while stack and stack[-1][0] >= indent:
+            stack.pop()
+        stack.append((indent, m.group(2)))
+        yield i, tuple(k for _, k in stack)
+
+
+def _trailing_comment(line):
+    """The `  # ...` ending a line, outside quotes, or None."""
+    quote = None
+    for j, c in enumerate(line):
+        if quote:
+            quote = None if c == quote else quote
+        elif c in "'\"":
+            quote = c
+        elif c == "#" and line[j - 2:j] == "  ":
+            return line[j - 2:]
+    return None
+
+
+def _carry_comments(old_text, new_text):
+    """The hand-written comments ending key lines of the manifest being replaced, put back
+    on the same keys of the new one: they say why a value was chosen, which a YAML dump drops."""
+    old_lines = old_text.split("\n")
+    comments = {}
+    for i, path in _key_lines(old_lines):
+        c = _trailing_comment(old_lines[i])
+        if c:
+            comments[path] = c
+    new_lines = new_text.split("\n")
+    for i, path in _key_lines(new_lines):
+        if path in comments and _trailing_comment(new_lines[i]) is None:
+            new_lines[i] += comments[path]
+    return "\n".join(new_lines)
+
+
 def write_manifest(series_dir, manifest):
     path = os.path.join(series_dir, MANIFEST)
     tmp = path + ".tmp"
+    text = ("# R2D2 series manifest (format 1). Written by training/train.py; test metrics by training/evaluate.py.\n"
+            + yaml.dump(manifest, Dumper=_PlainDumper, sort_keys=False, default_flow_style=None, width=120))
+    if os.path.exists(path):
+        with open(path) as f:
+            text = _carry_comments(f.read(), text)
     try:
         with open(tmp, "w") as f:
-            f.write("# R2D2 series manifest (format 1). Written by training/train.py; test metrics by training/evaluate.py.\n")
-            yaml.dump(manifest, f, Dumper=_PlainDumper, sort_keys=False, default_flow_style=None, width=120)
+            f.write(text)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
