@@ -22,6 +22,10 @@ fn check(out: &Output) {
     );
 }
 
+fn text(out: &Output) -> String {
+    format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr))
+}
+
 fn argmax(v: &[f64]) -> usize {
     v.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).unwrap().0
 }
@@ -57,6 +61,18 @@ fn simulate_then_dirty_writes_wsclean_style_products() {
     let corr: f64 = sky.data.iter().zip(&dirty.data).map(|(a, b)| a * b).sum::<f64>()
         / (sky.data.iter().map(|a| a * a).sum::<f64>().sqrt() * dirty.data.iter().map(|a| a * a).sum::<f64>().sqrt());
     assert!(corr > 0.3, "dirty image barely correlates with the sky: {corr}");
+    // A name whose product would be the input, or lie inside an input MS, is refused before
+    // anything is written; the input is as it was.
+    let table = std::fs::read(d.join("obs.parquet")).unwrap();
+    std::fs::copy(d.join("obs.parquet"), d.join("t-dirty.fits")).unwrap();
+    let out = r2d2(&["dirty", "t-dirty.fits", "--size", "128", "--name", "t"], d);
+    assert!(!out.status.success() && text(&out).contains("would replace or lie inside the input"), "{}", text(&out));
+    assert_eq!(std::fs::read(d.join("t-dirty.fits")).unwrap(), table, "the input is untouched");
+    assert!(!d.join("t-psf.fits").exists(), "nothing written");
+    check(&r2d2(&["convert", "obs.parquet", "obs.ms"], d));
+    let out = r2d2(&["dirty", "obs.ms", "--size", "128", "--name", "obs.ms/table"], d);
+    assert!(!out.status.success() && text(&out).contains("would replace or lie inside the input"), "{}", text(&out));
+    assert!(!d.join("obs.ms/table-dirty.fits").exists() && !d.join("obs.ms/table-psf.fits").exists(), "nothing written into the MS");
 
     let metrics = r2d2(&["metrics", "--truth", "obs.sky.fits", "--estimate", "obs.sky.fits", "--dr", "1000"], d);
     check(&metrics);

@@ -238,6 +238,15 @@ fn model_column_is_the_direct_dft_of_the_model() {
         assert_eq!(values[1], 0.0, "cross hands hold no model");
         assert!(values[2] > 0.0, "the model has components");
     }
+    // Rows outside the selection (field 1) hold zeros shaped as DATA, not empty cells, which
+    // casacore's getcol, WSClean and DP3 take for a broken column.
+    casacore(
+        dir.path(),
+        "obs.ms",
+        "t = table(ms)\nf = t.getcol('FIELD_ID')\nassert (f == 1).any()\n\
+         for r in range(t.nrows()):\n    m, d = t.getcell('MODEL_DATA', r), t.getcell('DATA', r)\n    assert m.shape == d.shape, (r, m.shape, d.shape)\n    assert f[r] == 0 or not m.any(), r\n\
+         assert t.getcol('MODEL_DATA').shape == t.getcol('DATA').shape",
+    );
     let names: Vec<String> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
     assert!(!names.iter().any(|n| n.contains("r2d2-model")), "no staging copy left, the stale one removed: {names:?}");
     // The data columns are untouched: read back, DATA still images as before.
@@ -528,10 +537,15 @@ fn model_writes_keep_what_the_user_and_other_programs_hold() {
     std::io::BufRead::read_line(&mut std::io::BufReader::new(child.stdout.take().unwrap()), &mut line).unwrap();
     assert_eq!(line.trim(), "locked");
     let out = image("obs.ms", "MODEL_DATA", "locked");
+    // Nor does a conversion replace the MS under it (its files would vanish from under the
+    // program that has them open).
+    let converted = r2d2(&["convert", "obs.parquet", "obs.ms"], d);
     child.kill().unwrap();
     child.wait().unwrap();
     let err = stderr(&out);
     assert!(!out.status.success() && err.contains("obs.ms") && err.contains(&format!("process {}", child.id())), "{err}");
+    let err = stderr(&converted);
+    assert!(!converted.status.success() && err.contains("cannot replace it") && err.contains(&format!("process {}", child.id())), "{err}");
     assert!(no_products("locked"));
     assert!(tree_digest(&d.join("obs.ms")) == before, "the MS is unchanged");
 

@@ -22,6 +22,17 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     r2d2_imaging::fits::check_output_prefix(&args.name).map_err(|m| r2d2_imaging::Error::parameter("--name", m))?;
+    // Refused before any work: a product that would replace the input, or land inside an
+    // input MeasurementSet, as `r2d2 image` refuses.
+    for suffix in ["dirty", "psf"] {
+        let target = PathBuf::from(format!("{}-{suffix}.fits", args.name));
+        if let Some(input) = r2d2_imaging::staging::destroys_input(&target, &[args.input.as_path()]) {
+            return Err(r2d2_imaging::Error::parameter(
+                "--name",
+                format!("the product {} would replace or lie inside the input {}: choose another output name", target.display(), input.display()),
+            ));
+        }
+    }
     let params = args.image.dirty_params()?;
     let (vis, meta, stats) = super::convert::read_input(&args.input, &args.ms)?;
     stats.log(&args.input);

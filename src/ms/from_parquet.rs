@@ -148,7 +148,11 @@ pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> 
         other => other,
     })?;
     if out.exists() {
+        // The MS being replaced is someone's: wait for another r2d2 writing it, refuse while
+        // another program has it open (its files would vanish under it).
+        let lock = super::lock::lock_for_replacement(out)?;
         exchange(&building.path, out)?;
+        drop(lock);
     } else {
         std::fs::rename(&building.path, out).map_err(|e| Error::io(out, e))?;
     }

@@ -24,9 +24,10 @@ use std::path::{Path, PathBuf};
 /// Columns that hold what was observed or calibrated: a model must never replace them.
 const DATA_COLUMNS: [&str; 2] = ["DATA", "CORRECTED_DATA"];
 
-/// Held while a model column is written: r2d2's turn on the MS and a write lock on its
-/// `table.lock`. Dropping it releases both.
-pub struct ModelWriteLock {
+/// Held while an MS is rewritten (a model column written, or the MS replaced by a
+/// conversion): r2d2's turn on the MS and a write lock on its `table.lock`. Dropping it
+/// releases both.
+pub struct MsWriteLock {
     /// The MS itself, links resolved: the directory that is exchanged.
     pub ms: PathBuf,
     // Field order is drop order: the table lock goes first, then the turn (its file removed).
@@ -65,7 +66,7 @@ pub fn check_model_write(ms: &Path, column: &str, data_column: &str) -> Result<(
         }
     }
     if let Some(pid) = foreign_lock(&real)? {
-        return Err(in_use(ms, column, pid));
+        return Err(in_use(ms, &format!("write `{column}`"), pid));
     }
     check_existing_column(ms, column)
 }
@@ -92,7 +93,18 @@ pub(super) fn check_takes_a_model(ms: &Path, desc: &casacure::tabledesc::ColumnD
 
 /// Takes r2d2's turn on the MS (waiting for another r2d2 writing it), then the write lock on
 /// its `table.lock` (refused while another program holds a lock there).
-pub fn lock_for_model_write(ms: &Path, column: &str) -> Result<ModelWriteLock> {
+pub fn lock_for_model_write(ms: &Path, column: &str) -> Result<MsWriteLock> {
+    lock_for_write(ms, &format!("write `{column}`"))
+}
+
+/// The same turn and lock for replacing the whole MS (`r2d2 convert` onto an existing MS):
+/// another r2d2 writing it is waited for, another program holding it open refuses.
+pub fn lock_for_replacement(ms: &Path) -> Result<MsWriteLock> {
+    lock_for_write(ms, "replace it")
+}
+
+/// `doing` completes "cannot ..." in the refusal.
+fn lock_for_write(ms: &Path, doing: &str) -> Result<MsWriteLock> {
     let real = real_path(ms)?;
     let name = real.file_name().ok_or_else(|| invalid(ms, "a MeasurementSet path must name a directory"))?;
     let turn_path = real.with_file_name(format!(".{}.r2d2-lock", name.to_string_lossy()));
@@ -101,7 +113,7 @@ pub fn lock_for_model_write(ms: &Path, column: &str) -> Result<ModelWriteLock> {
     let turn = loop {
         let turn = File::options().create(true).truncate(false).read(true).write(true).open(&turn_path).map_err(|e| Error::io(&turn_path, e))?;
         if !flock(&turn, false).map_err(|e| Error::io(&turn_path, e))? {
-            log::info!("{}: another r2d2 is writing a model into this MeasurementSet; waiting for it", ms.display());
+            log::info!("{}: another r2d2 is writing this MeasurementSet; waiting for it", ms.display());
             flock(&turn, true).map_err(|e| Error::io(&turn_path, e))?;
         }
         if same_open_file(&turn, &turn_path) {
@@ -110,10 +122,10 @@ pub fn lock_for_model_write(ms: &Path, column: &str) -> Result<ModelWriteLock> {
     };
     let turn = Turn { file: turn, path: turn_path };
     let table_lock = lock_table(&real).map_err(|e| match e {
-        LockRefused::Held(pid) => in_use(ms, column, pid),
+        LockRefused::Held(pid) => in_use(ms, doing, pid),
         LockRefused::Io(path, e) => Error::io(path, e),
     })?;
-    Ok(ModelWriteLock { ms: real, _table_lock: table_lock, _turn: turn })
+    Ok(MsWriteLock { ms: real, _table_lock: table_lock, _turn: turn })
 }
 
 /// r2d2's turn on an MS: the locked turn file, removed (before the lock goes) when done.
@@ -145,11 +157,11 @@ fn same_open_file(_file: &File, path: &Path) -> bool {
     path.exists()
 }
 
-fn in_use(ms: &Path, column: &str, pid: i32) -> Error {
+fn in_use(ms: &Path, doing: &str, pid: i32) -> Error {
     let who = if pid > 0 { format!("process {pid}") } else { "another program".to_string() };
     invalid(
         ms,
-        format!("cannot write `{column}`: the MeasurementSet is open in {who} (it holds a lock on table.lock, as CASA, python-casacore and DP3 do while a table is open); close it there and run again"),
+        format!("cannot {doing}: the MeasurementSet is open in {who} (it holds a lock on table.lock, as CASA, python-casacore and DP3 do while a table is open); close it there and run again"),
     )
 }
 
@@ -165,7 +177,13 @@ pub fn check_conversion_output(input: &Path, out: &Path, writes_ms: bool) -> Res
     let what = if meta.is_dir() { "a directory" } else if meta.file_type().is_symlink() { "a link" } else { "a file" };
     let inside = |name: &str| if meta.is_dir() { format!(", such as {}", out.join(name).display()) } else { String::new() };
     match (writes_ms, is_ms, meta.is_file()) {
-        (true, true, _) | (false, _, true) => Ok(()),
+        // Refused before the work while another program has it open (checked again, under
+        // the lock, when it is replaced).
+        (true, true, _) => match foreign_lock(&real_path(out)?)? {
+            Some(pid) => Err(in_use(out, "replace it", pid)),
+            None => Ok(()),
+        },
+        (false, _, true) => Ok(()),
         (true, false, _) => Err(invalid(out, format!("exists and is {what}, not a MeasurementSet: converting replaces only a MeasurementSet (give a new path{})", inside("obs.ms")))),
         (false, _, false) => Err(invalid(out, format!("exists and is {what}: the Parquet table is written as a file, replacing only a file (give a new path{})", inside("obs.parquet")))),
     }

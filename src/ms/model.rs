@@ -142,7 +142,8 @@ pub(super) fn exchange(a: &Path, b: &Path) -> Result<()> {
 }
 
 /// Predicts `target.model` into `target.column` of the MS `origin` names, for the rows and
-/// channels of its selection (other rows keep their contents; a new column has zeros there).
+/// channels of its selection (other rows keep their contents; a new column has zeros there,
+/// in every row).
 /// Correlations that carry Stokes I (XX and YY, RR and LL, or I) get the model's visibility,
 /// the others zero: the model is unpolarised.
 pub fn write_model_column(origin: &Origin, target: &ModelTarget<'_>) -> Result<ModelReport> {
@@ -247,6 +248,10 @@ fn predict_into(ms: &Path, origin: &Origin, target: &ModelTarget<'_>) -> Result<
         let field = cells(field_col, "FIELD_ID")?;
         let dd = cells(dd_col, "DATA_DESC_ID")?;
         let old = if existed { Some(cells(model_col, column)?) } else { None };
+        // A new column gets every row's cell, zeros outside the selection, shaped as the
+        // data column's there: readers (casacore's getcol, WSClean, DP3) take a row without
+        // a full cell for a broken column.
+        let data_shapes = if existed { None } else { Some(cells(data_col, &selection.data_column)?) };
         // The selected rows of the chunk, their window, and their samples' (u, v, w).
         let mut rows: Vec<(u64, &Window)> = Vec::new();
         let (mut us, mut vs, mut ws, mut inside) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
@@ -256,7 +261,17 @@ fn predict_into(ms: &Path, origin: &Origin, target: &ModelTarget<'_>) -> Result<
                 .and_then(|d| layout.windows.get(d))
                 .and_then(Option::as_ref)
                 .filter(|_| super::as_i64(&field[r]) == Some(layout.field_id as i64));
-            let Some(window) = window else { continue };
+            let Some(window) = window else {
+                if let Some(data) = &data_shapes {
+                    let row = start + r as u64;
+                    let RecordValue::Array(a) = &data[r] else {
+                        return Err(invalid(ms, format!("column `{}` at row {row}: expected an array cell", selection.data_column)));
+                    };
+                    let zeros = ArrayData::Complex(vec![(0.0f32, 0.0f32); a.shape.iter().map(|&d| d as usize).product()]);
+                    writable.putcell(model_col, row, RecordValue::Array(ArrayValue { shape: a.shape.clone(), data: zeros })).map_err(|e| write_error(ms, column, e))?;
+                }
+                continue;
+            };
             let [u, v, w] = super::array_f64(&uvw[r])
                 .and_then(|(_, values)| <[f64; 3]>::try_from(values).ok())
                 .ok_or_else(|| invalid(ms, format!("column `UVW` at row {}: expected 3 numbers", start + r as u64)))?;
