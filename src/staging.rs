@@ -81,6 +81,9 @@ pub const STAGED_PATH_EXTRA: usize = 1 + PREFIX.len() + 6 + 1 + NEW.len() + 1;
 /// Test hook only (tests/faults.rs): the process kills itself (SIGKILL) once this many renames
 /// of a commit are done (0: right after the journal is written), as a power cut would stop it.
 pub const KILL_AFTER_RENAMES: &str = "R2D2_TEST_KILL_AFTER_RENAMES";
+/// Test hook only (tests/ms.rs): the process kills itself when a model column is written and
+/// synced in the MS's copy, just before the copy replaces the MS.
+pub const KILL_BEFORE_MS_EXCHANGE: &str = "R2D2_TEST_KILL_BEFORE_MS_EXCHANGE";
 
 /// Products of one job, staged in a directory beside their final place and committed together.
 ///
@@ -349,8 +352,8 @@ fn write_journal(staging: &Path, journal: &Journal) -> Result<()> {
     sync_dir(staging)
 }
 
-/// The test hook's kill: no destructor, no cleanup, as SIGKILL from outside.
-fn kill_this_process() -> ! {
+/// The test hooks' kill: no destructor, no cleanup, as SIGKILL from outside.
+pub(crate) fn kill_this_process() -> ! {
     #[cfg(unix)]
     // SAFETY: kill(2) and getpid(2) take and return plain integers and touch no memory.
     unsafe {

@@ -520,6 +520,23 @@ fn an_address_space_limit_is_the_memory_budget() {
     let all = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     assert!(all.contains("status 1") && all.contains("4096 x 4096") && all.contains("address-space limit"), "{all}");
     assert!(!all.contains("panicked") && !all.contains("memory allocation"), "{all}");
+    // A FITS image the file holds (sparse: 2 GB declared, nothing on disk) but the budget
+    // cannot: `metrics` and `simulate --sky` refuse it naming the file.
+    let mut header = String::new();
+    for card in ["SIMPLE  =                    T", "BITPIX  =                  -32", "NAXIS   =                    2", "NAXIS1  =                24000", "NAXIS2  =                24000", "END"] {
+        header.push_str(&format!("{card:<80}"));
+    }
+    let header = format!("{header:<2880}");
+    let file = std::fs::File::create(d.join("big.fits")).unwrap();
+    std::io::Write::write_all(&mut &file, header.as_bytes()).unwrap();
+    file.set_len(2880 + (24000u64 * 24000 * 4).div_ceil(2880) * 2880).unwrap();
+    for args in ["metrics --truth big.fits --estimate big.fits", "simulate --sky big.fits --configs c --hours 0.25 --integration-s 300 --out sky.parquet"] {
+        let script = format!("ulimit -v 1000000; \"$R2D2\" {args}; echo status $?");
+        let out = Command::new("sh").arg("-c").arg(&script).env("R2D2", env!("CARGO_BIN_EXE_r2d2")).current_dir(d).output().unwrap();
+        let all = format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        assert!(all.contains("status 1") && all.contains("big.fits") && all.contains("24000 x 24000") && all.contains("address-space limit"), "{args}: {all}");
+        assert!(!all.contains("panicked") && !all.contains("memory allocation"), "{args}: {all}");
+    }
 }
 
 /// Address spaces too small for the run's threads and inference runtime end with an error

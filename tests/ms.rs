@@ -585,6 +585,46 @@ fn model_writes_keep_what_the_user_and_other_programs_hold() {
     assert!(left.is_empty(), "no lock or staging files left beside the MS: {left:?}");
 }
 
+/// A run killed while it writes the model column (the copy written, not yet exchanged) leaves
+/// the earlier run's products beside the earlier model: this run's products wait staged until
+/// the column is in place. The next run removes what the kill left and writes both.
+#[test]
+fn a_run_killed_while_writing_the_model_column_leaves_no_mixed_outputs() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d, 1);
+    make_ms(d, "obs.ms", &[]);
+    let run = |iterations: &str, kill: bool| {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_r2d2"));
+        command.args(["image", "obs.ms", "--size", "64", "--step", "clean", "--iterations", iterations, "--name", "img", "--model-column", "MODEL_DATA"]);
+        if kill {
+            command.env(r2d2_imaging::staging::KILL_BEFORE_MS_EXCHANGE, "1");
+        }
+        command.current_dir(d).output().unwrap()
+    };
+    check(&run("1", false));
+    let products = |d: &Path| -> Vec<(String, Vec<u8>)> {
+        let mut v: Vec<_> = std::fs::read_dir(d)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.file_name().unwrap().to_string_lossy().starts_with("img-"))
+            .map(|p| (p.display().to_string(), std::fs::read(&p).unwrap()))
+            .collect();
+        v.sort();
+        v
+    };
+    let (earlier, ms_before) = (products(d), tree_digest(&d.join("obs.ms")));
+    assert!(earlier.len() > 5, "the first run wrote its products");
+    let killed = run("5", true);
+    assert!(!killed.status.success(), "the hook killed the run: {}", text(&killed));
+    assert!(products(d) == earlier, "the earlier products stand, none of the killed run's");
+    assert!(tree_digest(&d.join("obs.ms")) == ms_before, "the MS is the earlier one");
+    check(&run("5", false));
+    assert!(products(d) != earlier && tree_digest(&d.join("obs.ms")) != ms_before, "the next run writes both");
+    let left: Vec<String> = std::fs::read_dir(d).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).filter(|n| n.starts_with('.')).collect();
+    assert!(left.is_empty(), "what the kill left is removed by the next run: {left:?}");
+}
+
 /// WSClean reads the engine's model back (its frequency and Stokes axes, CDELT3 included):
 /// `wsclean -predict` of `-model.fits` into MODEL_DATA agrees with the engine's own prediction
 /// of the same model (MODEL_R2D2) to WSClean's gridding accuracy.

@@ -169,6 +169,14 @@ fn stage_parameter_errors_point_at_their_yaml_line() {
         ("wrong type", good.replace("robust: 0", "robust: zero"), vec![], vec!["line 16, column 13", "stages.weights.robust", "expected f64"]),
         ("unknown key", good.replace("    kind: writer\n", "    kind: writer\n    options: {previews: true}\n"), vec![], vec!["line 32, column 5", "stages.write.options", "unknown field"]),
         ("unknown key in a flow mapping", small_pipeline(Some(&split_source)), vec![], vec!["line 8, column 30", "stages.source.split_by.windw", "`window`"]),
+        // A model column needs an MS to write into: a simulated (or Parquet) source has none,
+        // known when the pipeline is checked, not after imaging.
+        (
+            "model column without an MS",
+            good.replace("    kind: writer\n", "    kind: writer\n    model_column: MODEL_DATA\n"),
+            vec![],
+            vec!["line 32, column 5", "stages.write.model_column", "stage 'source' (kind 'simulate')", "reads no MeasurementSet"],
+        ),
         // The file is fine: the wrong value is the command line's.
         ("from --set", good.clone(), vec!["weights.scheme=brigs"], vec!["stages.weights.scheme", "--set weights.scheme=brigs", "`brigs`"]),
         ("nested from --set", good.clone(), vec!["source.hours=[1, x]"], vec!["stages.source.hours[1]", "--set source.hours=[1, x]"]),

@@ -300,6 +300,10 @@ pub fn read_image(path: &Path) -> Result<FitsImage> {
             format!("NAXIS1 x NAXIS2 = {nx} x {ny} pixels do not fit in the file's {} bytes", metadata.len()),
         ));
     }
+    // A size the file holds may still be more than the machine can: refused before the
+    // pixels (read as f64, beside cfitsio's buffer of the stored type) are allocated.
+    let needed = (nx * ny) as f64 * (8 + bytes_per_pixel(image_type)) as f64;
+    crate::limits::check_memory(needed, &format!("reading its {nx} x {ny} pixels")).map_err(|m| invalid(path, m))?;
     let data: Vec<f64> = hdu.read_image(&mut file).map_err(|e| cfitsio(path, "cannot read the pixels", e))?;
     if data.len() != nx * ny {
         return Err(invalid(

@@ -175,6 +175,9 @@ pub fn write_model_column(origin: &Origin, target: &ModelTarget<'_>) -> Result<M
     sync_tree(&staging.path)?;
     // Checks the written copy opens as a table before it replaces the original.
     open_table(&staging.path, "the MeasurementSet with the new model column").map_err(|e| retarget(e, &staging.path, ms))?;
+    if std::env::var_os(crate::staging::KILL_BEFORE_MS_EXCHANGE).is_some() {
+        crate::staging::kill_this_process();
+    }
     exchange(&staging.path, real)?;
     drop(lock);
     // `staging` now names the old MS: dropping it removes that.

@@ -191,6 +191,11 @@ impl<J: Payload> BuildContext<'_, J> {
         self.params_of(&self.upstream_stages)
     }
 
+    /// The stages whose jobs reach this one, as (name, kind), in file order.
+    pub fn upstream_stages(&self) -> Vec<(&str, &str)> {
+        self.upstream_stages.iter().map(|&i| &self.pipeline.stages[i]).map(|s| (s.name.as_str(), s.kind.as_str())).collect()
+    }
+
     /// The parameters of the stages of `P`'s kind that this one's jobs reach, in file order.
     pub fn downstream_params<P: StageParams>(&self) -> Result<Vec<P>> {
         self.params_of(&self.downstream_stages)

@@ -33,6 +33,9 @@ const fn step(name: &'static str, build: fn(&BuildContext<'_>) -> Result<Built>)
     KindFn { name, role: Role::Step, consumes: IMAGING, produces: &[Product::Model], consumes_also: None, passes_on: false, build }
 }
 
+/// Source kinds that read no MeasurementSet: their jobs have no model column to write.
+const FILE_SOURCES: &[&str] = &["simulate", "parquet", "arrow-ipc"];
+
 /// Every built-in kind.
 const BUILTIN: &[KindFn] = &[
     source("simulate", |c| {
@@ -105,7 +108,20 @@ const BUILTIN: &[KindFn] = &[
         produces: &[],
         consumes_also: None,
         passes_on: false,
-        build: |c| Ok(Built::Stage(Box::new(writer::WriterStage::new(c.params()?, c.pipeline, c.stage, several_jobs(c)?)?))),
+        build: |c| {
+            let config: params::WriterParams = c.params()?;
+            // A model column needs jobs read from an MS (`ms`, or in-memory batches that carry
+            // an MS's origin): a file source has no column to write, known before imaging.
+            if config.model_column.is_some() {
+                if let Some((name, kind)) = c.upstream_stages().into_iter().find(|(_, k)| FILE_SOURCES.contains(k)) {
+                    return Err(c.error(
+                        Some("model_column"),
+                        format!("the jobs come from stage '{name}' (kind '{kind}'), which reads no MeasurementSet: only an `ms` source has a column to write the model into"),
+                    ));
+                }
+            }
+            Ok(Built::Stage(Box::new(writer::WriterStage::new(config, c.pipeline, c.stage, several_jobs(c)?)?)))
+        },
     },
     KindFn {
         name: "products",

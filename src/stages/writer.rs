@@ -76,15 +76,19 @@ impl Stage<Job> for WriterStage {
         }
         self.written.insert(resolved, job.id.clone());
         let staged = JobProducts::from_job(&job, self.options.preview_dynamic_range)?.stage(&self.prefix, &self.options)?;
-        staged.commit(&job.id)?;
-        // After the products: they are right whatever becomes of the model column (checked
-        // writable before imaging), and a write that still fails says what it left.
+        // The model column is written while the products wait staged, and they are moved into
+        // place after it: a run killed during the (long) MS write leaves the earlier products
+        // beside the earlier model, never this run's products beside the earlier model. A
+        // write that fails (the column was checked writable before imaging) still delivers the
+        // products, which are right whatever became of the column, and says what it left.
         if let Some(column) = &self.model_column {
-            write_model(&job, column).inspect_err(|_| {
-                log::error!("job {}: the products were written at \"{prefix}\", but `{column}` was not (the MS is as it was)", job.id, prefix = self.prefix.replace("{job}", &job.id));
-            })?;
+            if let Err(e) = write_model(&job, column) {
+                staged.commit(&job.id)?;
+                log::error!("job {}: the products were written at \"{prefix}\", but `{column}` was not (no MeasurementSet was changed)", job.id, prefix = self.prefix.replace("{job}", &job.id));
+                return Err(e);
+            }
         }
-        Ok(())
+        staged.commit(&job.id)
     }
 }
 
