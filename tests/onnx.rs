@@ -178,6 +178,27 @@ fn a_diverging_series_is_stopped_and_its_best_iterate_kept() {
     assert!(model.iter().all(|&x| x == 0.0));
     assert_eq!(read(&d.join("div-residual.fits")), read(&d.join("div-dirty.fits")));
 
+    // The same networks as a series of two realisations (whose mean would be the image): the
+    // guard watches each realisation's own ratios, so the first one's divergence stops the
+    // job the same way, instead of a mean of diverged models with no word said.
+    let manifest = std::fs::read_to_string(d.join("models/landweber/manifest.yaml")).unwrap();
+    let (head, networks) = manifest.split_once("networks:\n").unwrap();
+    let list: Vec<&str> = networks.lines().map(|l| l.trim_start_matches("  - ").trim()).filter(|l| !l.is_empty()).collect();
+    std::fs::create_dir_all(d.join("models/landweber2r")).unwrap();
+    for name in &list {
+        std::fs::copy(d.join("models/landweber").join(name), d.join("models/landweber2r").join(name)).unwrap();
+    }
+    let realisations = format!("realisations: [[{0}], [{0}]]\n", list.join(", "));
+    std::fs::write(d.join("models/landweber2r/manifest.yaml"), format!("{head}{realisations}")).unwrap();
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/landweber2r", "--name", "div2r"], d);
+    check(&out);
+    let log = text(&out);
+    assert!(log.contains("diverged") && log.contains("kept the empty model"), "{log}");
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("div2r-metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["stop"]["reason"], "diverged", "{metrics}");
+    assert_eq!(metrics["stop"]["after_iteration"], 1, "{metrics}");
+    assert!(read(&d.join("div2r-model.fits")).iter().all(|&x| x == 0.0));
+
     // The guard off (and no early stop): all four networks run, and the ratio grows.
     let yaml = pipeline("models/landweber", "tract").replace("    kind: residual\n", "    kind: residual\n    divergence_guard: false\n    early_stop: false\n");
     std::fs::write(d.join("unguarded.yaml"), yaml).unwrap();

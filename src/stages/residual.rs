@@ -160,11 +160,26 @@ impl Stage<Job> for ResidualStage {
                 m.snr.map(|s| format!(", SNR {s:.2} dB")).unwrap_or_default()
             );
         }
-        // Realisations run their whole series: stopping one early would end the job (the
-        // ratios of several realisations' iterations are not one sequence either).
+        // Realisations run their whole series: the early stop would end the job (the ratios
+        // of several realisations' iterations are not one sequence either). The guard still
+        // watches each realisation's own sequence, and the mean's ratio: one realisation that
+        // diverges spoils the mean, and its ratio can fall again while the model grows what
+        // the data do not measure.
         let several = job.realisation > 0 || !job.realisation_models.is_empty();
         let ratios: Vec<f64> = job.metrics.iter().map(|m| m.residual_ratio).collect();
-        let reason = if several { None } else { self.stop_reason(&ratios, job.series_finished, job.early_stop_from) };
+        let reason = if several {
+            let current = job.metrics.last().and_then(|m| m.realisation);
+            let own: Vec<f64> = job.metrics.iter().filter(|m| m.realisation == current).map(|m| m.residual_ratio).collect();
+            let guarded = ResidualStage { config: ResidualParams { early_stop: false, ..self.config.clone() } };
+            guarded.stop_reason(&own, job.series_finished || current.is_none(), usize::MAX).filter(|_| self.config.divergence_guard)
+        } else {
+            self.stop_reason(&ratios, job.series_finished, job.early_stop_from)
+        };
+        if reason.is_some() && several {
+            // The job ends here, as one model: the realisations' models are dropped.
+            job.realisation_models.clear();
+            job.realisation = 0;
+        }
         match reason {
             Some(reason @ (StopReason::Diverged | StopReason::Rising)) if self.config.divergence_guard => fall_back(&mut job, reason)?,
             Some(reason) => {
