@@ -172,6 +172,9 @@ fn a_diverging_series_is_stopped_and_its_best_iterate_kept() {
     assert_eq!(metrics["stop"]["after_iteration"], 1, "{metrics}");
     assert_eq!(metrics["stop"]["kept_iteration"], 0, "{metrics}");
     assert!(metrics["iterations"][0]["residual_ratio"].as_f64().unwrap() > 1.0, "{metrics}");
+    // `final` is the model written (the empty one), not the last iteration run.
+    assert_eq!(metrics["final"]["iteration"], 0, "{metrics}");
+    assert_eq!(metrics["final"]["residual_ratio"], 1.0, "{metrics}");
     assert!(metrics["warnings"][0].as_str().unwrap().contains("diverged"), "{metrics}");
     // The products are the empty model's: model 0, residual = dirty image.
     let model = read(&d.join("div-model.fits"));
@@ -208,6 +211,8 @@ fn a_diverging_series_is_stopped_and_its_best_iterate_kept() {
     assert_eq!(ratios.len(), 4, "{metrics}");
     assert!(ratios[3] > ratios[0] && ratios[0] > 1.0, "{ratios:?}");
     assert!(metrics.get("stop").is_none(), "{metrics}");
+    assert_eq!(metrics["final"]["iteration"], 4, "without a stop `final` is the last iteration: {metrics}");
+    assert_eq!(metrics["final"]["residual_ratio"].as_f64(), Some(ratios[3]), "{metrics}");
 }
 
 /// A series whose first network overshoots (residual ratio above 1, from the empty model) and

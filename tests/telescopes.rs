@@ -95,6 +95,16 @@ fn a_telescope_without_a_series_is_imaged_by_clean_with_a_warning() {
     let metrics = std::fs::read_to_string(d.join("vla-metrics.json")).unwrap();
     assert!(!metrics.contains("built-in CLEAN"), "{metrics}");
     assert!(stderr(&out).contains("series 'vla-r2d2"), "{}", stderr(&out));
+    assert!(!metrics.contains("name no telescope"), "{metrics}");
+
+    // An MS that names no telescope (TELESCOPE_NAME emptied): a series runs, and the job says
+    // that nothing checked the data against the telescope it was trained for.
+    let blank = "import sys; from casacore.tables import table; t = table(sys.argv[1] + '/OBSERVATION', readonly=False, ack=False); t.putcol('TELESCOPE_NAME', [''] * t.nrows()); t.close()";
+    let out = Command::new("python3").arg("-c").arg(blank).arg(d.join("ska-pipeline.ms")).output().expect("python3 runs");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let (_, metrics) = image_pipeline_ms(d, "ska");
+    let warnings = metrics["warnings"].to_string();
+    assert!(warnings.contains("the data name no telescope") && warnings.contains("trained for vla"), "{warnings}");
 
     let out = r2d2(&["simulate", "--telescope", "alma", "--out", "x.parquet"], d);
     common::assert_fails_with(&out, "unknown telescope", &["vla, meerkat, ska-mid", "'alma'"]);

@@ -265,9 +265,24 @@ impl JobProducts {
         lines
     }
 
+    /// The figures of the model written: the last iteration's, or where the divergence guard
+    /// stopped the loop, the kept iterate's (the empty model's: ratio 1, SNR and logSNR 0 dB),
+    /// which `iterations` (every iteration run) does not end with.
+    fn final_figures(&self) -> Option<serde_json::Value> {
+        let last = self.metrics.last()?;
+        let kept = self.stop.as_ref().map_or(last.iteration, |s| s.kept_iteration);
+        if kept == 0 {
+            let zero = last.snr.map(|_| 0.0);
+            return Some(serde_json::json!({"iteration": 0, "residual_ratio": 1.0, "snr": zero, "logsnr": zero}));
+        }
+        let m = self.metrics.iter().rev().find(|m| m.iteration == kept && m.realisation.is_none()).unwrap_or(last);
+        Some(serde_json::json!({"iteration": m.iteration, "residual_ratio": m.residual_ratio, "snr": m.snr, "logsnr": m.logsnr}))
+    }
+
     /// `<prefix>-metrics.json`: the job, its per-iteration figures, seconds per stage, image
     /// and pixel size, the settings (weighting, step and series, data column), warnings, how
-    /// the loop stopped, what was observed and when, and the residual's noise.
+    /// the loop stopped, the figures of the model written (`final`), what was observed and
+    /// when, and the residual's noise.
     pub fn metrics_json(&self) -> serde_json::Value {
         let mut metrics = serde_json::json!({
             "job": self.id,
@@ -288,6 +303,9 @@ impl JobProducts {
         }
         if let Some(stop) = &self.stop {
             metrics["stop"] = serde_json::json!(stop);
+        }
+        if let Some(last) = self.final_figures() {
+            metrics["final"] = last;
         }
         if let Some(summary) = &self.realisations {
             metrics["realisations"] = summary.clone();

@@ -560,6 +560,24 @@ impl Series {
         problems
     }
 
+    /// How far `job`'s setting lies outside the declared domain: the super-resolution's
+    /// distance from its range relative to the range's nearer end, plus the Briggs robust's
+    /// distance from its range (0 inside, or where the domain declares neither).
+    pub fn domain_distance(&self, job: &ImagingSetup) -> f64 {
+        let Some(v) = self.manifest.as_ref().and_then(|m| m.validity.as_ref()) else { return 0.0 };
+        let beyond = |x: f64, [lo, hi]: [f64; 2]| (lo - x).max(x - hi).max(0.0);
+        let sr = match (v.superresolution, job.superresolution) {
+            (Some(range), Some(sr)) => beyond(sr, range) / range[0].max(f64::MIN_POSITIVE),
+            _ => 0.0,
+        };
+        let briggs = job.weighting.as_deref().is_some_and(|s| s.eq_ignore_ascii_case("briggs"));
+        let robust = match (v.robust, job.robust, briggs) {
+            (Some(range), Some(robust), true) => beyond(robust, range),
+            _ => 0.0,
+        };
+        sr + robust
+    }
+
     /// How wide a range of settings its declared domain spans: the super-resolution span plus
     /// the Briggs robust span (0 where it declares neither).
     pub fn domain_breadth(&self) -> f64 {
@@ -676,7 +694,14 @@ fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(Pa
     // A series of the data's telescope outside its settings before one of another telescope.
     let same_telescope = |s: &Series| setup.telescope.as_deref().map_or(true, |t| s.trained_for_telescope(t));
     let fits = trained.iter().find(|(_, s)| s.validity_problems(setup).is_empty());
-    if let Some((dir, s)) = fits.or(trained.iter().find(|(_, s)| same_telescope(s))).or(trained.first()) {
+    // Where none holds the setting: of the data's telescope, the one whose domain comes
+    // nearest to it (Briggs 1.5 is nearer the broad series' -1..1 than the narrow one's -1..0),
+    // the higher ranked of equals.
+    let nearest_domain = trained
+        .iter()
+        .filter(|(_, s)| same_telescope(s))
+        .min_by(|a, b| a.1.domain_distance(setup).total_cmp(&b.1.domain_distance(setup)));
+    if let Some((dir, s)) = fits.or(nearest_domain).or(trained.first()) {
         match trained.first() {
             Some((_, first)) if first.name != s.name => log::info!(
                 "series '{}' chosen for {size} x {size}: '{}' was not trained for this setting ({})",
@@ -876,6 +901,16 @@ mod tests {
         assert_eq!(pick(1024).0, root.path().join("vla-r2d2-512-broad"));
         // At its size the project's order stands.
         assert_eq!(pick(512).0, root.path().join("vla-r2d2-512"));
+        // A setting outside every domain at the size: the domain nearest to it, not the first
+        // ranked (Briggs 1.5 is 0.5 beyond the broad -1..1, 1.5 beyond the narrow -1..0). A
+        // series that declares no domain holds every setting: without it here.
+        std::fs::remove_dir_all(root.path().join("aaa-other-512")).unwrap();
+        let briggs = |robust| ImagingSetup { weighting: Some("briggs".into()), robust: Some(robust), ..ImagingSetup::default() };
+        assert_eq!(select_in(&roots, 512, &briggs(1.5)).unwrap().0, root.path().join("vla-r2d2-512-broad"));
+        assert_eq!(select_in(&roots, 512, &briggs(-2.0)).unwrap().0, root.path().join("vla-r2d2-512"), "equally near: the rank");
+        let sr = |sr| ImagingSetup { superresolution: Some(sr), ..ImagingSetup::default() };
+        assert_eq!(select_in(&roots, 512, &sr(3.0)).unwrap().0, root.path().join("vla-r2d2-512-broad"));
+        assert_eq!(select_in(&roots, 512, &sr(1.2)).unwrap().0, root.path().join("vla-r2d2-512"), "equally near: the rank");
         // A setting only the narrower domain holds: it goes first off-size too.
         let sr3 = ImagingSetup { superresolution: Some(3.0), ..ImagingSetup::default() };
         let narrow3 = std::fs::read_to_string(&narrow).unwrap().replace("[1.5, 2.0]", "[1.5, 3.0]");
