@@ -43,6 +43,8 @@ pub struct StepInput<'a> {
 pub struct JobDomain<'a> {
     pub telescope: &'a str,
     pub superresolution: Option<f64>,
+    /// The mean of the job's dirty image (a series normalises its first input by it).
+    pub dirty_mean: Option<f64>,
 }
 
 pub trait NetworkStep: Send {

@@ -386,6 +386,15 @@ impl NetworkStep for OnnxStep {
         };
         let problems = self.series.validity_problems(&setup);
         let mut warnings: Vec<String> = self.size_warning.iter().cloned().collect();
+        // The series normalises its first input by the dirty image's mean, positive in every
+        // observation it was trained on (their short baselines measure the total flux); a mean
+        // at or below 0 means the data lack them, and the networks see an input they never saw.
+        if let Some(m) = job.dirty_mean.filter(|m| *m <= 0.0) {
+            warnings.push(format!(
+                "the dirty image's mean is {m:.3e}, not positive: the data lack the short baselines of the observations series '{}' was trained on (its input is normalised by that mean), so its image may be wrong; `--step clean` does not depend on it",
+                self.series.name
+            ));
+        }
         // Data that name no telescope cannot be checked against the series' telescopes: the
         // job says so, since a series run on another telescope's data gives a confident image.
         let named = setup.telescope.as_deref().map(series::telescope_key).filter(|k| !k.is_empty() && k != crate::vis::UNKNOWN_TELESCOPE);
