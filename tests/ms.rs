@@ -519,9 +519,10 @@ fn model_writes_keep_what_the_user_and_other_programs_hold() {
     };
     let no_products = |name: &str| !std::fs::read_dir(d).unwrap().any(|e| e.unwrap().file_name().to_string_lossy().starts_with(name));
 
-    // The observed and calibrated data, and the column imaged, never take a model.
+    // The observed and calibrated data, the column imaged, and names other programs cannot
+    // use never take a model.
     let before = tree_digest(&d.join("obs.ms"));
-    for column in ["DATA", "data", "CORRECTED_DATA"] {
+    for column in ["DATA", "data", "CORRECTED_DATA", "MODEL DATA", "a/b", "MODEL_DATA;rm", "1MODEL"] {
         let out = image("obs.ms", column, "refused");
         let err = stderr(&out);
         assert!(!out.status.success() && err.contains("obs.ms") && err.contains("cannot write the model") && err.contains("MODEL_DATA"), "{column}: {err}");

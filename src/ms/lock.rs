@@ -50,8 +50,22 @@ pub fn check_model_column_name(ms: &Path, column: &str, data_column: &str) -> Re
     if DATA_COLUMNS.contains(&upper.as_str()) {
         return Err(invalid(ms, format!("cannot write the model into `{column}`: it holds observed or calibrated visibilities, which the model would replace (choose MODEL_DATA)")));
     }
+    // A name other programs can use: casacore's TaQL, CASA and DP3 take letters, digits and
+    // underscores, starting with a letter or an underscore.
+    let plain = column.chars().next().is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+        && column.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+        && column.len() <= MAX_COLUMN_NAME;
+    if !plain {
+        return Err(invalid(
+            ms,
+            format!("cannot write the model into `{column}`: expected a column name of letters, digits and underscores, starting with a letter, at most {MAX_COLUMN_NAME} characters (such as MODEL_DATA)"),
+        ));
+    }
     Ok(())
 }
+
+/// The longest model column name taken (casacore has no limit; no MS column comes near it).
+const MAX_COLUMN_NAME: usize = 64;
 
 /// Everything about a model write that can be checked before imaging: the column, that the MS
 /// and the directory holding it are writable, and that no other program has the MS open.

@@ -147,6 +147,11 @@ pub fn frequency_channels(lowest_hz: f64, count: usize, ratio: f64) -> Result<Ve
     if count == 1 {
         return Ok(vec![lowest_hz]);
     }
+    if ratio == 1.0 {
+        // Every channel would be the same frequency: the same samples several times over,
+        // which no MeasurementSet holds (one sample per channel).
+        return Err(Error::parameter("freq-ratio", format!("{count} frequencies at a ratio of 1 would all be {lowest_hz} Hz: give the band's highest/lowest frequency above 1 (e.g. --freq-ratio 1.2), or one frequency")));
+    }
     Ok((0..count).map(|k| lowest_hz * (1.0 + (ratio - 1.0) * k as f64 / (count - 1) as f64)).collect())
 }
 
@@ -497,6 +502,9 @@ mod tests {
     #[test]
     fn bad_parameters_are_named() {
         assert!(frequency_channels(1e9, 2, 0.5).unwrap_err().to_string().contains("freq-ratio"));
+        // Several channels at ratio 1 would be one frequency several times over.
+        let e = frequency_channels(1e9, 4, 1.0).unwrap_err().to_string();
+        assert!(e.contains("freq-ratio") && e.contains("4 frequencies"), "{e}");
         // Frequencies the readers would exclude: the simulated data would be unreadable.
         for hz in [1e15, 1e5, 0.0, f64::NAN] {
             let e = frequency_channels(hz, 1, 1.0).unwrap_err().to_string();
