@@ -84,13 +84,15 @@ def check_manifest_comments():
     value), on the same key path, and takes no '#' inside quotes for one."""
     with tempfile.TemporaryDirectory() as d:
         with open(os.path.join(d, series.MANIFEST), "w") as f:
-            f.write("format: 1\nvalidity:\n  robust: [-1.0, 0.0]  # -1 measured\nnote: 'a  # b'\nrobust: 2\n")
+            f.write("format: 1\nvalidity:\n  robust: [-1.0, 0.0]  # -1 measured\nnote: 'a  # b'\nrobust: 2\n"
+                    "items:\n- {limit: 1}\n- limit: 2  # one item's\n")
         m = series.read_manifest(d)
         m["test"] = [{"iteration": 1}]
         series.write_manifest(d, m)
         text = open(os.path.join(d, series.MANIFEST)).read()
         check("  robust: [-1.0, 0.0]  # -1 measured\n" in text, f"the nested key's comment is kept:\n{text}")
         check("\nrobust: 2\n" in text, f"the same key elsewhere gets no comment:\n{text}")
+        check("one item's" not in text, f"a list item's key is not carried to other items:\n{text}")
         check(series.read_manifest(d) == m, "the rewritten manifest reads back as written")
 
 

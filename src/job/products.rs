@@ -272,8 +272,7 @@ impl JobProducts {
         let last = self.metrics.last()?;
         let kept = self.stop.as_ref().map_or(last.iteration, |s| s.kept_iteration);
         if kept == 0 {
-            let zero = last.snr.map(|_| 0.0);
-            return Some(serde_json::json!({"iteration": 0, "residual_ratio": 1.0, "snr": zero, "logsnr": zero}));
+            return Some(serde_json::json!({"iteration": 0, "residual_ratio": 1.0, "snr": last.snr.map(|_| 0.0), "logsnr": last.logsnr.map(|_| 0.0)}));
         }
         let m = self.metrics.iter().rev().find(|m| m.iteration == kept && m.realisation.is_none()).unwrap_or(last);
         Some(serde_json::json!({"iteration": m.iteration, "residual_ratio": m.residual_ratio, "snr": m.snr, "logsnr": m.logsnr}))

@@ -150,7 +150,9 @@ pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> 
     if out.exists() {
         // The MS being replaced is someone's: wait for another r2d2 writing it, refuse while
         // another program has it open (its files would vanish under it).
-        let lock = super::lock::lock_for_replacement(out)?;
+        // A link is replaced itself, and the MS it named is left as it is: no lock needed.
+        let is_link = std::fs::symlink_metadata(out).is_ok_and(|m| m.file_type().is_symlink());
+        let lock = if is_link { None } else { Some(super::lock::lock_for_replacement(out)?) };
         exchange(&building.path, out)?;
         drop(lock);
     } else {

@@ -192,7 +192,8 @@ pub fn check_conversion_output(input: &Path, out: &Path, writes_ms: bool) -> Res
     let inside = |name: &str| if meta.is_dir() { format!(", such as {}", out.join(name).display()) } else { String::new() };
     match (writes_ms, is_ms, meta.is_file()) {
         // Refused before the work while another program has it open (checked again, under
-        // the lock, when it is replaced).
+        // the lock, when it is replaced); a link is replaced itself, its MS left alone.
+        (true, true, _) if meta.file_type().is_symlink() => Ok(()),
         (true, true, _) => match foreign_lock(&real_path(out)?)? {
             Some(pid) => Err(in_use(out, "replace it", pid)),
             None => Ok(()),

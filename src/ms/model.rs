@@ -254,7 +254,7 @@ fn predict_into(ms: &Path, origin: &Origin, target: &ModelTarget<'_>) -> Result<
         // A new column gets every row's cell, zeros outside the selection, shaped as the
         // data column's there: readers (casacore's getcol, WSClean, DP3) take a row without
         // a full cell for a broken column.
-        let data_shapes = if existed { None } else { Some(cells(data_col, &selection.data_column)?) };
+        let new_column = !existed;
         // The selected rows of the chunk, their window, and their samples' (u, v, w).
         let mut rows: Vec<(u64, &Window)> = Vec::new();
         let (mut us, mut vs, mut ws, mut inside) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
@@ -265,13 +265,20 @@ fn predict_into(ms: &Path, origin: &Origin, target: &ModelTarget<'_>) -> Result<
                 .and_then(Option::as_ref)
                 .filter(|_| super::as_i64(&field[r]) == Some(layout.field_id as i64));
             let Some(window) = window else {
-                if let Some(data) = &data_shapes {
+                if new_column {
+                    // One row's data cell at a time: only its shape is needed, and a chunk of
+                    // wide-band rows would be gigabytes.
                     let row = start + r as u64;
-                    let RecordValue::Array(a) = &data[r] else {
-                        return Err(invalid(ms, format!("column `{}` at row {row}: expected an array cell", selection.data_column)));
-                    };
-                    let zeros = ArrayData::Complex(vec![(0.0f32, 0.0f32); a.shape.iter().map(|&d| d as usize).product()]);
-                    writable.putcell(model_col, row, RecordValue::Array(ArrayValue { shape: a.shape.clone(), data: zeros })).map_err(|e| write_error(ms, column, e))?;
+                    let data = super::read_cells(&table, ms, data_col, &selection.data_column, row, 1)?;
+                    match data.first() {
+                        // An undefined data cell (no shape) stays undefined in the model too.
+                        Some(RecordValue::Array(a)) if !a.shape.is_empty() => {
+                            let zeros = ArrayData::Complex(vec![(0.0f32, 0.0f32); a.shape.iter().map(|&d| d as usize).product()]);
+                            writable.putcell(model_col, row, RecordValue::Array(ArrayValue { shape: a.shape.clone(), data: zeros })).map_err(|e| write_error(ms, column, e))?;
+                        }
+                        Some(RecordValue::Array(_)) => {}
+                        _ => return Err(invalid(ms, format!("column `{}` at row {row}: expected an array cell", selection.data_column))),
+                    }
                 }
                 continue;
             };

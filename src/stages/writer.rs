@@ -83,8 +83,9 @@ impl Stage<Job> for WriterStage {
         // products, which are right whatever became of the column, and says what it left.
         if let Some(column) = &self.model_column {
             if let Err(e) = write_model(&job, column) {
+                log::error!("job {}: `{column}` was not written: {e}", job.id);
                 staged.commit(&job.id)?;
-                log::error!("job {}: the products were written at \"{prefix}\", but `{column}` was not (no MeasurementSet was changed)", job.id, prefix = self.prefix.replace("{job}", &job.id));
+                log::error!("job {}: the products were written at \"{prefix}\", but `{column}` was not", job.id, prefix = self.prefix.replace("{job}", &job.id));
                 return Err(e);
             }
         }

@@ -88,17 +88,33 @@ def _trailing_comment(line):
 def _carry_comments(old_text, new_text):
     """The hand-written comments ending key lines of the manifest being replaced, put back
     on the same keys of the new one: they say why a value was chosen, which a YAML dump drops."""
+    def unique(lines):
+        # Keys of list items (`- key:`) and of wrapped flow mappings share paths: only a key
+        # line whose path is its own is carried.
+        paths = list(_key_lines(lines))
+        counts = {}
+        for _, path in paths:
+            counts[path] = counts.get(path, 0) + 1
+        return [(i, path) for i, path in paths if counts[path] == 1]
+
     old_lines = old_text.split("\n")
     comments = {}
-    for i, path in _key_lines(old_lines):
+    for i, path in unique(old_lines):
         c = _trailing_comment(old_lines[i])
         if c:
             comments[path] = c
     new_lines = new_text.split("\n")
-    for i, path in _key_lines(new_lines):
+    for i, path in unique(new_lines):
         if path in comments and _trailing_comment(new_lines[i]) is None:
             new_lines[i] += comments[path]
-    return "\n".join(new_lines)
+    carried = "\n".join(new_lines)
+    # A comment after a value the dump wrapped onto the next line would change that value:
+    # then the manifest is written without the comments.
+    try:
+        same = yaml.safe_load(carried) == yaml.safe_load(new_text)
+    except yaml.YAMLError:
+        same = False
+    return carried if same else new_text
 
 
 def write_manifest(series_dir, manifest):

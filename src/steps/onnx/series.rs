@@ -562,20 +562,23 @@ impl Series {
 
     /// How far `job`'s setting lies outside the declared domain: the super-resolution's
     /// distance from its range relative to the range's nearer end, plus the Briggs robust's
-    /// distance from its range (0 inside, or where the domain declares neither).
+    /// distance from its range (0 inside, or where the domain declares neither), plus 100 for
+    /// each problem no distance measures (telescope, weighting scheme): those come first.
     pub fn domain_distance(&self, job: &ImagingSetup) -> f64 {
         let Some(v) = self.manifest.as_ref().and_then(|m| m.validity.as_ref()) else { return 0.0 };
         let beyond = |x: f64, [lo, hi]: [f64; 2]| (lo - x).max(x - hi).max(0.0);
         let sr = match (v.superresolution, job.superresolution) {
-            (Some(range), Some(sr)) => beyond(sr, range) / range[0].max(f64::MIN_POSITIVE),
+            (Some([lo, hi]), Some(sr)) => beyond(sr, [lo, hi]) / (if sr > hi { hi } else { lo }).max(f64::MIN_POSITIVE),
             _ => 0.0,
         };
+        let unmeasured = ImagingSetup { superresolution: None, robust: None, ..job.clone() };
+        let mismatches = self.validity_problems(&unmeasured).len() as f64;
         let briggs = job.weighting.as_deref().is_some_and(|s| s.eq_ignore_ascii_case("briggs"));
         let robust = match (v.robust, job.robust, briggs) {
             (Some(range), Some(robust), true) => beyond(robust, range),
             _ => 0.0,
         };
-        sr + robust
+        100.0 * mismatches + sr + robust
     }
 
     /// How wide a range of settings its declared domain spans: the super-resolution span plus
@@ -657,8 +660,9 @@ pub const PROJECT_SERIES: [&str; 4] = ["vla-r2d2-512", "vla-r2d2-128", "vla-r2d2
 /// The series for `size x size` images when none is named, among the series found in
 /// [`model_dirs`]: of those whose manifest lists `size` in `image_sizes`, the first (the
 /// project's own first, then by name) whose declared domain holds `setup` (what the pipeline
-/// fixes: weighting, a super-resolution factor), else the first of them, whose domain warning
-/// the job then carries (one of the data's telescope before one of another); failing any, the
+/// fixes: weighting, a super-resolution factor), else the one of the data's telescope whose
+/// domain comes nearest to it ([`Series::domain_distance`]), else the first of them, whose
+/// domain warning the job then carries (one of the data's telescope before one of another); failing any, the
 /// series that allows other sizes and was trained nearest to `size` (by ratio, the data's
 /// telescope first), with a warning that it runs at a size it was not trained for.
 pub fn select_for(size: usize, setup: &ImagingSetup) -> Result<(PathBuf, Option<String>)> {
