@@ -170,8 +170,8 @@ impl Stage<Job> for ResidualStage {
         let reason = if several {
             let current = job.metrics.last().and_then(|m| m.realisation);
             let own: Vec<f64> = job.metrics.iter().filter(|m| m.realisation == current).map(|m| m.residual_ratio).collect();
-            let guarded = ResidualStage { config: ResidualParams { early_stop: false, ..self.config.clone() } };
-            guarded.stop_reason(&own, job.series_finished || current.is_none(), usize::MAX).filter(|_| self.config.divergence_guard)
+            // From no network on: the early stop never applies, the guard (where on) does.
+            self.stop_reason(&own, job.series_finished || current.is_none(), usize::MAX)
         } else {
             self.stop_reason(&ratios, job.series_finished, job.early_stop_from)
         };

@@ -397,8 +397,7 @@ impl NetworkStep for OnnxStep {
         }
         // Data that name no telescope cannot be checked against the series' telescopes: the
         // job says so, since a series run on another telescope's data gives a confident image.
-        let named = setup.telescope.as_deref().map(series::telescope_key).filter(|k| !k.is_empty() && k != crate::vis::UNKNOWN_TELESCOPE);
-        if named.is_none() && !self.series.telescopes().is_empty() {
+        if setup.telescope.as_deref().and_then(crate::vis::named_telescope).is_none() && !self.series.telescopes().is_empty() {
             warnings.push(format!(
                 "the data name no telescope, so nothing checks them against series '{}', trained for {}: from another telescope its image may be wrong (`--step clean` images any telescope's data)",
                 self.series.name,
