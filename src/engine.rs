@@ -453,7 +453,7 @@ fn observation_telescope(obs: &Observation) -> Option<String> {
 
 /// Components the CLEAN that `auto` falls back to may take: its stopping rule is the
 /// auto-threshold, as in WSClean's usual command (`-auto-threshold 3 -mgain 0.8`).
-const FALLBACK_CLEAN: CleanControls = CleanControls { niter: Some(1_000_000), gain: None, mgain: Some(0.8), auto_threshold: Some(3.0), threshold: None };
+const FALLBACK_CLEAN: CleanControls = CleanControls { niter: Some(1_000_000), gain: None, mgain: Some(crate::steps::clean::DEFAULT_MAJOR_GAIN), auto_threshold: Some(crate::steps::clean::DEFAULT_AUTO_THRESHOLD), threshold: None };
 
 /// `auto` where the data's telescope is known: among the series trained for the image size,
 /// one trained for that telescope (and the setting, where one is); where no series was
@@ -518,8 +518,8 @@ fn step_stage(params: &ImageParams, clean_because: Option<String>) -> Result<Sta
                     gain: c.gain.unwrap_or(defaults.gain),
                     threshold: c.threshold.unwrap_or(defaults.threshold),
                     max_components: c.niter,
-                    major_gain: c.mgain,
-                    auto_threshold: c.auto_threshold,
+                    major_gain: c.mgain.or(defaults.major_gain),
+                    auto_threshold: c.auto_threshold.or(defaults.auto_threshold),
                     chosen_because: clean_because,
                     ..defaults
                 },

@@ -153,8 +153,8 @@ fn broken_series_fail_before_imaging_and_leave_no_files() {
 }
 
 /// A series that makes the model explain the data worse than an empty image (Landweber with a
-/// gain far above 2 / ||D||) is stopped by the residual update's divergence guard: exit 0, a
-/// warning with the figures, the empty model kept (residual ratio 1), and the metrics file
+/// gain far above 2 / ||D||) is stopped by the residual update's divergence guard: exit status
+/// 3 (products written, model rejected), a warning with the figures, the empty model kept (residual ratio 1), and the metrics file
 /// says where and why. With the guard off, the same series runs to its end and diverges.
 #[test]
 fn a_diverging_series_is_stopped_and_its_best_iterate_kept() {
@@ -164,7 +164,7 @@ fn a_diverging_series_is_stopped_and_its_best_iterate_kept() {
     let reference = ReferenceOperator::new(&d.join("obs.parquet"));
     make_models(&d.join("models"), 40.0 * reference.landweber_gain());
     let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/landweber", "--name", "div"], d);
-    check(&out);
+    assert_rejected(&out);
     let log = text(&out);
     assert!(log.contains("diverged") && log.contains("above 1") && log.contains("kept the empty model"), "{log}");
     let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("div-metrics.json")).unwrap()).unwrap();
@@ -194,7 +194,7 @@ fn a_diverging_series_is_stopped_and_its_best_iterate_kept() {
     let realisations = format!("realisations: [[{0}], [{0}]]\n", list.join(", "));
     std::fs::write(d.join("models/landweber2r/manifest.yaml"), format!("{head}{realisations}")).unwrap();
     let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/landweber2r", "--name", "div2r"], d);
-    check(&out);
+    assert_rejected(&out);
     let log = text(&out);
     assert!(log.contains("diverged") && log.contains("kept the empty model"), "{log}");
     let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("div2r-metrics.json")).unwrap()).unwrap();
@@ -277,10 +277,15 @@ fn a_first_overshoot_that_the_series_recovers_from_is_not_divergence() {
 
     // Ending on the overshoot: divergence, the empty model kept.
     let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/overshoot", "--iterations", "1", "--name", "os1"], d);
-    check(&out);
+    assert_rejected(&out);
     let log = text(&out);
     assert!(log.contains("diverged") && log.contains("kept the empty model"), "{log}");
     let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("os1-metrics.json")).unwrap()).unwrap();
     assert_eq!(metrics["stop"]["reason"], "diverged", "{metrics}");
     assert!(read(&d.join("os1-model.fits")).iter().all(|&x| x == 0.0));
+}
+
+/// Products written and the step's model rejected by the divergence guard: exit status 3.
+fn assert_rejected(out: &std::process::Output) {
+    assert_eq!(out.status.code(), Some(3), "expected the rejected-model status: {}", text(out));
 }

@@ -34,10 +34,10 @@ pub struct Args {
     /// CLEAN: minor-cycle loop gain, as WSClean's -gain (default 0.1).
     #[arg(long)]
     gain: Option<f64>,
-    /// CLEAN: the fraction of the peak each major cycle cleans away, as WSClean's -mgain.
+    /// CLEAN: the fraction of the peak each major cycle cleans away, as WSClean's -mgain (default 0.8; 1: no limit).
     #[arg(long)]
     mgain: Option<f64>,
-    /// CLEAN: stop at this many times the residual's noise, as WSClean's -auto-threshold.
+    /// CLEAN: stop at this many times the residual's noise, as WSClean's -auto-threshold (default 3; 0: none).
     #[arg(long)]
     auto_threshold: Option<f64>,
     /// CLEAN: stop below this residual peak in Jy/beam, as WSClean's -threshold.
@@ -98,12 +98,16 @@ fn image_params(args: &Args) -> Result<ImageParams> {
     })
 }
 
-pub fn run(args: Args) -> Result<()> {
+/// Runs `r2d2 image`; true where the products were written but the divergence guard rejected
+/// the step's model (the job kept an earlier iterate or the empty model): the command then
+/// exits with [`super::EXIT_MODEL_REJECTED`], so that a pipeline step can tell.
+pub fn run(args: Args) -> Result<bool> {
     let params = image_params(&args)?;
     let onnx = matches!(params.step, StepChoice::Auto | StepChoice::Series(_)) && params.backend != BackendChoice::Tract;
     let (engine, _bar) = super::engine::engine(image_threads(&args)?, onnx)?;
     let engine = engine.with_cancel(super::run::cancel_on_ctrl_c());
-    engine.image(args.input.as_path(), &params).map(drop)
+    let products = engine.image(args.input.as_path(), &params)?;
+    Ok(products.stop.as_ref().is_some_and(|s| s.reason.is_rejection()))
 }
 
 /// `--threads`, checked.

@@ -97,6 +97,11 @@ enum Command {
     Info(info::Args),
 }
 
+/// Exit status of `r2d2 image` where the products were written but the divergence guard
+/// rejected the step's model (a series or CLEAN that diverged: the products hold the best
+/// earlier iterate, or the empty model). 1 is every error, where nothing was delivered.
+pub const EXIT_MODEL_REJECTED: u8 = 3;
+
 pub fn main() -> ExitCode {
     r2d2_imaging::allocator::release_large_blocks_promptly();
     // WSClean's spellings (`-size 512 512`, `-weight briggs 0`, ...) read as this engine's, or
@@ -137,6 +142,7 @@ pub fn main() -> ExitCode {
             env_logger::WriteStyle::Never
         })
         .init();
+    let mut model_rejected = false;
     let result = match cli.command {
         Command::Simulate(args) => simulate::run(args),
         Command::Dirty(args) => dirty::run(args),
@@ -144,13 +150,17 @@ pub fn main() -> ExitCode {
         Command::Metrics(args) => metrics::run(args),
         Command::Run(args) => run::run(args),
         Command::Validate(args) => run::validate(args),
-        Command::Image(args) => image::run(args),
+        Command::Image(args) => image::run(args).map(|rejected| model_rejected = rejected),
         Command::Convert(args) => convert::run(args),
         Command::Bench(cmd) => bench::run(cmd),
         Command::Models(args) => models::run(args),
         Command::Info(args) => info::run(args),
     };
     match result {
+        Ok(()) if model_rejected => {
+            eprintln!("r2d2: products written, but the step's model was rejected (see the warning above): exit status {EXIT_MODEL_REJECTED}");
+            ExitCode::from(EXIT_MODEL_REJECTED)
+        }
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             // The error and each of its causes, once.

@@ -59,7 +59,10 @@ pub struct HogbomResult {
 /// (`2N x 2N`, peak 1 at `(N, N)`), which covers the whole image wherever the peak is.
 ///
 /// Each cycle finds the peak, moves `gain * peak` into the model at that pixel and subtracts
-/// the correspondingly scaled PSF centred there. The subtraction and the next peak search are
+/// the correspondingly scaled PSF centred there. A peak above the one the call started from
+/// ends the call: the PSF no longer describes the residual (a PSF with sidelobes near 1 that
+/// varies over the field, as the w-term makes it on sparse real data, lets the image-plane
+/// residual grow without bound), and the next major cycle measures the true residual. The subtraction and the next peak search are
 /// done in one pass per row (the row is still in cache), keeping each row's maximum, so the
 /// cost is one sweep over the image per component.
 ///
@@ -90,6 +93,7 @@ fn clean<const POSITIVE: bool>(residual: &[f64], psf_2n: &[f64], n: usize, param
     // Largest score of each row (|r|, or r when POSITIVE); NEG_INFINITY for a row of NaN.
     let mut row_maxima: Vec<f64> = r.par_chunks(n).map(row_max::<POSITIVE>).collect();
     let mut n_components = 0;
+    let mut start = None;
     let last_peak = loop {
         // Ties go to the lowest row, then the lowest column: deterministic.
         let (py, best) = row_maxima
@@ -102,8 +106,9 @@ fn clean<const POSITIVE: bool>(residual: &[f64], psf_2n: &[f64], n: usize, param
             break f64::NAN;
         };
         let peak = row[px];
+        let start = *start.get_or_insert(best);
         // `!(>=)` also stops on NaN; a zero peak has nothing left to take.
-        if n_components >= params.max_components || !(best >= params.threshold) || best == 0.0 {
+        if n_components >= params.max_components || !(best >= params.threshold) || best == 0.0 || best > start {
             break peak;
         }
         let amount = params.gain * peak;

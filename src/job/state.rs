@@ -80,6 +80,13 @@ pub enum StopReason {
     Converged,
 }
 
+impl StopReason {
+    /// The divergence guard's stops: the step's model was rejected for an earlier iterate.
+    pub fn is_rejection(self) -> bool {
+        matches!(self, StopReason::Diverged | StopReason::Rising)
+    }
+}
+
 /// How and where the loop stopped early, and which iterate became the model.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct LoopStop {

@@ -114,9 +114,14 @@ fn fall_back(job: &mut Job, reason: StopReason) -> Result<()> {
         _ => format!("residual ratio rose at two consecutive iterations by more than {:.0} %, to {ratio:.4} after iteration {iteration}", 100.0 * (DIVERGING_RISE - 1.0)),
     };
     let kept_what = if kept == 0 { "the empty model (residual ratio 1)".to_string() } else { format!("the model of iteration {kept} (residual ratio {kept_ratio:.4})") };
-    job.warn(format!(
-        "the {step} step diverged ({what}); stopped and kept {kept_what}. The data are probably outside what the series was trained for (see the domain warnings and `r2d2 models`)"
-    ));
+    // CLEAN has no training domain: what makes it diverge is a minor cycle run past what its
+    // PSF describes.
+    let advice = if step == "clean" {
+        "CLEAN's minor cycles went further than its PSF describes the residual (a sparse uv-coverage, or the w-term over a wide field); a smaller --mgain, a higher --auto-threshold or fewer components per cycle keep each major cycle where the PSF holds"
+    } else {
+        "The data are probably outside what the series was trained for (see the domain warnings and `r2d2 models`)"
+    };
+    job.warn(format!("the {step} step diverged ({what}); stopped and kept {kept_what}. {advice}"));
     job.stop = Some(LoopStop { reason, after_iteration: iteration, kept_iteration: kept, kept_residual_ratio: kept_ratio });
     Ok(())
 }

@@ -8,6 +8,12 @@
 //! major cycle) and `threshold` (`-threshold`, Jy/beam). A minor cycle that has nothing left
 //! to clean leaves the model as it is, and the residual update's convergence rule ends the
 //! loop.
+//!
+//! The defaults are WSClean's usual command (`-mgain 0.8 -auto-threshold 3`), not its bare
+//! defaults: a minor cycle that runs far below what its shift-invariant PSF describes
+//! diverges once the w-term makes each position's response its own (measured on DP3's,
+//! OSKAR's and Birli's public MSs, where WSClean without a threshold diverges as well).
+//! `major_gain: 1` and `auto_threshold: 0` switch either off.
 
 use super::{NetworkStep, StepInput};
 use crate::deconv::{hogbom, HogbomParams};
@@ -35,12 +41,13 @@ pub struct CleanConfig {
     /// Components over all major cycles of a job (WSClean's `-niter`); none: no total limit.
     #[serde(default)]
     pub max_components: Option<usize>,
-    /// Fraction of the peak each minor cycle cleans away (WSClean's `-mgain`); none: only
-    /// `components_per_cycle` and the thresholds end a minor cycle.
-    #[serde(default)]
+    /// Fraction of the peak each minor cycle cleans away (WSClean's `-mgain`); 1 (or none):
+    /// only `components_per_cycle` and the thresholds end a minor cycle.
+    #[serde(default = "major_gain")]
     pub major_gain: Option<f64>,
-    /// Stop at this many times the residual's robust noise (WSClean's `-auto-threshold`).
-    #[serde(default)]
+    /// Stop at this many times the residual's robust noise (WSClean's `-auto-threshold`); 0
+    /// (or none): no noise threshold.
+    #[serde(default = "auto_threshold")]
     pub auto_threshold: Option<f64>,
     /// Why CLEAN runs where a series was asked for (`auto` found none trained for the data's
     /// telescope): every job carries it as a warning. Set by the engine.
@@ -57,11 +64,23 @@ impl Default for CleanConfig {
             major_cycles: cycles(),
             positive_only: false,
             max_components: None,
-            major_gain: None,
-            auto_threshold: None,
+            major_gain: major_gain(),
+            auto_threshold: auto_threshold(),
             chosen_because: None,
         }
     }
+}
+
+/// WSClean's usual `-mgain`.
+pub const DEFAULT_MAJOR_GAIN: f64 = 0.8;
+/// WSClean's usual `-auto-threshold`.
+pub const DEFAULT_AUTO_THRESHOLD: f64 = 3.0;
+
+fn major_gain() -> Option<f64> {
+    Some(DEFAULT_MAJOR_GAIN)
+}
+fn auto_threshold() -> Option<f64> {
+    Some(DEFAULT_AUTO_THRESHOLD)
 }
 
 fn gain() -> f64 {
@@ -178,10 +197,12 @@ mod tests {
     fn the_controls_mean_what_wsclean_means() {
         let (psf_2n, dirty, convolution) = problem();
         let config = |c: CleanConfig| CleanStep::new(c).unwrap();
+        // Each control alone: the others off.
+        let bare = CleanConfig { major_gain: None, auto_threshold: None, ..CleanConfig::default() };
         let components = |model: &[f64], before: &[f64]| model.iter().zip(before).filter(|(a, b)| a != b).count();
 
         // -niter 7 with 5 per cycle: 5 components, then 2, then none.
-        let mut step = config(CleanConfig { max_components: Some(7), components_per_cycle: 5, gain: 0.1, ..CleanConfig::default() });
+        let mut step = config(CleanConfig { max_components: Some(7), components_per_cycle: 5, gain: 0.1, ..bare.clone() });
         let m1 = cycle(&mut step, 1, &vec![0.0; N * N], &dirty, &psf_2n, &convolution);
         assert_eq!(*step.taken.get("job").unwrap(), 5);
         let r1: Vec<f64> = dirty.iter().zip(convolution.apply(&m1)).map(|(d, x)| d - x).collect();
@@ -195,7 +216,7 @@ mod tests {
         assert_eq!(*step.taken.get("job").unwrap(), 5);
 
         // -mgain 0.8: the minor cycle stops with the residual peak at about 0.2 of the start.
-        let mut step = config(CleanConfig { major_gain: Some(0.8), components_per_cycle: 100_000, gain: 0.1, ..CleanConfig::default() });
+        let mut step = config(CleanConfig { major_gain: Some(0.8), components_per_cycle: 100_000, gain: 0.1, ..bare.clone() });
         let m = cycle(&mut step, 1, &vec![0.0; N * N], &dirty, &psf_2n, &convolution);
         let r: Vec<f64> = dirty.iter().zip(convolution.apply(&m)).map(|(d, x)| d - x).collect();
         let ratio = peak(&r) / peak(&dirty);
@@ -204,16 +225,21 @@ mod tests {
         // -auto-threshold 3 on a residual with noise: nothing below 3 sigma is cleaned.
         let noisy: Vec<f64> = dirty.iter().enumerate().map(|(k, d)| d + 0.01 * ((k * 7919 % 1000) as f64 / 500.0 - 1.0)).collect();
         let sigma = crate::metrics::robust_sigma(&noisy);
-        let mut step = config(CleanConfig { auto_threshold: Some(3.0), components_per_cycle: 100_000, gain: 0.1, ..CleanConfig::default() });
+        let mut step = config(CleanConfig { auto_threshold: Some(3.0), components_per_cycle: 100_000, gain: 0.1, ..bare.clone() });
         let m = cycle(&mut step, 1, &vec![0.0; N * N], &noisy, &psf_2n, &convolution);
         let r: Vec<f64> = noisy.iter().zip(convolution.apply(&m)).map(|(d, x)| d - x).collect();
         assert!(peak(&r) < 3.0 * sigma * 1.001 && peak(&r) > 2.0 * sigma, "residual peak {} against 3 sigma {}", peak(&r), 3.0 * sigma);
 
         // -threshold 0.3 Jy/beam: the peak is cleaned to just below it, and no further.
-        let mut step = config(CleanConfig { threshold: 0.3, components_per_cycle: 100_000, gain: 0.1, ..CleanConfig::default() });
+        let mut step = config(CleanConfig { threshold: 0.3, components_per_cycle: 100_000, gain: 0.1, ..bare.clone() });
         let m = cycle(&mut step, 1, &vec![0.0; N * N], &dirty, &psf_2n, &convolution);
         let r: Vec<f64> = dirty.iter().zip(convolution.apply(&m)).map(|(d, x)| d - x).collect();
         assert!(peak(&r) < 0.3 && peak(&r) > 0.2, "{}", peak(&r));
+
+        // The defaults are WSClean's usual command.
+        assert_eq!((CleanConfig::default().major_gain, CleanConfig::default().auto_threshold), (Some(0.8), Some(3.0)));
+        let parsed: CleanConfig = serde_yaml::from_str("{gain: 0.1}").unwrap();
+        assert_eq!(parsed, CleanConfig::default());
 
         for bad in [CleanConfig { major_gain: Some(0.0), ..CleanConfig::default() }, CleanConfig { auto_threshold: Some(-1.0), ..CleanConfig::default() }, CleanConfig { threshold: f64::NAN, ..CleanConfig::default() }] {
             assert!(CleanStep::new(bad).is_err());
