@@ -82,16 +82,43 @@ pub fn check_model_write(ms: &Path, column: &str, data_column: &str) -> Result<(
     if let Some(pid) = foreign_lock(&real)? {
         return Err(in_use(ms, &format!("write `{column}`"), pid));
     }
-    check_existing_column(ms, column)
+    check_column_can_be_written(ms, column, data_column)
 }
 
-/// An existing column of that name must be a complex array column to take a model.
-fn check_existing_column(ms: &Path, column: &str) -> Result<()> {
+/// An existing column of that name must be a complex array column that casacure can write; a
+/// new one must be one the table can add. A layout casacure cannot write is refused here, not
+/// after the imaging.
+fn check_column_can_be_written(ms: &Path, column: &str, data_column: &str) -> Result<()> {
     let table = super::open_table(ms, "the MeasurementSet's main table")?;
-    match table.dat.desc.columns.iter().find(|c| c.name == column) {
-        Some(desc) => check_takes_a_model(ms, desc),
+    let columns = &table.dat.desc.columns;
+    let obstacle = match columns.iter().find(|c| c.name == column) {
+        Some(desc) => {
+            check_takes_a_model(ms, desc)?;
+            super::casacore(ms, &format!("cannot check that `{column}` can be written"), || casacure::table::write_array_column_obstacle(ms, column))?
+        }
+        None => {
+            // Without the data column the imaging fails first, naming it.
+            let Some(data) = columns.iter().find(|c| c.name == data_column) else { return Ok(()) };
+            let new = new_model_column(data, column);
+            super::casacore(ms, &format!("cannot check that `{column}` can be added"), || casacure::table::add_column_obstacle(ms, &new))?
+        }
+    };
+    match obstacle {
+        Some(why) => Err(invalid(ms, format!("cannot write `{column}`: {why}"))),
         None => Ok(()),
     }
+}
+
+/// The description of a new model column: shaped as the data column, complex, in a storage
+/// manager of its own so the existing data files are not rewritten.
+pub(super) fn new_model_column(data: &casacure::tabledesc::ColumnDesc, column: &str) -> casacure::tabledesc::ColumnDesc {
+    let mut new = data.clone();
+    new.name = column.to_string();
+    new.comment = "model visibilities predicted by r2d2".into();
+    new.data_type = casacure::record::DataType::Complex;
+    new.data_manager_type = "StandardStMan".into();
+    new.data_manager_group = format!("R2D2_{column}");
+    new
 }
 
 /// An existing column takes a model only if it is a complex array column (checked before

@@ -228,14 +228,11 @@ fn predict_into(ms: &Path, origin: &Origin, target: &ModelTarget<'_>) -> Result<
             (i, true)
         }
         None => {
-            // Shaped as the data column, in a storage manager of its own so the existing
-            // data files are not rewritten.
-            let mut new = desc[data_col].clone();
-            new.name = column.to_string();
-            new.comment = "model visibilities predicted by r2d2".into();
-            new.data_type = DataType::Complex;
-            new.data_manager_type = "StandardStMan".into();
-            new.data_manager_group = format!("R2D2_{column}");
+            // Checked before the imaging too; an MS changed since then fails here, naming why.
+            let new = super::lock::new_model_column(&desc[data_col], column);
+            if let Some(why) = super::casacore(ms, &format!("column `{column}`: adding"), || casacure::table::add_column_obstacle(ms, &new))? {
+                return Err(invalid(ms, format!("cannot write `{column}`: {why}")));
+            }
             writable.addcol(new);
             (names.len(), false)
         }

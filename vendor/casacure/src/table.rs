@@ -3747,12 +3747,20 @@ impl WritableTable {
     /// column per manager) groups that do not exist yet — each group becomes
     /// one new manager — and columns joining an existing StandardStMan group
     /// (killMS's `UVWDT`, a copy of UVW's descriptor), which rebuild that one
-    /// manager.
+    /// manager.  Big-endian tables too (r2d2 patch): the new managers take
+    /// the table's byte order.
     fn plan_add_columns(&self, dir: &std::path::Path, dat: &TableDat) -> Option<AddPlan> {
+        Self::plan_add_columns_to(&self.desc, dir, dat)
+    }
+
+    /// [`Self::plan_add_columns`] for the schema `desc` (r2d2 patch: also
+    /// asked before any write, by [`add_column_obstacle`]).
+    fn plan_add_columns_to(
+        desc: &crate::tabledesc::TableDesc,
+        dir: &std::path::Path,
+        dat: &TableDat,
+    ) -> Option<AddPlan> {
         use crate::columnset::DataManagerBlob;
-        if dat.header.big_endian {
-            return None;
-        }
         let n_disk = dat.desc.columns.len();
         let max_seq = dat
             .column_set
@@ -3761,7 +3769,16 @@ impl WritableTable {
             .map(|d| d.sequence_nr + 1)
             .max()
             .unwrap_or(0);
-        let mut next_seq = dat.column_set.seq_count.max(max_seq);
+        // r2d2 patch: also past every `table.fN*` file in the directory. A
+        // table whose managers were removed can keep their files (DP3's
+        // tNDPPP-generic.MS holds table.f8..f10 beside managers 0..7): a new
+        // manager numbered from the count (8 there) overwrote such a file and
+        // mixed its own with the others left there.
+        let mut next_seq = dat
+            .column_set
+            .seq_count
+            .max(max_seq)
+            .max(data_file_seq_end(dir));
         let seq_count_start = next_seq;
         let mut names: std::collections::HashSet<String> = get_dminfo(dir, dat)
             .ok()?
@@ -3769,8 +3786,8 @@ impl WritableTable {
             .map(|d| d.name)
             .collect();
         let mut dms: Vec<NewDm> = Vec::new();
-        for c in n_disk..self.desc.columns.len() {
-            let cd = &self.desc.columns[c];
+        for c in n_disk..desc.columns.len() {
+            let cd = &desc.columns[c];
             let supported = match cd.data_manager_type.as_str() {
                 "StandardStMan" | "TiledColumnStMan" | "TiledShapeStMan" => {
                     matches!(
@@ -3791,7 +3808,7 @@ impl WritableTable {
             let tiled = cd.data_manager_type.starts_with("Tiled");
             let key = dm_key(cd);
             // A group of an existing manager?
-            if let Some(i) = (0..n_disk).find(|&i| dm_key(&self.desc.columns[i]) == key) {
+            if let Some(i) = (0..n_disk).find(|&i| dm_key(&desc.columns[i]) == key) {
                 let seq = dat.column_set.columns[i].data_manager_seq;
                 let dm = dat
                     .column_set
@@ -3825,7 +3842,7 @@ impl WritableTable {
             // A group an earlier added column opened?
             if let Some(nd) = dms
                 .iter_mut()
-                .find(|d| d.replaces.is_none() && dm_key(&self.desc.columns[d.cols[0]]) == key)
+                .find(|d| d.replaces.is_none() && dm_key(&desc.columns[d.cols[0]]) == key)
             {
                 if tiled {
                     return None; // one array column per tiled manager
@@ -3931,6 +3948,12 @@ impl WritableTable {
         let nrow = self.rows;
         let n_disk = dat.desc.columns.len();
         let ncols = self.desc.columns.len();
+        // r2d2 patch: new managers are written in the table's byte order
+        // (DP3 and older casacore write big-endian tables; the add used to
+        // be refused for them, and the whole-table rewrite it fell back to
+        // cannot write an IncrementalStMan array column such as DP3's
+        // FLAG_CATEGORY).
+        let big_endian = dat.header.big_endian;
         let io = |path: &std::path::Path, e: std::io::Error| {
             WriteTableError::Storage(storage_error(path, e))
         };
@@ -3953,7 +3976,7 @@ impl WritableTable {
             let (blob, files) = match nd.type_name.as_str() {
                 "StandardStMan" => {
                     let (f0, f0i, spec) =
-                        build_ssm_data(false, nrow, &nd.name, &self.desc, values, &nd.cols)
+                        build_ssm_data(big_endian, nrow, &nd.name, &self.desc, values, &nd.cols)
                             .map_err(storage)?;
                     let mut files = vec![(format!("table.f{}", nd.seq), f0)];
                     if let Some(i) = f0i {
@@ -3962,8 +3985,9 @@ impl WritableTable {
                     (crate::columnset::write_standard_stman(&spec), files)
                 }
                 "IncrementalStMan" => {
-                    let f0 = build_ism_data(false, nrow, &nd.name, &self.desc, values, &nd.cols)
-                        .map_err(storage)?;
+                    let f0 =
+                        build_ism_data(big_endian, nrow, &nd.name, &self.desc, values, &nd.cols)
+                            .map_err(storage)?;
                     (
                         crate::ism::write_ism_blob(&nd.name),
                         vec![(format!("table.f{}", nd.seq), f0)],
@@ -3972,7 +3996,7 @@ impl WritableTable {
                 _ => {
                     let (hdr, tile, file_seq) = build_tsm_data(
                         &nd.type_name,
-                        false,
+                        big_endian,
                         nd.seq,
                         &nd.name,
                         &self.desc,
@@ -4342,7 +4366,7 @@ impl WritableTable {
                         }
                         if dm.type_name == "StandardStMan" {
                             let (f0, f0i, _spec) = build_ssm_data(
-                                false,
+                                dat.header.big_endian,
                                 nrow,
                                 &dm.type_name,
                                 &self.desc,
@@ -4361,7 +4385,7 @@ impl WritableTable {
                             }
                         } else {
                             let f0 = build_ism_data(
-                                false,
+                                dat.header.big_endian,
                                 nrow,
                                 &dm.type_name,
                                 &self.desc,
@@ -4398,7 +4422,7 @@ impl WritableTable {
                         all_vals[col] = self.materialize_col_from_disk(col, nrow)?;
                         let (hdr, tile, file_seq) = build_tsm_data(
                             &dm.type_name,
-                            false,
+                            dat.header.big_endian,
                             seq,
                             &dm.type_name,
                             &self.desc,
@@ -5030,6 +5054,26 @@ fn existing_dm_blobs(dat: &TableDat) -> Vec<crate::columnset::DmBlob> {
 
 /// The data manager a column asks for: its type and its group name (the
 /// type when no group is given), the key casacore matches managers on.
+/// One past the highest `N` of the `table.fN...` files in `dir` (0 when none).
+fn data_file_seq_end(dir: &std::path::Path) -> u32 {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    entries
+        .flatten()
+        .filter_map(|e| {
+            let name = e.file_name().into_string().ok()?;
+            let digits: String = name
+                .strip_prefix("table.f")?
+                .chars()
+                .take_while(char::is_ascii_digit)
+                .collect();
+            digits.parse::<u32>().ok()?.checked_add(1)
+        })
+        .max()
+        .unwrap_or(0)
+}
+
 fn dm_key(cd: &crate::tabledesc::ColumnDesc) -> (&str, &str) {
     let group = if cd.data_manager_group.is_empty() {
         cd.data_manager_type.as_str()
@@ -5060,6 +5104,113 @@ struct NewDm {
 struct AddPlan {
     dms: Vec<NewDm>,
     seq_count: u32,
+}
+
+/// r2d2 patch: why array cells cannot be written into the existing column
+/// `name` of the table in `dir`, or `None` when a [`WritableTable`] flush
+/// can write them (its manager patched or rebuilt in place, as
+/// `flush_preserving` does): asked before work whose result is to be
+/// written, so that it fails first.
+pub fn write_array_column_obstacle(
+    dir: &std::path::Path,
+    name: &str,
+) -> Result<Option<String>, TableDatError> {
+    let dat = parse_table_dat(&std::fs::read(dir.join("table.dat"))?)?;
+    let Some(c) = dat.desc.columns.iter().position(|cd| cd.name == name) else {
+        return Ok(Some(format!("there is no column {name}")));
+    };
+    let seq = dat.column_set.columns.get(c).map(|x| x.data_manager_seq);
+    let kind = dat
+        .column_set
+        .data_managers
+        .iter()
+        .find(|d| Some(d.sequence_nr) == seq)
+        .map_or("", |d| d.type_name.as_str());
+    Ok(match kind {
+        "StandardStMan" | "TiledColumnStMan" | "TiledShapeStMan" | "TiledCellStMan" => None,
+        // Its cells are encoded as scalars, or the manager rebuilt with
+        // scalar columns only.
+        "IncrementalStMan" => Some(format!(
+            "column {name} is stored by an IncrementalStMan, whose array columns cannot be written yet"
+        )),
+        "" => Some(format!("column {name} has no data manager")),
+        other => Some(format!(
+            "column {name} is stored by a {other}, which cannot be written"
+        )),
+    })
+}
+
+/// r2d2 patch: why the table in `dir` cannot take `column` as a new column,
+/// or `None` when a [`WritableTable`] flush can add it: asked before work
+/// whose result is to be written, so that it fails first.
+///
+/// The new column is added beside the existing data managers when
+/// [`WritableTable`] can plan it (their files untouched); otherwise the flush
+/// regenerates the whole table, which only the layouts `create_table` writes
+/// allow. The answer is that of the flush, not a guess: both use the same
+/// plan.
+pub fn add_column_obstacle(
+    dir: &std::path::Path,
+    column: &crate::tabledesc::ColumnDesc,
+) -> Result<Option<String>, TableDatError> {
+    let dat = parse_table_dat(&std::fs::read(dir.join("table.dat"))?)?;
+    let mut desc = dat.desc.clone();
+    desc.columns.push(column.clone());
+    if WritableTable::plan_add_columns_to(&desc, dir, &dat).is_some()
+        && !has_legacy_direct_arrays(dir, &dat)
+    {
+        return Ok(None);
+    }
+    // The whole-table rewrite: one manager per (type, group), as
+    // `create_table` makes them.
+    let mut groups: std::collections::BTreeMap<(&str, &str), Vec<&crate::tabledesc::ColumnDesc>> =
+        std::collections::BTreeMap::new();
+    for cd in &desc.columns {
+        groups.entry(dm_key(cd)).or_default().push(cd);
+    }
+    for ((kind, group), cols) in groups {
+        let obstacle = match kind {
+            "StandardStMan" => None,
+            "IncrementalStMan" => cols
+                .iter()
+                .find(|cd| {
+                    !matches!(cd.kind, crate::tabledesc::ColumnKind::Scalar(_))
+                        || cd.data_type == crate::record::DataType::String
+                })
+                .map(|cd| {
+                    format!(
+                        "column {} is an array or string column in the IncrementalStMan `{group}`, which rewriting the table cannot write yet",
+                        cd.name
+                    )
+                }),
+            "TiledColumnStMan" | "TiledShapeStMan" if cols.len() > 1 => Some(format!(
+                "the {kind} `{group}` holds {} columns, and rewriting the table writes one",
+                cols.len()
+            )),
+            "TiledColumnStMan" | "TiledShapeStMan" => None,
+            other => Some(format!(
+                "column {} is stored by a {other}, which rewriting the table cannot write",
+                cols[0].name
+            )),
+        };
+        if let Some(why) = obstacle {
+            return Ok(Some(format!(
+                "adding column {} needs the table rewritten, and {why}",
+                column.name
+            )));
+        }
+    }
+    if let Some(cd) = desc
+        .columns
+        .iter()
+        .find(|cd| default_cell_value(cd).is_none())
+    {
+        return Ok(Some(format!(
+            "adding column {} needs the table rewritten, and column {} has no default value to rewrite it with",
+            column.name, cd.name
+        )));
+    }
+    Ok(None)
 }
 
 /// Whether a StandardStMan data manager of the table holds a Direct array
