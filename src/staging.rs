@@ -66,6 +66,12 @@ pub fn destroys_input<'a>(output: &Path, inputs: &[&'a Path]) -> Option<&'a Path
 
 /// Name prefix of staging directories.
 const PREFIX: &str = ".r2d2-staging-";
+/// What follows `<prefix>-` in the name of every product staged here (`job::products` and
+/// `r2d2 dirty` write no others): a journal naming anything else was not written by a commit.
+pub const PRODUCT_SUFFIXES: &[&str] = &[
+    "dirty.fits", "dirty.png", "psf.fits", "psf.png", "model.fits", "model.png", "residual.fits", "residual.png", "image.fits", "image.png",
+    "uncertainty.fits", "uncertainty.png", "metrics.json", "metrics.parquet",
+];
 /// The commit journal, and the name it is written under before being renamed into place.
 const JOURNAL: &str = "journal.json";
 const JOURNAL_PART: &str = "journal.part";
@@ -113,6 +119,13 @@ enum Name {
 }
 
 impl Name {
+    fn bytes(&self) -> &[u8] {
+        match self {
+            Name::Text(text) => text.as_bytes(),
+            Name::Bytes(bytes) => bytes,
+        }
+    }
+
     fn of(path: &Path) -> Name {
         let name = path.file_name().expect("products have file names");
         match name.to_str() {
@@ -140,6 +153,42 @@ struct Journal {
     version: u32,
     products: Vec<Name>,
     retired: Vec<Name>,
+}
+
+impl Journal {
+    /// Refuses names a commit never writes: anything but plain file names (no separator, not
+    /// `.` or `..`, no NUL) of one prefix's products (`obs-dirty.fits`, `obs-psf.fits`, ...),
+    /// each once. Recovery acts on a journal only when it passes, so a journal planted in a
+    /// shared output directory cannot have files elsewhere, or other files here, removed or
+    /// overwritten. The message names the first offending name.
+    fn check_names(&self) -> std::result::Result<(), String> {
+        let mut stem: Option<&[u8]> = None;
+        let mut seen = std::collections::BTreeSet::new();
+        for name in self.products.iter().chain(&self.retired) {
+            let bytes = name.bytes();
+            let shown = String::from_utf8_lossy(bytes);
+            let plain = !bytes.is_empty()
+                && bytes != b"."
+                && bytes != b".."
+                && !bytes.contains(&0)
+                && !bytes.iter().any(|&b| b < 0x80 && std::path::is_separator(b as char));
+            if !plain {
+                return Err(format!("{shown:?} is not a plain file name (it holds a separator or NUL, or is empty, `.` or `..`)"));
+            }
+            let own = PRODUCT_SUFFIXES
+                .iter()
+                .filter_map(|suffix| bytes.strip_suffix(suffix.as_bytes())?.strip_suffix(b"-"))
+                .find(|own| !own.is_empty())
+                .ok_or_else(|| format!("{shown:?} is not the name of a product (<prefix>-dirty.fits, <prefix>-psf.fits, ...)"))?;
+            if *stem.get_or_insert(own) != own {
+                return Err(format!("{shown:?} is a product of another prefix than the journal's first name"));
+            }
+            if !seen.insert(bytes) {
+                return Err(format!("{shown:?} is named twice"));
+            }
+        }
+        Ok(())
+    }
 }
 
 /// The places a journal's renames involve, resolved against the directories.
@@ -278,6 +327,8 @@ impl Staging {
             products: moves.iter().map(|(_, to)| Name::of(to)).collect(),
             retired: self.retired.iter().map(|t| Name::of(t)).collect(),
         };
+        // A journal recovery would not act on is never written (only products are staged).
+        journal.check_names().map_err(|e| Error::input(&self.target_dir, format!("cannot commit these products: {e}")))?;
         let mut plan = Plan::new(&journal, &self.target_dir, &staging);
         // The caller's spelling of the targets (the same files), so that errors name them as
         // the caller did.
@@ -411,6 +462,10 @@ fn recover_one(dir: &Path, staging: &Path) {
             return;
         }
     };
+    if let Err(e) = journal.check_names() {
+        log::warn!("{}: the journal of an interrupted commit names files no commit writes ({e}); left as it is, nothing moved", staging.display());
+        return;
+    }
     let plan = Plan::new(&journal, dir, staging);
     let names = |paths: &mut dyn Iterator<Item = &PathBuf>| paths.map(|p| p.file_name().unwrap_or_default().to_string_lossy().into_owned()).collect::<Vec<_>>().join(", ");
     if plan.all_moved_in() {
@@ -420,6 +475,12 @@ fn recover_one(dir: &Path, staging: &Path) {
             names(&mut plan.products.iter().map(|(t, _)| t))
         );
         return remove("a commit rolled forward");
+    }
+    // Rolling back removes and replaces files of `dir`: only for a staging directory this
+    // user's runs made, whose files aside are files it moved there.
+    if let Err(e) = own_leftover(staging, &plan) {
+        log::warn!("{}: an interrupted commit, not rolled back: {e}; left as it is, nothing moved", staging.display());
+        return;
     }
     let restored = names(&mut plan.aside.iter().filter(|(_, kept)| exists(kept)).map(|(t, _)| t));
     let removed = names(&mut plan.products.iter().filter(|(t, staged)| !exists(staged) && exists(t)).map(|(t, _)| t));
@@ -440,6 +501,35 @@ fn recover_one(dir: &Path, staging: &Path) {
         if removed.is_empty() { "none" } else { &removed },
     );
     remove("a commit rolled back");
+}
+
+/// Whether a leftover staging directory is one a commit of this user left: owned by this
+/// user (staging directories are made with mode 0700), its `new/` and `earlier/` directories
+/// (not links to others), and each file aside a plain file, not a link or a directory.
+fn own_leftover(staging: &Path, plan: &Plan) -> std::result::Result<(), String> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::MetadataExt;
+        let owner = std::fs::symlink_metadata(staging).map_err(|e| e.to_string())?.uid();
+        // SAFETY: geteuid(2) takes nothing and cannot fail.
+        let me = unsafe { libc::geteuid() };
+        if owner != me {
+            return Err(format!("it belongs to another user (uid {owner}, this process runs as uid {me})"));
+        }
+    }
+    for sub in [NEW, EARLIER] {
+        match std::fs::symlink_metadata(staging.join(sub)) {
+            Ok(m) if !m.is_dir() => return Err(format!("its {sub} is not a directory")),
+            _ => {}
+        }
+    }
+    for (_, kept) in &plan.aside {
+        match std::fs::symlink_metadata(kept) {
+            Ok(m) if !m.is_file() => return Err(format!("{} is not a plain file", kept.display())),
+            _ => {}
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -602,6 +692,87 @@ mod tests {
         let names = ["x-dirty.fits", "x-metrics.json", "x-psf.fits"];
         let expected: Vec<(String, String)> = names.iter().map(|n| (n.to_string(), format!("new {n}"))).collect();
         assert_eq!(listing(dir.path()), expected);
+    }
+
+    /// Every file under `dir` (recursively, links not followed) and its contents, sorted.
+    fn tree(dir: &Path) -> Vec<(PathBuf, String)> {
+        let mut files = Vec::new();
+        for entry in std::fs::read_dir(dir).unwrap().flatten() {
+            let kind = entry.file_type().unwrap();
+            if kind.is_dir() {
+                files.extend(tree(&entry.path()));
+            } else if kind.is_symlink() {
+                files.push((entry.path(), format!("-> {}", std::fs::read_link(entry.path()).unwrap().display())));
+            } else {
+                files.push((entry.path(), std::fs::read_to_string(entry.path()).unwrap()));
+            }
+        }
+        files.sort();
+        files
+    }
+
+    #[cfg(unix)]
+    #[test]
+    fn a_planted_journal_moves_nothing_unless_it_names_one_prefixs_products_here() {
+        // Issue 56: names joined onto the output directory unchecked deleted and overwrote
+        // files anywhere; plain names overwrote any file of the directory.
+        let root = tempfile::tempdir().unwrap();
+        let out = root.path().join("out");
+        for (path, text) in [("victimdir/precious.txt", "precious"), ("precious2.txt", "precious2"), ("abs.txt", "abs"), ("elsewhere/0", "elsewhere")] {
+            std::fs::create_dir_all(root.path().join(path).parent().unwrap()).unwrap();
+            std::fs::write(root.path().join(path), text).unwrap();
+        }
+        std::fs::create_dir(&out).unwrap();
+        for name in ["notes.txt", "x-psf.fits", "y-psf.fits"] {
+            std::fs::write(out.join(name), format!("earlier {name}")).unwrap();
+        }
+        let absolute = root.path().join("abs.txt").display().to_string();
+        let cases: Vec<(Vec<&str>, Vec<&str>)> = vec![
+            (vec!["x-dirty.fits", "../victimdir/precious.txt"], vec!["../precious2.txt", &absolute]),
+            (vec!["x-dirty.fits"], vec!["x-psf.fits", "notes.txt"]),
+            (vec!["x-dirty.fits", "y-psf.fits"], vec![]),
+            (vec!["x-dirty.fits", "x-psf.fits", "x-psf.fits"], vec![]),
+            (vec!["x-dirty.fits", "x-psf.fits\u{0}"], vec![]),
+            (vec!["x-dirty.fits", "."], vec![]),
+            (vec!["-psf.fits"], vec![]),
+        ];
+        let before = tree(root.path());
+        for (k, (products, retired)) in cases.iter().enumerate() {
+            let planted = out.join(".r2d2-staging-planted");
+            std::fs::create_dir_all(planted.join("new")).unwrap();
+            std::fs::create_dir_all(planted.join("earlier")).unwrap();
+            std::fs::write(planted.join("new/x-dirty.fits"), "planted").unwrap();
+            for i in 0..4 {
+                std::fs::write(planted.join(format!("earlier/{i}")), format!("planted {i}")).unwrap();
+            }
+            let journal = serde_json::json!({"version": 1, "products": products, "retired": retired});
+            std::fs::write(planted.join(JOURNAL), journal.to_string()).unwrap();
+            let planted_tree = tree(&planted);
+            recover(&out).unwrap();
+            let after: Vec<_> = tree(root.path()).into_iter().filter(|(p, _)| !p.starts_with(&planted)).collect();
+            assert_eq!(after, before, "case {k} ({journal}): files outside the staging directory changed");
+            assert_eq!(tree(&planted), planted_tree, "case {k}: the planted directory is left as it is");
+            std::fs::remove_dir_all(&planted).unwrap();
+        }
+        // Good names, but `earlier/` a link to another directory: its files are not put back.
+        let planted = out.join(".r2d2-staging-linked");
+        std::fs::create_dir_all(planted.join("new")).unwrap();
+        std::fs::write(planted.join("new/x-dirty.fits"), "planted").unwrap();
+        std::os::unix::fs::symlink(root.path().join("elsewhere"), planted.join("earlier")).unwrap();
+        std::fs::write(planted.join(JOURNAL), r#"{"version": 1, "products": ["x-dirty.fits"], "retired": []}"#).unwrap();
+        recover(&out).unwrap();
+        let after: Vec<_> = tree(root.path()).into_iter().filter(|(p, _)| !p.starts_with(&planted)).collect();
+        assert_eq!(after, before, "a file of the directory `earlier` links to was moved");
+    }
+
+    #[test]
+    fn a_commit_writes_only_journals_that_recovery_acts_on() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut staging = Staging::new(dir.path()).unwrap();
+        std::fs::write(staging.file(dir.path().join("notes.txt")), "new").unwrap();
+        let e = staging.commit().unwrap_err().to_string();
+        assert!(e.contains("notes.txt") && e.contains("not the name of a product"), "{e}");
+        assert!(listing(dir.path()).is_empty(), "{:?}", listing(dir.path()));
     }
 
     #[test]

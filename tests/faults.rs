@@ -251,3 +251,36 @@ fn outputs_never_replace_or_delete_inputs() {
         assert_eq!(tree(d), before);
     }
 }
+
+/// A staging directory planted in a shared output directory (issue 56), its journal naming
+/// files outside it (`..`, an absolute path): the next run writing there leaves them alone,
+/// warns, and writes its own products.
+#[test]
+fn a_planted_staging_journal_changes_nothing_outside_the_run_s_products() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    std::fs::create_dir_all(d.join("victimdir")).unwrap();
+    for name in ["victimdir/precious.txt", "precious2.txt", "abs.txt"] {
+        std::fs::write(d.join(name), format!("the user's {name}")).unwrap();
+    }
+    let planted = d.join("out/.r2d2-staging-planted");
+    for name in ["new/x-dirty.fits", "earlier/2", "earlier/3"] {
+        std::fs::create_dir_all(planted.join(name).parent().unwrap()).unwrap();
+        std::fs::write(planted.join(name), "planted bytes").unwrap();
+    }
+    let journal = serde_json::json!({
+        "version": 1,
+        "products": ["x-dirty.fits", "../victimdir/precious.txt"],
+        "retired": ["../precious2.txt", d.join("abs.txt")],
+    });
+    std::fs::write(planted.join("journal.json"), journal.to_string()).unwrap();
+    let before: BTreeMap<String, Vec<u8>> = tree(d).into_iter().filter(|(name, _)| !name.starts_with("out/")).collect();
+    let out = r2d2(&["dirty", "obs.parquet", "--size", &SIZE.to_string(), "--name", "out/obs"], d);
+    check(&out);
+    let err = common::stderr(&out);
+    assert!(err.contains(".r2d2-staging-planted") && err.contains("left as it is") && err.contains("../victimdir/precious.txt"), "a warning names the journal: {err}");
+    let after: BTreeMap<String, Vec<u8>> = tree(d).into_iter().filter(|(name, _)| !name.starts_with("out/")).collect();
+    assert!(after == before, "files outside out/ changed: {:?}", after.keys().collect::<Vec<_>>());
+    assert!(d.join("out/obs-dirty.fits").exists() && d.join("out/obs-psf.fits").exists(), "the run's products are written");
+}

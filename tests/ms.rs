@@ -968,3 +968,137 @@ fn products_carry_object_date_weighting_and_history_from_the_ms() {
     let out = Command::new("python3").args(["-c", script]).current_dir(d).output().expect("python3 runs");
     assert!(out.status.success(), "{}", text(&out));
 }
+
+/// What a model write leaves unchanged in the MS stays as it was (issue 56): a link to a file
+/// outside the MS and a subtable linked from elsewhere stay links to the same places, a file
+/// hard-linked from outside keeps its link, and unchanged files and directories keep their
+/// modification times.
+#[cfg(unix)]
+#[test]
+fn a_model_write_keeps_the_links_and_times_of_what_it_does_not_change() {
+    use std::os::unix::fs::MetadataExt;
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d, 1);
+    make_ms(d, "obs.ms", &[]);
+    std::fs::write(d.join("notes.txt"), "the user's notes").unwrap();
+    std::os::unix::fs::symlink("../notes.txt", d.join("obs.ms/NOTES")).unwrap();
+    std::fs::rename(d.join("obs.ms/FIELD"), d.join("field-elsewhere")).unwrap();
+    std::os::unix::fs::symlink("../field-elsewhere", d.join("obs.ms/FIELD")).unwrap();
+    std::fs::hard_link(d.join("obs.ms/ANTENNA/table.dat"), d.join("antenna-table.dat")).unwrap();
+    // Times long past, on a subtable's files and on its directory (set last: setting a
+    // file's time changes nothing of its directory).
+    let old = std::time::SystemTime::UNIX_EPOCH + std::time::Duration::from_secs(1_000_000_000);
+    let set_old = |path: &Path| std::fs::File::open(path).unwrap().set_times(std::fs::FileTimes::new().set_modified(old)).unwrap();
+    for entry in std::fs::read_dir(d.join("obs.ms/ANTENNA")).unwrap() {
+        set_old(&entry.unwrap().path());
+    }
+    set_old(&d.join("obs.ms/ANTENNA"));
+    let args = ["image", "obs.ms", "--size", "64", "--step", "clean", "--iterations", "1", "--name", "img", "--model-column", "MODEL_DATA"];
+    check(&r2d2(&args, d));
+    assert!(colnames(d, "obs.ms").contains(&"MODEL_DATA".to_string()));
+    for (link, target) in [("obs.ms/NOTES", "../notes.txt"), ("obs.ms/FIELD", "../field-elsewhere")] {
+        let meta = std::fs::symlink_metadata(d.join(link)).unwrap();
+        assert!(meta.file_type().is_symlink(), "{link} is no longer a link");
+        assert_eq!(std::fs::read_link(d.join(link)).unwrap(), Path::new(target), "{link} points elsewhere");
+    }
+    let (inside, outside) = (std::fs::metadata(d.join("obs.ms/ANTENNA/table.dat")).unwrap(), std::fs::metadata(d.join("antenna-table.dat")).unwrap());
+    assert_eq!((inside.ino(), inside.nlink()), (outside.ino(), 2), "the hard link to ANTENNA/table.dat is split");
+    for entry in std::fs::read_dir(d.join("obs.ms/ANTENNA")).unwrap() {
+        let path = entry.unwrap().path();
+        assert_eq!(std::fs::metadata(&path).unwrap().modified().unwrap(), old, "{}: its modification time changed", path.display());
+    }
+    assert_eq!(std::fs::metadata(d.join("obs.ms/ANTENNA")).unwrap().modified().unwrap(), old, "ANTENNA/: its modification time changed");
+    // The MS reads as before through its linked subtable.
+    let after = dirty(d, "obs.ms", "after", &[]);
+    let before = dirty(d, "obs.parquet", "pq", &[]);
+    assert!(relative(&after, &before) < 1e-6);
+}
+
+/// Runs `r2d2 args` in `dir`, killing it after `seconds` (a hang fails the test, not the suite).
+fn run_within(args: &[&str], dir: &Path, seconds: u64) -> std::process::Output {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_r2d2"))
+        .args(args)
+        .current_dir(dir)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let start = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if start.elapsed().as_secs() > seconds {
+            child.kill().unwrap();
+            let out = child.wait_with_output().unwrap();
+            panic!("r2d2 {} hung ({seconds} s): {}", args.join(" "), text(&out));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    child.wait_with_output().unwrap()
+}
+
+/// A FIFO inside the MS, or a link there to one elsewhere (issue 56: the copy blocked opening
+/// it, after the imaging, for ever): refused before imaging, naming it, the MS unchanged.
+#[cfg(unix)]
+#[test]
+fn a_fifo_inside_the_ms_refuses_a_model_write_before_imaging() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d, 1);
+    make_ms(d, "obs.ms", &[]);
+    let mkfifo = |path: &str| assert!(Command::new("mkfifo").arg(path).current_dir(d).status().unwrap().success());
+    mkfifo("obs.ms/afifo");
+    mkfifo("elsewhere-fifo");
+    for (case, entry) in [("a FIFO", "obs.ms/afifo"), ("a link to a FIFO", "obs.ms/linked")] {
+        if entry == "obs.ms/linked" {
+            std::fs::remove_file(d.join("obs.ms/afifo")).unwrap();
+            std::os::unix::fs::symlink("../elsewhere-fifo", d.join(entry)).unwrap();
+        }
+        let before = tree_digest_except(&d.join("obs.ms"), entry);
+        let args = ["image", "obs.ms", "--size", "64", "--step", "clean", "--iterations", "2", "--name", "xo", "--model-column", "MODEL_DATA"];
+        let out = run_within(&args, d, 120);
+        common::assert_fails_with(&out, case, &[entry, "FIFO", "cannot write `MODEL_DATA`", "move it out"]);
+        let err = stderr(&out);
+        assert!(!err.contains("(field 0"), "{case}: refused after the data were read: {err}");
+        let left: Vec<String> = std::fs::read_dir(d).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).filter(|n| n.starts_with("xo") || n.starts_with('.')).collect();
+        assert!(left.is_empty(), "{case}: products or staging left: {left:?}");
+        assert!(tree_digest_except(&d.join("obs.ms"), entry) == before, "{case}: the MS changed");
+    }
+}
+
+/// [`tree_digest`] of everything but `skip` (a FIFO, which reading would block on).
+fn tree_digest_except(dir: &Path, skip: &str) -> Vec<(String, Vec<u8>)> {
+    let skip = Path::new(skip).file_name().unwrap().to_owned();
+    let mut out = Vec::new();
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.file_name() == Some(skip.as_os_str()) {
+            continue;
+        }
+        if path.is_dir() {
+            out.extend(tree_digest(&path));
+        } else if path.file_name().unwrap() != "table.lock" {
+            out.push((path.display().to_string(), std::fs::read(&path).unwrap()));
+        }
+    }
+    out.sort();
+    out
+}
+
+/// An MS whose name leaves no room for the lock and the copy made beside it (issue 56: found
+/// after the whole imaging): refused before imaging, saying why.
+#[test]
+fn an_ms_name_too_long_for_a_model_write_is_refused_before_imaging() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d, 1);
+    make_ms(d, "obs.ms", &[]);
+    let long = format!("{}.ms", "a".repeat(242));
+    std::fs::rename(d.join("obs.ms"), d.join(&long)).unwrap();
+    let args = ["image", &long, "--size", "64", "--step", "clean", "--iterations", "1", "--name", "long", "--model-column", "MODEL_DATA"];
+    let out = run_within(&args, d, 300);
+    common::assert_fails_with(&out, "a 245-byte MS name", &[&long, "cannot write `MODEL_DATA`", "245 bytes", "rename the MeasurementSet"]);
+    let err = stderr(&out);
+    assert!(!err.contains("(field 0"), "refused after the data were read: {err}");
+    let left: Vec<String> = std::fs::read_dir(d).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).filter(|n| n.starts_with("long") || n.starts_with('.')).collect();
+    assert!(left.is_empty(), "products or staging left: {left:?}");
+}

@@ -460,12 +460,10 @@ pub fn check_spares_inputs(prefix: &str, id: &str, inputs: &[&Path]) -> Result<(
 }
 
 /// Every product a writer makes for a prefix (`<prefix>-<suffix>`), to retire those of an
-/// earlier run that this one does not make.
+/// earlier run that this one does not make. The staging journal's recovery acts on these
+/// names only, so the list lives there.
 fn product_suffixes() -> Vec<String> {
-    let images = ["dirty", "psf", "model", "residual", "image", "uncertainty"];
-    let mut suffixes: Vec<String> = images.iter().flat_map(|i| [format!("{i}.fits"), format!("{i}.png")]).collect();
-    suffixes.extend(["metrics.json".to_string(), "metrics.parquet".to_string()]);
-    suffixes
+    crate::staging::PRODUCT_SUFFIXES.iter().map(|s| s.to_string()).collect()
 }
 
 /// The previews' dynamic range: the one given or known when it means something, else the

@@ -67,11 +67,51 @@ pub fn check_model_column_name(ms: &Path, column: &str, data_column: &str) -> Re
 /// The longest model column name taken (casacore has no limit; no MS column comes near it).
 const MAX_COLUMN_NAME: usize = 64;
 
+/// Bytes in one file name (NAME_MAX of Linux's and macOS's file systems).
+const NAME_MAX: usize = 255;
+/// What names the model write's copy of `NAME`: `.NAME.r2d2-model-PID` beside it.
+pub(super) const COPY_INFIX: &str = ".r2d2-model-";
+/// Digits of the longest pid: Linux's PID_MAX_LIMIT (4194304), elsewhere a u32's.
+const PID_DIGITS: usize = if cfg!(target_os = "linux") { 7 } else { 10 };
+/// Bytes the copy's name adds to the MS's: the dot, the infix and the longest pid.
+const COPY_NAME_EXTRA: usize = 1 + COPY_INFIX.len() + PID_DIGITS;
+/// What names r2d2's turn on `NAME`: `.NAME.r2d2-lock` beside it.
+const TURN_SUFFIX: &str = ".r2d2-lock";
+
+/// Refuses an MS whose name leaves no room for the files r2d2 makes beside it (`extra` bytes
+/// more than its name): found before any work, not when the lock or the copy is made.
+fn check_name_room(ms: &Path, real: &Path, doing: &str, extra: usize) -> Result<()> {
+    let name = real.file_name().map_or(0, |n| n.len());
+    if name + extra <= NAME_MAX {
+        return Ok(());
+    }
+    let linked = std::fs::symlink_metadata(ms).is_ok_and(|m| m.file_type().is_symlink());
+    let shown = if linked { format!(" (the MeasurementSet it links to, {})", real.display()) } else { String::new() };
+    Err(invalid(
+        ms,
+        format!(
+            "cannot {doing}: the MeasurementSet's name{shown} has {name} bytes, more than the {} allowed: the write works beside it in `.NAME{COPY_INFIX}PID` and `.NAME{TURN_SUFFIX}`, whose names must fit the file system's {NAME_MAX} bytes; rename the MeasurementSet",
+            NAME_MAX - extra
+        ),
+    ))
+}
+
 /// Everything about a model write that can be checked before imaging: the column, that the MS
-/// and the directory holding it are writable, and that no other program has the MS open.
+/// and the directory holding it are writable, that its name leaves room for the copy beside
+/// it, that it holds nothing the copy cannot copy (a FIFO), and that no other program has the
+/// MS open.
 pub fn check_model_write(ms: &Path, column: &str, data_column: &str) -> Result<()> {
     check_model_column_name(ms, column, data_column)?;
     let real = real_path(ms)?;
+    check_name_room(ms, &real, &format!("write `{column}`"), COPY_NAME_EXTRA)?;
+    super::copy::check_entries(&real).map_err(|e| match e {
+        // Named as the user named the MS, not by its resolved path.
+        Error::Ms(super::MsError::Invalid { path, message }) => {
+            let shown = path.strip_prefix(&real).map(|rest| ms.join(rest)).unwrap_or(path);
+            invalid(shown, format!("cannot write `{column}`: {}", message.replace(&real.display().to_string(), &ms.display().to_string())))
+        }
+        other => other,
+    })?;
     let parent = real.parent().unwrap_or(Path::new("/"));
     for dir in [real.as_path(), parent] {
         if !writable(dir) {
@@ -148,7 +188,8 @@ pub fn lock_for_replacement(ms: &Path) -> Result<MsWriteLock> {
 fn lock_for_write(ms: &Path, doing: &str) -> Result<MsWriteLock> {
     let real = real_path(ms)?;
     let name = real.file_name().ok_or_else(|| invalid(ms, "a MeasurementSet path must name a directory"))?;
-    let turn_path = real.with_file_name(format!(".{}.r2d2-lock", name.to_string_lossy()));
+    check_name_room(ms, &real, doing, 1 + TURN_SUFFIX.len())?;
+    let turn_path = real.with_file_name(format!(".{}{TURN_SUFFIX}", name.to_string_lossy()));
     // The turn file is removed by its holder when done (no litter beside the MS): a waiter
     // that wakes holding a removed file's lock tries again on the current one.
     let turn = loop {
@@ -349,6 +390,18 @@ mod tests {
         }
         check_model_column_name(ms, "MODEL_DATA", "DATA").unwrap();
         check_model_column_name(ms, "MODEL_DATA", "CORRECTED_DATA").unwrap();
+    }
+
+    #[test]
+    fn ms_names_leave_room_for_what_a_model_write_makes_beside_them() {
+        let most = NAME_MAX - COPY_NAME_EXTRA;
+        let ms = |n: usize| PathBuf::from(format!("data/{}", "a".repeat(n)));
+        check_name_room(&ms(most), &ms(most), "write `M`", COPY_NAME_EXTRA).unwrap();
+        let e = check_name_room(&ms(most + 1), &ms(most + 1), "write `M`", COPY_NAME_EXTRA).unwrap_err().to_string();
+        assert!(e.contains(&format!("has {} bytes, more than the {most} allowed", most + 1)) && e.contains("cannot write `M`"), "{e}");
+        // The copy's name with the longest pid, and the turn's, fit at the limit.
+        assert!(format!(".{}{COPY_INFIX}{}", "a".repeat(most), "9".repeat(PID_DIGITS)).len() <= NAME_MAX);
+        assert!(format!(".{}{TURN_SUFFIX}", "a".repeat(most)).len() <= NAME_MAX);
     }
 
     #[test]

@@ -21,6 +21,7 @@
 //! so `split_by` can use them.
 
 mod convert;
+mod copy;
 mod error;
 mod from_parquet;
 mod lock;

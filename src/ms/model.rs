@@ -9,8 +9,9 @@
 //! interruption before the exchange leaves the original as it was (and at most the hidden copy,
 //! removed on failure; after a kill, by the next model write to the same MS). The price: free disk
 //! space for one copy of the MS while writing. A linked MS is updated where it lies (the link
-//! stays a link), its directories keep their modes, and other writers of the MS are waited
-//! for or refused (`lock.rs`).
+//! stays a link), its directories keep their modes, what the write leaves unchanged keeps its
+//! links, hard links and times (`copy.rs`), and other writers of the MS are waited for or
+//! refused (`lock.rs`).
 
 use super::{invalid, open_table, MsError, MsReader, Origin, TempDir, Window};
 use crate::nufft::NufftParams;
@@ -48,7 +49,7 @@ pub struct ModelReport {
 fn staging_prefix(ms: &Path) -> Result<(PathBuf, String)> {
     let name = ms.file_name().ok_or_else(|| invalid(ms, "a MeasurementSet path must name a directory"))?;
     let parent = ms.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    Ok((parent.to_path_buf(), format!(".{}.r2d2-model-", name.to_string_lossy())))
+    Ok((parent.to_path_buf(), format!(".{}{}", name.to_string_lossy(), super::lock::COPY_INFIX)))
 }
 
 fn staging_path(ms: &Path) -> Result<PathBuf> {
@@ -73,22 +74,6 @@ fn remove_stale_staging(ms: &Path) {
     }
 }
 
-/// Copies a directory tree (files and subdirectories; the tables have nothing else).
-fn copy_tree(from: &Path, to: &Path) -> Result<()> {
-    std::fs::create_dir(to).map_err(|e| Error::io(to, e))?;
-    for entry in std::fs::read_dir(from).map_err(|e| Error::io(from, e))? {
-        let entry = entry.map_err(|e| Error::io(from, e))?;
-        let kind = entry.file_type().map_err(|e| Error::io(entry.path(), e))?;
-        let target = to.join(entry.file_name());
-        if kind.is_dir() {
-            copy_tree(&entry.path(), &target)?;
-        } else {
-            std::fs::copy(entry.path(), &target).map_err(|e| Error::io(entry.path(), e))?;
-        }
-    }
-    Ok(())
-}
-
 /// Gives the directories of the copy the modes of the original's (files keep theirs through
 /// the copy), so that a rewritten MS is shared as the original was.
 fn copy_modes(from: &Path, to: &Path) -> Result<()> {
@@ -103,12 +88,14 @@ fn copy_modes(from: &Path, to: &Path) -> Result<()> {
 }
 
 /// fsync of every file and directory of a tree, so the exchange publishes complete data.
+/// Links are not followed: what they name is not part of the copy (and may hold it).
 fn sync_tree(dir: &Path) -> Result<()> {
     for entry in std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))? {
-        let path = entry.map_err(|e| Error::io(dir, e))?.path();
-        if path.is_dir() {
+        let entry = entry.map_err(|e| Error::io(dir, e))?;
+        let (path, kind) = (entry.path(), entry.file_type().map_err(|e| Error::io(entry.path(), e))?);
+        if kind.is_dir() {
             sync_tree(&path)?;
-        } else {
+        } else if kind.is_file() {
             std::fs::File::open(&path).and_then(|f| f.sync_all()).map_err(|e| Error::io(&path, e))?;
         }
     }
@@ -169,8 +156,12 @@ pub fn write_model_column(origin: &Origin, target: &ModelTarget<'_>) -> Result<M
     if staging.path.exists() {
         std::fs::remove_dir_all(&staging.path).map_err(|e| Error::io(&staging.path, e))?;
     }
-    copy_tree(real, &staging.path)?;
+    let started = std::time::SystemTime::now();
+    super::copy::copy_tree(real, &staging.path)?;
     let report = predict_into(&staging.path, origin, target).map_err(|e| retarget(e, &staging.path, ms))?;
+    // The write is done: what it left unchanged becomes the original's again (files linked,
+    // links made links, times kept).
+    super::copy::restore(real, &staging.path, started);
     copy_modes(real, &staging.path)?;
     sync_tree(&staging.path)?;
     // Checks the written copy opens as a table before it replaces the original.
