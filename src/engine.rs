@@ -11,7 +11,7 @@ use crate::vis::{MemoryInput, PartedObservation, TableFormat};
 #[cfg(feature = "ms")]
 use crate::params::MsParams;
 use crate::params::{
-    ArrowIpcParams, ArrowParams, CleanParams, Files, GridderParams, NativeParams, OnnxParams, ParquetParams, ProductsParams, ResidualParams,
+    ArrowIpcParams, ArrowParams, CleanParams, FinalCleanParams, Files, GridderParams, NativeParams, OnnxParams, ParquetParams, ProductsParams, ResidualParams,
     WeightingParams, WriterParams,
 };
 use crate::job::JobProducts;
@@ -293,6 +293,10 @@ pub struct ImageParams {
     /// CLEAN's stopping controls with WSClean's meanings (`-niter`, `-gain`, `-mgain`,
     /// `-auto-threshold`, `-threshold`); refused with another step.
     pub clean: CleanControls,
+    /// Series only: CLEAN major cycles on what the series' model leaves in the residual
+    /// (`kind: final_clean`), so that compact sources get the fluxes the data measure; default
+    /// true.
+    pub final_clean: bool,
     /// Series only: inference backend, prefetching of the next network, graph optimisation.
     pub backend: BackendChoice,
     pub prefetch: bool,
@@ -322,6 +326,7 @@ impl Default for ImageParams {
             hold_mb: crate::stages::params::DEFAULT_HOLD_MB,
             step: StepChoice::Auto,
             clean: CleanControls::default(),
+            final_clean: true,
             iterations: None,
             backend: BackendChoice::Auto,
             prefetch: true,
@@ -377,8 +382,15 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
         StageSpec::typed("weights", &weights)?.to("grid"),
         StageSpec::typed("grid", &grid)?.to("step"),
         step_stage(params, clean_because)?.to("update"),
-        StageSpec::typed("update", &ResidualParams::default())?.to("step").done("products"),
     ];
+    // A network series' model gets CLEAN's final cycles on its residual; CLEAN's and a
+    // plugin's end where they end.
+    if params.final_clean && matches!(params.step, StepChoice::Auto | StepChoice::Series(_)) {
+        stages.push(StageSpec::typed("update", &ResidualParams::default())?.to("step").done("final"));
+        stages.push(StageSpec::typed("final", &FinalCleanParams::default())?.to("products"));
+    } else {
+        stages.push(StageSpec::typed("update", &ResidualParams::default())?.to("step").done("products"));
+    }
     let products = StageSpec::typed("products", &ProductsParams::default())?;
     match &params.write {
         Some(prefix) => {
@@ -588,6 +600,7 @@ mod tests {
             "gridder" => same::<GridderParams>(ya, a, yb, b),
             "onnx" => same::<OnnxParams>(ya, a, yb, b),
             "residual" => same::<ResidualParams>(ya, a, yb, b),
+            "final_clean" => same::<FinalCleanParams>(ya, a, yb, b),
             "writer" => same::<WriterParams>(ya, a, yb, b),
             other => panic!("the test has no typed parameters for kind '{other}'"),
         }

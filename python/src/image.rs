@@ -16,7 +16,7 @@ use std::path::PathBuf;
 #[pyfunction]
 #[pyo3(signature = (obs, *, id, size, step, weighting, robust, superresolution, pixel_arcsec, truth, iterations, threads,
                     backend, prefetch, plugin_config, epsilon, oversampling, weighting_grid_factor, onnx_runtime, w_term,
-                    niter=None, gain=None, mgain=None, auto_threshold=None, threshold=None))]
+                    niter=None, gain=None, mgain=None, auto_threshold=None, threshold=None, final_clean=true))]
 #[allow(clippy::too_many_arguments)]
 pub fn image(
     py: Python<'_>,
@@ -44,6 +44,7 @@ pub fn image(
     mgain: Option<f64>,
     auto_threshold: Option<f64>,
     threshold: Option<f64>,
+    final_clean: bool,
 ) -> PyResult<Products> {
     let observation = if let Ok(parts) = obs.downcast::<crate::parts::Parts>() {
         Observation::Parts(parts.borrow().take()?)
@@ -67,6 +68,7 @@ pub fn image(
         clean: CleanControls { niter, gain, mgain, auto_threshold, threshold },
         backend: backend.parse::<BackendChoice>().map_err(crate::engine_error)?,
         prefetch,
+        final_clean,
         truth,
         ..ImageParams::default()
     };

@@ -53,6 +53,10 @@ pub struct Args {
     /// (one network resident instead of two; loading then adds to the wall time).
     #[arg(long)]
     no_prefetch: bool,
+    /// A series' model as the networks leave it: no final CLEAN cycles on its residual (which
+    /// otherwise give compact sources the fluxes the data measure).
+    #[arg(long)]
+    no_final_clean: bool,
     /// ONNX Runtime graph optimisation: auto (all for small networks, extended for large
     /// ones), extended (least memory) or all (faster inference: weights copied into a blocked
     /// layout, larger activations).
@@ -89,6 +93,7 @@ fn image_params(args: &Args) -> Result<ImageParams> {
         clean: CleanControls { niter: args.niter, gain: args.gain, mgain: args.mgain, auto_threshold: args.auto_threshold, threshold: args.threshold },
         backend: args.backend.parse()?,
         prefetch: !args.no_prefetch,
+        final_clean: !args.no_final_clean,
         graph_optimization: args.graph_optimization.parse()?,
         truth: args.truth.clone(),
         write: Some(args.name.clone()),

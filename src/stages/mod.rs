@@ -3,6 +3,7 @@
 //! engine's contracts (`crate::pipeline::registry`) say what a kind declares and how it is built.
 
 mod arrow_ipc;
+mod final_clean;
 mod gridder;
 mod memory;
 #[cfg(feature = "ms")]
@@ -100,6 +101,15 @@ const BUILTIN: &[KindFn] = &[
         consumes_also: Some(residual::consumes),
         passes_on: false,
         build: |c| Ok(Built::Stage(Box::new(residual::ResidualStage::new(c.params()?)?))),
+    },
+    KindFn {
+        name: "final_clean",
+        role: Role::Transform,
+        consumes: &[Product::Imaging, Product::Model],
+        produces: &[],
+        consumes_also: None,
+        passes_on: false,
+        build: |c| Ok(Built::Stage(Box::new(final_clean::FinalCleanStage::new(c.params()?)?))),
     },
     KindFn {
         name: "writer",

@@ -108,6 +108,7 @@ mod tests {
         reads("series: auto", OnnxParams::new("auto"));
         reads("{library: a.so, iterations: 3}", NativeParams::new("a.so", 3));
         reads("{}", ResidualParams::default());
+        reads("{}", FinalCleanParams::default());
         reads("{}", WriterParams::default());
         reads("{}", ProductsParams::default());
     }
@@ -126,6 +127,7 @@ mod tests {
             OnnxParams::KIND,
             NativeParams::KIND,
             ResidualParams::KIND,
+            FinalCleanParams::KIND,
             WriterParams::KIND,
             ProductsParams::KIND,
         ];
@@ -389,6 +391,51 @@ impl Default for ResidualParams {
 
 impl StageParams for ResidualParams {
     const KIND: &'static str = "residual";
+}
+
+// ---- kind: final_clean
+
+/// `kind: final_clean`: after the imaging loop, CLEAN major cycles on what the step's model
+/// leaves in the residual (components of both signs, with the PSF, each major cycle's residual
+/// the exact `x_d - D x`), so that the model's fluxes are what the data say: a network series
+/// leaves its compact sources too bright, with negative bowls in the residual, that the
+/// stopping rule does not see. A cycle that does not lower the residual is undone.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FinalCleanParams {
+    /// Most major cycles; default 20. 0 turns the stage into a pass-through.
+    pub major_cycles: usize,
+    /// Minor-cycle loop gain; default 0.1.
+    pub gain: f64,
+    /// Fraction of the residual's peak each major cycle cleans away (WSClean's `-mgain`);
+    /// default 0.8.
+    pub major_gain: f64,
+    /// Clean the whole image down to this many times the residual's robust noise, then only
+    /// where components were taken (WSClean's `-auto-mask`); default 5.
+    pub auto_mask: f64,
+    /// Inside that mask, stop at this many times the residual's robust noise (WSClean's
+    /// `-auto-threshold`); default 2. Noise peaks elsewhere stay in the residual, where they
+    /// belong, instead of becoming model components.
+    pub auto_threshold: f64,
+    /// Most components per major cycle; default 10 000.
+    pub components_per_cycle: usize,
+}
+
+impl Default for FinalCleanParams {
+    fn default() -> Self {
+        FinalCleanParams {
+            major_cycles: 20,
+            gain: 0.1,
+            major_gain: crate::steps::clean::DEFAULT_MAJOR_GAIN,
+            auto_mask: 5.0,
+            auto_threshold: 2.0,
+            components_per_cycle: 10_000,
+        }
+    }
+}
+
+impl StageParams for FinalCleanParams {
+    const KIND: &'static str = "final_clean";
 }
 
 // ---- kind: simulate

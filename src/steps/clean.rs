@@ -147,7 +147,7 @@ impl NetworkStep for CleanStep {
         if let Some(sigmas) = c.auto_threshold {
             level = level.max(sigmas * crate::metrics::robust_sigma(input.residual));
         }
-        let params = HogbomParams { gain: c.gain, threshold: level, max_components: budget, positive_only: c.positive_only };
+        let params = HogbomParams { gain: c.gain, threshold: level, max_components: budget, positive_only: c.positive_only, mask: None };
         let result = hogbom(input.residual, input.psf_2n, input.size, &params);
         *self.taken.entry(input.job.to_string()).or_insert(0) += result.n_components;
         log::debug!("job {}: major cycle {iteration}: {} components down to {:.3e} Jy/beam (stop level {level:.3e})", input.job, result.n_components, result.last_peak);

@@ -1,0 +1,188 @@
+//! `kind: final_clean`: CLEAN major cycles on what the imaging loop's model leaves in the
+//! residual, after the loop.
+//!
+//! A network series stops when its residual ratio stops changing, not when the residual is
+//! noise: on compact sources its models come out too bright, with negative bowls in the
+//! residual far above the noise. Components of both signs taken from that residual with the
+//! PSF, each major cycle ending in the exact residual `x_d - D x`, give the model the fluxes
+//! the data measure (the paper's data-fidelity criterion: a residual compatible with the
+//! noise), while extended emission the series already explains leaves little above the
+//! threshold to take.
+
+use super::params::FinalCleanParams;
+use crate::deconv::{hogbom, HogbomParams};
+use crate::job::{Emit, Imaging, Job};
+use crate::metrics::{residual_ratio, robust_sigma};
+use crate::pipeline::{Port, Stage};
+use crate::{Error, Result};
+use std::time::Instant;
+
+pub struct FinalCleanStage {
+    config: FinalCleanParams,
+}
+
+impl FinalCleanStage {
+    pub fn new(config: FinalCleanParams) -> Result<FinalCleanStage> {
+        let c = &config;
+        if !(c.gain > 0.0 && c.gain <= 1.0) {
+            return Err(Error::parameter("gain", format!("expected a loop gain in (0, 1], got {}", c.gain)));
+        }
+        if !(c.major_gain > 0.0 && c.major_gain <= 1.0) {
+            return Err(Error::parameter("major_gain", format!("expected a major-cycle gain in (0, 1], got {}", c.major_gain)));
+        }
+        if !(c.auto_threshold > 0.0 && c.auto_threshold.is_finite()) {
+            return Err(Error::parameter("auto_threshold", format!("expected a positive number of noise sigmas, got {}", c.auto_threshold)));
+        }
+        if !(c.auto_mask >= c.auto_threshold && c.auto_mask.is_finite()) {
+            return Err(Error::parameter("auto_mask", format!("expected a number of noise sigmas of auto_threshold ({}) or more, got {}", c.auto_threshold, c.auto_mask)));
+        }
+        if c.components_per_cycle == 0 {
+            return Err(Error::parameter("components_per_cycle", "expected at least one component per cycle"));
+        }
+        Ok(FinalCleanStage { config })
+    }
+}
+
+/// `D x` by the most exact form the gridder left: the w-Toeplitz kernels, the operator (the
+/// samples), the Taylor series in `w`, or the PSF convolution where it is exact.
+fn normal(im: &Imaging, x: &[f64]) -> Result<Vec<f64>> {
+    if let Some(w_toeplitz) = &im.w_toeplitz {
+        return Ok(w_toeplitz.apply(x));
+    }
+    if let Some(op) = &im.operator {
+        return op.apply_normal(x);
+    }
+    if let Some(w_taylor) = &im.w_taylor {
+        return Ok(w_taylor.apply(x));
+    }
+    match &im.toeplitz_inexact {
+        Some(why) => Err(Error::parameter("final_clean", format!("the PSF convolution is not exact here ({why}) and the gridder kept no operator"))),
+        None => Ok(im.psf_convolution.apply(x)),
+    }
+}
+
+impl FinalCleanStage {
+    /// One major cycle on `im`: Hogbom on the residual (inside `mask` where there is one),
+    /// then the exact residual of the new model. Kept (model and residual updated, `ratio`
+    /// lowered) where the residual ratio falls; the components taken, or `None` where nothing
+    /// was kept.
+    fn cycle(&self, im: &mut Imaging, ratio: &mut f64, mask: Option<&[f64]>) -> Result<Option<Vec<f64>>> {
+        let c = &self.config;
+        let n = im.geometry.size;
+        let peak = match mask {
+            Some(mask) => im.residual.iter().zip(mask).fold(0.0f64, |m, (v, k)| m.max(v.abs() * k)),
+            None => max_abs(&im.residual),
+        };
+        let sigmas = if mask.is_some() { c.auto_threshold } else { c.auto_mask };
+        let level = ((1.0 - c.major_gain) * peak).max(sigmas * robust_sigma(&im.residual));
+        let params = HogbomParams { gain: c.gain, threshold: level, max_components: c.components_per_cycle, positive_only: false, mask: mask.map(<[f64]>::to_vec) };
+        let found = hogbom(&im.residual, &im.psf_2n, n, &params);
+        log::debug!("final CLEAN: {} cycle from peak {peak:.3e} to {level:.3e} Jy/beam: {} components, stopped at {:.3e}", if mask.is_some() { "masked" } else { "open" }, found.n_components, found.last_peak);
+        if found.n_components == 0 {
+            return Ok(None);
+        }
+        let model: Vec<f64> = im.model.iter().zip(&found.components).map(|(x, c)| x + c).collect();
+        let d_x = normal(im, &model)?;
+        let residual: Vec<f64> = im.dirty.iter().zip(&d_x).map(|(d, x)| d - x).collect();
+        crate::sanity::check_image(&residual, n, "residual after a final CLEAN cycle", "the model is too large for the residual update to stay finite")?;
+        let new_ratio = residual_ratio(&residual, &im.dirty);
+        // A cycle the data do not confirm is undone: the model never explains them worse.
+        if !(new_ratio < *ratio) {
+            log::debug!("final CLEAN: a cycle would take the residual ratio from {ratio:.4e} to {new_ratio:.4e}; undone");
+            return Ok(None);
+        }
+        *ratio = new_ratio;
+        im.model = model;
+        im.residual = residual;
+        Ok(Some(found.components))
+    }
+}
+
+/// The pixels of `components` that are not zero, and their eight neighbours: where the masked
+/// cycles may take more (a source's flux spreads over the pixels around its peak).
+fn mask_of(components: &[f64], n: usize) -> Vec<f64> {
+    let mut mask = vec![0.0; n * n];
+    for (k, _) in components.iter().enumerate().filter(|(_, c)| **c != 0.0) {
+        let (x, y) = (k % n, k / n);
+        for yy in y.saturating_sub(1)..(y + 2).min(n) {
+            for xx in x.saturating_sub(1)..(x + 2).min(n) {
+                mask[yy * n + xx] = 1.0;
+            }
+        }
+    }
+    mask
+}
+
+fn max_abs(v: &[f64]) -> f64 {
+    v.iter().fold(0.0f64, |m, x| m.max(x.abs()))
+}
+
+/// The residual's peak in units of its robust noise.
+fn peak_sigmas(residual: &[f64]) -> f64 {
+    max_abs(residual) / robust_sigma(residual)
+}
+
+impl Stage<Job> for FinalCleanStage {
+    fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
+        // A model the divergence guard rejected is not built on: the products say what it kept.
+        let rejected = job.stop.as_ref().is_some_and(|s| s.reason.is_rejection());
+        if self.config.major_cycles == 0 || rejected {
+            return emit(Port::Next, job);
+        }
+        let id = job.id.clone();
+        let im = job.imaging_mut("final_clean")?;
+        let (flux_before, peak_before) = (im.model.iter().sum::<f64>(), peak_sigmas(&im.residual));
+        let mut ratio = residual_ratio(&im.residual, &im.dirty);
+        let n = im.geometry.size;
+        let (mut cycles, mut components) = (0, 0);
+        // Cycles over the whole image down to `auto_mask` sigmas, then inside the mask of the
+        // components they took down to `auto_threshold`.
+        // The mask starts from where the series found emission: pixels of the model above the
+        // residual's noise (a source of a few sigma puts at least that in its brightest pixel).
+        let sigma = robust_sigma(&im.residual);
+        let mut taken: Vec<f64> = im.model.iter().map(|&x| if x > sigma { x } else { 0.0 }).collect();
+        let mut mask: Option<Vec<f64>> = None;
+        while cycles < self.config.major_cycles {
+            let began = Instant::now();
+            let found = self.cycle(job.imaging_mut("final_clean")?, &mut ratio, mask.as_deref())?;
+            let Some(found) = found else {
+                if mask.is_some() || taken.iter().all(|t| *t == 0.0) {
+                    break;
+                }
+                mask = Some(mask_of(&taken, n));
+                continue;
+            };
+            if mask.is_none() {
+                taken.iter_mut().zip(&found).for_each(|(t, f)| *t += f);
+            }
+            cycles += 1;
+            components += found.iter().filter(|c| **c != 0.0).count();
+            // Each kept cycle is an iteration of the job's metrics, after the loop's.
+            job.iteration += 1;
+            job.last_step_seconds = began.elapsed().as_secs_f64();
+            job.record_iteration(0.0);
+        }
+        if let Some(stop) = job.stop.as_mut().filter(|_| cycles > 0) {
+            // The model written is the last cycle's.
+            stop.kept_iteration = job.iteration;
+            stop.kept_residual_ratio = ratio;
+        }
+        let im = job.imaging_mut("final_clean")?;
+        let (flux_after, peak_after) = (im.model.iter().sum::<f64>(), peak_sigmas(&im.residual));
+        log::info!(
+            "job {id}: final CLEAN on the residual: components at {components} pixels in {cycles} major cycles; model flux {flux_before:.4e} -> {flux_after:.4e} Jy; residual peak {peak_before:.1} -> {peak_after:.1} sigma"
+        );
+        job.settings.insert(
+            "final_clean".into(),
+            serde_json::json!({
+                "major_cycles": cycles,
+                "component_pixels": components,
+                "model_flux_before_jy": flux_before,
+                "model_flux_after_jy": flux_after,
+                "residual_peak_sigma_before": peak_before,
+                "residual_peak_sigma_after": peak_after,
+            }),
+        );
+        emit(Port::Next, job)
+    }
+}
