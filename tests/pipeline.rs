@@ -239,7 +239,9 @@ fn image_command_runs_the_default_pipeline() {
     let manifest: serde_yaml::Value = serde_yaml::from_str(&std::fs::read_to_string(series).unwrap()).unwrap();
     let networks = manifest["networks"].as_sequence().unwrap().len();
     let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("res/obs-metrics.json")).unwrap()).unwrap();
-    assert_eq!(v["iterations"].as_array().unwrap().len(), networks, "one iteration per network of the default series");
+    // One iteration per network, then one per cycle of the final CLEAN on the residual.
+    let final_cycles = v["settings"]["final_clean"]["major_cycles"].as_u64().unwrap() as usize;
+    assert_eq!(v["iterations"].as_array().unwrap().len(), networks + final_cycles, "one iteration per network of the default series, and per final cycle");
     assert!(v["iterations"][0]["logsnr"].is_number());
 
     // CLEAN on request, with its restored image.

@@ -49,8 +49,9 @@ fn the_readme_commands_run_as_written() {
         let out = Command::new("sh").arg("-c").arg(command).current_dir(d).output().unwrap();
         assert!(out.status.success(), "`{command}` failed:\n{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
     };
-    // The README's obs.ms: a short VLA observation (small, so the test is quick).
-    run(&format!("{bin} simulate --configs a,c --hours 1,0.5 --integration-s 300 --seed 2 --out obs.parquet -q && {bin} convert obs.parquet obs.ms -q"));
+    // The README's obs.ms: a VLA observation at 300 s integrations (small, so the test is
+    // quick) long enough for the series, which rejects its model on shorter tracks (exit 3).
+    run(&format!("{bin} simulate --configs a,c --hours 4,1 --integration-s 300 --seed 2 --out obs.parquet -q && {bin} convert obs.parquet obs.ms -q"));
     let mut ran = 0;
     for command in &all {
         if command.starts_with("cargo ") || command.starts_with("pip ") {

@@ -68,7 +68,7 @@ fn simulated_ms(d: &Path, telescope: &str, config: &str, name: &str, expect: &st
 /// (checked to succeed) and its metrics.
 fn image_pipeline_ms(d: &Path, name: &str) -> (std::process::Output, serde_json::Value) {
     let out = r2d2(&["image", &format!("{name}-pipeline.ms"), "--size", "64", "--name", name], d);
-    check(&out);
+    common::check_written(&out);
     let metrics = serde_json::from_str(&std::fs::read_to_string(d.join(format!("{name}-metrics.json"))).unwrap()).unwrap();
     (out, metrics)
 }
@@ -91,7 +91,7 @@ fn a_telescope_without_a_series_is_imaged_by_clean_with_a_warning() {
     // The VLA's data at the same size: a series (off its size, as before), not CLEAN.
     check(&r2d2(&["simulate", "--telescope", "vla", "--configs", "c", "--hours", "1", "--nfreq", "1", "--integration-s", "600", "--size", "64", "--dr", "100", "--out", "vla.parquet"], d));
     let out = r2d2(&["image", "vla.parquet", "--size", "64", "--name", "vla"], d);
-    check(&out);
+    common::check_written(&out);
     let metrics = std::fs::read_to_string(d.join("vla-metrics.json")).unwrap();
     assert!(!metrics.contains("built-in CLEAN"), "{metrics}");
     assert!(stderr(&out).contains("series 'vla-r2d2"), "{}", stderr(&out));
@@ -142,7 +142,7 @@ fn auto_runs_the_series_trained_for_the_datas_telescope() {
     };
     check(&r2d2(&["simulate", "--telescope", "meerkat", "--hours", "1", "--nfreq", "1", "--integration-s", "600", "--size", "64", "--dr", "100", "--out", "mk.parquet"], d));
     let out = with_models(&["image", "mk.parquet", "--size", "64", "--name", "mk"]);
-    check(&out);
+    common::check_written(&out);
     let log = stderr(&out);
     assert!(log.contains("series 'meerkat-landweber'") && !log.contains("built-in CLEAN"), "{log}");
     let metrics = std::fs::read_to_string(d.join("mk-metrics.json")).unwrap();

@@ -40,6 +40,12 @@ pub fn check(out: &Output) {
     assert!(out.status.success(), "r2d2 failed: {}", stderr(out));
 }
 
+/// Products written: exit status 0, or 3 where the divergence guard rejected the step's model
+/// (for tests about something else than whether the step converges).
+pub fn check_written(out: &Output) {
+    assert!(matches!(out.status.code(), Some(0 | 3)), "r2d2 failed: {}", stderr(out));
+}
+
 /// Standard output and standard error together (listings go to stdout, errors to stderr).
 pub fn text(out: &Output) -> String {
     format!("{}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr))
