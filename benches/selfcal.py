@@ -44,10 +44,13 @@ def run(cmd, cwd):
 
 
 def compact_sky(n, path, seed):
+    """30 point sources (fluxes 1e-3..1, at least n/25 pixels apart, away from the edges) and a
+    small Gaussian, Jy/pixel without a WCS (the simulation's pixel), at `path`; the sources'
+    x, y and flux in `sources.txt` beside it (tests/onnx.rs scores fluxes against them)."""
     rng = np.random.default_rng(seed)
     sky = np.zeros((n, n))
     pos = []
-    margin = n // 12
+    margin = n * 5 // 64
     while len(pos) < 30:
         x, y = rng.integers(margin, n - margin, 2)
         if all((x - a) ** 2 + (y - b) ** 2 > (n // 25) ** 2 for a, b in pos):
@@ -57,9 +60,10 @@ def compact_sky(n, path, seed):
     for (x, y), f in zip(pos, flux):
         sky[y, x] += f
     yy, xx = np.mgrid[0:n, 0:n]
-    g = np.exp(-((xx - 0.6 * n) ** 2 + (yy - 0.3 * n) ** 2) / 8.0)
+    g = np.exp(-((xx - n * 75 // 128) ** 2 + (yy - n * 75 // 256) ** 2) / 8.0)
     sky += 0.3 * g / g.sum()
     fits.writeto(path, sky.astype(np.float32), overwrite=True)
+    np.savetxt(os.path.join(os.path.dirname(path), "sources.txt"), [(x, y, f) for (x, y), f in zip(pos, flux)])
 
 
 def stefcal(ms, column, iterations=100, tolerance=1e-8):

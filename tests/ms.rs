@@ -207,9 +207,18 @@ print(f"{err:.3e} {cross:.3e} {len(flux)}")
 "#;
 
 fn tree_digest(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    tree_digest_skipping(dir, None)
+}
+
+/// Every file below `dir` but its `table.lock`s (and the entry `skip` of `dir` itself), with
+/// its bytes, sorted.
+fn tree_digest_skipping(dir: &Path, skip: Option<&std::ffi::OsStr>) -> Vec<(String, Vec<u8>)> {
     let mut out = Vec::new();
     for entry in std::fs::read_dir(dir).unwrap() {
         let path = entry.unwrap().path();
+        if skip.is_some_and(|s| path.file_name() == Some(s)) {
+            continue;
+        }
         if path.is_dir() {
             out.extend(tree_digest(&path));
         } else if path.file_name().unwrap() != "table.lock" {
@@ -1068,21 +1077,7 @@ fn a_fifo_inside_the_ms_refuses_a_model_write_before_imaging() {
 
 /// [`tree_digest`] of everything but `skip` (a FIFO, which reading would block on).
 fn tree_digest_except(dir: &Path, skip: &str) -> Vec<(String, Vec<u8>)> {
-    let skip = Path::new(skip).file_name().unwrap().to_owned();
-    let mut out = Vec::new();
-    for entry in std::fs::read_dir(dir).unwrap() {
-        let path = entry.unwrap().path();
-        if path.file_name() == Some(skip.as_os_str()) {
-            continue;
-        }
-        if path.is_dir() {
-            out.extend(tree_digest(&path));
-        } else if path.file_name().unwrap() != "table.lock" {
-            out.push((path.display().to_string(), std::fs::read(&path).unwrap()));
-        }
-    }
-    out.sort();
-    out
+    tree_digest_skipping(dir, Path::new(skip).file_name())
 }
 
 /// An MS whose name leaves no room for the lock and the copy made beside it (issue 56: found

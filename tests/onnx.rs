@@ -290,30 +290,9 @@ fn assert_rejected(out: &std::process::Output) {
     assert_eq!(out.status.code(), Some(3), "expected the rejected-model status: {}", text(out));
 }
 
-/// Python: a 512 x 512 sky of 30 point sources (fluxes 1e-3 to 1, at least 20 pixels apart)
-/// and one small Gaussian, in Jy/pixel without a WCS (the simulation's pixel); the sources'
-/// positions and fluxes in sources.txt.
-const COMPACT_SKY: &str = r#"
-import numpy as np
-from astropy.io import fits
-rng = np.random.default_rng(1)
-n = 512
-sky = np.zeros((n, n))
-pos = []
-while len(pos) < 30:
-    x, y = rng.integers(40, n - 40, 2)
-    if all((x - a) ** 2 + (y - b) ** 2 > 400 for a, b in pos):
-        pos.append((x, y))
-flux = 10 ** rng.uniform(-3, 0, 30)
-flux[0] = 1.0
-for (x, y), f in zip(pos, flux):
-    sky[y, x] += f
-yy, xx = np.mgrid[0:n, 0:n]
-g = np.exp(-((xx - 300) ** 2 + (yy - 150) ** 2) / 8.0)
-sky += 0.3 * g / g.sum()
-fits.writeto("sky.fits", sky.astype(np.float32))
-np.savetxt("sources.txt", [(x, y, f) for (x, y), f in zip(pos, flux)])
-"#;
+/// Python: benches/selfcal.py's compact sky at 512 x 512 (30 point sources, fluxes 1e-3 to 1,
+/// at least 20 pixels apart, and one small Gaussian), its sources in sources.txt.
+const COMPACT_SKY: &str = "import sys; sys.path.insert(0, sys.argv[1]); from selfcal import compact_sky; compact_sky(512, 'sky.fits', 1)";
 
 /// The shipped VLA series on a compact field (a VLA A+C observation of 30 point sources and a
 /// small Gaussian) leaves every bright source about 12 % too bright, with negative bowls in the
@@ -326,7 +305,8 @@ np.savetxt("sources.txt", [(x, y, f) for (x, y), f in zip(pos, flux)])
 fn the_final_clean_gives_compact_sources_the_fluxes_the_data_measure() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let out = std::process::Command::new("python3").args(["-c", COMPACT_SKY]).current_dir(d).output().unwrap();
+    let benches = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("benches");
+    let out = std::process::Command::new("python3").args(["-c", COMPACT_SKY]).arg(&benches).current_dir(d).output().unwrap();
     assert!(out.status.success(), "{}", text(&out));
     check(&r2d2(&["simulate", "--sky", "sky.fits", "--seed", "3", "--out", "obs.parquet"], d));
     let sources: Vec<(usize, usize, f64)> = std::fs::read_to_string(d.join("sources.txt"))
