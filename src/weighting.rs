@@ -116,7 +116,12 @@ impl Weighting {
         match (name, robust) {
             (None, None) => Ok(None),
             (None, Some(robust)) => Weighting::from_name("briggs", robust).map(Some),
-            (Some(name), robust) => Weighting::from_name(name, robust.unwrap_or(0.0)).map(Some),
+            (Some(name), Some(robust)) => match Weighting::from_name(name, robust)? {
+                // A robustness means Briggs: with another scheme it would be dropped unsaid.
+                w @ Weighting::Briggs { .. } => Ok(Some(w)),
+                other => Err(Error::parameter("robust", format!("a Briggs robustness ({robust}) was given with {other} weighting, which has none: drop it, or ask for briggs"))),
+            },
+            (Some(name), None) => Weighting::from_name(name, 0.0).map(Some),
         }
     }
 }
@@ -351,6 +356,18 @@ fn cell_of(cells: usize, (u, v): (f64, f64)) -> usize {
 
 #[cfg(test)]
 mod tests {
+    /// `--robust` means Briggs (issue 56.21: `--weighting natural --robust 1` dropped it unsaid).
+    #[test]
+    fn a_robustness_with_another_scheme_is_refused() {
+        for name in ["natural", "uniform", "given"] {
+            let e = Weighting::from_options(Some(name), Some(1.0)).unwrap_err().to_string();
+            assert!(e.contains("robust") && e.contains(name), "{e}");
+        }
+        assert_eq!(Weighting::from_options(Some("briggs"), Some(1.0)).unwrap(), Some(Weighting::Briggs { robust: 1.0 }));
+        assert_eq!(Weighting::from_options(None, Some(-1.0)).unwrap(), Some(Weighting::Briggs { robust: -1.0 }));
+        assert_eq!(Weighting::from_options(Some("natural"), None).unwrap(), Some(Weighting::Natural));
+    }
+
     use super::*;
 
     #[test]

@@ -391,6 +391,16 @@ impl Series {
         if manifest.normalisation != "mean" {
             return Err(invalid(path, format!("normalisation: expected 'mean', got '{}'", manifest.normalisation)));
         }
+        if let Some(v) = &manifest.validity {
+            // A NaN bound compares false with everything and switched the domain check off; a
+            // reversed range warned on every job (issue 56.11).
+            let ranges = [("superresolution", v.superresolution), ("robust", v.robust), ("dynamic_range", v.dynamic_range), ("track_hours", v.track_hours), ("integration_s", v.integration_s)];
+            for (key, range) in ranges {
+                if let Some([low, high]) = range.filter(|[low, high]| !(low.is_finite() && high.is_finite() && low <= high)) {
+                    return Err(invalid(path, format!("validity.{key}: expected a range [min, max] of finite numbers with min <= max, got [{low}, {high}]")));
+                }
+            }
+        }
         if !manifest.orientation_cycle.is_empty() && manifest.architecture != Architecture::R2d2 {
             // R3D3's data-fidelity layers between the networks would need the PSF turned too.
             return Err(invalid(path, "orientation_cycle: only an R2D2 series may turn its networks' images"));
@@ -849,6 +859,23 @@ mod tests {
             "format: 1\nname: {name}\narchitecture: r2d2\nimage_sizes: {sizes}\nany_size: {any_size}\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx]\n"
         );
         std::fs::write(dir.join("manifest.yaml"), manifest).unwrap();
+    }
+
+    /// NaN or reversed validity ranges are refused when the manifest is read, naming the key.
+    #[test]
+    fn validity_ranges_must_be_finite_and_ordered() {
+        let root = tempfile::tempdir().unwrap();
+        series_dir(root.path(), "s", "[512]", true);
+        let dir = root.path().join("s");
+        let manifest = dir.join("manifest.yaml");
+        let text = std::fs::read_to_string(&manifest).unwrap();
+        for (bad, key) in [("superresolution: [.nan, .nan]", "validity.superresolution"), ("robust: [1.0, -1.0]", "validity.robust"), ("track_hours: [.inf, 8.0]", "validity.track_hours")] {
+            std::fs::write(&manifest, format!("{text}validity: {{{bad}}}\n")).unwrap();
+            let e = Series::open(&dir).err().expect("refused").to_string();
+            assert!(e.contains(key) && e.contains("finite"), "{bad}: {e}");
+        }
+        std::fs::write(&manifest, format!("{text}validity: {{superresolution: [1.5, 2.0], robust: [-1.0, 0.0]}}\n")).unwrap();
+        assert!(Series::open(&dir).is_ok());
     }
 
     #[test]
