@@ -509,6 +509,36 @@ fn parquet_converts_to_an_ms_that_images_as_the_table() {
     let err = stderr(&r2d2(&["convert", "plain.parquet", "plain.ms"], dir.path()));
     assert!(err.contains("plain.parquet") && err.contains("`time`"), "{err}");
     assert!(!dir.path().join("plain.ms").exists());
+
+    // What an MS cannot hold is refused by row, before anything is sized by it (issue 56.3,
+    // 56.12): a NaN time, a negative antenna id, an id of 2e9 (it sized the ANTENNA table
+    // until the machine ran out of memory), and cells beyond the memory budget (each sample
+    // at its own frequency: rows x channels), with nothing left behind.
+    let damage = "import sys, pyarrow as pa, pyarrow.parquet as pq, numpy as np\n\
+                  t = pq.read_table('obs.parquet')\n\
+                  def put(name, column, values):\n    pq.write_table(t.set_column(t.schema.get_field_index(column), column, pa.array(values, t.schema.field(column).type)), name)\n\
+                  time = t['time'].to_numpy().copy(); time[5] = np.nan; put('nan_time.parquet', 'time', time)\n\
+                  a1 = t['antenna1'].to_numpy().copy(); a1[7] = -5; put('negative.parquet', 'antenna1', a1)\n\
+                  a1[7] = 2000000000; put('huge.parquet', 'antenna1', a1)\n\
+                  put('channels.parquet', 'frequency', 1.4e9 + np.arange(t.num_rows) * 1e3)";
+    let out = Command::new("python3").args(["-c", damage]).current_dir(dir.path()).output().expect("python3 runs");
+    assert!(out.status.success(), "{}", text(&out));
+    for (input, expected, budget) in [
+        ("nan_time.parquet", "row 5: column `time` is NaN", None),
+        ("negative.parquet", "row 7: column `antenna1` is -5", None),
+        ("huge.parquet", "row 7: column `antenna1` is 2000000000", None),
+        ("channels.parquet", "as MS cells needs about", Some("64M")),
+    ] {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_r2d2"));
+        command.args(["convert", input, "bad.ms"]).current_dir(dir.path());
+        if let Some(b) = budget {
+            command.env("R2D2_MEMORY_LIMIT", b);
+        }
+        let out = command.output().unwrap();
+        let err = common::assert_fails_with(&out, input, &[input, expected]);
+        assert!(!dir.path().join("bad.ms").exists(), "{input}: {err}");
+        assert!(!std::fs::read_dir(dir.path()).unwrap().any(|e| e.unwrap().file_name().to_string_lossy().contains("r2d2-convert")), "{input}: nothing left behind");
+    }
 }
 
 /// Column names of an MS's main table, read by python-casacore (an independent reader).

@@ -70,6 +70,10 @@ fn read_samples(parquet: &Path) -> Result<(SampleColumns, crate::vis::Observatio
     Ok((s, reader.meta().clone()))
 }
 
+/// Antenna ids a converted MS may hold (its ANTENNA table has a row for each id up to the
+/// largest): far beyond any array's stations, far below what would exhaust memory.
+const MAX_ANTENNA_ID: i32 = 1 << 16;
+
 /// What the conversion made.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ParquetToMs {
@@ -93,6 +97,18 @@ pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> 
         return Err(invalid(parquet, format!("column `frequency` has {bad} Hz; frequencies must be positive")));
     }
     let nchan = channels.len();
+    // What an MS cannot hold, refused by row before anything is sized by it (issue 56.12: a
+    // NaN TIME and ANTENNA1 = -5 were written as they were; 56.3: one antenna id of 2e9 sized
+    // an ANTENNA table until the machine ran out of memory).
+    if let Some(i) = s.time.iter().position(|t| !t.is_finite()) {
+        return Err(invalid(parquet, format!("row {i}: column `time` is {}; an MS's TIME must be a finite time (seconds)", s.time[i])));
+    }
+    for (name, ids) in [("antenna1", &s.antenna1), ("antenna2", &s.antenna2)] {
+        if let Some(i) = ids.iter().position(|&a| !(0..MAX_ANTENNA_ID).contains(&a)) {
+            return Err(invalid(parquet, format!("row {i}: column `{name}` is {}; antenna ids count from 0 and stay below {MAX_ANTENNA_ID}", ids[i])));
+        }
+    }
+
     // Rows: (time, antenna1, antenna2) in order of first appearance.
     let mut row_of_key: HashMap<(u64, i32, i32), usize> = HashMap::new();
     let mut first = Vec::new();
@@ -106,6 +122,10 @@ pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> 
         row_of.push(row);
     }
     let nrow = first.len();
+    // Each row holds every channel's cells over two hands: data (8 bytes), weight (4), flag
+    // and whether seen (1 each); 30 000 rows of a frequency each asked 14 GB (issue 56.3).
+    crate::limits::check_memory(nrow as f64 * nchan as f64 * 2.0 * 14.0, &format!("{} rows of {nchan} channels as MS cells", nrow))
+        .map_err(|m| invalid(parquet, m))?;
     let mut data = vec![(0.0f32, 0.0f32); nrow * nchan * 2];
     let mut wspec = vec![0.0f32; nrow * nchan * 2];
     let mut flag = vec![true; nrow * nchan * 2];
