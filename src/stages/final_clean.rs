@@ -33,8 +33,14 @@ impl FinalCleanStage {
         if !(c.auto_threshold > 0.0 && c.auto_threshold.is_finite()) {
             return Err(Error::parameter("auto_threshold", format!("expected a positive number of noise sigmas, got {}", c.auto_threshold)));
         }
+        if !(c.compact_threshold > 0.0 && c.compact_threshold.is_finite()) {
+            return Err(Error::parameter("compact_threshold", format!("expected a positive number of noise sigmas, got {}", c.compact_threshold)));
+        }
         if !(c.auto_mask >= c.auto_threshold && c.auto_mask.is_finite()) {
             return Err(Error::parameter("auto_mask", format!("expected a number of noise sigmas of auto_threshold ({}) or more, got {}", c.auto_threshold, c.auto_mask)));
+        }
+        if !(c.compact_beams >= 0.0 && c.compact_beams.is_finite()) {
+            return Err(Error::parameter("compact_beams", format!("expected a number of PSF main lobes, 0 or more, got {}", c.compact_beams)));
         }
         if c.components_per_cycle == 0 {
             return Err(Error::parameter("components_per_cycle", "expected at least one component per cycle"));
@@ -62,18 +68,17 @@ fn normal(im: &Imaging, x: &[f64]) -> Result<Vec<f64>> {
 }
 
 impl FinalCleanStage {
-    /// One major cycle on `im`: Hogbom on the residual (inside `mask` where there is one),
-    /// then the exact residual of the new model. Kept (model and residual updated, `ratio`
+    /// One major cycle on `im`: Hogbom on the residual (inside `mask` where there is one) down
+    /// to `sigmas` times its noise, then the exact residual of the new model. Kept (model and residual updated, `ratio`
     /// lowered) where the residual ratio falls; the components taken, or `None` where nothing
     /// was kept.
-    fn cycle(&self, im: &mut Imaging, ratio: &mut f64, mask: Option<&[f64]>) -> Result<Option<Vec<f64>>> {
+    fn cycle(&self, im: &mut Imaging, ratio: &mut f64, mask: Option<&[f64]>, sigmas: f64) -> Result<Option<Vec<f64>>> {
         let c = &self.config;
         let n = im.geometry.size;
         let peak = match mask {
             Some(mask) => im.residual.iter().zip(mask).fold(0.0f64, |m, (v, k)| m.max(v.abs() * k)),
             None => max_abs(&im.residual),
         };
-        let sigmas = if mask.is_some() { c.auto_threshold } else { c.auto_mask };
         let level = ((1.0 - c.major_gain) * peak).max(sigmas * robust_sigma(&im.residual));
         let params = HogbomParams { gain: c.gain, threshold: level, max_components: c.components_per_cycle, positive_only: false, mask: mask.map(<[f64]>::to_vec) };
         let found = hogbom(&im.residual, &im.psf_2n, n, &params);
@@ -97,6 +102,55 @@ impl FinalCleanStage {
         Ok(Some(found.components))
     }
 }
+
+/// The pixels of the PSF's main lobe: those at half its peak or above, connected to it.
+fn main_lobe_pixels(psf: &[f64], n: usize) -> usize {
+    let peak = psf.iter().copied().enumerate().fold((0, f64::MIN), |b, (k, v)| if v > b.1 { (k, v) } else { b });
+    island(psf, n, peak.0, |v| v >= 0.5 * peak.1, &mut vec![false; n * n]).len()
+}
+
+/// The 8-connected pixels where `inside` holds, from `start`; `seen` marks them.
+fn island(image: &[f64], n: usize, start: usize, inside: impl Fn(f64) -> bool, seen: &mut [bool]) -> Vec<usize> {
+    let mut pixels = vec![start];
+    seen[start] = true;
+    let mut next = 0;
+    while next < pixels.len() {
+        let k = pixels[next];
+        next += 1;
+        let (x, y) = (k % n, k / n);
+        for yy in y.saturating_sub(1)..(y + 2).min(n) {
+            for xx in x.saturating_sub(1)..(x + 2).min(n) {
+                let j = yy * n + xx;
+                if !seen[j] && inside(image[j]) {
+                    seen[j] = true;
+                    pixels.push(j);
+                }
+            }
+        }
+    }
+    pixels
+}
+
+/// The pixels of the islands of `model` (8-connected positive pixels) of at most
+/// `max_pixels` pixels and at least `min_flux` in all.
+fn compact_island_pixels(model: &[f64], n: usize, max_pixels: usize, min_flux: f64) -> Vec<usize> {
+    let mut seen = vec![false; n * n];
+    let mut compact = Vec::new();
+    for k in 0..n * n {
+        if !seen[k] && model[k] > 0.0 {
+            let pixels = island(model, n, k, |v| v > 0.0, &mut seen);
+            if pixels.len() <= max_pixels && pixels.iter().map(|&j| model[j]).sum::<f64>() >= min_flux {
+                compact.extend(pixels);
+            }
+        }
+    }
+    compact
+}
+
+/// Islands fainter than this many times the residual's noise (in Jy, the flux of a point
+/// source of that peak) are left as the step drew them: noise alone makes their fluxes
+/// uncertain by a tenth or more, and cleaning them deeper turns noise into model.
+const COMPACT_MIN_SIGMAS: f64 = 10.0;
 
 /// The pixels of `components` that are not zero, and their eight neighbours: where the masked
 /// cycles may take more (a source's flux spreads over the pixels around its peak).
@@ -122,6 +176,65 @@ fn peak_sigmas(residual: &[f64]) -> f64 {
     max_abs(residual) / robust_sigma(residual)
 }
 
+impl FinalCleanStage {
+    /// Major cycles over the whole image down to `auto_mask` sigmas, then inside the mask of
+    /// what they took down to `auto_threshold`, then inside `compact` (a mask of the compact
+    /// islands) down to `compact_threshold`; each kept cycle an iteration of the job's
+    /// metrics. The cycles kept, the pixels they put components at, and the residual ratio.
+    fn cycles(&self, job: &mut Job, compact: Option<Vec<f64>>) -> Result<(usize, usize, f64)> {
+        let c = &self.config;
+        let im = job.imaging_mut("final_clean")?;
+        let n = im.geometry.size;
+        let mut ratio = residual_ratio(&im.residual, &im.dirty);
+        let (mut cycles, mut components) = (0, 0);
+        // The mask starts from where the step found emission: pixels of the model above the
+        // residual's noise (a source of a few sigma puts at least that in its brightest pixel).
+        let sigma = robust_sigma(&im.residual);
+        let mut taken: Vec<f64> = im.model.iter().map(|&x| if x > sigma { x } else { 0.0 }).collect();
+        let mut phase = Phase::Open;
+        while cycles < c.major_cycles {
+            let began = Instant::now();
+            let (mask, sigmas) = match &phase {
+                Phase::Open => (None, c.auto_mask),
+                Phase::Masked(mask) => (Some(mask.as_slice()), c.auto_threshold),
+                Phase::Compact(mask) => (Some(mask.as_slice()), c.compact_threshold),
+            };
+            let found = self.cycle(job.imaging_mut("final_clean")?, &mut ratio, mask, sigmas)?;
+            let Some(found) = found else {
+                phase = match phase {
+                    Phase::Open if taken.iter().any(|t| *t != 0.0) => Phase::Masked(mask_of(&taken, n)),
+                    Phase::Open | Phase::Masked(_) if c.compact_threshold < c.auto_threshold => match &compact {
+                        Some(mask) => Phase::Compact(mask.clone()),
+                        None => break,
+                    },
+                    _ => break,
+                };
+                continue;
+            };
+            if matches!(phase, Phase::Open) {
+                taken.iter_mut().zip(&found).for_each(|(t, f)| *t += f);
+            }
+            cycles += 1;
+            components += found.iter().filter(|c| **c != 0.0).count();
+            // Each kept cycle is an iteration of the job's metrics, after the loop's.
+            job.iteration += 1;
+            job.last_step_seconds = began.elapsed().as_secs_f64();
+            job.record_iteration(0.0);
+        }
+        Ok((cycles, components, ratio))
+    }
+}
+
+/// The stages of the final CLEAN's cycles: each goes on until a cycle takes nothing.
+enum Phase {
+    /// The whole image, down to `auto_mask` sigmas.
+    Open,
+    /// Around what the step's model and the open cycles found, down to `auto_threshold`.
+    Masked(Vec<f64>),
+    /// Around the compact islands, down to `compact_threshold`.
+    Compact(Vec<f64>),
+}
+
 impl Stage<Job> for FinalCleanStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
         // A model the divergence guard rejected is not built on: the products say what it kept.
@@ -132,35 +245,34 @@ impl Stage<Job> for FinalCleanStage {
         let id = job.id.clone();
         let im = job.imaging_mut("final_clean")?;
         let (flux_before, peak_before) = (im.model.iter().sum::<f64>(), peak_sigmas(&im.residual));
-        let mut ratio = residual_ratio(&im.residual, &im.dirty);
+        let step_ratio = residual_ratio(&im.residual, &im.dirty);
         let n = im.geometry.size;
-        let (mut cycles, mut components) = (0, 0);
-        // Cycles over the whole image down to `auto_mask` sigmas, then inside the mask of the
-        // components they took down to `auto_threshold`.
-        // The mask starts from where the series found emission: pixels of the model above the
-        // residual's noise (a source of a few sigma puts at least that in its brightest pixel).
-        let sigma = robust_sigma(&im.residual);
-        let mut taken: Vec<f64> = im.model.iter().map(|&x| if x > sigma { x } else { 0.0 }).collect();
-        let mut mask: Option<Vec<f64>> = None;
-        while cycles < self.config.major_cycles {
-            let began = Instant::now();
-            let found = self.cycle(job.imaging_mut("final_clean")?, &mut ratio, mask.as_deref())?;
-            let Some(found) = found else {
-                if mask.is_some() || taken.iter().all(|t| *t == 0.0) {
-                    break;
-                }
-                mask = Some(mask_of(&taken, n));
-                continue;
-            };
-            if mask.is_none() {
-                taken.iter_mut().zip(&found).for_each(|(t, f)| *t += f);
+        let max_pixels = (self.config.compact_beams * main_lobe_pixels(&im.psf, n) as f64) as usize;
+        let compact = compact_island_pixels(&im.model, n, max_pixels, COMPACT_MIN_SIGMAS * robust_sigma(&im.residual));
+        let (mut cycles, mut components, mut ratio) = (0, 0, step_ratio);
+        if !compact.is_empty() {
+            let step = (im.model.clone(), im.residual.clone(), job.iteration, job.metrics.len());
+            let im = job.imaging_mut("final_clean")?;
+            // Compact islands are cleaned afresh: their model leaves, its flux goes back to
+            // the residual by the exact update.
+            compact.iter().for_each(|&k| im.model[k] = 0.0);
+            let d_x = normal(im, &im.model)?;
+            im.residual = im.dirty.iter().zip(&d_x).map(|(d, x)| d - x).collect();
+            let mut mask = vec![0.0; n * n];
+            compact.iter().for_each(|&k| mask[k] = 1.0);
+            (cycles, components, ratio) = self.cycles(&mut job, Some(mask_of(&mask, n)))?;
+            if !(ratio < step_ratio) {
+                // CLEAN explained the data worse than the step's compact islands did: they
+                // stay, and the cycles build on them instead (their iterations forgotten).
+                log::warn!("job {id}: final CLEAN: the {} pixels of compact islands cleaned afresh left the residual ratio at {ratio:.4e}, above the step's {step_ratio:.4e}; the step's islands are kept", compact.len());
+                let im = job.imaging_mut("final_clean")?;
+                (im.model, im.residual, job.iteration) = (step.0, step.1, step.2);
+                job.metrics.truncate(step.3);
+                (cycles, components, ratio) = (0, 0, step_ratio);
             }
-            cycles += 1;
-            components += found.iter().filter(|c| **c != 0.0).count();
-            // Each kept cycle is an iteration of the job's metrics, after the loop's.
-            job.iteration += 1;
-            job.last_step_seconds = began.elapsed().as_secs_f64();
-            job.record_iteration(0.0);
+        }
+        if cycles == 0 {
+            (cycles, components, ratio) = self.cycles(&mut job, None)?;
         }
         if let Some(stop) = job.stop.as_mut().filter(|_| cycles > 0) {
             // The model written is the last cycle's.
@@ -184,5 +296,49 @@ impl Stage<Job> for FinalCleanStage {
             }),
         );
         emit(Port::Next, job)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn compact_islands_are_the_small_bright_ones() {
+        let n = 32;
+        let mut model = vec![0.0; n * n];
+        // A 3 x 3 blob of 9 in all, a faint 2-pixel island, and a 10 x 10 patch.
+        for y in 2..5 {
+            for x in 2..5 {
+                model[y * n + x] = 1.0;
+            }
+        }
+        model[10 * n + 2] = 0.1;
+        model[10 * n + 3] = 0.1;
+        for y in 15..25 {
+            for x in 15..25 {
+                model[y * n + x] = 1.0;
+            }
+        }
+        let mut compact = compact_island_pixels(&model, n, 20, 1.0);
+        compact.sort();
+        let blob: Vec<usize> = (2..5).flat_map(|y| (2..5).map(move |x| y * n + x)).collect();
+        assert_eq!(compact, blob);
+        // Diagonal neighbours belong to the same island.
+        model[5 * n + 5] = 1.0;
+        assert!(compact_island_pixels(&model, n, 9, 1.0).is_empty());
+        assert_eq!(compact_island_pixels(&model, n, 10, 1.0).len(), 10);
+    }
+
+    #[test]
+    fn the_main_lobe_is_the_connected_half_power_region() {
+        let n = 16;
+        let mut psf = vec![0.0; n * n];
+        psf[8 * n + 8] = 1.0;
+        psf[8 * n + 9] = 0.6;
+        psf[9 * n + 9] = 0.5;
+        // A sidelobe at half power, not connected to the peak, is not part of it.
+        psf[2 * n + 2] = 0.7;
+        assert_eq!(main_lobe_pixels(&psf, n), 3);
     }
 }

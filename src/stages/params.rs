@@ -419,6 +419,16 @@ pub struct FinalCleanParams {
     pub auto_threshold: f64,
     /// Most components per major cycle; default 10 000.
     pub components_per_cycle: usize,
+    /// Islands of the step's model (connected positive pixels) no larger than this many PSF
+    /// main lobes are taken out of the model before the cycles and cleaned afresh; default 4,
+    /// 0 keeps every island. A network series draws a point source as a blob wider than
+    /// the PSF, which components added on top correct in flux only with a ring of negative
+    /// ones around it; CLEAN's own components give a point source a point.
+    pub compact_beams: f64,
+    /// Around those islands, stop at this many times the residual's robust noise; default 1.
+    /// A point source's flux is then what the data measure to a fraction of the noise, while
+    /// extended emission keeps `auto_threshold` (deeper there, noise becomes model).
+    pub compact_threshold: f64,
 }
 
 impl Default for FinalCleanParams {
@@ -430,6 +440,8 @@ impl Default for FinalCleanParams {
             auto_mask: 5.0,
             auto_threshold: 2.0,
             components_per_cycle: 10_000,
+            compact_beams: 4.0,
+            compact_threshold: 1.0,
         }
     }
 }
