@@ -142,3 +142,33 @@ fn bad_mat_files_are_errors_naming_the_file_and_variable() {
         }
     }
 }
+
+/// Valid FITS images as astropy writes them: scaled integers (BITPIX 16 and 8 with BSCALE and
+/// BZERO, each stored pixel 2 or 1 bytes) and gzip-compressed (`.fits.gz`), read as the truth
+/// of `metrics` and as the sky of `simulate` (they were refused as truncated: the stored size
+/// was taken from the scaled type, or from the compressed file).
+#[test]
+fn scaled_and_gzipped_fits_images_are_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    python(
+        &[
+            "-c",
+            "from astropy.io import fits\nimport numpy as np\nh = fits.open('obs.sky.fits')[0]\nfor name, kind in [('sky16.fits', 'int16'), ('sky8.fits', 'uint8')]:\n    hdu = fits.PrimaryHDU(h.data.astype(np.float64), header=h.header.copy())\n    hdu.scale(kind, 'minmax')\n    hdu.writeto(name)\n    assert fits.getheader(name)['BITPIX'] == int(kind.strip('uint')) and 'BSCALE' in fits.getheader(name)\nfits.PrimaryHDU(h.data, header=h.header).writeto('sky.fits.gz')\n",
+        ],
+        d,
+    );
+    // BITPIX 8 keeps 256 levels of the sky, 16 bits 65536, gzip every bit.
+    for (file, least_snr) in [("sky.fits.gz", f64::INFINITY), ("sky16.fits", 60.0), ("sky8.fits", 20.0)] {
+        let out = r2d2(&["metrics", "--truth", file, "--estimate", "obs.sky.fits", "--dr", "1000"], d);
+        check(&out);
+        let metrics: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        // An exact match has no finite SNR (printed as null).
+        let snr = metrics["snr"].as_f64().unwrap_or(f64::INFINITY);
+        assert!(snr >= least_snr, "{file}: SNR {snr} against the float sky: {metrics}");
+        let table = format!("from-{file}.parquet");
+        check(&r2d2(&["simulate", "--sky", file, "--configs", "c", "--hours", "0.25", "--integration-s", "300", "--seed", "5", "--out", &table], d));
+        assert!(d.join(&table).exists(), "{file}");
+    }
+}
