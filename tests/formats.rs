@@ -172,3 +172,42 @@ fn scaled_and_gzipped_fits_images_are_read() {
         assert!(d.join(&table).exists(), "{file}");
     }
 }
+
+/// .mat variables of the wrong kind say what they hold and what was expected: complex weights
+/// (the count was compared and found equal), a text frequency ("holds 0 values"), a number as
+/// the unit (taken as wavelengths without a word), a variable that is an HDF5 soft link (an
+/// offset of 0xffffffffffffffff); a soft link the reader does not use is passed over. Half of
+/// `y` NaN images the rest, with a warning saying how many were excluded and why.
+#[test]
+fn mat_variables_of_the_wrong_kind_say_what_they_hold_and_what_was_expected() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    make_mat(d, "obs.mat", &["--version", "5"]);
+    make_mat(d, "obs73.mat", &["--version", "7.3"]);
+    python(
+        &[
+            "-c",
+            "import scipy.io as sio, numpy as np, h5py, shutil\nm = {k: v for k, v in sio.loadmat('obs.mat').items() if not k.startswith('__')}\nn = m['y'].size\ndef save(name, **change):\n    sio.savemat(name, {**m, **change})\nsave('cplx-nwimag.mat', nWimag=(np.ones(n) + 1j).reshape(-1, 1))\nsave('cplx-nw.mat', nW=(np.ones(n) + 1j).reshape(-1, 1))\nsave('text-freq.mat', frequency='1.4e9')\nsave('num-unit.mat', unit=np.float64(3))\ny = m['y'].copy()\ny[::2] = np.nan\nsave('nan-y.mat', y=y)\nfor name, link in [('link-nw.mat', 'nW'), ('link-other.mat', 'x')]:\n    shutil.copy('obs73.mat', name)\n    with h5py.File(name, 'a') as f:\n        if link in f: del f[link]\n        f[link] = h5py.SoftLink('/u')\n",
+        ],
+        d,
+    );
+    for (file, variable, expected) in [
+        ("cplx-nwimag.mat", "nWimag", "complex values: expected real numbers"),
+        ("cplx-nw.mat", "nW", "complex values: expected real numbers"),
+        ("text-freq.mat", "frequency", "holds text ('1.4e9'): expected a real number (Hz)"),
+        ("num-unit.mat", "unit", "holds a number (3): expected text ('m', or none for wavelengths)"),
+        ("link-nw.mat", "nW", "is at the root but is no dataset it can read (expected a dataset, as MATLAB writes each variable; a soft or external link?)"),
+    ] {
+        let out = r2d2(&["dirty", file, "--size", "64"], d);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains(&format!("{file}: ")) && err.contains(&format!("`{variable}` ")) && err.contains(expected), "{file}: {err}");
+    }
+    check(&r2d2(&["dirty", "link-other.mat", "--size", "64", "--name", "other"], d));
+    let out = r2d2(&["dirty", "nan-y.mat", "--size", "64", "--name", "nan"], d);
+    check(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    let warning = err.lines().find(|l| l.starts_with("[WARN ] nan-y.mat: ")).unwrap_or_else(|| panic!("no warning: {err}"));
+    let counts: Vec<u64> = warning.split_whitespace().filter_map(|w| w.parse().ok()).take(2).collect();
+    assert!(warning.contains("samples excluded: a value not finite (NaN") && counts.len() == 2 && counts[0] == (counts[1] + 1) / 2, "{warning}");
+}
