@@ -143,6 +143,44 @@ fn bad_mat_files_are_errors_naming_the_file_and_variable() {
     }
 }
 
+/// Every codec Parquet writers use (pyarrow: snappy by default, gzip, brotli, lz4, zstd) and
+/// Arrow IPC's two (LZ4 frame, ZSTD) read as the uncompressed table; a compressed IPC
+/// buffer declaring more bytes than memory holds is refused before anything is allocated.
+#[test]
+fn every_parquet_and_arrow_ipc_compression_codec_is_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    python(
+        &[
+            "-c",
+            "import pyarrow as pa, pyarrow.parquet as pq\nt = pq.read_table('obs.parquet')\nfor c in ['none', 'snappy', 'gzip', 'brotli', 'lz4', 'zstd']:\n    pq.write_table(t, f'c-{c}.parquet', compression=c)\nfor c in ['lz4', 'zstd']:\n    o = pa.ipc.IpcWriteOptions(compression=c)\n    with pa.ipc.new_stream(f'c-{c}.arrows', t.schema, options=o) as w: w.write_table(t)\n    with pa.ipc.new_file(f'c-{c}.arrow', t.schema, options=o) as w: w.write_table(t)\n",
+        ],
+        d,
+    );
+    let (reference, psf) = dirty(d, "obs.parquet", "ref", "briggs");
+    for codec in ["none", "snappy", "gzip", "brotli", "lz4", "zstd"] {
+        let mut inputs = vec![format!("c-{codec}.parquet")];
+        if matches!(codec, "lz4" | "zstd") {
+            inputs.extend([format!("c-{codec}.arrows"), format!("c-{codec}.arrow")]);
+        }
+        for input in inputs {
+            let (image, p) = dirty(d, &input, &input.replace('.', "-"), "briggs");
+            assert!(relative(&image, &reference) == 0.0 && relative(&p, &psf) == 0.0, "{input}: {}", relative(&image, &reference));
+        }
+    }
+    // A compressed buffer's first 8 bytes declare its decompressed length; arrow allocates
+    // that much before decompressing. Found after the stream's schema message, by the
+    // LZ4 frame magic that follows the length (the first buffer of the first batch).
+    let mut bytes = std::fs::read(d.join("c-lz4.arrows")).unwrap();
+    let frame = bytes.windows(4).position(|w| w == [0x04, 0x22, 0x4d, 0x18]).expect("an LZ4 frame");
+    bytes[frame - 8..frame].copy_from_slice(&(1i64 << 50).to_le_bytes());
+    std::fs::write(d.join("huge.arrows"), bytes).unwrap();
+    let out = r2d2(&["dirty", "huge.arrows", "--size", "64"], d);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("huge.arrows") && err.contains("a compressed record batch declares 11258999") && err.contains("once decompressed, more than"), "{err}");
+}
+
 /// Valid FITS images as astropy writes them: scaled integers (BITPIX 16 and 8 with BSCALE and
 /// BZERO, each stored pixel 2 or 1 bytes) and gzip-compressed (`.fits.gz`), read as the truth
 /// of `metrics` and as the sky of `simulate` (they were refused as truncated: the stored size
