@@ -5,6 +5,8 @@
 //! is honoured by the `given` weighting (checked against the same samples with the imaging
 //! weights folded into the natural ones); bad files are errors naming the file and variable.
 
+mod common;
+
 use r2d2_imaging::fits::read_image;
 use std::path::Path;
 use std::process::{Command, Output};
@@ -141,6 +143,69 @@ fn bad_mat_files_are_errors_naming_the_file_and_variable() {
             assert!(err.contains(w), "{file}: '{w}' missing from: {err}");
         }
     }
+}
+
+/// `r2d2` with `args` in `dir`, killed (and the test failed) after `limit`.
+fn r2d2_within(args: &[&str], dir: &Path, limit: std::time::Duration) -> Output {
+    common::output_within(Command::new(env!("CARGO_BIN_EXE_r2d2")).args(args).current_dir(dir).stdin(std::process::Stdio::null()), limit)
+}
+
+/// A FIFO fed `file` by a writer of its own (`cat`, killed when done with: it blocks until
+/// a reader opens the FIFO, which a refused input never does).
+struct FedFifo(std::process::Child);
+
+impl FedFifo {
+    fn new(dir: &Path, fifo: &str, file: &str) -> FedFifo {
+        let _ = std::fs::remove_file(dir.join(fifo));
+        assert!(Command::new("mkfifo").arg(dir.join(fifo)).status().expect("mkfifo runs").success());
+        FedFifo(Command::new("sh").args(["-c", &format!("cat {file} > {fifo}")]).current_dir(dir).spawn().unwrap())
+    }
+}
+
+impl Drop for FedFifo {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// A table given as a named pipe (`mkfifo`, or the shell's `<(cat obs.mat)`) is refused at
+/// once, naming it: it was opened twice, the first open taking the bytes that told its
+/// format and the second waiting for a writer for ever (.mat), or read as empty (Parquet,
+/// Arrow). The Arrow IPC source stage reads such a stream once, and images it.
+#[cfg(unix)]
+#[test]
+fn a_table_given_as_a_named_pipe_is_refused_at_once_naming_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    make_mat(d, "obs.mat", &["--version", "5"]);
+    python(
+        &["-c", "import pyarrow as pa, pyarrow.parquet as pq\nt = pq.read_table('obs.parquet')\nwith pa.ipc.new_stream('obs.arrows', t.schema) as w: w.write_table(t)\n"],
+        d,
+    );
+    let limit = std::time::Duration::from_secs(60);
+    for file in ["obs.mat", "obs.parquet", "obs.arrows"] {
+        let fifo = format!("fifo-{file}");
+        let _writer = FedFifo::new(d, &fifo, file);
+        for command in ["dirty", "convert"] {
+            let args: Vec<&str> = if command == "dirty" { vec!["dirty", &fifo, "--size", "64", "--name", "p"] } else { vec!["convert", &fifo, "p.parquet"] };
+            let out = r2d2_within(&args, d, limit);
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert!(!out.status.success(), "{file} through a FIFO: {command} succeeded");
+            assert!(err.contains(&format!("{fifo}: a FIFO (named pipe), not a regular file")) && err.contains("save it to a file"), "{file}: {err}");
+        }
+        assert!(!d.join("p-dirty.fits").exists() && !d.join("p.parquet").exists());
+    }
+    // Read once as a stream by the Arrow IPC source: imaged as the file itself is.
+    let pipeline = |path: &str| format!("name: fifo\nimage:\n  size: 64\nstages:\n  source:\n    kind: arrow-ipc\n    path: {path}\n    id: obs\n    to: weights\n  weights:\n    kind: weighting\n    scheme: briggs\n    robust: 0\n    to: grid\n  grid:\n    kind: gridder\n    to: write\n  write:\n    kind: writer\n    prefix: \"out-{path}/{{job}}\"\n");
+    std::fs::write(d.join("file.yaml"), pipeline("obs.arrows")).unwrap();
+    check(&r2d2(&["run", "file.yaml"], d));
+    std::fs::write(d.join("fifo.yaml"), pipeline("fifo.arrows")).unwrap();
+    let _writer = FedFifo::new(d, "fifo.arrows", "obs.arrows");
+    check(&r2d2_within(&["run", "fifo.yaml"], d, limit));
+    let image = |path: &str| read_image(&d.join(format!("out-{path}/obs-dirty.fits"))).unwrap().data;
+    assert_eq!(image("fifo.arrows"), image("obs.arrows"));
 }
 
 /// Every codec Parquet writers use (pyarrow: snappy by default, gzip, brotli, lz4, zstd) and

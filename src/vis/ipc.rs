@@ -57,11 +57,13 @@ impl IpcReader {
         }
         let source = PathBuf::from(input);
         let file = std::fs::File::open(&source).map_err(|e| Error::io(&source, e))?;
-        let length = file.metadata().map_err(|e| Error::io(&source, e))?.len();
+        let metadata = file.metadata().map_err(|e| Error::io(&source, e))?;
+        // A pipe's length is 0 whatever it will carry: only a regular file's bounds the messages.
+        let length = metadata.is_file().then(|| metadata.len());
         let mut reader = BufReader::new(file);
         let file_format = peek_is_file_format(&mut reader, &source)?;
         let header = if file_format { skip_file_header(&mut reader, &source)? } else { 0 };
-        let mut messages = IpcMessages::new(Box::new(reader), Some(length.saturating_sub(header)), file_format);
+        let mut messages = IpcMessages::new(Box::new(reader), length.map(|length| length.saturating_sub(header)), file_format);
         messages.offset = header;
         Self::new(source, messages, allow_truncated)
     }
