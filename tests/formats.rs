@@ -5,6 +5,8 @@
 //! is honoured by the `given` weighting (checked against the same samples with the imaging
 //! weights folded into the natural ones); bad files are errors naming the file and variable.
 
+mod common;
+
 use r2d2_imaging::fits::read_image;
 use std::path::Path;
 use std::process::{Command, Output};
@@ -141,4 +143,174 @@ fn bad_mat_files_are_errors_naming_the_file_and_variable() {
             assert!(err.contains(w), "{file}: '{w}' missing from: {err}");
         }
     }
+}
+
+/// `r2d2` with `args` in `dir`, killed (and the test failed) after `limit`.
+fn r2d2_within(args: &[&str], dir: &Path, limit: std::time::Duration) -> Output {
+    common::output_within(Command::new(env!("CARGO_BIN_EXE_r2d2")).args(args).current_dir(dir).stdin(std::process::Stdio::null()), limit)
+}
+
+/// A FIFO fed `file` by a writer of its own (`cat`, killed when done with: it blocks until
+/// a reader opens the FIFO, which a refused input never does).
+struct FedFifo(std::process::Child);
+
+impl FedFifo {
+    fn new(dir: &Path, fifo: &str, file: &str) -> FedFifo {
+        let _ = std::fs::remove_file(dir.join(fifo));
+        assert!(Command::new("mkfifo").arg(dir.join(fifo)).status().expect("mkfifo runs").success());
+        FedFifo(Command::new("sh").args(["-c", &format!("cat {file} > {fifo}")]).current_dir(dir).spawn().unwrap())
+    }
+}
+
+impl Drop for FedFifo {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// A table given as a named pipe (`mkfifo`, or the shell's `<(cat obs.mat)`) is refused at
+/// once, naming it: it was opened twice, the first open taking the bytes that told its
+/// format and the second waiting for a writer for ever (.mat), or read as empty (Parquet,
+/// Arrow). The Arrow IPC source stage reads such a stream once, and images it.
+#[cfg(unix)]
+#[test]
+fn a_table_given_as_a_named_pipe_is_refused_at_once_naming_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    make_mat(d, "obs.mat", &["--version", "5"]);
+    python(
+        &["-c", "import pyarrow as pa, pyarrow.parquet as pq\nt = pq.read_table('obs.parquet')\nwith pa.ipc.new_stream('obs.arrows', t.schema) as w: w.write_table(t)\n"],
+        d,
+    );
+    let limit = std::time::Duration::from_secs(60);
+    for file in ["obs.mat", "obs.parquet", "obs.arrows"] {
+        let fifo = format!("fifo-{file}");
+        let _writer = FedFifo::new(d, &fifo, file);
+        for command in ["dirty", "convert"] {
+            let args: Vec<&str> = if command == "dirty" { vec!["dirty", &fifo, "--size", "64", "--name", "p"] } else { vec!["convert", &fifo, "p.parquet"] };
+            let out = r2d2_within(&args, d, limit);
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert!(!out.status.success(), "{file} through a FIFO: {command} succeeded");
+            assert!(err.contains(&format!("{fifo}: a FIFO (named pipe), not a regular file")) && err.contains("save it to a file"), "{file}: {err}");
+        }
+        assert!(!d.join("p-dirty.fits").exists() && !d.join("p.parquet").exists());
+    }
+    // Read once as a stream by the Arrow IPC source: imaged as the file itself is.
+    let pipeline = |path: &str| format!("name: fifo\nimage:\n  size: 64\nstages:\n  source:\n    kind: arrow-ipc\n    path: {path}\n    id: obs\n    to: weights\n  weights:\n    kind: weighting\n    scheme: briggs\n    robust: 0\n    to: grid\n  grid:\n    kind: gridder\n    to: write\n  write:\n    kind: writer\n    prefix: \"out-{path}/{{job}}\"\n");
+    std::fs::write(d.join("file.yaml"), pipeline("obs.arrows")).unwrap();
+    check(&r2d2(&["run", "file.yaml"], d));
+    std::fs::write(d.join("fifo.yaml"), pipeline("fifo.arrows")).unwrap();
+    let _writer = FedFifo::new(d, "fifo.arrows", "obs.arrows");
+    check(&r2d2_within(&["run", "fifo.yaml"], d, limit));
+    let image = |path: &str| read_image(&d.join(format!("out-{path}/obs-dirty.fits"))).unwrap().data;
+    assert_eq!(image("fifo.arrows"), image("obs.arrows"));
+}
+
+/// Every codec Parquet writers use (pyarrow: snappy by default, gzip, brotli, lz4, zstd) and
+/// Arrow IPC's two (LZ4 frame, ZSTD) read as the uncompressed table; a compressed IPC
+/// buffer declaring more bytes than memory holds is refused before anything is allocated.
+#[test]
+fn every_parquet_and_arrow_ipc_compression_codec_is_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    python(
+        &[
+            "-c",
+            "import pyarrow as pa, pyarrow.parquet as pq\nt = pq.read_table('obs.parquet')\nfor c in ['none', 'snappy', 'gzip', 'brotli', 'lz4', 'zstd']:\n    pq.write_table(t, f'c-{c}.parquet', compression=c)\nfor c in ['lz4', 'zstd']:\n    o = pa.ipc.IpcWriteOptions(compression=c)\n    with pa.ipc.new_stream(f'c-{c}.arrows', t.schema, options=o) as w: w.write_table(t)\n    with pa.ipc.new_file(f'c-{c}.arrow', t.schema, options=o) as w: w.write_table(t)\n",
+        ],
+        d,
+    );
+    let (reference, psf) = dirty(d, "obs.parquet", "ref", "briggs");
+    for codec in ["none", "snappy", "gzip", "brotli", "lz4", "zstd"] {
+        let mut inputs = vec![format!("c-{codec}.parquet")];
+        if matches!(codec, "lz4" | "zstd") {
+            inputs.extend([format!("c-{codec}.arrows"), format!("c-{codec}.arrow")]);
+        }
+        for input in inputs {
+            let (image, p) = dirty(d, &input, &input.replace('.', "-"), "briggs");
+            assert!(relative(&image, &reference) == 0.0 && relative(&p, &psf) == 0.0, "{input}: {}", relative(&image, &reference));
+        }
+    }
+    // A compressed buffer's first 8 bytes declare its decompressed length; arrow allocates
+    // that much before decompressing. Found after the stream's schema message, by the
+    // LZ4 frame magic that follows the length (the first buffer of the first batch).
+    let mut bytes = std::fs::read(d.join("c-lz4.arrows")).unwrap();
+    let frame = bytes.windows(4).position(|w| w == [0x04, 0x22, 0x4d, 0x18]).expect("an LZ4 frame");
+    bytes[frame - 8..frame].copy_from_slice(&(1i64 << 50).to_le_bytes());
+    std::fs::write(d.join("huge.arrows"), bytes).unwrap();
+    let out = r2d2(&["dirty", "huge.arrows", "--size", "64"], d);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("huge.arrows") && err.contains("a compressed record batch declares 11258999") && err.contains("once decompressed, more than"), "{err}");
+}
+
+/// Valid FITS images as astropy writes them: scaled integers (BITPIX 16 and 8 with BSCALE and
+/// BZERO, each stored pixel 2 or 1 bytes) and gzip-compressed (`.fits.gz`), read as the truth
+/// of `metrics` and as the sky of `simulate` (they were refused as truncated: the stored size
+/// was taken from the scaled type, or from the compressed file).
+#[test]
+fn scaled_and_gzipped_fits_images_are_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    python(
+        &[
+            "-c",
+            "from astropy.io import fits\nimport numpy as np\nh = fits.open('obs.sky.fits')[0]\nfor name, kind in [('sky16.fits', 'int16'), ('sky8.fits', 'uint8')]:\n    hdu = fits.PrimaryHDU(h.data.astype(np.float64), header=h.header.copy())\n    hdu.scale(kind, 'minmax')\n    hdu.writeto(name)\n    assert fits.getheader(name)['BITPIX'] == int(kind.strip('uint')) and 'BSCALE' in fits.getheader(name)\nfits.PrimaryHDU(h.data, header=h.header).writeto('sky.fits.gz')\n",
+        ],
+        d,
+    );
+    // BITPIX 8 keeps 256 levels of the sky, 16 bits 65536, gzip every bit.
+    for (file, least_snr) in [("sky.fits.gz", f64::INFINITY), ("sky16.fits", 60.0), ("sky8.fits", 20.0)] {
+        let out = r2d2(&["metrics", "--truth", file, "--estimate", "obs.sky.fits", "--dr", "1000"], d);
+        check(&out);
+        let metrics: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        // An exact match has no finite SNR (printed as null).
+        let snr = metrics["snr"].as_f64().unwrap_or(f64::INFINITY);
+        assert!(snr >= least_snr, "{file}: SNR {snr} against the float sky: {metrics}");
+        let table = format!("from-{file}.parquet");
+        check(&r2d2(&["simulate", "--sky", file, "--configs", "c", "--hours", "0.25", "--integration-s", "300", "--seed", "5", "--out", &table], d));
+        assert!(d.join(&table).exists(), "{file}");
+    }
+}
+
+/// .mat variables of the wrong kind say what they hold and what was expected: complex weights
+/// (the count was compared and found equal), a text frequency ("holds 0 values"), a number as
+/// the unit (taken as wavelengths without a word), a variable that is an HDF5 soft link (an
+/// offset of 0xffffffffffffffff); a soft link the reader does not use is passed over. Half of
+/// `y` NaN images the rest, with a warning saying how many were excluded and why.
+#[test]
+fn mat_variables_of_the_wrong_kind_say_what_they_hold_and_what_was_expected() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    make_mat(d, "obs.mat", &["--version", "5"]);
+    make_mat(d, "obs73.mat", &["--version", "7.3"]);
+    python(
+        &[
+            "-c",
+            "import scipy.io as sio, numpy as np, h5py, shutil\nm = {k: v for k, v in sio.loadmat('obs.mat').items() if not k.startswith('__')}\nn = m['y'].size\ndef save(name, **change):\n    sio.savemat(name, {**m, **change})\nsave('cplx-nwimag.mat', nWimag=(np.ones(n) + 1j).reshape(-1, 1))\nsave('cplx-nw.mat', nW=(np.ones(n) + 1j).reshape(-1, 1))\nsave('text-freq.mat', frequency='1.4e9')\nsave('num-unit.mat', unit=np.float64(3))\ny = m['y'].copy()\ny[::2] = np.nan\nsave('nan-y.mat', y=y)\nfor name, link in [('link-nw.mat', 'nW'), ('link-other.mat', 'x')]:\n    shutil.copy('obs73.mat', name)\n    with h5py.File(name, 'a') as f:\n        if link in f: del f[link]\n        f[link] = h5py.SoftLink('/u')\n",
+        ],
+        d,
+    );
+    for (file, variable, expected) in [
+        ("cplx-nwimag.mat", "nWimag", "complex values: expected real numbers"),
+        ("cplx-nw.mat", "nW", "complex values: expected real numbers"),
+        ("text-freq.mat", "frequency", "holds text ('1.4e9'): expected a real number (Hz)"),
+        ("num-unit.mat", "unit", "holds a number (3): expected text ('m', or none for wavelengths)"),
+        ("link-nw.mat", "nW", "is at the root but is no dataset it can read (expected a dataset, as MATLAB writes each variable; a soft or external link?)"),
+    ] {
+        let out = r2d2(&["dirty", file, "--size", "64"], d);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains(&format!("{file}: ")) && err.contains(&format!("`{variable}` ")) && err.contains(expected), "{file}: {err}");
+    }
+    check(&r2d2(&["dirty", "link-other.mat", "--size", "64", "--name", "other"], d));
+    let out = r2d2(&["dirty", "nan-y.mat", "--size", "64", "--name", "nan"], d);
+    check(&out);
+    let err = String::from_utf8_lossy(&out.stderr);
+    let warning = err.lines().find(|l| l.starts_with("[WARN ] nan-y.mat: ")).unwrap_or_else(|| panic!("no warning: {err}"));
+    let counts: Vec<u64> = warning.split_whitespace().filter_map(|w| w.parse().ok()).take(2).collect();
+    assert!(warning.contains("samples excluded: a value not finite (NaN") && counts.len() == 2 && counts[0] == (counts[1] + 1) / 2, "{warning}");
 }

@@ -12,7 +12,7 @@
 
 mod common;
 
-use common::{check, landweber_reference, make_test_models, max_abs, max_diff, observation, r2d2, read, stderr, ReferenceOperator, SIZE};
+use common::{check, landweber_reference, make_test_models, max_abs, max_diff, observation, output_within, r2d2, read, stderr, ReferenceOperator, SIZE};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
@@ -336,20 +336,6 @@ fn isolated_plugins_that_crash_exit_or_hang_fail_the_run_naming_library_stage_an
     let err = stderr(&out);
     assert_eq!(out.status.code(), Some(1), "{err}");
     assert!(err.contains("R2D2_PLUGIN_HOST=") && err.contains("is not a file"), "{err}");
-}
-
-/// `command`'s output, failing the test if it runs past `limit` (it is then killed).
-fn output_within(command: &mut Command, limit: std::time::Duration) -> std::process::Output {
-    let mut child = command.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped()).spawn().unwrap();
-    let began = std::time::Instant::now();
-    while child.try_wait().unwrap().is_none() {
-        if began.elapsed() > limit {
-            child.kill().unwrap();
-            panic!("still running after {limit:?}: {}", stderr(&child.wait_with_output().unwrap()));
-        }
-        std::thread::sleep(std::time::Duration::from_millis(20));
-    }
-    child.wait_with_output().unwrap()
 }
 
 /// A FIFO or a directory given as the library is said to be one (not "no such plugin

@@ -256,13 +256,26 @@ pub fn write_image(
 /// it were SIN, which agrees near the phase centre); it must have square pixels, RA
 /// increasing to the left, no rotation and the reference pixel at the image centre, as
 /// `ImageWcs` describes nothing else. Without CTYPE1/CTYPE2 `wcs` is `None`. Any
-/// non-finite or blank pixel is an error: sky images must be finite.
+/// non-finite or blank pixel is an error: sky images must be finite. A gzip-compressed file
+/// (`.fits.gz`) is read through a decompressed temporary copy, its size bounded by the memory
+/// budget as it is decompressed.
 pub fn read_image(path: &Path) -> Result<FitsImage> {
+    read_image_within(path, crate::limits::memory_budget())
+}
+
+/// [`read_image`], a gzip-compressed file decompressing to at most `budget`.
+fn read_image_within(path: &Path, budget: crate::limits::MemoryBudget) -> Result<FitsImage> {
     let metadata = std::fs::metadata(path).map_err(|e| Error::io(path, e))?;
     if !metadata.is_file() {
         return Err(FitsError::Unusable { path: path.to_path_buf(), message: "not a regular file (expected a FITS image)" }.into());
     }
-    let mut file = FitsFile::open(fitsio_path(path)?).map_err(|e| cfitsio(path, "cannot open as FITS", e))?;
+    // cfitsio would decompress a gzip file whole into memory, whatever size it declares.
+    let decompressed = gunzipped(path, budget)?;
+    let (source, file_bytes) = match &decompressed {
+        Some(copy) => (copy.path(), copy.as_file().metadata().map_err(|e| Error::io(path, e))?.len()),
+        None => (path, metadata.len()),
+    };
+    let mut file = FitsFile::open(fitsio_path(source)?).map_err(|e| cfitsio(path, "cannot open as FITS", e))?;
     let hdu = file.primary_hdu().map_err(|e| cfitsio(path, "cannot read the primary HDU", e))?;
     let (shape, image_type) = match &hdu.info {
         HduInfo::ImageInfo { shape, image_type } => (shape.clone(), *image_type),
@@ -292,16 +305,19 @@ pub fn read_image(path: &Path) -> Result<FitsImage> {
         return Err(invalid(path, format!("NAXIS1 = {nx}, NAXIS2 = {ny}: the image is empty")));
     }
     // A damaged header can declare any size; refuse sizes the file cannot hold before
-    // fitsio allocates a buffer for them.
-    let data_bytes = nx.checked_mul(ny).and_then(|n| n.checked_mul(bytes_per_pixel(image_type)));
-    if data_bytes.is_none_or(|bytes| bytes as u64 > metadata.len()) {
+    // fitsio allocates a buffer for them. The pixels are stored as BITPIX says: `image_type`
+    // is what they mean once scaled (BITPIX 16 with a BSCALE of 0.01 is float).
+    let stored = stored_bytes_per_pixel(&mut file, &hdu, path)?;
+    let data_bytes = nx.checked_mul(ny).and_then(|n| n.checked_mul(stored));
+    if data_bytes.is_none_or(|bytes| bytes as u64 > file_bytes) {
+        let compressed = if decompressed.is_some() { " once decompressed" } else { "" };
         return Err(invalid(
             path,
-            format!("NAXIS1 x NAXIS2 = {nx} x {ny} pixels do not fit in the file's {} bytes", metadata.len()),
+            format!("NAXIS1 x NAXIS2 = {nx} x {ny} pixels of {stored} bytes (BITPIX) do not fit in the file's {file_bytes} bytes{compressed}: is it truncated?"),
         ));
     }
     // A size the file holds may still be more than the machine can: refused before the
-    // pixels (read as f64, beside cfitsio's buffer of the stored type) are allocated.
+    // pixels (read as f64, beside cfitsio's buffer of their scaled type) are allocated.
     let needed = (nx * ny) as f64 * (8 + bytes_per_pixel(image_type)) as f64;
     crate::limits::check_memory(needed, &format!("reading its {nx} x {ny} pixels")).map_err(|m| invalid(path, m))?;
     let data: Vec<f64> = hdu.read_image(&mut file).map_err(|e| cfitsio(path, "cannot read the pixels", e))?;
@@ -332,7 +348,45 @@ pub fn read_image(path: &Path) -> Result<FitsImage> {
     Ok(FitsImage { data, nx, ny, wcs, unit })
 }
 
-/// Bytes per stored pixel (BITPIX / 8 in absolute value).
+/// Bytes per pixel as stored in the file: BITPIX / 8 in absolute value.
+fn stored_bytes_per_pixel(file: &mut FitsFile, hdu: &FitsHdu, path: &Path) -> Result<usize> {
+    let bitpix = hdu.read_key::<i64>(file, "BITPIX").map_err(|e| cfitsio(path, "cannot read BITPIX", e))?;
+    match bitpix {
+        8 | 16 | 32 | 64 | -32 | -64 => Ok(bitpix.unsigned_abs() as usize / 8),
+        other => Err(invalid(path, format!("BITPIX = {other}: expected 8, 16, 32, 64, -32 or -64"))),
+    }
+}
+
+/// The gzip-compressed file at `path` decompressed into a temporary file, when it is one
+/// (`None` otherwise), refused once it passes `budget`: its own trailer's size is not trusted
+/// (it is the size modulo 4 GiB, and may lie).
+fn gunzipped(path: &Path, budget: crate::limits::MemoryBudget) -> Result<Option<tempfile::NamedTempFile>> {
+    use std::io::{Read, Write};
+    let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut magic = [0u8; 2];
+    let got = file.read(&mut magic).map_err(|e| Error::io(path, e))?;
+    if got < 2 || magic != [0x1f, 0x8b] {
+        return Ok(None);
+    }
+    let copy = tempfile::Builder::new().prefix(".r2d2-gunzip-").tempfile().map_err(|e| Error::io(std::env::temp_dir(), e))?;
+    let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut decoder = flate2::read::MultiGzDecoder::new(std::io::BufReader::new(file)).take(budget.bytes.saturating_add(1));
+    let mut writer = std::io::BufWriter::new(copy.as_file());
+    let written = std::io::copy(&mut decoder, &mut writer).map_err(|e| match e.kind() {
+        std::io::ErrorKind::InvalidInput | std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof => {
+            invalid(path, format!("gzip-compressed, but it does not decompress: {e}"))
+        }
+        _ => Error::io(copy.path(), e),
+    })?;
+    writer.flush().map_err(|e| Error::io(copy.path(), e))?;
+    drop(writer);
+    if written > budget.bytes {
+        return Err(invalid(path, format!("gzip-compressed, and it decompresses to more than {budget}: expected a FITS image whose pixels fit in memory")));
+    }
+    Ok(Some(copy))
+}
+
+/// Bytes per pixel of an image type (what cfitsio reads the pixels as).
 fn bytes_per_pixel(image_type: ImageType) -> usize {
     match image_type {
         ImageType::UnsignedByte | ImageType::Byte => 1,
@@ -1167,6 +1221,58 @@ mod tests {
         assert_eq!(read.data, vec![10.0, 10.5, 11.0, 11.5, 12.0, 12.5]);
         assert_eq!(read.wcs, None);
         assert_eq!(read.unit, None);
+    }
+
+    /// Scaled integers (BITPIX 8 and 16 with a BSCALE that makes them float) are as many bytes
+    /// per pixel in the file as BITPIX says, not as the float they scale to.
+    #[test]
+    fn scaled_integer_images_are_read_at_their_stored_size() {
+        let dir = tempfile::tempdir().unwrap();
+        let (nx, ny) = (64, 64);
+        let codes: Vec<i64> = (0..nx * ny).map(|k| (k % 200) as i64).collect();
+        for (name, image_type) in [("b8.fits", ImageType::UnsignedByte), ("s16.fits", ImageType::Short)] {
+            let path = dir.path().join(name);
+            {
+                let description = ImageDescription { data_type: image_type, dimensions: &[ny, nx] };
+                let mut f = FitsFile::create(&path).with_custom_primary(&description).open().unwrap();
+                let hdu = f.primary_hdu().unwrap();
+                hdu.write_key(&mut f, "BSCALE", 0.01f64).unwrap();
+                hdu.write_key(&mut f, "BZERO", -1.0f64).unwrap();
+                // Stored as they are: cfitsio takes up scaling keywords when it next opens the
+                // HDU (as `integer_image_is_scaled_and_wcs_less_image_has_none` relies on).
+                let stored: Vec<i16> = codes.iter().map(|&c| c as i16).collect();
+                hdu.write_image(&mut f, &stored).unwrap();
+            }
+            let read = read_image(&path).unwrap_or_else(|e| panic!("{name}: {e}"));
+            assert_eq!((read.nx, read.ny), (nx, ny));
+            for (k, (&value, &code)) in read.data.iter().zip(&codes).enumerate() {
+                assert!((value - (code as f64 * 0.01 - 1.0)).abs() < 1e-9, "{name}: pixel {k}: {value} for code {code}");
+            }
+        }
+    }
+
+    /// A gzip-compressed image reads as its decompressed file; one decompressing to more
+    /// than the budget is refused as it passes it, and damaged compression is named.
+    #[test]
+    fn gzip_compressed_images_are_read_within_the_budget() {
+        use std::io::Write;
+        let dir = tempfile::tempdir().unwrap();
+        let plain = dir.path().join("plain.fits");
+        write_image(&plain, &pattern(64, 64), 64, 64, &test_wcs(), BrightnessUnit::JyPerBeam, None, &[]).unwrap();
+        let bytes = std::fs::read(&plain).unwrap();
+        let gz = dir.path().join("sky.fits.gz");
+        let mut encoder = flate2::write::GzEncoder::new(std::fs::File::create(&gz).unwrap(), flate2::Compression::default());
+        encoder.write_all(&bytes).unwrap();
+        encoder.finish().unwrap();
+        let (a, b) = (read_image(&gz).unwrap(), read_image(&plain).unwrap());
+        assert_eq!((a.data, a.wcs, a.unit), (b.data, b.wcs, b.unit));
+        let small = crate::limits::MemoryBudget { bytes: bytes.len() as u64 - 1, origin: "the test" };
+        let e = read_image_within(&gz, small).unwrap_err().to_string();
+        assert!(e.contains("sky.fits.gz") && e.contains("decompresses to more than") && e.contains("the test"), "{e}");
+        let gz_bytes = std::fs::read(&gz).unwrap();
+        std::fs::write(&gz, &gz_bytes[..gz_bytes.len() / 2]).unwrap();
+        let e = read_image(&gz).unwrap_err().to_string();
+        assert!(e.contains("sky.fits.gz") && e.contains("does not decompress"), "{e}");
     }
 
     #[test]

@@ -50,9 +50,18 @@ impl IngestStats {
     }
 
     /// Logs the counts of a table read from `source`, with a warning when rows had values no
-    /// instrument measures: the file is damaged or was written wrongly.
+    /// instrument measures (not finite, or impossible): the file is damaged or was written
+    /// wrongly.
     pub fn log(&self, source: &Path) {
         log::info!("{}: {self}", source.display());
+        if self.non_finite > 0 {
+            log::warn!(
+                "{}: {} of {} samples excluded: a value not finite (NaN or infinite: a visibility, baseline coordinate, frequency or weight), where every value of an unflagged sample must be: is the file damaged?",
+                source.display(),
+                self.non_finite,
+                self.rows
+            );
+        }
         if self.impossible > 0 {
             let (low, high) = FREQUENCY_RANGE_HZ;
             log::warn!(

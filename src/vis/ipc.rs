@@ -57,11 +57,13 @@ impl IpcReader {
         }
         let source = PathBuf::from(input);
         let file = std::fs::File::open(&source).map_err(|e| Error::io(&source, e))?;
-        let length = file.metadata().map_err(|e| Error::io(&source, e))?.len();
+        let metadata = file.metadata().map_err(|e| Error::io(&source, e))?;
+        // A pipe's length is 0 whatever it will carry: only a regular file's bounds the messages.
+        let length = metadata.is_file().then(|| metadata.len());
         let mut reader = BufReader::new(file);
         let file_format = peek_is_file_format(&mut reader, &source)?;
         let header = if file_format { skip_file_header(&mut reader, &source)? } else { 0 };
-        let mut messages = IpcMessages::new(Box::new(reader), Some(length.saturating_sub(header)), file_format);
+        let mut messages = IpcMessages::new(Box::new(reader), length.map(|length| length.saturating_sub(header)), file_format);
         messages.offset = header;
         Self::new(source, messages, allow_truncated)
     }
@@ -285,6 +287,7 @@ impl IpcMessages {
             MessageHeader::RecordBatch => {
                 let schema = schema.ok_or("a record batch before the schema")?;
                 let batch = message.header_as_record_batch().ok_or_else(|| missing("record batch"))?;
+                check_decompressed_size(&body, batch, "record batch")?;
                 read_record_batch(&body, batch, schema.clone(), &self.dictionaries, None, &version)
                     .map(IpcMessage::Batch)
                     .map_err(|e| e.to_string())
@@ -292,6 +295,9 @@ impl IpcMessages {
             MessageHeader::DictionaryBatch => {
                 let schema = schema.ok_or("a dictionary before the schema")?;
                 let dictionary = message.header_as_dictionary_batch().ok_or_else(|| missing("dictionary"))?;
+                if let Some(batch) = dictionary.data() {
+                    check_decompressed_size(&body, batch, "dictionary")?;
+                }
                 read_dictionary(&body, dictionary, schema, &mut self.dictionaries, &version).map_err(|e| e.to_string())?;
                 Ok(IpcMessage::Other)
             }
@@ -299,4 +305,32 @@ impl IpcMessages {
             other => Err(format!("unexpected {other:?} message (a visibility table has a schema and record batches)")),
         }
     }
+}
+
+/// Refuses a compressed (LZ4 or ZSTD) batch whose buffers declare more bytes once decompressed
+/// than the memory budget allows: arrow sizes each buffer's allocation by the length that its
+/// first 8 bytes declare, before decompressing anything.
+fn check_decompressed_size(body: &[u8], batch: arrow::ipc::RecordBatch<'_>, what: &str) -> std::result::Result<(), String> {
+    if batch.compression().is_none() {
+        return Ok(());
+    }
+    let mut declared = 0u64;
+    for buffer in batch.buffers().into_iter().flatten() {
+        if buffer.length() < 8 {
+            continue; // empty: nothing is decompressed
+        }
+        let start = usize::try_from(buffer.offset()).ok();
+        let prefix = start.and_then(|start| body.get(start..start.checked_add(8)?)).ok_or_else(|| {
+            format!("a compressed buffer at offset {} of the {what}'s body lies past its end ({} bytes)", buffer.offset(), body.len())
+        })?;
+        // -1: stored uncompressed; 0: empty.
+        let length = i64::from_le_bytes(prefix.try_into().expect("8 bytes"));
+        declared = declared.saturating_add(u64::try_from(length).unwrap_or(0));
+    }
+    let budget = crate::limits::memory_budget();
+    if declared > budget.bytes {
+        let size = crate::limits::format_bytes(declared as f64);
+        return Err(format!("a compressed {what} declares {declared} bytes ({size}) once decompressed, more than {budget}"));
+    }
+    Ok(())
 }

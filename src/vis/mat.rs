@@ -118,6 +118,23 @@ fn to_batch(mut vars: BTreeMap<String, Variable>, path: &Path) -> Result<RecordB
     if let Some((name, var)) = vars.iter().find(|(_, v)| !v.is_vector()) {
         return Err(invalid(path, format!("`{name}` is a {:?} array: expected a vector (N x 1 or 1 x N)", var.dims)));
     }
+    // Each variable of its kind: text only for `unit`, complex values only for `y`.
+    for (name, var) in &vars {
+        let expected = match name.as_str() {
+            "unit" => "text ('m', or none for wavelengths)",
+            "y" => "numbers (complex visibilities)",
+            "frequency" => "a real number (Hz)",
+            _ => "real numbers",
+        };
+        let found = match (&var.text, &var.im) {
+            (Some(text), _) if name != "unit" => format!("text ('{text}')"),
+            (None, _) if name == "unit" && var.len() == 1 => format!("a number ({})", var.re[0]),
+            (None, _) if name == "unit" && var.len() > 1 => format!("{} numbers", var.len()),
+            (_, Some(_)) if name != "y" => format!("{} complex values", var.len()),
+            _ => continue,
+        };
+        return Err(invalid(path, format!("`{name}` holds {found}: expected {expected}")));
+    }
     let mut take = |name: &str| vars.remove(name);
     let need = |v: Option<Variable>, name: &str, what: &str| v.ok_or_else(|| invalid(path, format!("no variable `{name}` ({what})")));
     let y = need(take("y"), "y", "the visibilities")?;
@@ -129,8 +146,8 @@ fn to_batch(mut vars: BTreeMap<String, Variable>, path: &Path) -> Result<RecordB
         return Err(invalid(path, "`y` holds no visibilities"));
     }
     let same = |var: &Variable, name: &str| -> Result<()> {
-        if var.len() != n || var.im.is_some() {
-            return Err(invalid(path, format!("`{name}` holds {} {}values, `y` {n}: expected one real value per visibility", var.len(), if var.im.is_some() { "complex " } else { "" })));
+        if var.len() != n {
+            return Err(invalid(path, format!("`{name}` holds {} values, `y` {n}: expected one real value per visibility", var.len())));
         }
         Ok(())
     };
@@ -152,7 +169,7 @@ fn to_batch(mut vars: BTreeMap<String, Variable>, path: &Path) -> Result<RecordB
             ))
         }
     };
-    let unit = take("unit").and_then(|u| u.text).unwrap_or_default();
+    let unit = take("unit").and_then(|u| u.text).unwrap_or_default(); // text, as checked above
     // u, v, w to metres, the table format's unit (the reader turns them back to wavelengths).
     let to_metres = match unit.trim() {
         "" | "lambda" | "wavelengths" => SPEED_OF_LIGHT / f,
@@ -175,7 +192,7 @@ fn to_batch(mut vars: BTreeMap<String, Variable>, path: &Path) -> Result<RecordB
     }
     let imaging = match take("nWimag") {
         Some(x) if x.len() == 0 => None,
-        Some(x) if x.len() == n && x.im.is_none() => Some(x.re),
+        Some(x) if x.len() == n => Some(x.re),
         Some(x) => return Err(invalid(path, format!("`nWimag` holds {} values for {n} visibilities: expected one per visibility, or none", x.len()))),
         None => None,
     };
@@ -414,10 +431,17 @@ fn read_v73(path: &Path) -> Result<BTreeMap<String, Variable>> {
         .ok_or_else(|| invalid(path, "a MAT 7.3 header, but no HDF5 superblock after it"))?;
     let file = hdf5_reader::Hdf5File::from_vec(bytes[start..].to_vec()).map_err(|e| h5("opening it", e))?;
     let mut vars = BTreeMap::new();
-    let datasets = file.root_group().and_then(|g| g.datasets()).map_err(|e| h5("listing its variables", e))?;
-    for ds in datasets {
-        let name = ds.name().trim_start_matches('/').to_string();
-        let Some(&name) = WANTED.iter().find(|w| **w == name) else { continue };
+    let root = file.root_group().map_err(|e| h5("opening its root group", e))?;
+    // Each wanted variable by name: what else the root holds (groups, links) is never read.
+    for name in WANTED {
+        let ds = match root.dataset(name) {
+            Ok(ds) => ds,
+            Err(hdf5_reader::error::Error::DatasetNotFound(_)) => continue,
+            Err(e) => {
+                let what = format!("`{name}` is at the root but is no dataset it can read (expected a dataset, as MATLAB writes each variable; a soft or external link?)");
+                return Err(h5(&what, e));
+            }
+        };
         let class = ds.attribute("MATLAB_class").ok().and_then(|a| a.read_string().ok()).unwrap_or_default();
         let empty = ds.attribute("MATLAB_empty").is_ok();
         let dims: Vec<usize> = ds.shape().iter().rev().map(|&d| d as usize).collect();

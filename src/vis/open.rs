@@ -71,6 +71,17 @@ pub fn format_of(path: &Path) -> Result<TableFormat> {
         }
         return Err(Error::input(path, "a directory, but not a MeasurementSet (no table.dat): expected a MeasurementSet, a Parquet or an Arrow IPC file"));
     }
+    if !metadata.is_file() {
+        // Never opened: a FIFO's open waits for a writer, and its bytes come only once, while
+        // a table is read more than once (its first bytes here, then the reader, then each pass).
+        return Err(Error::input(
+            path,
+            format!(
+                "{}, not a regular file: a table is read more than once (its format told from its first bytes, then each pass), and this gives its bytes only once; save it to a file and give that",
+                crate::error::file_kind(&metadata)
+            ),
+        ));
+    }
     let mut head = [0u8; 20];
     let mut file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
     let mut got = 0;

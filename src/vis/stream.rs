@@ -28,20 +28,52 @@ pub enum VisSource {
 /// Decoded batches a first reading holds between decoding and keeping them.
 const BATCHES_IN_FLIGHT: usize = 2;
 
-/// What a first reading keeps of a table: its counts, its summary and its decoded copy.
+/// What a first reading keeps of a table: its counts, its summary, its digest and its
+/// decoded copy.
 struct Kept {
     stats: IngestStats,
     summary: VisSummary,
+    digest: SampleDigest,
     spill: Option<std::result::Result<Spill, super::spill::NoSpill>>,
 }
 
+/// A checksum of decoded samples in their order (every column, to the bit): two readings of
+/// one table agree on it, while a table replaced by another with as many samples (its
+/// baselines, weights or values changed) does not, though its counts are the same.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+struct SampleDigest([u64; 4]);
+
+impl SampleDigest {
+    /// Folds `vis`'s samples in: four independent lanes (baselines, values, weights,
+    /// frequencies), each a multiply-rotate hash of the values' bits, cheap beside decoding.
+    fn add(&mut self, vis: &Visibilities) {
+        const K: u64 = 0x9e37_79b9_7f4a_7c15;
+        let fold = |lane: &mut u64, bits: u64| *lane = (lane.rotate_left(23) ^ bits).wrapping_mul(K);
+        let [baselines, values, weights, frequencies] = &mut self.0;
+        for k in 0..vis.len() {
+            fold(baselines, vis.u[k].to_bits());
+            fold(baselines, vis.v[k].to_bits());
+            fold(baselines, vis.w[k].to_bits());
+            fold(values, u64::from(vis.vis[k].re.to_bits()) << 32 | u64::from(vis.vis[k].im.to_bits()));
+            let imaging_weight = vis.imaging_weight.get(k).map_or(u64::MAX, |x| u64::from(x.to_bits()));
+            fold(weights, u64::from(vis.weight[k].to_bits()) << 32 ^ imaging_weight);
+        }
+        for f in &vis.frequency {
+            fold(frequencies, f.to_bits());
+        }
+    }
+}
+
 /// A table read again from its file at every pass. Each pass must find the samples the first
-/// found: a file changed under a running job is an error, not an image of two tables.
+/// found (their counts and their digest): a file changed or replaced under a running job is
+/// an error, not an image of two tables.
 pub struct StreamedTable {
     path: PathBuf,
     reopen: Box<Reopen>,
     meta: ObservationMeta,
     stats: IngestStats,
+    /// The first reading's samples, for later passes to be checked against.
+    digest: SampleDigest,
     /// Whether `stats` are the first reading's, for later passes to be checked against
     /// (false for a table opened for one pass without reading it first).
     scanned: bool,
@@ -67,10 +99,11 @@ impl StreamedTable {
             let (to_keeper, batches) = std::sync::mpsc::sync_channel::<arrow::array::RecordBatch>(BATCHES_IN_FLIGHT);
             let source = source.as_str();
             let keeper = std::thread::Builder::new().name("r2d2-keeper".into()).spawn_scoped(scope, move || -> Result<Kept> {
-                let mut kept = Kept { stats: IngestStats::default(), summary: VisSummary::empty(), spill: spill_in.map(Spill::create) };
+                let mut kept = Kept { stats: IngestStats::default(), summary: VisSummary::empty(), digest: SampleDigest::default(), spill: spill_in.map(Spill::create) };
                 for batch in batches {
                     let vis = record_batch_to_visibilities(&batch, &mut kept.stats, source)?;
                     kept.summary.add(&vis.chunk(0..vis.len()));
+                    kept.digest.add(&vis);
                     if let Some(Ok(copy)) = &mut kept.spill {
                         if let Err(why) = copy.append(&vis) {
                             kept.spill = Some(Err(why)); // the incomplete copy is dropped (and its space freed) here
@@ -107,7 +140,7 @@ impl StreamedTable {
             let kept = kept?;
             Ok(outcome?.then_some(kept))
         })?;
-        let Some(Kept { stats, summary, spill }) = kept else { return Ok(None) };
+        let Some(Kept { stats, summary, digest, spill }) = kept else { return Ok(None) };
         let spill = match spill {
             Some(Ok(kept)) => {
                 log::info!(
@@ -127,6 +160,7 @@ impl StreamedTable {
             reopen,
             meta: reader.meta().clone(),
             stats,
+            digest,
             scanned: true,
             summary,
             reader_summary: reader.summary(),
@@ -143,6 +177,7 @@ impl StreamedTable {
             reopen,
             meta: reader.meta().clone(),
             stats: IngestStats::default(),
+            digest: SampleDigest::default(),
             scanned: false,
             summary: VisSummary::empty(),
             reader_summary: None,
@@ -218,6 +253,7 @@ impl VisSource {
                 let mut reader = (table.reopen)()?;
                 let source = reader.source().display().to_string();
                 let mut stats = IngestStats::default();
+                let mut digest = SampleDigest::default();
                 // Batches are gathered into chunks of `chunk_rows`: a consumer's cost per call
                 // (sorting, merging grids) is then paid per chunk, not per batch. One buffer for
                 // every chunk: fresh pages cost a fault each, chunk after chunk otherwise.
@@ -226,6 +262,9 @@ impl VisSource {
                     let vis = record_batch_to_visibilities(&batch?, &mut stats, &source)?;
                     if table.scanned && stats.kept() > table.stats.kept() {
                         break;
+                    }
+                    if table.scanned {
+                        digest.add(&vis);
                     }
                     if buffer.is_empty() && vis.len() >= chunk_rows {
                         f(vis.chunk(0..vis.len()))?;
@@ -243,6 +282,14 @@ impl VisSource {
                         format!(
                             "the table changed while it was imaged: its first reading found {}, a later one {} (was it written to meanwhile?); nothing was written",
                             table.stats, stats
+                        ),
+                    ));
+                }
+                if table.scanned && digest != table.digest {
+                    return Err(Error::input(
+                        &table.path,
+                        format!(
+                            "the table changed while it was imaged: a later reading found as many samples as the first ({stats}) but other values (baselines, visibilities, weights or frequencies; was it replaced or written to meanwhile?); nothing was written"
                         ),
                     ));
                 }
@@ -335,8 +382,13 @@ mod tests {
 
     /// A table of `rows` samples in memory, as a reader.
     fn table(rows: usize) -> Box<dyn TableReader> {
+        table_changed(rows, |_| {})
+    }
+
+    /// `table(rows)` with `change` made to its columns.
+    fn table_changed(rows: usize, change: fn(&mut super::super::table::VisTable)) -> Box<dyn TableReader> {
         use super::super::table::{to_record_batches, VisTable};
-        let t = VisTable {
+        let mut t = VisTable {
             u_m: (0..rows).map(|k| 10.0 + k as f64).collect(),
             v_m: vec![5.0; rows],
             w_m: vec![1.0; rows],
@@ -348,6 +400,7 @@ mod tests {
             antenna1: vec![0; rows],
             antenna2: vec![1; rows],
         };
+        change(&mut t);
         let meta = super::super::ObservationMeta::new(10.0, 20.0, "VLA");
         let (schema, batches) = to_record_batches(&t, &meta, 4).unwrap();
         let input = super::super::MemoryInput::from_batches("t", schema, batches);
@@ -451,6 +504,30 @@ mod tests {
         // One that stays the same is read whole in chunks of at least 3 (its batches of 4).
         let same = StreamedTable::scan(table(10), Box::new(|| Ok(table(10))), None, &|| false).unwrap().unwrap();
         assert_eq!(chunk_sizes(&VisSource::Streamed(Arc::new(same))), vec![4, 4, 2]);
+    }
+
+    /// A table replaced after its first reading by one of as many samples (as with `TMPDIR`
+    /// on tmpfs, where nothing is spilled and each pass reads the file) is an error, whichever
+    /// column differs: its counts alone are the same.
+    #[test]
+    fn a_table_replaced_by_one_of_as_many_samples_is_an_error_naming_it() {
+        use super::super::table::VisTable;
+        use std::sync::atomic::{AtomicUsize, Ordering};
+        let changes: [(&str, fn(&mut VisTable)); 5] = [
+            ("w x 0.9", |t| t.w_m.iter_mut().for_each(|w| *w *= 0.9)),
+            ("u", |t| t.u_m[3] += 1e-9),
+            ("weights", |t| t.weight[9] = 2.0),
+            ("values", |t| t.vis[0].im = 1e-3),
+            ("frequencies", |t| t.frequency[5] = 1.5e9),
+        ];
+        for (what, change) in changes {
+            let opened = Arc::new(AtomicUsize::new(0));
+            let reopen = move || Ok(if opened.fetch_add(1, Ordering::SeqCst) == 0 { table(10) } else { table_changed(10, change) });
+            let first = reopen().unwrap();
+            let streamed = StreamedTable::scan(first, Box::new(reopen), None, &|| false).unwrap().unwrap();
+            let e = VisSource::Streamed(Arc::new(streamed)).for_each_chunk(3, &mut |_| Ok(())).unwrap_err().to_string();
+            assert!(e.contains("t:") && e.contains("as many samples as the first (10 samples read, 10 kept") && e.contains("other values"), "{what}: {e}");
+        }
     }
 
     /// With a temporary copy, later passes read the samples the first reading decoded, and

@@ -21,6 +21,21 @@ pub fn r2d2(args: &[&str], dir: &Path) -> Output {
         .expect("r2d2 runs")
 }
 
+/// `command`'s output, failing the test if it runs past `limit` (it is then killed): a run
+/// that waits for ever must not pass as a slow one.
+pub fn output_within(command: &mut Command, limit: std::time::Duration) -> Output {
+    let mut child = command.stdout(std::process::Stdio::piped()).stderr(std::process::Stdio::piped()).spawn().unwrap();
+    let began = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if began.elapsed() > limit {
+            child.kill().unwrap();
+            panic!("still running after {limit:?}: {}", stderr(&child.wait_with_output().unwrap()));
+        }
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.wait_with_output().unwrap()
+}
+
 pub fn stderr(out: &Output) -> String {
     String::from_utf8_lossy(&out.stderr).into_owned()
 }
