@@ -1128,3 +1128,34 @@ fn an_ms_name_too_long_for_a_model_write_is_refused_before_imaging() {
     let left: Vec<String> = std::fs::read_dir(d).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).filter(|n| n.starts_with("long") || n.starts_with('.')).collect();
     assert!(left.is_empty(), "products or staging left: {left:?}");
 }
+
+/// Self-calibration against the engine's model, beside the same loop against WSClean's
+/// (`benches/selfcal.py`, here at 128 pixels and two rounds): a compact field whose antennas
+/// carry phase errors of +-30 degrees and amplitude errors of +-10 %, imaged into MODEL_DATA,
+/// solved by StEFCal, corrected and imaged again. The gains must come closer to the truth at
+/// each round, to under a third of the uncorrected error, and stay within 1.35 times the error
+/// of WSClean's loop (measured when written: 0.110 against 0.089 at round 2; at 512 pixels the
+/// loops are within 5 %: the bench).
+#[test]
+fn self_calibration_against_the_model_converges_to_the_true_gains() {
+    let dir = tempfile::tempdir().unwrap();
+    let bench = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/selfcal.py");
+    let json = dir.path().join("selfcal.json");
+    let out = Command::new("python3")
+        .arg(&bench)
+        .args(["--sky", "compact", "--rounds", "2", "--size", "128", "--out"])
+        .arg(dir.path())
+        .arg("--json")
+        .arg(&json)
+        .args(["--r2d2", env!("CARGO_BIN_EXE_r2d2")])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", text(&out));
+    println!("{}", String::from_utf8_lossy(&out.stdout));
+    let results: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&json).unwrap()).unwrap();
+    let errors = |imager: &str| -> Vec<f64> { results["results"][imager].as_array().unwrap().iter().map(|r| r["gain_error"].as_f64().unwrap()).collect() };
+    let (ours, wsclean) = (errors("r2d2"), errors("wsclean"));
+    assert!(ours.windows(2).all(|w| w[1] < w[0]), "the gain error must fall at each round: {ours:?}");
+    assert!(ours[2] < ours[0] / 3.0, "round 2's gain error {} against {} uncorrected", ours[2], ours[0]);
+    assert!(ours[2] < 1.35 * wsclean[2], "gain error {} against WSClean's loop's {}", ours[2], wsclean[2]);
+}

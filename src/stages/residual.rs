@@ -90,6 +90,11 @@ const DIVERGING_RISE: f64 = 1.5;
 /// networks while the SNR rose). Diverging series measured so far were at 1 to 200.
 const RISING_FLOOR: f64 = 0.05;
 
+/// A CLEAN that stops above this residual ratio has explained less than half of the dirty
+/// image: on any field with sources above its threshold it should do far better, so its
+/// threshold is taken to be wrong for the data and the job warns.
+const CLEAN_UNEXPLAINED: f64 = 0.5;
+
 /// After the divergence guard stopped a job: its model and residual become the best iterate's
 /// (the empty model when no iterate did better than ratio 1), and a warning says so.
 fn fall_back(job: &mut Job, reason: StopReason) -> Result<()> {
@@ -190,6 +195,11 @@ impl Stage<Job> for ResidualStage {
             Some(reason) => {
                 let ratio = ratios.last().copied().unwrap_or(f64::NAN);
                 log::info!("job {}: stopped after iteration {iteration} ({reason:?}, residual ratio {ratio:.4e})", job.id);
+                if reason == StopReason::Converged && ratio > CLEAN_UNEXPLAINED && job.step_kind.as_deref() == Some("clean") {
+                    job.warn(format!(
+                        "CLEAN stopped with a residual ratio of {ratio:.3}: its thresholds left most of the dirty image unexplained. Its noise threshold is in sigmas of the residual's robust spread, and on a sparse uv-coverage that spread is the sources' sidelobes, not noise: a lower --auto-threshold (or a --threshold in Jy/beam) cleans further"
+                    ));
+                }
                 job.stop = Some(LoopStop { reason, after_iteration: iteration, kept_iteration: iteration, kept_residual_ratio: ratio });
             }
             None if self.config.divergence_guard && !several => {
