@@ -78,6 +78,13 @@ pub enum Error {
     #[error("interrupted: {0}")]
     Interrupted(String),
 
+    /// The engine was asked to run in a process forked from one where it had started its
+    /// compute threads (`crate::parallel::claim_process`).
+    #[error(
+        "this process ({child}) was forked from process {parent} after the engine had started its compute threads there, and fork copies only the thread that forks: the engine cannot run here (it would wait for ever on threads that do not exist); start worker processes with the 'spawn' or 'forkserver' method (Python: multiprocessing.get_context(\"spawn\")), or fork before the engine's first use"
+    )]
+    Forked { parent: u32, child: u32 },
+
     /// A stage panicked: a bug, reported instead of bringing the process down.
     #[error("the stage failed unexpectedly ({0}); this is a bug, please report it")]
     Panic(String),

@@ -50,6 +50,7 @@ pub mod staging;
 
 pub use engine::{is_ms, BackendChoice, CleanControls, Engine, EngineOptions, GraphOptimization, ImageParams, Observation, ProgressObserver, StepChoice};
 pub use error::{Error, Result};
+pub use parallel::claim_process;
 pub use imaging::ImageConfig;
 pub use job::{
     BuildContext, Built, Emit, ImageContext, Imaging, Iterate, IterationMetrics, Job, JobProducts, KindFn, LoopStop, Product, ProductSink, Registry,

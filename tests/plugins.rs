@@ -294,6 +294,13 @@ fn run_step(d: &Path, name: &str, step: &str) -> std::process::Output {
     r2d2(&["run", &format!("{name}.yaml"), "--set", &format!("write.prefix=out-{name}/{{job}}")], d)
 }
 
+/// [`run_step`], failing the test if the run takes more than two minutes.
+fn run_step_within(d: &Path, name: &str, step: &str) -> std::process::Output {
+    std::fs::write(d.join(format!("{name}.yaml")), pipeline(step)).unwrap();
+    let prefix = format!("write.prefix=out-{name}/{{job}}");
+    output_within(Command::new(env!("CARGO_BIN_EXE_r2d2")).args(["run", &format!("{name}.yaml"), "--set", &prefix]).current_dir(d), std::time::Duration::from_secs(120))
+}
+
 #[test]
 fn isolated_plugins_that_crash_exit_or_hang_fail_the_run_naming_library_stage_and_job() {
     let dir = tempfile::tempdir().unwrap();
@@ -336,6 +343,132 @@ fn isolated_plugins_that_crash_exit_or_hang_fail_the_run_naming_library_stage_an
     let err = stderr(&out);
     assert_eq!(out.status.code(), Some(1), "{err}");
     assert!(err.contains("R2D2_PLUGIN_HOST=") && err.contains("is not a file"), "{err}");
+}
+
+/// A C plugin whose steps return a zero increment, with the test's code put into it (`EXTRA`
+/// before the functions, `CREATE`, `STEP`, `DESTROY` at the end of each): a plugin that
+/// misbehaves where a real one might. `p->buffer` holds N x N doubles; a step fails with
+/// `p->message` when it sets it and returns non-zero.
+const MISBEHAVING: &str = r#"#define _DEFAULT_SOURCE
+#include "r2d2_plugin.h"
+#include <pthread.h>
+#include <stdlib.h>
+#include <string.h>
+#include <unistd.h>
+typedef struct { uint64_t n; double *buffer; char *message; } plugin;
+EXTRA
+uint32_t r2d2_plugin_abi_version(void) { return R2D2_PLUGIN_ABI_VERSION; }
+void *r2d2_plugin_create(const char *c, uint64_t n, uint32_t i) {
+    (void)c; (void)i;
+    plugin *p = calloc(1, sizeof *p); p->n = n; p->buffer = malloc(n * n * sizeof(double));
+    CREATE
+    return p;
+}
+int32_t r2d2_plugin_step(void *h, const r2d2_step_input *in, double *out) {
+    plugin *p = h; (void)in;
+    for (uint64_t k = 0; k < p->n * p->n; k++) out[k] = 0.0;
+    STEP
+    return 0;
+}
+const char *r2d2_plugin_last_error(const void *h) { const plugin *p = h; return p && p->message ? p->message : "failed"; }
+void r2d2_plugin_destroy(void *h) { plugin *p = h; DESTROY free(p->buffer); free(p->message); free(p); }
+"#;
+
+fn misbehaving_plugin(d: &Path, name: &str, [extra, create, step, destroy]: [&str; 4]) -> PathBuf {
+    let text = MISBEHAVING.replace("EXTRA", extra).replace("CREATE", create).replace("STEP", step).replace("DESTROY", destroy);
+    c_plugin_from_text(d, name, &text)
+}
+
+/// A write through a null pointer the compiler can neither see nor drop (both volatile).
+const SEGFAULT: &str = "volatile int *volatile nowhere = 0; *nowhere = 1;";
+
+/// The files a run left under `dir` (none when it does not exist).
+fn files_in(dir: &Path) -> Vec<String> {
+    std::fs::read_dir(dir).map(|entries| entries.map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect()).unwrap_or_default()
+}
+
+/// A plugin that crashes as it is torn down (its destroy, the library's destructor, a heap it
+/// overflowed in a step and glibc finds corrupt at the free) fails the run before anything is
+/// written; so does one whose destroy hangs. Loaded into r2d2, the crash ends r2d2 before the
+/// products are written.
+#[test]
+fn a_crash_or_hang_in_a_plugins_teardown_fails_the_run_before_anything_is_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    let torn_down = "the plugin failed while being torn down (its destroy, the library's unloading): ";
+    let cases = [
+        ("destroy_segfault", ["", "", "", SEGFAULT], vec![torn_down, "killed by signal 11 (SIGSEGV, a segmentation fault)"]),
+        (
+            "destructor_segfault",
+            [&format!("__attribute__((destructor)) static void unloaded(void) {{ {SEGFAULT} }}"), "", "", ""],
+            vec!["killed by signal 11 (SIGSEGV, a segmentation fault)"],
+        ),
+        // 256 bytes past the buffer: the next chunk's header, which free() checks.
+        ("heap_overflow", ["", "", "memset(p->buffer, 0x5a, p->n * p->n * sizeof(double) + 256);", ""], vec![torn_down, "killed by signal 6 (SIGABRT, abort)"]),
+        ("destroy_hang", ["", "", "", "for (;;) sleep(1);"], vec![torn_down, "the plugin did not answer within 2.0 s (timeout: 2 s); its host process was stopped"]),
+    ];
+    for (name, code, expect) in &cases {
+        let library = misbehaving_plugin(d, name, *code);
+        let out = run_step_within(d, name, &(native_step(&library, 3, "{}") + "    timeout: 2\n"));
+        let err = stderr(&out);
+        assert_eq!(out.status.code(), Some(1), "{name}: expected a clean failure (exit 1), got {:?}: {err}", out.status);
+        for e in expect.iter().chain(&["stage 'step' (native), job 'obs'", &library.display().to_string()]) {
+            assert!(err.contains(e), "{name}: '{e}' missing from: {err}");
+        }
+        assert_eq!(files_in(&d.join(format!("out-{name}"))), Vec::<String>::new(), "{name}: the run wrote products: {err}");
+    }
+    // In r2d2 itself the crash ends r2d2, before the products are written.
+    let library = misbehaving_plugin(d, "destroy_segfault_in_process", ["", "", "", SEGFAULT]);
+    let out = run_step(d, "destroy_segfault_in_process", &(native_step(&library, 3, "{}") + "    isolation: none\n"));
+    assert_eq!(out.status.code(), None, "a segfault in an in-process plugin's destroy should end r2d2: {}", stderr(&out));
+    // (The staging directory the killed run left is rolled back by the next run there.)
+    let written: Vec<String> = files_in(&d.join("out-destroy_segfault_in_process")).into_iter().filter(|f| !f.starts_with(".r2d2-staging-")).collect();
+    assert!(written.is_empty(), "products written before the plugin was torn down: {written:?}");
+    // The same plugin with a destroy that works: the products are written.
+    let library = misbehaving_plugin(d, "tidy", ["", "", "", ""]);
+    for isolation in ["process", "none"] {
+        let name = format!("tidy-{isolation}");
+        check(&run_step(d, &name, &(native_step(&library, 3, "{}") + &format!("    isolation: {isolation}\n"))));
+        assert!(d.join(format!("out-{name}/obs-model.fits")).is_file(), "{name}: no model");
+    }
+}
+
+/// The protocol has pipes of its own: a plugin thread reading standard input, a plugin closing
+/// descriptors 0 and 1 or printing, change nothing; an error message longer than a frame is
+/// cut with a note, not taken for the plugin ending its process.
+#[test]
+fn plugins_that_use_standard_streams_or_give_huge_messages_cannot_break_the_protocol() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    // The reader is started, and given time to block on standard input, before create
+    // returns: the first bytes the engine sends reach it first.
+    let drain = "static void *drain(void *arg) { char b[4096]; (void)arg; while (read(0, b, sizeof b) > 0) {} return 0; }";
+    let working = [
+        ("stdin_reader", [drain, "pthread_t t; pthread_create(&t, 0, drain, 0); pthread_detach(t); usleep(200000);", "", ""]),
+        ("closes_stdio", ["", "close(0); close(1);", "", ""]),
+        ("prints", ["#include <stdio.h>", "", "printf(\"S\\x01 stray output\\n\"); fflush(stdout);", ""]),
+    ];
+    for (name, code) in working {
+        let library = misbehaving_plugin(d, name, code);
+        let out = run_step_within(d, name, &(native_step(&library, 3, "{}") + "    timeout: 10\n"));
+        check(&out);
+        assert!(d.join(format!("out-{name}/obs-model.fits")).is_file(), "{name}: no model: {}", stderr(&out));
+    }
+    // 20 MB of message: more than a frame may hold (16 MiB).
+    let library = misbehaving_plugin(d, "long_message", ["", "", "p->message = malloc(20000001); memset(p->message, 'x', 20000000); p->message[20000000] = 0; return 1;", ""]);
+    let out = run_step(d, "long_message", &native_step(&library, 3, "{}"));
+    let err = stderr(&out);
+    assert_eq!(out.status.code(), Some(1), "{}", &err[err.len().saturating_sub(2000)..]);
+    let shown = 1 << 16;
+    let failed = "plugin step 1 failed (status 1): ";
+    let expect = format!("{failed}{}", "x".repeat(100));
+    let note = format!("[... cut: the message has {} bytes, the first {shown} are shown]", failed.len() + 20_000_000);
+    assert!(err.contains(&expect) && err.contains(&note), "{}", &err[err.len().saturating_sub(2000)..]);
+    assert!(err.len() < shown + 10_000, "{} bytes on standard error", err.len());
+    assert!(!err.contains("exit status"), "the plugin is blamed for an exit: {}", &err[err.len().saturating_sub(2000)..]);
+    assert!(files_in(&d.join("out-long_message")).is_empty());
 }
 
 /// A FIFO or a directory given as the library is said to be one (not "no such plugin

@@ -14,6 +14,10 @@ visibility table (Parquet, Arrow) raise the subclass for that kind (:class:`Fits
 - Logging: the engine's log records go to :mod:`logging` (logger ``r2d2_imaging``); its
   warnings about a job are also raised as :class:`R2D2Warning` through :mod:`warnings`.
 - :mod:`r2d2_imaging.dask`: many jobs over the workers of a ``dask.distributed`` cluster.
+- Worker processes: start them with ``multiprocessing.get_context("spawn")`` (or
+  ``"forkserver"``). A process forked after the engine ran in its parent (Linux's default
+  ``fork``) has none of the engine's compute threads; the engine raises :class:`R2D2Error`
+  there, saying so, instead of waiting for ever on them.
 - ``r2d2.yml`` beside this file: Stimela2 cabs for ``r2d2 image``, ``r2d2 run`` and
   ``r2d2 simulate`` (``_include: (r2d2_imaging)r2d2.yml``).
 """

@@ -72,6 +72,9 @@ pub(crate) fn run_released<T: Send + 'static>(
     py: Python<'_>,
     work: impl FnOnce(Arc<AtomicBool>) -> r2d2_imaging::Result<T> + Send + 'static,
 ) -> PyResult<T> {
+    // Refused at once in a process forked after the engine ran in its parent (a
+    // `multiprocessing` worker under Linux's default start method): its threads are not here.
+    r2d2_imaging::claim_process().map_err(engine_error)?;
     logging::follow_level(py)?;
     let cancel = Arc::new(AtomicBool::new(false));
     let (tx, rx) = bounded(1);

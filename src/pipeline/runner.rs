@@ -258,37 +258,47 @@ fn run_built<J: Payload>(
                             stage_error(name, kind, &job, e)
                         })
                     }
-                    Built::Stage(mut stage) => loop {
-                        if stopped() {
-                            break Ok(());
-                        }
-                        let job = match channels[i].1.recv_timeout(POLL) {
-                            Ok(job) => job,
-                            Err(_) => {
-                                let inputs_done = upstream[i].iter().all(|&u| ended[u].load(Ordering::SeqCst));
-                                let loop_empty = tokens[i].as_ref().is_none_or(|(_, rx)| rx.len() == cap);
-                                if inputs_done && loop_empty && channels[i].1.is_empty() {
-                                    break Ok(());
-                                }
-                                continue;
+                    Built::Stage(mut stage) => {
+                        // The last job this stage had, to name in an error of its finish.
+                        let mut last_job = "-".to_string();
+                        loop {
+                            if stopped() {
+                                break Ok(());
                             }
-                        };
-                        let id = job.id().to_string();
-                        progress(&Progress::Working { stage: name.clone(), job: id.clone(), iteration: job.iteration(), of: job.iterations_planned() });
-                        let began = Instant::now();
-                        // A sink passing its jobs on (the product sink before a writer) ends nothing.
-                        let sink = graph.roles[i] == Role::Sink && graph.next[i].is_none();
-                        let mut emit = |port: Port, job: J| send(port, job, began);
-                        if let Err(e) = contain_stage_panic(|| stage.process(job, &mut emit)) {
-                            break Err(stage_error(name, kind, &id, e));
+                            let job = match channels[i].1.recv_timeout(POLL) {
+                                Ok(job) => job,
+                                Err(_) => {
+                                    let inputs_done = upstream[i].iter().all(|&u| ended[u].load(Ordering::SeqCst));
+                                    let loop_empty = tokens[i].as_ref().is_none_or(|(_, rx)| rx.len() == cap);
+                                    if inputs_done && loop_empty && channels[i].1.is_empty() {
+                                        // A stage upstream that failed its finish has stopped
+                                        // the run before it ended: nothing is settled after it.
+                                        if stopped() {
+                                            break Ok(());
+                                        }
+                                        break contain_stage_panic(|| stage.finish()).map_err(|e| stage_error(name, kind, &last_job, e));
+                                    }
+                                    continue;
+                                }
+                            };
+                            let id = job.id().to_string();
+                            last_job.clone_from(&id);
+                            progress(&Progress::Working { stage: name.clone(), job: id.clone(), iteration: job.iteration(), of: job.iterations_planned() });
+                            let began = Instant::now();
+                            // A sink passing its jobs on (the product sink before a writer) ends nothing.
+                            let sink = graph.roles[i] == Role::Sink && graph.next[i].is_none();
+                            let mut emit = |port: Port, job: J| send(port, job, began);
+                            if let Err(e) = contain_stage_panic(|| stage.process(job, &mut emit)) {
+                                break Err(stage_error(name, kind, &id, e));
+                            }
+                            progress(&Progress::Idle { stage: name.clone() });
+                            if sink {
+                                *totals.lock().expect("totals").entry(name.clone()).or_insert(0.0) += began.elapsed().as_secs_f64();
+                                finished.lock().expect("finished list").push(id.clone());
+                                progress(&Progress::Finished { job: id });
+                            }
                         }
-                        progress(&Progress::Idle { stage: name.clone() });
-                        if sink {
-                            *totals.lock().expect("totals").entry(name.clone()).or_insert(0.0) += began.elapsed().as_secs_f64();
-                            finished.lock().expect("finished list").push(id.clone());
-                            progress(&Progress::Finished { job: id });
-                        }
-                    },
+                    }
                 };
                 if let Err(e) = result {
                     if matches!(e, Error::Stage { ref source, .. } if matches!(**source, Error::Interrupted(_))) {
@@ -428,6 +438,11 @@ mod tests {
     /// Runs PIPELINE with `source` and the middle stage replaced; `None` if it has not ended
     /// after a minute.
     fn run_with(source: Box<dyn Source<Item>>, weights: Box<dyn Stage<Item>>) -> Option<Result<RunReport>> {
+        run_with_sink(source, weights, Box::new(Swallows))
+    }
+
+    /// [`run_with`], the sink replaced too.
+    fn run_with_sink(source: Box<dyn Source<Item>>, weights: Box<dyn Stage<Item>>, write: Box<dyn Stage<Item>>) -> Option<Result<RunReport>> {
         let config = PipelineSpec::parse(PIPELINE, Path::new("p.yaml"), &[]).unwrap();
         let (tx, rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
@@ -436,6 +451,7 @@ mod tests {
             let mut built = build_all(&registry, &config, &graph, &(), false).unwrap();
             built[0] = Built::Source(source);
             built[1] = Built::Stage(weights);
+            built[2] = Built::Stage(write);
             let _ = tx.send(run_built(&config, &graph, built, &RunStop::new(), &AtomicBool::new(false), &|_| {}));
         });
         match rx.recv_timeout(Duration::from_secs(60)) {
@@ -489,5 +505,41 @@ mod tests {
         let result = run_with(Box::new(PanickingSource), Box::new(Panics)).expect("the run hung after the source panicked");
         let err = result.err().expect("a panicking source failed the run").to_string();
         assert!(err.contains("stage 'source' (emit)") && err.contains("source boom"), "{err}");
+    }
+
+    /// Passes items on, then fails to finish (a plugin that crashes as it is torn down).
+    struct FailsToFinish;
+    impl Stage<Item> for FailsToFinish {
+        fn process(&mut self, item: Item, emit: &mut Emit<'_, Item>) -> Result<()> {
+            emit(Port::Next, item)
+        }
+        fn finish(&mut self) -> Result<()> {
+            Err(Error::parameter("teardown", "crashed"))
+        }
+    }
+
+    /// Takes items and sets its flag when it finishes (commits what it held).
+    struct FinishFlag(Arc<AtomicBool>);
+    impl Stage<Item> for FinishFlag {
+        fn process(&mut self, _: Item, _: &mut Emit<'_, Item>) -> Result<()> {
+            Ok(())
+        }
+        fn finish(&mut self) -> Result<()> {
+            self.0.store(true, Ordering::SeqCst);
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn a_stage_that_fails_to_finish_fails_the_run_and_the_stages_after_it_finish_nothing() {
+        let finished = Arc::new(AtomicBool::new(false));
+        let result = run_with_sink(Box::new(OneJob), Box::new(FailsToFinish), Box::new(FinishFlag(finished.clone()))).expect("the run ended");
+        let err = result.err().expect("a failed finish failed the run").to_string();
+        assert_eq!(err, "stage 'weights' (pass), job 'j1': invalid teardown: crashed");
+        assert!(!finished.load(Ordering::SeqCst), "the sink finished after a stage before it failed to");
+        // Finished in order when all goes well.
+        let result = run_with_sink(Box::new(OneJob), Box::new(Passes), Box::new(FinishFlag(finished.clone()))).expect("the run ended");
+        assert_eq!(result.expect("the run succeeded").jobs, vec!["j1".to_string()]);
+        assert!(finished.load(Ordering::SeqCst), "the sink did not finish");
     }
 }

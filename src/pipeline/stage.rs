@@ -44,6 +44,14 @@ pub type Emit<'a, J> = dyn FnMut(Port, J) -> Result<()> + 'a;
 /// A pipeline stage: takes one item at a time and emits it (transformed) on a port.
 pub trait Stage<J>: Send {
     fn process(&mut self, item: J, emit: &mut Emit<'_, J>) -> Result<()>;
+
+    /// Called once, after the stage's last item, when nothing has stopped the run (a stopped
+    /// run skips it): settles what the stage still holds (a plugin torn down, products held
+    /// back committed). The stages before it in the graph have finished by then; an error
+    /// fails the run, so the stages after it finish nothing.
+    fn finish(&mut self) -> Result<()> {
+        Ok(())
+    }
 }
 
 /// The first stage: produces items.

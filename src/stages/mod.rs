@@ -130,7 +130,7 @@ const BUILTIN: &[KindFn] = &[
                     ));
                 }
             }
-            Ok(Built::Stage(Box::new(writer::WriterStage::new(config, c.pipeline, c.stage, several_jobs(c)?)?)))
+            Ok(Built::Stage(Box::new(writer::WriterStage::new(config, c.pipeline, c.stage, several_jobs(c)?, holds_until_finished(c))?)))
         },
     },
     KindFn {
@@ -140,7 +140,7 @@ const BUILTIN: &[KindFn] = &[
         produces: &[],
         consumes_also: None,
         passes_on: true,
-        build: |c| Ok(Built::Stage(Box::new(products::ProductsStage::new(c.params()?, c)?))),
+        build: |c| Ok(Built::Stage(Box::new(products::ProductsStage::new(c.params()?, c, holds_until_finished(c))?))),
     },
 ];
 
@@ -170,6 +170,13 @@ fn at_key(c: &BuildContext<'_>, keys: &[(&str, &str)], e: crate::Error) -> crate
         Some(key) => c.error_caused(key, e),
         None => e,
     }
+}
+
+/// Whether a sink keeps its jobs' products until the run's end (its finish): a native plugin
+/// before it is torn down only then, and a crash there (or a heap it corrupted, found then)
+/// must fail the run before anything it computed is written or delivered.
+fn holds_until_finished(c: &BuildContext<'_>) -> bool {
+    c.upstream_stages().iter().any(|&(_, kind)| kind == "native")
 }
 
 /// Why the sources before stage `c` may make several jobs (a list or pattern of files, a

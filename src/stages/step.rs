@@ -100,4 +100,8 @@ impl Stage<Job> for StepStage {
         job.last_step_seconds = began.elapsed().as_secs_f64();
         emit(Port::Next, job)
     }
+
+    fn finish(&mut self) -> Result<()> {
+        self.step.finish()
+    }
 }

@@ -3,12 +3,14 @@
 //! PNG preview beside each (`<prefix>-dirty.png`, ...; `previews: false` turns them off),
 //! and the per-iteration metrics as `<prefix>-metrics.json` and `<prefix>-metrics.parquet`.
 //! A job's products appear together or not at all: they are written into a staging
-//! directory and moved into place only when all are complete (`crate::staging`).
+//! directory and moved into place only when all are complete (`crate::staging`). After a
+//! native plugin, every job's products wait staged until the run's end and are moved into
+//! place once the plugin has been torn down cleanly (the stage's finish).
 
 use super::params::WriterParams;
 use crate::job::{Emit, Job};
 use crate::pipeline::{PipelineSpec, Stage, StageSpec};
-use crate::job::{JobProducts, WriteOptions};
+use crate::job::{JobProducts, Staged, WriteOptions};
 use crate::{Error, Result};
 
 /// What a writer prefix may contain besides text.
@@ -21,12 +23,17 @@ pub struct WriterStage {
     /// The prefixes written in this run and the job written to each: a prefix without `{job}`
     /// given several jobs would otherwise keep only the last one's products.
     written: std::collections::HashMap<String, String>,
+    /// Whether jobs wait staged until the stage's finish (a native plugin before it), and
+    /// those waiting: id, products, and the job itself where its model goes into an MS.
+    holds: bool,
+    held: Vec<(String, Staged, Option<Job>)>,
 }
 
 impl WriterStage {
     /// `several_jobs`: why the sources may make several jobs, if they may (a prefix without
     /// `{job}` is then refused: each job would replace the last one's products).
-    pub fn new(config: WriterParams, pipeline: &PipelineSpec, stage: &StageSpec, several_jobs: Option<String>) -> Result<WriterStage> {
+    /// `holds`: keep every job's products staged until the run's end (see the module).
+    pub fn new(config: WriterParams, pipeline: &PipelineSpec, stage: &StageSpec, several_jobs: Option<String>, holds: bool) -> Result<WriterStage> {
         let name = &stage.name;
         let prefix_error = |m: String| pipeline.stage_error(name, Some("prefix"), &format!("stages.{name}.prefix: {m}"));
         // Placeholders first: a typo would otherwise be written literally into file names.
@@ -58,6 +65,8 @@ impl WriterStage {
             options: WriteOptions { previews: config.previews, preview_dynamic_range: config.preview_dynamic_range },
             model_column: config.model_column,
             written: Default::default(),
+            holds,
+            held: Vec::new(),
         })
     }
 }
@@ -76,20 +85,40 @@ impl Stage<Job> for WriterStage {
         }
         self.written.insert(resolved, job.id.clone());
         let staged = JobProducts::from_job(&job, self.options.preview_dynamic_range)?.stage(&self.prefix, &self.options)?;
+        if self.holds {
+            let id = job.id.clone();
+            self.held.push((id, staged, self.model_column.is_some().then_some(job)));
+            return Ok(());
+        }
+        self.commit(&job.id, Some(&job), staged)
+    }
+
+    fn finish(&mut self) -> Result<()> {
+        for (id, staged, job) in std::mem::take(&mut self.held) {
+            self.commit(&id, job.as_ref(), staged)?;
+        }
+        Ok(())
+    }
+}
+
+impl WriterStage {
+    /// Writes the job's model column where asked (`job` is then given), then moves its staged
+    /// products into place.
+    fn commit(&self, id: &str, job: Option<&Job>, staged: Staged) -> Result<()> {
         // The model column is written while the products wait staged, and they are moved into
         // place after it: a run killed during the (long) MS write leaves the earlier products
         // beside the earlier model, never this run's products beside the earlier model. A
         // write that fails (the column was checked writable before imaging) still delivers the
         // products, which are right whatever became of the column, and says what it left.
-        if let Some(column) = &self.model_column {
-            if let Err(e) = write_model(&job, column) {
-                log::error!("job {}: `{column}` was not written: {e}", job.id);
-                staged.commit(&job.id)?;
-                log::error!("job {}: the products were written at \"{prefix}\", but `{column}` was not", job.id, prefix = self.prefix.replace("{job}", &job.id));
+        if let (Some(column), Some(job)) = (&self.model_column, job) {
+            if let Err(e) = write_model(job, column) {
+                log::error!("job {id}: `{column}` was not written: {e}");
+                staged.commit(id)?;
+                log::error!("job {id}: the products were written at \"{prefix}\", but `{column}` was not", prefix = self.prefix.replace("{job}", id));
                 return Err(e);
             }
         }
-        staged.commit(&job.id)
+        staged.commit(id)
     }
 }
 

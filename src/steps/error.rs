@@ -154,6 +154,9 @@ pub enum PluginError {
     /// A step failed: the plugin's own message, or how its host process ended.
     #[error("{}: {message}", path.display())]
     Step { path: PathBuf, message: String },
+    /// Tearing the plugin down failed: how its host process ended then.
+    #[error("{}: {message}", path.display())]
+    Teardown { path: PathBuf, message: String },
     /// A step returned an increment that is not finite everywhere.
     #[error(
         "{}: plugin step {iteration} returned a non-finite increment {value} at pixel (x {x}, y {y}) (every one of the {size} x {size} values must be written and finite)",

@@ -73,6 +73,11 @@ pub trait NetworkStep: Send {
     }
     /// Iteration `iteration` (1-based): the new estimate `x_i`.
     fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>>;
+    /// After the last job, before anything the step computed is committed: releases what the
+    /// step holds (a plugin torn down) and says whether that went well.
+    fn finish(&mut self) -> Result<()> {
+        Ok(())
+    }
     /// Whether the products include a restored image (`-image.fits`: the model convolved with
     /// the fitted restoring beam plus the residual, Jy/beam), as WSClean users and the tools
     /// that read WSClean's products expect. Every built-in step restores; an R2D2 model stays

@@ -72,6 +72,8 @@ fn default_timeout() -> f64 {
 enum Backend {
     InProcess(Instance),
     Isolated(HostedInstance),
+    /// Destroyed by [`NetworkStep::finish`].
+    TornDown,
 }
 
 pub struct NativeStep {
@@ -156,6 +158,7 @@ impl NetworkStep for NativeStep {
                 instance.step(iteration, residual, model, dirty, psf_2n, &mut self.increment)
             }
             Backend::Isolated(hosted) => hosted.step(iteration, residual, model, dirty, psf_2n).map(|d| self.increment = d),
+            Backend::TornDown => Err(format!("step {iteration} asked of a plugin already torn down")),
         }
         .map_err(|message| PluginError::Step { path: path.clone(), message })?;
         if let Some(k) = self.increment.iter().position(|v| !v.is_finite()) {
@@ -169,6 +172,19 @@ impl NetworkStep for NativeStep {
             .zip(&self.increment)
             .map(|(x, d)| if project { (x + d).max(0.0) } else { x + d })
             .collect())
+    }
+
+    fn finish(&mut self) -> Result<()> {
+        match std::mem::replace(&mut self.backend, Backend::TornDown) {
+            // A crash in the plugin's destroy or the library's unloading ends this process
+            // here, before anything is committed; what runs at its exit is not watched.
+            Backend::InProcess(instance) => drop(instance),
+            Backend::Isolated(mut hosted) => {
+                hosted.finish().map_err(|message| PluginError::Teardown { path: self.library.clone(), message })?;
+            }
+            Backend::TornDown => {}
+        }
+        Ok(())
     }
 }
 

@@ -1,8 +1,11 @@
 //! Process isolation for native plugins (`isolation: process`, the default): the plugin runs
 //! in a child process, `r2d2-plugin-host`, that this module starts and supervises. Images
-//! cross over pipes (`r2d2_plugin::host::wire`). A plugin that crashes (segfault, abort),
-//! ends its process (exit) or runs past the timeout becomes an error naming what happened;
-//! the caller adds the library, and the runner the stage and the job.
+//! cross over two pipes of the protocol's own (`r2d2_plugin::host::wire`), on descriptors 3
+//! and 4 of the host: its standard input is `/dev/null` and its standard output this
+//! process's standard error, so what the plugin does with those cannot reach the protocol. A
+//! plugin that crashes (segfault, abort), ends its process (exit) or runs past the timeout,
+//! also while it is torn down ([`HostedInstance::finish`]), becomes an error naming what
+//! happened; the caller adds the library, and the runner the stage and the job.
 //!
 //! The host executable is found, in order: `$R2D2_PLUGIN_HOST`; beside the running
 //! executable (the `r2d2` CLI, next to which `cargo build` puts it) or in its parent
@@ -11,9 +14,9 @@
 
 pub use super::error::HostError;
 use r2d2_plugin::host::wire;
-use std::io::{BufReader, BufWriter, Write};
+use std::io::{BufReader, BufWriter, Read, Write};
 use std::path::{Path, PathBuf};
-use std::process::{Child, ChildStdin, Command, ExitStatus, Stdio};
+use std::process::{Child, Command, ExitStatus, Stdio};
 use crate::pipeline::cancel::{HookGuard, RunStop};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -26,6 +29,70 @@ pub const HOST_ENV: &str = "R2D2_PLUGIN_HOST";
 /// Longest wait for a started host's greeting. A host sends it before loading the plugin, so
 /// only an executable that is not a plugin host (or a stopped machine) comes near it.
 const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
+
+/// The host's descriptors for the protocol (engine -> host, host -> engine).
+#[cfg(unix)]
+const PROTOCOL_FDS: [i32; 2] = [3, 4];
+
+/// The protocol's two ends on this side.
+type ToHost = Box<dyn Write + Send>;
+type FromHost = Box<dyn Read + Send>;
+
+/// Starts `host` for `library` with the protocol on pipes of its own ([`PROTOCOL_FDS`]),
+/// standard input `/dev/null`, standard output and error this process's standard error, in a
+/// process group of its own (whatever it starts is killed with it).
+#[cfg(unix)]
+fn spawn_host(host: &Path, library: &Path) -> std::io::Result<(Child, ToHost, FromHost)> {
+    use std::os::fd::{AsFd, AsRawFd, FromRawFd, OwnedFd};
+    use std::os::unix::process::CommandExt;
+    // std's pipes are close-on-exec: no other child (another stage's host) inherits them.
+    let (host_input, to_host) = std::io::pipe()?;
+    let (from_host, host_output) = std::io::pipe()?;
+    // The host's ends copied above its descriptor numbers, so that placing one in the child
+    // cannot close the other.
+    let above = |fd: &dyn AsRawFd| -> std::io::Result<OwnedFd> {
+        // SAFETY: fcntl(2) duplicating an open descriptor; the copy is owned by the OwnedFd only.
+        match unsafe { libc::fcntl(fd.as_raw_fd(), libc::F_DUPFD_CLOEXEC, 10) } {
+            -1 => Err(std::io::Error::last_os_error()),
+            copy => Ok(unsafe { OwnedFd::from_raw_fd(copy) }),
+        }
+    };
+    let ends = [above(&host_input)?, above(&host_output)?];
+    drop((host_input, host_output));
+    let raw = [ends[0].as_raw_fd(), ends[1].as_raw_fd()];
+    let mut command = Command::new(host);
+    command
+        .arg(library)
+        .args(PROTOCOL_FDS.map(|fd| fd.to_string()))
+        .stdin(Stdio::null())
+        .stdout(Stdio::from(std::io::stderr().as_fd().try_clone_to_owned()?))
+        .stderr(Stdio::inherit())
+        .process_group(0);
+    // SAFETY: between fork and exec only dup2(2), which is async-signal-safe; `raw` stays open
+    // in this process until spawn returns (`ends` outlives it), so in the child too, and the
+    // copies dup2 makes are not close-on-exec.
+    unsafe {
+        command.pre_exec(move || {
+            for (from, to) in raw.into_iter().zip(PROTOCOL_FDS) {
+                if libc::dup2(from, to) < 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+            }
+            Ok(())
+        })
+    };
+    let child = command.spawn()?;
+    // The host's ends now live in the host alone: its end closes them.
+    drop(ends);
+    Ok((child, Box::new(to_host), Box::new(from_host)))
+}
+
+#[cfg(not(unix))]
+fn spawn_host(host: &Path, library: &Path) -> std::io::Result<(Child, ToHost, FromHost)> {
+    let mut child = Command::new(host).arg(library).stdin(Stdio::piped()).stdout(Stdio::piped()).stderr(Stdio::inherit()).spawn()?;
+    let (input, output) = (child.stdin.take().expect("piped"), child.stdout.take().expect("piped"));
+    Ok((child, Box::new(input), Box::new(output)))
+}
 
 /// Kills host `pid` and its process group (whatever it started) if `alive` still says it has
 /// not been reaped.
@@ -108,14 +175,28 @@ enum Reply {
     Ok,
     Error(String),
     Increment(Vec<f64>),
+    /// The host gave up itself, with its reason (the engine sent what it does not take).
+    Fatal(String),
+    /// The host sent what the protocol does not allow (a frame over its limit): what.
+    Broken(String),
     /// The host's output ended (or broke): the process is gone or going.
     Gone,
+}
+
+/// The reply after a text frame's tag: the text, [`Reply::Broken`] naming a frame over the
+/// limit, or [`Reply::Gone`] when the output ended.
+fn text_reply(output: &mut impl Read, reply: fn(String) -> Reply) -> Reply {
+    match wire::read_text(output) {
+        Ok(text) => reply(text),
+        Err(e) if e.kind() == std::io::ErrorKind::InvalidData => Reply::Broken(e.to_string()),
+        Err(_) => Reply::Gone,
+    }
 }
 
 /// A plugin instance living in a supervised child process.
 pub struct HostedInstance {
     child: Child,
-    input: Option<BufWriter<ChildStdin>>,
+    input: Option<BufWriter<ToHost>>,
     replies: crossbeam_channel::Receiver<Reply>,
     timeout: Duration,
     size: usize,
@@ -136,20 +217,14 @@ impl HostedInstance {
     /// Start the host for `library` and create the plugin there; `timeout` bounds every call.
     pub fn start(library: &Path, config_json: &str, size: usize, iterations: usize, timeout: Duration) -> Result<HostedInstance, HostError> {
         let host = find_host().map_err(HostError::NotFound)?;
-        let mut command = Command::new(&host);
-        command.arg(library).stdin(Stdio::piped()).stdout(Stdio::piped()).stderr(Stdio::inherit());
-        // A group of its own: whatever the host starts is killed with it.
-        #[cfg(unix)]
-        std::os::unix::process::CommandExt::process_group(&mut command, 0);
-        let mut child = command.spawn().map_err(|source| HostError::Spawn { host: host_name(&host), source })?;
+        let (child, input, output) = spawn_host(&host, library).map_err(|source| HostError::Spawn { host: host_name(&host), source })?;
         let alive = Arc::new(Mutex::new(true));
         let run = crate::pipeline::cancel::current();
         let kill_on_stop = run.as_ref().map(|run| {
             let (pid, alive) = (child.id(), alive.clone());
             run.on_stop(move || kill(pid, &alive))
         });
-        let output = child.stdout.take().expect("piped");
-        let input = BufWriter::with_capacity(1 << 16, child.stdin.take().expect("piped"));
+        let input = BufWriter::with_capacity(1 << 16, input);
         let (send, replies) = crossbeam_channel::bounded(1);
         let pixels = size * size;
         std::thread::Builder::new()
@@ -160,7 +235,8 @@ impl HostedInstance {
                     let reply = match wire::read_tag(&mut output) {
                         Ok(Some(wire::HELLO)) => Reply::Hello,
                         Ok(Some(wire::OK)) => Reply::Ok,
-                        Ok(Some(wire::ERROR)) => wire::read_text(&mut output).map(Reply::Error).unwrap_or(Reply::Gone),
+                        Ok(Some(wire::ERROR)) => text_reply(&mut output, Reply::Error),
+                        Ok(Some(wire::FATAL)) => text_reply(&mut output, Reply::Fatal),
                         Ok(Some(wire::INCREMENT)) => {
                             let mut increment = vec![0.0; pixels];
                             match wire::read_f64s(&mut output, &mut increment) {
@@ -168,9 +244,10 @@ impl HostedInstance {
                                 Err(_) => Reply::Gone,
                             }
                         }
-                        _ => Reply::Gone,
+                        Ok(Some(tag)) => Reply::Broken(format!("a message of unknown tag {tag}")),
+                        Ok(None) | Err(_) => Reply::Gone,
                     };
-                    let gone = matches!(reply, Reply::Gone);
+                    let gone = matches!(reply, Reply::Gone | Reply::Broken(_) | Reply::Fatal(_));
                     if send.send(reply).is_err() || gone {
                         return;
                     }
@@ -240,7 +317,7 @@ impl HostedInstance {
     }
 
     /// Write one message and flush; `Err` when the host's input is closed (the host is gone).
-    fn send(&mut self, write: impl FnOnce(&mut BufWriter<ChildStdin>) -> std::io::Result<()>) -> Result<(), ()> {
+    fn send(&mut self, write: impl FnOnce(&mut BufWriter<ToHost>) -> std::io::Result<()>) -> Result<(), ()> {
         let input = self.input.as_mut().ok_or(())?;
         write(input).and_then(|()| input.flush()).map_err(|_| ())
     }
@@ -250,6 +327,16 @@ impl HostedInstance {
         let began = Instant::now();
         match self.replies.recv_timeout(self.timeout) {
             Ok(Reply::Gone) | Err(crossbeam_channel::RecvTimeoutError::Disconnected) => self.gone(doing),
+            // Not the plugin's doing: the host or the engine broke the protocol.
+            Ok(Reply::Fatal(reason)) => {
+                let status = self.reap(Duration::from_secs(5)).map_or_else(|| "still running, stopped".to_string(), |s| s.to_string());
+                self.stop();
+                Err(self.fail_host(doing, format!("it gave up ({status}): {reason}")))
+            }
+            Ok(Reply::Broken(what)) => {
+                self.stop();
+                Err(self.fail_host(doing, format!("it sent {what}; it was stopped")))
+            }
             Ok(reply) => Ok(reply),
             Err(crossbeam_channel::RecvTimeoutError::Timeout) => {
                 let waited = began.elapsed().as_secs_f64();
@@ -275,6 +362,13 @@ impl HostedInstance {
 
     fn fail(&mut self, doing: &str, how: String) -> String {
         let message = format!("the plugin failed while {doing}: {how}");
+        self.dead = Some(message.clone());
+        message
+    }
+
+    /// A failure of the host's, not the plugin's: `how` says what happened.
+    fn fail_host(&mut self, doing: &str, how: String) -> String {
+        let message = format!("the plugin host failed while {doing}: {how}");
         self.dead = Some(message.clone());
         message
     }
@@ -352,6 +446,36 @@ impl HostedInstance {
             Reply::Increment(increment) => Ok(increment),
             Reply::Error(message) => Err(message),
             _ => Err(self.fail(&doing, "an unexpected reply from the plugin host".into())),
+        }
+    }
+}
+
+impl HostedInstance {
+    /// Tears the plugin down in the host (its destroy, the library's unloading) and waits for
+    /// the host's clean end (exit status 0): a crash there, also in what runs as the host
+    /// exits, is an error, which the run sees before it commits what the plugin computed.
+    pub fn finish(&mut self) -> Result<(), String> {
+        if let Some(message) = &self.dead {
+            return Err(format!("the plugin host failed earlier ({message})"));
+        }
+        let doing = "being torn down (its destroy, the library's unloading)";
+        if self.send(|w| w.write_all(&[wire::DESTROY])).is_err() {
+            return self.gone(doing);
+        }
+        match self.reply(doing)? {
+            Reply::Ok => {}
+            _ => return Err(self.fail(doing, "an unexpected reply from the plugin host".into())),
+        }
+        self.input = None;
+        let doing = "exiting after its teardown";
+        match self.reap(self.timeout) {
+            _ if self.run.as_ref().is_some_and(RunStop::is_stopped) => Err(self.fail(doing, "interrupted: its host process was stopped".into())),
+            Some(status) if status.success() => Ok(()),
+            Some(status) => Err(self.fail(doing, describe_end(status))),
+            None => {
+                self.stop();
+                Err(self.fail(doing, format!("it did not end within {:.1} s (timeout); it was stopped", self.timeout.as_secs_f64())))
+            }
         }
     }
 }

@@ -186,18 +186,27 @@ impl Instance {
     }
 }
 
-/// The byte protocol between the engine and `r2d2-plugin-host` over the child's standard
-/// input and output. Every message starts with a tag byte; integers are little-endian u64;
-/// images are raw little-endian f64, N x N (the PSF 2N x 2N).
+/// The byte protocol between the engine and `r2d2-plugin-host`, over two pipes of its own
+/// (Unix: the host's descriptors given on its command line; the plugin's standard input is
+/// `/dev/null` and its standard output goes to standard error, so nothing the plugin does with
+/// descriptors 0 to 2 reaches the protocol). Every message starts with a tag byte; integers
+/// are little-endian u64; images are raw little-endian f64, N x N (the PSF 2N x 2N).
 ///
+/// - host -> engine, first: [`HELLO`], before the plugin is loaded.
 /// - engine -> host, once: [`CREATE`], image size, iterations, config length, config JSON.
 /// - host -> engine: [`OK`], or [`ERROR`] then a message.
 /// - engine -> host, per step: [`STEP`], iteration, flags ([`WITH_DIRTY`], [`WITH_PSF`]),
 ///   residual, model, then the dirty image and PSF when flagged (they change per job, not
 ///   per step, so the host keeps the last ones it was sent).
 /// - host -> engine: [`INCREMENT`] then N x N values, or [`ERROR`] then a message.
+/// - engine -> host, last: [`DESTROY`]; the host destroys the instance and unloads the
+///   library, answers [`OK`] and exits with status 0, which the engine checks before it
+///   commits anything the plugin computed.
+/// - host -> engine, at any time: [`FATAL`] then a message: the host itself gives up (the
+///   engine sent what the protocol does not allow), then exits with [`HOST_FAILED`].
 ///
-/// The engine closing the host's input ends it (the instance is destroyed, exit status 0).
+/// A message is at most [`MAX_TEXT`] bytes; the host cuts a plugin's message to
+/// [`MAX_MESSAGE`] ([`bounded_message`]). The engine closing the host's input also ends it.
 pub mod wire {
     use std::io::{self, Read, Write};
 
@@ -208,10 +217,28 @@ pub mod wire {
     pub const OK: u8 = b'K';
     pub const ERROR: u8 = b'E';
     pub const INCREMENT: u8 = b'I';
+    pub const DESTROY: u8 = b'D';
+    pub const FATAL: u8 = b'F';
+    /// The host's exit status when it gives up itself (after [`FATAL`], where it could send it).
+    pub const HOST_FAILED: i32 = 3;
     pub const WITH_DIRTY: u64 = 1;
     pub const WITH_PSF: u64 = 2;
     /// Longest message or configuration accepted (a bound on what a length field may claim).
     pub const MAX_TEXT: u64 = 1 << 24;
+    /// Longest plugin message the host passes on: an error message is read by a person.
+    pub const MAX_MESSAGE: usize = 1 << 16;
+
+    /// `message` cut to [`MAX_MESSAGE`] bytes (at a character boundary), with a note saying so.
+    pub fn bounded_message(message: &str) -> std::borrow::Cow<'_, str> {
+        if message.len() <= MAX_MESSAGE {
+            return message.into();
+        }
+        let mut end = MAX_MESSAGE;
+        while !message.is_char_boundary(end) {
+            end -= 1;
+        }
+        format!("{} [... cut: the message has {} bytes, the first {end} are shown]", &message[..end], message.len()).into()
+    }
 
     pub fn write_u64(w: &mut impl Write, v: u64) -> io::Result<()> {
         w.write_all(&v.to_le_bytes())
@@ -223,7 +250,11 @@ pub mod wire {
         Ok(u64::from_le_bytes(b))
     }
 
+    /// Refuses (writing nothing) a text longer than [`MAX_TEXT`], which the other side would refuse.
     pub fn write_text(w: &mut impl Write, text: &str) -> io::Result<()> {
+        if text.len() as u64 > MAX_TEXT {
+            return Err(too_long(text.len() as u64));
+        }
         write_u64(w, text.len() as u64)?;
         w.write_all(text.as_bytes())
     }
@@ -231,11 +262,15 @@ pub mod wire {
     pub fn read_text(r: &mut impl Read) -> io::Result<String> {
         let len = read_u64(r)?;
         if len > MAX_TEXT {
-            return Err(io::Error::new(io::ErrorKind::InvalidData, format!("a message of {len} bytes (at most {MAX_TEXT})")));
+            return Err(too_long(len));
         }
         let mut bytes = vec![0u8; len as usize];
         r.read_exact(&mut bytes)?;
         Ok(String::from_utf8_lossy(&bytes).into_owned())
+    }
+
+    fn too_long(len: u64) -> io::Error {
+        io::Error::new(io::ErrorKind::InvalidData, format!("a message of {len} bytes, more than the protocol's limit of {MAX_TEXT} bytes"))
     }
 
     /// Values converted through a small buffer (no copy of the whole image).
@@ -273,5 +308,38 @@ pub mod wire {
                 Err(e) => return Err(e),
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::wire;
+
+    #[test]
+    fn a_long_message_is_cut_at_a_character_with_a_note_and_a_short_one_kept() {
+        assert_eq!(wire::bounded_message("step 2 failed"), "step 2 failed");
+        // 'é' is two bytes: the cut may not split it.
+        let long = format!("x{}", "é".repeat(wire::MAX_MESSAGE));
+        let cut = wire::bounded_message(&long);
+        let shown = wire::MAX_MESSAGE - 1;
+        assert!(cut.starts_with(&long[..shown]), "the message's start is kept");
+        assert!(cut.ends_with(&format!(" [... cut: the message has {} bytes, the first {shown} are shown]", long.len())), "{}", &cut[shown..]);
+        assert!(cut.len() < wire::MAX_MESSAGE + 100);
+    }
+
+    #[test]
+    fn frames_longer_than_the_limit_are_refused_on_both_sides_naming_it() {
+        let limit = wire::MAX_TEXT as usize;
+        let mut sent = Vec::new();
+        let err = wire::write_text(&mut sent, &"x".repeat(limit + 1)).unwrap_err();
+        assert!(sent.is_empty(), "nothing of a refused frame is written");
+        assert_eq!(err.to_string(), format!("a message of {} bytes, more than the protocol's limit of {limit} bytes", limit + 1));
+        // A length field claiming more is refused before anything is allocated.
+        let mut frame = (u64::MAX).to_le_bytes().to_vec();
+        frame.extend_from_slice(b"xyz");
+        let err = wire::read_text(&mut frame.as_slice()).unwrap_err();
+        assert_eq!(err.to_string(), format!("a message of {} bytes, more than the protocol's limit of {limit} bytes", u64::MAX));
+        wire::write_text(&mut sent, "fits").unwrap();
+        assert_eq!(wire::read_text(&mut sent.as_slice()).unwrap(), "fits");
     }
 }
