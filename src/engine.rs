@@ -481,7 +481,7 @@ fn resolve_auto(params: &ImageParams, telescope: impl FnOnce() -> Option<String>
     }
     let Some(telescope) = telescope() else { return Ok((params.clone(), None)) };
     let telescope = telescope.as_str();
-    let found = crate::steps::series::found_series();
+    let found = crate::steps::series::found_series()?;
     if found.is_empty() || found.iter().any(|(_, s)| s.trained_for_telescope(telescope)) {
         // The series `auto` prefers for this telescope, named from here on so that the
         // imaging setting comes from the series that runs. Off its trained size the step

@@ -226,7 +226,7 @@ fn info(py: Python<'_>, onnx_runtime: Option<std::path::PathBuf>) -> PyResult<Bo
     out.set_item("onnx_backend", backend)?;
     out.set_item("model_dirs", model_dirs().iter().map(|d| d.display().to_string()).collect::<Vec<_>>())?;
     let series = pyo3::types::PyList::empty(py);
-    for (dir, s) in found_series() {
+    for (dir, s) in found_series().map_err(engine_error)? {
         let entry = PyDict::new(py);
         entry.set_item("name", &s.name)?;
         entry.set_item("path", dir.display().to_string())?;
