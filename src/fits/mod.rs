@@ -168,6 +168,36 @@ pub fn check_name_length(file: &Path, how: OutputWrite, fits: bool, shown: &str)
     Ok(())
 }
 
+/// `value` as one header card holds it: printable ASCII, each other character written as `?`,
+/// and at most [`MAX_STRING_VALUE`] characters with quotes counted twice (cut after that).
+/// The second part says what was changed, for a warning: a name read from the data (a
+/// telescope, a field) must not lose characters without a word, nor fail the write.
+pub fn header_text(value: &str) -> (String, Option<String>) {
+    let printable = |c: char| (' '..='~').contains(&c);
+    let replaced = value.chars().filter(|&c| !printable(c)).count();
+    let mut text = String::new();
+    let mut card_len = 0;
+    let mut cut = false;
+    for c in value.chars().map(|c| if printable(c) { c } else { '?' }) {
+        let len = if c == '\'' { 2 } else { 1 };
+        if card_len + len > MAX_STRING_VALUE {
+            cut = true;
+            break;
+        }
+        card_len += len;
+        text.push(c);
+    }
+    let mut changes = Vec::new();
+    if replaced > 0 {
+        changes.push(format!("{replaced} character(s) other than printable ASCII written as '?'"));
+    }
+    if cut {
+        changes.push(format!("cut to {} characters, all one header card holds", text.chars().count()));
+    }
+    let note = (!changes.is_empty()).then(|| format!("{value:?} is written as {text:?}: FITS header values are printable ASCII ({})", changes.join("; ")));
+    (text, note)
+}
+
 /// Refuses an output prefix that names no file (`out/`, `.`, `..`): products are named
 /// `<prefix>-dirty.fits`, ..., so the prefix must end in a file-name part (`out/obs`); and
 /// one whose product names would be too long ([`check_name_length`]).
@@ -885,6 +915,25 @@ fn read_frequency(h: &mut HeaderReader, naxis: usize) -> Result<(Option<f64>, Op
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// What a header card holds of a text, and the note that says what changed: every text
+    /// made of it is one the keyword check accepts (so the write cannot fail on it).
+    #[test]
+    fn header_text_is_what_one_card_holds_and_says_what_it_changed() {
+        assert_eq!(header_text("VLA"), ("VLA".to_string(), None));
+        let (text, note) = header_text("ÅSKAP–Ø");
+        assert_eq!(text, "?SKAP??");
+        assert!(note.unwrap().contains("3 character(s) other than printable ASCII written as '?'"));
+        let (text, note) = header_text(&"T".repeat(80));
+        assert_eq!((text.len(), note.unwrap().contains("cut to 68 characters")), (68, true));
+        // Quotes are doubled on the card: 40 of them fill 80 places, 34 fit.
+        let (text, _) = header_text(&"'".repeat(40));
+        assert_eq!(text.len(), 34);
+        for value in ["ÅSKAP–Ø", &"T".repeat(80), &"'".repeat(40), "a\tb\n"] {
+            let text = header_text(value).0;
+            assert!(ExtraKeyword::parse("TELESCOP", &text).is_ok(), "{value:?} as {text:?}");
+        }
+    }
 
     #[test]
     fn output_prefixes_the_shell_did_not_expand_are_refused() {

@@ -63,7 +63,7 @@ impl WriterStage {
 }
 
 impl Stage<Job> for WriterStage {
-    fn process(&mut self, job: Job, _emit: &mut Emit<'_>) -> Result<()> {
+    fn process(&mut self, mut job: Job, _emit: &mut Emit<'_>) -> Result<()> {
         let resolved = self.prefix.replace("{job}", &job.id);
         if let Some(earlier) = self.written.get(&resolved) {
             return Err(Error::parameter(
@@ -75,7 +75,7 @@ impl Stage<Job> for WriterStage {
             ));
         }
         self.written.insert(resolved, job.id.clone());
-        let staged = JobProducts::from_job(&job, self.options.preview_dynamic_range)?.stage(&self.prefix, &self.options)?;
+        let staged = JobProducts::from_job(&mut job, self.options.preview_dynamic_range)?.stage(&self.prefix, &self.options)?;
         // The model column is written while the products wait staged, and they are moved into
         // place after it: a run killed during the (long) MS write leaves the earlier products
         // beside the earlier model, never this run's products beside the earlier model. A
