@@ -668,3 +668,24 @@ fn telescope_names_fits_cannot_hold_are_written_as_they_can_be_and_said() {
         }
     }
 }
+
+/// Products whose names hold `[` (which cfitsio would read as an extension selector) read
+/// back as a truth and by `metrics` (issue 56.22); a prefix under a link that leads round a
+/// loop is refused naming the loop, not "File exists" (issue 56.19).
+#[test]
+fn bracketed_product_names_read_back_and_a_link_loop_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    point_source_table(&d.join("obs.parquet"), "VLA");
+    check(&r2d2(&["dirty", "obs.parquet", "--size", "64", "--name", "a[1]"], d));
+    let out = r2d2(&["metrics", "--truth", "a[1]-dirty.fits", "--estimate", "a[1]-psf.fits"], d);
+    check(&out);
+    assert!(String::from_utf8_lossy(&out.stdout).contains("snr"), "{}", text(&out));
+    check(&r2d2(&["image", "obs.parquet", "--size", "64", "--step", "clean", "--iterations", "2", "--truth", "a[1]-dirty.fits", "--name", "t"], d));
+
+    std::os::unix::fs::symlink("loop", d.join("loop")).unwrap();
+    let out = r2d2(&["dirty", "obs.parquet", "--size", "64", "--name", "loop/x"], d);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("loop: a symbolic link that leads round a loop of links (to loop)") && !err.contains("File exists"), "{err}");
+}

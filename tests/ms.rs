@@ -554,6 +554,11 @@ fn parquet_converts_to_an_ms_that_images_as_the_table() {
     assert!(!left(gone.id()).exists(), "left by a dead conversion: {}", text(&out));
     assert!(text(&out).contains("left by an interrupted conversion"), "{}", text(&out));
     assert!(left(std::process::id()).join("table.dat").exists(), "a running process's was removed");
+
+    // `-` is standard output elsewhere: no MS directory named `-` (issue 56.22).
+    let out = r2d2(&["convert", "obs.parquet", "-"], dir.path());
+    common::assert_fails_with(&out, "convert to -", &["`-` (standard output)", "./-"]);
+    assert!(!dir.path().join("-").exists());
 }
 
 /// Column names of an MS's main table, read by python-casacore (an independent reader).

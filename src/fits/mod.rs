@@ -292,7 +292,7 @@ pub fn read_image(path: &Path) -> Result<FitsImage> {
     if !metadata.is_file() {
         return Err(FitsError::Unusable { path: path.to_path_buf(), message: "not a regular file (expected a FITS image)" }.into());
     }
-    let mut file = FitsFile::open(fitsio_path(path)?).map_err(|e| cfitsio(path, "cannot open as FITS", e))?;
+    let mut file = open_literally(path)?;
     let hdu = file.primary_hdu().map_err(|e| cfitsio(path, "cannot read the primary HDU", e))?;
     let (shape, image_type) = match &hdu.info {
         HduInfo::ImageInfo { shape, image_type } => (shape.clone(), *image_type),
@@ -625,7 +625,26 @@ fn to_float32(image: &[f64]) -> Result<Vec<f32>> {
     Ok(pixels)
 }
 
-/// The file name to hand to cfitsio for `path`.
+/// Opens `path` read-only, its name taken as it is: cfitsio's `fits_open_file` parses names
+/// (`[1]` selects an extension, `-` is standard input, `mem://` a driver), so a product named
+/// `a[1]-dirty.fits`, which the writer makes, could not be read back; `fits_open_diskfile` opens
+/// the file of that name.
+fn open_literally(path: &Path) -> Result<FitsFile> {
+    let unusable = |message| Error::from(FitsError::Unusable { path: path.to_path_buf(), message });
+    let name = path.to_str().ok_or_else(|| unusable("the file name is not valid UTF-8, which cfitsio requires"))?;
+    let name = std::ffi::CString::new(name).map_err(|_| unusable("the file name holds a NUL byte"))?;
+    let mut fptr = std::ptr::null_mut();
+    let mut status = 0;
+    // SAFETY: `name` is a NUL-terminated string that outlives the call, and `fptr` and
+    // `status` are valid for writes; ffdkopn reads the name and writes only those two.
+    unsafe { fitsio::sys::ffdkopn(&mut fptr, name.as_ptr(), fitsio::FileOpenMode::READONLY as std::os::raw::c_int, &mut status) };
+    fitsio::errors::check_status(status).map_err(|e| cfitsio(path, "cannot open as FITS", e))?;
+    // SAFETY: status 0: ffdkopn opened the file and `fptr` is its only handle, handed to the
+    // FitsFile, which closes it once, when dropped.
+    unsafe { FitsFile::from_raw(fptr, fitsio::FileOpenMode::READONLY) }.map_err(|e| cfitsio(path, "cannot open as FITS", e))
+}
+
+/// The file name to hand to cfitsio for `path` (a temporary the writer names itself).
 ///
 /// cfitsio parses file names: `-` is stdin, a leading `!` means overwrite, `mem://` and
 /// `http://` select drivers, `[...]` selects extensions. A `./` in front of relative paths
