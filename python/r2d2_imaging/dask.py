@@ -47,11 +47,14 @@ Observation = Union[str, "os.PathLike[str]", pa.Table]
 class Job:
     """One imaging job: its id (products are named after it) and its observation: a path, a
     table, or the rows ``rows`` of the table at ``path`` (a part of a split file, read by the
-    worker itself from a file system it shares with the client)."""
+    worker itself from a file system it shares with the client). A part of a split carries
+    the split's ``longest_baseline`` (wavelengths), which sets the pixel size every part
+    shares, as the engine's own split does."""
 
     id: str
     obs: Any
     rows: Optional[np.ndarray] = None
+    longest_baseline: Optional[float] = None
 
     def observation(self):
         """What :func:`r2d2_imaging.image` takes for this job (on the worker)."""
@@ -97,10 +100,10 @@ def split(obs: Observation, column: str, window: Optional[float] = None, id: Opt
     the worker to read from the shared file."""
     name = id or _stem(obs, 0)
     table = read_parquet(obs) if isinstance(obs, (str, os.PathLike)) else obs
-    parts = _native.split_rows(table, str(obs) if isinstance(obs, (str, os.PathLike)) else name, column, window)
+    parts, longest = _native.split_rows(table, str(obs) if isinstance(obs, (str, os.PathLike)) else name, column, window)
     if isinstance(obs, (str, os.PathLike)):
-        return [Job(f"{name}-{suffix}", os.fspath(obs), rows) for suffix, rows in parts]
-    return [Job(f"{name}-{suffix}", table.take(rows)) for suffix, rows in parts]
+        return [Job(f"{name}-{suffix}", os.fspath(obs), rows, longest) for suffix, rows in parts]
+    return [Job(f"{name}-{suffix}", table.take(rows), longest_baseline=longest) for suffix, rows in parts]
 
 
 def jobs(observations: Union[Observation, Sequence[Observation], Mapping[str, Observation]], split_by: Optional[Mapping[str, Any]] = None) -> list[Job]:
@@ -129,6 +132,8 @@ def jobs(observations: Union[Observation, Sequence[Observation], Mapping[str, Ob
 
 def _image_job(job: Job, prefix: Optional[str], params: dict):
     """One task: one engine, one job (runs on a worker)."""
+    if job.longest_baseline is not None and "longest_baseline" not in params:
+        params = dict(params, longest_baseline=job.longest_baseline)
     products = r2d2_imaging.image(job.observation(), id=job.id, **params)
     if prefix is None:
         return products

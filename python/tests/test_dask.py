@@ -88,7 +88,9 @@ def test_time_windows_of_a_table_in_memory(client, channels):
     results = image_many(client, {"obs": table}, split_by={"column": "time", "window": 1200}, **PARAMS)
     assert [r.id for r in results] == [j.id for j in todo] and len(todo) >= 3
     for job, result in zip(todo, results):
-        assert_same(result, r2d2_imaging.image(job.obs, id=job.id, **PARAMS), job.id)
+        assert_same(result, r2d2_imaging.image(job.obs, id=job.id, longest_baseline=job.longest_baseline, **PARAMS), job.id)
+    # The windows of A and C configurations share one grid, as the engine's own split's do.
+    assert len({r.metrics["settings"]["pixel_arcsec"] for r in results}) == 1, [r.metrics["settings"]["pixel_arcsec"] for r in results]
 
 
 def test_a_failed_job_raises_the_engines_error(client, observations, tmp_path):
