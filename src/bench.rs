@@ -586,7 +586,7 @@ pub fn run_pipeline_bench(p: &PipelineBenchParams) -> Result<PipelineBenchReport
             StageSpec::typed("update", &ResidualParams::default())?.to("step").done("write"),
             StageSpec::typed("write", &WriterParams { prefix: out_prefix.clone(), ..WriterParams::default() })?,
         ];
-        let mut spec = PipelineSpec::new("bench", &ImageConfig { size: p.size, superresolution: None, pixel_arcsec: None }, stages)?;
+        let mut spec = PipelineSpec::new("bench", &ImageConfig { size: p.size, superresolution: None, pixel_arcsec: None, longest_baseline: None }, stages)?;
         spec.threads = p.threads;
         spec.channel_capacity = p.channel_capacity;
         Ok(spec)

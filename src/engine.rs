@@ -274,6 +274,10 @@ pub struct ImageParams {
     /// series' own (its manifest's `superresolution`) for a series step, else 1.5.
     pub superresolution: Option<f64>,
     pub pixel_arcsec: Option<f64>,
+    /// The longest baseline (wavelengths) the super-resolution factor is applied to, in place
+    /// of the data's own (`image.longest_baseline`): a part of a split imaged apart, on the
+    /// grid of the whole split.
+    pub longest_baseline: Option<f64>,
     /// `None`: the series' own (its manifest's `weighting`) for a series step, else Briggs 0.
     pub weighting: Option<Weighting>,
     pub weighting_grid_factor: f64,
@@ -318,6 +322,7 @@ impl Default for ImageParams {
             size: 512,
             superresolution: None,
             pixel_arcsec: None,
+            longest_baseline: None,
             weighting: None,
             weighting_grid_factor: crate::weighting::DEFAULT_GRID_FACTOR,
             epsilon: 1e-6,
@@ -404,6 +409,7 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
         size: params.size,
         superresolution: params.pixel_arcsec.is_none().then_some(superresolution),
         pixel_arcsec: params.pixel_arcsec,
+        longest_baseline: params.longest_baseline,
     };
     Ok((PipelineSpec::new("image", &image, stages)?, inputs, parted))
 }
@@ -481,7 +487,7 @@ fn resolve_auto(params: &ImageParams, telescope: impl FnOnce() -> Option<String>
     }
     let Some(telescope) = telescope() else { return Ok((params.clone(), None)) };
     let telescope = telescope.as_str();
-    let found = crate::steps::series::found_series();
+    let found = crate::steps::series::found_series()?;
     if found.is_empty() || found.iter().any(|(_, s)| s.trained_for_telescope(telescope)) {
         // The series `auto` prefers for this telescope, named from here on so that the
         // imaging setting comes from the series that runs. Off its trained size the step

@@ -38,6 +38,10 @@ pub struct ImageConfig {
     /// A fixed pixel size (arcsec), instead of the super-resolution factor.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pixel_arcsec: Option<f64>,
+    /// The longest baseline (wavelengths) the super-resolution factor is applied to, in place
+    /// of each job's own: jobs imaged apart (the parts of a split on a cluster) on one grid.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub longest_baseline: Option<f64>,
 }
 
 impl ImageConfig {

@@ -245,6 +245,32 @@ fn sync_dir(dir: &Path) -> Result<()> {
     File::open(dir).and_then(|d| d.sync_all()).map_err(|e| Error::io(dir, e))
 }
 
+/// Why `dir` cannot be made where a part of its path exists and is no directory: a link that
+/// leads round a loop of links (the system says only "File exists"), or a file. `None` where
+/// no part is such.
+fn not_a_directory(dir: &Path) -> Option<Error> {
+    let mut parts: Vec<&Path> = dir.ancestors().filter(|p| !p.as_os_str().is_empty()).collect();
+    parts.reverse();
+    parts.into_iter().find_map(|part| {
+        let own = std::fs::symlink_metadata(part).ok()?;
+        match std::fs::metadata(part) {
+            Ok(m) if m.is_dir() => None,
+            Ok(m) => Some(Error::input(part, format!("is {}, not a directory: the products cannot go under it", crate::error::file_kind(&m)))),
+            Err(e) if own.file_type().is_symlink() && e.raw_os_error() == Some(libc::ELOOP) => Some(Error::input(
+                part,
+                format!("a symbolic link that leads round a loop of links (to {}), not a directory: the products cannot go under it", target_of(part)),
+            )),
+            Err(e) if own.file_type().is_symlink() => Some(Error::input(part, format!("a symbolic link that leads nowhere (to {}: {e}), not a directory: the products cannot go under it", target_of(part)))),
+            Err(_) => None,
+        }
+    })
+}
+
+/// The target a link names, as text.
+fn target_of(link: &Path) -> String {
+    std::fs::read_link(link).map_or_else(|e| format!("an unreadable target: {e}"), |t| t.display().to_string())
+}
+
 /// Locks `dir` (an open handle on it) exclusively, waiting for the lock.
 fn lock_dir(dir: &Path) -> Result<File> {
     let handle = File::open(dir).map_err(|e| Error::io(dir, e))?;
@@ -254,7 +280,7 @@ fn lock_dir(dir: &Path) -> Result<File> {
 
 impl Staging {
     pub fn new(target_dir: &Path) -> Result<Staging> {
-        std::fs::create_dir_all(target_dir).map_err(|e| Error::io(target_dir, e))?;
+        std::fs::create_dir_all(target_dir).map_err(|e| not_a_directory(target_dir).unwrap_or_else(|| Error::io(target_dir, e)))?;
         let held = lock_dir(target_dir)?;
         let place = std::fs::canonicalize(target_dir).unwrap_or_else(|_| target_dir.to_path_buf());
         let mut looked = LOOKED.lock().unwrap_or_else(|e| e.into_inner());

@@ -630,3 +630,62 @@ fn wsclean_clean_controls_run_with_their_meanings() {
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("--step clean"), "{}", String::from_utf8_lossy(&out.stderr));
     assert!(!d.join("net-metrics.json").exists());
 }
+
+/// A quarter of an hour of VLA C at 1.4 GHz, every visibility 1 Jy (a point source at the
+/// phase centre), observed by `telescope`.
+fn point_source_table(path: &Path, telescope: &str) {
+    let cov = sample_coverage(&vla_at_1_4_ghz(('c', 0.25), 40.0, 300.0)).unwrap();
+    let n = cov.len();
+    let table = VisTable { u_m: cov.u_m, v_m: cov.v_m, w_m: cov.w_m, frequency: cov.frequency_hz, vis: vec![Complex64::new(1.0, 0.0); n], ..Default::default() };
+    write_parquet(path, &table, &ObservationMeta::new(10.0, 40.0, telescope)).unwrap();
+}
+
+/// A telescope name FITS cannot hold as it is (not printable ASCII, or longer than a header
+/// card): `dirty` and `image` write the same TELESCOP, what FITS holds of it, and say so; no
+/// failure after imaging, no character dropped without a word.
+#[test]
+fn telescope_names_fits_cannot_hold_are_written_as_they_can_be_and_said() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let long = format!("{}'s array", "T".repeat(70));
+    for (file, telescope, written, note) in [
+        ("unicode.parquet", "ÅSKAP–Ø", "?SKAP??".to_string(), "3 character(s) other than printable ASCII written as '?'"),
+        ("long.parquet", long.as_str(), "T".repeat(68), "cut to 68 characters"),
+    ] {
+        point_source_table(&d.join(file), telescope);
+        for command in [vec!["dirty", file, "--size", "64", "--name", "d"], vec!["image", file, "--size", "64", "--step", "clean", "--iterations", "2", "--name", "i"]] {
+            let out = r2d2(&command, d);
+            check(&out);
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert!(err.contains("WARN") && err.contains("TELESCOP") && err.contains(&format!("{telescope:?} is written as {written:?}")) && err.contains(note), "{command:?}: {err}");
+            assert_eq!(err.matches("TELESCOP:").count(), 1, "{command:?}: said once: {err}");
+            let header = Command::new("python3")
+                .args(["-c", "import sys; from astropy.io import fits; print(fits.getheader(sys.argv[1])['TELESCOP'])"])
+                .arg(d.join(format!("{}-dirty.fits", command.last().unwrap())))
+                .output()
+                .unwrap();
+            assert_eq!(String::from_utf8_lossy(&header.stdout).trim_end(), written, "{command:?}: {}", text(&header));
+        }
+    }
+}
+
+/// Products whose names hold `[` (which cfitsio would read as an extension selector) read
+/// back as a truth and by `metrics` (issue 56.22); a prefix under a link that leads round a
+/// loop is refused naming the loop, not "File exists" (issue 56.19).
+#[test]
+fn bracketed_product_names_read_back_and_a_link_loop_is_named() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    point_source_table(&d.join("obs.parquet"), "VLA");
+    check(&r2d2(&["dirty", "obs.parquet", "--size", "64", "--name", "a[1]"], d));
+    let out = r2d2(&["metrics", "--truth", "a[1]-dirty.fits", "--estimate", "a[1]-psf.fits"], d);
+    check(&out);
+    assert!(String::from_utf8_lossy(&out.stdout).contains("snr"), "{}", text(&out));
+    check(&r2d2(&["image", "obs.parquet", "--size", "64", "--step", "clean", "--iterations", "2", "--truth", "a[1]-dirty.fits", "--name", "t"], d));
+
+    std::os::unix::fs::symlink("loop", d.join("loop")).unwrap();
+    let out = r2d2(&["dirty", "obs.parquet", "--size", "64", "--name", "loop/x"], d);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("loop: a symbolic link that leads round a loop of links (to loop)") && !err.contains("File exists"), "{err}");
+}

@@ -176,7 +176,7 @@ fn a_pipeline_of_typed_parameters_is_its_yaml() {
         StageSpec::typed("update", &ResidualParams::default()).unwrap().to("step").done("deliver"),
         StageSpec::typed("deliver", &ProductsParams::default()).unwrap(),
     ];
-    let typed = PipelineSpec::new("typed", &ImageConfig { size: SIZE, superresolution: None, pixel_arcsec: None }, stages).unwrap();
+    let typed = PipelineSpec::new("typed", &ImageConfig { size: SIZE, superresolution: None, pixel_arcsec: None, longest_baseline: None }, stages).unwrap();
     let yaml = engine.load_yaml(PIPELINE, "embedded.yaml", &[]).unwrap();
     let obs = observation(3);
     let (a, b) = (run_one(&engine, &typed, input("a", &obs)), run_one(&engine, &yaml, input("a", &obs)));

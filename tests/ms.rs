@@ -539,6 +539,26 @@ fn parquet_converts_to_an_ms_that_images_as_the_table() {
         assert!(!dir.path().join("bad.ms").exists(), "{input}: {err}");
         assert!(!std::fs::read_dir(dir.path()).unwrap().any(|e| e.unwrap().file_name().to_string_lossy().contains("r2d2-convert")), "{input}: nothing left behind");
     }
+
+    // What a conversion killed part-way left (its process gone) is removed by the next one
+    // beside it; one of a process that runs (this test) is left alone (issue 56.3).
+    let mut gone = Command::new("true").spawn().unwrap();
+    gone.wait().unwrap();
+    let left = |pid: u32| dir.path().join(format!(".back.ms.r2d2-convert-{pid}"));
+    for pid in [gone.id(), std::process::id()] {
+        std::fs::create_dir(left(pid)).unwrap();
+        std::fs::write(left(pid).join("table.dat"), b"partial").unwrap();
+    }
+    let out = r2d2(&["convert", "obs.parquet", "back.ms"], dir.path());
+    check(&out);
+    assert!(!left(gone.id()).exists(), "left by a dead conversion: {}", text(&out));
+    assert!(text(&out).contains("left by an interrupted conversion"), "{}", text(&out));
+    assert!(left(std::process::id()).join("table.dat").exists(), "a running process's was removed");
+
+    // `-` is standard output elsewhere: no MS directory named `-` (issue 56.22).
+    let out = r2d2(&["convert", "obs.parquet", "-"], dir.path());
+    common::assert_fails_with(&out, "convert to -", &["`-` (standard output)", "./-"]);
+    assert!(!dir.path().join("-").exists());
 }
 
 /// Column names of an MS's main table, read by python-casacore (an independent reader).

@@ -180,6 +180,7 @@ fn stage_parameter_errors_point_at_their_yaml_line() {
         // The file is fine: the wrong value is the command line's.
         ("from --set", good.clone(), vec!["weights.scheme=brigs"], vec!["stages.weights.scheme", "--set weights.scheme=brigs", "`brigs`"]),
         ("nested from --set", good.clone(), vec!["source.hours=[1, x]"], vec!["stages.source.hours[1]", "--set source.hours=[1, x]"]),
+        ("image key from --set", good.clone(), vec!["image.size=abc"], vec!["image.size, as given by --set image.size=abc", "expected usize"]),
         // A wrong value of the file is still found at its line when `--set` changed another.
         ("file, beside a --set", good.replace("robust: 0", "robust: zero"), vec!["weights.scheme=uniform"], vec!["line 16, column 13", "stages.weights.robust"]),
     ];
@@ -666,6 +667,47 @@ fn split_by_time_windows_and_channels() {
     assert!(err.contains("stages.source.split_by.column") && err.contains("`chan`") && err.contains("time"), "{err}");
     let out = r2d2(&["validate", "bad2.yaml", "--set", "source.split_by.window=-5"], d);
     assert!(stderr(&out).contains("split_by.window") && stderr(&out).contains("positive"), "{}", stderr(&out));
+}
+
+/// The jobs of one split keep their numbers and share one grid (issue 56.8, 56.22): a channel
+/// flagged throughout makes no job and is named in a warning, the channels after it keep
+/// theirs (each product's CRVAL3 is its channel's frequency); time windows of A and C
+/// configurations, whose longest baselines differ tenfold, share one pixel size.
+#[test]
+fn split_jobs_keep_their_numbers_and_share_one_grid() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    simulate_small(d, "7", "f.parquet", &["--nfreq", "4", "--freq-ratio", "1.3"]);
+    let flag = "import pyarrow as pa, pyarrow.parquet as pq, numpy as np\n\
+                t = pq.read_table('f.parquet')\n\
+                f = t['frequency'].to_numpy()\n\
+                flag = t['flag'].to_numpy(zero_copy_only=False) | (f == np.unique(f)[1])\n\
+                pq.write_table(t.set_column(t.schema.get_field_index('flag'), 'flag', pa.array(flag)), 'f.parquet')";
+    let out = Command::new("python3").args(["-c", flag]).current_dir(d).output().expect("python3 runs");
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let source = "  source:\n    kind: parquet\n    files: f.parquet\n    split_by: {column: frequency}\n    to: weights\n";
+    std::fs::write(d.join("chan.yaml"), small_pipeline(Some(source)).replace("out/{job}", "chan/{job}")).unwrap();
+    let out = r2d2(&["run", "chan.yaml"], d);
+    check(&out);
+    assert_eq!(job_ids(&d.join("chan")), ["f-ch00", "f-ch02", "f-ch03"]);
+    let err = stderr(&out);
+    assert!(err.contains("WARN") && err.contains("f.parquet: ch01 (`frequency` ") && err.contains("has no sample left to image"), "{err}");
+    let channels: Vec<f64> = (0..4).map(|k| 1.4e9 * (1.0 + 0.3 * k as f64 / 3.0)).collect();
+    for (id, k) in [("f-ch00", 0), ("f-ch02", 2), ("f-ch03", 3)] {
+        let wcs = read_image(&d.join(format!("chan/{id}-dirty.fits"))).unwrap().wcs.unwrap();
+        let freq = wcs.freq_hz.unwrap();
+        let nearest = (0..4).min_by(|&a, &b| (channels[a] - freq).abs().total_cmp(&(channels[b] - freq).abs())).unwrap();
+        assert_eq!(nearest, k, "{id}: CRVAL3 {freq} Hz is channel {nearest} of {channels:?}");
+    }
+
+    simulate_small(d, "8", "ac.parquet", &["--configs", "a,c", "--hours", "1,1"]);
+    let source = "  source:\n    kind: parquet\n    files: ac.parquet\n    split_by: {column: time, window: 3600}\n    to: weights\n";
+    std::fs::write(d.join("time.yaml"), small_pipeline(Some(source)).replace("out/{job}", "time/{job}")).unwrap();
+    check(&r2d2(&["run", "time.yaml"], d));
+    let ids = job_ids(&d.join("time"));
+    assert!(ids.len() >= 2, "{ids:?}");
+    let pixels: Vec<f64> = ids.iter().map(|id| read_image(&d.join(format!("time/{id}-dirty.fits"))).unwrap().wcs.unwrap().pixel_deg).collect();
+    assert!(pixels.iter().all(|&p| p == pixels[0]), "{ids:?}: pixel sizes {pixels:?}");
 }
 
 /// Progress bars draw only on a terminal: with stderr captured there is no bar, and `-q`

@@ -160,7 +160,8 @@ def image(obs, size: int = 512, step: Optional[str] = None, weighting: Optional[
           prefetch: bool = True, plugin_config: Optional[str] = None, epsilon: float = 1e-6, oversampling: float = 2.0,
           weighting_grid_factor: Optional[float] = None, onnx_runtime: Optional[PathLike] = None,
           w_term: str = "auto", niter: Optional[int] = None, gain: Optional[float] = None, mgain: Optional[float] = None,
-          auto_threshold: Optional[float] = None, threshold: Optional[float] = None, final_clean: bool = True) -> Products:
+          auto_threshold: Optional[float] = None, threshold: Optional[float] = None, final_clean: bool = True,
+          longest_baseline: Optional[float] = None) -> Products:
     """Image one observation as ``r2d2 image`` does, in this process.
 
     ``obs`` is a path (Parquet, Arrow IPC, MeasurementSet) or a table in the documented
@@ -179,7 +180,10 @@ def image(obs, size: int = 512, step: Optional[str] = None, weighting: Optional[
     ``auto_threshold`` (sigmas of the residual's robust noise) and ``threshold`` (Jy/beam);
     refused with a network series. ``final_clean`` (series only, default on): CLEAN major
     cycles on what the series' model leaves in the residual, so that compact sources get the
-    fluxes the data measure (``False``: the networks' model as it is).
+    fluxes the data measure (``False``: the networks' model as it is). ``longest_baseline``
+    (wavelengths): what ``superresolution`` applies to in place of the data's own longest
+    baseline, so that parts of one observation imaged apart share one grid (the Dask split's
+    jobs carry their split's).
 
     Returns :class:`Products`: ``dirty``, ``psf``, ``model``, ``residual`` (and ``image`` for
     CLEAN) as float32 arrays (N, N) in FITS orientation (row 0 at the bottom, as astropy reads
@@ -197,7 +201,7 @@ def image(obs, size: int = 512, step: Optional[str] = None, weighting: Optional[
         threads=threads, backend=backend, prefetch=prefetch, plugin_config=plugin_config, epsilon=epsilon,
         oversampling=oversampling, weighting_grid_factor=weighting_grid_factor, w_term=w_term,
         niter=niter, gain=gain, mgain=mgain, auto_threshold=auto_threshold, threshold=threshold,
-        final_clean=final_clean, onnx_runtime=os.fspath(onnx_runtime) if onnx_runtime is not None else _onnx_runtime())
+        final_clean=final_clean, longest_baseline=longest_baseline, onnx_runtime=os.fspath(onnx_runtime) if onnx_runtime is not None else _onnx_runtime())
     for message in products.metrics.get("warnings", []):
         warnings.warn(f"job {products.id}: {message}", R2D2Warning, stacklevel=2)
     return products

@@ -47,11 +47,14 @@ Observation = Union[str, "os.PathLike[str]", pa.Table]
 class Job:
     """One imaging job: its id (products are named after it) and its observation: a path, a
     table, or the rows ``rows`` of the table at ``path`` (a part of a split file, read by the
-    worker itself from a file system it shares with the client)."""
+    worker itself from a file system it shares with the client). A part of a split carries
+    the split's ``longest_baseline`` (wavelengths), which sets the pixel size every part
+    shares, as the engine's own split does."""
 
     id: str
     obs: Any
     rows: Optional[np.ndarray] = None
+    longest_baseline: Optional[float] = None
 
     def observation(self):
         """What :func:`r2d2_imaging.image` takes for this job (on the worker)."""
@@ -97,10 +100,10 @@ def split(obs: Observation, column: str, window: Optional[float] = None, id: Opt
     the worker to read from the shared file."""
     name = id or _stem(obs, 0)
     table = read_parquet(obs) if isinstance(obs, (str, os.PathLike)) else obs
-    parts = _native.split_rows(table, str(obs) if isinstance(obs, (str, os.PathLike)) else name, column, window)
+    parts, longest = _native.split_rows(table, str(obs) if isinstance(obs, (str, os.PathLike)) else name, column, window)
     if isinstance(obs, (str, os.PathLike)):
-        return [Job(f"{name}-{suffix}", os.fspath(obs), rows) for suffix, rows in parts]
-    return [Job(f"{name}-{suffix}", table.take(rows)) for suffix, rows in parts]
+        return [Job(f"{name}-{suffix}", os.fspath(obs), rows, longest) for suffix, rows in parts]
+    return [Job(f"{name}-{suffix}", table.take(rows), longest_baseline=longest) for suffix, rows in parts]
 
 
 def jobs(observations: Union[Observation, Sequence[Observation], Mapping[str, Observation]], split_by: Optional[Mapping[str, Any]] = None) -> list[Job]:
@@ -129,6 +132,8 @@ def jobs(observations: Union[Observation, Sequence[Observation], Mapping[str, Ob
 
 def _image_job(job: Job, prefix: Optional[str], params: dict):
     """One task: one engine, one job (runs on a worker)."""
+    if job.longest_baseline is not None and "longest_baseline" not in params:
+        params = dict(params, longest_baseline=job.longest_baseline)
     products = r2d2_imaging.image(job.observation(), id=job.id, **params)
     if prefix is None:
         return products
@@ -265,6 +270,31 @@ class _DaskPasses:
         return functools.reduce(np.add, self._map(_native.part_apply_normal, self._pass(text), self._scattered_rule(density, f2), f2, x))
 
 
+def _part_summary_and_identity(part: str):
+    """A part's metadata and summary, and what tells it from the others where it is read: its
+    real path and its file's (device, inode), the same for a part named twice through another
+    path, a link or a hard link."""
+    meta, summary = _native.part_summary(part)
+    status = os.stat(part)
+    return meta, summary, (os.path.realpath(part), (status.st_dev, status.st_ino))
+
+
+def _refuse_parts_given_twice(parts, workers, identities):
+    """A part given twice would be summed twice into every image (its samples weigh double):
+    refused, naming both, where two parts read on one worker (or on the shared file system)
+    have the same real path or the same file."""
+    first_of = {}
+    for i, (path, file) in enumerate(identities):
+        where = None if workers is None else workers[i]
+        for key in ((where, "path", path), (where, "file", file)):
+            if key in first_of:
+                j = first_of[key]
+                raise ValueError(
+                    f"parts: part {j} ({parts[j]}) and part {i} ({parts[i]}) are one file ({path}): "
+                    "each part must be given once (its samples would be summed twice)")
+            first_of[key] = i
+
+
 def image_parts(client, parts: Sequence[Union[str, "os.PathLike[str]"]], *, id: Optional[str] = None,
                 workers: Optional[Sequence[str]] = None, part_threads: int = 0, **params):
     """Image one observation kept in ``parts`` (files the engine reads: Parquet, Arrow IPC,
@@ -292,7 +322,9 @@ def image_parts(client, parts: Sequence[Union[str, "os.PathLike[str]"]], *, id: 
     if workers is not None and len(workers) != len(parts):
         raise ValueError(f"workers: expected one worker per part ({len(parts)}), got {len(workers)}")
     passes = _DaskPasses(client, parts, list(workers) if workers is not None else None, part_threads)
-    described = [(part, meta, summary) for part, (meta, summary) in zip(parts, passes._map(_native.part_summary))]
+    summaries = passes._map(_part_summary_and_identity)
+    _refuse_parts_given_twice(parts, workers, [identity for _, _, identity in summaries])
+    described = [(part, meta, summary) for part, (meta, summary, _) in zip(parts, summaries)]
     name = id or _stem(parts[0], 0)
     observation = _native.Parts(name, described, passes, passes.describe())
     return r2d2_imaging.image(observation, id=name, **params)

@@ -16,7 +16,7 @@ use std::path::PathBuf;
 #[pyfunction]
 #[pyo3(signature = (obs, *, id, size, step, weighting, robust, superresolution, pixel_arcsec, truth, iterations, threads,
                     backend, prefetch, plugin_config, epsilon, oversampling, weighting_grid_factor, onnx_runtime, w_term,
-                    niter=None, gain=None, mgain=None, auto_threshold=None, threshold=None, final_clean=true))]
+                    niter=None, gain=None, mgain=None, auto_threshold=None, threshold=None, final_clean=true, longest_baseline=None))]
 #[allow(clippy::too_many_arguments)]
 pub fn image(
     py: Python<'_>,
@@ -45,6 +45,7 @@ pub fn image(
     auto_threshold: Option<f64>,
     threshold: Option<f64>,
     final_clean: bool,
+    longest_baseline: Option<f64>,
 ) -> PyResult<Products> {
     let observation = if let Ok(parts) = obs.downcast::<crate::parts::Parts>() {
         Observation::Parts(parts.borrow().take()?)
@@ -58,6 +59,7 @@ pub fn image(
         size,
         superresolution,
         pixel_arcsec,
+        longest_baseline,
         weighting: Weighting::from_options(weighting, robust).map_err(crate::engine_error)?,
         weighting_grid_factor,
         epsilon,

@@ -178,7 +178,8 @@ fn run<'py>(
 
 /// The table rows of each job that `split_by: {column, window}` makes of `table` (anything
 /// with `__arrow_c_stream__`, named `name` in messages), exactly as the engine's sources split
-/// it: `[(suffix, rows)]`, rows a uint64 array of the rows kept for imaging.
+/// it: `([(suffix, rows)], longest_baseline)`, rows a uint64 array of the rows kept for
+/// imaging, `longest_baseline` (wavelengths) what sets the pixel size the parts share.
 #[pyfunction]
 #[pyo3(signature = (table, name, column, window=None))]
 fn split_rows<'py>(
@@ -187,7 +188,7 @@ fn split_rows<'py>(
     name: &str,
     column: String,
     window: Option<f64>,
-) -> PyResult<Vec<(String, Bound<'py, PyArray1<u64>>)>> {
+) -> PyResult<(Vec<(String, Bound<'py, PyArray1<u64>>)>, f64)> {
     let stream = arrow_in::stream_of(table)?;
     let split = r2d2_imaging::vis::SplitBy { column, window };
     split.check().map_err(|m| R2D2Error::new_err(format!("split_by.window: {m}")))?;
@@ -196,9 +197,10 @@ fn split_rows<'py>(
         let mut reader = r2d2_imaging::vis::memory_table(r2d2_imaging::MemoryInput::new(name.as_str(), stream), &name)?;
         r2d2_imaging::vis::split_rows(&mut reader, &split, "split_by", &|| cancel.load(Ordering::SeqCst))
     })?;
-    let parts = parts.ok_or_else(|| R2D2Error::new_err("interrupted while splitting"))?;
+    let split = parts.ok_or_else(|| R2D2Error::new_err("interrupted while splitting"))?;
     // The row vectors become the arrays' buffers: moved, not copied.
-    Ok(parts.into_iter().map(|(suffix, rows)| (suffix, PyArray1::from_vec(py, rows))).collect())
+    let parts = split.parts.into_iter().map(|(suffix, rows)| (suffix, PyArray1::from_vec(py, rows))).collect();
+    Ok((parts, split.longest_baseline))
 }
 
 /// Add a directory of model series to look up after the engine's own places.
@@ -229,7 +231,7 @@ fn info(py: Python<'_>, onnx_runtime: Option<std::path::PathBuf>) -> PyResult<Bo
     out.set_item("onnx_backend", backend)?;
     out.set_item("model_dirs", model_dirs().iter().map(|d| d.display().to_string()).collect::<Vec<_>>())?;
     let series = pyo3::types::PyList::empty(py);
-    for (dir, s) in found_series() {
+    for (dir, s) in found_series().map_err(engine_error)? {
         let entry = PyDict::new(py);
         entry.set_item("name", &s.name)?;
         entry.set_item("path", dir.display().to_string())?;

@@ -1,6 +1,7 @@
 """r2d2_imaging.dask on a LocalCluster of two worker processes: every job's products equal a
 single-process run's, pixel for pixel."""
 
+import os
 import numpy as np
 from dask.utils import key_split
 import pytest
@@ -87,7 +88,9 @@ def test_time_windows_of_a_table_in_memory(client, channels):
     results = image_many(client, {"obs": table}, split_by={"column": "time", "window": 1200}, **PARAMS)
     assert [r.id for r in results] == [j.id for j in todo] and len(todo) >= 3
     for job, result in zip(todo, results):
-        assert_same(result, r2d2_imaging.image(job.obs, id=job.id, **PARAMS), job.id)
+        assert_same(result, r2d2_imaging.image(job.obs, id=job.id, longest_baseline=job.longest_baseline, **PARAMS), job.id)
+    # The windows of A and C configurations share one grid, as the engine's own split's do.
+    assert len({r.metrics["settings"]["pixel_arcsec"] for r in results}) == 1, [r.metrics["settings"]["pixel_arcsec"] for r in results]
 
 
 def test_a_failed_job_raises_the_engines_error(client, observations, tmp_path):
@@ -163,3 +166,18 @@ def test_parts_of_two_observations_are_refused_naming_the_part(client, parted, r
     other = simulate(r2d2_bin, tmp_path / "elsewhere.parquet", 32, dec=10)
     with pytest.raises(r2d2_imaging.R2D2Error, match="elsewhere.parquet.*another observation"):
         image_parts(client, [parts[0], other], **PARAMS)
+
+
+def test_a_part_given_twice_is_refused_naming_both(client, parted, tmp_path):
+    """The same part twice, by its own path, through a link, or by another spelling of the
+    path: its samples would be summed twice into every image; refused before any pass."""
+    _, parts = parted
+    link = tmp_path / "again.parquet"
+    link.symlink_to(parts[1])
+    hard = tmp_path / "hard.parquet"
+    os.link(parts[2], hard)
+    spelled = os.path.join(os.path.dirname(parts[0]), ".", os.path.basename(parts[0]))
+    for twice, names in [([parts[0], parts[1], parts[0]], (0, 2)), ([parts[0], parts[1], link], (1, 2)),
+                         ([hard, parts[1], parts[2]], (0, 2)), ([parts[0], spelled], (0, 1))]:
+        with pytest.raises(ValueError, match=rf"part {names[0]} \(.*\) and part {names[1]} \(.*\) are one file"):
+            image_parts(client, twice, **PARAMS)

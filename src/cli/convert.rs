@@ -61,6 +61,13 @@ pub struct Args {
 
 pub fn run(args: Args) -> Result<()> {
     use r2d2_imaging::vis::TableFormat;
+    // `-` names standard output elsewhere; a conversion writes a file or an MS directory.
+    if args.output.as_os_str() == "-" {
+        return Err(r2d2_imaging::Error::parameter(
+            "output",
+            "`-` (standard output): convert writes a Parquet file or a MeasurementSet directory, not a stream; give a path (./- for a file named -)",
+        ));
+    }
     match r2d2_imaging::vis::format_of(&args.input)? {
         #[cfg(feature = "ms")]
         TableFormat::MeasurementSet => {

@@ -1,7 +1,7 @@
 //! `r2d2 dirty`: dirty image and PSF, named like WSClean's products.
 
 use super::ImageOptions;
-use r2d2_imaging::fits::{write_image, BrightnessUnit, ImageWcs};
+use r2d2_imaging::fits::{header_text, write_image, BrightnessUnit, ImageWcs};
 use r2d2_imaging::imaging::dirty_image;
 use r2d2_imaging::staging::Staging;
 use r2d2_imaging::Result;
@@ -66,13 +66,17 @@ pub fn run(args: Args) -> Result<()> {
         bandwidth_hz: vis.band().and_then(|(_, width)| width),
     };
     let n = geometry.size;
+    let (telescope, changed) = header_text(&meta.telescope);
+    if let Some(note) = changed {
+        log::warn!("{}: TELESCOP: {note}", args.input.display());
+    }
     // Both products or neither, in a directory made if need be (as the writer stage does).
     let prefix = PathBuf::from(&args.name);
     let dir = prefix.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let mut staging = Staging::new(dir)?;
     for (suffix, image) in [("dirty", &products.dirty), ("psf", &products.psf)] {
         let path = PathBuf::from(format!("{}-{suffix}.fits", args.name));
-        let extra = [("TELESCOP", meta.telescope.clone())];
+        let extra = [("TELESCOP", telescope.clone())];
         staging.write(path, |staged| write_image(staged, image, n, n, &wcs, BrightnessUnit::JyPerBeam, None, &extra))?;
     }
     let written: Vec<String> = staging.targets().map(|p| p.display().to_string()).collect();

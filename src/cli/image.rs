@@ -82,6 +82,7 @@ fn image_params(args: &Args) -> Result<ImageParams> {
         size: image.size,
         superresolution: image.superresolution,
         pixel_arcsec: image.pixel_arcsec,
+        longest_baseline: None,
         weighting: image.weighting()?,
         weighting_grid_factor: image.weighting_grid_factor,
         epsilon: image.epsilon,

@@ -42,6 +42,12 @@ pub fn rewrite(args: Vec<String>) -> Result<Vec<String>, String> {
     let mut out = Vec::with_capacity(args.len());
     let mut rest = args.into_iter().peekable();
     while let Some(arg) = rest.next() {
+        // After `--` every word is an input, whatever it looks like.
+        if arg == "--" {
+            out.push(arg);
+            out.extend(rest);
+            break;
+        }
         // `--size N N`: WSClean's two numbers with this engine's dashes.
         if arg == "--size" {
             let n = rest.next().ok_or("--size: expected the image size in pixels")?;
@@ -54,17 +60,34 @@ pub fn rewrite(args: Vec<String>) -> Result<Vec<String>, String> {
             out.extend(["--size".to_string(), n]);
             continue;
         }
-        let Some(name) = arg.strip_prefix('-').filter(|n| !n.starts_with('-')) else {
+        let Some(word) = arg.strip_prefix('-').filter(|n| !n.starts_with('-') && !is_short_flags(n) && !is_number(&arg)) else {
             out.push(arg);
             continue;
+        };
+        // `-threshold=0.1`: the first value joined to the name.
+        let (name, joined) = match word.split_once('=') {
+            Some((name, value)) => (name, Some(value.to_string())),
+            None => (word, None),
         };
         let Some((_, count, spelling)) = OPTIONS.iter().find(|(o, _, _)| *o == name) else {
-            out.push(arg);
-            continue;
+            // Clap would take `-channels-out` for the short flags -c, -h, ... and blame `-c`.
+            let taken: Vec<String> = OPTIONS.iter().filter(|(_, _, s)| matches!(s, Spelling::Same)).map(|(o, _, _)| format!("-{o}")).collect();
+            return Err(format!(
+                "-{name}: not supported by r2d2 {command} (not one of the WSClean options it takes: {}); r2d2 {command} --help lists its own options, with two dashes",
+                taken.join(", ")
+            ));
         };
-        let mut values = Vec::new();
-        for _ in 0..*count {
-            values.push(rest.next().ok_or_else(|| format!("-{name}: expected {count} value(s), as in WSClean"))?);
+        if joined.is_some() && *count == 0 {
+            return Err(format!("{arg}: -{name} takes no value"));
+        }
+        let mut values: Vec<String> = joined.into_iter().collect();
+        while values.len() < *count {
+            let value = rest.next().ok_or_else(|| format!("-{name}: expected {count} value(s), as in WSClean"))?;
+            if value.starts_with('-') && !is_number(&value) {
+                let got: Vec<&str> = values.iter().map(String::as_str).chain([value.as_str()]).collect();
+                return Err(format!("-{name} {}: expected {count} value(s), as in WSClean{}, but {value} is an option", got.join(" "), example(name)));
+            }
+            values.push(value);
         }
         if command == "dirty" && CLEAN_OPTIONS.contains(&name) {
             return Err(format!("-{name} (WSClean's option) controls CLEAN; r2d2 dirty makes the dirty image only (r2d2 image --step clean -{name} ... cleans)"));
@@ -77,9 +100,31 @@ pub fn rewrite(args: Vec<String>) -> Result<Vec<String>, String> {
     Ok(out)
 }
 
+/// Words of only this engine's one-letter flags (`-v`, `-vv`, `-q`, `-h`).
+fn is_short_flags(word: &str) -> bool {
+    !word.is_empty() && word.chars().all(|c| matches!(c, 'v' | 'q' | 'h'))
+}
+
+/// A number (a negative value such as `-0.5` is a value, not an option).
+fn is_number(word: &str) -> bool {
+    word.parse::<f64>().is_ok()
+}
+
+/// How WSClean writes `-name` with its values, where the values are not plain.
+fn example(name: &str) -> &'static str {
+    match name {
+        "size" => " (-size 512 512, width and height; images here are square)",
+        _ => "",
+    }
+}
+
 /// This engine's options for WSClean's `-name values...`.
 fn translate(name: &str, values: &[String], rest: &mut std::iter::Peekable<std::vec::IntoIter<String>>) -> Result<Vec<String>, String> {
-    let pair = |option: &str, value: &str| vec![option.to_string(), value.to_string()];
+    // A negative value joined to its option, or clap would read it as one.
+    let pair = |option: &str, value: &str| match value.starts_with('-') {
+        true => vec![format!("{option}={value}")],
+        false => vec![option.to_string(), value.to_string()],
+    };
     Ok(match name {
         "size" => {
             if values[0] != values[1] {
@@ -138,6 +183,11 @@ mod tests {
             rewrite(words("r2d2 image obs.ms --step clean -niter 10000 -auto-threshold 3 -mgain 0.8 -gain 0.1 -threshold 0.001")).unwrap(),
             words("r2d2 image obs.ms --step clean --niter 10000 --auto-threshold 3 --mgain 0.8 --gain 0.1 --threshold 0.001")
         );
+        // A value joined by `=`, a negative one kept as a value; this engine's one-letter flags
+        // and whatever follows `--` pass as they are.
+        assert_eq!(rewrite(words("r2d2 image obs.ms --step clean -threshold=-1")).unwrap(), words("r2d2 image obs.ms --step clean --threshold=-1"));
+        assert_eq!(rewrite(words("r2d2 image obs.ms -mgain=0.8 -vv -q")).unwrap(), words("r2d2 image obs.ms --mgain 0.8 -vv -q"));
+        assert_eq!(rewrite(words("r2d2 image --size 64 -- -odd-name.ms")).unwrap(), words("r2d2 image --size 64 -- -odd-name.ms"));
         // Other commands, and this engine's own spellings, pass untouched.
         assert_eq!(rewrite(words("r2d2 simulate -size 4 4")).unwrap(), words("r2d2 simulate -size 4 4"));
         assert_eq!(rewrite(words("r2d2 -q image obs.ms --size 64 -v")).unwrap(), words("r2d2 -q image obs.ms --size 64 -v"));
@@ -152,6 +202,12 @@ mod tests {
             ("r2d2 image --size 512 256 obs.ms", &["square"][..]),
             ("r2d2 image -weight briggs", &["robustness"][..]),
             ("r2d2 image -scale 1.2parsec obs.ms", &["1.2parsec", "asec"][..]),
+            // WSClean's -size with one number: the next option is not its height.
+            ("r2d2 image obs.ms -size 64 --name x", &["-size 64 --name", "expected 2 value(s)", "--name is an option", "-size 512 512"][..]),
+            // Options WSClean has and this engine lacks: named whole, not as clap's `-c`.
+            ("r2d2 image obs.ms -channels-out 4", &["-channels-out: not supported by r2d2 image", "-size, -scale"][..]),
+            ("r2d2 dirty obs.ms -taper-gaussian 4", &["-taper-gaussian: not supported by r2d2 dirty"][..]),
+            ("r2d2 image obs.ms -multiscale=1", &["-multiscale=1: -multiscale takes no value"][..]),
         ] {
             let e = rewrite(words(line)).unwrap_err();
             for w in words_expected {

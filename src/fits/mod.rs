@@ -168,6 +168,36 @@ pub fn check_name_length(file: &Path, how: OutputWrite, fits: bool, shown: &str)
     Ok(())
 }
 
+/// `value` as one header card holds it: printable ASCII, each other character written as `?`,
+/// and at most [`MAX_STRING_VALUE`] characters with quotes counted twice (cut after that).
+/// The second part says what was changed, for a warning: a name read from the data (a
+/// telescope, a field) must not lose characters without a word, nor fail the write.
+pub fn header_text(value: &str) -> (String, Option<String>) {
+    let printable = |c: char| (' '..='~').contains(&c);
+    let replaced = value.chars().filter(|&c| !printable(c)).count();
+    let mut text = String::new();
+    let mut card_len = 0;
+    let mut cut = false;
+    for c in value.chars().map(|c| if printable(c) { c } else { '?' }) {
+        let len = if c == '\'' { 2 } else { 1 };
+        if card_len + len > MAX_STRING_VALUE {
+            cut = true;
+            break;
+        }
+        card_len += len;
+        text.push(c);
+    }
+    let mut changes = Vec::new();
+    if replaced > 0 {
+        changes.push(format!("{replaced} character(s) other than printable ASCII written as '?'"));
+    }
+    if cut {
+        changes.push(format!("cut to {} characters, all one header card holds", text.chars().count()));
+    }
+    let note = (!changes.is_empty()).then(|| format!("{value:?} is written as {text:?}: FITS header values are printable ASCII ({})", changes.join("; ")));
+    (text, note)
+}
+
 /// Refuses an output prefix that names no file (`out/`, `.`, `..`): products are named
 /// `<prefix>-dirty.fits`, ..., so the prefix must end in a file-name part (`out/obs`); and
 /// one whose product names would be too long ([`check_name_length`]).
@@ -275,7 +305,7 @@ fn read_image_within(path: &Path, budget: crate::limits::MemoryBudget) -> Result
         Some(copy) => (copy.path(), copy.as_file().metadata().map_err(|e| Error::io(path, e))?.len()),
         None => (path, metadata.len()),
     };
-    let mut file = FitsFile::open(fitsio_path(source)?).map_err(|e| cfitsio(path, "cannot open as FITS", e))?;
+    let mut file = open_literally(source)?;
     let hdu = file.primary_hdu().map_err(|e| cfitsio(path, "cannot read the primary HDU", e))?;
     let (shape, image_type) = match &hdu.info {
         HduInfo::ImageInfo { shape, image_type } => (shape.clone(), *image_type),
@@ -649,7 +679,26 @@ fn to_float32(image: &[f64]) -> Result<Vec<f32>> {
     Ok(pixels)
 }
 
-/// The file name to hand to cfitsio for `path`.
+/// Opens `path` read-only, its name taken as it is: cfitsio's `fits_open_file` parses names
+/// (`[1]` selects an extension, `-` is standard input, `mem://` a driver), so a product named
+/// `a[1]-dirty.fits`, which the writer makes, could not be read back; `fits_open_diskfile` opens
+/// the file of that name.
+fn open_literally(path: &Path) -> Result<FitsFile> {
+    let unusable = |message| Error::from(FitsError::Unusable { path: path.to_path_buf(), message });
+    let name = path.to_str().ok_or_else(|| unusable("the file name is not valid UTF-8, which cfitsio requires"))?;
+    let name = std::ffi::CString::new(name).map_err(|_| unusable("the file name holds a NUL byte"))?;
+    let mut fptr = std::ptr::null_mut();
+    let mut status = 0;
+    // SAFETY: `name` is a NUL-terminated string that outlives the call, and `fptr` and
+    // `status` are valid for writes; ffdkopn reads the name and writes only those two.
+    unsafe { fitsio::sys::ffdkopn(&mut fptr, name.as_ptr(), fitsio::FileOpenMode::READONLY as std::os::raw::c_int, &mut status) };
+    fitsio::errors::check_status(status).map_err(|e| cfitsio(path, "cannot open as FITS", e))?;
+    // SAFETY: status 0: ffdkopn opened the file and `fptr` is its only handle, handed to the
+    // FitsFile, which closes it once, when dropped.
+    unsafe { FitsFile::from_raw(fptr, fitsio::FileOpenMode::READONLY) }.map_err(|e| cfitsio(path, "cannot open as FITS", e))
+}
+
+/// The file name to hand to cfitsio for `path` (a temporary the writer names itself).
 ///
 /// cfitsio parses file names: `-` is stdin, a leading `!` means overwrite, `mem://` and
 /// `http://` select drivers, `[...]` selects extensions. A `./` in front of relative paths
@@ -939,6 +988,25 @@ fn read_frequency(h: &mut HeaderReader, naxis: usize) -> Result<(Option<f64>, Op
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// What a header card holds of a text, and the note that says what changed: every text
+    /// made of it is one the keyword check accepts (so the write cannot fail on it).
+    #[test]
+    fn header_text_is_what_one_card_holds_and_says_what_it_changed() {
+        assert_eq!(header_text("VLA"), ("VLA".to_string(), None));
+        let (text, note) = header_text("ÅSKAP–Ø");
+        assert_eq!(text, "?SKAP??");
+        assert!(note.unwrap().contains("3 character(s) other than printable ASCII written as '?'"));
+        let (text, note) = header_text(&"T".repeat(80));
+        assert_eq!((text.len(), note.unwrap().contains("cut to 68 characters")), (68, true));
+        // Quotes are doubled on the card: 40 of them fill 80 places, 34 fit.
+        let (text, _) = header_text(&"'".repeat(40));
+        assert_eq!(text.len(), 34);
+        for value in ["ÅSKAP–Ø", &"T".repeat(80), &"'".repeat(40), "a\tb\n"] {
+            let text = header_text(value).0;
+            assert!(ExtraKeyword::parse("TELESCOP", &text).is_ok(), "{value:?} as {text:?}");
+        }
+    }
 
     #[test]
     fn output_prefixes_the_shell_did_not_expand_are_refused() {

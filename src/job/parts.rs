@@ -32,7 +32,8 @@ impl Truth {
     }
 }
 
-/// Emits one job per part, ids `<id>` or `<id>-<suffix>`.
+/// Emits one job per part, ids `<id>` or `<id>-<suffix>`; the parts of a split share the
+/// longest baseline of them all, which sets their pixel size ([`Job::split_max_uv`]).
 /// `source` is the file the parts were read from (none for memory and standard input): with the
 /// truth's file it is the job's inputs, which its products never replace.
 pub fn emit_parts(
@@ -43,6 +44,10 @@ pub fn emit_parts(
     source: Option<&Path>,
     emit: &mut dyn FnMut(Job) -> Result<()>,
 ) -> Result<()> {
+    let split_max_uv = parts.iter().any(|p| p.suffix.is_some()).then(|| parts.iter().map(|p| p.vis.max_uv()).fold(0.0, f64::max));
+    if let Some(max_uv) = split_max_uv {
+        log::info!("{id}: the {} jobs of the split share one pixel size, set by their longest baseline ({max_uv:.6e} wavelengths)", parts.len());
+    }
     for part in parts {
         let job_id = match &part.suffix {
             Some(s) => format!("{id}-{s}"),
@@ -50,6 +55,7 @@ pub fn emit_parts(
         };
         log::info!("job {job_id}: {} visibilities", part.vis.len());
         let mut job = Job::new(job_id, meta.clone(), part.vis);
+        job.split_max_uv = split_max_uv;
         if let Some(t) = truth {
             job.truth = Some(t.image.clone());
             job.truth_dynamic_range = t.dynamic_range;

@@ -128,8 +128,10 @@ fn fits_safe(text: &str) -> String {
 
 impl JobProducts {
     /// The products of a gridded job; `dynamic_range` (else the job's known one, else the
-    /// previews' default) sets where the uncertainty map is masked.
-    pub(crate) fn from_job(job: &Job, dynamic_range: Option<f64>) -> Result<JobProducts> {
+    /// previews' default) sets where the uncertainty map is masked. A header text FITS cannot
+    /// hold as it is (a telescope name in other than ASCII) becomes a warning of the job, once
+    /// however many stages make its products.
+    pub(crate) fn from_job(job: &mut Job, dynamic_range: Option<f64>) -> Result<JobProducts> {
         let im = job.imaging.as_ref().ok_or_else(|| Error::parameter("writer", "the job was never gridded: nothing to write"))?;
         let n = im.geometry.size;
         let f32s = |v: &[f64]| v.iter().map(|&x| x as f32).collect::<Vec<f32>>();
@@ -190,6 +192,14 @@ impl JobProducts {
             },
             inputs: job.inputs.clone(),
         };
+        for (keyword, value) in products.text_keywords() {
+            let Some(note) = crate::fits::header_text(&value).1 else { continue };
+            let warning = format!("{keyword}: {note}");
+            if !products.warnings.contains(&warning) {
+                job.warn(warning.clone());
+                products.warnings.push(warning);
+            }
+        }
         products.header = products.header_cards();
         Ok(products)
     }
@@ -228,16 +238,23 @@ impl JobProducts {
     /// the meaning is shared: telescope, object, date, the MS column imaged, the weighting, and
     /// what made the model (the series and its networks run, or the step).
     fn extra_keywords(&self) -> Vec<(&'static str, String)> {
-        let fits_text = |s: &str| s.chars().filter(|c| (' '..='~').contains(c)).take(60).collect::<String>();
-        let mut cards = vec![("TELESCOP", fits_text(&self.telescope))];
+        let mut cards: Vec<(&'static str, String)> = self.text_keywords().into_iter().map(|(k, v)| (k, crate::fits::header_text(&v).0)).collect();
+        cards.push(("R2D2ITER", self.iterations.to_string()));
+        cards
+    }
+
+    /// The text keywords of [`Self::extra_keywords`] as the job has them, before they are made
+    /// what a header card holds (names from the data may be any Unicode, of any length).
+    fn text_keywords(&self) -> Vec<(&'static str, String)> {
+        let mut cards = vec![("TELESCOP", self.telescope.clone())];
         if let Some(object) = self.object.as_deref().filter(|o| !o.trim().is_empty()) {
-            cards.push(("OBJECT", fits_text(object)));
+            cards.push(("OBJECT", object.to_string()));
         }
         if let Some(date) = &self.date_obs {
-            cards.push(("DATE-OBS", fits_text(date)));
+            cards.push(("DATE-OBS", date.clone()));
         }
         if let Some(column) = self.settings.get("data_column").and_then(|c| c.as_str()) {
-            cards.push(("DATACOL", fits_text(column)));
+            cards.push(("DATACOL", column.to_string()));
         }
         if let Some(weighting) = self.settings.get("weighting") {
             let scheme = weighting.get("scheme").and_then(|s| s.as_str()).unwrap_or_default();
@@ -246,13 +263,12 @@ impl JobProducts {
                 _ => scheme.to_string(),
             };
             if !text.is_empty() {
-                cards.push(("WEIGHT", fits_text(&text)));
+                cards.push(("WEIGHT", text));
             }
         }
         if let Some(series) = self.settings.get("step").and_then(|s| s.get("series")).and_then(|s| s.as_str()) {
-            cards.push(("R2D2SER", fits_text(series)));
+            cards.push(("R2D2SER", series.to_string()));
         }
-        cards.push(("R2D2ITER", self.iterations.to_string()));
         cards
     }
 

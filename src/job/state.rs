@@ -175,6 +175,10 @@ pub struct Job {
     /// The super-resolution of the job's pixel: its longest baseline is sampled this many
     /// times finer than Nyquist (set with the geometry).
     pub superresolution: Option<f64>,
+    /// The longest baseline (wavelengths) of all the jobs one table was split into, for a job
+    /// of a split: the pixel size is set by it, so that every job of the split is imaged on one
+    /// grid (time windows of A and C configurations compared or stacked pixel for pixel).
+    pub split_max_uv: Option<f64>,
     /// The files the job was read from (visibilities, truth): its products never replace them.
     pub inputs: Vec<std::path::PathBuf>,
 }
@@ -212,6 +216,7 @@ impl Job {
             warnings: Vec::new(),
             settings: BTreeMap::new(),
             superresolution: None,
+            split_max_uv: None,
             inputs: Vec::new(),
         }
     }

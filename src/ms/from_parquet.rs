@@ -18,6 +18,9 @@ use casacure::WritableTable;
 use std::collections::HashMap;
 use std::path::Path;
 
+/// What names a conversion's MS while it is built: `.NAME.r2d2-convert-PID` beside it.
+const CONVERT_INFIX: &str = ".r2d2-convert-";
+
 /// A column of a batch cast to `to`; errors name the table and column.
 fn cast(batch: &RecordBatch, name: &str, to: &DataType, source: &str, first_row: u64) -> Result<Option<arrow::array::ArrayRef>> {
     let Some(array) = batch.column_by_name(name) else { return Ok(None) };
@@ -154,7 +157,10 @@ pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> 
     }
     let out_name = out.file_name().ok_or_else(|| Error::parameter("output", format!("{}: expected a directory name", out.display())))?;
     let parent = out.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let building = TempDir { path: parent.join(format!(".{}.r2d2-convert-{}", out_name.to_string_lossy(), std::process::id())) };
+    // What a conversion killed part-way left here (its process gone) goes first.
+    let prefix = format!(".{}{CONVERT_INFIX}", out_name.to_string_lossy());
+    super::lock::remove_left_by_dead_processes(parent, &prefix, "conversion");
+    let building = TempDir { path: parent.join(format!("{prefix}{}", std::process::id())) };
     if building.path.exists() {
         std::fs::remove_dir_all(&building.path).map_err(|e| Error::io(&building.path, e))?;
     }

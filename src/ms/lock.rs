@@ -67,6 +67,51 @@ pub fn check_model_column_name(ms: &Path, column: &str, data_column: &str) -> Re
 /// The longest model column name taken (casacore has no limit; no MS column comes near it).
 const MAX_COLUMN_NAME: usize = 64;
 
+/// Removes the directories `<prefix><pid>` in `parent` that a process of this user left when
+/// it was killed part-way (`left_by`: "model write", "conversion"), so that a kill costs disk
+/// space only until the next such run beside the same MS. One whose process still runs
+/// (perhaps another r2d2 at its work), of another user, or not a directory is left alone.
+pub(super) fn remove_left_by_dead_processes(parent: &Path, prefix: &str, left_by: &str) {
+    let Ok(entries) = std::fs::read_dir(parent) else { return };
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(pid) = name.strip_prefix(prefix).and_then(|p| p.parse::<u32>().ok()) else { continue };
+        let Ok(metadata) = std::fs::symlink_metadata(entry.path()) else { continue };
+        if pid == std::process::id() || !metadata.is_dir() || !owned_by_this_user(&metadata) || process_runs(pid) {
+            continue;
+        }
+        log::info!("removing {} left by an interrupted {left_by}", entry.path().display());
+        let _ = std::fs::remove_dir_all(entry.path());
+    }
+}
+
+#[cfg(unix)]
+fn owned_by_this_user(metadata: &std::fs::Metadata) -> bool {
+    use std::os::unix::fs::MetadataExt;
+    // SAFETY: geteuid(2) takes nothing and cannot fail.
+    metadata.uid() == unsafe { libc::geteuid() }
+}
+
+#[cfg(not(unix))]
+fn owned_by_this_user(_metadata: &std::fs::Metadata) -> bool {
+    false
+}
+
+/// Whether process `pid` runs (where that cannot be told, it is taken to).
+#[cfg(unix)]
+fn process_runs(pid: u32) -> bool {
+    let Some(pid) = libc::pid_t::try_from(pid).ok().filter(|&p| p > 0) else { return true };
+    // SAFETY: kill(2) with signal 0 sends nothing, only checks; it takes and returns integers.
+    let checked = unsafe { libc::kill(pid, 0) };
+    // EPERM: the process runs, as another user.
+    checked == 0 || std::io::Error::last_os_error().raw_os_error() != Some(libc::ESRCH)
+}
+
+#[cfg(not(unix))]
+fn process_runs(_pid: u32) -> bool {
+    true
+}
+
 /// Bytes in one file name (NAME_MAX of Linux's and macOS's file systems).
 const NAME_MAX: usize = 255;
 /// What names the model write's copy of `NAME`: `.NAME.r2d2-model-PID` beside it.

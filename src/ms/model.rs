@@ -61,17 +61,7 @@ fn staging_path(ms: &Path) -> Result<PathBuf> {
 /// costs disk space only until the next model write to the same MS.
 fn remove_stale_staging(ms: &Path) {
     let Ok((parent, prefix)) = staging_prefix(ms) else { return };
-    let Ok(entries) = std::fs::read_dir(&parent) else { return };
-    for entry in entries.flatten() {
-        let name = entry.file_name().to_string_lossy().into_owned();
-        let Some(pid) = name.strip_prefix(&prefix).and_then(|p| p.parse::<u32>().ok()) else { continue };
-        // Only where running processes can be told (Linux /proc); elsewhere they stay.
-        let running = Path::new("/proc").join(pid.to_string()).exists() || !Path::new("/proc/self").exists();
-        if pid != std::process::id() && !running {
-            log::info!("removing {} left by an interrupted model write", entry.path().display());
-            let _ = std::fs::remove_dir_all(entry.path());
-        }
-    }
+    super::lock::remove_left_by_dead_processes(&parent, &prefix, "model write");
 }
 
 /// Gives the directories of the copy the modes of the original's (files keep theirs through

@@ -242,12 +242,26 @@ impl PipelineSpec {
         })
     }
 
-    /// The `image` section as `T`; errors name the file, the section's line and the key.
+    /// The `image` section as `T`; errors name the file, the section's line and the key, or
+    /// the `--set` override the wrong value came from.
     pub fn shared<T: DeserializeOwned>(&self) -> Result<T> {
         serde_path_to_error::deserialize(self.image.clone()).map_err(|e| {
             let path = e.path().to_string();
             let key = if path == "." { "image".to_string() } else { format!("image.{path}") };
-            self.top_error("image", &format!("{key}: {}", e.inner()))
+            match self.override_of_key(&key) {
+                // The file has no line for a value of the command line.
+                Some(set) => Error::input(&self.file, format!("{key}, as given by --set {set}: {}", e.inner())),
+                None => self.top_error("image", &format!("{key}: {}", e.inner())),
+            }
+        })
+    }
+
+    /// The `--set` override that gave the top-level `key` (`image.size`) its value, or a value
+    /// around it (`image.size` for `image`, `image` for `image.size`).
+    fn override_of_key(&self, key: &str) -> Option<&str> {
+        self.overrides.iter().map(String::as_str).find(|spec| {
+            let path = spec.split_once('=').map_or(*spec, |(p, _)| p);
+            within(path, key) || within(key, path)
         })
     }
 
@@ -301,10 +315,7 @@ impl PipelineSpec {
             }
             match parts.next() {
                 None => true,
-                Some(set) => {
-                    let within = |outer: &str, inner: &str| inner == outer || inner.starts_with(&format!("{outer}.")) || inner.starts_with(&format!("{outer}["));
-                    within(set, key) || within(key, set)
-                }
+                Some(set) => within(set, key) || within(key, set),
             }
         })
     }
@@ -327,6 +338,11 @@ impl PipelineSpec {
     pub fn stage(&self, name: &str) -> Option<&StageSpec> {
         self.stages.iter().find(|s| s.name == name)
     }
+}
+
+/// Whether the key path `inner` is `outer` or a key inside it (`a.b` and `a[0]` are inside `a`).
+fn within(outer: &str, inner: &str) -> bool {
+    inner == outer || inner.starts_with(&format!("{outer}.")) || inner.starts_with(&format!("{outer}["))
 }
 
 /// The top-level keys a `--set` may name (any other first part is a stage).

@@ -31,7 +31,7 @@ impl ProductsStage {
 impl Stage<Job> for ProductsStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
         if let Some(sink) = &mut self.sink {
-            let products = JobProducts::from_job(&job, None)?;
+            let products = JobProducts::from_job(&mut job, None)?;
             // A writer after this stage writes the same restored image without making it again.
             job.restored.clone_from(&products.image);
             if self.holds {

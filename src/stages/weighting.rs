@@ -65,7 +65,10 @@ impl Stage<Job> for WeightingStage {
         let vis = job.visibilities("weighting")?;
         let summary = vis.summary();
         let params = DirtyParams { size: self.image.size, pixel: self.image.pixel_scale(), ..DirtyParams::default() };
-        let geometry = params.geometry_for(summary.max_uv)?;
+        // A job of a split is imaged on the grid of the whole split (or of the baseline the
+        // image section gives); its super-resolution below is its own data's.
+        let longest_baseline = self.image.longest_baseline.or(job.split_max_uv).unwrap_or(summary.max_uv);
+        let geometry = params.geometry_for(longest_baseline)?;
         let max_uv = summary.max_uv;
         let given_unused = summary.imaging_weights && self.weighting != Weighting::Given;
         if vis.is_streamed() && self.weighting.needs_density() {

@@ -72,7 +72,7 @@ impl WriterStage {
 }
 
 impl Stage<Job> for WriterStage {
-    fn process(&mut self, job: Job, _emit: &mut Emit<'_>) -> Result<()> {
+    fn process(&mut self, mut job: Job, _emit: &mut Emit<'_>) -> Result<()> {
         let resolved = self.prefix.replace("{job}", &job.id);
         if let Some(earlier) = self.written.get(&resolved) {
             return Err(Error::parameter(
@@ -84,7 +84,7 @@ impl Stage<Job> for WriterStage {
             ));
         }
         self.written.insert(resolved, job.id.clone());
-        let staged = JobProducts::from_job(&job, self.options.preview_dynamic_range)?.stage(&self.prefix, &self.options)?;
+        let staged = JobProducts::from_job(&mut job, self.options.preview_dynamic_range)?.stage(&self.prefix, &self.options)?;
         if self.holds {
             let id = job.id.clone();
             self.held.push((id, staged, self.model_column.is_some().then_some(job)));

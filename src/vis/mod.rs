@@ -34,7 +34,7 @@ pub use parted::{NormalisedImages, PartImages, PartPass, PartPasses, PartedObser
 pub use parts::{chunk_weights, part_apply_normal, part_density, part_images, w_toeplitz_images, LocalParts};
 pub use spill::spill_dir;
 pub use stream::{Reopen, StreamedTable, VisSource};
-pub use split::{nothing_to_image, read_parts, split_rows, Part, SplitBy, MAX_SPLIT_PARTS};
+pub use split::{nothing_to_image, read_parts, split_rows, Part, SplitBy, SplitRows, MAX_SPLIT_PARTS};
 pub use convert::*;
 pub(crate) use guard::*;
 pub use parquet::*;

@@ -14,7 +14,8 @@ use serde::{Deserialize, Serialize};
 /// `time`) counted from the column's smallest value, one job per window holding samples;
 /// `{column: frequency}`: one job per distinct value (one per channel). Job ids are the
 /// table's id, then `-t003` (time), `-ch01` (frequency) or `-<column>NN`, numbered from 0
-/// by window (so an empty window leaves a gap) or by rank of the value.
+/// by window (so an empty window leaves a gap) or by rank of the value among all rows'
+/// (flagged ones included, so a channel keeps its number when another is fully flagged).
 #[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct SplitBy {
@@ -118,23 +119,28 @@ pub fn nothing_to_image(stats: &IngestStats) -> String {
     format!("no usable visibilities: all {} samples {what} ({}): nothing to image", stats.rows, reasons.join(", "))
 }
 
+/// The jobs of a split as table rows ([`split_rows`]).
+pub struct SplitRows {
+    /// Each job's id suffix and rows (0-based, over the whole table).
+    pub parts: Vec<(String, Vec<u64>)>,
+    /// The longest baseline (wavelengths) of all the parts: their shared pixel size is set by
+    /// it, as the engine's own split sets it (`image.longest_baseline` for a part imaged apart).
+    pub longest_baseline: f64,
+}
+
 /// The rows (0-based, over the whole table) of each job `split` makes of the table, as
 /// [`read_parts`] splits it: only rows kept for imaging, each part's in table order, parts in
 /// group order with their id suffixes. For a caller that ships each part elsewhere as a table
 /// of its own (the Python package's Dask fan-out), which then images exactly as the part.
-pub fn split_rows(
-    reader: &mut dyn TableReader,
-    split: &SplitBy,
-    split_key: &str,
-    cancelled: &dyn Fn() -> bool,
-) -> Result<Option<Vec<(String, Vec<u64>)>>> {
+pub fn split_rows(reader: &mut dyn TableReader, split: &SplitBy, split_key: &str, cancelled: &dyn Fn() -> bool) -> Result<Option<SplitRows>> {
     let Some(scan) = scan(reader, Some(split), split_key, cancelled)? else { return Ok(None) };
     let grouping = grouping(&scan, split, split_key, &reader.source().display().to_string())?;
     let mut rows: Vec<Vec<u64>> = vec![Vec::new(); grouping.suffixes.len()];
     for (&g, &row) in grouping.group.iter().zip(&scan.kept_rows) {
         rows[g].push(row);
     }
-    Ok(Some(grouping.suffixes.into_iter().zip(rows).filter(|(_, rows)| !rows.is_empty()).collect()))
+    let parts = grouping.suffixes.into_iter().zip(rows).filter(|(_, rows)| !rows.is_empty()).collect();
+    Ok(Some(SplitRows { parts, longest_baseline: scan.vis.max_uv() }))
 }
 
 /// A table read for imaging: the kept samples and, with a split, each one's split-column
@@ -147,6 +153,9 @@ struct Scan {
     /// The split column's smallest value over all rows (windows start at the observation's
     /// start, flagged rows included).
     smallest: f64,
+    /// Without a window: the split column's distinct finite values over all rows, flagged ones
+    /// included, in `total_cmp` order; at most [`MAX_SPLIT_PARTS`] + 1 (more is refused).
+    distinct: Vec<f64>,
 }
 
 fn scan(reader: &mut dyn TableReader, split: Option<&SplitBy>, split_key: &str, cancelled: &dyn Fn() -> bool) -> Result<Option<Scan>> {
@@ -154,7 +163,7 @@ fn scan(reader: &mut dyn TableReader, split: Option<&SplitBy>, split_key: &str, 
     if let Some(split) = split {
         split.check_schema(&reader.schema()).map_err(|m| Error::parameter(format!("{split_key}.column"), format!("{source}: {m}")))?;
     }
-    let mut scan = Scan { vis: Visibilities::default(), stats: IngestStats::default(), keys: Vec::new(), kept_rows: Vec::new(), smallest: f64::INFINITY };
+    let mut scan = Scan { vis: Visibilities::default(), stats: IngestStats::default(), keys: Vec::new(), kept_rows: Vec::new(), smallest: f64::INFINITY, distinct: Vec::new() };
     let mut kept_in_batch = Vec::new();
     while let Some(batch) = reader.next_batch() {
         if cancelled() {
@@ -170,6 +179,9 @@ fn scan(reader: &mut dyn TableReader, split: Option<&SplitBy>, split_key: &str, 
         let vis = record_batch_to_visibilities_keeping_rows(&batch, &mut scan.stats, &source, &mut kept_in_batch)?;
         let values = split_values(&batch, &split.column, &source, first_row)?;
         scan.smallest = values.values().iter().copied().filter(|v| v.is_finite()).fold(scan.smallest, f64::min);
+        if split.window.is_none() {
+            add_distinct(&mut scan.distinct, values.values());
+        }
         for &row in &kept_in_batch {
             let value = values.value(row);
             if !value.is_finite() {
@@ -184,6 +196,21 @@ fn scan(reader: &mut dyn TableReader, split: Option<&SplitBy>, split_key: &str, 
         scan.vis.push_batch(vis);
     }
     Ok(Some(scan))
+}
+
+/// Merges the finite values of `values` into the sorted, deduplicated `distinct`, which stops
+/// growing past [`MAX_SPLIT_PARTS`] + 1 (enough to refuse the split, bounded whatever the table).
+fn add_distinct(distinct: &mut Vec<f64>, values: &[f64]) {
+    if distinct.len() > MAX_SPLIT_PARTS {
+        return;
+    }
+    let mut batch: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
+    batch.sort_by(f64::total_cmp);
+    batch.dedup_by(|a, b| a.total_cmp(b).is_eq());
+    distinct.extend(batch);
+    distinct.sort_by(f64::total_cmp);
+    distinct.dedup_by(|a, b| a.total_cmp(b).is_eq());
+    distinct.truncate(MAX_SPLIT_PARTS + 1);
 }
 
 /// Each kept sample's group, and every group's id suffix (`t003`, `ch01`), empty ones included.
@@ -213,20 +240,40 @@ fn grouping(scan: &Scan, split: &SplitBy, split_key: &str, source: &str) -> Resu
             (keys.iter().map(|k| ((k - smallest) / window).floor() as usize).collect(), 3)
         }
         None => {
-            let mut distinct = keys.clone();
-            distinct.sort_by(f64::total_cmp);
-            distinct.dedup_by(|a, b| a.total_cmp(b).is_eq());
+            // Ranked among every row's values, not only the kept ones: a fully flagged channel
+            // must not hand its number to the next.
+            let distinct = &scan.distinct;
             if distinct.len() > MAX_SPLIT_PARTS {
-                return Err(too_many("column", format!("column `{}` has {} distinct values", split.column, distinct.len())));
+                return Err(too_many("column", format!("column `{}` has more than {MAX_SPLIT_PARTS} distinct values", split.column)));
             }
-            let rank = |k: &f64| distinct.binary_search_by(|d| d.total_cmp(k)).expect("every key is among the distinct values");
+            let rank = |k: &f64| distinct.binary_search_by(|d| d.total_cmp(k)).expect("a kept row's value is among all rows' values");
             (keys.iter().map(rank).collect(), 2)
         }
     };
-    let groups = group.iter().max().map_or(0, |g| g + 1);
+    let groups = match split.window {
+        Some(_) => group.iter().max().map_or(0, |g| g + 1),
+        None => scan.distinct.len(),
+    };
     let width = (groups.saturating_sub(1)).to_string().len().max(min_width);
-    let suffixes = (0..groups).map(|g| format!("{}{g:0width$}", split.label())).collect();
+    let suffixes: Vec<String> = (0..groups).map(|g| format!("{}{g:0width$}", split.label())).collect();
+    if split.window.is_none() {
+        warn_of_values_left_without_samples(&group, &suffixes, &scan.distinct, &split.column, source);
+    }
     Ok(Grouping { group, suffixes })
+}
+
+/// A value of the split column that rows hold but none of them kept for imaging (a channel
+/// flagged throughout) makes no job: an image of no samples would be zeros that read as an
+/// empty sky, so the job is left out and its number with it, and said here. (A time window
+/// without samples is only a gap in the observation and passes without a word.)
+fn warn_of_values_left_without_samples(group: &[usize], suffixes: &[String], distinct: &[f64], column: &str, source: &str) {
+    let mut has_samples = vec![false; suffixes.len()];
+    for &g in group {
+        has_samples[g] = true;
+    }
+    for ((suffix, value), _) in suffixes.iter().zip(distinct).zip(&has_samples).filter(|(_, &has)| !has) {
+        log::warn!("{source}: {suffix} (`{column}` {value}) has no sample left to image (all flagged, zero weight or excluded): no job for it, and the others keep their numbers");
+    }
 }
 
 /// The split column as f64 (any numeric type), nulls refused.
@@ -320,6 +367,28 @@ mod tests {
         assert_eq!(parts[0].vis.u[0], 101.0 * (1.2e9 / crate::vis::SPEED_OF_LIGHT));
     }
 
+    /// A channel whose every row is flagged makes no job, and the channels after it keep their
+    /// numbers (ranked among all rows' values, not the kept ones'); `split_rows` the same.
+    #[test]
+    fn a_fully_flagged_channel_leaves_a_gap_and_the_others_keep_their_numbers() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("obs.parquet");
+        let mut t = table();
+        // Three channels in turn, the middle one (1.3 GHz) flagged throughout.
+        t.frequency = (0..40).map(|i| [1.2e9, 1.3e9, 1.4e9][i % 3]).collect();
+        t.flag = (0..40).map(|i| i % 3 == 1).collect();
+        write_parquet(&path, &t, &meta()).unwrap();
+        let split = SplitBy { column: "frequency".into(), window: None };
+        let mut reader = VisReader::open_with_columns(&path, 7, &["frequency"]).unwrap();
+        let (parts, _) = read_parts(&mut reader, Some(&split), "split_by", &|| false).unwrap().unwrap();
+        let suffixes: Vec<_> = parts.iter().map(|p| p.suffix.clone().unwrap()).collect();
+        assert_eq!(suffixes, ["ch00", "ch02"]);
+        assert!(parts[1].vis.frequency.iter().all(|&f| f == 1.4e9));
+        let mut reader = VisReader::open_with_columns(&path, 7, &["frequency"]).unwrap();
+        let rows = split_rows(&mut reader, &split, "split_by", &|| false).unwrap().unwrap().parts;
+        assert_eq!(rows.iter().map(|(s, _)| s.as_str()).collect::<Vec<_>>(), ["ch00", "ch02"]);
+    }
+
     /// `split_rows` names the same parts as `read_parts` and gives each the table rows it holds
     /// (the visibilities' real parts are the row numbers), for windows with a gap and channels.
     #[test]
@@ -331,6 +400,8 @@ mod tests {
             write_parquet(&path, &table(), &meta()).unwrap();
             let mut reader = VisReader::open_with_columns(&path, 7, &[split.column.as_str()]).unwrap();
             let split_rows = split_rows(&mut reader, &split, "split_by", &|| false).unwrap().unwrap();
+            assert_eq!(split_rows.longest_baseline, parts.iter().map(|p| p.vis.max_uv()).fold(0.0, f64::max));
+            let split_rows = split_rows.parts;
             assert_eq!(split_rows.len(), parts.len());
             for ((suffix, rows_of_part), part) in split_rows.iter().zip(&parts) {
                 assert_eq!(Some(suffix), part.suffix.as_ref());

@@ -681,16 +681,24 @@ pub fn select_for(size: usize, setup: &ImagingSetup) -> Result<(PathBuf, Option<
 
 /// The usable series found in [`model_dirs`] (the first of each name), in the order `auto`
 /// prefers them.
-pub fn found_series() -> Vec<(PathBuf, Series)> {
+pub fn found_series() -> Result<Vec<(PathBuf, Series)>> {
     ranked_series(&model_dirs())
 }
 
-/// The usable series under `roots` (the first of each name), the project's own first in
-/// [`PROJECT_SERIES`] order, then by name.
-fn ranked_series(roots: &[PathBuf]) -> Vec<(PathBuf, Series)> {
+/// The usable series under `roots` (the first of each name: an earlier directory's series
+/// stands before a later one's of the same name), the project's own first in
+/// [`PROJECT_SERIES`] order, then by name. Two series of one name in one directory are an
+/// error naming both: nothing says which the name means.
+fn ranked_series(roots: &[PathBuf]) -> Result<Vec<(PathBuf, Series)>> {
     let mut found: Vec<(PathBuf, Series)> = Vec::new();
     for root in roots {
-        for (dir, series) in discover(root) {
+        let opened = open_all(root);
+        for (k, (dir, series)) in opened.iter().enumerate() {
+            if let (Ok(series), Some(other)) = (series, sharing_the_name(&opened, k)) {
+                return Err(shared_name_error(dir, &series.name, other));
+            }
+        }
+        for (dir, series) in opened {
             let Ok(series) = series else { continue };
             if !series.is_empty() && !found.iter().any(|(_, s)| s.name == series.name) {
                 found.push((dir, series));
@@ -699,11 +707,11 @@ fn ranked_series(roots: &[PathBuf]) -> Vec<(PathBuf, Series)> {
     }
     let rank = |s: &Series| (PROJECT_SERIES.iter().position(|p| *p == s.name).unwrap_or(PROJECT_SERIES.len()), s.name.clone());
     found.sort_by_key(|(_, s)| rank(s));
-    found
+    Ok(found)
 }
 
 fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(PathBuf, Option<String>)> {
-    let found = ranked_series(roots);
+    let found = ranked_series(roots)?;
     let trained: Vec<&(PathBuf, Series)> = found.iter().filter(|(_, s)| s.image_sizes.contains(&size)).collect();
     // A series of the data's telescope outside its settings before one of another telescope.
     let same_telescope = |s: &Series| setup.telescope.as_deref().map_or(true, |t| s.trained_for_telescope(t));
@@ -762,7 +770,7 @@ fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(Pa
 /// declaring a domain that holds `setup`: what a warning about a job outside its series' domain
 /// can point to (the project's own first, then by name).
 pub fn covering_series(size: usize, setup: &ImagingSetup, except: &str) -> Option<String> {
-    found_series().into_iter().map(|(_, s)| s).find_map(|s| {
+    found_series().ok()?.into_iter().map(|(_, s)| s).find_map(|s| {
         let declares = s.manifest.as_ref().is_some_and(|m| m.validity.is_some());
         let covers = s.name != except && declares && s.image_sizes.contains(&size) && s.validity_problems(setup).is_empty();
         covers.then_some(s.name)
@@ -816,22 +824,56 @@ pub fn model_dirs() -> Vec<PathBuf> {
 }
 
 /// A series given as a directory (any path with a separator, or one that exists) or as a bare
-/// name looked up in [`model_dirs`].
+/// name looked up in [`model_dirs`]: in the first that has it, the series of that name (its
+/// manifest's `name`, which the log shows), else the directory of that name. A name two series
+/// of one directory share is an error naming both.
 pub fn resolve(series: &Path) -> Result<PathBuf> {
+    resolve_in(&model_dirs(), series)
+}
+
+fn resolve_in(dirs: &[PathBuf], series: &Path) -> Result<PathBuf> {
     let bare = series.components().count() == 1 && !series.is_dir();
     if !bare {
         return Ok(series.to_path_buf());
     }
-    let dirs = model_dirs();
-    if let Some(found) = dirs.iter().map(|d| d.join(series)).find(|d| d.is_dir()) {
-        return Ok(found);
+    for root in dirs {
+        let opened = open_all(root);
+        let named = opened.iter().position(|(_, s)| s.as_ref().is_ok_and(|s| s.name.as_str() == series.as_os_str()));
+        if let Some(k) = named {
+            if let Some(other) = sharing_the_name(&opened, k) {
+                return Err(shared_name_error(&opened[k].0, &series.to_string_lossy(), other));
+            }
+            return Ok(opened[k].0.clone());
+        }
+        if root.join(series).is_dir() {
+            return Ok(root.join(series));
+        }
     }
     let looked: Vec<String> = dirs.iter().map(|d| d.display().to_string()).collect();
     let message = format!("no model series of that name in {} (set R2D2_MODELS, or give the series directory)", looked.join(", "));
     Err(SeriesError::NotFound { name: series.to_path_buf(), message }.into())
 }
 
+/// The series directories under `root`, each with its series or why it is none; two whose
+/// series share a name are both errors naming the other (a name must pick one series).
 pub fn discover(root: &Path) -> Vec<(PathBuf, Result<Series>)> {
+    let opened = open_all(root);
+    let shared: Vec<Option<PathBuf>> = (0..opened.len()).map(|k| sharing_the_name(&opened, k).map(Path::to_path_buf)).collect();
+    opened
+        .into_iter()
+        .zip(shared)
+        .map(|((dir, series), other)| match (series, other) {
+            (Ok(series), Some(other)) => {
+                let error = shared_name_error(&dir, &series.name, &other);
+                (dir, Err(error))
+            }
+            (series, _) => (dir, series),
+        })
+        .collect()
+}
+
+/// Every directory under `root`, in name order, with its series as read.
+fn open_all(root: &Path) -> Vec<(PathBuf, Result<Series>)> {
     let mut dirs: Vec<PathBuf> = match std::fs::read_dir(root) {
         Ok(rd) => rd.filter_map(|e| e.ok()).map(|e| e.path()).filter(|p| p.is_dir()).collect(),
         Err(_) => Vec::new(),
@@ -841,6 +883,19 @@ pub fn discover(root: &Path) -> Vec<(PathBuf, Result<Series>)> {
         let s = Series::open(&d);
         (d, s)
     }).collect()
+}
+
+/// Another directory of `opened` whose series has the name of the `k`th one's.
+fn sharing_the_name(opened: &[(PathBuf, Result<Series>)], k: usize) -> Option<&Path> {
+    let name = &opened[k].1.as_ref().ok()?.name;
+    opened.iter().enumerate().find(|(j, (_, s))| *j != k && s.as_ref().is_ok_and(|s| &s.name == name)).map(|(_, (dir, _))| dir.as_path())
+}
+
+fn shared_name_error(dir: &Path, name: &str, other: &Path) -> Error {
+    invalid(
+        dir,
+        format!("series '{name}' has the name of the series in {} too: a name must pick one series (`auto` logs it, `--step` takes it); give one of them another `name` in its manifest", other.display()),
+    )
 }
 
 #[cfg(test)]
@@ -859,6 +914,47 @@ mod tests {
             "format: 1\nname: {name}\narchitecture: r2d2\nimage_sizes: {sizes}\nany_size: {any_size}\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx]\n"
         );
         std::fs::write(dir.join("manifest.yaml"), manifest).unwrap();
+    }
+
+    /// A series is named by its manifest's `name` (what the log shows), whatever its folder;
+    /// two folders of one directory with one name are refused by `auto`, by the name and in the
+    /// listing, each naming the other folder. An earlier directory's series still stands
+    /// before a later one's of the same name.
+    #[test]
+    fn a_name_picks_one_series_by_its_manifest_and_a_shared_one_is_refused() {
+        let root = tempfile::tempdir().unwrap();
+        let roots = [root.path().to_path_buf()];
+        series_dir(root.path(), "aaa", "[512]", true);
+        series_dir(root.path(), "bbb", "[512]", true);
+        let rename = |folder: &str, name: &str| {
+            let manifest = root.path().join(folder).join("manifest.yaml");
+            let text = std::fs::read_to_string(&manifest).unwrap().replace(&format!("name: {folder}\n"), &format!("name: {name}\n"));
+            std::fs::write(&manifest, text).unwrap();
+        };
+        rename("bbb", "shared");
+        assert_eq!(resolve_in(&roots, Path::new("shared")).unwrap(), root.path().join("bbb"));
+        assert_eq!(resolve_in(&roots, Path::new("aaa")).unwrap(), root.path().join("aaa"));
+        assert_eq!(select_in(&roots, 512, &ImagingSetup::default()).unwrap().0, root.path().join("aaa"));
+        rename("aaa", "shared");
+        let both = |e: String| {
+            for folder in ["aaa", "bbb"] {
+                assert!(e.contains(&root.path().join(folder).display().to_string()), "{folder} missing from: {e}");
+            }
+            assert!(e.contains("series 'shared'") && e.contains("a name must pick one series"), "{e}");
+        };
+        both(select_in(&roots, 512, &ImagingSetup::default()).unwrap_err().to_string());
+        both(resolve_in(&roots, Path::new("shared")).unwrap_err().to_string());
+        for (_, series) in discover(root.path()) {
+            both(series.unwrap_err().to_string());
+        }
+        // In two directories, the earlier one's series of the name stands.
+        let later = tempfile::tempdir().unwrap();
+        series_dir(later.path(), "vla-r2d2-512", "[512]", true);
+        series_dir(root.path(), "vla-r2d2-512", "[512]", true);
+        std::fs::remove_dir_all(root.path().join("aaa")).unwrap();
+        let roots = [root.path().to_path_buf(), later.path().to_path_buf()];
+        assert_eq!(resolve_in(&roots, Path::new("vla-r2d2-512")).unwrap(), root.path().join("vla-r2d2-512"));
+        assert_eq!(ranked_series(&roots).unwrap().iter().filter(|(_, s)| s.name == "vla-r2d2-512").count(), 1);
     }
 
     /// NaN or reversed validity ranges are refused when the manifest is read, naming the key.
