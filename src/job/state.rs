@@ -175,6 +175,11 @@ pub struct Job {
     /// The super-resolution of the job's pixel: its longest baseline is sampled this many
     /// times finer than Nyquist (set with the geometry).
     pub superresolution: Option<f64>,
+    /// Hours the data's source was tracked, summed over its tracks, and their integration
+    /// time, seconds ([`crate::vis::ObservedTimes`]): known where the data carry times (set
+    /// with the geometry).
+    pub track_hours: Option<f64>,
+    pub integration_s: Option<f64>,
     /// The files the job was read from (visibilities, truth): its products never replace them.
     pub inputs: Vec<std::path::PathBuf>,
 }
@@ -212,6 +217,8 @@ impl Job {
             warnings: Vec::new(),
             settings: BTreeMap::new(),
             superresolution: None,
+            track_hours: None,
+            integration_s: None,
             inputs: Vec::new(),
         }
     }

@@ -1,7 +1,7 @@
 //! Parquet visibility tables read one row group at a time ([`VisReader`]).
 
 use super::data::{ObservationMeta, Visibilities};
-use super::convert::{record_batch_to_visibilities, validate_schema, IngestStats, READ_COLUMNS};
+use super::convert::{record_batch_to_visibilities, validate_schema, IngestStats, INTERVAL_COLUMN, READ_COLUMNS, TIME_COLUMN};
 use super::error::TableError;
 use super::guard::{contain_panics, GuardedBatches, PARQUET};
 use std::fs::File;
@@ -42,7 +42,7 @@ pub struct VisReader {
 impl VisReader {
     /// Opens `path`, reading and checking the footer: columns, types and metadata.
     pub fn open(path: &Path, batch_rows: usize) -> Result<VisReader> {
-        Self::open_with_columns(path, batch_rows, &[])
+        Self::open_with_columns(path, batch_rows, &[TIME_COLUMN, INTERVAL_COLUMN])
     }
 
     /// As [`VisReader::open`], also decoding the columns `extra` (when the file has them) into
@@ -65,7 +65,8 @@ impl VisReader {
         let total_rows = u64::try_from(file_metadata.num_rows()).unwrap_or(0);
         validate_schema(builder.schema(), &source)?;
 
-        // Decode only the columns used: time and antennas would cost reading time and memory.
+        // Decode only the columns used: antennas would cost reading time and memory (times
+        // tell the track a series' domain is checked against).
         let used: Vec<usize> = builder
             .schema()
             .fields()

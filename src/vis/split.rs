@@ -88,9 +88,16 @@ pub fn read_parts(
         return Ok(Some((vec![Part { suffix: None, vis: scan.vis }], scan.stats)));
     };
     let grouping = grouping(&scan, split, split_key, &reader.source().display().to_string())?;
-    let parts = scan
-        .vis
-        .partition(&grouping.group, grouping.suffixes.len())
+    let mut parts = scan.vis.partition(&grouping.group, grouping.suffixes.len());
+    if split.column == super::TIME_COLUMN {
+        // A window of the observation is a track of its own: its times are its samples'.
+        let whole = parts.first().map(|p| p.times.without_tracks()).unwrap_or_default();
+        parts.iter_mut().for_each(|p| p.times = whole.clone());
+        for (&g, &time) in grouping.group.iter().zip(&scan.keys) {
+            parts[g].times.add_time(time);
+        }
+    }
+    let parts = parts
         .into_iter()
         .zip(grouping.suffixes)
         .filter(|(vis, _)| !vis.is_empty())
