@@ -613,8 +613,9 @@ fn a_track_shorter_than_the_series_was_trained_on_is_warned_about() {
         let table = format!("{name}.parquet");
         check(&r2d2(&["simulate", "--configs", configs, "--hours", hours, "--integration-s", "300", "--size", "128", "--seed", "3", "--out", &table], d));
         let out = r2d2(&["image", &table, "--size", "128", "--step", "vla-r2d2-128", "--iterations", "1", "--name", name], d);
-        common::check_written(&out);
-        common::stderr(&out)
+        // Products written, or exit 3 where the guard rejected the one network's model.
+        assert!(matches!(out.status.code(), Some(0 | 3)), "{}", text(&out));
+        String::from_utf8_lossy(&out.stderr).into_owned()
     };
     let log = image("1", "c", "short");
     assert!(log.contains("series 'vla-r2d2-128' was not trained for this job: a track of 1.0 h"), "{log}");
