@@ -42,7 +42,7 @@ pub struct VisReader {
 impl VisReader {
     /// Opens `path`, reading and checking the footer: columns, types and metadata.
     pub fn open(path: &Path, batch_rows: usize) -> Result<VisReader> {
-        Self::open_with_columns(path, batch_rows, &[TIME_COLUMN, INTERVAL_COLUMN])
+        Self::open_with_columns(path, batch_rows, &[])
     }
 
     /// As [`VisReader::open`], also decoding the columns `extra` (when the file has them) into
@@ -73,7 +73,8 @@ impl VisReader {
             .iter()
             .enumerate()
             .filter(|(_, field)| {
-                READ_COLUMNS.iter().any(|(name, _, _)| field.name() == name) || extra.contains(&field.name().as_str())
+                let name = field.name().as_str();
+                READ_COLUMNS.iter().any(|(read, _, _)| name == *read) || [TIME_COLUMN, INTERVAL_COLUMN].contains(&name) || extra.contains(&name)
             })
             .map(|(index, _)| index)
             .collect();

@@ -301,6 +301,10 @@ mod tests {
         assert_eq!(suffixes, ["t000", "t001", "t002", "t003"]);
         assert_eq!(rows(&parts[0]), [0, 1, 2, 5, 6, 7, 8, 9]);
         assert_eq!(rows(&parts[3]), (30..40).collect::<Vec<_>>());
+        // Each window is a track of its own: 10 integrations of 10 s.
+        for part in &parts {
+            assert_eq!(part.vis.times.track_hours(), Some(100.0 / 3600.0));
+        }
     }
 
     #[test]
@@ -318,6 +322,8 @@ mod tests {
     #[test]
     fn one_job_per_channel_in_frequency_order() {
         let (parts, _) = parts_of(Some(SplitBy { column: "frequency".into(), window: None }), 9);
+        // A channel's samples are of the whole track: 400 s from the first integration's start.
+        assert!(parts.iter().all(|p| p.vis.times.track_hours() == Some(400.0 / 3600.0)));
         assert_eq!(parts.len(), 2);
         assert_eq!(parts[0].suffix.as_deref(), Some("ch00"));
         assert!(parts[0].vis.frequency.iter().all(|&f| f == 1.2e9));

@@ -362,7 +362,7 @@ mod tests {
             vis: vec![Complex32::new(1.0, 0.0); n],
             weight: vec![2.0; n],
             frequency: (0..n).map(|k| 1e9 + k as f64).collect(),
-            imaging_weight: Vec::new(),
+            ..Visibilities::default()
         };
         let source = VisSource::Held(Arc::new(vis.clone()));
         let mut seen = Vec::new();

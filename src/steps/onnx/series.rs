@@ -241,16 +241,21 @@ pub struct ImagingSetup {
 }
 
 /// A trained range in words: `range 1.5..2.5`, or `setting 0` where it is one value.
-fn span(range: [f64; 2]) -> String {
-    span_in(range, "")
+fn span([lo, hi]: [f64; 2]) -> String {
+    if lo == hi {
+        format!("setting {lo} (the only one it was trained at)")
+    } else {
+        format!("range {lo}..{hi}")
+    }
 }
 
-/// As [`span`], with a unit after the values (`" h"`): `range 8..12 h`.
-fn span_in([lo, hi]: [f64; 2], unit: &str) -> String {
+/// A trained range with a unit after the values and what the values are: `range 8..12 h (the
+/// hours ...)`, `setting 300 s (the ...)`.
+fn span_of([lo, hi]: [f64; 2], unit: &str, what: &str) -> String {
     if lo == hi {
-        format!("setting {lo}{unit} (the only one it was trained at)")
+        format!("setting {lo}{unit} ({what})")
     } else {
-        format!("range {lo}..{hi}{unit}")
+        format!("range {lo}..{hi}{unit} ({what})")
     }
 }
 
@@ -595,16 +600,16 @@ impl Series {
         if let (Some(range), Some(hours)) = (v.track_hours, job.track_hours) {
             if outside(hours, widened(range, TRACK_TOLERANCE)) {
                 problems.push(format!(
-                    "a track of {hours:.1} h (the hours the data's source was tracked, summed over its tracks) is outside the series' {} (the hours of observation it was trained on)",
-                    span_in(range, " h")
+                    "a track of {hours:.1} h (the hours the data's source was tracked, summed over its tracks) is outside the series' {}",
+                    span_of(range, " h", "the hours of observation it was trained on")
                 ));
             }
         }
         if let (Some(range), Some(seconds)) = (v.integration_s, job.integration_s) {
             if outside(seconds, widened(range, INTEGRATION_TOLERANCE)) {
                 problems.push(format!(
-                    "an integration time of {seconds} s is outside the series' {} (the sampling of the tracks it was trained on)",
-                    span_in(range, " s")
+                    "an integration time of {seconds} s is outside the series' {}",
+                    span_of(range, " s", "the sampling of the tracks it was trained on")
                 ));
             }
         }
