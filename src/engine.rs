@@ -513,6 +513,7 @@ fn fixed_setup(params: &ImageParams, telescope: Option<&str>) -> crate::steps::s
         weighting: params.weighting.map(|w| w.scheme().name().to_string()),
         robust: params.weighting.and_then(|w| w.robust()),
         telescope: telescope.map(str::to_string),
+        ..Default::default()
     }
 }
 

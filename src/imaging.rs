@@ -166,7 +166,7 @@ mod w_term_tests {
 
     #[test]
     fn the_w_term_warning_follows_field_and_w() {
-        let vis = |w: f64| Visibilities { u: vec![1.0], v: vec![1.0], w: vec![w, -2.0 * w], vis: vec![Default::default(); 2], weight: vec![1.0; 2], frequency: vec![1e8; 2], imaging_weight: Vec::new() };
+        let vis = |w: f64| Visibilities { u: vec![1.0], v: vec![1.0], w: vec![w, -2.0 * w], vis: vec![Default::default(); 2], weight: vec![1.0; 2], frequency: vec![1e8; 2], ..Visibilities::default() };
         // LOFAR-like: |w| 2e3 wavelengths, 3.2 deg field: n - 1 ~ -1.6e-3 at the corners.
         let wide = ImageGeometry::new(512, 3.2f64.to_radians() / 512.0).unwrap();
         let t = WTerm::of(&vis(1e3), wide);

@@ -572,11 +572,12 @@ fn small_address_spaces_end_in_a_memory_error() {
 fn a_job_outside_the_series_domain_is_pointed_to_one_that_covers_it() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    // One network on this short C observation (its dirty image's mean is negative: no short
+    // One network on this C observation (its dirty image's mean is negative: no short
     // baselines) may diverge: the products are written either way (exit 0, or 3 where the
     // guard rejected the model); this test is about which series is chosen and said.
     let written = |out: &std::process::Output| assert!(matches!(out.status.code(), Some(0 | 3)), "{}", String::from_utf8_lossy(&out.stderr));
-    check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "600", "--size", "512", "--seed", "3", "--out", "obs.parquet"], d));
+    // A track and integration inside both VLA series' (6..13 h, 300 s): only the setting differs.
+    check(&r2d2(&["simulate", "--configs", "c", "--hours", "6", "--integration-s", "300", "--size", "512", "--seed", "3", "--out", "obs.parquet"], d));
     let out = r2d2(&["image", "obs.parquet", "--size", "512", "--robust", "1", "--iterations", "1", "--name", "a"], d);
     written(&out);
     let log = String::from_utf8_lossy(&out.stderr).into_owned();
@@ -599,6 +600,32 @@ fn a_job_outside_the_series_domain_is_pointed_to_one_that_covers_it() {
     let out = r2d2(&["image", "obs.parquet", "--size", "512", "--robust", "0", "--iterations", "1", "--name", "c"], d);
     written(&out);
     assert!(!String::from_utf8_lossy(&out.stderr).contains("was trained for it"));
+}
+
+/// A track shorter than the series was trained on is said at the job, with the track measured
+/// from the data's times and the series' range; a track of two configurations counts both
+/// (as training counts them), and is inside.
+#[test]
+fn a_track_shorter_than_the_series_was_trained_on_is_warned_about() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let image = |hours: &str, configs: &str, name: &str| {
+        let table = format!("{name}.parquet");
+        check(&r2d2(&["simulate", "--configs", configs, "--hours", hours, "--integration-s", "300", "--size", "128", "--seed", "3", "--out", &table], d));
+        let out = r2d2(&["image", &table, "--size", "128", "--step", "vla-r2d2-128", "--iterations", "1", "--name", name], d);
+        // Products written, or exit 3 where the guard rejected the one network's model.
+        assert!(matches!(out.status.code(), Some(0 | 3)), "{}", text(&out));
+        String::from_utf8_lossy(&out.stderr).into_owned()
+    };
+    let log = image("1", "c", "short");
+    assert!(log.contains("series 'vla-r2d2-128' was not trained for this job: a track of 1.0 h"), "{log}");
+    assert!(log.contains("outside the series' range 6..13 h (the hours of observation it was trained on)"), "{log}");
+    assert!(!log.contains("integration time of"), "300 s is the series' own: {log}");
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("short-metrics.json")).unwrap()).unwrap();
+    assert_eq!((metrics["settings"]["track_hours"].as_f64(), metrics["settings"]["integration_s"].as_f64()), (Some(1.0), Some(300.0)), "{metrics}");
+    // A 5 h + C 2 h: 7 h, as a training sample of A 5..10 h + C 1..3 h counts its track.
+    let log = image("5,2", "a,c", "long");
+    assert!(!log.contains("a track of") && !log.contains("was not trained for this job"), "{log}");
 }
 
 /// A WSClean command line for CLEAN runs with WSClean's meanings given `--step clean`: the

@@ -61,6 +61,7 @@ def parse_args():
     p.add_argument("--fields", type=int, choices=[1, 2], default=1)
     p.add_argument("--autocorrelations", action="store_true")
     p.add_argument("--data-column", default="DATA")
+    p.add_argument("--interval", type=float, default=30.0, help="INTERVAL and EXPOSURE of every row, seconds")
     p.add_argument("--drop", action="append", default=[])
     return p.parse_args()
 
@@ -191,8 +192,8 @@ def main():
     ms.addrows(nrow)
     ms.putcol("TIME", m_time)
     ms.putcol("TIME_CENTROID", m_time)
-    ms.putcol("INTERVAL", np.full(nrow, 30.0))
-    ms.putcol("EXPOSURE", np.full(nrow, 30.0))
+    ms.putcol("INTERVAL", np.full(nrow, args.interval))
+    ms.putcol("EXPOSURE", np.full(nrow, args.interval))
     ms.putcol("ANTENNA1", m_a1)
     ms.putcol("ANTENNA2", m_a2)
     ms.putcol("UVW", m_uvw)

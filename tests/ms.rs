@@ -23,6 +23,29 @@ fn observation(dir: &Path, nfreq: usize) {
     ));
 }
 
+/// An MS's track and integration time are read from its TIME and INTERVAL columns and checked
+/// against the series' (VLA: 6..13 h at 300 s): the INTERVAL given wins over the steps between
+/// times; an MS whose INTERVAL says nothing (0, as `r2d2 convert` writes it) has the steps'.
+#[test]
+fn an_ms_track_and_integration_are_checked_against_the_series() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "128", "--seed", "3", "--out", "obs.parquet"], d));
+    make_ms(d, "given.ms", &["--interval", "600"]);
+    check(&r2d2(&["convert", "obs.parquet", "converted.ms"], d));
+    let image = |ms: &str| {
+        let out = r2d2(&["image", ms, "--size", "128", "--step", "vla-r2d2-128", "--iterations", "1", "--name", ms], d);
+        common::check_written(&out);
+        stderr(&out)
+    };
+    // 12 integrations 300 s apart, each said to be of 600 s: 11 * 300 + 600 s.
+    let log = image("given.ms");
+    assert!(log.contains("a track of 1.1 h") && log.contains("range 6..13 h"), "{log}");
+    assert!(log.contains("an integration time of 600 s is longer than the series' setting 300 s"), "{log}");
+    let log = image("converted.ms");
+    assert!(log.contains("a track of 1.0 h") && !log.contains("integration time of"), "{log}");
+}
+
 /// Runs tests/make_ms.py: `dir/obs.parquet` to `dir/<ms>` with `options`.
 fn make_ms(dir: &Path, ms: &str, options: &[&str]) {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/make_ms.py");

@@ -39,6 +39,8 @@ fn summary_of(d: &Bound<'_, PyDict>) -> PyResult<VisSummary> {
         lowest_hz: get("lowest_hz")?.extract()?,
         highest_hz: get("highest_hz")?.extract()?,
         imaging_weights: get("imaging_weights")?.extract()?,
+        // Not sent by the workers: a job in parts is not checked against a series' tracks.
+        times: Default::default(),
     })
 }
 

@@ -179,6 +179,11 @@ pub struct Job {
     /// of a split: the pixel size is set by it, so that every job of the split is imaged on one
     /// grid (time windows of A and C configurations compared or stacked pixel for pixel).
     pub split_max_uv: Option<f64>,
+    /// Hours the data's source was tracked, summed over its tracks, and their integration
+    /// time, seconds ([`crate::vis::ObservedTimes`]): known where the data carry times (set
+    /// with the geometry).
+    pub track_hours: Option<f64>,
+    pub integration_s: Option<f64>,
     /// The files the job was read from (visibilities, truth): its products never replace them.
     pub inputs: Vec<std::path::PathBuf>,
 }
@@ -217,6 +222,8 @@ impl Job {
             settings: BTreeMap::new(),
             superresolution: None,
             split_max_uv: None,
+            track_hours: None,
+            integration_s: None,
             inputs: Vec::new(),
         }
     }

@@ -52,6 +52,8 @@ enum WeightSource {
 
 struct Columns {
     time: usize,
+    /// `INTERVAL`, else `EXPOSURE`: the integration time a series' domain is checked against.
+    interval: Option<usize>,
     antenna1: usize,
     antenna2: usize,
     field: usize,
@@ -88,6 +90,7 @@ pub fn batch_schema() -> Schema {
     let mut fields: Vec<Field> = ["u", "v", "w", "frequency", "vis_re", "vis_im", "weight"].map(float64).to_vec();
     fields.push(Field::new("flag", DataType::Boolean, false));
     fields.push(float64("time"));
+    fields.push(float64(crate::vis::INTERVAL_COLUMN));
     fields.extend(["antenna1", "antenna2", "field", "spw"].map(int32));
     Schema::new(fields)
 }
@@ -142,6 +145,7 @@ impl MsReader {
         };
         let columns = Columns {
             time: column("TIME")?,
+            interval: optional_column(&table, "INTERVAL").or_else(|| optional_column(&table, "EXPOSURE")),
             antenna1: column("ANTENNA1")?,
             antenna2: column("ANTENNA2")?,
             field: column("FIELD_ID")?,
@@ -219,6 +223,11 @@ impl MsReader {
         let cells = |column: usize, name: &str| read_cells(table, path, column, name, start, n);
         let c = &self.columns;
         let time = scalars(&cells(c.time, "TIME")?, "TIME", path, start, as_f64)?;
+        // Not imaged: a missing or unreadable interval leaves the integration unknown (NaN).
+        let interval: Vec<f64> = match c.interval.map(|col| cells(col, "INTERVAL")) {
+            Some(Ok(values)) => values.iter().map(|v| as_f64(v).unwrap_or(f64::NAN)).collect(),
+            _ => vec![f64::NAN; n as usize],
+        };
         let antenna1 = scalars(&cells(c.antenna1, "ANTENNA1")?, "ANTENNA1", path, start, as_i64)?;
         let antenna2 = scalars(&cells(c.antenna2, "ANTENNA2")?, "ANTENNA2", path, start, as_i64)?;
         let field = scalars(&cells(c.field, "FIELD_ID")?, "FIELD_ID", path, start, as_i64)?;
@@ -297,7 +306,7 @@ impl MsReader {
                 }
                 None => None,
             };
-            let row = Row { uvw: uvw_row, time: time[r], antenna1: antenna1[r], antenna2: antenna2[r], field: field[r] };
+            let row = Row { uvw: uvw_row, time: time[r], interval: interval[r], antenna1: antenna1[r], antenna2: antenna2[r], field: field[r] };
             out.push_row(window, &row, &RowCells { flag_row: flag_row[r], vis, flags, weights, weight: source });
         }
         self.counts.rows += n;
@@ -395,6 +404,7 @@ fn bool_cell<'a>(value: &'a RecordValue, shape: &[u32]) -> Option<&'a [bool]> {
 struct Row {
     uvw: [f64; 3],
     time: f64,
+    interval: f64,
     antenna1: i64,
     antenna2: i64,
     field: i64,
@@ -453,6 +463,7 @@ impl SampleColumns {
             self.weight.push(weight);
             self.flag.push(cells.flag_row || flag);
             self.time.push(row.time);
+            self.interval.push(row.interval);
             // Ids beyond i32 cannot occur in a valid MS (casacore stores them as Int).
             self.antenna1.push(row.antenna1 as i32);
             self.antenna2.push(row.antenna2 as i32);
@@ -474,6 +485,7 @@ impl SampleColumns {
             f64s(self.weight),
             Arc::new(BooleanArray::from(self.flag)) as ArrayRef,
             f64s(self.time),
+            f64s(self.interval),
             i32s(self.antenna1),
             i32s(self.antenna2),
             i32s(self.field),

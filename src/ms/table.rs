@@ -549,6 +549,8 @@ pub(crate) struct SampleColumns {
     pub weight: Vec<f64>,
     pub flag: Vec<bool>,
     pub time: Vec<f64>,
+    /// Integration time of each sample, seconds (NaN where unknown).
+    pub interval: Vec<f64>,
     pub antenna1: Vec<i32>,
     pub antenna2: Vec<i32>,
     pub field: Vec<i32>,

@@ -222,6 +222,9 @@ fn imaging_setup(ctx: &BuildContext<'_>, choosing: bool) -> Result<crate::steps:
         weighting: weighting.map(|w| w.scheme.name().to_string()),
         robust: weighting.map(|w| w.robust),
         telescope: if choosing { source_telescope(ctx)? } else { None },
+        // Known once the data are read: each job's are checked at its first step.
+        track_hours: None,
+        integration_s: None,
     })
 }
 

@@ -67,7 +67,13 @@ impl Stage<Job> for StepStage {
         if iteration == 1 {
             // Before a job's first step: is it inside what the step was made for?
             let dirty_mean = job.imaging.as_ref().map(|im| im.dirty.iter().sum::<f64>() / im.dirty.len().max(1) as f64);
-            let domain = JobDomain { telescope: &job.meta.telescope, superresolution: job.superresolution, dirty_mean };
+            let domain = JobDomain {
+                telescope: &job.meta.telescope,
+                superresolution: job.superresolution,
+                track_hours: job.track_hours,
+                integration_s: job.integration_s,
+                dirty_mean,
+            };
             for problem in self.step.domain_problems(&domain)? {
                 job.warn(problem);
             }

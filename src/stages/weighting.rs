@@ -81,6 +81,7 @@ impl Stage<Job> for WeightingStage {
         }
         job.geometry = Some(geometry);
         job.superresolution = (max_uv > 0.0).then(|| 1.0 / (2.0 * max_uv * geometry.pixel_rad));
+        (job.track_hours, job.integration_s) = (summary.times.track_hours(), summary.times.integration_s());
         if let Some(problem) = truth_grid_problem(&job, geometry) {
             job.warn(problem);
         }
@@ -88,6 +89,12 @@ impl Stage<Job> for WeightingStage {
         job.settings.insert("pixel_arcsec".into(), serde_json::json!(geometry.pixel_arcsec()));
         if let Some(sr) = job.superresolution {
             job.settings.insert("superresolution".into(), serde_json::json!(sr));
+        }
+        if let Some(hours) = job.track_hours {
+            job.settings.insert("track_hours".into(), serde_json::json!(hours));
+        }
+        if let Some(seconds) = job.integration_s {
+            job.settings.insert("integration_s".into(), serde_json::json!(seconds));
         }
         emit(Port::Next, job)
     }

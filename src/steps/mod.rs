@@ -43,6 +43,10 @@ pub struct StepInput<'a> {
 pub struct JobDomain<'a> {
     pub telescope: &'a str,
     pub superresolution: Option<f64>,
+    /// Hours the source was tracked (summed over tracks) and the integration time, seconds,
+    /// where the data carry times.
+    pub track_hours: Option<f64>,
+    pub integration_s: Option<f64>,
     /// The mean of the job's dirty image (a series normalises its first input by it).
     pub dirty_mean: Option<f64>,
 }

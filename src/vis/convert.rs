@@ -217,6 +217,20 @@ fn required_float_column<'a>(
         .ok_or_else(|| TableError::column(source, name, format!("missing required column `{name}`")).into())
 }
 
+/// The optional column of each sample's time (its integration's centre), seconds.
+pub const TIME_COLUMN: &str = "time";
+
+/// The optional column of each sample's integration time, seconds (a MeasurementSet's
+/// `INTERVAL`).
+pub const INTERVAL_COLUMN: &str = "interval";
+
+/// A time column where the batch has one of float64 type; `None` otherwise. Times are not
+/// imaged: a table whose times are of another type (or absent) is read as before, its track
+/// unknown, rather than refused.
+fn time_column<'a>(batch: &'a RecordBatch, name: &str) -> Option<&'a Float64Array> {
+    batch.column_by_name(name).and_then(|a| a.as_any().downcast_ref::<Float64Array>())
+}
+
 /// Converts one Arrow batch in the visibility format to imaging input: baselines to
 /// wavelengths, excluded rows dropped and counted in `stats` (whose `rows` so far also
 /// numbers the rows in error messages). `source` names the data in errors.
@@ -264,6 +278,8 @@ fn convert_batch(
         None => None,
     };
 
+    let (time, interval) = (time_column(batch, TIME_COLUMN), time_column(batch, INTERVAL_COLUMN));
+
     let n = batch.num_rows();
     let mut counts = IngestStats { rows: n as u64, ..IngestStats::default() };
     let mut out = Visibilities::with_capacity(n);
@@ -307,6 +323,12 @@ fn convert_batch(
         );
         if imaging_weight.is_some() {
             out.imaging_weight.push(imaging as f32);
+        }
+        if let Some(time) = time.and_then(|t| t.is_valid(i).then(|| t.value(i))) {
+            out.times.add_time(time);
+        }
+        if let Some(interval) = interval.and_then(|t| t.is_valid(i).then(|| t.value(i))) {
+            out.times.add_integration(interval);
         }
     }
     stats.add(&counts);

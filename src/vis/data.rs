@@ -2,6 +2,7 @@
 //! weights, samples) and what is known of the observation ([`ObservationMeta`]).
 
 use super::error::TableError;
+use super::times::ObservedTimes;
 use crate::{Error, Result};
 use num_complex::Complex32;
 use std::collections::BTreeMap;
@@ -187,6 +188,9 @@ pub struct Visibilities {
     /// Imaging weights given with the data (a table's `imaging_weight` column, a .mat file's
     /// `nWimag` squared), one per sample, used by the `given` weighting; empty when none were.
     pub imaging_weight: Vec<f32>,
+    /// The tracks the samples were taken in and their integration time (a series' domain
+    /// names both), where the data carry times: gathered as they are read, not kept per sample.
+    pub times: ObservedTimes,
 }
 
 impl Visibilities {
@@ -200,6 +204,7 @@ impl Visibilities {
             weight: Vec::with_capacity(n),
             frequency: Vec::with_capacity(n),
             imaging_weight: Vec::new(),
+            times: ObservedTimes::default(),
         }
     }
 
@@ -234,6 +239,7 @@ impl Visibilities {
         self.weight.clear();
         self.frequency.clear();
         self.imaging_weight.clear();
+        self.times = ObservedTimes::default();
     }
 
     /// Appends another batch, moving its samples.
@@ -245,17 +251,19 @@ impl Visibilities {
         self.weight.append(&mut other.weight);
         self.frequency.append(&mut other.frequency);
         self.imaging_weight.append(&mut other.imaging_weight);
+        self.times.merge(&other.times);
     }
 
     /// Splits the samples into `groups` parts: sample `i` goes to part `group[i]` (< `groups`),
-    /// keeping their order within each part.
+    /// keeping their order within each part. Each part has the whole's times (a caller that
+    /// splits by time gives each part its own).
     pub fn partition(self, group: &[usize], groups: usize) -> Vec<Visibilities> {
         assert_eq!(group.len(), self.len(), "one group per sample");
         let mut counts = vec![0usize; groups];
         for &g in group {
             counts[g] += 1;
         }
-        let mut parts: Vec<Visibilities> = counts.iter().map(|&n| Visibilities::with_capacity(n)).collect();
+        let mut parts: Vec<Visibilities> = counts.iter().map(|&n| Visibilities { times: self.times.clone(), ..Visibilities::with_capacity(n) }).collect();
         for (i, &g) in group.iter().enumerate() {
             parts[g].push([self.u[i], self.v[i]], self.w[i], self.vis[i], self.weight[i], self.frequency[i]);
             if let Some(&x) = self.imaging_weight.get(i) {
@@ -332,7 +340,7 @@ impl Visibilities {
 }
 
 /// What imaging needs to know of all the samples before its first pass over them.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct VisSummary {
     pub samples: u64,
     /// Longest projected baseline sqrt(u^2 + v^2), wavelengths.
@@ -343,6 +351,8 @@ pub struct VisSummary {
     pub highest_hz: f64,
     /// Whether the samples carry imaging weights (the `given` weighting's).
     pub imaging_weights: bool,
+    /// The tracks and integration time of the samples (empty where they carry no times).
+    pub times: ObservedTimes,
 }
 
 impl VisSummary {
@@ -352,8 +362,14 @@ impl VisSummary {
 
     pub fn of(vis: &Visibilities) -> VisSummary {
         let mut s = VisSummary::empty();
-        s.add(&vis.chunk(0..vis.len()));
+        s.add_visibilities(vis);
         s
+    }
+
+    /// Adds held or decoded samples, their times included.
+    pub fn add_visibilities(&mut self, vis: &Visibilities) {
+        self.add(&vis.chunk(0..vis.len()));
+        self.times.merge(&vis.times);
     }
 
     pub fn add(&mut self, chunk: &VisChunk<'_>) {
@@ -375,6 +391,7 @@ impl VisSummary {
         self.lowest_hz = self.lowest_hz.min(other.lowest_hz);
         self.highest_hz = self.highest_hz.max(other.highest_hz);
         self.imaging_weights |= other.imaging_weights;
+        self.times.merge(&other.times);
     }
 
     /// Centre of the observed band and its width (None for a single frequency), Hz.

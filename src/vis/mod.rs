@@ -21,6 +21,7 @@ mod split;
 mod spill;
 mod stream;
 mod table;
+mod times;
 
 pub use data::*;
 pub use error::TableError;
@@ -39,3 +40,4 @@ pub use convert::*;
 pub(crate) use guard::*;
 pub use parquet::*;
 pub use table::*;
+pub use times::{ObservedTimes, TRACK_GAP_S};

@@ -1,7 +1,7 @@
 //! Parquet visibility tables read one row group at a time ([`VisReader`]).
 
 use super::data::{ObservationMeta, Visibilities};
-use super::convert::{record_batch_to_visibilities, validate_schema, IngestStats, READ_COLUMNS};
+use super::convert::{record_batch_to_visibilities, validate_schema, IngestStats, INTERVAL_COLUMN, READ_COLUMNS, TIME_COLUMN};
 use super::error::TableError;
 use super::guard::{contain_panics, GuardedBatches, PARQUET};
 use std::fs::File;
@@ -65,14 +65,16 @@ impl VisReader {
         let total_rows = u64::try_from(file_metadata.num_rows()).unwrap_or(0);
         validate_schema(builder.schema(), &source)?;
 
-        // Decode only the columns used: time and antennas would cost reading time and memory.
+        // Decode only the columns used: antennas would cost reading time and memory (times
+        // tell the track a series' domain is checked against).
         let used: Vec<usize> = builder
             .schema()
             .fields()
             .iter()
             .enumerate()
             .filter(|(_, field)| {
-                READ_COLUMNS.iter().any(|(name, _, _)| field.name() == name) || extra.contains(&field.name().as_str())
+                let name = field.name().as_str();
+                READ_COLUMNS.iter().any(|(read, _, _)| name == *read) || [TIME_COLUMN, INTERVAL_COLUMN].contains(&name) || extra.contains(&name)
             })
             .map(|(index, _)| index)
             .collect();

@@ -226,6 +226,7 @@ mod tests {
             weight: (0..n).map(|k| 0.5 + k as f32).collect(),
             frequency: if first == 0 { Vec::new() } else { vec![1.4e9; n] },
             imaging_weight: if with_imaging { vec![2.0; n] } else { Vec::new() },
+            ..Visibilities::default()
         }
     }
 

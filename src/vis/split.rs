@@ -89,9 +89,16 @@ pub fn read_parts(
         return Ok(Some((vec![Part { suffix: None, vis: scan.vis }], scan.stats)));
     };
     let grouping = grouping(&scan, split, split_key, &reader.source().display().to_string())?;
-    let parts = scan
-        .vis
-        .partition(&grouping.group, grouping.suffixes.len())
+    let mut parts = scan.vis.partition(&grouping.group, grouping.suffixes.len());
+    if split.column == super::TIME_COLUMN {
+        // A window of the observation is a track of its own: its times are its samples'.
+        let whole = parts.first().map(|p| p.times.without_tracks()).unwrap_or_default();
+        parts.iter_mut().for_each(|p| p.times = whole.clone());
+        for (&g, &time) in grouping.group.iter().zip(&scan.keys) {
+            parts[g].times.add_time(time);
+        }
+    }
+    let parts = parts
         .into_iter()
         .zip(grouping.suffixes)
         .filter(|(vis, _)| !vis.is_empty())
@@ -341,6 +348,10 @@ mod tests {
         assert_eq!(suffixes, ["t000", "t001", "t002", "t003"]);
         assert_eq!(rows(&parts[0]), [0, 1, 2, 5, 6, 7, 8, 9]);
         assert_eq!(rows(&parts[3]), (30..40).collect::<Vec<_>>());
+        // Each window is a track of its own: 10 integrations of 10 s.
+        for part in &parts {
+            assert_eq!(part.vis.times.track_hours(), Some(100.0 / 3600.0));
+        }
     }
 
     #[test]
@@ -358,6 +369,8 @@ mod tests {
     #[test]
     fn one_job_per_channel_in_frequency_order() {
         let (parts, _) = parts_of(Some(SplitBy { column: "frequency".into(), window: None }), 9);
+        // A channel's samples are of the whole track: 400 s from the first integration's start.
+        assert!(parts.iter().all(|p| p.vis.times.track_hours() == Some(400.0 / 3600.0)));
         assert_eq!(parts.len(), 2);
         assert_eq!(parts[0].suffix.as_deref(), Some("ch00"));
         assert!(parts[0].vis.frequency.iter().all(|&f| f == 1.2e9));

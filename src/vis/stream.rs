@@ -102,7 +102,7 @@ impl StreamedTable {
                 let mut kept = Kept { stats: IngestStats::default(), summary: VisSummary::empty(), digest: SampleDigest::default(), spill: spill_in.map(Spill::create) };
                 for batch in batches {
                     let vis = record_batch_to_visibilities(&batch, &mut kept.stats, source)?;
-                    kept.summary.add(&vis.chunk(0..vis.len()));
+                    kept.summary.add_visibilities(&vis);
                     kept.digest.add(&vis);
                     if let Some(Ok(copy)) = &mut kept.spill {
                         if let Err(why) = copy.append(&vis) {
@@ -212,8 +212,8 @@ impl VisSource {
     pub fn summary(&self) -> VisSummary {
         match self {
             VisSource::Held(vis) => VisSummary::of(vis),
-            VisSource::Streamed(table) => table.summary,
-            VisSource::Parts(parts) => parts.summary,
+            VisSource::Streamed(table) => table.summary.clone(),
+            VisSource::Parts(parts) => parts.summary.clone(),
         }
     }
 
@@ -318,7 +318,7 @@ impl VisSource {
             VisSource::Held(vis) => Ok(Visibilities::clone(vis)),
             VisSource::Parts(parts) => Err(not_here(parts)),
             VisSource::Streamed(table) => {
-                let mut all = Visibilities::with_capacity(table.summary.samples as usize);
+                let mut all = Visibilities { times: table.summary.times.clone(), ..Visibilities::with_capacity(table.summary.samples as usize) };
                 self.for_each_chunk(1 << 20, &mut |c| {
                     all.u.extend_from_slice(c.u);
                     all.v.extend_from_slice(c.v);
@@ -362,7 +362,7 @@ mod tests {
             vis: vec![Complex32::new(1.0, 0.0); n],
             weight: vec![2.0; n],
             frequency: (0..n).map(|k| 1e9 + k as f64).collect(),
-            imaging_weight: Vec::new(),
+            ..Visibilities::default()
         };
         let source = VisSource::Held(Arc::new(vis.clone()));
         let mut seen = Vec::new();

@@ -11,7 +11,8 @@
 //! | `vis_re`, `vis_im`     | float32 or float64 | Stokes I visibility, Jy             |
 //! | `weight` (optional)    | float32 or float64 | natural weight 1/sigma^2, default 1 |
 //! | `flag` (optional)      | bool               | true = bad sample, default false    |
-//! | `time` (optional)      | float64            | seconds (not read by the imager)    |
+//! | `time` (optional)      | float64            | seconds: the track (domain check)   |
+//! | `interval` (optional)  | float64            | integration time, seconds (likewise)|
 //! | `antenna1`, `antenna2` | int32 (optional)   | antenna indices (not read either)   |
 //!
 //! File key-value metadata: `phase_centre_ra_deg`, `phase_centre_dec_deg` and `telescope`

@@ -382,6 +382,8 @@ impl NetworkStep for OnnxStep {
         let setup = ImagingSetup {
             telescope: (!job.telescope.trim().is_empty()).then(|| job.telescope.to_string()),
             superresolution: job.superresolution.or(self.setup.superresolution),
+            track_hours: job.track_hours,
+            integration_s: job.integration_s,
             ..self.setup.clone()
         };
         let problems = self.series.validity_problems(&setup);

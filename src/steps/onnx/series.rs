@@ -178,8 +178,9 @@ fn is_zero(n: &usize) -> bool {
 
 /// The observations a series was trained for (`validity:` in the manifest: its domain).
 /// The trainer writes it from the training sets, the importer from the reference's published
-/// ranges. Telescope, super-resolution, weighting and robustness are checked against each
-/// job; the image sizes by [`Series::check_size`]; the rest is recorded for `r2d2 models`.
+/// ranges. Telescope, super-resolution, weighting, robustness, track length and integration
+/// time are checked against each job; the image sizes by [`Series::check_size`]; the dynamic
+/// range is recorded for `r2d2 models`.
 #[derive(Clone, Debug, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct Validity {
@@ -201,7 +202,8 @@ pub struct Validity {
     /// Target dynamic ranges of the training skies `[min, max]`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dynamic_range: Option<[f64; 2]>,
-    /// Total track lengths, hours `[min, max]`.
+    /// Total track lengths, hours `[min, max]`: training observes a sample's configurations one
+    /// after the other and counts their sum (as [`crate::vis::ObservedTimes`] measures a job's).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub track_hours: Option<[f64; 2]>,
     /// Integration times, seconds `[min, max]`.
@@ -214,6 +216,14 @@ pub struct Validity {
 /// baseline is not a different problem for the networks.
 pub const SUPERRESOLUTION_TOLERANCE: f64 = 0.05;
 
+/// Relative tolerance on the track-length range: a track some minutes shorter or longer
+/// (a late start, calibrator scans within it) covers nearly the same hour angles.
+pub const TRACK_TOLERANCE: f64 = 0.1;
+
+/// Relative tolerance on the integration-time range: dump times are set in round seconds
+/// near, not at, the trained sampling.
+pub const INTEGRATION_TOLERANCE: f64 = 0.05;
+
 /// What a job's imaging is, as far as a series' validity goes (unknown parts are not checked).
 #[derive(Clone, Debug, Default)]
 pub struct ImagingSetup {
@@ -223,6 +233,11 @@ pub struct ImagingSetup {
     /// The telescope the data come from (an MS's `OBSERVATION::TELESCOPE_NAME`, a table's
     /// `telescope` metadata).
     pub telescope: Option<String>,
+    /// Hours the source was tracked, summed over the data's tracks (known once the data are
+    /// read, where they carry times).
+    pub track_hours: Option<f64>,
+    /// Integration time of the data, seconds (likewise).
+    pub integration_s: Option<f64>,
 }
 
 /// A trained range in words: `range 1.5..2.5`, or `setting 0` where it is one value.
@@ -232,6 +247,21 @@ fn span([lo, hi]: [f64; 2]) -> String {
     } else {
         format!("range {lo}..{hi}")
     }
+}
+
+/// A trained range with a unit after the values and what the values are: `range 8..12 h (the
+/// hours ...)`, `setting 300 s (the ...)`.
+fn span_of([lo, hi]: [f64; 2], unit: &str, what: &str) -> String {
+    if lo == hi {
+        format!("setting {lo}{unit} ({what})")
+    } else {
+        format!("range {lo}..{hi}{unit} ({what})")
+    }
+}
+
+/// `range` widened by `tolerance` of its ends (relative).
+fn widened([lo, hi]: [f64; 2], tolerance: f64) -> [f64; 2] {
+    [lo * (1.0 - tolerance), hi * (1.0 + tolerance)]
 }
 
 /// A telescope name as series compare them: lower case, the VLA's other names folded
@@ -552,7 +582,7 @@ impl Series {
         }
         if let (Some(range), Some(sr)) = (v.superresolution, job.superresolution) {
             let [lo, hi] = range;
-            if outside(sr, [lo * (1.0 - SUPERRESOLUTION_TOLERANCE), hi * (1.0 + SUPERRESOLUTION_TOLERANCE)]) {
+            if outside(sr, widened([lo, hi], SUPERRESOLUTION_TOLERANCE)) {
                 problems.push(format!("super-resolution {sr:.3} (the pixel samples the longest baseline {sr:.3} times finer than Nyquist) is outside the series' {}", span(range)));
             }
         }
@@ -567,28 +597,49 @@ impl Series {
                 problems.push(format!("Briggs robust {robust} is outside the series' {}", span(range)));
             }
         }
+        if let (Some(range), Some(hours)) = (v.track_hours, job.track_hours) {
+            if outside(hours, widened(range, TRACK_TOLERANCE)) {
+                problems.push(format!(
+                    "a track of {hours:.1} h (the hours the data's source was tracked, summed over its tracks) is outside the series' {}",
+                    span_of(range, " h", "the hours of observation it was trained on")
+                ));
+            }
+        }
+        // Only a longer integration: a shorter one samples the same tracks more densely (real
+        // dumps are seconds long), a longer one smears and thins them.
+        if let (Some(range), Some(seconds)) = (v.integration_s, job.integration_s) {
+            if seconds > widened(range, INTEGRATION_TOLERANCE)[1] {
+                problems.push(format!(
+                    "an integration time of {seconds} s is longer than the series' {}",
+                    span_of(range, " s", "the sampling of the tracks it was trained on")
+                ));
+            }
+        }
         problems
     }
 
-    /// How far `job`'s setting lies outside the declared domain: the super-resolution's
-    /// distance from its range relative to the range's nearer end, plus the Briggs robust's
-    /// distance from its range (0 inside, or where the domain declares neither), plus 100 for
-    /// each problem no distance measures (telescope, weighting scheme): those come first.
+    /// How far `job`'s setting lies outside the declared domain: the super-resolution's, track
+    /// length's and integration time's distances from their ranges relative to the range's
+    /// nearer end, plus the Briggs robust's distance from its range (0 inside, or where the
+    /// domain declares none), plus 100 for each problem no distance measures (telescope,
+    /// weighting scheme): those come first.
     pub fn domain_distance(&self, job: &ImagingSetup) -> f64 {
         let Some(v) = self.manifest.as_ref().and_then(|m| m.validity.as_ref()) else { return 0.0 };
         let beyond = |x: f64, [lo, hi]: [f64; 2]| (lo - x).max(x - hi).max(0.0);
-        let sr = match (v.superresolution, job.superresolution) {
-            (Some([lo, hi]), Some(sr)) => beyond(sr, [lo, hi]) / (if sr > hi { hi } else { lo }).max(f64::MIN_POSITIVE),
+        let relative = |range: Option<[f64; 2]>, x: Option<f64>| match (range, x) {
+            (Some([lo, hi]), Some(x)) => beyond(x, [lo, hi]) / (if x > hi { hi } else { lo }).max(f64::MIN_POSITIVE),
             _ => 0.0,
         };
-        let unmeasured = ImagingSetup { superresolution: None, robust: None, ..job.clone() };
+        let longer = |range: Option<[f64; 2]>, x: Option<f64>| if x > range.map(|[_, hi]| hi) { relative(range, x) } else { 0.0 };
+        let measured = relative(v.superresolution, job.superresolution) + relative(v.track_hours, job.track_hours) + longer(v.integration_s, job.integration_s);
+        let unmeasured = ImagingSetup { superresolution: None, robust: None, track_hours: None, integration_s: None, ..job.clone() };
         let mismatches = self.validity_problems(&unmeasured).len() as f64;
         let briggs = job.weighting.as_deref().is_some_and(|s| s.eq_ignore_ascii_case("briggs"));
         let robust = match (v.robust, job.robust, briggs) {
             (Some(range), Some(robust), true) => beyond(robust, range),
             _ => 0.0,
         };
-        100.0 * mismatches + sr + robust
+        100.0 * mismatches + measured + robust
     }
 
     /// How wide a range of settings its declared domain spans: the super-resolution span plus
@@ -1256,14 +1307,19 @@ mod tests {
         assert!(e.contains("realisations[1][0]") && e.contains("inside the series directory"), "{e}");
     }
 
+    /// A one-network series in `dir` whose manifest declares `validity` (a YAML mapping).
+    fn series_with_validity(dir: &Path, validity: &str) -> Series {
+        touch(&dir.join("a.onnx"));
+        let manifest = format!("format: 1\nname: t\narchitecture: r2d2\nimage_sizes: [64]\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx]\nvalidity: {validity}\n");
+        std::fs::write(dir.join("manifest.yaml"), manifest).unwrap();
+        Series::open(dir).unwrap()
+    }
+
     #[test]
     fn validity_ranges_report_each_problem() {
         let dir = tempfile::tempdir().unwrap();
-        touch(&dir.path().join("a.onnx"));
-        let manifest = "format: 1\nname: t\narchitecture: r2d2\nimage_sizes: [64]\ninput_convention: reference\nnormalisation: mean\nnetworks: [a.onnx]\nvalidity: {telescopes: [vla], superresolution: [1.5, 2.5], robust: [-1, 1], weighting: [briggs]}\n";
-        std::fs::write(dir.path().join("manifest.yaml"), manifest).unwrap();
-        let s = Series::open(dir.path()).unwrap();
-        let setup = |sr, scheme: &str, robust| ImagingSetup { superresolution: sr, weighting: Some(scheme.to_string()), robust: Some(robust), telescope: None };
+        let s = series_with_validity(dir.path(), "{telescopes: [vla], superresolution: [1.5, 2.5], robust: [-1, 1], weighting: [briggs]}");
+        let setup = |sr, scheme: &str, robust| ImagingSetup { superresolution: sr, weighting: Some(scheme.to_string()), robust: Some(robust), ..ImagingSetup::default() };
         assert!(s.validity_problems(&setup(Some(2.5), "briggs", -1.0)).is_empty());
         // Within the tolerance of the SR range; CASA's name of the VLA is the VLA.
         assert!(s.validity_problems(&ImagingSetup { telescope: Some("EVLA".into()), ..setup(Some(2.6), "briggs", 0.0) }).is_empty());
@@ -1276,6 +1332,28 @@ mod tests {
         let p = s.validity_problems(&setup(None, "natural", 5.0));
         assert_eq!(p.len(), 1, "robust is not checked for natural weighting, SR unknown is not checked: {p:?}");
         assert!(p[0].contains("weighting 'natural'"), "{p:?}");
+    }
+
+    #[test]
+    fn a_track_or_integration_outside_the_trained_ones_is_a_problem() {
+        let dir = tempfile::tempdir().unwrap();
+        let s = series_with_validity(dir.path(), "{telescopes: [meerkat], track_hours: [8, 12], integration_s: [60, 60]}");
+        let setup = |hours, seconds| ImagingSetup { track_hours: hours, integration_s: seconds, ..ImagingSetup::default() };
+        assert!(s.validity_problems(&setup(Some(10.0), Some(60.0))).is_empty());
+        // Within the tolerances; data without times are not checked.
+        assert!(s.validity_problems(&setup(Some(7.5), Some(62.0))).is_empty());
+        assert!(s.validity_problems(&setup(None, None)).is_empty());
+        // A shorter integration samples the same tracks more densely: not a problem.
+        assert!(s.validity_problems(&setup(Some(10.0), Some(8.0))).is_empty());
+        let p = s.validity_problems(&setup(Some(4.0), Some(120.0)));
+        assert_eq!(p.len(), 2, "{p:?}");
+        assert!(p[0].contains("a track of 4.0 h") && p[0].contains("range 8..12 h"), "{p:?}");
+        assert!(p[1].contains("integration time of 120 s is longer") && p[1].contains("setting 60 s"), "{p:?}");
+        assert!(s.validity_problems(&setup(Some(13.5), None))[0].contains("a track of 13.5 h"));
+        // Measured distances: a track nearer the range is nearer the domain, and less far than a
+        // problem no distance measures.
+        assert!(s.domain_distance(&setup(Some(6.0), None)) < s.domain_distance(&setup(Some(2.0), None)));
+        assert!(s.domain_distance(&setup(Some(2.0), Some(1.0))) < 100.0);
     }
 
     #[test]
