@@ -238,7 +238,7 @@ fn an_observation_in_parts_images_as_the_whole_table() {
     // A part of another observation (another phase centre) is refused, naming it.
     let mut other = meta.clone();
     other.phase_centre_dec_deg += 1.0;
-    let mixed = vec![described[0].clone(), ("elsewhere.parquet".to_string(), other, described[1].2)];
+    let mixed = vec![described[0].clone(), ("elsewhere.parquet".to_string(), other, described[1].2.clone())];
     let e = PartedObservation::new("obs", &mixed, Box::new(LocalParts { parts: parts[..2].to_vec() })).err().unwrap().to_string();
     assert!(e.contains("elsewhere.parquet") && e.contains("another observation"), "{e}");
 }
