@@ -8,7 +8,7 @@ use r2d2_imaging::nufft::NufftParams;
 use r2d2_imaging::simulate::observe::ObservationSpec;
 use r2d2_imaging::simulate::{simulate, SimulationRequest, SkyModel};
 use r2d2_imaging::vis::to_record_batches;
-use r2d2_imaging::{Engine, EngineOptions, ImageParams, MemoryInput, StepChoice, Weighting};
+use r2d2_imaging::{Engine, EngineOptions, ImageRequest, MemoryInput, Weighting};
 
 fn main() -> r2d2_imaging::Result<()> {
     let size = 128;
@@ -34,7 +34,8 @@ fn main() -> r2d2_imaging::Result<()> {
     })?;
     let (schema, batches) = to_record_batches(&observation.table, &observation.meta, 65_536)?;
     let engine = Engine::new(EngineOptions::default())?;
-    let params = ImageParams { size, step: StepChoice::Clean, iterations: Some(3), ..ImageParams::default() };
+    let mut params = ImageRequest::default();
+    (params.grid.size, params.step.step, params.step.iterations) = (size, "clean".into(), Some(3));
     let products = engine.image(MemoryInput::from_batches("sim", schema, batches), &params)?;
     println!("job {}: {} x {} pixels, {} iterations", products.id, products.size, products.size, products.iterations);
     for m in &products.metrics {

@@ -15,6 +15,7 @@ use crate::params::{
     WeightingParams, WriterParams,
 };
 use crate::job::JobProducts;
+use crate::request::{ImageRequest, StepChoice};
 use crate::weighting::Weighting;
 use crate::{Error, Result};
 use std::path::{Path, PathBuf};
@@ -143,10 +144,11 @@ impl Engine {
     }
 
     /// Images one observation with the default pipeline (weighting, gridder, the step, the
-    /// residual update) and returns its products; with `params.write`, also writes them as
-    /// `r2d2 image` does.
-    pub fn image(&self, obs: impl Into<Observation>, params: &ImageParams) -> Result<JobProducts> {
+    /// residual update) and returns its products; with the request's `name`, also writes them
+    /// as `r2d2 image` does.
+    pub fn image(&self, obs: impl Into<Observation>, request: &ImageRequest) -> Result<JobProducts> {
         let obs = obs.into();
+        let params = &ImagePlan::of(request)?;
         if let (Observation::Path(path), Some(prefix)) = (&obs, &params.write) {
             // Before imaging: products that would replace the observation or the truth.
             let mut inputs = vec![path.as_path()];
@@ -203,17 +205,17 @@ impl From<MemoryInput> for Observation {
 
 /// CLEAN's stopping controls as WSClean names them; `None` keeps the step's default.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct CleanControls {
+struct CleanControls {
     /// Components over all major cycles (`-niter`).
-    pub niter: Option<usize>,
+    niter: Option<usize>,
     /// Minor-cycle loop gain (`-gain`, default 0.1).
-    pub gain: Option<f64>,
+    gain: Option<f64>,
     /// Fraction of the peak each major cycle's minor cycle cleans away (`-mgain`).
-    pub mgain: Option<f64>,
+    mgain: Option<f64>,
     /// Stop at this many times the residual's noise (`-auto-threshold`).
-    pub auto_threshold: Option<f64>,
+    auto_threshold: Option<f64>,
     /// Stop below this residual peak, Jy/beam (`-threshold`).
-    pub threshold: Option<f64>,
+    threshold: Option<f64>,
 }
 
 impl CleanControls {
@@ -226,131 +228,78 @@ impl CleanControls {
 /// `--iterations` is given: enough for the thresholds and `-niter` to end the loop first.
 const CLEAN_MAJOR_CYCLES_WITH_NITER: usize = 20;
 
-/// The network step of [`Engine::image`].
-#[derive(Clone, Debug, PartialEq)]
-pub enum StepChoice {
-    /// The series trained for the image size (see `r2d2 models`).
-    Auto,
-    /// The built-in Hogbom CLEAN.
-    Clean,
-    /// A model series: its directory, or a name `r2d2 models` lists.
-    Series(PathBuf),
-    /// A native plugin library and its configuration (a YAML/JSON mapping).
-    Native { library: PathBuf, config: Option<serde_yaml::Value> },
+pub use crate::steps::runtime::{BackendChoice, GraphOptimization};
+
+/// An [`ImageRequest`] resolved into what the pipeline is built from: typed choices, each
+/// checked, its errors naming the request's field.
+#[derive(Clone, Debug)]
+struct ImagePlan {
+    size: usize,
+    /// `None`: the series' own (its manifest's `superresolution`) for a series step, else the
+    /// default.
+    superresolution: Option<f64>,
+    pixel_arcsec: Option<f64>,
+    longest_baseline: Option<f64>,
+    /// `None`: the series' own (its manifest's `weighting`) for a series step, else the default.
+    weighting: Option<Weighting>,
+    weighting_grid_factor: f64,
+    epsilon: f64,
+    oversampling: f64,
+    w_term: crate::operator::WTermMode,
+    hold_mb: f64,
+    threads: usize,
+    step: StepChoice,
+    iterations: Option<usize>,
+    clean: CleanControls,
+    final_clean: bool,
+    backend: BackendChoice,
+    prefetch: bool,
+    graph_optimization: GraphOptimization,
+    truth: Option<PathBuf>,
+    write: Option<String>,
+    model_column: Option<String>,
+    ms: crate::request::MsOptions,
 }
 
-impl StepChoice {
-    /// A step as `r2d2 image --step` and Python's `step=` name it: `auto`, `clean`, a plugin
-    /// library (`.so`, `.dylib`, `.dll`, which alone takes `plugin_config`, a YAML or JSON
-    /// mapping), or a series (a directory or a name `r2d2 models` lists).
-    pub fn parse(step: &str, plugin_config: Option<&str>) -> Result<StepChoice> {
-        let path = PathBuf::from(step);
-        let is_library = matches!(path.extension().and_then(|e| e.to_str()), Some("so" | "dylib" | "dll"));
-        if plugin_config.is_some() && !is_library {
-            return Err(Error::parameter("plugin config", format!("only a native plugin takes a configuration; the step is '{step}'")));
-        }
-        Ok(match step {
-            "clean" => StepChoice::Clean,
-            crate::steps::series::AUTO_SERIES => StepChoice::Auto,
-            _ if is_library => StepChoice::Native {
-                library: path,
-                config: plugin_config
-                    .map(|text| serde_yaml::from_str(text).map_err(|e| Error::parameter("plugin config", format!("expected a YAML or JSON mapping: {e}"))))
-                    .transpose()?,
-            },
-            _ => StepChoice::Series(path),
+impl ImagePlan {
+    fn of(request: &ImageRequest) -> Result<ImagePlan> {
+        let (grid, step) = (&request.grid, &request.step);
+        crate::limits::check_image_size(grid.size).map_err(|m| Error::parameter("size", m))?;
+        crate::limits::check_threads(grid.threads).map_err(|m| Error::parameter("threads", m))?;
+        Ok(ImagePlan {
+            size: grid.size,
+            superresolution: grid.superresolution,
+            pixel_arcsec: grid.pixel_arcsec,
+            longest_baseline: grid.longest_baseline,
+            weighting: grid.weighting()?,
+            weighting_grid_factor: grid.weighting_grid_factor,
+            epsilon: grid.epsilon,
+            oversampling: grid.oversampling,
+            w_term: grid.w_term,
+            hold_mb: request.hold_mb,
+            threads: grid.threads,
+            step: StepChoice::parse(&step.step, step.plugin_config.as_deref())?,
+            iterations: step.iterations,
+            clean: CleanControls { niter: step.niter, gain: step.gain, mgain: step.mgain, auto_threshold: step.auto_threshold, threshold: step.threshold },
+            final_clean: step.final_clean,
+            backend: step.backend,
+            prefetch: step.prefetch,
+            graph_optimization: step.graph_optimization,
+            truth: request.truth.clone(),
+            write: request.name.clone(),
+            model_column: request.model_column.clone(),
+            ms: request.ms.clone(),
         })
     }
 }
 
-pub use crate::steps::runtime::{BackendChoice, GraphOptimization};
-
-/// What [`Engine::image`] makes, with `r2d2 image`'s defaults.
-#[derive(Clone, Debug)]
-pub struct ImageParams {
-    /// Pixels per side.
-    pub size: usize,
-    /// Pixel = 1 / (superresolution x 2 max_uv), unless `pixel_arcsec` is given. `None`: the
-    /// series' own (its manifest's `superresolution`) for a series step, else 1.5.
-    pub superresolution: Option<f64>,
-    pub pixel_arcsec: Option<f64>,
-    /// The longest baseline (wavelengths) the super-resolution factor is applied to, in place
-    /// of the data's own (`image.longest_baseline`): a part of a split imaged apart, on the
-    /// grid of the whole split.
-    pub longest_baseline: Option<f64>,
-    /// `None`: the series' own (its manifest's `weighting`) for a series step, else Briggs 0.
-    pub weighting: Option<Weighting>,
-    pub weighting_grid_factor: f64,
-    /// NUFFT accuracy and oversampling.
-    pub epsilon: f64,
-    pub oversampling: f64,
-    /// The w-term (default `auto`: corrected where it matters at `epsilon`).
-    pub w_term: crate::operator::WTermMode,
-    /// Most memory (MB) a file's samples may take held for an operator (the w-corrected
-    /// residual); above it they are read again at each update, or only for the kernels and the
-    /// final residual of a Taylor series in w (the gridder's `hold_mb`).
-    pub hold_mb: f64,
-    pub step: StepChoice,
-    /// CLEAN major cycles (default 5, or 20 when `clean.max_components` bounds the work), the
-    /// first networks of a series (default all), or a plugin's steps (default 10).
-    pub iterations: Option<usize>,
-    /// CLEAN's stopping controls with WSClean's meanings (`-niter`, `-gain`, `-mgain`,
-    /// `-auto-threshold`, `-threshold`); refused with another step.
-    pub clean: CleanControls,
-    /// Series only: CLEAN major cycles on what the series' model leaves in the residual
-    /// (`kind: final_clean`), so that compact sources get the fluxes the data measure; default
-    /// true.
-    pub final_clean: bool,
-    /// Series only: inference backend, prefetching of the next network, graph optimisation.
-    pub backend: BackendChoice,
-    pub prefetch: bool,
-    pub graph_optimization: GraphOptimization,
-    /// Ground truth (FITS) for SNR/logSNR per iteration.
-    pub truth: Option<PathBuf>,
-    /// Also write the products at this prefix (`{job}`: the job id), as `r2d2 image --name`.
-    pub write: Option<String>,
-    /// MeasurementSet input: predict the model's visibilities into this column.
-    pub model_column: Option<String>,
-    /// MeasurementSet input: what to read (data column, field, windows, channels).
-    #[cfg(feature = "ms")]
-    pub ms: Option<crate::ms::MsSelection>,
-}
-
-impl Default for ImageParams {
-    fn default() -> Self {
-        ImageParams {
-            size: 512,
-            superresolution: None,
-            pixel_arcsec: None,
-            longest_baseline: None,
-            weighting: None,
-            weighting_grid_factor: crate::weighting::DEFAULT_GRID_FACTOR,
-            epsilon: 1e-6,
-            oversampling: 2.0,
-            w_term: crate::operator::WTermMode::Auto,
-            hold_mb: crate::stages::params::DEFAULT_HOLD_MB,
-            step: StepChoice::Auto,
-            clean: CleanControls::default(),
-            final_clean: true,
-            iterations: None,
-            backend: BackendChoice::Auto,
-            prefetch: true,
-            graph_optimization: GraphOptimization::default(),
-            truth: None,
-            write: None,
-            model_column: None,
-            #[cfg(feature = "ms")]
-            ms: None,
-        }
-    }
-}
-
 /// The `r2d2 image` pipeline for `obs` and `params`, and the in-memory inputs it reads.
-fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, Vec<MemoryInput>, Vec<PartedObservation>)> {
+fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec<MemoryInput>, Vec<PartedObservation>)> {
     let (resolved, clean_because) = resolve_auto(params, || observation_telescope(&obs))?;
     let params = &resolved;
     let (mut inputs, mut parted) = (Vec::new(), Vec::new());
     let truth = params.truth.clone();
+    let reads_ms = matches!(&obs, Observation::Path(path) if is_ms(path));
     let read = match obs {
         Observation::Batches(input) => {
             inputs.push(input);
@@ -358,7 +307,7 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
         }
         Observation::Parts(parts) => {
             if params.model_column.is_some() {
-                return Err(Error::parameter("model-column", format!("job '{}' is in parts: only a MeasurementSet input has a column to write the model into", parts.id)));
+                return Err(Error::parameter("model_column", format!("job '{}' is in parts: only a MeasurementSet input has a column to write the model into", parts.id)));
             }
             parted.push(parts);
             StageSpec::typed("read", &ArrowParams { truth, ..ArrowParams::default() })?
@@ -369,7 +318,7 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
                 ms_read(&path, params)?
             } else {
                 if params.model_column.is_some() {
-                    return Err(Error::parameter("model-column", format!("{}: only a MeasurementSet input has a column to write the model into", path.display())));
+                    return Err(Error::parameter("model_column", format!("{}: only a MeasurementSet input has a column to write the model into", path.display())));
                 }
                 let text = path.to_string_lossy().into_owned();
                 match format {
@@ -379,6 +328,11 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
             }
         }
     };
+    if !reads_ms {
+        if let Some(option) = params.ms.given() {
+            return Err(Error::parameter(option, "only a MeasurementSet input has it; the observation is not one"));
+        }
+    }
     let (weighting, superresolution) = imaging_setting(params)?;
     let weights = WeightingParams { grid_factor: params.weighting_grid_factor, ..WeightingParams::new(weighting) };
     let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling, w_term: params.w_term, hold_mb: params.hold_mb, ..GridderParams::default() };
@@ -411,14 +365,16 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
         pixel_arcsec: params.pixel_arcsec,
         longest_baseline: params.longest_baseline,
     };
-    Ok((PipelineSpec::new("image", &image, stages)?, inputs, parted))
+    let mut spec = PipelineSpec::new("image", &image, stages)?;
+    spec.threads = params.threads;
+    Ok((spec, inputs, parted))
 }
 
 /// Weighting and super-resolution of an image: what `params` asks for; where it asks for none,
 /// a series step's own (its manifest's, as it was trained), else Briggs 0 and SR 1.5. The log
 /// says when the series' setting is used.
-fn imaging_setting(params: &ImageParams) -> Result<(Weighting, f64)> {
-    const DEFAULT: (Weighting, f64) = (Weighting::Briggs { robust: 0.0 }, 1.5);
+fn imaging_setting(params: &ImagePlan) -> Result<(Weighting, f64)> {
+    const DEFAULT: (Weighting, f64) = (crate::weighting::DEFAULT_WEIGHTING, crate::imaging::DEFAULT_SUPERRESOLUTION);
     let needs_series = params.weighting.is_none() || (params.superresolution.is_none() && params.pixel_arcsec.is_none());
     let own = match &params.step {
         StepChoice::Auto | StepChoice::Series(_) if needs_series => {
@@ -480,7 +436,7 @@ const FALLBACK_CLEAN: CleanControls = CleanControls { niter: Some(1_000_000), ga
 /// telescope's PSFs gives a confident image that nothing vouches for; CLEAN's is the one
 /// the user knows how to judge).
 /// The telescope is read (`telescope()`) only when `auto` is asked for.
-fn resolve_auto(params: &ImageParams, telescope: impl FnOnce() -> Option<String>) -> Result<(ImageParams, Option<String>)> {
+fn resolve_auto(params: &ImagePlan, telescope: impl FnOnce() -> Option<String>) -> Result<(ImagePlan, Option<String>)> {
     // CLEAN controls with `auto` are refused by the step stage, whatever the telescope.
     if params.step != StepChoice::Auto || params.clean.any() {
         return Ok((params.clone(), None));
@@ -496,18 +452,18 @@ fn resolve_auto(params: &ImageParams, telescope: impl FnOnce() -> Option<String>
         if let Some(warning) = off_size {
             log::warn!("{warning}");
         }
-        return Ok((ImageParams { step: StepChoice::Series(dir), ..params.clone() }, None));
+        return Ok((ImagePlan { step: StepChoice::Series(dir), ..params.clone() }, None));
     }
     let known: Vec<String> = found.iter().map(|(_, s)| s.name_with_telescopes()).collect();
     let reason = format!(
-        "no series was trained for the telescope '{telescope}' the data come from (series: {}): imaged with the built-in CLEAN (auto-threshold 3, mgain 0.8); --step NAME runs a series anyway, outside what it was trained for",
+        "no series was trained for the telescope '{telescope}' the data come from (series: {}): imaged with the built-in CLEAN (auto-threshold 3, mgain 0.8); a series named as the step runs anyway, outside what it was trained for",
         known.join(", ")
     );
-    Ok((ImageParams { step: StepChoice::Clean, clean: FALLBACK_CLEAN, ..params.clone() }, Some(reason)))
+    Ok((ImagePlan { step: StepChoice::Clean, clean: FALLBACK_CLEAN, ..params.clone() }, Some(reason)))
 }
 
 /// What the options fix of a series' domain (a series is chosen for it).
-fn fixed_setup(params: &ImageParams, telescope: Option<&str>) -> crate::steps::series::ImagingSetup {
+fn fixed_setup(params: &ImagePlan, telescope: Option<&str>) -> crate::steps::series::ImagingSetup {
     crate::steps::series::ImagingSetup {
         superresolution: params.superresolution,
         weighting: params.weighting.map(|w| w.scheme().name().to_string()),
@@ -518,11 +474,11 @@ fn fixed_setup(params: &ImageParams, telescope: Option<&str>) -> crate::steps::s
 }
 
 /// The step stage for `params.step` (`clean_because`: why CLEAN runs where `auto` was asked).
-fn step_stage(params: &ImageParams, clean_because: Option<String>) -> Result<StageSpec> {
+fn step_stage(params: &ImagePlan, clean_because: Option<String>) -> Result<StageSpec> {
     if params.clean.any() && params.step != StepChoice::Clean {
         return Err(Error::parameter(
             "step",
-            "the CLEAN controls (niter, gain, mgain, auto-threshold, threshold) are for --step clean; the default step is a network series, which needs none",
+            "the CLEAN controls (niter, gain, mgain, auto_threshold, threshold) are for the step clean; the default step is a network series, which needs none",
         ));
     }
     match &params.step {
@@ -560,7 +516,7 @@ fn step_stage(params: &ImageParams, clean_because: Option<String>) -> Result<Sta
             StageSpec::typed("step", &onnx)
         }
         StepChoice::Native { library, config } => {
-            StageSpec::typed("step", &NativeParams { config: config.clone(), ..NativeParams::new(library, params.iterations.unwrap_or(10)) })
+            StageSpec::typed("step", &NativeParams { config: config.clone(), ..NativeParams::new(library, params.iterations.unwrap_or(crate::request::DEFAULT_PLUGIN_STEPS)) })
         }
     }
 }
@@ -571,17 +527,21 @@ pub fn is_ms(path: &Path) -> bool {
 }
 
 #[cfg(feature = "ms")]
-fn ms_read(path: &Path, params: &ImageParams) -> Result<StageSpec> {
-    let mut read = MsParams { truth: params.truth.clone(), ..MsParams::new(path) };
-    if let Some(selection) = &params.ms {
-        let selection = selection.clone();
-        read = MsParams { data_column: selection.data_column, field: selection.field, spw: selection.spw, channels: selection.channels, ..read };
-    }
+fn ms_read(path: &Path, params: &ImagePlan) -> Result<StageSpec> {
+    let selection = params.ms.selection()?;
+    let read = MsParams {
+        truth: params.truth.clone(),
+        data_column: selection.data_column,
+        field: selection.field,
+        spw: selection.spw,
+        channels: selection.channels,
+        ..MsParams::new(path)
+    };
     StageSpec::typed("read", &read)
 }
 
 #[cfg(not(feature = "ms"))]
-fn ms_read(path: &Path, _params: &ImageParams) -> Result<StageSpec> {
+fn ms_read(path: &Path, _params: &ImagePlan) -> Result<StageSpec> {
     Err(Error::input(path, "a MeasurementSet, but this r2d2 was built without the `ms` feature"))
 }
 
@@ -643,6 +603,19 @@ mod tests {
         path
     }
 
+    fn plan(request: ImageRequest) -> ImagePlan {
+        ImagePlan::of(&request).unwrap()
+    }
+
+    /// MS options for an input that is not an MS are refused, naming the option.
+    #[test]
+    fn ms_options_for_another_input_are_refused_by_name() {
+        let mut request = ImageRequest::default();
+        request.ms.field = Some("3".into());
+        let e = image_spec(Observation::Path(table_file("f.parquet", b"PAR1")), &plan(request)).err().expect("refused").to_string();
+        assert!(e.contains("field") && e.contains("MeasurementSet"), "{e}");
+    }
+
     /// pipelines/image.yaml says it is the pipeline `r2d2 image OBS.parquet` runs: it is
     /// `Engine::image`'s with every option at its default, for `obs.parquet` written at the
     /// YAML's prefix (`{job}`: `r2d2 image` takes it from `--name`). `Engine::image` adds a
@@ -650,7 +623,7 @@ mod tests {
     #[test]
     fn pipelines_image_yaml_is_the_pipeline_of_engine_image() {
         let yaml = PipelineSpec::load(&Path::new(env!("CARGO_MANIFEST_DIR")).join("pipelines/image.yaml"), &[]).unwrap();
-        let params = ImageParams { write: Some("{job}".into()), ..ImageParams::default() };
+        let params = plan(ImageRequest { name: Some("{job}".into()), ..ImageRequest::default() });
         let (mut code, inputs, _) = image_spec(Observation::Path(table_file("obs.parquet", b"PAR1")), &params).unwrap();
         assert!(inputs.is_empty());
         // The YAML names the observation as the command line would: by its name.
@@ -668,17 +641,23 @@ mod tests {
     /// Each choice of `Engine::image` reaches its stage's parameters (read back typed).
     #[test]
     fn engine_image_pipelines_read_back_as_typed_parameters() {
-        let clean = ImageParams { step: StepChoice::Clean, iterations: Some(3), weighting: Some(Weighting::Uniform), write: Some("out/{job}".into()), ..ImageParams::default() };
+        let mut clean = ImageRequest { name: Some("out/{job}".into()), ..ImageRequest::default() };
+        (clean.step.step, clean.step.iterations, clean.grid.weighting) = ("clean".into(), Some(3), Some("uniform".into()));
+        let clean = plan(clean);
         let arrows = table_file("a.arrows", &[0xff; 8]);
         let (spec, _, _) = image_spec(Observation::Path(arrows.clone()), &clean).unwrap();
         assert_eq!(spec.stage_params::<CleanParams>(spec.stage("step").unwrap()).unwrap().major_cycles, 3);
         assert_eq!(spec.stage_params::<WeightingParams>(spec.stage("weights").unwrap()).unwrap().scheme, WeightingScheme::Uniform);
         assert_eq!(spec.stage_params::<ArrowIpcParams>(spec.stage("read").unwrap()).unwrap().path, arrows.to_string_lossy());
-        let native = ImageParams { step: StepChoice::Native { library: "p.so".into(), config: Some(serde_yaml::from_str("{gain: 1}").unwrap()) }, ..ImageParams::default() };
+        let mut native = ImageRequest::default();
+        (native.step.step, native.step.plugin_config) = ("p.so".into(), Some("{gain: 1}".into()));
+        let native = plan(native);
         let (spec, _, _) = image_spec(Observation::Path(table_file("a.parquet", b"PAR1")), &native).unwrap();
         let step = spec.stage_params::<NativeParams>(spec.stage("step").unwrap()).unwrap();
         assert_eq!((step.iterations, step.config.unwrap()["gain"].as_f64()), (10, Some(1.0)));
-        let onnx = ImageParams { iterations: Some(2), prefetch: false, backend: BackendChoice::Tract, ..ImageParams::default() };
+        let mut onnx = ImageRequest::default();
+        (onnx.step.iterations, onnx.step.prefetch, onnx.step.backend) = (Some(2), false, BackendChoice::Tract);
+        let onnx = plan(onnx);
         let (spec, _, _) = image_spec(Observation::Path(table_file("a.parquet", b"PAR1")), &onnx).unwrap();
         let step = spec.stage_params::<OnnxParams>(spec.stage("step").unwrap()).unwrap();
         assert_eq!((step.networks, step.prefetch, step.backend), (Some(2), false, BackendChoice::Tract));

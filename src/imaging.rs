@@ -9,6 +9,10 @@ use crate::vis::{chunk_weights, Visibilities};
 use crate::weighting::{DensityGrid, Weighting, DEFAULT_GRID_FACTOR};
 use crate::{Error, Result};
 
+/// The super-resolution factor where neither the request nor a series gives one: the
+/// reference's usual setting.
+pub const DEFAULT_SUPERRESOLUTION: f64 = 1.5;
+
 /// How the pixel size is chosen.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum PixelScale {
@@ -20,7 +24,7 @@ pub enum PixelScale {
 
 impl Default for PixelScale {
     fn default() -> Self {
-        PixelScale::SuperResolution(1.5)
+        PixelScale::SuperResolution(DEFAULT_SUPERRESOLUTION)
     }
 }
 
@@ -31,8 +35,8 @@ impl Default for PixelScale {
 pub struct ImageConfig {
     /// Pixels per side.
     pub size: usize,
-    /// Super-resolution factor (see [`PixelScale::SuperResolution`]); 1.5 when neither it nor
-    /// `pixel_arcsec` is given.
+    /// Super-resolution factor (see [`PixelScale::SuperResolution`]);
+    /// [`DEFAULT_SUPERRESOLUTION`] when neither it nor `pixel_arcsec` is given.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub superresolution: Option<f64>,
     /// A fixed pixel size (arcsec), instead of the super-resolution factor.
@@ -48,7 +52,7 @@ impl ImageConfig {
     pub fn pixel_scale(&self) -> PixelScale {
         match self.pixel_arcsec {
             Some(p) => PixelScale::Arcsec(p),
-            None => PixelScale::SuperResolution(self.superresolution.unwrap_or(1.5)),
+            None => PixelScale::SuperResolution(self.superresolution.unwrap_or(DEFAULT_SUPERRESOLUTION)),
         }
     }
 }

@@ -27,6 +27,7 @@ pub mod operator;
 mod parallel;
 pub mod pipeline;
 pub mod preview;
+pub mod request;
 mod sanity;
 pub mod simulate;
 mod stages;
@@ -48,7 +49,8 @@ pub mod progress;
 #[doc(hidden)]
 pub mod staging;
 
-pub use engine::{is_ms, BackendChoice, CleanControls, Engine, EngineOptions, GraphOptimization, ImageParams, Observation, ProgressObserver, StepChoice};
+pub use engine::{is_ms, BackendChoice, Engine, EngineOptions, GraphOptimization, Observation, ProgressObserver};
+pub use request::{GridOptions, ImageRequest, MsOptions, StepOptions};
 pub use error::{Error, Result};
 pub use parallel::claim_process;
 pub use imaging::ImageConfig;

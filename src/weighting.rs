@@ -137,6 +137,10 @@ impl std::fmt::Display for Weighting {
     }
 }
 
+/// The weighting where neither the request nor a series gives one: Briggs 0, between natural's
+/// sensitivity and uniform's resolution, as WSClean's users usually choose.
+pub const DEFAULT_WEIGHTING: Weighting = Weighting::Briggs { robust: 0.0 };
+
 /// Default weighting-grid factor (cells per axis / image size), as in the reference.
 pub const DEFAULT_GRID_FACTOR: f64 = 2.0;
 

@@ -8,8 +8,8 @@ use r2d2_imaging::simulate::observe::ObservationSpec;
 use r2d2_imaging::simulate::{simulate, SimulationOutput, SimulationRequest, SkyModel};
 use r2d2_imaging::vis::to_record_batches;
 use r2d2_imaging::{
-    BuildContext, Built, Emit, Engine, EngineOptions, ImageParams, Job, JobProducts, MemoryInput, Product, Role, Stage, StageKind,
-    StepChoice, Weighting,
+    BuildContext, Built, Emit, Engine, EngineOptions, ImageRequest, Job, JobProducts, MemoryInput, Product, Role, Stage, StageKind,
+    Weighting,
 };
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
@@ -47,8 +47,10 @@ fn input(id: &str, obs: &SimulationOutput) -> MemoryInput {
     MemoryInput::from_batches(id, schema, batches)
 }
 
-fn clean_params() -> ImageParams {
-    ImageParams { size: SIZE, step: StepChoice::Clean, iterations: Some(2), ..ImageParams::default() }
+fn clean_params() -> ImageRequest {
+    let mut request = ImageRequest::default();
+    (request.grid.size, request.step.step, request.step.iterations) = (SIZE, "clean".into(), Some(2));
+    request
 }
 
 fn engine() -> Engine {
@@ -96,7 +98,7 @@ fn memory_and_parquet_inputs_give_the_same_products_and_files() {
     r2d2_imaging::vis::write_parquet(&parquet, &obs.table, &obs.meta).unwrap();
     // The file path, writing its products as `r2d2 image --name` does.
     let prefix = dir.path().join("file").to_string_lossy().into_owned();
-    let from_file = engine.image(parquet.as_path(), &ImageParams { write: Some(prefix), ..clean_params() }).unwrap();
+    let from_file = engine.image(parquet.as_path(), &ImageRequest { name: Some(prefix), ..clean_params() }).unwrap();
     assert_eq!(from_memory.dirty, from_file.dirty);
     assert_eq!(from_memory.model, from_file.model);
     assert_eq!(from_memory.header, from_file.header);

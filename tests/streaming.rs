@@ -180,7 +180,7 @@ fn chunk_and_hold_sizes_are_checked() {
 #[test]
 fn an_observation_in_parts_images_as_the_whole_table() {
     use r2d2_imaging::vis::{open_source, LocalParts, OpenOptions, PartedObservation, VisSource, VisSummary};
-    use r2d2_imaging::{Engine, EngineOptions, ImageParams, Observation, StepChoice, Weighting};
+    use r2d2_imaging::{Engine, EngineOptions, ImageRequest, Observation};
     use std::sync::Arc;
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
@@ -194,14 +194,10 @@ fn an_observation_in_parts_images_as_the_whole_table() {
     let described: Vec<(String, _, VisSummary)> = parts.iter().enumerate().map(|(k, p)| (format!("part{k}"), meta.clone(), p.summary())).collect();
     let engine = Engine::new(EngineOptions { threads: 2, onnx_runtime: None }).unwrap();
     for w_term in ["off", "on"] {
-        let params = ImageParams {
-            size: SIZE,
-            step: StepChoice::Clean,
-            iterations: Some(3),
-            weighting: Some(Weighting::Briggs { robust: 0.0 }),
-            w_term: r2d2_imaging::operator::WTermMode::from_name(w_term).unwrap(),
-            ..ImageParams::default()
-        };
+        let mut params = ImageRequest::default();
+        (params.grid.size, params.step.step, params.step.iterations) = (SIZE, "clean".into(), Some(3));
+        (params.grid.weighting, params.grid.robust) = (Some("briggs".into()), Some(0.0));
+        params.grid.w_term = r2d2_imaging::operator::WTermMode::from_name(w_term).unwrap();
         let whole = engine.image(path.as_path(), &params).unwrap();
         let passes = Box::new(LocalParts { parts: parts.clone() });
         let parted = engine.image(Observation::Parts(PartedObservation::new("obs", &described, passes).unwrap()), &params).unwrap();
@@ -233,7 +229,9 @@ fn an_observation_in_parts_images_as_the_whole_table() {
     // meanwhile) stops the job, and nothing is imaged.
     let shrunk = vec![parts[0].clone(), parts[1].clone(), VisSource::Held(Arc::new(Default::default()))];
     let changed = PartedObservation::new("obs", &described, Box::new(LocalParts { parts: shrunk })).unwrap();
-    let e = engine.image(Observation::Parts(changed), &ImageParams { size: SIZE, step: StepChoice::Clean, ..ImageParams::default() }).unwrap_err().to_string();
+    let mut clean = ImageRequest::default();
+    (clean.grid.size, clean.step.step) = (SIZE, "clean".into());
+    let e = engine.image(Observation::Parts(changed), &clean).unwrap_err().to_string();
     assert!(e.contains("where their first reading found") && e.contains("written to meanwhile"), "{e}");
     // A part of another observation (another phase centre) is refused, naming it.
     let mut other = meta.clone();

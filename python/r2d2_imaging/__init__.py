@@ -72,6 +72,7 @@ __all__ = [
     "TableError",
     "Products",
     "image",
+    "image_options",
     "info",
     "run",
     "validate",
@@ -154,54 +155,61 @@ def info() -> dict:
     return _native.info(_onnx_runtime())
 
 
-def image(obs, size: int = 512, step: Optional[str] = None, weighting: Optional[str] = None, robust: Optional[float] = None,
-          superresolution: Optional[float] = None, pixel_arcsec: Optional[float] = None, truth: Optional[PathLike] = None, *,
-          iterations: Optional[int] = None, threads: int = 0, id: Optional[str] = None, backend: str = "auto",
-          prefetch: bool = True, plugin_config: Optional[str] = None, epsilon: float = 1e-6, oversampling: float = 2.0,
-          weighting_grid_factor: Optional[float] = None, onnx_runtime: Optional[PathLike] = None,
-          w_term: str = "auto", niter: Optional[int] = None, gain: Optional[float] = None, mgain: Optional[float] = None,
-          auto_threshold: Optional[float] = None, threshold: Optional[float] = None, final_clean: bool = True,
-          longest_baseline: Optional[float] = None) -> Products:
+def image(obs, *, id: Optional[str] = None, onnx_runtime: Optional[PathLike] = None, **options) -> Products:
     """Image one observation as ``r2d2 image`` does, in this process.
 
     ``obs`` is a path (Parquet, Arrow IPC, MeasurementSet) or a table in the documented
     visibility schema with the observation's metadata on its schema: a ``pyarrow.Table`` or
     ``RecordBatchReader`` (anything with ``__arrow_c_stream__``), read through the Arrow C
-    stream without copying its buffers. ``step``: ``None``/``"auto"`` (the series trained
-    for ``size``), ``"clean"``, a series name or directory, or a plugin library;
-    ``iterations``: CLEAN major cycles, the first networks of a series, or a plugin's steps.
-    ``threads``: the engine's threads (0: every core). ``id`` names the job (default: the
-    file name without its extension, or ``table``). ``weighting`` (``natural``, ``uniform``,
-    ``briggs``), ``robust`` and ``superresolution``: ``None`` takes the series' own (as it was
-    trained; Briggs 0 and 1.5 for other steps); ``robust`` alone means Briggs; ``given`` uses
-    the imaging weights that come with the data. ``w_term``: ``auto`` (corrected where it
-    matters at ``epsilon``), ``on`` or ``off``. With ``step="clean"``, WSClean's CLEAN
-    controls: ``niter`` (components over all major cycles), ``gain``, ``mgain``,
-    ``auto_threshold`` (sigmas of the residual's robust noise) and ``threshold`` (Jy/beam);
-    refused with a network series. ``final_clean`` (series only, default on): CLEAN major
-    cycles on what the series' model leaves in the residual, so that compact sources get the
-    fluxes the data measure (``False``: the networks' model as it is). ``longest_baseline``
-    (wavelengths): what ``superresolution`` applies to in place of the data's own longest
-    baseline, so that parts of one observation imaged apart share one grid (the Dask split's
-    jobs carry their split's).
+    stream without copying its buffers. ``id`` names the job (default: the file name without
+    its extension, or ``table``); ``onnx_runtime`` is the ONNX Runtime library (default: the
+    ``onnxruntime`` package's, where installed).
+
+    ``options`` are ``r2d2 image``'s options, every one of them, by the name they have on the
+    command line with ``_`` for ``-`` (:func:`image_options` lists them; ``r2d2 image --help``
+    says what each does): ``size``, ``step`` (``"auto"``, ``"clean"``, a series name or
+    directory, or a plugin library), ``iterations``, ``weighting`` and ``robust``,
+    ``superresolution`` or ``pixel_arcsec``, ``truth``, ``threads`` (0: every core),
+    ``w_term``, WSClean's CLEAN controls (``niter``, ``gain``, ``mgain``, ``auto_threshold``,
+    ``threshold``), the MeasurementSet's ``data_column``, ``field``, ``spw``, ``channels`` and
+    ``model_column``, ``name`` (also write the products at this prefix), ... A switch is named
+    for what it turns on: ``final_clean=False`` is ``--no-final-clean``, ``prefetch=False``
+    ``--no-prefetch``. ``None`` leaves an option at its default. The engine checks each as the
+    command line does, and its errors name the option.
 
     Returns :class:`Products`: ``dirty``, ``psf``, ``model``, ``residual`` (and ``image`` for
     CLEAN) as float32 arrays (N, N) in FITS orientation (row 0 at the bottom, as astropy reads
     the files), owned by numpy without a copy; ``metrics``; ``header``; ``write(prefix)``.
     The engine runs with the GIL released; Ctrl-C stops it and raises KeyboardInterrupt;
     its errors raise :class:`R2D2Error`."""
-    if weighting_grid_factor is None:
-        weighting_grid_factor = _native.DEFAULT_WEIGHTING_GRID_FACTOR
     if not isinstance(obs, (str, os.PathLike, _native.Parts)) and not hasattr(obs, "__arrow_c_stream__"):
         raise TypeError(f"obs: expected a path or an Arrow table (pyarrow.Table, RecordBatchReader), got {type(obs).__name__}")
     products = _native.image(
         os.fspath(obs) if isinstance(obs, os.PathLike) else obs,
-        id=id, size=size, step=step or "auto", weighting=weighting, robust=robust, superresolution=superresolution,
-        pixel_arcsec=pixel_arcsec, truth=os.fspath(truth) if truth is not None else None, iterations=iterations,
-        threads=threads, backend=backend, prefetch=prefetch, plugin_config=plugin_config, epsilon=epsilon,
-        oversampling=oversampling, weighting_grid_factor=weighting_grid_factor, w_term=w_term,
-        niter=niter, gain=gain, mgain=mgain, auto_threshold=auto_threshold, threshold=threshold,
-        final_clean=final_clean, longest_baseline=longest_baseline, onnx_runtime=os.fspath(onnx_runtime) if onnx_runtime is not None else _onnx_runtime())
+        [(name, _option_value(value)) for name, value in options.items() if value is not None],
+        id=id, onnx_runtime=os.fspath(onnx_runtime) if onnx_runtime is not None else _onnx_runtime())
     for message in products.metrics.get("warnings", []):
         warnings.warn(f"job {products.id}: {message}", R2D2Warning, stacklevel=2)
     return products
+
+
+def image_options() -> list:
+    """The names of :func:`image`'s options: every option of ``r2d2 image``."""
+    return _native.image_options()
+
+
+def _option_value(value):
+    """An option's value as the engine parses it: a switch, or the words of its value."""
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, (list, tuple)):
+        return [_option_word(v) for v in value]
+    return [_option_word(value)]
+
+
+def _option_word(value) -> str:
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if isinstance(value, float):
+        return repr(value)
+    return str(value)

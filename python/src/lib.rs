@@ -264,6 +264,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(info, m)?)?;
     m.add_function(wrap_pyfunction!(add_model_dir, m)?)?;
     m.add_function(wrap_pyfunction!(image::image, m)?)?;
+    m.add_function(wrap_pyfunction!(image::image_options, m)?)?;
     m.add_function(wrap_pyfunction!(products::_products, m)?)?;
     m.add_class::<products::Products>()?;
     m.add_class::<parts::Parts>()?;
@@ -272,6 +273,5 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(parts::part_images, m)?)?;
     m.add_function(wrap_pyfunction!(parts::part_w_toeplitz, m)?)?;
     m.add_function(wrap_pyfunction!(parts::part_apply_normal, m)?)?;
-    m.add("DEFAULT_WEIGHTING_GRID_FACTOR", r2d2_imaging::weighting::DEFAULT_GRID_FACTOR)?;
     Ok(())
 }

@@ -56,7 +56,7 @@ def test_clean_controls_are_the_clis(r2d2_bin, observations, tmp_path):
     data, _ = read_fits(tmp_path / "cli/obs-model.fits")
     np.testing.assert_array_equal(p.model, data)
     assert 0 < np.count_nonzero(p.model) <= 300
-    with pytest.raises(r2d2_imaging.R2D2Error, match="--step clean"):
+    with pytest.raises(r2d2_imaging.R2D2Error, match="invalid step: .* step clean"):
         r2d2_imaging.image(observations[0], size=128, threads=1, niter=300)
 
 
@@ -108,6 +108,28 @@ def test_products_pickle_whole(clean_products, tmp_path):
     clean_products.write(tmp_path / "b/obs")
     for name in ["dirty", "model", "image"]:
         np.testing.assert_array_equal(read_fits(tmp_path / f"a/obs-{name}.fits")[0], read_fits(tmp_path / f"b/obs-{name}.fits")[0])
+
+
+def test_every_option_of_r2d2_image_is_an_option_of_image(r2d2_bin, observations, tmp_path):
+    """`image()` takes every option `r2d2 image --help` lists, by its name (a switch by what it
+    turns: `final_clean=False` for `--no-final-clean`), parsed by the engine's one declaration:
+    a bad value is refused naming the option as Python spells it."""
+    import re
+    help_text = subprocess.run([str(r2d2_bin), "image", "--help"], capture_output=True, text=True, check=True).stdout
+    flags = set(re.findall(r"^\s+(?:-\w, )?--([a-z][a-z0-9-]*)", help_text, re.M)) - {"help", "verbose", "quiet"}
+    assert len(flags) > 30, help_text
+    names = set(r2d2_imaging.image_options())
+    as_python = {flag.replace("-", "_").removeprefix("no_") for flag in flags}
+    assert as_python == names, (as_python ^ names)
+    with pytest.raises(r2d2_imaging.R2D2Error, match="invalid oversampling: invalid value 'lots' for 'oversampling'"):
+        r2d2_imaging.image(observations[0], oversampling="lots", **CLEAN)
+    with pytest.raises(r2d2_imaging.R2D2Error, match="invalid sise: .*size"):
+        r2d2_imaging.image(observations[0], sise=64)
+    with pytest.raises(r2d2_imaging.R2D2Error, match="invalid field: only a MeasurementSet"):
+        r2d2_imaging.image(observations[0], field="0", **CLEAN)
+    # The MS selection and the product prefix reach the engine (they were TypeErrors before).
+    p = r2d2_imaging.image(observations[0], name=str(tmp_path / "named/obs"), final_clean=False, **CLEAN)
+    assert (tmp_path / "named/obs-model.fits").is_file() and p.size == 128
 
 
 def test_errors_are_r2d2_errors_with_the_engines_message(observations, tmp_path):

@@ -7,42 +7,13 @@ use r2d2_imaging::Result;
 use std::path::{Path, PathBuf};
 
 /// What of a MeasurementSet to read (ignored for Parquet input).
-#[derive(clap::Args, Clone, Debug, Default)]
-pub struct MsOptions {
-    /// MS input: the complex column to image (as WSClean's -data-column); default: CORRECTED_DATA
-    /// when the MS has it, else DATA (as WSClean).
-    #[arg(long, default_value = "auto")]
-    pub data_column: String,
-    /// MS input: field id or name (needed when the MS has several fields).
-    #[arg(long)]
-    pub field: Option<String>,
-    /// MS input: spectral windows, comma separated (default: all).
-    #[arg(long, value_delimiter = ',')]
-    pub spw: Option<Vec<usize>>,
-    /// MS input: channel range START END (END excluded) of every window.
-    #[arg(long, num_args = 2, value_names = ["START", "END"])]
-    pub channels: Option<Vec<usize>>,
-}
-
-#[cfg(feature = "ms")]
-impl MsOptions {
-    pub fn selection(&self) -> r2d2_imaging::ms::MsSelection {
-        r2d2_imaging::ms::MsSelection {
-            data_column: self.data_column.clone(),
-            field: self.field.as_deref().map(|f| f.parse().expect("any text is a field selector")),
-            spw: self.spw.clone(),
-            channels: self.channels.as_deref().map(|c| [c[0], c[1]]),
-        }
-    }
-}
-
 /// Reads a table of any format whole.
-pub fn read_input(path: &Path, ms: &MsOptions) -> Result<(Visibilities, ObservationMeta, IngestStats)> {
+pub fn read_input(path: &Path, ms: &r2d2_imaging::MsOptions) -> Result<(Visibilities, ObservationMeta, IngestStats)> {
     #[cfg(not(feature = "ms"))]
     let _ = ms;
     let options = r2d2_imaging::vis::OpenOptions {
         #[cfg(feature = "ms")]
-        ms: ms.selection(),
+        ms: ms.selection()?,
         ..Default::default()
     };
     r2d2_imaging::vis::read_table(path, &options)
@@ -56,7 +27,7 @@ pub struct Args {
     /// The Parquet table or MeasurementSet to write (replaced whole).
     output: PathBuf,
     #[command(flatten)]
-    ms: MsOptions,
+    ms: r2d2_imaging::MsOptions,
 }
 
 pub fn run(args: Args) -> Result<()> {
@@ -71,7 +42,7 @@ pub fn run(args: Args) -> Result<()> {
     match r2d2_imaging::vis::format_of(&args.input)? {
         #[cfg(feature = "ms")]
         TableFormat::MeasurementSet => {
-            let (counts, samples) = r2d2_imaging::ms::convert_ms_to_parquet(&args.input, &args.ms.selection(), &args.output)?;
+            let (counts, samples) = r2d2_imaging::ms::convert_ms_to_parquet(&args.input, &args.ms.selection()?, &args.output)?;
             log::info!("{}: {counts}; wrote {samples} samples to {}", args.input.display(), args.output.display());
         }
         #[cfg(feature = "ms")]

@@ -1,6 +1,5 @@
 //! `r2d2 dirty`: dirty image and PSF, named like WSClean's products.
 
-use super::ImageOptions;
 use r2d2_imaging::fits::{header_text, write_image, BrightnessUnit, ImageWcs};
 use r2d2_imaging::imaging::dirty_image;
 use r2d2_imaging::staging::Staging;
@@ -12,9 +11,9 @@ pub struct Args {
     /// Visibilities (Parquet, one row per sample) or a MeasurementSet.
     input: PathBuf,
     #[command(flatten)]
-    image: ImageOptions,
+    image: r2d2_imaging::GridOptions,
     #[command(flatten)]
-    ms: super::convert::MsOptions,
+    ms: r2d2_imaging::MsOptions,
     /// Output prefix: writes PREFIX-dirty.fits and PREFIX-psf.fits.
     #[arg(long, default_value = "r2d2")]
     name: String,

@@ -164,76 +164,21 @@ pub fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             // The error and each of its causes, once.
-            eprintln!("error: {}", e.report());
+            eprintln!("error: {}", spelled_as_options(e).report());
             ExitCode::FAILURE
         }
     }
 }
 
-/// Options shared by commands that make images.
-#[derive(clap::Args, Clone, Debug)]
-pub struct ImageOptions {
-    /// Image size in pixels (N x N).
-    #[arg(long, default_value_t = 512)]
-    pub size: usize,
-    /// Super-resolution factor: pixel = 1 / (SR * 2 * max_uv). Default: the series' own
-    /// (`r2d2 image` with a series), else 1.5.
-    #[arg(long, conflicts_with = "pixel_arcsec")]
-    pub superresolution: Option<f64>,
-    /// Pixel size in arcseconds (instead of --superresolution).
-    #[arg(long)]
-    pub pixel_arcsec: Option<f64>,
-    /// natural, uniform, briggs, or given (the imaging weights that come with the data: a
-    /// table's `imaging_weight` column, a .mat file's `nWimag`). Default: the series' own
-    /// (`r2d2 image` with a series), else briggs.
-    #[arg(long)]
-    pub weighting: Option<String>,
-    /// Briggs robustness R (implies briggs). Default: the series' own, else 0.
-    #[arg(long, allow_hyphen_values = true)]
-    pub robust: Option<f64>,
-    /// Weighting grid: cells per axis / image size.
-    #[arg(long, default_value_t = r2d2_imaging::weighting::DEFAULT_GRID_FACTOR)]
-    pub weighting_grid_factor: f64,
-    /// NUFFT accuracy (relative).
-    #[arg(long, default_value_t = 1e-6)]
-    pub epsilon: f64,
-    /// NUFFT oversampling factor.
-    #[arg(long, default_value_t = 2.0)]
-    pub oversampling: f64,
-    /// The w-term: auto (corrected by w-gridding where it turns a phase by more than
-    /// --epsilon over the field), on, or off (coplanar, for comparison).
-    #[arg(long, default_value = "auto", value_parser = r2d2_imaging::operator::WTermMode::from_name)]
-    pub w_term: r2d2_imaging::operator::WTermMode,
-    /// Threads (0: all cores).
-    #[arg(long, default_value_t = 0)]
-    pub threads: usize,
-}
-
-/// The super-resolution factor when neither the options nor a series give one.
-const DEFAULT_SUPERRESOLUTION: f64 = 1.5;
-
-impl ImageOptions {
-    /// The weighting the options ask for (`None`: none asked; `--robust` alone means Briggs).
-    pub fn weighting(&self) -> r2d2_imaging::Result<Option<r2d2_imaging::Weighting>> {
-        r2d2_imaging::Weighting::from_options(self.weighting.as_deref(), self.robust)
-    }
-
-    pub fn dirty_params(&self) -> r2d2_imaging::Result<r2d2_imaging::imaging::DirtyParams> {
-        use r2d2_imaging::imaging::{DirtyParams, PixelScale};
-        use r2d2_imaging::{limits, Error};
-        limits::check_image_size(self.size).map_err(|m| Error::parameter("--size", m))?;
-        limits::check_threads(self.threads).map_err(|m| Error::parameter("--threads", m))?;
-        Ok(DirtyParams {
-            size: self.size,
-            pixel: match self.pixel_arcsec {
-                Some(p) => PixelScale::Arcsec(p),
-                None => PixelScale::SuperResolution(self.superresolution.unwrap_or(DEFAULT_SUPERRESOLUTION)),
-            },
-            weighting: self.weighting()?.unwrap_or(r2d2_imaging::Weighting::Briggs { robust: 0.0 }),
-            grid_factor: self.weighting_grid_factor,
-            nufft: r2d2_imaging::nufft::NufftParams { epsilon: self.epsilon, oversampling: self.oversampling },
-            w_term: self.w_term,
-            threads: self.threads,
-        })
+/// The error with the request option it names (the library names the request's fields,
+/// `auto_threshold`) spelled as the command line spells it (`--auto-threshold`).
+fn spelled_as_options(error: r2d2_imaging::Error) -> r2d2_imaging::Error {
+    match error {
+        r2d2_imaging::Error::Parameter { name, message } => {
+            let command = r2d2_imaging::ImageRequest::command();
+            let long = command.get_arguments().find(|a| a.get_id() == name.as_str()).and_then(|a| a.get_long()).map(|l| format!("--{l}"));
+            r2d2_imaging::Error::Parameter { name: long.unwrap_or(name), message }
+        }
+        other => other,
     }
 }

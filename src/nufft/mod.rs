@@ -88,9 +88,16 @@ pub struct NufftParams {
     pub oversampling: f64,
 }
 
+/// The accuracy imaging asks for unless told otherwise: well below the thermal noise of any
+/// real image, at a kernel cost the gridder's speed is measured at.
+pub const DEFAULT_EPSILON: f64 = 1e-6;
+
+/// The grid over the image, per axis, unless told otherwise (the usual NUFFT choice).
+pub const DEFAULT_OVERSAMPLING: f64 = 2.0;
+
 impl Default for NufftParams {
     fn default() -> Self {
-        NufftParams { epsilon: 1e-6, oversampling: 2.0 }
+        NufftParams { epsilon: DEFAULT_EPSILON, oversampling: DEFAULT_OVERSAMPLING }
     }
 }
 
