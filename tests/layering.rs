@@ -550,3 +550,51 @@ fn the_checker_sees_a_cycle_and_a_wrong_floor() {
     assert_eq!(show(&resolve(&modules, &["pipeline".into(), "run".into()], 0)), "pipeline::runner");
     assert_eq!(expand_use("a::{b, c::{self, d as e}}").len(), 3);
 }
+
+/// Options of commands spelled as the command line spells them (`--auto-threshold`) in the
+/// string literals of a module below the top floor: the library names the request's fields
+/// (`auto_threshold`) and each interface (CLI, YAML, Python) adds its own spelling. Cargo's
+/// own options are not this program's.
+fn command_line_spellings(modules: &BTreeMap<Vec<String>, Module>) -> Vec<String> {
+    const NOT_OURS: &[&str] = &["--release"];
+    let mut found = Vec::new();
+    for (path, module) in modules {
+        if path.is_empty() || floor_of(path, module).is_none_or(|f| f == "top") || module.file.file_name().is_some_and(|n| n == "tests.rs") {
+            continue;
+        }
+        let text = std::fs::read_to_string(&module.file).expect("read source");
+        let (code, _) = cut_tests(&text);
+        for (number, line) in code.lines().enumerate() {
+            let trimmed = line.trim_start();
+            if trimmed.starts_with("//") {
+                continue;
+            }
+            // The line's string literals (a string broken over lines is read line by line).
+            for (k, literal) in line.split('"').enumerate() {
+                if k % 2 == 0 {
+                    continue;
+                }
+                let bytes = literal.as_bytes();
+                for at in literal.match_indices("--").map(|(i, _)| i) {
+                    let before = at.checked_sub(1).map(|i| bytes[i]);
+                    let first = bytes.get(at + 2).copied();
+                    if before.is_some_and(|b| b == b'-' || b.is_ascii_alphanumeric()) || !first.is_some_and(|b| b.is_ascii_lowercase()) {
+                        continue;
+                    }
+                    let word: String = literal[at..].chars().take_while(|c| *c == '-' || c.is_ascii_alphanumeric()).collect();
+                    if !NOT_OURS.contains(&word.as_str()) {
+                        found.push(format!("{}:{}: {word}", module.file.display(), number + 1));
+                    }
+                }
+            }
+        }
+    }
+    found
+}
+
+#[test]
+fn no_command_line_spelling_below_the_top_floor() {
+    let (modules, _) = graph();
+    let found = command_line_spellings(&modules);
+    assert!(found.is_empty(), "command-line options named below the top floor (name the request's field instead): {found:#?}");
+}

@@ -178,9 +178,9 @@ fn stage_parameter_errors_point_at_their_yaml_line() {
             vec!["line 32, column 5", "stages.write.model_column", "stage 'source' (kind 'simulate')", "reads no MeasurementSet"],
         ),
         // The file is fine: the wrong value is the command line's.
-        ("from --set", good.clone(), vec!["weights.scheme=brigs"], vec!["stages.weights.scheme", "--set weights.scheme=brigs", "`brigs`"]),
-        ("nested from --set", good.clone(), vec!["source.hours=[1, x]"], vec!["stages.source.hours[1]", "--set source.hours=[1, x]"]),
-        ("image key from --set", good.clone(), vec!["image.size=abc"], vec!["image.size, as given by --set image.size=abc", "expected usize"]),
+        ("from --set", good.clone(), vec!["weights.scheme=brigs"], vec!["stages.weights.scheme", "override weights.scheme=brigs", "`brigs`"]),
+        ("nested from --set", good.clone(), vec!["source.hours=[1, x]"], vec!["stages.source.hours[1]", "override source.hours=[1, x]"]),
+        ("image key from --set", good.clone(), vec!["image.size=abc"], vec!["image.size, as set by the override image.size=abc", "expected usize"]),
         // A wrong value of the file is still found at its line when `--set` changed another.
         ("file, beside a --set", good.replace("robust: 0", "robust: zero"), vec!["weights.scheme=uniform"], vec!["line 16, column 13", "stages.weights.robust"]),
     ];

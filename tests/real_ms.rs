@@ -61,7 +61,7 @@ fn clean_converges_with_the_w_term_on_real_mss() {
             let out = r2d2(&args, dir.path());
             check(&out);
             let ratio = metrics(&dir.path().join(format!("{at_default}-metrics.json")))["final"]["residual_ratio"].as_f64().unwrap();
-            assert!(ratio > 0.5 && stderr(&out).contains("a lower --auto-threshold"), "{ms}: at 3 sigmas, ratio {ratio}: {}", stderr(&out));
+            assert!(ratio > 0.5 && stderr(&out).contains("a lower `auto_threshold`"), "{ms}: at 3 sigmas, ratio {ratio}: {}", stderr(&out));
         }
 
         // The old defaults diverge, and the guard says why, naming CLEAN's controls.
@@ -72,7 +72,7 @@ fn clean_converges_with_the_w_term_on_real_mss() {
         args_old.extend(["--mgain", "1", "--auto-threshold", "0"]);
         let out = r2d2(&args_old, dir.path());
         let log = stderr(&out);
-        assert!(log.contains("the clean step diverged") && log.contains("--mgain"), "{ms}: without a major-cycle gain: {log}");
+        assert!(log.contains("the clean step diverged") && log.contains("`mgain`"), "{ms}: without a major-cycle gain: {log}");
         // Products written, model rejected: the exit status a pipeline step can tell.
         assert_eq!(out.status.code(), Some(3), "{ms}: {log}");
         assert!(dir.path().join(format!("{old}-model.fits")).exists());

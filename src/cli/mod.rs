@@ -111,16 +111,22 @@ pub fn main() -> ExitCode {
     let program = args.first().and_then(|a| std::path::Path::new(a).file_name()).map_or("r2d2".into(), |n| n.to_string_lossy().into_owned());
     let words = std::iter::once(program).chain(args.iter().skip(1).map(|a| a.to_string_lossy().into_owned()));
     r2d2_imaging::job::record_command_line(words.map(|w| if w.is_empty() || w.contains(char::is_whitespace) { format!("'{w}'") } else { w }).collect::<Vec<_>>().join(" "));
-    let cli = match args.iter().map(|a| a.to_str().map(str::to_string)).collect::<Option<Vec<String>>>() {
+    let words: Vec<std::ffi::OsString> = match args.iter().map(|a| a.to_str().map(str::to_string)).collect::<Option<Vec<String>>>() {
         Some(text) => match wsclean_args::rewrite(text) {
-            Ok(rewritten) => Cli::parse_from(rewritten),
+            Ok(rewritten) => rewritten.into_iter().map(Into::into).collect(),
             Err(e) => {
                 eprintln!("error: {e}");
                 return ExitCode::FAILURE;
             }
         },
-        None => Cli::parse_from(args),
+        None => args,
     };
+    let matches = <Cli as clap::CommandFactory>::command().get_matches_from(words);
+    let cli = match <Cli as clap::FromArgMatches>::from_arg_matches(&matches) {
+        Ok(cli) => cli,
+        Err(e) => e.exit(),
+    };
+    let subcommand = matches.subcommand_name().unwrap_or_default().to_string();
     let level = match (cli.quiet, cli.verbose) {
         (true, _) => log::LevelFilter::Error,
         (false, 0) => log::LevelFilter::Info,
@@ -164,19 +170,22 @@ pub fn main() -> ExitCode {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             // The error and each of its causes, once.
-            eprintln!("error: {}", spelled_as_options(e).report());
+            eprintln!("error: {}", spelled_as_options(e, &subcommand).report());
             ExitCode::FAILURE
         }
     }
 }
 
-/// The error with the request option it names (the library names the request's fields,
-/// `auto_threshold`) spelled as the command line spells it (`--auto-threshold`).
-fn spelled_as_options(error: r2d2_imaging::Error) -> r2d2_imaging::Error {
+/// The error with the option it names (the library names the request's fields and the
+/// commands' own, `auto_threshold`, `set`) spelled as the command line spells it
+/// (`--auto-threshold`, `--set`).
+fn spelled_as_options(error: r2d2_imaging::Error, subcommand: &str) -> r2d2_imaging::Error {
     match error {
         r2d2_imaging::Error::Parameter { name, message } => {
-            let command = r2d2_imaging::ImageRequest::command();
-            let long = command.get_arguments().find(|a| a.get_id() == name.as_str()).and_then(|a| a.get_long()).map(|l| format!("--{l}"));
+            let command = <Cli as clap::CommandFactory>::command();
+            let long = command
+                .find_subcommand(subcommand)
+                .and_then(|c| c.get_arguments().find(|a| a.get_id() == name.as_str()).and_then(|a| a.get_long()).map(|l| format!("--{l}")));
             r2d2_imaging::Error::Parameter { name: long.unwrap_or(name), message }
         }
         other => other,

@@ -468,7 +468,7 @@ pub fn check_spares_inputs(prefix: &str, id: &str, inputs: &[&Path]) -> Result<(
         if let Some(input) = crate::staging::destroys_input(&target, inputs) {
             return Err(Error::parameter(
                 "prefix",
-                format!("job '{id}': the product {} would replace the input {}: choose another output name (--name / the writer's prefix)", target.display(), input.display()),
+                format!("job '{id}': the product {} would replace the input {}: choose another output name (the request's `name`, the writer's `prefix`)", target.display(), input.display()),
             ));
         }
     }

@@ -321,7 +321,7 @@ impl Layout {
                     return Err(invalid(
                         ms,
                         format!(
-                            "the MS has rows of {} fields ({}): choose one (`field: ID or NAME`, `--field`)",
+                            "the MS has rows of {} fields ({}): choose one (the option `field`: an ID or NAME)",
                             several.len(),
                             list_fields(several.iter().copied(), &names)
                         ),
@@ -373,7 +373,7 @@ impl Layout {
             let used = used.iter().map(i64::to_string).collect::<Vec<_>>().join(", ");
             return Err(invalid(
                 ms,
-                format!("the MS holds no rows in spectral window {wanted} (`spw`, `--spw`): its rows are in window {used}"),
+                format!("the MS holds no rows in spectral window {wanted} (the option `spw`): its rows are in window {used}"),
             ));
         }
         Ok(Layout { windows, field_id, field_name, ra_deg, dec_deg, telescope, date_obs })

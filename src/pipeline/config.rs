@@ -195,7 +195,7 @@ impl PipelineSpec {
             apply_override(&mut value, o)?;
         }
         let raw: RawPipeline = serde_path_to_error::deserialize(value)
-            .map_err(|e| Error::parameter("--set", format!("{}: {}", e.path(), e.inner())))?;
+            .map_err(|e| Error::parameter("set", format!("{}: {}", e.path(), e.inner())))?;
         let mut stages = Vec::new();
         for (key, body) in raw.stages {
             let name = key
@@ -250,7 +250,7 @@ impl PipelineSpec {
             let key = if path == "." { "image".to_string() } else { format!("image.{path}") };
             match self.override_of_key(&key) {
                 // The file has no line for a value of the command line.
-                Some(set) => Error::input(&self.file, format!("{key}, as given by --set {set}: {}", e.inner())),
+                Some(set) => Error::input(&self.file, format!("{key}, as set by the override {set}: {}", e.inner())),
                 None => self.top_error("image", &format!("{key}: {}", e.inner())),
             }
         })
@@ -292,7 +292,7 @@ impl PipelineSpec {
         };
         if let Some(set) = self.override_of(&stage.name, key.as_deref()) {
             // The file has no line for a value of the command line.
-            return Err(Error::input(&self.file, format!("{what}, as given by --set {set}: {message}")));
+            return Err(Error::input(&self.file, format!("{what}, as set by the override {set}: {message}")));
         }
         // The values came from the file: read them again from its text, which knows where
         // each one is (a `Value` does not). The same failure at the same key is this one.
@@ -463,9 +463,9 @@ fn locate(text: &str, stage: &str, key: Option<&str>) -> Option<(usize, usize)> 
 fn apply_override(root: &mut Value, spec: &str) -> Result<()> {
     let (path, text) = spec
         .split_once('=')
-        .ok_or_else(|| Error::parameter("--set", format!("expected stage.key=value, got '{spec}'")))?;
+        .ok_or_else(|| Error::parameter("set", format!("expected stage.key=value, got '{spec}'")))?;
     let value: Value = serde_yaml::from_str(text)
-        .map_err(|e| Error::parameter("--set", format!("'{spec}': value is not valid YAML: {e}")))?;
+        .map_err(|e| Error::parameter("set", format!("'{spec}': value is not valid YAML: {e}")))?;
     let parts: Vec<&str> = path.split('.').collect();
     // Stage names are looked up under `stages`; `image.*`, `threads`, `name` at the top.
     let mut node = root;
@@ -473,7 +473,7 @@ fn apply_override(root: &mut Value, spec: &str) -> Result<()> {
     for (i, part) in full.iter().enumerate() {
         let map = node
             .as_mapping_mut()
-            .ok_or_else(|| Error::parameter("--set", format!("'{spec}': '{}' is not a mapping", full[..i].join("."))))?;
+            .ok_or_else(|| Error::parameter("set", format!("'{spec}': '{}' is not a mapping", full[..i].join("."))))?;
         let key = Value::String(part.to_string());
         if i + 1 == full.len() {
             map.insert(key, value);
@@ -482,13 +482,13 @@ fn apply_override(root: &mut Value, spec: &str) -> Result<()> {
         if !map.contains_key(&key) {
             if i == 1 && full[0] == "stages" {
                 let names: Vec<String> = map.keys().filter_map(|k| k.as_str().map(str::to_string)).collect();
-                return Err(Error::parameter("--set", format!("'{spec}': no stage '{part}' (stages: {})", names.join(", "))));
+                return Err(Error::parameter("set", format!("'{spec}': no stage '{part}' (stages: {})", names.join(", "))));
             }
             map.insert(key.clone(), Value::Mapping(Mapping::new()));
         }
         node = map.get_mut(&key).expect("just checked or inserted");
     }
-    Err(Error::parameter("--set", format!("'{spec}': empty key")))
+    Err(Error::parameter("set", format!("'{spec}': empty key")))
 }
 
 #[cfg(test)]

@@ -122,7 +122,7 @@ fn fall_back(job: &mut Job, reason: StopReason) -> Result<()> {
     // CLEAN has no training domain: what makes it diverge is a minor cycle run past what its
     // PSF describes.
     let advice = if step == "clean" {
-        "CLEAN's minor cycles went further than its PSF describes the residual (a sparse uv-coverage, or the w-term over a wide field); a smaller --mgain, a higher --auto-threshold or fewer components per cycle keep each major cycle where the PSF holds"
+        "CLEAN's minor cycles went further than its PSF describes the residual (a sparse uv-coverage, or the w-term over a wide field); a smaller `mgain`, a higher `auto_threshold` or fewer components per cycle keep each major cycle where the PSF holds"
     } else {
         "The data are probably outside what the series was trained for (see the domain warnings and `r2d2 models`)"
     };
@@ -197,7 +197,7 @@ impl Stage<Job> for ResidualStage {
                 log::info!("job {}: stopped after iteration {iteration} ({reason:?}, residual ratio {ratio:.4e})", job.id);
                 if reason == StopReason::Converged && ratio > CLEAN_UNEXPLAINED && job.step_kind.as_deref() == Some("clean") {
                     job.warn(format!(
-                        "CLEAN stopped with a residual ratio of {ratio:.3}: its thresholds left most of the dirty image unexplained. Its noise threshold is in sigmas of the residual's robust spread, and on a sparse uv-coverage that spread is the sources' sidelobes, not noise: a lower --auto-threshold (or a --threshold in Jy/beam) cleans further"
+                        "CLEAN stopped with a residual ratio of {ratio:.3}: its thresholds left most of the dirty image unexplained. Its noise threshold is in sigmas of the residual's robust spread, and on a sparse uv-coverage that spread is the sources' sidelobes, not noise: a lower `auto_threshold` (or a `threshold` in Jy/beam) cleans further"
                     ));
                 }
                 job.stop = Some(LoopStop { reason, after_iteration: iteration, kept_iteration: iteration, kept_residual_ratio: ratio });

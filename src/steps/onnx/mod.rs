@@ -393,7 +393,7 @@ impl NetworkStep for OnnxStep {
         // at or below 0 means the data lack them, and the networks see an input they never saw.
         if let Some(m) = job.dirty_mean.filter(|m| *m <= 0.0) {
             warnings.push(format!(
-                "the dirty image's mean is {m:.3e}, not positive: the data lack the short baselines of the observations series '{}' was trained on (its input is normalised by that mean), so its image may be wrong; `--step clean` does not depend on it",
+                "the dirty image's mean is {m:.3e}, not positive: the data lack the short baselines of the observations series '{}' was trained on (its input is normalised by that mean), so its image may be wrong; the step `clean` does not depend on it",
                 self.series.name
             ));
         }
@@ -401,7 +401,7 @@ impl NetworkStep for OnnxStep {
         // job says so, since a series run on another telescope's data gives a confident image.
         if setup.telescope.as_deref().and_then(crate::vis::named_telescope).is_none() && !self.series.telescopes().is_empty() {
             warnings.push(format!(
-                "the data name no telescope, so nothing checks them against series '{}', trained for {}: from another telescope its image may be wrong (`--step clean` images any telescope's data)",
+                "the data name no telescope, so nothing checks them against series '{}', trained for {}: from another telescope its image may be wrong (the step `clean` images any telescope's data)",
                 self.series.name,
                 self.series.telescopes().join(", ")
             ));
@@ -412,7 +412,7 @@ impl NetworkStep for OnnxStep {
         let domain = self.series.manifest.as_ref().and_then(|m| m.validity.as_ref()).map(|v| v.summary()).unwrap_or_default();
         let mut message = format!("series '{}' was not trained for this job: {} (its domain: {domain})", self.series.name, problems.join("; "));
         if let Some(other) = series::covering_series(self.size, &setup, &self.series.name) {
-            message.push_str(&format!("; series '{other}' was trained for it (--step {other}, or `series: {other}`)"));
+            message.push_str(&format!("; series '{other}' was trained for it (the step `{other}`, or `series: {other}`)"));
         }
         match self.validity {
             ValidityMode::Error => Err(Error::parameter("validity", message)),
