@@ -5,8 +5,8 @@
 use super::params::GridderParams;
 use crate::nufft::NufftParams;
 use crate::operator::{doubled_psf, doubled_psf_of, normalise_by_psf_peak, ImageGeometry, MeasurementOperator, PsfConvolution, WTermMode};
-use crate::w_taylor::{self, WTaylor};
-use crate::w_toeplitz::{WToeplitz, WToeplitzBuilder, WToeplitzPlan};
+use crate::operator::taylor::{self as w_taylor, WTaylor};
+use crate::operator::toeplitz::{WToeplitz, WToeplitzBuilder, WToeplitzPlan};
 use crate::weighting::WeightRule;
 use crate::job::{Emit, Imaging, Job};
 use crate::pipeline::{Port, Stage};
@@ -81,7 +81,7 @@ impl GridderStage {
             .ok()
     }
 
-    /// The residual update's Taylor series in `w` of the PSF convolution (`crate::w_taylor`),
+    /// The residual update's Taylor series in `w` of the PSF convolution (`crate::operator::taylor`),
     /// of the lowest order whose `D` of the dirty image agrees with the operator's
     /// (`reference`, made once the first order fits) to [`w_taylor::TOLERANCE`] times the
     /// NUFFT's accuracy, with that deviation; `kernel(m)` grids `R_m` from the samples, held

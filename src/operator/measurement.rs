@@ -589,7 +589,7 @@ pub fn doubled_psf(
 }
 
 /// [`doubled_psf`] of the samples' weights times `factor(k)` (complex: the real part of the
-/// transform is kept, as for the PSF): the kernels of [`crate::w_taylor`].
+/// transform is kept, as for the PSF): the kernels of [`crate::operator::taylor`].
 #[allow(clippy::too_many_arguments)]
 pub fn doubled_psf_of(
     geometry: ImageGeometry,
@@ -609,7 +609,7 @@ pub fn doubled_psf_of(
 }
 
 /// [`doubled_psf_of`] of samples given a chunk at a time, as a table is read (the kernels of
-/// [`crate::w_taylor`] where the samples are not held): memory is the grid and one chunk.
+/// [`crate::operator::taylor`] where the samples are not held): memory is the grid and one chunk.
 pub struct DoubledKernelGridder {
     geometry: ImageGeometry,
     adjoint: ChunkedAdjoint,
