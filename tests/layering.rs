@@ -505,6 +505,27 @@ fn imports_go_down_the_floors() {
     assert!(wrong.is_empty(), "imports against the floors of docs/architecture.md:\n{}", wrong.join("\n"));
 }
 
+/// The `mod.rs` of these modules declares and re-exports only: what the children share is in
+/// a file of its own, so no child imports its parent's re-exports.
+const DECLARING_MODULES: &[&str] = &["operator"];
+
+#[test]
+fn declaring_mod_rs_files_hold_no_code() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut wrong = Vec::new();
+    for module in DECLARING_MODULES {
+        let text = std::fs::read_to_string(src.join(module).join("mod.rs")).expect("read mod.rs");
+        let (code, _) = cut_tests(&strip(&text));
+        let declaration = regex::Regex::new(r"^(pub(\([a-z]+\))?\s+)?(mod\s+\w+|use\s+[\w:]+(::\{[\w\s,:{}]*\})?)$").unwrap();
+        for statement in code.split(';').map(str::trim).filter(|s| !s.is_empty()) {
+            if !declaration.is_match(statement) {
+                wrong.push(format!("src/{module}/mod.rs: {statement}"));
+            }
+        }
+    }
+    assert!(wrong.is_empty(), "code in a mod.rs that should only declare and re-export:\n{}", wrong.join("\n"));
+}
+
 #[test]
 fn stage_modules_are_reached_only_through_the_registry() {
     let (_, edges) = graph();

@@ -23,7 +23,7 @@
 //! the gridder uses it only where the two agree to the NUFFT's accuracy.
 
 use crate::fft2::Fft2;
-use super::measurement::ImageGeometry;
+use super::geometry::ImageGeometry;
 use super::toeplitz::pixel_t;
 use crate::{Error, Result};
 use num_complex::Complex64;
