@@ -9,24 +9,7 @@ use crate::vis::{chunk_weights, Visibilities};
 use crate::weighting::{DensityGrid, Weighting, DEFAULT_GRID_FACTOR};
 use crate::{Error, Result};
 
-/// The super-resolution factor where neither the request nor a series gives one: the
-/// reference's usual setting.
-pub const DEFAULT_SUPERRESOLUTION: f64 = 1.5;
-
-/// How the pixel size is chosen.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum PixelScale {
-    /// `pixel = 1 / (SR * 2 * max_uv)` (the reference's super-resolution factor).
-    SuperResolution(f64),
-    /// A fixed pixel size in arcseconds.
-    Arcsec(f64),
-}
-
-impl Default for PixelScale {
-    fn default() -> Self {
-        PixelScale::SuperResolution(DEFAULT_SUPERRESOLUTION)
-    }
-}
+pub use crate::operator::{PixelScale, DEFAULT_SUPERRESOLUTION};
 
 /// The image every stage of a pipeline shares (its `image` section): weighting, gridder and
 /// a trained network series must all agree on it, so it is stated once.
@@ -92,10 +75,7 @@ impl DirtyParams {
 
     /// The image geometry for samples whose longest baseline is `max_uv` wavelengths.
     pub fn geometry_for(&self, max_uv: f64) -> Result<ImageGeometry> {
-        match self.pixel {
-            PixelScale::SuperResolution(sr) => ImageGeometry::from_superresolution(self.size, sr, max_uv),
-            PixelScale::Arcsec(p) => ImageGeometry::from_arcsec(self.size, p),
-        }
+        self.pixel.geometry(self.size, max_uv)
     }
 }
 

@@ -33,8 +33,6 @@ pub mod simulate;
 mod stages;
 pub mod steps;
 pub mod vis;
-pub mod w_taylor;
-pub mod w_toeplitz;
 pub mod weighting;
 
 // For the `r2d2` binary and the benches, not part of the library's interface.

@@ -9,7 +9,7 @@ use numpy::{PyArray1, PyReadonlyArray1};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 use r2d2_imaging::vis::{self, open_pass, open_source, ObservationMeta, OpenOptions, PartImages, PartPass, PartPasses, PartedObservation, VisSummary};
-use r2d2_imaging::w_toeplitz::{WToeplitzBuilder, WToeplitzPlan};
+use r2d2_imaging::operator::toeplitz::{WToeplitzBuilder, WToeplitzPlan};
 use r2d2_imaging::weighting::{DensityGrid, WeightRule};
 use r2d2_imaging::{Error, Result};
 use std::path::PathBuf;

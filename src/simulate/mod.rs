@@ -60,10 +60,7 @@ pub fn simulate(req: &SimulationRequest) -> Result<SimulationOutput> {
     crate::limits::check_image_size(req.size).map_err(|m| Error::parameter("size", m))?;
     crate::limits::check_threads(req.threads).map_err(|m| Error::parameter("threads", m))?;
     let coverage = sample_coverage(&req.observation)?;
-    let geometry_for = |size: usize| match req.pixel {
-        PixelScale::Arcsec(p) => ImageGeometry::from_arcsec(size, p),
-        PixelScale::SuperResolution(sr) => ImageGeometry::from_superresolution(size, sr, coverage.max_uv()),
-    };
+    let geometry_for = |size: usize| req.pixel.geometry(size, coverage.max_uv());
     let (sky, geometry) = match &req.sky {
         SkyModel::Procedural { seed } => {
             (sky::procedural_sky(&sky::SkyParams::new(req.size, req.dynamic_range, *seed))?, geometry_for(req.size)?)

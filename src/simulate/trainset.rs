@@ -238,7 +238,7 @@ pub fn make_sample(truth: TruthSource, params: &TrainsetParams, seed: u64, threa
         None => sky,
     };
     let coverage = sample_coverage(&draw.spec(seed)?)?;
-    let geometry = ImageGeometry::from_superresolution(n, draw.superresolution, coverage.max_uv())?;
+    let geometry = PixelScale::SuperResolution(draw.superresolution).geometry(n, coverage.max_uv())?;
     let weighting = Weighting::Briggs { robust: draw.robust };
     let model = NoiseModel { dynamic_range: dr, weighting, grid_factor: DEFAULT_GRID_FACTOR };
     let sim = simulate_visibilities(&sky, geometry, &coverage, &model, WTermMode::Off, params.nufft, threads, seed)?;

@@ -2,7 +2,7 @@
 //! the loop exit (series finished or early stop).
 //!
 //! `method: toeplitz` (default) convolves with the 2N PSF, or with the w-term with one kernel
-//! per w-plane (`crate::w_toeplitz`): once gridding is done, memory no longer grows with the
+//! per w-plane (`crate::operator::toeplitz`): once gridding is done, memory no longer grows with the
 //! number of visibilities. `method: nufft` is the exact round trip
 //! through the kept visibilities (the reference's choice).
 
@@ -224,7 +224,7 @@ impl Stage<Job> for ResidualStage {
                     let exact = op.apply_normal(&im.model)?;
                     // The form's D x, as the last update left it in the residual.
                     let by_taylor: Vec<f64> = im.dirty.iter().zip(&im.residual).map(|(d, r)| d - r).collect();
-                    let (deviation, warning) = crate::w_taylor::final_deviation(&by_taylor, &exact, im.nufft.epsilon);
+                    let (deviation, warning) = crate::operator::taylor::final_deviation(&by_taylor, &exact, im.nufft.epsilon);
                     let residual: Vec<f64> = im.dirty.iter().zip(&exact).map(|(d, x)| d - x).collect();
                     log::info!("job {id}: the final residual through the operator: the Taylor series in w was {deviation:.1e} of D x from it on the final model");
                     taylor_off = warning;

@@ -2,7 +2,6 @@
 //! every visibility (natural x imaging: natural, uniform or Briggs).
 
 use super::params::WeightingParams;
-use crate::imaging::DirtyParams;
 use crate::vis::weight_rule;
 use crate::imaging::ImageConfig;
 use crate::job::{Emit, Job};
@@ -64,11 +63,10 @@ impl Stage<Job> for WeightingStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
         let vis = job.visibilities("weighting")?;
         let summary = vis.summary();
-        let params = DirtyParams { size: self.image.size, pixel: self.image.pixel_scale(), ..DirtyParams::default() };
         // A job of a split is imaged on the grid of the whole split (or of the baseline the
         // image section gives); its super-resolution below is its own data's.
         let longest_baseline = self.image.longest_baseline.or(job.split_max_uv).unwrap_or(summary.max_uv);
-        let geometry = params.geometry_for(longest_baseline)?;
+        let geometry = self.image.pixel_scale().geometry(self.image.size, longest_baseline)?;
         let max_uv = summary.max_uv;
         let given_unused = summary.imaging_weights && self.weighting != Weighting::Given;
         if vis.is_streamed() && self.weighting.needs_density() {
@@ -80,7 +78,7 @@ impl Stage<Job> for WeightingStage {
             log::info!("job {}: the data carry imaging weights (`imaging_weight`, a .mat file's `nWimag`), not used: the weighting is {} (`given` uses them)", job.id, self.weighting);
         }
         job.geometry = Some(geometry);
-        job.superresolution = (max_uv > 0.0).then(|| 1.0 / (2.0 * max_uv * geometry.pixel_rad));
+        job.superresolution = geometry.superresolution(max_uv);
         (job.track_hours, job.integration_s) = (summary.times.track_hours(), summary.times.integration_s());
         if let Some(problem) = truth_grid_problem(&job, geometry) {
             job.warn(problem);

@@ -140,7 +140,7 @@ impl StreamedOperator {
     }
 
     /// The 2N PSF with each sample's total weight times `factor(w)`, scaled as `D` (a kernel of
-    /// the Taylor series in w, `crate::w_taylor`), in one more pass over the samples read from
+    /// the Taylor series in w, `crate::operator::taylor`), in one more pass over the samples read from
     /// their file (not where they live in parts elsewhere).
     pub fn doubled_psf_of(&self, factor: impl Fn(f64) -> Complex64 + Sync) -> Result<Vec<f64>> {
         if let VisSource::Parts(parts) = &self.vis {

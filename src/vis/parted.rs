@@ -7,7 +7,7 @@
 use super::data::{ObservationMeta, VisSummary};
 use crate::nufft::NufftParams;
 use crate::operator::{normalise_by_psf_peak, ImageGeometry};
-use crate::w_toeplitz::WToeplitzBuilder;
+use crate::operator::toeplitz::WToeplitzBuilder;
 use crate::weighting::{DensityGrid, WeightRule, Weighting, WeightingScheme};
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};

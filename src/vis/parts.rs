@@ -7,7 +7,7 @@ use super::parted::{add_to, PartImages, PartPass, PartPasses};
 use super::stream::VisSource;
 use crate::operator::{DoubledKernelGridder, ImageGeometry, ImageGridder, MeasurementOperator};
 use num_complex::Complex64;
-use crate::w_toeplitz::WToeplitzBuilder;
+use crate::operator::toeplitz::WToeplitzBuilder;
 use crate::weighting::{DensityGrid, WeightRule, Weighting};
 use crate::{Error, Result};
 use rayon::prelude::*;
@@ -102,7 +102,7 @@ pub fn w_toeplitz_images(vis: &VisSource, pass: &PartPass, rule: &WeightRule, bu
 }
 
 /// The 2N PSF of a part's samples with each total weight times `factor(w)` (not scaled by
-/// `kappa`): a kernel of the residual update's Taylor series in w (`crate::w_taylor`) where
+/// `kappa`): a kernel of the residual update's Taylor series in w (`crate::operator::taylor`) where
 /// the samples are read from their file at each pass.
 pub fn part_doubled_psf_of(vis: &VisSource, pass: &PartPass, rule: &WeightRule, factor: impl Fn(f64) -> Complex64 + Sync) -> Result<Vec<f64>> {
     let geometry = pass.geometry()?;

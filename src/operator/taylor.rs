@@ -4,7 +4,7 @@
 //! `D` to the NUFFT's accuracy at the cost of one to three pairs of FFTs, where the operator
 //! grids and degrids every sample on its w-planes at each residual update.
 //!
-//! Conventions are `crate::w_toeplitz`'s: `D x (p) = Re sum_k omega_k sum_q x_q exp(-2 pi i
+//! Conventions are `crate::operator::toeplitz`'s: `D x (p) = Re sum_k omega_k sum_q x_q exp(-2 pi i
 //! (u_k (l_p - l_q) + v_k (m_p - m_q) + w_k (t_p - t_q)))`, `t = n - 1`. Expanding
 //! `exp(-2 pi i w (t_p - t_q))` to order `M` and `(t_p - t_q)^m` by the binomial theorem
 //! separates `p` and `q`:
@@ -23,8 +23,8 @@
 //! the gridder uses it only where the two agree to the NUFFT's accuracy.
 
 use crate::fft2::Fft2;
-use crate::operator::ImageGeometry;
-use crate::w_toeplitz::pixel_t;
+use super::geometry::ImageGeometry;
+use super::toeplitz::pixel_t;
 use crate::{Error, Result};
 use num_complex::Complex64;
 use rayon::prelude::*;
@@ -257,7 +257,7 @@ mod tests {
     use super::*;
     use crate::nufft::{direct, NufftParams};
     use crate::operator::{doubled_psf_of, PsfConvolution};
-    use crate::w_toeplitz::{relative, test_field as field};
+    use crate::operator::toeplitz::{relative, test_field as field};
 
     fn kernels(geometry: ImageGeometry, u: &[f64], v: &[f64], w: &[f64], weight: &[f64], order: usize, nufft: NufftParams) -> Vec<Vec<f64>> {
         (0..=order)

@@ -26,7 +26,7 @@
 use crate::fft2::Fft2;
 use crate::nufft::wgrid::n_minus_one;
 use crate::nufft::{ChunkedAdjoint, NufftParams};
-use crate::operator::ImageGeometry;
+use super::geometry::ImageGeometry;
 use crate::{Error, Result};
 use num_complex::Complex64;
 use rayon::prelude::*;
