@@ -14,6 +14,7 @@ use crate::params::{
     ArrowIpcParams, ArrowParams, CleanParams, FinalCleanParams, Files, GridderParams, NativeParams, OnnxParams, ParquetParams, ProductsParams, ResidualParams,
     WeightingParams, WriterParams,
 };
+use crate::params::MatParams;
 use crate::job::JobProducts;
 use crate::weighting::Weighting;
 use crate::{Error, Result};
@@ -374,6 +375,8 @@ fn image_spec(obs: Observation, params: &ImageParams) -> Result<(PipelineSpec, V
                 let text = path.to_string_lossy().into_owned();
                 match format {
                     TableFormat::ArrowIpc => StageSpec::typed("read", &ArrowIpcParams { truth, ..ArrowIpcParams::new(text) })?,
+                    TableFormat::Mat => StageSpec::typed("read", &MatParams(ParquetParams { truth, ..ParquetParams::new(Files::One(text)) }))?,
+                    // Parquet (a MeasurementSet is read above).
                     _ => StageSpec::typed("read", &ParquetParams { truth, ..ParquetParams::new(Files::One(text)) })?,
                 }
             }
@@ -572,12 +575,7 @@ pub fn is_ms(path: &Path) -> bool {
 
 #[cfg(feature = "ms")]
 fn ms_read(path: &Path, params: &ImageParams) -> Result<StageSpec> {
-    let mut read = MsParams { truth: params.truth.clone(), ..MsParams::new(path) };
-    if let Some(selection) = &params.ms {
-        let selection = selection.clone();
-        read = MsParams { data_column: selection.data_column, field: selection.field, spw: selection.spw, channels: selection.channels, ..read };
-    }
-    StageSpec::typed("read", &read)
+    StageSpec::typed("read", &MsParams { truth: params.truth.clone(), selection: params.ms.clone().unwrap_or_default(), ..MsParams::new(path) })
 }
 
 #[cfg(not(feature = "ms"))]
