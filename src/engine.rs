@@ -14,6 +14,7 @@ use crate::params::{
     ArrowIpcParams, ArrowParams, CleanParams, FinalCleanParams, Files, GridderParams, NativeParams, OnnxParams, ParquetParams, ProductsParams, ResidualParams,
     WeightingParams, WriterParams,
 };
+use crate::params::MatParams;
 use crate::job::JobProducts;
 use crate::request::{ImageRequest, StepChoice};
 use crate::weighting::Weighting;
@@ -323,6 +324,8 @@ fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec
                 let text = path.to_string_lossy().into_owned();
                 match format {
                     TableFormat::ArrowIpc => StageSpec::typed("read", &ArrowIpcParams { truth, ..ArrowIpcParams::new(text) })?,
+                    TableFormat::Mat => StageSpec::typed("read", &MatParams(ParquetParams { truth, ..ParquetParams::new(Files::One(text)) }))?,
+                    // Parquet (a MeasurementSet is read above).
                     _ => StageSpec::typed("read", &ParquetParams { truth, ..ParquetParams::new(Files::One(text)) })?,
                 }
             }
@@ -528,16 +531,7 @@ pub fn is_ms(path: &Path) -> bool {
 
 #[cfg(feature = "ms")]
 fn ms_read(path: &Path, params: &ImagePlan) -> Result<StageSpec> {
-    let selection = params.ms.selection()?;
-    let read = MsParams {
-        truth: params.truth.clone(),
-        data_column: selection.data_column,
-        field: selection.field,
-        spw: selection.spw,
-        channels: selection.channels,
-        ..MsParams::new(path)
-    };
-    StageSpec::typed("read", &read)
+    StageSpec::typed("read", &MsParams { truth: params.truth.clone(), selection: params.ms.selection()?, ..MsParams::new(path) })
 }
 
 #[cfg(not(feature = "ms"))]

@@ -53,8 +53,8 @@ pub use error::{Error, Result};
 pub use parallel::claim_process;
 pub use imaging::ImageConfig;
 pub use job::{
-    BuildContext, Built, Emit, ImageContext, Imaging, Iterate, IterationMetrics, Job, JobProducts, KindFn, LoopStop, Product, ProductSink, Registry,
-    RunContext, StopReason, WriteOptions,
+    BuildContext, Built, Emit, ImageContext, Imaging, Iterate, IterationMetrics, Job, JobProducts, KindFn, LoopStop, Product, ProductSink, Reads, Registry,
+    RunContext, SourceKind, SourceParams, StopReason, WriteOptions,
 };
 pub use pipeline::{Payload, PipelineSpec, Port, Progress, Role, RunReport, Source, Stage, StageKind, StageParams, StageSpec};
 pub use vis::MemoryInput;

@@ -347,3 +347,79 @@ fn a_series_error_keeps_its_yaml_line_and_its_kind() {
     assert!(std::error::Error::source(&error).is_some(), "the cause is the located error's source");
     assert!(error.to_string().contains("no-such-series"), "{error}");
 }
+
+/// A source kind of the program's own, in one place as a built-in source kind is in its file
+/// (`src/stages/*.rs`): its parameters, what it says of its jobs (`SourceParams`) and its
+/// source. Registering it is one line; nothing else names it.
+mod toy {
+    use r2d2_imaging::{Job, Reads, Source, SourceKind, SourceParams, StageParams};
+    use serde::{Deserialize, Serialize};
+
+    /// `kind: toy`: a simulated observation per seed, one job each.
+    #[derive(Clone, Debug, Deserialize, Serialize)]
+    #[serde(deny_unknown_fields)]
+    pub struct ToyParams {
+        pub seeds: Vec<u64>,
+    }
+
+    impl StageParams for ToyParams {
+        const KIND: &'static str = "toy";
+    }
+
+    impl SourceParams for ToyParams {
+        fn reads(&self) -> Reads {
+            Reads::Nothing
+        }
+        fn several_jobs(&self) -> Option<String> {
+            (self.seeds.len() > 1).then(|| format!("a toy source makes {} jobs", self.seeds.len()))
+        }
+    }
+
+    struct ToySource(Vec<u64>);
+
+    impl Source<Job> for ToySource {
+        fn produce(&mut self, emit: &mut dyn FnMut(Job) -> r2d2_imaging::Result<()>, _cancelled: &dyn Fn() -> bool) -> r2d2_imaging::Result<()> {
+            for &seed in &self.0 {
+                let obs = super::observation(seed);
+                let id = format!("toy-{seed}");
+                let (vis, _) = obs.table.to_visibilities(&id)?;
+                emit(Job::new(id, obs.meta, vis))?;
+            }
+            Ok(())
+        }
+    }
+
+    /// The kind, as the program registers it.
+    pub const KIND: SourceKind<ToyParams> = SourceKind::new(|params, _ctx| Ok(Box::new(ToySource(params.seeds))));
+}
+
+#[test]
+fn a_program_adds_a_source_kind_in_one_place() {
+    let mut engine = engine();
+    engine.registry_mut().register(toy::KIND).unwrap();
+    let toy = |seeds: &str| PIPELINE.replace("{kind: arrow,", &format!("{{kind: toy, seeds: {seeds},"));
+    let spec = engine.load_yaml(&toy("[3, 4]"), "toy.yaml", &[]).unwrap();
+    let received: Arc<Mutex<Vec<String>>> = Arc::default();
+    let into = received.clone();
+    let sink = move |p: JobProducts| {
+        into.lock().unwrap().push(p.id);
+        Ok(())
+    };
+    engine.run(&spec, Vec::new(), Some(Box::new(sink)), Arc::default()).unwrap();
+    let mut ids = received.lock().unwrap().clone();
+    ids.sort();
+    assert_eq!(ids, ["toy-3", "toy-4"]);
+    // Its parameters are checked as a built-in kind's are, at their line.
+    let err = engine.load_yaml(&toy("[3]").replace("seeds:", "sedes:"), "toy.yaml", &[]).and_then(|s| engine.validate(&s)).unwrap_err().to_string();
+    assert!(err.contains("line 3") && err.contains("stages.read.sedes (toy stage)"), "{err}");
+    // What it says of its jobs is what the stages after it check, before anything runs: a
+    // writer's prefix without {job} where it makes several, a model column where it reads no
+    // MeasurementSet.
+    let writer = |seeds: &str, writer: &str| toy(seeds).replace("deliver: {kind: products}", &format!("deliver: {{kind: writer, {writer}}}"));
+    let validate = |text: &str| engine.load_yaml(text, "toy.yaml", &[]).and_then(|s| engine.validate(&s)).map_err(|e| e.to_string());
+    let err = validate(&writer("[3, 4]", "prefix: out/all")).unwrap_err();
+    assert!(err.contains("stages.deliver.prefix") && err.contains("a toy source makes 2 jobs"), "{err}");
+    validate(&writer("[3]", "prefix: out/all")).unwrap();
+    let err = validate(&writer("[3]", "model_column: MODEL_DATA")).unwrap_err();
+    assert!(err.contains("stages.deliver.model_column") && err.contains("kind 'toy'") && err.contains("reads no MeasurementSet"), "{err}");
+}

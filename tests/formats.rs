@@ -85,6 +85,21 @@ fn every_format_images_as_the_parquet_table_it_was_made_from() {
     assert!(relative(&converted, &reference) <= 1e-6);
     check(&r2d2(&["image", "v5z.mat", "--size", "64", "--step", "clean", "--iterations", "2", "--name", "img"], d));
     assert!(d.join("img-model.fits").exists() && d.join("img-image.fits").exists());
+    // A pipeline reads a .mat with `kind: mat`, as `r2d2 image` does; `kind: parquet` refuses
+    // it before anything runs, naming the kind that reads it.
+    let pipeline = |kind: &str| {
+        format!(
+            "image: {{size: 64, superresolution: 1.5}}\nstages:\n  read: {{kind: {kind}, files: v5z.mat, to: weights}}\n  weights: {{kind: weighting, scheme: briggs, robust: 0, to: grid}}\n  grid: {{kind: gridder, to: step}}\n  step: {{kind: clean, major_cycles: 2, to: update}}\n  update: {{kind: residual, to: step, done: write}}\n  write: {{kind: writer, prefix: yaml}}\n"
+        )
+    };
+    std::fs::write(d.join("mat.yaml"), pipeline("mat")).unwrap();
+    check(&r2d2(&["run", "mat.yaml"], d));
+    let model = |prefix: &str| read_image(&d.join(format!("{prefix}-model.fits"))).unwrap().data;
+    assert_eq!(model("yaml"), model("img"), "kind: mat images the .mat as r2d2 image does");
+    std::fs::write(d.join("parquet.yaml"), pipeline("parquet")).unwrap();
+    let out = r2d2(&["validate", "parquet.yaml"], d);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("stages.read.files: v5z.mat is in the MATLAB .mat format, not Parquet: `kind: mat` reads it"), "{err}");
     // A .mat names no telescope (`unknown`): `auto` runs the series for the size, with no
     // telescope warning and no fall-back to CLEAN, as on a table that names none.
     let out = r2d2(&["image", "v5z.mat", "--size", "64", "--iterations", "1", "--name", "auto"], d);

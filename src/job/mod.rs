@@ -14,9 +14,10 @@ mod parts;
 mod product;
 mod products;
 mod run;
+mod source;
 mod state;
 
-pub use contract::{BuildContext, Built, Emit, KindFn, Registry};
+pub use contract::{BuildContext, Built, Emit, KindFn, Registry, SourceBuild, SourceKind};
 pub use product::Product;
 #[cfg(feature = "ms")]
 pub use model_column::write_job_model;
@@ -24,5 +25,6 @@ pub use parts::{emit_parts, emit_streamed, emit_parted, job_id_problem, stem_id,
 pub use products::{check_spares_inputs, record_command_line, JobProducts, WriteOptions};
 pub(crate) use products::Staged;
 pub use run::{ImageContext, ProductSink, RunContext};
+pub use source::{Reads, SourceParams};
 pub use state::{Imaging, Iterate, IterationMetrics, Job, LoopStop, StopReason};
 pub(crate) use state::missing;

@@ -285,7 +285,17 @@ impl PipelineSpec {
         };
         let message = e.inner().to_string();
         let path = e.path().to_string();
-        let key = failing_key(&path, &message);
+        // Keys of a struct embedded in the parameters (`#[serde(flatten)]`): serde reports a
+        // wrong value there without its key, an unknown key without the keys it expects, and
+        // either where the mapping starts.
+        let (key, embedded) = match failing_key(&path, &message) {
+            Some(key) => (Some(key), path == "." && !message.contains(", ")),
+            None => {
+                let key = flattened_key::<T>(&stage.params, &message);
+                let embedded = key.is_some();
+                (key, embedded)
+            }
+        };
         let what = match &key {
             Some(k) => format!("stages.{}.{k} ({} stage)", stage.name, stage.kind),
             None => format!("stages.{} ({} stage)", stage.name, stage.kind),
@@ -296,10 +306,9 @@ impl PipelineSpec {
         }
         // The values came from the file: read them again from its text, which knows where
         // each one is (a `Value` does not). The same failure at the same key is this one.
-        let location = located::failure_in_text::<T>(&self.text, &stage.name)
-            .filter(|(p, _)| *p == path)
-            .and_then(|(_, at)| at)
-            .or_else(|| locate(&self.text, &stage.name, key.as_deref().map(|k| k.split(['.', '[']).next().unwrap_or(k))));
+        let in_text = || located::failure_in_text::<T>(&self.text, &stage.name).filter(|(p, _)| *p == path).and_then(|(_, at)| at);
+        let at_key = || locate(&self.text, &stage.name, key.as_deref().map(|k| k.split(['.', '[']).next().unwrap_or(k)));
+        let location = if embedded { at_key().or_else(in_text) } else { in_text().or_else(at_key) };
         Err(located(&self.file, location, &format!("{what}: {message}")))
     }
 
@@ -362,6 +371,25 @@ fn failing_key(path: &str, message: &str) -> Option<String> {
         _ => path.to_string(),
     };
     (!key.is_empty() && key != ".").then_some(key)
+}
+
+/// The key of a stage's parameters that a failure at their top (`message`) is about, where
+/// serde could not say: a value of a struct the parameters embed (`#[serde(flatten)]`, as
+/// `kind: ms` embeds its selection) fails with no path and a message naming no key. It is the
+/// first key without which the parameters read, or fail otherwise (but for missing that key).
+fn flattened_key<T: DeserializeOwned>(params: &Value, message: &str) -> Option<String> {
+    let Value::Mapping(map) = params else { return None };
+    map.keys().filter_map(Value::as_str).find(|key| {
+        let mut without = map.clone();
+        without.remove(*key);
+        match serde_path_to_error::deserialize::<_, T>(Value::Mapping(without)) {
+            Ok(_) => true,
+            Err(e) => {
+                let otherwise = e.inner().to_string();
+                otherwise != message && otherwise != format!("missing field `{key}`")
+            }
+        }
+    }).map(str::to_string)
 }
 
 /// Deepest nesting of flow collections (`[...]`, `{...}`) accepted: a pipeline needs four or
@@ -526,6 +554,38 @@ mod tests {
         stage.set_param("gain", 0.2).unwrap();
         assert_eq!(pipeline.stage_params::<Probe>(&stage).unwrap(), Probe { gain: 0.2, given_in_code: false });
         assert!(stage.set_param("to", "x").unwrap_err().to_string().contains("routing"));
+    }
+
+    /// A struct whose keys are partly those of a struct it embeds (`#[serde(flatten)]`): serde
+    /// reports a wrong value of an embedded key without its path, and the error still names it.
+    #[test]
+    fn an_error_in_embedded_keys_names_the_key() {
+        #[derive(Clone, Debug, Deserialize)]
+        #[serde(deny_unknown_fields)]
+        struct Outer {
+            path: String,
+            #[serde(flatten)]
+            inner: Inner,
+        }
+        #[derive(Clone, Debug, Deserialize)]
+        struct Inner {
+            #[serde(default)]
+            spw: Option<Vec<usize>>,
+            #[serde(default)]
+            channels: Option<[usize; 2]>,
+        }
+        let spec = |keys: &str| PipelineSpec::parse(&format!("stages:\n  read:\n    kind: any\n    path: a\n{keys}"), Path::new("f.yaml"), &[]).unwrap();
+        let read = |keys: &str| spec(keys).stage_params::<Outer>(spec(keys).stage("read").unwrap()).map_err(|e| e.to_string());
+        assert_eq!(read("    spw: [1]\n").unwrap().inner.spw, Some(vec![1]));
+        assert!(read("    spw: [1]\n").unwrap().inner.channels.is_none() && read("").unwrap().path == "a");
+        for (keys, key, line) in [("    channels: [1, 2]\n    spw: all\n", "spw", 6), ("    chanels: [1, 2]\n", "chanels", 5)] {
+            let err = read(keys).unwrap_err();
+            assert!(err.contains(&format!("stages.read.{key} (any stage)")) && err.contains(&format!("line {line}")), "{err}");
+        }
+        // Without a required key, that is the error: no key of the mapping is blamed.
+        let bare = PipelineSpec::parse("stages:\n  read: {kind: any, spw: [1]}\n", Path::new("f.yaml"), &[]).unwrap();
+        let err = bare.stage_params::<Outer>(bare.stage("read").unwrap()).unwrap_err().to_string();
+        assert!(err.contains("missing field `path`") && !err.contains("stages.read.spw"), "{err}");
     }
 
     #[test]

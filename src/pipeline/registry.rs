@@ -50,6 +50,12 @@ pub trait StageKind<J: Payload>: Send + Sync {
     }
     /// Parse the parameters and construct the stage (cheap: heavy work happens per job).
     fn build(&self, ctx: &BuildContext<'_, J>) -> Result<Built<J>>;
+    /// What a source stage of this kind says of the items it will make, read from its
+    /// parameters alone (nothing is built, opened or read): the stages after it ask
+    /// ([`BuildContext::upstream_sources`]). `None`: the kind says nothing.
+    fn source_info(&self, _pipeline: &PipelineSpec, _stage: &StageSpec) -> Result<Option<Box<J::SourceInfo>>> {
+        Ok(None)
+    }
 }
 
 /// A stage kind made of plain functions: how the built-in kinds are declared.
@@ -169,6 +175,8 @@ pub struct BuildContext<'a, J: Payload> {
     pub(crate) downstream_stages: Vec<usize>,
     /// What the domain hands every build (see [`Payload::Context`]).
     pub context: &'a J::Context,
+    /// The kinds the pipeline is built from (what the stages before this one say of their items).
+    pub(crate) registry: &'a Registry<J>,
     /// Building to check the pipeline only (`validate`): nothing will run.
     pub(crate) validating: bool,
 }
@@ -196,6 +204,19 @@ impl<J: Payload> BuildContext<'_, J> {
         self.upstream_stages.iter().map(|&i| &self.pipeline.stages[i]).map(|s| (s.name.as_str(), s.kind.as_str())).collect()
     }
 
+    /// The source stages whose jobs reach this one, in file order, each with what its kind says
+    /// of its jobs ([`StageKind::source_info`]; a kind that says nothing is left out). Errors
+    /// are about those stages' keys.
+    pub fn upstream_sources(&self) -> Result<Vec<(&StageSpec, Box<J::SourceInfo>)>> {
+        let mut sources = Vec::new();
+        for stage in self.upstream_stages.iter().map(|&i| &self.pipeline.stages[i]) {
+            if let Some(info) = self.registry.get(&stage.kind).map(|k| k.source_info(self.pipeline, stage)).transpose()?.flatten() {
+                sources.push((stage, info));
+            }
+        }
+        Ok(sources)
+    }
+
     /// The parameters of the stages of `P`'s kind that this one's jobs reach, in file order.
     pub fn downstream_params<P: StageParams>(&self) -> Result<Vec<P>> {
         self.params_of(&self.downstream_stages)
@@ -221,6 +242,19 @@ impl<J: Payload> BuildContext<'_, J> {
     pub fn error_caused(&self, key: &str, cause: Error) -> Error {
         let name = &self.stage.name;
         self.pipeline.stage_error_caused(name, Some(key), &format!("stages.{name}.{key}: {cause}"), cause)
+    }
+
+    /// A constructor's parameter error ([`Error::Parameter`]) at the line of the stage key it
+    /// is about (`keys`: the error's parameter name, the key), else the error as it is.
+    pub fn at_key(&self, keys: &[(&str, &str)], e: Error) -> Error {
+        let key = match &e {
+            Error::Parameter { name, .. } => keys.iter().find(|(n, _)| n == name).map(|(_, key)| *key),
+            _ => None,
+        };
+        match key {
+            Some(key) => self.error_caused(key, e),
+            None => e,
+        }
     }
 
     /// Whether a stage downstream of this one consumes `product`.

@@ -82,7 +82,7 @@ fn build_all<J: Payload>(registry: &Registry<J>, config: &PipelineSpec, graph: &
     let reach = graph.reach();
     let context = |i: usize, downstream| {
         let (upstream_stages, downstream_stages) = neighbours(&reach, i);
-        BuildContext { pipeline: config, stage: &config.stages[i], threads: config.threads, downstream, upstream_stages, downstream_stages, context, validating }
+        BuildContext { pipeline: config, stage: &config.stages[i], threads: config.threads, downstream, upstream_stages, downstream_stages, context, registry, validating }
     };
     let mut consumes = Vec::new();
     let mut produces = Vec::new();
@@ -383,6 +383,7 @@ mod tests {
     impl Payload for Item {
         type Product = Nothing;
         type Context = ();
+        type SourceInfo = ();
         fn id(&self) -> &str {
             &self.0
         }

@@ -10,6 +10,10 @@ pub trait Payload: Send + 'static {
     type Product: ProductKind;
     /// What every stage is built with beside its YAML (in-memory inputs, sinks, shared settings).
     type Context: Send + Sync;
+    /// What a source stage says of the items it will make, read from its parameters before
+    /// anything is built or read ([`StageKind::source_info`](super::StageKind::source_info)):
+    /// what the stages after it check theirs against (`()` where nothing is said).
+    type SourceInfo: ?Sized;
     /// The item's name, unique within a run (errors and progress name it).
     fn id(&self) -> &str;
     /// How far the item has come round a loop (for progress reports).

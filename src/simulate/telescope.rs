@@ -24,15 +24,9 @@ const SIDEREAL_PER_SOLAR: f64 = 1.002_737_909_35;
 const REGISTRY_PATH: &str = "data/telescopes/telescopes.yaml";
 const REGISTRY: &str = include_str!("../../data/telescopes/telescopes.yaml");
 
-/// The antenna tables the registry may name, by file name.
-const TABLES: [(&str, &str); 6] = [
-    ("vlaa.itrf.txt", include_str!("../../data/telescopes/vlaa.itrf.txt")),
-    ("vlab.itrf.txt", include_str!("../../data/telescopes/vlab.itrf.txt")),
-    ("vlac.itrf.txt", include_str!("../../data/telescopes/vlac.itrf.txt")),
-    ("vlad.itrf.txt", include_str!("../../data/telescopes/vlad.itrf.txt")),
-    ("meerkat.itrf.txt", include_str!("../../data/telescopes/meerkat.itrf.txt")),
-    ("skamid-aastar.itrf.txt", include_str!("../../data/telescopes/skamid-aastar.itrf.txt")),
-];
+/// The antenna tables the registry may name, by file name: every `*.itrf.txt` beside it (listed
+/// by `build.rs`).
+const TABLES: &[(&str, &str)] = include!(concat!(env!("OUT_DIR"), "/antenna_tables.rs"));
 
 /// A telescope the simulator knows (an entry of the registry).
 #[derive(Clone, Debug, PartialEq, Deserialize)]
@@ -43,6 +37,10 @@ pub struct Telescope {
     pub key: String,
     /// The name written as `TELESCOPE_NAME` into tables and MeasurementSets (`VLA`, `MeerKAT`).
     pub name: String,
+    /// Other names its data go by (CASA writes `EVLA` for the VLA): the telescope is found by
+    /// any of them, as by its key and name.
+    #[serde(default)]
+    pub aliases: Vec<String>,
     /// Configuration name -> antenna table file.
     pub layouts: BTreeMap<String, String>,
     /// A typical observation: what `r2d2 simulate --telescope KEY` does where no option says
@@ -105,17 +103,22 @@ fn parse_registry(text: &str) -> std::result::Result<Vec<Telescope>, String> {
     Ok(out)
 }
 
-/// The telescope named `name` (its key or its `TELESCOPE_NAME`, any case).
+/// The telescope named `name` (its key, its `TELESCOPE_NAME` or one of its aliases, any case).
 pub fn telescope(name: &str) -> Result<&'static Telescope> {
     let all = telescopes()?;
     let wanted = name.trim();
-    all.iter().find(|t| t.key.eq_ignore_ascii_case(wanted) || t.name.eq_ignore_ascii_case(wanted)).ok_or_else(|| {
+    all.iter().find(|t| t.is_named(wanted)).ok_or_else(|| {
         let known: Vec<&str> = all.iter().map(|t| t.key.as_str()).collect();
         Error::parameter("telescope", format!("expected one of {} (the telescopes in {REGISTRY_PATH}), got '{name}'", known.join(", ")))
     })
 }
 
 impl Telescope {
+    /// Whether `name` (trimmed) is the telescope's key, name or an alias, in any case.
+    pub fn is_named(&self, name: &str) -> bool {
+        std::iter::once(&self.key).chain([&self.name]).chain(&self.aliases).any(|n| n.eq_ignore_ascii_case(name))
+    }
+
     /// The antenna array of configuration `config` (any case).
     pub fn array(&self, config: &str) -> Result<Array> {
         let wanted = config.trim().to_ascii_lowercase();
@@ -532,7 +535,13 @@ mod tests {
                 assert!(a.n_antennas() >= 27, "{}", a.name);
             }
             assert!(std::ptr::eq(telescope(&t.name).unwrap(), t), "found by its TELESCOPE_NAME too");
+            for alias in &t.aliases {
+                assert!(std::ptr::eq(telescope(&alias.to_lowercase()).unwrap(), t), "found by its alias {alias}, in any case");
+            }
         }
+        // Every antenna table beside the registry is compiled in (build.rs lists them).
+        assert_eq!(TABLES.len(), 6);
+        assert_eq!((telescope(" EVLA ").unwrap().key.as_str(), telescope("MeerKAT+").unwrap().key.as_str()), ("vla", "meerkat"));
         let meerkat = telescope("meerkat").unwrap().array("meerkat").unwrap();
         assert_eq!((meerkat.n_antennas(), meerkat.n_baselines()), (64, 2016));
         assert!(meerkat.dish_diameter_m.iter().all(|&d| d == 13.5));

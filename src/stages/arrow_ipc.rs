@@ -4,13 +4,57 @@
 //! whole regular file is read again at each pass (nothing the size of the table is held);
 //! standard input, a pipe and a split are read once and held.
 
-use super::params::ArrowIpcParams;
 use crate::job::{emit_parts, emit_streamed, job_id_problem, stem_id, Truth};
+use crate::job::{ImageContext, Job, Reads, SourceKind, SourceParams};
+use crate::pipeline::{PipelineSpec, Source, StageParams, StageSpec};
 use crate::vis::{read_parts, IpcReader, SplitBy, StreamedTable, TableReader, STDIN};
-use crate::job::Job;
-use crate::pipeline::{PipelineSpec, Source, StageSpec};
 use crate::Result;
-use std::path::Path;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// `kind: arrow-ipc`: an Arrow IPC stream or file.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct ArrowIpcParams {
+    /// An IPC stream or file, or `-` for standard input (stream format).
+    pub path: String,
+    /// Job id (default: the file name without extension; `stdin` for standard input).
+    #[serde(default)]
+    pub id: Option<String>,
+    /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
+    #[serde(default)]
+    pub truth: Option<PathBuf>,
+    /// Split the table into several jobs by a column.
+    #[serde(default)]
+    pub split_by: Option<SplitBy>,
+    /// Image a stream that ends without its end-of-stream marker (a sender that stopped
+    /// between batches), with a warning, instead of failing.
+    #[serde(default)]
+    pub allow_truncated: bool,
+}
+
+impl ArrowIpcParams {
+    /// `path` with the defaults of the other keys.
+    pub fn new(path: impl Into<String>) -> ArrowIpcParams {
+        ArrowIpcParams { path: path.into(), id: None, truth: None, split_by: None, allow_truncated: false }
+    }
+}
+
+impl StageParams for ArrowIpcParams {
+    const KIND: &'static str = "arrow-ipc";
+}
+
+impl SourceParams for ArrowIpcParams {
+    fn reads(&self) -> Reads {
+        Reads::Files(vec![PathBuf::from(&self.path)])
+    }
+    fn several_jobs(&self) -> Option<String> {
+        self.split_by.as_ref().map(|_| "an arrow-ipc source has split_by".to_string())
+    }
+}
+
+/// The kind, as registered.
+pub(super) const KIND: SourceKind<ArrowIpcParams> = SourceKind::new(|params, c| Ok(Box::new(ArrowIpcSource::new(params, c.pipeline, c.stage, c.image().size)?)));
 
 pub struct ArrowIpcSource {
     path: String,

@@ -9,13 +9,79 @@
 //! noise), while extended emission the series already explains leaves little above the
 //! threshold to take.
 
-use super::params::FinalCleanParams;
 use crate::deconv::{hogbom, HogbomParams};
-use crate::job::{Emit, Imaging, Job};
+use crate::job::{Built, Emit, Imaging, Job, KindFn, Product};
 use crate::metrics::{residual_ratio, robust_sigma};
-use crate::pipeline::{Port, Stage};
+use crate::pipeline::{Port, Role, Stage, StageParams};
 use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
 use std::time::Instant;
+
+/// `kind: final_clean`: after the imaging loop, CLEAN major cycles on what the step's model
+/// leaves in the residual (components of both signs, with the PSF, each major cycle's residual
+/// the exact `x_d - D x`), so that the model's fluxes are what the data say: a network series
+/// leaves its compact sources too bright, with negative bowls in the residual, that the
+/// stopping rule does not see. A cycle that does not lower the residual is undone.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FinalCleanParams {
+    /// Most major cycles; default 20. 0 turns the stage into a pass-through.
+    pub major_cycles: usize,
+    /// Minor-cycle loop gain; default 0.1.
+    pub gain: f64,
+    /// Fraction of the residual's peak each major cycle cleans away (WSClean's `-mgain`);
+    /// default 0.8.
+    pub major_gain: f64,
+    /// Clean the whole image down to this many times the residual's robust noise, then only
+    /// where components were taken (WSClean's `-auto-mask`); default 5.
+    pub auto_mask: f64,
+    /// Inside that mask, stop at this many times the residual's robust noise (WSClean's
+    /// `-auto-threshold`); default 2. Noise peaks elsewhere stay in the residual, where they
+    /// belong, instead of becoming model components.
+    pub auto_threshold: f64,
+    /// Most components per major cycle; default 10 000.
+    pub components_per_cycle: usize,
+    /// Islands of the step's model (connected positive pixels) no larger than this many PSF
+    /// main lobes are taken out of the model before the cycles and cleaned afresh; default 4,
+    /// 0 keeps every island. A network series draws a point source as a blob wider than
+    /// the PSF, which components added on top correct in flux only with a ring of negative
+    /// ones around it; CLEAN's own components give a point source a point.
+    pub compact_beams: f64,
+    /// Around those islands, stop at this many times the residual's robust noise; default 1.
+    /// A point source's flux is then what the data measure to a fraction of the noise, while
+    /// extended emission keeps `auto_threshold` (deeper there, noise becomes model).
+    pub compact_threshold: f64,
+}
+
+impl Default for FinalCleanParams {
+    fn default() -> Self {
+        FinalCleanParams {
+            major_cycles: 20,
+            gain: 0.1,
+            major_gain: crate::steps::clean::DEFAULT_MAJOR_GAIN,
+            auto_mask: 5.0,
+            auto_threshold: 2.0,
+            components_per_cycle: 10_000,
+            compact_beams: 4.0,
+            compact_threshold: 1.0,
+        }
+    }
+}
+
+impl StageParams for FinalCleanParams {
+    const KIND: &'static str = "final_clean";
+}
+
+/// The kind, as registered.
+pub(super) const KIND: KindFn = KindFn {
+    name: FinalCleanParams::KIND,
+    role: Role::Transform,
+    consumes: &[Product::Imaging, Product::Model],
+    produces: &[],
+    consumes_also: None,
+    passes_on: false,
+    build: |c| Ok(Built::Stage(Box::new(FinalCleanStage::new(c.params()?)?))),
+};
 
 pub struct FinalCleanStage {
     config: FinalCleanParams,

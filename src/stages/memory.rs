@@ -5,12 +5,39 @@
 //! live (`Engine::image` of an [`Observation::Parts`](crate::Observation)) come in here too,
 //! one job each.
 
-use super::params::ArrowParams;
 use crate::job::{emit_parted, emit_parts, job_id_problem, Truth};
-use crate::job::{BuildContext, ImageContext, Job};
-use crate::pipeline::Source;
+use crate::job::{BuildContext, ImageContext, Job, Reads, SourceKind, SourceParams};
+use crate::pipeline::{Source, StageParams};
 use crate::vis::{read_parts, MemoryInput, MemoryTable, PartedObservation, SplitBy, TableReader};
 use crate::Result;
+use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
+
+/// `kind: arrow`: the run's in-memory inputs.
+#[derive(Clone, Debug, Default, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ArrowParams {
+    /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
+    pub truth: Option<PathBuf>,
+    /// Split each input into several jobs by a column.
+    pub split_by: Option<SplitBy>,
+}
+
+impl StageParams for ArrowParams {
+    const KIND: &'static str = "arrow";
+}
+
+impl SourceParams for ArrowParams {
+    fn reads(&self) -> Reads {
+        Reads::Memory
+    }
+    fn several_jobs(&self) -> Option<String> {
+        self.split_by.as_ref().map(|_| "an arrow source has split_by".to_string())
+    }
+}
+
+/// The kind, as registered.
+pub(super) const KIND: SourceKind<ArrowParams> = SourceKind::new(|params, c| Ok(Box::new(MemorySource::new(params, c)?)));
 
 pub struct MemorySource {
     inputs: Vec<MemoryInput>,

@@ -2,14 +2,71 @@
 //! selected windows and channels), or several with `split_by` (time windows, channels,
 //! `spw`, or `field`: one job per field, each with its own phase centre), read in row chunks.
 
-use super::params::MsParams;
+use super::writer::WriterParams;
 use crate::job::{emit_parts, emit_streamed, job_id_problem, stem_id, Truth};
-use crate::vis::{read_parts, SplitBy, StreamedTable, TableReader};
+use crate::job::{ImageContext, Job, Reads, SourceKind, SourceParams};
 use crate::ms::{FieldSelector, MsReader, MsSelection};
-use crate::job::Job;
-use crate::pipeline::{PipelineSpec, Source, StageSpec};
+use crate::pipeline::{PipelineSpec, Source, StageParams, StageSpec};
+use crate::vis::{read_parts, SplitBy, StreamedTable, TableReader};
 use crate::Result;
+use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
+
+/// `kind: ms`: a MeasurementSet. Its keys are `path`, `id`, what of the MS to read (the keys
+/// of [`MsSelection`]: `data_column`, `field`, `spw`, `channels`), `batch_rows`, `truth` and
+/// `split_by`.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct MsParams {
+    /// The MeasurementSet (a directory).
+    pub path: PathBuf,
+    /// Job id (default: the MS name without its extension).
+    #[serde(default)]
+    pub id: Option<String>,
+    /// What to read: the data column (default `auto`: CORRECTED_DATA when the MS has it, else
+    /// DATA, as WSClean chooses), the field (required when the MS holds several, unless split
+    /// by field), the spectral windows (default: all), the channel range `[start, end)` of
+    /// every window. Its keys are the stage's own (`data_column: DATA`, not nested).
+    #[serde(flatten)]
+    pub selection: MsSelection,
+    /// Samples per batch (a chunk of rows).
+    #[serde(default = "crate::vis::default_batch_rows")]
+    pub batch_rows: usize,
+    /// Ground truth (FITS, Jy/pixel, same grid as the image) for SNR/logSNR per iteration.
+    #[serde(default)]
+    pub truth: Option<PathBuf>,
+    /// Split into several jobs: `{column: time, window: S}`, `{column: frequency}`,
+    /// `{column: spw}`, `{column: field}`, or another numeric column of the batches.
+    #[serde(default)]
+    pub split_by: Option<SplitBy>,
+}
+
+impl MsParams {
+    /// `path` with the defaults of the other keys.
+    pub fn new(path: impl Into<PathBuf>) -> MsParams {
+        MsParams { path: path.into(), id: None, selection: MsSelection::default(), batch_rows: crate::vis::default_batch_rows(), truth: None, split_by: None }
+    }
+}
+
+impl StageParams for MsParams {
+    const KIND: &'static str = "ms";
+}
+
+impl SourceParams for MsParams {
+    fn reads(&self) -> Reads {
+        Reads::MeasurementSet(self.path.clone())
+    }
+    fn several_jobs(&self) -> Option<String> {
+        self.split_by.as_ref().map(|_| "an ms source has split_by".to_string())
+    }
+}
+
+/// The kind, as registered.
+pub(super) const KIND: SourceKind<MsParams> = SourceKind::new(|params, c| {
+    // A writer that predicts the model into the MS needs one job per field, checked now.
+    let model_columns: Vec<String> = c.downstream_params::<WriterParams>()?.into_iter().filter_map(|w| w.model_column).collect();
+    Ok(Box::new(MsSource::new(params, c.pipeline, c.stage, c.image().size, &model_columns)?))
+});
 
 /// The column that makes one job per field (each needs its own phase centre and metadata).
 const FIELD_SPLIT: &str = "field";
@@ -43,7 +100,7 @@ impl MsSource {
         if config.batch_rows == 0 {
             return Err(error("batch_rows", "expected at least 1".into()));
         }
-        let selection = MsSelection { data_column: config.data_column, field: config.field, spw: config.spw, channels: config.channels };
+        let selection = config.selection;
         let split_key = format!("stages.{name}.split_by.column");
         if let Some(split) = &config.split_by {
             split.check().map_err(|m| error("split_by", format!("window: {m}")))?;
@@ -132,5 +189,44 @@ impl Source<Job> for MsSource {
 
     fn current_job(&self) -> Option<String> {
         self.reading.then(|| self.id.clone())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::path::Path;
+
+    /// The `read` stage of a pipeline whose `kind: ms` stage has `keys`, read as its parameters.
+    fn read(keys: &str) -> Result<MsParams> {
+        let text = format!("stages:\n  read:\n    kind: ms\n    path: a.ms\n{keys}    to: write\n  write: {{kind: writer}}\n");
+        let spec = PipelineSpec::parse(&text, Path::new("p.yaml"), &[]).unwrap();
+        spec.stage_params::<MsParams>(spec.stage("read").unwrap())
+    }
+
+    /// The selection's keys are the stage's own (flattened into `MsParams::selection`), and an
+    /// error about one still names it at its line: an unknown key is refused, a wrong value
+    /// named by its key, though serde reports neither through the flattened struct.
+    #[test]
+    fn the_selection_keys_are_the_stages_and_errors_name_them() {
+        let params = read("    data_column: DATA\n    spw: [0, 2]\n    channels: [1, 4]\n    batch_rows: 10\n").unwrap();
+        let selection = MsSelection { data_column: "DATA".into(), field: None, spw: Some(vec![0, 2]), channels: Some([1, 4]) };
+        assert_eq!(params, MsParams { selection, batch_rows: 10, ..MsParams::new("a.ms") });
+        assert_eq!(read("").unwrap(), MsParams::new("a.ms"));
+        // An unknown key, a misspelt selection key among them.
+        for (keys, key, line) in [("    spws: [0]\n", "spws", 5), ("    batch_rows: 10\n    colour: red\n", "colour", 6)] {
+            let err = read(keys).unwrap_err().to_string();
+            assert!(err.contains(&format!("line {line}")) && err.contains(&format!("stages.read.{key} (ms stage)")) && err.contains("unknown field"), "{err}");
+        }
+        // A wrong value of a selection key, and of one of the stage's own.
+        for (keys, key) in [("    spw: all\n", "spw"), ("    channels: [1]\n", "channels"), ("    batch_rows: many\n", "batch_rows")] {
+            let err = read(keys).unwrap_err().to_string();
+            assert!(err.contains("line 5") && err.contains(&format!("stages.read.{key} (ms stage)")), "{err}");
+        }
+        // Written in code and read back from its mapping: the same parameters.
+        let typed = MsParams { selection: MsSelection { field: Some(FieldSelector::Name("3C286".into())), ..MsSelection::default() }, ..MsParams::new("a.ms") };
+        let spec = crate::StageSpec::typed("read", &typed).unwrap();
+        assert_eq!(spec.params()["field"].as_str(), Some("3C286"), "flat, as the YAML writes it");
+        assert_eq!(serde_yaml::from_value::<MsParams>(spec.params().clone()).unwrap(), typed);
     }
 }

@@ -3,11 +3,32 @@
 //! After a native plugin the products are handed over at the run's end, once the plugin has
 //! been torn down cleanly (as a writer commits them, `super::writer`).
 
-use super::params::ProductsParams;
-use crate::job::{BuildContext, Emit, ImageContext, Job, ProductSink};
-use crate::pipeline::{Port, Stage};
+use super::step::holds_until_finished;
+use crate::job::{BuildContext, Built, Emit, ImageContext, Job, KindFn, Product, ProductSink};
+use crate::pipeline::{Port, Role, Stage, StageParams};
 use crate::job::JobProducts;
 use crate::Result;
+use serde::{Deserialize, Serialize};
+
+/// `kind: products`: no parameters (the sink is the run's).
+#[derive(Clone, Debug, Default, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct ProductsParams {}
+
+impl StageParams for ProductsParams {
+    const KIND: &'static str = "products";
+}
+
+/// The kind, as registered.
+pub(super) const KIND: KindFn = KindFn {
+    name: ProductsParams::KIND,
+    role: Role::Sink,
+    consumes: &[Product::Imaging],
+    produces: &[],
+    consumes_also: None,
+    passes_on: true,
+    build: |c| Ok(Built::Stage(Box::new(ProductsStage::new(c.params()?, c, holds_until_finished(c))?))),
+};
 
 pub struct ProductsStage {
     sink: Option<Box<dyn ProductSink>>,

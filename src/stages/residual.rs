@@ -6,11 +6,63 @@
 //! number of visibilities. `method: nufft` is the exact round trip
 //! through the kept visibilities (the reference's choice).
 
-use super::params::{ResidualMethod, ResidualParams};
-use crate::job::{BuildContext, Emit, Iterate, Job, LoopStop, Product, StopReason};
-use crate::pipeline::{Port, Stage};
+use crate::job::{BuildContext, Built, Emit, Iterate, Job, KindFn, LoopStop, Product, StopReason};
+use crate::pipeline::{Port, Role, Stage, StageParams};
 use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
 use std::time::Instant;
+
+/// How the residual update computes `D x`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ResidualMethod {
+    /// A convolution with the 2N PSF: memory no longer grows with the visibilities.
+    #[default]
+    Toeplitz,
+    /// The exact NUFFT round trip through the visibilities, which the gridder then keeps.
+    Nufft,
+}
+
+/// `kind: residual`: the residual update and the loop's exit.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ResidualParams {
+    /// Default `toeplitz`.
+    pub method: ResidualMethod,
+    /// Stop early by the reference v2 criterion (the residual ratio changes by less than
+    /// `tolerance`, or rises at two consecutive iterations) instead of running the whole
+    /// series; default true.
+    pub early_stop: bool,
+    /// Relative change of the residual ratio below which the loop stops (`early_stop`);
+    /// default 1e-4.
+    pub tolerance: f64,
+    /// Stop a series whose residual ratio rises above 1 (its model explains the data worse
+    /// than an empty image) or rises at two consecutive iterations, keep the iterate of lowest
+    /// residual ratio as the model (the empty model if none is below 1), and warn; default
+    /// true.
+    pub divergence_guard: bool,
+}
+
+impl Default for ResidualParams {
+    fn default() -> Self {
+        ResidualParams { method: ResidualMethod::Toeplitz, early_stop: true, tolerance: 1e-4, divergence_guard: true }
+    }
+}
+
+impl StageParams for ResidualParams {
+    const KIND: &'static str = "residual";
+}
+
+/// The kind, as registered.
+pub(super) const KIND: KindFn = KindFn {
+    name: ResidualParams::KIND,
+    role: Role::Residual,
+    consumes: &[Product::Imaging, Product::Model],
+    produces: &[],
+    consumes_also: Some(consumes),
+    passes_on: false,
+    build: |c| Ok(Built::Stage(Box::new(ResidualStage::new(c.params()?)?))),
+};
 
 /// What the stage needs besides the imaging state: the NUFFT method runs the measurement
 /// operator, which the gridder then keeps.

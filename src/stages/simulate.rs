@@ -1,15 +1,110 @@
 //! `kind: simulate`: simulated observations of procedural skies (one job per seed), with
 //! the true sky attached so the run reports SNR and logSNR.
 
-use super::params::SimulateParams;
-use crate::nufft::NufftParams;
 use crate::imaging::ImageConfig;
-use crate::job::Job;
-use crate::pipeline::Source;
+use crate::job::{ImageContext, Job, Reads, SourceKind, SourceParams};
+use crate::nufft::NufftParams;
+use crate::pipeline::{Source, StageParams};
 use crate::simulate::observe::{ObservationRequest, ObservationSpec};
 use crate::simulate::{simulate, SimulationRequest, SkyModel};
-use crate::weighting::Weighting;
+use crate::weighting::{Weighting, WeightingScheme};
 use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
+
+/// `kind: simulate`: simulated observations of procedural skies.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SimulateParams {
+    /// Number of jobs (seeds `seed`, `seed + 1`, ...); default 1.
+    pub jobs: usize,
+    /// Default 7.
+    pub seed: u64,
+    /// Of the procedural sky; default 1e4.
+    pub dynamic_range: f64,
+    /// A telescope of `data/telescopes/telescopes.yaml`; default `vla`.
+    pub telescope: String,
+    /// Its configurations; default its typical observation's (`[a, c]` for the VLA).
+    pub configurations: Option<Vec<String>>,
+    /// Hours per configuration; default its typical observation's (`[6, 2]` for the VLA).
+    pub hours: Option<Vec<f64>>,
+    /// Declination of the phase centre; default the telescope's typical observation's (40
+    /// degrees for the VLA, -30 for MeerKAT).
+    pub dec_deg: Option<f64>,
+    /// Default 180 degrees.
+    pub ra_deg: f64,
+    /// Seconds per sample; default the typical observation's (VLA 30, MeerKAT 8).
+    pub integration_s: Option<f64>,
+    /// Frequency channels and the lowest frequency; default the typical observation's (VLA
+    /// 1 at 1400 MHz, MeerKAT 4 from 856 MHz).
+    pub channels: Option<usize>,
+    pub frequency_mhz: Option<f64>,
+    /// Highest to lowest channel frequency; default the typical observation's (VLA 1, MeerKAT 2).
+    pub frequency_ratio: Option<f64>,
+    /// Fraction of the samples flagged; default 0.
+    pub flag_fraction: f64,
+    /// Weighting the noise level is defined for; default Briggs, robust 0.
+    pub noise_weighting: WeightingScheme,
+    pub robust: f64,
+}
+
+impl Default for SimulateParams {
+    fn default() -> Self {
+        SimulateParams {
+            jobs: 1,
+            seed: 7,
+            dynamic_range: 1e4,
+            telescope: "vla".into(),
+            configurations: None,
+            hours: None,
+            dec_deg: None,
+            ra_deg: 180.0,
+            integration_s: None,
+            channels: None,
+            frequency_mhz: None,
+            frequency_ratio: None,
+            flag_fraction: 0.0,
+            noise_weighting: WeightingScheme::Briggs,
+            robust: 0.0,
+        }
+    }
+}
+
+impl StageParams for SimulateParams {
+    const KIND: &'static str = "simulate";
+}
+
+impl SourceParams for SimulateParams {
+    fn reads(&self) -> Reads {
+        Reads::Nothing
+    }
+    fn several_jobs(&self) -> Option<String> {
+        (self.jobs > 1).then(|| format!("a simulate source makes {} jobs", self.jobs))
+    }
+    /// The telescope it simulates (its registry name).
+    fn telescope(&self) -> Result<Option<String>> {
+        Ok(Some(crate::simulate::telescope::telescope(&self.telescope)?.name.clone()))
+    }
+}
+
+/// The stage keys of the parameters the simulation's checks name (its errors are reported at
+/// the key's line).
+const KEYS: &[(&str, &str)] = &[
+    ("configs", "configurations"),
+    ("telescope configuration", "configurations"),
+    ("observation time", "hours"),
+    ("hours", "hours"),
+    ("declination", "dec_deg"),
+    ("integration time", "integration_s"),
+    ("frequency", "frequency_mhz"),
+    ("nfreq", "channels"),
+    ("freq-ratio", "frequency_ratio"),
+    ("flag-fraction", "flag_fraction"),
+    ("robust", "robust"),
+];
+
+/// The kind, as registered.
+pub(super) const KIND: SourceKind<SimulateParams> =
+    SourceKind::new(|params, c| Ok(Box::new(SimulateSource::new(params, c.image(), c.threads).map_err(|e| c.at_key(KEYS, e))?)));
 
 pub struct SimulateSource {
     config: SimulateParams,

@@ -1,15 +1,127 @@
 //! Network-step stages (`kind: clean`, `onnx`, `native`): run the job's next step of
 //! the series and pass it to the residual update.
 
-use crate::job::{Emit, Job};
-use crate::pipeline::{Port, Stage};
+use super::weighting::WeightingParams;
+use crate::job::{BuildContext, Built, Emit, ImageContext, Job, KindFn, Product};
+use crate::pipeline::{Port, Role, Stage, StageParams};
 use crate::steps::clean::{CleanConfig, CleanStep};
-use crate::steps::onnx::{OnnxConfig, OnnxStep};
+use crate::steps::native::{Isolation, NativeConfig, NativeStep};
+use crate::steps::onnx::runtime::{BackendChoice, GraphOptimization};
+use crate::steps::onnx::{OnnxConfig, OnnxStep, ValidityMode};
 use crate::steps::series::ImagingSetup;
-use crate::steps::native::{NativeConfig, NativeStep};
 use crate::steps::{JobDomain, NetworkStep, StepInput};
 use crate::Result;
+use std::path::PathBuf;
 use std::time::Instant;
+
+// The steps' parameters are their configurations (`crate::steps`), re-exported as
+// `params::CleanParams`, `OnnxParams`, `NativeParams`.
+
+impl StageParams for CleanConfig {
+    const KIND: &'static str = "clean";
+}
+
+impl StageParams for OnnxConfig {
+    const KIND: &'static str = "onnx";
+}
+
+impl StageParams for NativeConfig {
+    const KIND: &'static str = "native";
+}
+
+impl OnnxConfig {
+    /// The series (a directory, a name `r2d2 models` lists, or `auto`: the one trained for the
+    /// image size) with the defaults of the other keys.
+    pub fn new(series: impl Into<PathBuf>) -> OnnxConfig {
+        OnnxConfig {
+            series: series.into(),
+            backend: BackendChoice::default(),
+            threads: 0,
+            networks: None,
+            prefetch: true,
+            graph_optimization: GraphOptimization::default(),
+            realisation: None,
+            validity: ValidityMode::default(),
+        }
+    }
+}
+
+impl NativeConfig {
+    /// The plugin library and the series length, with the defaults of the other keys.
+    pub fn new(library: impl Into<PathBuf>, iterations: usize) -> NativeConfig {
+        NativeConfig { library: library.into(), iterations, positivity: true, config: None, isolation: Isolation::default(), timeout: 600.0 }
+    }
+}
+
+/// A network step kind: improves the model of a gridded job.
+const fn step(name: &'static str, build: fn(&BuildContext<'_>) -> Result<Built>) -> KindFn {
+    KindFn { name, role: Role::Step, consumes: &[Product::Imaging], produces: &[Product::Model], consumes_also: None, passes_on: false, build }
+}
+
+/// The kinds, as registered.
+pub(super) const CLEAN: KindFn = step(CleanConfig::KIND, |c| Ok(Built::Stage(Box::new(StepStage::clean(c.params()?)?))));
+
+/// The series is checked against the pipeline (image size, network shapes): say where.
+pub(super) const ONNX: KindFn = step(OnnxConfig::KIND, |c| {
+    let config: OnnxConfig = c.params()?;
+    let setup = imaging_setup(c, config.series.as_os_str() == crate::steps::series::AUTO_SERIES)?;
+    let step = StepStage::onnx(config, c.image().size, c.threads, &setup).map_err(|e| c.error_caused("series", e))?;
+    Ok(Built::Stage(Box::new(step)))
+});
+
+pub(super) const NATIVE: KindFn = step(NativeConfig::KIND, |c| {
+    let mut config: NativeConfig = c.params()?;
+    // validate never loads a plugin into this process: its create check runs in a host
+    // process even under `isolation: none` (unless no host can be found).
+    if c.validating() && crate::steps::native_host::find_host().is_ok() {
+        config.isolation = Isolation::Process;
+    }
+    Ok(Built::Stage(Box::new(StepStage::native(config, c.image().size, c.name())?)))
+});
+
+/// Whether a sink keeps its jobs' products until the run's end (its finish): a native plugin
+/// before it is torn down only then, and a crash there (or a heap it corrupted, found then)
+/// must fail the run before anything it computed is written or delivered.
+pub(super) fn holds_until_finished(c: &BuildContext<'_>) -> bool {
+    c.upstream_stages().iter().any(|&(_, kind)| kind == NativeConfig::KIND)
+}
+
+/// The jobs' imaging as a series' validity sees it: the super-resolution (unknown when the
+/// pixel size is given in arcsec: it then depends on each job's longest baseline) and the
+/// weighting of the weighting stage before the step (unknown if there are several that
+/// disagree, or none of the built-in kind).
+/// The telescope is looked up only for `auto` (`choosing`), whose choice it takes part in; a
+/// named series meets each job's telescope at the job.
+fn imaging_setup(ctx: &BuildContext<'_>, choosing: bool) -> Result<ImagingSetup> {
+    let image = ctx.image();
+    let mut weightings = ctx.upstream_params::<WeightingParams>()?;
+    weightings.dedup();
+    let weighting = match weightings.as_slice() {
+        [one] => Some(one),
+        _ => None,
+    };
+    Ok(ImagingSetup {
+        superresolution: image.pixel_arcsec.is_none().then(|| image.superresolution.unwrap_or(1.5)),
+        weighting: weighting.map(|w| w.scheme.name().to_string()),
+        robust: weighting.map(|w| w.robust),
+        telescope: if choosing { source_telescope(ctx)? } else { None },
+        // Known once the data are read: each job's are checked at its first step.
+        track_hours: None,
+        integration_s: None,
+    })
+}
+
+/// The telescope of the sources before the step (`auto` prefers a series trained for it): the
+/// first that says one, in file order (a simulation names its own; a file source's first file
+/// says, read without its samples); none where none says.
+fn source_telescope(ctx: &BuildContext<'_>) -> Result<Option<String>> {
+    for (_, source) in ctx.upstream_sources()? {
+        if let Some(telescope) = source.telescope()? {
+            return Ok(Some(telescope));
+        }
+    }
+    Ok(None)
+}
 
 pub struct StepStage {
     kind: &'static str,
@@ -109,5 +221,70 @@ impl Stage<Job> for StepStage {
 
     fn finish(&mut self) -> Result<()> {
         self.step.finish()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::job::RunContext;
+    use crate::pipeline::graph::Graph;
+    use crate::pipeline::runner::neighbours;
+    use crate::pipeline::PipelineSpec;
+    use std::path::Path;
+
+    /// The imaging a series' validity is checked against, as the step at `stages[step]` of
+    /// `text` sees it.
+    fn setup_of(text: &str, step: usize) -> ImagingSetup {
+        let spec = PipelineSpec::parse(text, Path::new("p.yaml"), &[]).unwrap();
+        let registry = crate::stages::builtin();
+        let graph = Graph::build(&registry, &spec).unwrap();
+        let (upstream_stages, downstream_stages) = neighbours(&graph.reach(), step);
+        let context = RunContext::new(&spec, Vec::new(), None).unwrap();
+        let ctx = BuildContext {
+            pipeline: &spec,
+            stage: &spec.stages[step],
+            threads: 1,
+            downstream: Vec::new(),
+            upstream_stages,
+            downstream_stages,
+            context: &context,
+            registry: &registry,
+            validating: false,
+        };
+        imaging_setup(&ctx, true).unwrap()
+    }
+
+    const PIPELINE: &str = "image: {size: 16, superresolution: 2}\nstages:\n  source: {kind: simulate, to: weights}\n  weights: {kind: weighting, scheme: robust, robust: -0.5, to: grid}\n  grid: {kind: gridder, to: step}\n  step: {kind: clean, to: update}\n  update: {kind: residual, to: step, done: write}\n  write: {kind: writer}\n";
+
+    #[test]
+    fn a_step_sees_the_weighting_of_the_stage_before_it() {
+        let setup = setup_of(PIPELINE, 3);
+        // `robust` is Briggs' other name: the series' manifest knows it as briggs.
+        assert_eq!((setup.superresolution, setup.weighting.as_deref(), setup.robust), (Some(2.0), Some("briggs"), Some(-0.5)));
+        let arcsec = setup_of(&PIPELINE.replace("superresolution: 2", "pixel_arcsec: 1"), 3);
+        assert_eq!(arcsec.superresolution, None, "the super-resolution depends on each job's baselines");
+    }
+
+    #[test]
+    fn a_weighting_stage_the_step_does_not_follow_is_not_its_weighting() {
+        // A second weighting stage after the loop (before a writer), first in the file,
+        // weights nothing the step sees.
+        let after = PIPELINE
+            .replace("done: write}", "done: again}")
+            .replace("stages:\n", "stages:\n  again: {kind: weighting, scheme: natural, to: write}\n");
+        assert_eq!(setup_of(&after, 4).weighting.as_deref(), Some("briggs"));
+    }
+
+    /// The telescope `auto` prefers a series for is the one the source before the step says,
+    /// asked of the source kind (`SourceParams::telescope`): a simulation's, by its registry
+    /// name; none where the source says none (a file that does not exist yet is not opened).
+    #[test]
+    fn a_step_sees_the_telescope_its_source_says() {
+        assert_eq!(setup_of(PIPELINE, 3).telescope.as_deref(), Some("VLA"));
+        let meerkat = PIPELINE.replace("{kind: simulate,", "{kind: simulate, telescope: mkat,");
+        assert_eq!(setup_of(&meerkat, 3).telescope.as_deref(), Some("MeerKAT"), "an alias of the telescope data");
+        let file = PIPELINE.replace("{kind: simulate,", "{kind: parquet, files: no-such.parquet,");
+        assert_eq!(setup_of(&file, 3).telescope, None);
     }
 }

@@ -1,13 +1,68 @@
 //! `kind: weighting`: image geometry (from the pipeline's `image`) and the total weight of
 //! every visibility (natural x imaging: natural, uniform or Briggs).
 
-use super::params::WeightingParams;
 use crate::vis::weight_rule;
 use crate::imaging::ImageConfig;
-use crate::job::{Emit, Job};
-use crate::pipeline::{Port, Stage};
-use crate::weighting::{Weighting, WeightingScheme};
+use crate::job::{Built, Emit, ImageContext, Job, KindFn, Product};
+use crate::pipeline::{Port, Role, Stage, StageParams};
+use crate::weighting::{Weighting, WeightingScheme, DEFAULT_GRID_FACTOR};
 use crate::Result;
+use serde::{Deserialize, Serialize};
+
+/// `kind: weighting`: how each visibility is weighted. `scheme` has no default in YAML (a
+/// pipeline says which it uses); `WeightingParams::default()` is `r2d2 image`'s, Briggs with
+/// robust 0.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct WeightingParams {
+    /// natural, uniform or briggs.
+    pub scheme: WeightingScheme,
+    /// Briggs robustness (-2: close to uniform, 2: close to natural); default 0.
+    #[serde(default)]
+    pub robust: f64,
+    /// Uniform and Briggs weights count the visibilities in a uv grid of `grid_factor x size`
+    /// cells per axis.
+    #[serde(default = "grid_factor")]
+    pub grid_factor: f64,
+}
+
+impl StageParams for WeightingParams {
+    const KIND: &'static str = "weighting";
+}
+
+impl Default for WeightingParams {
+    fn default() -> Self {
+        WeightingParams::new(Weighting::Briggs { robust: 0.0 })
+    }
+}
+
+impl WeightingParams {
+    /// The stage for `weighting`, with the default grid factor.
+    pub fn new(weighting: Weighting) -> WeightingParams {
+        let (scheme, robust) = match weighting {
+            Weighting::Natural => (WeightingScheme::Natural, 0.0),
+            Weighting::Uniform => (WeightingScheme::Uniform, 0.0),
+            Weighting::Briggs { robust } => (WeightingScheme::Briggs, robust),
+            Weighting::Given => (WeightingScheme::Given, 0.0),
+        };
+        WeightingParams { scheme, robust, grid_factor: grid_factor() }
+    }
+}
+
+fn grid_factor() -> f64 {
+    DEFAULT_GRID_FACTOR
+}
+
+/// The kind, as registered.
+pub(super) const KIND: KindFn = KindFn {
+    name: WeightingParams::KIND,
+    role: Role::Transform,
+    consumes: &[Product::Visibilities],
+    produces: &[Product::Weights],
+    consumes_also: None,
+    passes_on: false,
+    build: |c| Ok(Built::Stage(Box::new(WeightingStage::new(c.params()?, c.image()).map_err(|e| c.at_key(&[("robust", "robust")], e))?))),
+};
 
 /// Where the truth's FITS grid is not the job's (another pixel size or centre), what differs:
 /// its SNR and logSNR would compare images of different skies.

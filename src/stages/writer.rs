@@ -7,11 +7,73 @@
 //! native plugin, every job's products wait staged until the run's end and are moved into
 //! place once the plugin has been torn down cleanly (the stage's finish).
 
-use super::params::WriterParams;
-use crate::job::{Emit, Job};
-use crate::pipeline::{PipelineSpec, Stage, StageSpec};
+use super::step::holds_until_finished;
+use crate::job::{BuildContext, Built, Emit, Job, KindFn, Product};
+use crate::pipeline::{PipelineSpec, Role, Stage, StageParams, StageSpec};
 use crate::job::{JobProducts, Staged, WriteOptions};
 use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
+
+/// `kind: writer`: where and what a job's products are written.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct WriterParams {
+    /// Output prefix; `{job}` is replaced by the job id. Default `{job}`.
+    pub prefix: String,
+    /// A PNG preview (log scale, colour bar) beside each FITS product; default true.
+    pub previews: bool,
+    /// Decades shown by the previews' log scale; default: the dynamic range of the truth
+    /// or of the simulated sky when known, else 1e3.
+    pub preview_dynamic_range: Option<f64>,
+    /// Predict the final model's visibilities into this column of the input MeasurementSet
+    /// (`kind: ms` jobs), e.g. MODEL_DATA; created when missing.
+    pub model_column: Option<String>,
+}
+
+impl Default for WriterParams {
+    fn default() -> Self {
+        WriterParams { prefix: "{job}".into(), previews: true, preview_dynamic_range: None, model_column: None }
+    }
+}
+
+impl StageParams for WriterParams {
+    const KIND: &'static str = "writer";
+}
+
+/// The kind, as registered.
+pub(super) const KIND: KindFn = KindFn {
+    name: WriterParams::KIND,
+    role: Role::Sink,
+    consumes: &[Product::Imaging],
+    produces: &[],
+    consumes_also: None,
+    passes_on: false,
+    build: |c| {
+        let config: WriterParams = c.params()?;
+        // A model column needs jobs read from an MS (`ms`, or in-memory batches that carry an
+        // MS's origin): a source that reads none has no column to write, known before imaging.
+        if config.model_column.is_some() {
+            if let Some((stage, _)) = c.upstream_sources()?.into_iter().find(|(_, source)| !source.reads().may_be_measurement_set()) {
+                return Err(c.error(
+                    Some("model_column"),
+                    format!(
+                        "the jobs come from stage '{}' (kind '{}'), which reads no MeasurementSet: only an `ms` source has a column to write the model into",
+                        stage.name, stage.kind
+                    ),
+                ));
+            }
+        }
+        Ok(Built::Stage(Box::new(WriterStage::new(config, c.pipeline, c.stage, several_jobs(c)?, holds_until_finished(c))?)))
+    },
+};
+
+/// Why the sources before stage `c` may make several jobs (a list or pattern of files, a
+/// `split_by`, several seeds), if they may, as each says. Several sources feeding one writer
+/// are caught by the writer at run time, when a second job reaches a prefix already written.
+fn several_jobs(c: &BuildContext<'_>) -> Result<Option<String>> {
+    let why: Vec<String> = c.upstream_sources()?.iter().filter_map(|(_, source)| source.several_jobs()).collect();
+    Ok((!why.is_empty()).then(|| why.join("; ")))
+}
 
 /// What a writer prefix may contain besides text.
 const PLACEHOLDERS: &[&str] = &["{job}"];

@@ -264,15 +264,13 @@ fn widened([lo, hi]: [f64; 2], tolerance: f64) -> [f64; 2] {
     [lo * (1.0 - tolerance), hi * (1.0 + tolerance)]
 }
 
-/// A telescope name as series compare them: lower case, the VLA's other names folded
-/// (CASA writes `EVLA`; `JVLA` is also seen).
+/// A telescope name as series compare them: the key of the telescope it names in the telescope
+/// data (`data/telescopes/telescopes.yaml`: by its key, name or an alias, so that the VLA's
+/// `EVLA`, as CASA writes it, is `vla`), else the name in lower case.
 pub fn telescope_key(name: &str) -> String {
-    let key = name.trim().to_ascii_lowercase();
-    match key.as_str() {
-        "evla" | "jvla" | "karl g. jansky very large array" => "vla".into(),
-        "mkat" | "meerkat+" => "meerkat".into(),
-        _ => key,
-    }
+    let name = name.trim();
+    let known = crate::simulate::telescope::telescopes().ok().and_then(|all| all.iter().find(|t| t.is_named(name)));
+    known.map_or_else(|| name.to_ascii_lowercase(), |t| t.key.clone())
 }
 
 impl Validity {

@@ -1,0 +1,51 @@
+//! `kind: gridder`'s parameters. They belong beside the gridder stage (`gridder.rs`), which
+//! reads them as `super::params::GridderParams`; they stand in a file of their own until that
+//! stage takes them in.
+
+use crate::nufft::NufftParams;
+use crate::operator::WTermMode;
+use crate::pipeline::StageParams;
+use serde::{Deserialize, Serialize};
+
+/// `kind: gridder`: the NUFFT's accuracy, and whether it includes the w-term.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GridderParams {
+    /// NUFFT relative accuracy; default 1e-6.
+    pub epsilon: f64,
+    /// Oversampling of the NUFFT's grid; default 2.
+    pub oversampling: f64,
+    /// The w-term: `auto` (default: included by w-gridding where it turns a phase by more
+    /// than `epsilon` over the field), `on` or `off` (coplanar, for comparison).
+    pub w_term: WTermMode,
+    /// Most memory (MB) the samples of a job read from a file may take held in an operator
+    /// (the residual update through the operator: `method: nufft`, or the w-term where its
+    /// Toeplitz form is not built); above it they are read again from the file at every
+    /// update instead (or, for the w-term's Taylor series, once per kernel and for the final
+    /// residual), in chunks as large as this allows. The Taylor series' kernels take at most
+    /// this much too. With the w-term's Toeplitz form, the
+    /// gridding pass's chunks take what this leaves beside the kernels' grids. Default 256.
+    pub hold_mb: f64,
+    /// Samples per chunk of a pass over the data: what gridding holds beside its grids (about
+    /// 100 bytes a sample). Default 1048576.
+    pub chunk_rows: usize,
+}
+
+/// The default of [`GridderParams::hold_mb`].
+pub const DEFAULT_HOLD_MB: f64 = 256.0;
+
+/// The default of [`GridderParams::chunk_rows`]: large enough that a chunk's fixed cost
+/// (sorting, merging its tiles into the grids, a w-gridded chunk's plane FFTs) is small beside
+/// its spreading, small enough to be little beside the images.
+pub const DEFAULT_CHUNK_ROWS: usize = 1 << 20;
+
+impl Default for GridderParams {
+    fn default() -> Self {
+        let NufftParams { epsilon, oversampling } = NufftParams::default();
+        GridderParams { epsilon, oversampling, w_term: WTermMode::Auto, hold_mb: DEFAULT_HOLD_MB, chunk_rows: DEFAULT_CHUNK_ROWS }
+    }
+}
+
+impl StageParams for GridderParams {
+    const KIND: &'static str = "gridder";
+}
