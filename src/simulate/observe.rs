@@ -150,7 +150,7 @@ pub fn frequency_channels(lowest_hz: f64, count: usize, ratio: f64) -> Result<Ve
     if ratio == 1.0 {
         // Every channel would be the same frequency: the same samples several times over,
         // which no MeasurementSet holds (one sample per channel).
-        return Err(Error::parameter("freq-ratio", format!("{count} frequencies at a ratio of 1 would all be {lowest_hz} Hz: give the band's highest/lowest frequency above 1 (e.g. --freq-ratio 1.2), or one frequency")));
+        return Err(Error::parameter("freq-ratio", format!("{count} frequencies at a ratio of 1 would all be {lowest_hz} Hz: give the band's highest/lowest frequency above 1 (a ratio of 1.2, say), or one frequency")));
     }
     Ok((0..count).map(|k| lowest_hz * (1.0 + (ratio - 1.0) * k as f64 / (count - 1) as f64)).collect())
 }

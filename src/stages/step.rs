@@ -101,7 +101,7 @@ fn imaging_setup(ctx: &BuildContext<'_>, choosing: bool) -> Result<ImagingSetup>
         _ => None,
     };
     Ok(ImagingSetup {
-        superresolution: image.pixel_arcsec.is_none().then(|| image.superresolution.unwrap_or(1.5)),
+        superresolution: image.pixel_arcsec.is_none().then(|| image.superresolution.unwrap_or(crate::imaging::DEFAULT_SUPERRESOLUTION)),
         weighting: weighting.map(|w| w.scheme.name().to_string()),
         robust: weighting.map(|w| w.robust),
         telescope: if choosing { source_telescope(ctx)? } else { None },

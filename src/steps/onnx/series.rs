@@ -943,7 +943,7 @@ fn sharing_the_name(opened: &[(PathBuf, Result<Series>)], k: usize) -> Option<&P
 fn shared_name_error(dir: &Path, name: &str, other: &Path) -> Error {
     invalid(
         dir,
-        format!("series '{name}' has the name of the series in {} too: a name must pick one series (`auto` logs it, `--step` takes it); give one of them another `name` in its manifest", other.display()),
+        format!("series '{name}' has the name of the series in {} too: a name must pick one series (`auto` logs it, the request's `step` takes it); give one of them another `name` in its manifest", other.display()),
     )
 }
 
