@@ -667,5 +667,5 @@ fn image_command_takes_a_plugin_library() {
 
     // A configuration for a step that takes none is refused, not ignored.
     let out = r2d2(&["image", "obs.parquet", "--size", "64", "--plugin-config", "{gain: 1}", "--name", "x"], d);
-    assert!(!out.status.success() && stderr(&out).contains("plugin config"), "{}", stderr(&out));
+    assert!(!out.status.success() && stderr(&out).contains("invalid --plugin-config: only a native plugin takes a configuration"), "{}", stderr(&out));
 }
