@@ -139,7 +139,11 @@ impl MsOptions {
         };
         Ok(crate::ms::MsSelection {
             data_column: self.data_column.clone(),
-            field: self.field.as_deref().map(|f| f.parse()).transpose().map_err(|e| Error::parameter("field", format!("{e:?}")))?,
+            // Any text selects a field (by id or name): its parse cannot fail.
+            field: self.field.as_deref().map(|f| match f.parse() {
+                Ok(selector) => selector,
+                Err(never) => match never {},
+            }),
             spw: self.spw.clone(),
             channels,
         })
