@@ -5,7 +5,7 @@ Both sides get the same kind of data: N visibilities uniform in the uv disc, one
 w = 0, a size x size image whose pixel is 1/1.5 of the Nyquist size (super-resolution 1.5:
 pixsize = 1 / (1.5 * 2 * max_uv)), double precision, the same requested epsilon. ducc0 runs
 with do_wgridding=False and picks its own oversampling and kernel; r2d2 runs its benchmark
-(`bench_gridder` example or `r2d2 bench gridder`) as a subprocess and reports JSON.
+(`r2d2 bench gridder`) as a subprocess and reports JSON.
 
 Throughputs are million visibilities per second, best of --repeats runs. ducc0 builds its
 visibility index (sorts) inside every call, so r2d2's number here includes its plan (point
@@ -172,7 +172,7 @@ def main():
     ap.add_argument("--threads", default="1,2", help="comma-separated thread counts")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--r2d2", default="cargo run --release --quiet --example bench_gridder --",
+    ap.add_argument("--r2d2", default="target/release/r2d2 bench gridder",
                     help="command running r2d2's gridder benchmark (flags are appended)")
     ap.add_argument("--json", help="also write all measurements to this file")
     a = ap.parse_args()

@@ -4,10 +4,10 @@
 
 Writes an MS with python-casacore (XX, YY; DATA, FLAG, WEIGHT_SPECTRUM, UVW, TIME, antennas,
 ids; StandardStMan as default_ms makes it; rows x channels Stokes I samples, 1e7 by default),
-then reads it (1) with `target/release/examples/ms_read` (the `ms` source's reader: Stokes I
+then reads it (1) with `target/release/r2d2 bench ms-read` (the `ms` source's reader: Stokes I
 samples in 64k-sample chunks, exclusions counted) and (2) with python-casacore reading the same
 columns in the same row chunks (getcol, no Stokes I arithmetic), each under /usr/bin/time for
-wall time and peak memory. Build the example first: cargo build --release --example ms_read.
+wall time and peak memory. Build first: cargo build --release.
 Prints one JSON object.
 """
 
@@ -94,8 +94,8 @@ def main():
     if not os.path.isdir(ms):
         make_ms(ms, args.rows, args.channels)
     repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    exe = os.path.join(repo, "target", "release", "examples", "ms_read")
-    ours, wall, rss = timed([exe, ms])
+    exe = os.path.join(repo, "target", "release", "r2d2")
+    ours, wall, rss = timed([exe, "bench", "ms-read", ms])
     ours = json.loads(ours)
     chunk = max(1, 65536 // args.channels)
     py_inner, py_wall, py_rss = timed([sys.executable, "-c", READ_SCRIPT, ms, str(chunk)])

@@ -6,8 +6,7 @@ makes the pixel 1/1.5 of the Nyquist size, w uniform in [-w_factor, w_factor] ti
 radius, one channel, a size x size image covering a --fov degree field (where the w-term
 matters: the report gives the largest w phase), double precision, the same requested
 epsilon. ducc0 runs vis2dirty / dirty2vis with do_wgridding=True and divide_by_n=False and
-picks its own oversampling and kernel; r2d2 runs its benchmark (`bench_wgridder` example or
-`r2d2 bench wgridder`) as a subprocess and reports JSON.
+picks its own oversampling and kernel; r2d2 runs its benchmark (`r2d2 bench wgridder`) as a subprocess and reports JSON.
 
 Throughputs are million visibilities per second, best of --repeats runs. ducc0 builds its
 index inside every call, so r2d2's number here includes its plan (sorting) too; r2d2's
@@ -195,7 +194,7 @@ def main():
     ap.add_argument("--threads", default="1,2", help="comma-separated thread counts")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--seed", type=int, default=1)
-    ap.add_argument("--r2d2", default="cargo run --release --quiet --example bench_wgridder --",
+    ap.add_argument("--r2d2", default="target/release/r2d2 bench wgridder",
                     help="command running r2d2's w-gridder benchmark (flags are appended)")
     ap.add_argument("--json", help="also write all measurements to this file")
     a = ap.parse_args()

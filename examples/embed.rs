@@ -4,8 +4,8 @@
 //! `cargo run --release --example embed`
 
 use r2d2_imaging::imaging::PixelScale;
-use r2d2_imaging::nufft::NufftParams;
-use r2d2_imaging::simulate::observe::ObservationSpec;
+use r2d2_imaging::NufftParams;
+use r2d2_imaging::simulate::ObservationSpec;
 use r2d2_imaging::simulate::{simulate, SimulationRequest, SkyModel};
 use r2d2_imaging::vis::to_record_batches;
 use r2d2_imaging::{Engine, EngineOptions, ImageRequest, MemoryInput, Weighting};

@@ -4,7 +4,8 @@
 //!
 //!     cargo run --release --example run_network -- NET.onnx N ort|tract INPUT.f32 [EXPECTED.f32] [REPEATS]
 
-use r2d2_imaging::steps::runtime::{check_network, use_onnx_runtime, BackendChoice, Runtime};
+use r2d2_imaging::models::{use_onnx_runtime, LoadedNetwork};
+use r2d2_imaging::BackendChoice;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -32,13 +33,12 @@ fn main() -> r2d2_imaging::Result<()> {
     let repeats: usize = args.get(5).and_then(|s| s.parse().ok()).unwrap_or(1);
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let started = Instant::now();
-    let signature = check_network(&path, size)?;
     if !matches!(backend, BackendChoice::Tract) {
         if let Ok(library) = onnx_runtime::find_onnxruntime() {
             use_onnx_runtime(&library)?;
         }
     }
-    let mut network = Runtime::select(backend, threads)?.load(&path, size, &signature)?;
+    let mut network = LoadedNetwork::load(&path, size, backend, threads)?;
     let load = started.elapsed().as_secs_f64();
     let mut best = f64::INFINITY;
     let mut output = Vec::new();

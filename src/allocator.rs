@@ -52,7 +52,7 @@ pub struct LargeBlocksOnHugePages;
 
 #[cfg(target_os = "linux")]
 mod huge {
-    use super::HUGE_PAGE_THRESHOLD;
+    use crate::allocator::HUGE_PAGE_THRESHOLD;
     use std::alloc::{GlobalAlloc, Layout, System};
 
     /// Alignment a mapping has (the page size); larger alignments go to the system allocator.
@@ -81,7 +81,7 @@ mod huge {
     // SAFETY (the trait's contract): large blocks are whole mappings of at least the size asked,
     // page-aligned (every alignment up to PAGE), released with the size they were made with
     // (the layout's, which `dealloc` and `realloc` receive unchanged); all else is System's.
-    unsafe impl GlobalAlloc for super::LargeBlocksOnHugePages {
+    unsafe impl GlobalAlloc for crate::allocator::LargeBlocksOnHugePages {
         unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
             if is_large(&layout) {
                 map(layout.size())

@@ -459,7 +459,7 @@ fn resolve_auto(params: &ImagePlan, telescope: impl FnOnce() -> Option<String>) 
     }
     let known: Vec<String> = found.iter().map(|(_, s)| s.name_with_telescopes()).collect();
     let reason = format!(
-        "no series was trained for the telescope '{telescope}' the data come from (series: {}): imaged with the built-in CLEAN (auto-threshold 3, mgain 0.8); a series named as the step runs anyway, outside what it was trained for",
+        "no series was trained for the telescope '{telescope}' the data come from (series: {}): imaged with the built-in CLEAN (auto-threshold 3, mgain 0.8); `step` set to a series' name runs it anyway, outside what it was trained for",
         known.join(", ")
     );
     Ok((ImagePlan { step: StepChoice::Clean, clean: FALLBACK_CLEAN, ..params.clone() }, Some(reason)))

@@ -208,7 +208,7 @@ pub fn panic_message(payload: &(dyn std::any::Any + Send)) -> String {
 
 /// What a path that is not a regular file is, in words ("a directory", "a FIFO (named pipe)"),
 /// from its metadata: the caller never opens it (a FIFO's open blocks until a writer comes).
-pub fn file_kind(metadata: &std::fs::Metadata) -> &'static str {
+pub(crate) fn file_kind(metadata: &std::fs::Metadata) -> &'static str {
     let kind = metadata.file_type();
     #[cfg(unix)]
     {
@@ -244,7 +244,7 @@ thread_local! {
 ///
 /// For decoders of untrusted bytes that panic on some inputs: such a panic is a property of the
 /// input, reported with the file it came from. Panics elsewhere still print as usual.
-pub fn catch_quietly<T>(work: impl FnOnce() -> T) -> std::result::Result<T, String> {
+pub(crate) fn catch_quietly<T>(work: impl FnOnce() -> T) -> std::result::Result<T, String> {
     static HOOK: Once = Once::new();
     HOOK.call_once(|| {
         let previous = std::panic::take_hook();

@@ -4,12 +4,12 @@
 //! the CLI and the pipeline stages call this with visibilities they read.
 
 use crate::nufft::NufftParams;
-use crate::operator::{ImageGeometry, MeasurementOperator, WTermMode};
+use crate::operator::{ImageGeometry, MeasurementOperator};
 use crate::vis::{chunk_weights, Visibilities};
 use crate::weighting::{DensityGrid, Weighting, DEFAULT_GRID_FACTOR};
 use crate::{Error, Result};
 
-pub use crate::operator::{PixelScale, DEFAULT_SUPERRESOLUTION};
+pub use crate::operator::{PixelScale, WTermMode, DEFAULT_SUPERRESOLUTION};
 
 /// The image every stage of a pipeline shares (its `image` section): weighting, gridder and
 /// a trained network series must all agree on it, so it is stated once.
@@ -81,7 +81,7 @@ impl DirtyParams {
 
 /// The measurement operator with its weights, and the dirty image and PSF it gives.
 pub struct DirtyProducts {
-    pub operator: MeasurementOperator,
+    pub(crate) operator: MeasurementOperator,
     pub dirty: Vec<f64>,
     pub psf: Vec<f64>,
     /// Total weight per visibility (natural x imaging), in the visibilities' order.
@@ -89,7 +89,7 @@ pub struct DirtyProducts {
 }
 
 /// Total weights (natural x imaging) of `vis` on `geometry`.
-pub fn total_weights(vis: &Visibilities, geometry: ImageGeometry, weighting: Weighting, grid_factor: f64) -> Result<Vec<f64>> {
+pub(crate) fn total_weights(vis: &Visibilities, geometry: ImageGeometry, weighting: Weighting, grid_factor: f64) -> Result<Vec<f64>> {
     if weighting == Weighting::Given {
         return chunk_weights(&vis.chunk(0..vis.len()), geometry, &DensityGrid::new(weighting, geometry.size, grid_factor)?.finish());
     }
@@ -110,10 +110,36 @@ pub fn dirty_image(vis: &Visibilities, params: &DirtyParams) -> Result<DirtyProd
     Ok(DirtyProducts { operator, dirty, psf, weight })
 }
 
+/// The normal operator `D = kappa Re{Phi^H W Phi}` of `vis` on the image `params` describe
+/// (its weights and w-term rule): `D x` is the dirty image the sky `x` (Jy/pixel) would give.
+pub struct NormalOperator {
+    operator: MeasurementOperator,
+    pixels: usize,
+}
+
+impl NormalOperator {
+    pub fn new(vis: &Visibilities, params: &DirtyParams) -> Result<NormalOperator> {
+        let geometry = params.geometry(vis)?;
+        let weight = total_weights(vis, geometry, params.weighting, params.grid_factor)?;
+        let operator = MeasurementOperator::for_mode(params.w_term, geometry, &vis.u, &vis.v, &vis.w, &weight, params.nufft, params.threads)?;
+        Ok(NormalOperator { operator, pixels: geometry.pixels() })
+    }
+
+    /// `D x` (`x`: N x N, row-major).
+    pub fn apply(&self, x: &[f64]) -> Vec<f64> {
+        self.operator.apply_normal(x)
+    }
+
+    /// `||D||` (its largest eigenvalue) by power iteration, to relative `tolerance`.
+    pub fn norm(&self, tolerance: f64, max_iterations: usize) -> f64 {
+        crate::operator::spectral_norm(|x| self.apply(x), self.pixels, tolerance, max_iterations)
+    }
+}
+
 /// What coplanar imaging leaves out of a field: the w-term's phase `2 pi |w| (1 - n)` at the
 /// image's corners (l = m = N/2 pixels) for the largest |w| of the data.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct WTerm {
+pub(crate) struct WTerm {
     pub max_abs_w: f64,
     pub max_phase_rad: f64,
 }

@@ -10,7 +10,7 @@ pub fn snr(estimate: &[f64], truth: &[f64]) -> f64 {
 
 /// `rlog(x) = x_max log_a(a x / x_max + 1)`, negative pixels clipped to 0, `x_max` the peak of
 /// the image being mapped: a logarithmic stretch that weighs faint emission like bright.
-pub fn rlog(image: &[f64], a: f64) -> Vec<f64> {
+pub(crate) fn rlog(image: &[f64], a: f64) -> Vec<f64> {
     let peak = image.iter().copied().fold(0.0f64, f64::max);
     if peak <= 0.0 {
         return vec![0.0; image.len()];
@@ -31,7 +31,7 @@ pub fn residual_ratio(residual: &[f64], dirty: &[f64]) -> f64 {
 }
 
 /// The pixel-wise mean of equally sized images.
-pub fn pixel_mean(images: &[Vec<f64>]) -> Vec<f64> {
+pub(crate) fn pixel_mean(images: &[Vec<f64>]) -> Vec<f64> {
     let n = images.first().map_or(0, Vec::len);
     let mut mean = vec![0.0; n];
     for image in images {
@@ -47,7 +47,7 @@ pub fn pixel_mean(images: &[Vec<f64>]) -> Vec<f64> {
 /// population, dividing by their count) over their mean, where the mean exceeds `threshold`,
 /// and 0 elsewhere (the reference writes NaN there; images here stay finite). Also the mean
 /// relative uncertainty: the map's average over every pixel, the masked ones counting 0.
-pub fn std_over_mean(images: &[Vec<f64>], threshold: f64) -> (Vec<f64>, f64) {
+pub(crate) fn std_over_mean(images: &[Vec<f64>], threshold: f64) -> (Vec<f64>, f64) {
     let mean = pixel_mean(images);
     let count = images.len().max(1) as f64;
     let map: Vec<f64> = mean

@@ -29,6 +29,7 @@ pub enum PreviewScale {
 /// images over 1024 pixels are reduced by an integer factor, each displayed pixel taking the
 /// value of largest magnitude in its block (the maximum for the log scale) so that point
 /// sources stay visible. Non-finite pixels are shown grey.
+#[cfg(test)]
 pub fn write_png(path: &Path, image: &[f64], size_x: usize, size_y: usize, scale: PreviewScale, title: &str) -> Result<()> {
     write_png_on_sky(path, image, size_x, size_y, scale, title, None)
 }

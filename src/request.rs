@@ -388,7 +388,8 @@ fn named_error(command: &clap::Command, error: clap::Error) -> Error {
 /// `r2d2-image` cab's inputs are these, so that a new option reaches recipes without a second
 /// declaration. An input is named as its command-line option (the cab turns `_` into `-`):
 /// a switch by what it does (`no_final_clean`).
-pub fn cab_inputs() -> serde_yaml::Mapping {
+#[cfg(test)]
+pub(crate) fn cab_inputs() -> serde_yaml::Mapping {
     use serde_yaml::Value;
     let mut inputs = serde_yaml::Mapping::new();
     let command = ImageRequest::command();
@@ -442,7 +443,8 @@ pub fn cab_inputs() -> serde_yaml::Mapping {
 
 /// [`cab_inputs`] as YAML text that Stimela reads as it is meant: a word YAML 1.1 takes for a
 /// boolean (`on`, `off`), as the cab's reader does, is quoted.
-pub fn cab_inputs_yaml() -> String {
+#[cfg(test)]
+pub(crate) fn cab_inputs_yaml() -> String {
     let text = serde_yaml::to_string(&cab_inputs()).unwrap_or_default();
     text.lines()
         .map(|line| {

@@ -444,6 +444,7 @@ static LOOKED: std::sync::Mutex<std::collections::BTreeSet<PathBuf>> = std::sync
 
 /// Finishes or undoes the commits that killed processes left in `dir` (see the module
 /// documentation); staging directories in use by a live process are left alone.
+#[cfg(test)]
 pub fn recover(dir: &Path) -> Result<()> {
     let _held = lock_dir(dir)?;
     recover_locked(dir)

@@ -17,7 +17,7 @@ use crate::{Error, Result};
 /// The Briggs robustness accepted: WSClean and CASA use -2..2, and beyond +-5 the weights are
 /// natural or uniform to within 1e-4 (`briggs_limits_are_natural_and_uniform`), so a value
 /// outside this range is a mistake (a typo, a value meant for another option).
-pub const ROBUST_RANGE: (f64, f64) = (-5.0, 5.0);
+pub(crate) const ROBUST_RANGE: (f64, f64) = (-5.0, 5.0);
 
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Weighting {
@@ -146,7 +146,7 @@ pub const DEFAULT_GRID_FACTOR: f64 = 2.0;
 
 /// Imaging weights (multiplying the natural weights) for visibilities at `(u, v)` given in the
 /// operator's coordinates (radians per pixel, `[-pi, pi)`), for an `image_size` image.
-pub fn imaging_weights(
+pub(crate) fn imaging_weights(
     u: &[f64],
     v: &[f64],
     natural_weight: &[f64],
@@ -164,7 +164,7 @@ pub fn imaging_weights(
 /// [`imaging_weights`]) `point(k)` gives, without a per-visibility array beside the result:
 /// the coordinates and cells are computed again where they are needed (memory is the limit on
 /// large tables, and this is a small part of the time).
-pub fn total_weights(
+pub(crate) fn total_weights(
     point: impl Fn(usize) -> (f64, f64),
     natural_weight: &[f32],
     image_size: usize,
@@ -179,7 +179,7 @@ pub fn total_weights(
 /// Refuses a weighting grid factor that is not a positive number, or whose grid of
 /// `(grid_factor N)^2` cells does not fit in the memory available (checked in f64 before
 /// anything is allocated: 1e4 asked for terabytes, 1e9 overflowed).
-pub fn check_grid(grid_factor: f64, image_size: usize) -> Result<()> {
+pub(crate) fn check_grid(grid_factor: f64, image_size: usize) -> Result<()> {
     if !(grid_factor > 0.0) || !grid_factor.is_finite() {
         return Err(Error::parameter("weighting grid factor", format!("expected a positive number, got {grid_factor}")));
     }

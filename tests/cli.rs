@@ -3,7 +3,7 @@
 
 use num_complex::Complex64;
 use r2d2_imaging::fits::read_image;
-use r2d2_imaging::simulate::observe::{frequency_channels, sample_coverage, ObservationSpec};
+use r2d2_imaging::simulate::{frequency_channels, sample_coverage, ObservationSpec};
 use r2d2_imaging::vis::{write_parquet, ObservationMeta, VisTable, SPEED_OF_LIGHT};
 use std::path::Path;
 use std::process::{Command, Output};

@@ -3,8 +3,8 @@
 //! program's own; the products it writes are those the file pipeline writes.
 
 use r2d2_imaging::imaging::{dirty_image, DirtyParams, PixelScale};
-use r2d2_imaging::nufft::NufftParams;
-use r2d2_imaging::simulate::observe::ObservationSpec;
+use r2d2_imaging::NufftParams;
+use r2d2_imaging::simulate::ObservationSpec;
 use r2d2_imaging::simulate::{simulate, SimulationOutput, SimulationRequest, SkyModel};
 use r2d2_imaging::vis::to_record_batches;
 use r2d2_imaging::{
@@ -343,7 +343,7 @@ fn a_series_error_keeps_its_yaml_line_and_its_kind() {
     let (file, line, _) = error.location().expect("a located error");
     assert_eq!((file.to_str(), line), (Some("series.yaml"), 8), "{error}");
     let module = error.module_error().expect("the series error beneath");
-    assert!(module.downcast_ref::<r2d2_imaging::steps::series::SeriesError>().is_some(), "{module:?}");
+    assert!(module.downcast_ref::<r2d2_imaging::error::SeriesError>().is_some(), "{module:?}");
     assert!(std::error::Error::source(&error).is_some(), "the cause is the located error's source");
     assert!(error.to_string().contains("no-such-series"), "{error}");
 }

@@ -27,7 +27,7 @@ fn floor_of_module(top: &str) -> Option<&'static str> {
         "pipeline" => "pipeline",
         "imaging" | "simulate" | "job" | "steps" | "preview" => "domain",
         "stages" => "stages",
-        "engine" | "request" | "bench" | "cli" => "top",
+        "engine" | "request" | "bench" | "cli" | "parts" | "models" => "top",
         _ => return None,
     })
 }

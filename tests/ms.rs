@@ -153,7 +153,7 @@ fn ms_convert_selects_windows_and_channels() {
     assert!(one.frequency.iter().all(|&f| f == top), "only the highest channel");
     assert_eq!(stats.rows * 4, all_stats.rows);
     assert_eq!(meta.telescope, "VLA");
-    assert!(!meta.extra.contains_key(r2d2_imaging::ms::ORIGIN_KEY), "a Parquet copy names no MS to write to");
+    assert!(!meta.extra.contains_key("r2d2_ms_origin"), "a Parquet copy names no MS to write to");
     let err = stderr(&r2d2(&["convert", "obs.ms", "bad.parquet", "--channels", "1", "9"], dir.path()));
     assert!(err.contains("channel") && err.contains("[1, 9)"), "{err}");
     assert!(!dir.path().join("bad.parquet").exists());
@@ -688,7 +688,7 @@ fn a_run_killed_while_writing_the_model_column_leaves_no_mixed_outputs() {
         let mut command = Command::new(env!("CARGO_BIN_EXE_r2d2"));
         command.args(["image", "obs.ms", "--size", "64", "--step", "clean", "--iterations", iterations, "--name", "img", "--model-column", "MODEL_DATA"]);
         if kill {
-            command.env(r2d2_imaging::staging::KILL_BEFORE_MS_EXCHANGE, "1");
+            command.env("R2D2_TEST_KILL_BEFORE_MS_EXCHANGE", "1");
         }
         command.current_dir(d).output().unwrap()
     };

@@ -11,7 +11,8 @@ mod common;
 mod onnx_runtime;
 
 use common::{assert_fails_with, check, observation, r2d2, read, stderr, SIZE};
-use r2d2_imaging::steps::runtime::{check_network, use_onnx_runtime, BackendChoice, Runtime};
+use r2d2_imaging::models::{use_onnx_runtime, LoadedNetwork};
+use r2d2_imaging::BackendChoice;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -52,10 +53,8 @@ fn backends_match_pytorch(dir: &Path, name: &str, networks: &[&str]) {
     for network in networks {
         let expected = read_f32(&dir.join(format!("check-{name}/{}", network.replace('/', "-").replace(".onnx", ".f32"))));
         let path = dir.join(name).join(network);
-        let signature = check_network(&path, SIZE).unwrap();
         for backend in [BackendChoice::Ort, BackendChoice::Tract] {
-            let runtime = Runtime::select(backend, 2).unwrap();
-            let got = runtime.load(&path, SIZE, &signature).unwrap().run(&input).unwrap();
+            let got = LoadedNetwork::load(&path, SIZE, backend, 2).unwrap().run(&input).unwrap();
             let peak = expected.iter().fold(0.0f32, |m, v| m.max(v.abs()));
             let error = got.iter().zip(&expected).fold(0.0f32, |m, (a, b)| m.max((a - b).abs())) / peak;
             assert!(error <= 1e-5, "{name}/{network} on {backend:?}: {error:e} of the peak from PyTorch");

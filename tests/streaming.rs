@@ -179,7 +179,8 @@ fn chunk_and_hold_sizes_are_checked() {
 /// the NUFFT's accuracy (each part's w-planes are its own).
 #[test]
 fn an_observation_in_parts_images_as_the_whole_table() {
-    use r2d2_imaging::vis::{open_source, LocalParts, OpenOptions, PartedObservation, VisSource, VisSummary};
+    use r2d2_imaging::parts::{open_source, LocalParts, PartedObservation, VisSource, VisSummary};
+    use r2d2_imaging::vis::OpenOptions;
     use r2d2_imaging::{Engine, EngineOptions, ImageRequest, Observation};
     use std::sync::Arc;
     let tmp = tempfile::tempdir().unwrap();
@@ -197,7 +198,7 @@ fn an_observation_in_parts_images_as_the_whole_table() {
         let mut params = ImageRequest::default();
         (params.grid.size, params.step.step, params.step.iterations) = (SIZE, "clean".into(), Some(3));
         (params.grid.weighting, params.grid.robust) = (Some("briggs".into()), Some(0.0));
-        params.grid.w_term = r2d2_imaging::operator::WTermMode::from_name(w_term).unwrap();
+        params.grid.w_term = r2d2_imaging::imaging::WTermMode::from_name(w_term).unwrap();
         let whole = engine.image(path.as_path(), &params).unwrap();
         let passes = Box::new(LocalParts { parts: parts.clone() });
         let parted = engine.image(Observation::Parts(PartedObservation::new("obs", &described, passes).unwrap()), &params).unwrap();

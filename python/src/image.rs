@@ -5,7 +5,7 @@ use crate::arrow_in;
 use crate::products::Products;
 use crate::run_released;
 use pyo3::prelude::*;
-use r2d2_imaging::request::NamedValue;
+use r2d2_imaging::NamedValue;
 use r2d2_imaging::{Engine, EngineOptions, ImageRequest, MemoryInput, Observation};
 use std::path::PathBuf;
 

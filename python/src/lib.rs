@@ -17,7 +17,7 @@ mod products;
 
 /// Large blocks on transparent huge pages, as in the `r2d2` binary (see the type).
 #[global_allocator]
-static ALLOCATOR: r2d2_imaging::allocator::LargeBlocksOnHugePages = r2d2_imaging::allocator::LargeBlocksOnHugePages;
+static ALLOCATOR: r2d2_imaging::LargeBlocksOnHugePages = r2d2_imaging::LargeBlocksOnHugePages;
 
 use numpy::PyArray1;
 use pyo3::create_exception;
@@ -190,12 +190,12 @@ fn split_rows<'py>(
     window: Option<f64>,
 ) -> PyResult<(Vec<(String, Bound<'py, PyArray1<u64>>)>, f64)> {
     let stream = arrow_in::stream_of(table)?;
-    let split = r2d2_imaging::vis::SplitBy { column, window };
+    let split = r2d2_imaging::parts::SplitBy { column, window };
     split.check().map_err(|m| R2D2Error::new_err(format!("split_by.window: {m}")))?;
     let name = name.to_string();
     let parts = run_released(py, move |cancel| {
-        let mut reader = r2d2_imaging::vis::memory_table(r2d2_imaging::MemoryInput::new(name.as_str(), stream), &name)?;
-        r2d2_imaging::vis::split_rows(&mut reader, &split, "split_by", &|| cancel.load(Ordering::SeqCst))
+        let mut reader = r2d2_imaging::parts::memory_table(r2d2_imaging::MemoryInput::new(name.as_str(), stream), &name)?;
+        r2d2_imaging::parts::split_rows(&mut reader, &split, "split_by", &|| cancel.load(Ordering::SeqCst))
     })?;
     let split = parts.ok_or_else(|| R2D2Error::new_err("interrupted while splitting"))?;
     // The row vectors become the arrays' buffers: moved, not copied.
@@ -206,7 +206,7 @@ fn split_rows<'py>(
 /// Add a directory of model series to look up after the engine's own places.
 #[pyfunction]
 fn add_model_dir(dir: std::path::PathBuf) {
-    r2d2_imaging::steps::series::add_model_dir(dir);
+    r2d2_imaging::models::add_model_dir(dir);
 }
 
 /// What this build and machine will use, as `r2d2 info` and `r2d2 models` say it: version,
@@ -216,31 +216,29 @@ fn add_model_dir(dir: std::path::PathBuf) {
 #[pyfunction]
 #[pyo3(signature = (onnx_runtime=None))]
 fn info(py: Python<'_>, onnx_runtime: Option<std::path::PathBuf>) -> PyResult<Bound<'_, PyDict>> {
-    use r2d2_imaging::steps::runtime::{use_onnx_runtime, BackendChoice, Runtime};
-    use r2d2_imaging::steps::series::{found_series, model_dirs};
+    use r2d2_imaging::models::{backend, found_series, model_dirs, use_onnx_runtime};
+    use r2d2_imaging::BackendChoice;
     let out = PyDict::new(py);
     out.set_item("version", env!("CARGO_PKG_VERSION"))?;
-    out.set_item("gridder_simd", format!("{:?}", r2d2_imaging::nufft::simd::SimdLevel::detect()))?;
+    out.set_item("gridder_simd", format!("{:?}", r2d2_imaging::SimdLevel::detect()))?;
     out.set_item("threads", std::thread::available_parallelism().map_or(1, |n| n.get()))?;
     let backend = run_released(py, move |_| {
         if let Some(lib) = &onnx_runtime {
             use_onnx_runtime(lib)?;
         }
-        Ok(Runtime::select(BackendChoice::Auto, 0)?.describe())
+        backend(BackendChoice::Auto, 0)
     })?;
     out.set_item("onnx_backend", backend)?;
     out.set_item("model_dirs", model_dirs().iter().map(|d| d.display().to_string()).collect::<Vec<_>>())?;
     let series = pyo3::types::PyList::empty(py);
-    for (dir, s) in found_series().map_err(engine_error)? {
+    for s in found_series().map_err(engine_error)? {
         let entry = PyDict::new(py);
         entry.set_item("name", &s.name)?;
-        entry.set_item("path", dir.display().to_string())?;
-        entry.set_item("networks", s.len())?;
+        entry.set_item("path", s.path.display().to_string())?;
+        entry.set_item("networks", s.networks)?;
         entry.set_item("image_sizes", s.image_sizes.clone())?;
-        let manifest = s.manifest.as_ref();
-        entry.set_item("telescope", manifest.map(|m| m.telescope.clone()).filter(|t| !t.is_empty()))?;
-        let domain = manifest.and_then(|m| m.validity.as_ref()).map(|v| serde_json::to_string(v).unwrap_or_default());
-        entry.set_item("domain", domain.map(|d| py.import("json")?.call_method1("loads", (d,))).transpose()?)?;
+        entry.set_item("telescope", s.telescope.clone())?;
+        entry.set_item("domain", s.domain_json.map(|d| py.import("json")?.call_method1("loads", (d,))).transpose()?)?;
         series.append(entry)?;
     }
     out.set_item("series", series)?;

@@ -8,9 +8,10 @@ use crate::run_released;
 use numpy::{PyArray1, PyReadonlyArray1};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
-use r2d2_imaging::vis::{self, open_pass, open_source, ObservationMeta, OpenOptions, PartImages, PartPass, PartPasses, PartedObservation, VisSummary};
-use r2d2_imaging::operator::toeplitz::{WToeplitzBuilder, WToeplitzPlan};
-use r2d2_imaging::weighting::{DensityGrid, WeightRule};
+use r2d2_imaging::parts::{self, open_pass, open_source, PartImages, PartPass, PartPasses, PartedObservation, VisSummary};
+use r2d2_imaging::vis::{ObservationMeta, OpenOptions};
+use r2d2_imaging::parts::{WToeplitzBuilder, WToeplitzPlan};
+use r2d2_imaging::parts::{DensityGrid, WeightRule};
 use r2d2_imaging::{Error, Result};
 use std::path::PathBuf;
 use std::sync::Mutex;
@@ -68,7 +69,7 @@ pub fn part_density(
     let (density, sum_w) = run_released(py, move |_| {
         let pass = PartPass::from_json(&pass)?;
         let source = open_pass(&path, &OpenOptions::default())?;
-        let grid = vis::part_density(&source, &pass)?;
+        let grid = parts::part_density(&source, &pass)?;
         let (density, sum_w) = grid.raw();
         Ok((density.to_vec(), sum_w))
     })?;
@@ -76,7 +77,7 @@ pub fn part_density(
 }
 
 /// What a worker's pass over a part needs: the pass, the job's weighting rule and the part.
-fn part_inputs(path: &std::path::Path, pass: &str, density: Vec<f64>, f2: f64) -> Result<(PartPass, WeightRule, vis::VisSource)> {
+fn part_inputs(path: &std::path::Path, pass: &str, density: Vec<f64>, f2: f64) -> Result<(PartPass, WeightRule, parts::VisSource)> {
     let pass = PartPass::from_json(pass)?;
     let rule = WeightRule::from_raw(pass.weighting()?, density, f2)?;
     Ok((pass, rule, open_pass(path, &OpenOptions::default())?))
@@ -102,7 +103,7 @@ pub fn part_images<'py>(
     let density = density.as_slice()?.to_vec();
     let images = run_released(py, move |_| {
         let (pass, rule, source) = part_inputs(&path, &pass, density, f2)?;
-        vis::part_images(&source, &pass, &rule)
+        parts::part_images(&source, &pass, &rule)
     })?;
     Ok((
         PyArray1::from_vec(py, images.dirty),
@@ -139,7 +140,7 @@ pub fn part_w_toeplitz<'py>(
             return Ok(None);
         };
         let key = builder.plan_key();
-        let images = vis::w_toeplitz_images(&source, &pass, &rule, &mut builder)?;
+        let images = parts::w_toeplitz_images(&source, &pass, &rule, &mut builder)?;
         let (op, psf_2n) = builder.finish()?;
         Ok(Some((images, op.kernels(), psf_2n, key)))
     })?;
@@ -162,7 +163,7 @@ pub fn part_apply_normal<'py>(
     let x = x.as_slice()?.to_vec();
     let out = run_released(py, move |_| {
         let (pass, rule, source) = part_inputs(&path, &pass, density, f2)?;
-        vis::part_apply_normal(&source, &pass, &rule, &x)
+        parts::part_apply_normal(&source, &pass, &rule, &x)
     })?;
     Ok(PyArray1::from_vec(py, out))
 }

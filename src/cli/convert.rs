@@ -2,21 +2,21 @@
 //! visibility table) and back; and the MS options and input detection shared by `r2d2 dirty` and
 //! `r2d2 image`.
 
-use r2d2_imaging::vis::{IngestStats, ObservationMeta, Visibilities};
-use r2d2_imaging::Result;
+use crate::vis::{IngestStats, ObservationMeta, Visibilities};
+use crate::Result;
 use std::path::{Path, PathBuf};
 
 /// What of a MeasurementSet to read (ignored for Parquet input).
 /// Reads a table of any format whole.
-pub fn read_input(path: &Path, ms: &r2d2_imaging::MsOptions) -> Result<(Visibilities, ObservationMeta, IngestStats)> {
+pub fn read_input(path: &Path, ms: &crate::MsOptions) -> Result<(Visibilities, ObservationMeta, IngestStats)> {
     #[cfg(not(feature = "ms"))]
     let _ = ms;
-    let options = r2d2_imaging::vis::OpenOptions {
+    let options = crate::vis::OpenOptions {
         #[cfg(feature = "ms")]
         ms: ms.selection()?,
         ..Default::default()
     };
-    r2d2_imaging::vis::read_table(path, &options)
+    crate::vis::read_table(path, &options)
 }
 
 #[derive(clap::Args)]
@@ -27,27 +27,27 @@ pub struct Args {
     /// The Parquet table or MeasurementSet to write (replaced whole).
     output: PathBuf,
     #[command(flatten)]
-    ms: r2d2_imaging::MsOptions,
+    ms: crate::MsOptions,
 }
 
 pub fn run(args: Args) -> Result<()> {
-    use r2d2_imaging::vis::TableFormat;
+    use crate::vis::TableFormat;
     // `-` names standard output elsewhere; a conversion writes a file or an MS directory.
     if args.output.as_os_str() == "-" {
-        return Err(r2d2_imaging::Error::parameter(
+        return Err(crate::Error::parameter(
             "output",
             "`-` (standard output): convert writes a Parquet file or a MeasurementSet directory, not a stream; give a path (./- for a file named -)",
         ));
     }
-    match r2d2_imaging::vis::format_of(&args.input)? {
+    match crate::vis::format_of(&args.input)? {
         #[cfg(feature = "ms")]
         TableFormat::MeasurementSet => {
-            let (counts, samples) = r2d2_imaging::ms::convert_ms_to_parquet(&args.input, &args.ms.selection()?, &args.output)?;
+            let (counts, samples) = crate::ms::convert_ms_to_parquet(&args.input, &args.ms.selection()?, &args.output)?;
             log::info!("{}: {counts}; wrote {samples} samples to {}", args.input.display(), args.output.display());
         }
         #[cfg(feature = "ms")]
         TableFormat::Parquet => {
-            let made = r2d2_imaging::ms::convert_parquet_to_ms(&args.input, &args.output)?;
+            let made = crate::ms::convert_parquet_to_ms(&args.input, &args.output)?;
             log::info!(
                 "{}: wrote {} samples as {} rows x {} channels (XX, YY) to {}",
                 args.input.display(),
@@ -59,20 +59,20 @@ pub fn run(args: Args) -> Result<()> {
         }
         #[cfg(not(feature = "ms"))]
         TableFormat::MeasurementSet | TableFormat::Parquet => {
-            return Err(r2d2_imaging::Error::input(&args.input, "converting to or from a MeasurementSet needs the `ms` feature, which this r2d2 was built without"));
+            return Err(crate::Error::input(&args.input, "converting to or from a MeasurementSet needs the `ms` feature, which this r2d2 was built without"));
         }
         // Every other format becomes the Parquet format, batch by batch.
         format => {
             #[cfg(feature = "ms")]
-            r2d2_imaging::ms::check_conversion_output(&args.input, &args.output, false)?;
+            crate::ms::check_conversion_output(&args.input, &args.output, false)?;
             #[cfg(not(feature = "ms"))]
-            if let Some(input) = r2d2_imaging::staging::destroys_input(&args.output, &[args.input.as_path()]) {
-                return Err(r2d2_imaging::Error::input(&args.output, format!("the output would replace or lie inside the input {}: choose another output path", input.display())));
+            if let Some(input) = crate::staging::destroys_input(&args.output, &[args.input.as_path()]) {
+                return Err(crate::Error::input(&args.output, format!("the output would replace or lie inside the input {}: choose another output path", input.display())));
             }
-            let mut reader = r2d2_imaging::vis::open(&args.input, &r2d2_imaging::vis::OpenOptions::default())?;
+            let mut reader = crate::vis::open(&args.input, &crate::vis::OpenOptions::default())?;
             let mut meta = reader.meta().clone();
             meta.extra.insert("converted_from".to_string(), args.input.display().to_string());
-            let samples = r2d2_imaging::vis::write_parquet_from(reader.as_mut(), &meta, &args.output)?;
+            let samples = crate::vis::write_parquet_from(reader.as_mut(), &meta, &args.output)?;
             log::info!("{} ({}): wrote {samples} samples to {}", args.input.display(), format.name(), args.output.display());
         }
     }

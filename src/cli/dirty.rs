@@ -1,9 +1,9 @@
 //! `r2d2 dirty`: dirty image and PSF, named like WSClean's products.
 
-use r2d2_imaging::fits::{header_text, write_image, BrightnessUnit, ImageWcs};
-use r2d2_imaging::imaging::dirty_image;
-use r2d2_imaging::staging::Staging;
-use r2d2_imaging::Result;
+use crate::fits::{header_text, write_image, BrightnessUnit, ImageWcs};
+use crate::imaging::dirty_image;
+use crate::staging::Staging;
+use crate::Result;
 use std::path::{Path, PathBuf};
 
 #[derive(clap::Args)]
@@ -11,22 +11,22 @@ pub struct Args {
     /// Visibilities (Parquet, one row per sample) or a MeasurementSet.
     input: PathBuf,
     #[command(flatten)]
-    image: r2d2_imaging::GridOptions,
+    image: crate::GridOptions,
     #[command(flatten)]
-    ms: r2d2_imaging::MsOptions,
+    ms: crate::MsOptions,
     /// Output prefix: writes PREFIX-dirty.fits and PREFIX-psf.fits.
     #[arg(long, default_value = "r2d2")]
     name: String,
 }
 
 pub fn run(args: Args) -> Result<()> {
-    r2d2_imaging::fits::check_output_prefix(&args.name).map_err(|m| r2d2_imaging::Error::parameter("--name", m))?;
+    crate::fits::check_output_prefix(&args.name).map_err(|m| crate::Error::parameter("--name", m))?;
     // Refused before any work: a product that would replace the input, or land inside an
     // input MeasurementSet, as `r2d2 image` refuses.
     for suffix in ["dirty", "psf"] {
         let target = PathBuf::from(format!("{}-{suffix}.fits", args.name));
-        if let Some(input) = r2d2_imaging::staging::destroys_input(&target, &[args.input.as_path()]) {
-            return Err(r2d2_imaging::Error::parameter(
+        if let Some(input) = crate::staging::destroys_input(&target, &[args.input.as_path()]) {
+            return Err(crate::Error::parameter(
                 "--name",
                 format!("the product {} would replace or lie inside the input {}: choose another output name", target.display(), input.display()),
             ));
@@ -37,7 +37,7 @@ pub fn run(args: Args) -> Result<()> {
     stats.log(&args.input);
     let products = dirty_image(&vis, &params)?;
     let geometry = products.operator.geometry();
-    let w_term = r2d2_imaging::imaging::WTerm::of(&vis, geometry);
+    let w_term = crate::imaging::WTerm::of(&vis, geometry);
     match products.operator.w_planes() {
         Some(planes) => log::info!(
             "{}: the w-term is corrected by w-gridding ({planes} w-planes; up to {:.3} rad at the field's corners)",

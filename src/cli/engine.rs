@@ -2,7 +2,7 @@
 //! edge, and injected; a progress bar drawn from the runner's progress reports.
 
 use indicatif::ProgressBar;
-use r2d2_imaging::{Engine, EngineOptions, Progress, Result};
+use crate::{Engine, EngineOptions, Progress, Result};
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -21,7 +21,7 @@ pub fn engine(threads: usize, onnx: bool) -> Result<(Engine, JobsBar)> {
     } else {
         None
     };
-    let bar = JobsBar { bar: r2d2_imaging::progress::counter("job(s) written") };
+    let bar = JobsBar { bar: crate::progress::counter("job(s) written") };
     let observer = bar.observer();
     let engine = Engine::new(EngineOptions { threads, onnx_runtime })?.with_progress(observer);
     Ok((engine, bar))

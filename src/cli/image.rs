@@ -1,7 +1,7 @@
 //! `r2d2 image`: the default imaging pipeline (the one `pipelines/image.yaml` writes out) on
 //! one observation, through `Engine::image`; its options are the library's `ImageRequest`.
 
-use r2d2_imaging::{ImageRequest, Result};
+use crate::{ImageRequest, Result};
 use std::path::PathBuf;
 
 /// Where `r2d2 image` writes its products when no `--name` is given.
@@ -21,7 +21,7 @@ pub struct Args {
 pub fn run(args: Args) -> Result<bool> {
     let mut request = args.request;
     request.name.get_or_insert_with(|| DEFAULT_NAME.to_string());
-    let onnx = request.step.runs_a_series() && request.step.backend != r2d2_imaging::BackendChoice::Tract;
+    let onnx = request.step.runs_a_series() && request.step.backend != crate::BackendChoice::Tract;
     let (engine, _bar) = super::engine::engine(request.grid.threads, onnx)?;
     let engine = engine.with_cancel(super::run::cancel_on_ctrl_c());
     let products = engine.image(args.input.as_path(), &request)?;

@@ -1,15 +1,15 @@
 //! `r2d2 info`: what this build and machine will use (inference backend, SIMD level, threads).
 
 use super::onnx_runtime::find_onnxruntime;
-use r2d2_imaging::steps::runtime::{use_onnx_runtime, BackendChoice, Runtime};
-use r2d2_imaging::Result;
+use crate::steps::runtime::{use_onnx_runtime, BackendChoice, Runtime};
+use crate::Result;
 
 #[derive(clap::Args)]
 pub struct Args {}
 
 pub fn run(_args: Args) -> Result<()> {
     out!("r2d2 {}", env!("CARGO_PKG_VERSION"))?;
-    out!("gridder SIMD: {:?}", r2d2_imaging::nufft::simd::SimdLevel::detect())?;
+    out!("gridder SIMD: {:?}", crate::nufft::simd::SimdLevel::detect())?;
     out!("threads: {} available", std::thread::available_parallelism().map_or(1, |n| n.get()))?;
     match find_onnxruntime() {
         Ok(lib) => {

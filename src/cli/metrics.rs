@@ -1,8 +1,8 @@
 //! `r2d2 metrics`: SNR and logSNR of an estimate against the truth.
 
-use r2d2_imaging::fits::read_image;
-use r2d2_imaging::metrics::{dynamic_range, log_snr, snr};
-use r2d2_imaging::{Error, Result};
+use crate::fits::read_image;
+use crate::metrics::{dynamic_range, log_snr, snr};
+use crate::{Error, Result};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]

@@ -1,4 +1,5 @@
-//! Command-line interface: option parsing (clap) and dispatch to one module per command.
+//! Command-line interface: option parsing (clap) and dispatch to one module per command. Only
+//! [`main`] is public: the commands are the interface, not their option structs.
 
 /// `println!` for the commands whose output is their result (`models`, `info`, `metrics`,
 /// `validate`, `bench`): a closed or full standard output is an error naming it (exit 1), not a
@@ -8,7 +9,6 @@ macro_rules! out {
         crate::cli::write_stdout(format_args!($($arg)*))
     };
 }
-
 
 /// Whether descriptor 1 was closed when the process started. The standard library then puts
 /// /dev/null there before `main` (so that no file opened later lands on it), after which a
@@ -30,9 +30,9 @@ extern "C" fn record_stdout_at_start() {
 }
 
 /// One line to standard output, flushed, its failure an error.
-pub(crate) fn write_stdout(line: std::fmt::Arguments<'_>) -> r2d2_imaging::Result<()> {
+pub(crate) fn write_stdout(line: std::fmt::Arguments<'_>) -> crate::Result<()> {
     use std::io::Write;
-    let error = |e| r2d2_imaging::Error::io("standard output", e);
+    let error = |e| crate::Error::io("standard output", e);
     if STDOUT_CLOSED_AT_START.load(std::sync::atomic::Ordering::Relaxed) {
         return Err(error(std::io::Error::other("closed: the output would be lost")));
     }
@@ -103,14 +103,14 @@ enum Command {
 pub const EXIT_MODEL_REJECTED: u8 = 3;
 
 pub fn main() -> ExitCode {
-    r2d2_imaging::allocator::release_large_blocks_promptly();
+    crate::allocator::release_large_blocks_promptly();
     // WSClean's spellings (`-size 512 512`, `-weight briggs 0`, ...) read as this engine's, or
     // named with their counterpart; arguments that are not UTF-8 go to clap as they are.
     let args: Vec<std::ffi::OsString> = std::env::args_os().collect();
     // The command as typed (the program by its name) goes into the products' HISTORY.
     let program = args.first().and_then(|a| std::path::Path::new(a).file_name()).map_or("r2d2".into(), |n| n.to_string_lossy().into_owned());
     let words = std::iter::once(program).chain(args.iter().skip(1).map(|a| a.to_string_lossy().into_owned()));
-    r2d2_imaging::job::record_command_line(words.map(|w| if w.is_empty() || w.contains(char::is_whitespace) { format!("'{w}'") } else { w }).collect::<Vec<_>>().join(" "));
+    crate::job::record_command_line(words.map(|w| if w.is_empty() || w.contains(char::is_whitespace) { format!("'{w}'") } else { w }).collect::<Vec<_>>().join(" "));
     let words: Vec<std::ffi::OsString> = match args.iter().map(|a| a.to_str().map(str::to_string)).collect::<Option<Vec<String>>>() {
         Some(text) => match wsclean_args::rewrite(text) {
             Ok(rewritten) => rewritten.into_iter().map(Into::into).collect(),
@@ -134,13 +134,13 @@ pub fn main() -> ExitCode {
         (false, _) => log::LevelFilter::Trace,
     };
     if cli.quiet {
-        r2d2_imaging::progress::silence();
+        crate::progress::silence();
     }
     env_logger::Builder::new()
         .filter_level(level)
         .format_target(false)
         .format_timestamp(None)
-        .target(env_logger::Target::Pipe(Box::new(r2d2_imaging::progress::LogWriter)))
+        .target(env_logger::Target::Pipe(Box::new(crate::progress::LogWriter)))
         // Through a pipe env_logger cannot tell whether stderr is a terminal.
         .write_style(if std::io::IsTerminal::is_terminal(&std::io::stderr()) {
             env_logger::WriteStyle::Always
@@ -179,14 +179,14 @@ pub fn main() -> ExitCode {
 /// The error with the option it names (the library names the request's fields and the
 /// commands' own, `auto_threshold`, `set`) spelled as the command line spells it
 /// (`--auto-threshold`, `--set`).
-fn spelled_as_options(error: r2d2_imaging::Error, subcommand: &str) -> r2d2_imaging::Error {
+fn spelled_as_options(error: crate::Error, subcommand: &str) -> crate::Error {
     match error {
-        r2d2_imaging::Error::Parameter { name, message } => {
+        crate::Error::Parameter { name, message } => {
             let command = <Cli as clap::CommandFactory>::command();
             let long = command
                 .find_subcommand(subcommand)
                 .and_then(|c| c.get_arguments().find(|a| a.get_id() == name.as_str()).and_then(|a| a.get_long()).map(|l| format!("--{l}")));
-            r2d2_imaging::Error::Parameter { name: long.unwrap_or(name), message }
+            crate::Error::Parameter { name: long.unwrap_or(name), message }
         }
         other => other,
     }

@@ -1,8 +1,8 @@
 //! `r2d2 models`: the model series found under a directory (default `models/`), by the
 //! telescope they were trained for, with their manifests' key facts.
 
-use r2d2_imaging::steps::series::{discover, model_dirs, Architecture};
-use r2d2_imaging::Result;
+use crate::steps::series::{discover, model_dirs, Architecture};
+use crate::Result;
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -24,13 +24,13 @@ pub fn run(args: Args) -> Result<()> {
     }
     // By telescope: each series under every telescope its domain declares (the registry's
     // order, then others); series that declare none, which `auto` takes for any telescope, last.
-    let usable: Vec<(&std::path::PathBuf, &r2d2_imaging::steps::series::Series)> =
+    let usable: Vec<(&std::path::PathBuf, &crate::steps::series::Series)> =
         found.iter().filter_map(|(dir, s)| s.as_ref().ok().map(|s| (dir, s))).collect();
-    let declared = |s: &r2d2_imaging::steps::series::Series| -> Vec<String> {
+    let declared = |s: &crate::steps::series::Series| -> Vec<String> {
         let v = s.telescopes().to_vec();
-        v.iter().map(|t| r2d2_imaging::steps::series::telescope_key(t)).collect()
+        v.iter().map(|t| crate::steps::series::telescope_key(t)).collect()
     };
-    let registry: Vec<String> = r2d2_imaging::simulate::telescope::telescopes()?.iter().map(|t| t.key.clone()).collect();
+    let registry: Vec<String> = crate::simulate::telescope::telescopes()?.iter().map(|t| t.key.clone()).collect();
     let mut groups: Vec<String> = registry.clone();
     for (_, s) in &usable {
         for t in declared(s) {
@@ -67,7 +67,7 @@ pub fn run(args: Args) -> Result<()> {
     Ok(())
 }
 
-fn describe(dir: &std::path::Path, s: &r2d2_imaging::steps::series::Series) -> Result<()> {
+fn describe(dir: &std::path::Path, s: &crate::steps::series::Series) -> Result<()> {
     let arch = match s.architecture {
         Architecture::R2d2 => "R2D2".to_string(),
         Architecture::R3d3 => format!("R3D3, {} layers", s.layers()),

@@ -1,6 +1,6 @@
 //! `r2d2 run` and `r2d2 validate`: a pipeline described in YAML.
 
-use r2d2_imaging::{PipelineSpec, Result};
+use crate::{PipelineSpec, Result};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;

@@ -1,13 +1,13 @@
 //! `r2d2 simulate`: an observation of a sky by a telescope of the registry (FITS or procedural) into a Parquet table.
 
-use r2d2_imaging::fits::{read_image, write_image, BrightnessUnit, ImageWcs};
-use r2d2_imaging::nufft::NufftParams;
-use r2d2_imaging::imaging::PixelScale;
-use r2d2_imaging::simulate::observe::ObservationRequest;
-use r2d2_imaging::simulate::{simulate, SimulationOutput, SimulationRequest, SkyModel};
-use r2d2_imaging::vis::write_parquet;
-use r2d2_imaging::weighting::Weighting;
-use r2d2_imaging::{Error, Result};
+use crate::fits::{read_image, write_image, BrightnessUnit, ImageWcs};
+use crate::nufft::NufftParams;
+use crate::imaging::PixelScale;
+use crate::simulate::observe::ObservationRequest;
+use crate::simulate::{simulate, SimulationOutput, SimulationRequest, SkyModel};
+use crate::vis::write_parquet;
+use crate::weighting::Weighting;
+use crate::{Error, Result};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -103,7 +103,7 @@ fn parse_sky(text: &str, seed: u64) -> Result<SkySource> {
 
 pub fn run(args: Args) -> Result<()> {
     // The output and the observation before any work (reading the sky, simulating).
-    r2d2_imaging::fits::check_output_file(&args.out, false).map_err(|m| Error::parameter("--out", m))?;
+    crate::fits::check_output_file(&args.out, false).map_err(|m| Error::parameter("--out", m))?;
     let spec = ObservationRequest {
         telescope: args.telescope.clone(),
         configurations: args.configs.clone(),
@@ -122,7 +122,7 @@ pub fn run(args: Args) -> Result<()> {
     let noise_weighting = Weighting::from_name(&args.weighting, args.robust)?;
     let source = parse_sky(&args.sky, args.seed)?;
     if let SkySource::Procedural(_) = source {
-        r2d2_imaging::fits::check_output_file(&sky_path(&args.out), true).map_err(|m| Error::parameter("--out", format!("the sky model beside it: {m}")))?;
+        crate::fits::check_output_file(&sky_path(&args.out), true).map_err(|m| Error::parameter("--out", format!("the sky model beside it: {m}")))?;
     }
     let sky = match &source {
         SkySource::Procedural(seed) => SkyModel::Procedural { seed: *seed },

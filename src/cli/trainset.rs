@@ -2,11 +2,11 @@
 //! observation per ground truth, written as stacked .npy arrays plus per-sample scalars.
 
 use ndarray::{Array2, Array3};
-use r2d2_imaging::fits::{read_image, write_image, BrightnessUnit, ImageWcs};
-use r2d2_imaging::vis::{write_parquet, ObservationMeta};
-use r2d2_imaging::nufft::NufftParams;
-use r2d2_imaging::simulate::trainset::{make_sample, SampleInfo, TrainSample, TrainsetParams, TruthSource};
-use r2d2_imaging::{Error, Result};
+use crate::fits::{read_image, write_image, BrightnessUnit, ImageWcs};
+use crate::vis::{write_parquet, ObservationMeta};
+use crate::nufft::NufftParams;
+use crate::simulate::trainset::{make_sample, SampleInfo, TrainSample, TrainsetParams, TruthSource};
+use crate::{Error, Result};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -169,7 +169,7 @@ fn write_visibilities(dir: &Path, samples: &[TrainSample]) -> Result<()> {
         let meta = ObservationMeta {
             phase_centre_ra_deg: PHASE_CENTRE_RA_DEG,
             phase_centre_dec_deg: dec,
-            telescope: r2d2_imaging::simulate::telescope::telescope(&s.info.observation.telescope)?.name.clone(),
+            telescope: crate::simulate::telescope::telescope(&s.info.observation.telescope)?.name.clone(),
             noise_sigma: Some(s.info.tau),
             dynamic_range: Some(s.info.observation.dynamic_range),
             extra: [("simulation_seed".to_string(), s.info.seed.to_string())].into_iter().collect(),
@@ -188,7 +188,7 @@ fn write_json(path: &Path, value: &impl Serialize) -> Result<()> {
 }
 
 pub fn run(args: Args) -> Result<()> {
-    let telescope = r2d2_imaging::simulate::telescope::telescope(&args.telescope)?;
+    let telescope = crate::simulate::telescope::telescope(&args.telescope)?;
     let integration_s = args.integration_s.unwrap_or((telescope.training.integration_s, telescope.training.integration_s));
     let params = TrainsetParams {
         telescope,
@@ -201,8 +201,8 @@ pub fn run(args: Args) -> Result<()> {
         nufft: NufftParams { epsilon: args.epsilon, oversampling: 2.0 },
     };
     params.validate()?;
-    r2d2_imaging::limits::check_image_size(args.size).map_err(|m| Error::parameter("--size", m))?;
-    r2d2_imaging::limits::check_threads(args.threads).map_err(|m| Error::parameter("--threads", m))?;
+    crate::limits::check_image_size(args.size).map_err(|m| Error::parameter("--size", m))?;
+    crate::limits::check_threads(args.threads).map_err(|m| Error::parameter("--threads", m))?;
     let (sources, truths): (Vec<String>, Vec<Option<Vec<f64>>>) = match (&args.truths, args.procedural) {
         (Some(dir), _) => {
             let files = truth_files(dir)?;

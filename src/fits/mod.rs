@@ -23,7 +23,8 @@ use crate::{Error, Result};
 
 mod error;
 pub use crate::deconv::Beam;
-pub use error::{Cfitsio, FitsError, WriteFailure};
+pub use error::FitsError;
+pub(crate) use error::{Cfitsio, WriteFailure};
 
 /// Celestial coordinates of an image: where it points and how large its pixels are.
 ///
@@ -113,16 +114,16 @@ const RESERVED_PREFIXES: &[&str] = &["NAXIS", "CTYPE", "CRPIX", "CRVAL", "CDELT"
 
 /// The longest suffix a writer appends to a prefix (`job::products` checks its names
 /// against it).
-pub const LONGEST_PRODUCT_SUFFIX: &str = "-uncertainty.fits";
+pub(crate) const LONGEST_PRODUCT_SUFFIX: &str = "-uncertainty.fits";
 
 /// Bytes in one file name (NAME_MAX of Linux's and macOS's file systems).
-pub const NAME_MAX: usize = 255;
+pub(crate) const NAME_MAX: usize = 255;
 
 /// Bytes in the longest path cfitsio opens (its FLEN_FILENAME less the terminator).
-pub const CFITSIO_PATH_MAX: usize = 1024;
+pub(crate) const CFITSIO_PATH_MAX: usize = 1024;
 
 /// Bytes in the longest path the system opens (Linux's PATH_MAX less the terminator).
-pub const PATH_MAX: usize = 4095;
+pub(crate) const PATH_MAX: usize = 4095;
 
 /// Bytes a [`TempSibling`] adds to its target's name: `.` and `.tmp-<pid>-<counter>`, at
 /// their longest (u32 pid, u64 counter).
@@ -130,7 +131,7 @@ const TEMP_NAME_EXTRA: usize = 1 + ".tmp-".len() + 10 + 1 + 20;
 
 /// How an output file is written, for [`check_name_length`].
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum OutputWrite {
+pub(crate) enum OutputWrite {
     /// Through a temporary beside it.
     Direct,
     /// Through a staging directory beside it (its path absolute), then a temporary.
@@ -140,7 +141,7 @@ pub enum OutputWrite {
 /// Refuses an output file whose name or path, once written through its temporary (and
 /// staging directory), is too long for the file system or, for FITS, for cfitsio: found
 /// before any work, not as "cfitsio status 105" after it. `shown` names the file the user gave.
-pub fn check_name_length(file: &Path, how: OutputWrite, fits: bool, shown: &str) -> std::result::Result<(), String> {
+pub(crate) fn check_name_length(file: &Path, how: OutputWrite, fits: bool, shown: &str) -> std::result::Result<(), String> {
     let name = file.file_name().map_or(0, |n| n.len());
     if name + TEMP_NAME_EXTRA > NAME_MAX {
         return Err(format!(
@@ -172,7 +173,7 @@ pub fn check_name_length(file: &Path, how: OutputWrite, fits: bool, shown: &str)
 /// and at most [`MAX_STRING_VALUE`] characters with quotes counted twice (cut after that).
 /// The second part says what was changed, for a warning: a name read from the data (a
 /// telescope, a field) must not lose characters without a word, nor fail the write.
-pub fn header_text(value: &str) -> (String, Option<String>) {
+pub(crate) fn header_text(value: &str) -> (String, Option<String>) {
     let printable = |c: char| (' '..='~').contains(&c);
     let replaced = value.chars().filter(|&c| !printable(c)).count();
     let mut text = String::new();
@@ -201,7 +202,7 @@ pub fn header_text(value: &str) -> (String, Option<String>) {
 /// Refuses an output prefix that names no file (`out/`, `.`, `..`): products are named
 /// `<prefix>-dirty.fits`, ..., so the prefix must end in a file-name part (`out/obs`); and
 /// one whose product names would be too long ([`check_name_length`]).
-pub fn check_output_prefix(prefix: &str) -> std::result::Result<(), String> {
+pub(crate) fn check_output_prefix(prefix: &str) -> std::result::Result<(), String> {
     // A `~` or `$VAR` the shell did not expand (quoted, or from a YAML file) would make a
     // directory literally named `~` or `$HOME`, which a later `rm -rf ~` turns into a disaster.
     let unexpanded = prefix.starts_with('~') || prefix.split(['/', std::path::MAIN_SEPARATOR]).any(|part| {
@@ -220,7 +221,7 @@ pub fn check_output_prefix(prefix: &str) -> std::result::Result<(), String> {
 
 /// Refuses an output file path that names no file (`out/`, an existing directory) or whose
 /// name is too long ([`check_name_length`], written directly), before any work.
-pub fn check_output_file(path: &Path, fits: bool) -> std::result::Result<(), String> {
+pub(crate) fn check_output_file(path: &Path, fits: bool) -> std::result::Result<(), String> {
     let shown = path.display().to_string();
     let text = path.as_os_str().to_string_lossy();
     let last = text.rsplit(['/', std::path::MAIN_SEPARATOR]).next().unwrap_or_default();
@@ -455,7 +456,7 @@ fn remove_primary_extname(file: &mut FitsFile) -> fitsio::errors::Result<()> {
 }
 
 /// How the restoring beam (BMAJ, BMIN, BPA) was fitted: `crate::deconv::fit_beam`.
-pub const BEAM_FIT_NOTE: &str = "Restoring beam: an elliptical Gaussian fitted by least squares to the PSF main lobe (the pixels connected to the centre above 0.35 of the peak, as CASA psfcutoff); WSClean fits a box ten FWHM wide, sidelobes included. A fit that fails is replaced by the main lobe's circle, with a warning.";
+pub(crate) const BEAM_FIT_NOTE: &str = "Restoring beam: an elliptical Gaussian fitted by least squares to the PSF main lobe (the pixels connected to the centre above 0.35 of the peak, as CASA psfcutoff); WSClean fits a box ten FWHM wide, sidelobes included. A fit that fails is replaced by the main lobe's circle, with a warning.";
 
 /// A HISTORY record (cfitsio continues a long one over several cards).
 fn write_history(file: &mut FitsFile, text: &str) -> fitsio::errors::Result<()> {

@@ -17,7 +17,7 @@ mod run;
 mod source;
 mod state;
 
-pub use contract::{BuildContext, Built, Emit, KindFn, Registry, SourceBuild, SourceKind};
+pub use contract::{BuildContext, Built, Emit, KindFn, Registry, SourceKind};
 pub use product::Product;
 #[cfg(feature = "ms")]
 pub use model_column::write_job_model;

@@ -31,10 +31,10 @@ mod table;
 
 pub use convert::convert_ms_to_parquet;
 pub use error::MsError;
-pub use from_parquet::{convert_parquet_to_ms, ParquetToMs};
-pub use lock::{check_conversion_output, check_model_write, real_path};
+pub use from_parquet::convert_parquet_to_ms;
+pub use lock::{check_conversion_output, check_model_write};
 pub use model::{write_model_column, ModelReport, ModelTarget};
 pub use reader::{batch_schema, fields_with_rows, MsCounts, MsReader};
 
-pub use table::{telescope_name, AUTO_DATA_COLUMN, FieldSelector, MsSelection, ORIGIN_KEY, Origin, default_data_column, is_measurement_set};
+pub use table::{telescope_name, AUTO_DATA_COLUMN, FieldSelector, MsSelection, ORIGIN_KEY, Origin, is_measurement_set};
 pub(crate) use table::{Layout, SampleColumns, StokesI, TempDir, Window, array_f64, as_f64, as_i64, casacore, column_index, combine_weights, describe, field_names, invalid, open_table, optional_column, read_cells};

@@ -5,7 +5,7 @@ use super::{
     MsSelection, Origin, SampleColumns, StokesI, Window, ORIGIN_KEY,
 };
 use crate::vis::TableReader;
-use crate::vis::{ObservationMeta, DATE_OBS_KEY, DEFAULT_BATCH_ROWS, OBJECT_KEY};
+use crate::vis::{ObservationMeta, DATE_OBS_KEY, OBJECT_KEY};
 use crate::{Error, Result};
 use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, RecordBatch};
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
@@ -200,11 +200,6 @@ impl MsReader {
             counts: MsCounts::default(),
             finished: false,
         })
-    }
-
-    /// Opens with the default batch size.
-    pub fn open_default(path: &Path, selection: &MsSelection) -> Result<MsReader> {
-        Self::open(path, selection, DEFAULT_BATCH_ROWS)
     }
 
     /// Rows skipped so far and why.

@@ -1,6 +1,6 @@
 //! The reference the NUFFT is tested against: direct O(N^2 M) sums over every pixel and point,
 //! with the same sign and centring conventions as [`super::Nufft2d`]. Slow by design; for
-//! tests and the kernel scan (`cargo run --release --example kernel_scan`).
+//! tests, the gridder benchmark and the kernel scan (`r2d2 bench kernel-scan`).
 
 use num_complex::Complex64;
 
@@ -43,6 +43,7 @@ pub fn relative_error(a: &[Complex64], b: &[Complex64]) -> f64 {
 
 /// `n - 1` and the phase `2 pi (u l + v m + w (n - 1))` conventions of [`super::wgrid`]: pixel
 /// `(ix, iy)` of a `size x size` image at `l = -pixel (ix - size/2)`, `m = pixel (iy - size/2)`.
+#[cfg(test)]
 fn lmt(size: usize, pixel: f64, ix: usize, iy: usize) -> (f64, f64, f64) {
     let l = -pixel * (ix as f64 - (size / 2) as f64);
     let m = pixel * (iy as f64 - (size / 2) as f64);
@@ -51,6 +52,7 @@ fn lmt(size: usize, pixel: f64, ix: usize, iy: usize) -> (f64, f64, f64) {
 
 /// Image to visibilities with the w-term: `V_k = sum f exp(+2 pi i (u_k l + v_k m + w_k (n - 1)))`
 /// (`u, v, w` in wavelengths; see [`super::wgrid`]).
+#[cfg(test)]
 pub fn forward_w(size: usize, pixel: f64, u: &[f64], v: &[f64], w: &[f64], f: &[Complex64]) -> Vec<Complex64> {
     (0..u.len())
         .map(|k| {
@@ -68,6 +70,7 @@ pub fn forward_w(size: usize, pixel: f64, u: &[f64], v: &[f64], w: &[f64], f: &[
 }
 
 /// Visibilities to image with the w-term, the adjoint of [`forward_w`].
+#[cfg(test)]
 pub fn adjoint_w(size: usize, pixel: f64, u: &[f64], v: &[f64], w: &[f64], c: &[Complex64]) -> Vec<Complex64> {
     let mut out = vec![Complex64::default(); size * size];
     for iy in 0..size {

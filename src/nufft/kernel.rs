@@ -87,7 +87,7 @@ impl KernelShape {
     ///
     /// The table holds, per support `w`, the shape `beta / w` that minimised the relative L2
     /// error of both transform types against a direct DFT (random points, 64 x 48 image; the
-    /// `kernel_scan` example reproduces it) and that error. FINUFFT's closed-form rule
+    /// `r2d2 bench kernel-scan` reproduces it) and that error. FINUFFT's closed-form rule
     /// (`beta = 2.30 w`, `w = ceil(log10(10 / eps))`) lands at 1 to 2.5 eps; the table keeps
     /// the promise `error <= eps`. For an oversampling between tabulated ones the table of the
     /// next lower one is used: a kernel only gets more accurate on a finer grid.

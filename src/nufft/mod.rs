@@ -23,10 +23,12 @@ pub mod kernel;
 mod permute;
 pub mod simd;
 
+pub use simd::SimdLevel;
+
 use crate::{Error, Result};
 use kernel::{KernelShape, PolynomialKernel, SymKernel};
 use permute::Permutation;
-use simd::{madd, multiversion, SimdLevel};
+use simd::{madd, multiversion};
 use num_complex::Complex64;
 use rayon::prelude::*;
 use rustfft::{Fft, FftDirection, FftPlanner};
@@ -289,9 +291,6 @@ impl Nufft2d {
         Ok(plan)
     }
 
-    pub fn image_size(&self) -> (usize, usize) {
-        (self.nx, self.ny)
-    }
     pub fn grid_size(&self) -> (usize, usize) {
         (self.grid_nx, self.grid_ny)
     }
@@ -301,19 +300,13 @@ impl Nufft2d {
     pub fn len(&self) -> usize {
         self.order.len()
     }
-    pub fn is_empty(&self) -> bool {
-        self.order.is_empty()
-    }
     /// `order()[k]` is the caller's index of the k-th point in the plan's internal order.
     pub fn order(&self) -> &[u32] {
         &self.order
     }
-    /// Instruction set the gridding inner loops run with (the widest the CPU supports).
-    pub fn simd_level(&self) -> SimdLevel {
-        self.simd
-    }
     /// Run the inner loops with another instruction set (for comparisons); an error if this
     /// CPU does not support it.
+    #[cfg(test)]
     pub fn set_simd_level(&mut self, level: SimdLevel) -> Result<()> {
         if !level.is_supported() {
             return Err(Error::parameter("simd level", format!("{level:?} is not supported by this CPU")));
@@ -722,7 +715,6 @@ impl Nufft2d {
     }
 }
 
-
 /// Type 1 transforms ([`Nufft2d::adjoint`]) of several sets of values at the same points, the
 /// points given a chunk at a time: what the caller holds is all that grows with the number of
 /// points, since sorting, positions and values in plan order are only ever held for one chunk.
@@ -803,6 +795,7 @@ impl ChunkedAdjoint {
     }
 
     /// Bytes of the grids.
+    #[cfg(test)]
     pub fn grid_bytes(&self) -> usize {
         self.grids.len() * self.plan.grid_nx * self.plan.grid_ny * std::mem::size_of::<Complex64>()
     }

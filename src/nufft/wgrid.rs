@@ -442,16 +442,9 @@ impl WGridPlan {
         Ok(plan)
     }
 
-    /// Image edge in pixels.
-    pub fn size(&self) -> usize {
-        self.size
-    }
     /// Number of visibilities.
     pub fn len(&self) -> usize {
         self.order.len()
-    }
-    pub fn is_empty(&self) -> bool {
-        self.order.is_empty()
     }
     /// Runs `f` in the plan's thread pool.
     pub fn install<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
@@ -467,6 +460,7 @@ impl WGridPlan {
         self.engine.shape.support
     }
     /// Support of the w-kernel (1 without w-planes): the planes each visibility reaches.
+    #[cfg(test)]
     pub fn w_support(&self) -> usize {
         self.wkernel.as_ref().map_or(1, |wk| wk.support)
     }

@@ -17,18 +17,18 @@
 //! `m = pixel (iy - N/2)`. `omega_k` is the total weight of visibility k: natural weight times
 //! imaging weight (the reference code's `(nW * nWimag)^2`).
 
-pub mod geometry;
-pub mod measurement;
-pub mod plan;
-pub mod psf;
-pub mod taylor;
-pub mod toeplitz;
+pub(crate) mod geometry;
+pub(crate) mod measurement;
+pub(crate) mod plan;
+pub(crate) mod psf;
+pub(crate) mod taylor;
+pub(crate) mod toeplitz;
 
 pub use geometry::{ImageGeometry, PixelScale, DEFAULT_SUPERRESOLUTION};
-pub use measurement::{predict, spectral_norm, MeasurementOperator, Visibility, WTermMode};
+pub use measurement::{spectral_norm, MeasurementOperator, WTermMode};
+pub(crate) use measurement::predict;
 pub(crate) use measurement::check_points;
-pub use plan::OperatorPlan;
-pub use psf::{dirty_and_psf, doubled_psf, doubled_psf_of, normalise_by_psf_peak, DirtyAndPsf, DoubledKernelGridder, GriddedImages, ImageGridder, PsfConvolution};
+pub use psf::PsfConvolution;
+pub(crate) use psf::{doubled_psf, doubled_psf_of, normalise_by_psf_peak, DoubledKernelGridder, ImageGridder};
 pub(crate) use psf::chunk_points;
-pub use taylor::WTaylor;
-pub use toeplitz::{WToeplitz, WToeplitzBuilder, WToeplitzPlan};
+pub(crate) use toeplitz::WToeplitz;

@@ -65,6 +65,7 @@ fn add_in_steps(
 /// (to the NUFFT's accuracy; the sums run in another order), for callers that need no
 /// operator afterwards: the points are gridded in chunks, so memory beyond the caller's arrays
 /// does not grow with their number.
+#[cfg(test)]
 pub fn dirty_and_psf(
     geometry: ImageGeometry,
     u: &[f64],
@@ -78,6 +79,7 @@ pub fn dirty_and_psf(
 }
 
 #[allow(clippy::too_many_arguments)]
+#[cfg(test)]
 fn dirty_and_psf_in_chunks(
     geometry: ImageGeometry,
     u: &[f64],
@@ -112,6 +114,7 @@ pub fn normalise_by_psf_peak(n: usize, dirty: &mut [f64], psf: &mut [f64]) -> Re
 }
 
 /// What [`dirty_and_psf`] gives.
+#[cfg(test)]
 pub struct DirtyAndPsf {
     /// `kappa Re{Phi_raw^H (omega y)}`.
     pub dirty: Vec<f64>,
@@ -194,17 +197,6 @@ pub struct ImageGridder {
     samples: usize,
 }
 
-/// What [`ImageGridder`] makes.
-pub struct GriddedImages {
-    /// Empty where the gridder made the 2N PSF only.
-    pub dirty: Vec<f64>,
-    /// Peak 1 at `(N/2, N/2)`; empty where the gridder made the 2N PSF only.
-    pub psf: Vec<f64>,
-    /// `2N x 2N`, centre at `(N, N)`, scaled by the same `kappa`.
-    pub psf_2n: Vec<f64>,
-    pub kappa: f64,
-}
-
 impl ImageGridder {
     pub fn new(geometry: ImageGeometry, nufft: NufftParams, threads: usize) -> Result<ImageGridder> {
         let n = geometry.size;
@@ -245,25 +237,6 @@ impl ImageGridder {
         }
         self.samples += u.len();
         Ok(())
-    }
-
-    /// The images, normalised by `kappa` (`None`: from the N PSF's peak, as the operator's; a
-    /// gridder of the 2N PSF alone must be given it).
-    pub fn finish(self, kappa: Option<f64>) -> Result<GriddedImages> {
-        let n = self.geometry.size;
-        if self.samples == 0 {
-            return Err(Error::parameter("weight", "all visibilities have zero weight: nothing to image"));
-        }
-        let (mut dirty, mut psf, mut psf_2n) = self.unnormalised();
-        let kappa = match kappa {
-            Some(kappa) => {
-                dirty.iter_mut().chain(psf.iter_mut()).for_each(|p| *p *= kappa);
-                kappa
-            }
-            None => normalise_by_psf_peak(n, &mut dirty, &mut psf)?,
-        };
-        psf_2n.iter_mut().for_each(|p| *p *= kappa);
-        Ok(GriddedImages { dirty, psf, psf_2n, kappa })
     }
 
     /// The dirty image, PSF and 2N PSF as gridded, not normalised (empty dirty image and PSF

@@ -5,11 +5,13 @@
 //! antenna tables are compiled into the binary, and every random choice comes from a
 //! caller-supplied seed so a data set can be regenerated bit for bit.
 
-pub mod extended;
-pub mod observe;
-pub mod sky;
-pub mod telescope;
-pub mod trainset;
+pub(crate) mod extended;
+pub(crate) mod observe;
+pub(crate) mod sky;
+pub(crate) mod telescope;
+pub(crate) mod trainset;
+
+pub use observe::{frequency_channels, sample_coverage, ObservationSpec};
 
 use crate::imaging::PixelScale;
 use crate::nufft::NufftParams;
@@ -17,7 +19,7 @@ use crate::operator::{ImageGeometry, WTermMode};
 use crate::vis::{ObservationMeta, VisTable};
 use crate::weighting::Weighting;
 use crate::{metrics, Error, Result};
-use observe::{sample_coverage, simulate_visibilities, NoiseModel, ObservationSpec};
+use observe::{simulate_visibilities, NoiseModel};
 use std::collections::BTreeMap;
 
 /// The sky of a simulation.

@@ -172,9 +172,6 @@ impl Coverage {
     pub fn len(&self) -> usize {
         self.u_m.len()
     }
-    pub fn is_empty(&self) -> bool {
-        self.u_m.is_empty()
-    }
     /// (u, v) in wavelengths.
     pub fn uv_wavelengths(&self) -> (Vec<f64>, Vec<f64>) {
         (self.wavelengths(&self.u_m), self.wavelengths(&self.v_m))
@@ -285,8 +282,6 @@ pub struct Simulated {
     pub noise_sigma: f64,
     /// Briggs correction factor (1 for natural weighting).
     pub eta: f64,
-    /// `||Re{Phi_1^H Phi_1}||_S`.
-    pub spectral_norm: f64,
 }
 
 /// `||Re{Phi^H diag(weight) Phi}||_S` over the unflagged visibilities (no kappa), by Lanczos
@@ -356,7 +351,7 @@ pub fn simulate_visibilities(
     if sky.len() != geometry.pixels() {
         return Err(Error::parameter("sky", format!("expected {} pixels, got {}", geometry.pixels(), sky.len())));
     }
-    let (tau, eta, l1) = noise_level(geometry, coverage, model, nufft, threads)?;
+    let (tau, eta, _) = noise_level(geometry, coverage, model, nufft, threads)?;
     let (u, v) = coverage.uv_wavelengths();
     let vis = crate::operator::predict(geometry, &u, &v, &coverage.w_wavelengths(), sky, w_term, nufft, threads)?;
     let mut vis = vis;
@@ -370,7 +365,7 @@ pub fn simulate_visibilities(
         })
         .collect();
     vis.iter_mut().zip(&noise).for_each(|(y, n)| *y += n);
-    Ok(Simulated { vis, noise, noise_sigma: tau, eta, spectral_norm: l1 })
+    Ok(Simulated { vis, noise, noise_sigma: tau, eta })
 }
 
 #[cfg(test)]

@@ -237,6 +237,7 @@ impl Array {
     }
 
     /// Longest baseline length in metres (0 for fewer than two antennas).
+    #[cfg(test)]
     pub fn max_baseline_m(&self) -> f64 {
         let p = &self.positions_itrf;
         let mut best = 0.0f64;
@@ -401,13 +402,9 @@ impl UvwTrack {
         self.u_m.len()
     }
 
-    /// True if there are no samples.
-    pub fn is_empty(&self) -> bool {
-        self.u_m.is_empty()
-    }
-
     /// Largest projected baseline `sqrt(u^2 + v^2)` in metres (0 if empty). Divided by the
     /// wavelength this is the `max_uv` that fixes the pixel size.
+    #[cfg(test)]
     pub fn max_uv_m(&self) -> f64 {
         self.u_m
             .iter()
@@ -484,6 +481,7 @@ pub fn uvw_tracks(array: &Array, spec: &TrackSpec) -> Result<UvwTrack> {
 /// Rotate every (u, v) by `angle_rad` counter-clockwise (w unchanged). This is the paper's
 /// random rotation of the sampling pattern: it turns a handful of antenna layouts and
 /// declinations into many distinct PSFs while keeping each one physically plausible.
+#[cfg(test)]
 pub fn rotate_uv(track: &mut UvwTrack, angle_rad: f64) {
     let (s, c) = angle_rad.sin_cos();
     for (u, v) in track.u_m.iter_mut().zip(track.v_m.iter_mut()) {
@@ -497,6 +495,7 @@ fn sub3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
+#[cfg(test)]
 fn norm3(a: [f64; 3]) -> f64 {
     (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt()
 }

@@ -44,7 +44,7 @@ pub use crate::steps::clean::CleanConfig as CleanParams;
 pub use crate::steps::native::{Isolation, NativeConfig as NativeParams};
 pub use crate::steps::onnx::runtime::{BackendChoice, GraphOptimization};
 pub use crate::steps::onnx::{OnnxConfig as OnnxParams, ValidityMode};
-pub use crate::vis::SplitBy;
+pub use crate::vis::split::SplitBy;
 pub use crate::weighting::WeightingScheme;
 
 #[cfg(test)]

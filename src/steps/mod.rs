@@ -5,17 +5,12 @@
 
 pub(crate) mod clean;
 mod error;
-// Public for examples/native_isolation (the per-step cost of isolation), not the interface.
-#[doc(hidden)]
-pub mod native;
+pub(crate) mod native;
 pub(crate) mod native_file;
 pub(crate) mod native_host;
 pub(crate) mod onnx;
 
-// The ONNX internals by their former paths (the command line names series and backends).
-pub use onnx::{runtime, series};
-
-pub use error::{HostError, LibraryError, LoadError, OnnxError, PluginError, RuntimeUnavailable, SeriesError};
+pub(crate) use onnx::{runtime, series};
 
 use crate::Result;
 

@@ -26,7 +26,7 @@ use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::time::Duration;
 
-pub use super::error::{HostError, LibraryError, LoadError, PluginError};
+pub use super::error::{HostError, PluginError};
 
 #[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
@@ -190,6 +190,7 @@ impl NetworkStep for NativeStep {
 
 #[cfg(test)]
 mod tests {
+    use crate::steps::error::{LibraryError, LoadError};
     use super::*;
 
     fn config(library: PathBuf, isolation: Isolation) -> NativeConfig {

@@ -37,6 +37,7 @@ fn log_reason(id: &str, reason: Reason) {
 /// Grids job `id`'s samples (`source`, weighted by `rule`) as `plan` chose, and logs why.
 pub fn grid_planned(id: &str, source: VisSource, rule: WeightRule, mut plan: OperatorPlan) -> Result<GriddedForm> {
     std::mem::take(&mut plan.reasons).into_iter().for_each(|r| log_reason(id, r));
+    log::debug!("job {id}: the normal operator's form is estimated to take {}", crate::limits::format_bytes(plan.bytes));
     if let Some(toeplitz) = plan.w_toeplitz.take() {
         let pass = pass(&plan, &rule, true, toeplitz.chunk_rows);
         if let Some(gridded) = toeplitz_pass(id, &source, &rule, toeplitz, pass)? {

@@ -32,6 +32,7 @@ pub struct VisReader {
     source: String,
     meta: ObservationMeta,
     stats: IngestStats,
+    #[cfg(test)]
     total_rows: u64,
     /// The file's whole schema (the batches hold only the columns read).
     schema: SchemaRef,
@@ -62,6 +63,7 @@ impl VisReader {
             pairs.iter().map(|kv| (kv.key.as_str(), kv.value.as_deref())),
             &source,
         )?;
+        #[cfg(test)]
         let total_rows = u64::try_from(file_metadata.num_rows()).unwrap_or(0);
         validate_schema(builder.schema(), &source)?;
 
@@ -90,6 +92,7 @@ impl VisReader {
             source,
             meta,
             stats: IngestStats::default(),
+            #[cfg(test)]
             total_rows,
             schema,
             batches: GuardedBatches::new(path, PARQUET, batches),
@@ -122,11 +125,13 @@ impl VisReader {
     }
 
     /// Counts over the batches read so far.
+    #[cfg(test)]
     pub fn stats(&self) -> IngestStats {
         self.stats
     }
 
     /// Rows in the file according to its footer, for progress reports.
+    #[cfg(test)]
     pub fn total_rows(&self) -> u64 {
         self.total_rows
     }

@@ -404,7 +404,7 @@ mod tests {
         let meta = super::super::ObservationMeta::new(10.0, 20.0, "VLA");
         let (schema, batches) = to_record_batches(&t, &meta, 4).unwrap();
         let input = super::super::MemoryInput::from_batches("t", schema, batches);
-        Box::new(super::super::memory_table(input, "t").unwrap())
+        Box::new(crate::vis::memory::memory_table(input, "t").unwrap())
     }
 
     /// A table whose first reading finds 10 samples and every later one 9 (a file written

@@ -3,9 +3,8 @@
 #![allow(dead_code)] // each test binary uses some of the helpers
 
 use r2d2_imaging::fits::read_image;
-use r2d2_imaging::imaging::{total_weights, DirtyParams};
-use r2d2_imaging::nufft::NufftParams;
-use r2d2_imaging::operator::{spectral_norm, MeasurementOperator, WTermMode};
+use r2d2_imaging::imaging::{DirtyParams, NormalOperator, WTermMode};
+use r2d2_imaging::NufftParams;
 use r2d2_imaging::vis::read_parquet;
 use std::path::Path;
 use std::process::{Command, Output};
@@ -104,26 +103,30 @@ pub fn max_diff(a: &[f64], b: &[f64]) -> f64 {
 /// it (`auto`): not the 2N-PSF convolution the pipeline's residual uses where the w-term is
 /// negligible, so it checks that too.
 pub struct ReferenceOperator {
-    operator: MeasurementOperator,
+    operator: NormalOperator,
 }
 
 impl ReferenceOperator {
     pub fn new(observation: &Path) -> ReferenceOperator {
         let (vis, _, _) = read_parquet(observation).unwrap();
-        let params = DirtyParams { size: SIZE, threads: 1, nufft: NufftParams { epsilon: 1e-10, oversampling: 2.0 }, ..DirtyParams::default() };
-        let geometry = params.geometry(&vis).unwrap();
-        let weight = total_weights(&vis, geometry, params.weighting, params.grid_factor).unwrap();
-        let operator = MeasurementOperator::for_mode(WTermMode::Auto, geometry, &vis.u, &vis.v, &vis.w, &weight, params.nufft, 1).unwrap();
+        let params = DirtyParams {
+            size: SIZE,
+            threads: 1,
+            nufft: NufftParams { epsilon: 1e-10, oversampling: 2.0 },
+            w_term: WTermMode::Auto,
+            ..DirtyParams::default()
+        };
+        let operator = NormalOperator::new(&vis, &params).unwrap();
         ReferenceOperator { operator }
     }
 
     pub fn apply(&self, x: &[f64]) -> Vec<f64> {
-        self.operator.apply_normal(x)
+        self.operator.apply(x)
     }
 
     /// 1 / ||D||: a step size for which Landweber iterations converge.
     pub fn landweber_gain(&self) -> f64 {
-        1.0 / spectral_norm(|x| self.apply(x), SIZE * SIZE, 1e-8, 200)
+        1.0 / self.operator.norm(1e-8, 200)
     }
 }
 

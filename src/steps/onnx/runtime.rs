@@ -143,13 +143,6 @@ impl Runtime {
         }
     }
 
-    pub fn name(&self) -> &'static str {
-        match self {
-            Runtime::Ort { .. } => "ort",
-            Runtime::Tract => "tract",
-        }
-    }
-
     /// Load a network for `size x size` images (`signature`: from [`check_network`]).
     pub fn load(&self, path: &Path, size: usize, signature: &Signature) -> Result<Box<dyn Network>> {
         match self {
