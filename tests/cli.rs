@@ -194,6 +194,34 @@ fn bad_input_gives_errors_that_name_the_problem() {
     assert!(!out.status.success());
 }
 
+/// The library names the fields of what it is asked (`frequency_ratio`, `flag_fraction`); the
+/// command line names the option as typed (`--freq-ratio`), whatever its field is called.
+#[test]
+fn simulate_and_trainset_errors_name_the_option_as_typed() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let cases: [(&[&str], &str); 10] = [
+        (&["simulate", "--freq-ratio", "0.5"], "invalid --freq-ratio: expected highest/lowest frequency >= 1, got 0.5"),
+        (&["simulate", "--nfreq", "2", "--freq-ratio", "1"], "invalid --freq-ratio: 2 frequencies at a ratio of 1"),
+        (&["simulate", "--flag-fraction", "1.5"], "invalid --flag-fraction: expected a fraction in [0, 1), got 1.5"),
+        (&["simulate", "--nfreq", "0"], "invalid --nfreq: expected at least one frequency"),
+        (&["simulate", "--configs", "q", "--hours", "1"], "invalid --configs: expected one of a, b, c, d"),
+        (&["simulate", "--configs", "c", "--hours", "0"], "invalid --hours: must be a positive number of hours"),
+        (&["simulate", "--dec", "91"], "invalid --dec: must be within [-90, 90] deg"),
+        (&["simulate", "--integration-s", "0"], "invalid --integration-s: must be a positive number of seconds"),
+        (&["trainset", "--procedural", "1", "--truth-fwhm-px", "100"], "invalid --truth-fwhm-px: expected 0 < low <= high <= 16 pixels"),
+        (&["trainset", "--procedural", "1", "--integration-s", "0"], "invalid --integration-s: expected positive times up to a day"),
+    ];
+    for (args, expected) in cases {
+        let args: Vec<&str> = args.iter().copied().chain(["--out", "out"]).collect();
+        let out = r2d2(&args, d);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {err}");
+        assert!(err.contains(expected), "{args:?}: '{expected}' missing from: {err}");
+    }
+    assert_eq!(std::fs::read_dir(d).unwrap().count(), 0, "nothing written");
+}
+
 /// What `simulate` and `dirty` would refuse only late, or with a message blaming something
 /// else, is refused before any work, naming the option and what is expected. The input of
 /// `dirty` does not exist: the options are checked before it is read.
@@ -206,10 +234,10 @@ fn options_are_refused_before_any_work_naming_what_is_expected() {
     let deep = vec!["d".repeat(200); 5].join("/");
     let sim = ["simulate", "--configs", "c", "--hours", "1"];
     let cases: Vec<(Vec<&str>, Vec<&str>)> = vec![
-        (vec!["--dec", "-90", "--out", "s.parquet"], vec!["declination", "-90 deg never rises", "vla-c", "above -56"]),
-        (vec!["--freq-mhz", "1e9", "--out", "s.parquet"], vec!["frequency", "from 1e6 to 1e13 Hz", "got 1e15 Hz"]),
-        (vec!["--freq-mhz", "1e6", "--freq-ratio", "100", "--out", "s.parquet"], vec!["freq-ratio", "got 1e14 Hz"]),
-        (vec!["--integration-s", "0", "--out", "s.parquet"], vec!["integration time", "positive number of seconds, got 0"]),
+        (vec!["--dec", "-90", "--out", "s.parquet"], vec!["--dec", "-90 deg never rises", "vla-c", "above -56"]),
+        (vec!["--freq-mhz", "1e9", "--out", "s.parquet"], vec!["--freq-mhz", "from 1e6 to 1e13 Hz", "got 1e15 Hz"]),
+        (vec!["--freq-mhz", "1e6", "--freq-ratio", "100", "--out", "s.parquet"], vec!["--freq-ratio", "got 1e14 Hz"]),
+        (vec!["--integration-s", "0", "--out", "s.parquet"], vec!["--integration-s", "positive number of seconds, got 0"]),
         (vec!["--out", "o/"], vec!["--out", "\"o/\" names a directory"]),
         (vec!["--out", "o"], vec!["--out", "\"o\" is a directory", "o/obs.parquet"]),
         (vec!["--out", "new/"], vec!["--out", "\"new/\" names a directory"]),

@@ -550,11 +550,23 @@ fn stage_modules_are_reached_only_through_the_registry() {
     assert!(wrong.is_empty(), "stage modules imported from outside stages/ (use the registry or stages::params, or move what they share below):\n{}", wrong.join("\n"));
 }
 
+/// What `check` makes of a small crate of `files` (path under `src/`, text), written for it.
+fn in_crate<T>(name: &str, files: &[(&str, &str)], check: impl FnOnce(&Path) -> T) -> T {
+    let dir = std::env::temp_dir().join(format!("r2d2-layering-{name}-{}", std::process::id()));
+    for (file, text) in files {
+        let path = dir.join(file);
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        std::fs::write(path, text).unwrap();
+    }
+    let result = check(&dir);
+    std::fs::remove_dir_all(&dir).unwrap();
+    result
+}
+
 #[test]
 fn the_checker_sees_a_cycle_and_a_wrong_floor() {
     // A small crate with a cycle through a re-export (a mod.rs re-exporting a child that
     // imports what the mod.rs defines) and the pipeline importing the domain.
-    let dir = std::env::temp_dir().join(format!("r2d2-layering-{}", std::process::id()));
     let files = [
         ("lib.rs", "pub mod pipeline;\npub mod job;\n"),
         ("pipeline/mod.rs", "mod runner;\npub use runner::run;\n"),
@@ -562,13 +574,7 @@ fn the_checker_sees_a_cycle_and_a_wrong_floor() {
         ("job/mod.rs", "mod parts;\npub use parts::emit; // re-exported\npub struct Job;\n"),
         ("job/parts.rs", "/* use crate::pipeline::run; */\nuse super::Job;\npub fn emit(_: Job) { let _ = \"crate::pipeline::run\"; }\n#[cfg(test)]\nmod tests { use crate::pipeline::run; }\n"),
     ];
-    for (name, text) in files {
-        let path = dir.join(name);
-        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
-        std::fs::write(path, text).unwrap();
-    }
-    let (modules, edges) = graph_of(&dir);
-    std::fs::remove_dir_all(&dir).unwrap();
+    let (modules, edges) = in_crate("graph", &files, graph_of);
     let job_parts = vec!["job".to_string(), "parts".to_string()];
     // Comments, strings and test modules are not imports.
     assert_eq!(edges[&job_parts], BTreeSet::from([vec!["job".to_string()]]));
@@ -579,12 +585,47 @@ fn the_checker_sees_a_cycle_and_a_wrong_floor() {
     assert_eq!(expand_use("a::{b, c::{self, d as e}}").len(), 3);
 }
 
+/// The command line's long options of more than one word, without their dashes
+/// (`freq-ratio`): each field under `#[arg(long)]` of the command-line modules (`cli`), spelled
+/// with dashes, or the spelling `#[arg(long = "...")]` gives it.
+fn command_line_options(modules: &BTreeMap<Vec<String>, Module>) -> BTreeSet<String> {
+    let long = regex::Regex::new(r"\blong\b").unwrap();
+    let spelled = regex::Regex::new(r#"\blong\s*=\s*"([^"]+)""#).unwrap();
+    let field = regex::Regex::new(r"^\s*(?:pub(?:\([^)]*\))?\s+)?([a-z_][a-z0-9_]*)\s*:").unwrap();
+    let mut options = BTreeSet::new();
+    for module in modules.iter().filter(|(p, _)| p.first().is_some_and(|t| t == "cli")).map(|(_, m)| m) {
+        let text = std::fs::read_to_string(&module.file).expect("read source");
+        let mut unnamed = false;
+        for line in text.lines() {
+            let trimmed = line.trim_start();
+            if trimmed.starts_with("#[arg(") || trimmed.starts_with("#[clap(") {
+                match spelled.captures(trimmed) {
+                    Some(c) => options.insert(c[1].to_string()),
+                    None => {
+                        unnamed = long.is_match(trimmed);
+                        continue;
+                    }
+                };
+            } else if unnamed && !trimmed.starts_with("#[") && !trimmed.starts_with("//") {
+                if let Some(c) = field.captures(line) {
+                    options.insert(c[1].replace('_', "-"));
+                }
+                unnamed = false;
+            }
+        }
+    }
+    options.retain(|o| o.contains('-'));
+    options
+}
+
 /// Options of commands spelled as the command line spells them (`--auto-threshold`) in the
-/// string literals of a module below the top floor: the library names the request's fields
-/// (`auto_threshold`) and each interface (CLI, YAML, Python) adds its own spelling. Cargo's
-/// own options are not this program's.
+/// string literals of a module below the top floor, or a whole literal that is a long option
+/// of several words without its dashes (`"freq-ratio"`, an error's parameter name): the
+/// library names the request's fields (`auto_threshold`) and each interface (CLI, YAML,
+/// Python) adds its own spelling. Cargo's own options are not this program's.
 fn command_line_spellings(modules: &BTreeMap<Vec<String>, Module>) -> Vec<String> {
     const NOT_OURS: &[&str] = &["--release"];
+    let options = command_line_options(modules);
     let mut found = Vec::new();
     for (path, module) in modules {
         if path.is_empty() || floor_of(path, module).is_none_or(|f| f == "top") || module.file.file_name().is_some_and(|n| n == "tests.rs") {
@@ -602,6 +643,9 @@ fn command_line_spellings(modules: &BTreeMap<Vec<String>, Module>) -> Vec<String
             for (k, literal) in line.split('"').enumerate() {
                 if k % 2 == 0 {
                     continue;
+                }
+                if options.contains(literal) {
+                    found.push(format!("{}:{}: \"{literal}\" (--{literal})", module.file.display(), number + 1));
                 }
                 let bytes = literal.as_bytes();
                 for at in literal.match_indices("--").map(|(i, _)| i) {
@@ -626,4 +670,21 @@ fn no_command_line_spelling_below_the_top_floor() {
     let (modules, _) = graph();
     let found = command_line_spellings(&modules);
     assert!(found.is_empty(), "command-line options named below the top floor (name the request's field instead): {found:#?}");
+}
+
+#[test]
+fn the_checker_sees_an_option_named_below_the_top_floor() {
+    // A command with options of one and of several words, one spelled by `long = "..."`, and a
+    // library module naming one by its field, two by the command line's spelling.
+    let files = [
+        ("cli/mod.rs", "#[derive(clap::Args)]\npub struct Args {\n    /// Ratio.\n    #[arg(long)]\n    freq_ratio: f64,\n    #[arg(long = \"flag-fraction\", default_value_t = 0.0)]\n    flag: f64,\n    #[arg(long)]\n    seed: u64,\n    #[arg(long_help = \"x\")]\n    no_long: bool,\n}\n"),
+        ("simulate/observe.rs", "fn f() -> Error {\n    check(1.0, \"freq-ratio\");\n    let _ = (\"field-filling\", \"seed\", \"no-long\", \"flag_fraction\");\n    Error::parameter(\n        \"flag-fraction\",\n        \"expected a fraction\",\n    )\n}\n"),
+    ];
+    let (options, found) = in_crate("options", &files, |src| {
+        let (modules, _) = graph_of(src);
+        (command_line_options(&modules), command_line_spellings(&modules))
+    });
+    assert_eq!(options, BTreeSet::from(["flag-fraction".to_string(), "freq-ratio".to_string()]));
+    let found: Vec<&str> = found.iter().map(|f| f.split_once(": ").map_or(f.as_str(), |(_, w)| w)).collect();
+    assert_eq!(found, ["\"freq-ratio\" (--freq-ratio)", "\"flag-fraction\" (--flag-fraction)"]);
 }

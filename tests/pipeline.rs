@@ -586,7 +586,11 @@ fn small_configuration_mistakes_are_refused_by_validate() {
         // What the simulation would refuse, before any job.
         ("declination the VLA never sees", small_pipeline(None).replace("hours: [1]\n", "hours: [1]\n    dec_deg: -90\n"), vec![], vec!["line 11, column 5: stages.source.dec_deg", "-90 deg never rises", "vla-c", "above -56"]),
         ("frequency the readers refuse", small_pipeline(None).replace("hours: [1]\n", "hours: [1]\n    frequency_mhz: 1.0e9\n"), vec![], vec!["line 11, column 5: stages.source.frequency_mhz", "frequencies from 1e6 to 1e13 Hz", "got 1e15 Hz"]),
-        ("zero integration time", small_pipeline(None).replace("integration_s: 300", "integration_s: 0"), vec![], vec!["line 11, column 5: stages.source.integration_s", "integration time", "positive number of seconds"]),
+        ("zero integration time", small_pipeline(None).replace("integration_s: 300", "integration_s: 0"), vec![], vec!["line 11, column 5: stages.source.integration_s", "invalid integration_s: must be a positive number of seconds"]),
+        // Named by the stage's key (the parameters' field), not as the command line spells it.
+        ("frequency ratio under 1", small_pipeline(None).replace("hours: [1]\n", "hours: [1]\n    frequency_ratio: 0.5\n"), vec![], vec!["line 11, column 5: stages.source.frequency_ratio: invalid frequency_ratio: expected highest/lowest frequency >= 1, got 0.5"]),
+        ("flag fraction of 1", small_pipeline(None).replace("hours: [1]\n", "hours: [1]\n    flag_fraction: 1\n"), vec![], vec!["line 11, column 5: stages.source.flag_fraction: invalid flag_fraction: expected a fraction in [0, 1), got 1"]),
+        ("unknown configuration", small_pipeline(None).replace("configurations: [c]", "configurations: [q]"), vec![], vec!["line 9, column 5: stages.source.configurations: invalid configurations: expected one of a, b, c, d"]),
         ("prefix too long", small_pipeline(None).replace("out/{job}", &format!("out/{}{{job}}", "x".repeat(250))), vec![], vec!["stages.write.prefix", "file name would have", "255"]),
     ];
     for (what, text, sets, expected) in cases {

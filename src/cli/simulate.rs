@@ -10,6 +10,9 @@ use crate::weighting::Weighting;
 use crate::{Error, Result};
 use std::path::PathBuf;
 
+// The fields are named as the library's request names them (`frequency_ratio`), each with the
+// option's own spelling (`--freq-ratio`): the library's errors name the field, which the
+// command line then spells as the option (`spelled_as_options`).
 #[derive(clap::Args)]
 pub struct Args {
     /// Sky model: a FITS image (Jy/pixel), or `procedural[:SEED]` for a generated radio sky.
@@ -20,30 +23,30 @@ pub struct Args {
     #[arg(long, default_value = "vla")]
     telescope: String,
     /// Array configurations, comma separated (vla: a, b, c, d; default a,c).
-    #[arg(long, value_delimiter = ',')]
-    configs: Option<Vec<String>>,
+    #[arg(long = "configs", value_name = "CONFIGS", value_delimiter = ',')]
+    configurations: Option<Vec<String>>,
     /// Observing time per configuration in hours, comma separated, one per configuration
     /// (vla: 6,2; meerkat: 8).
     #[arg(long, value_delimiter = ',')]
     hours: Option<Vec<f64>>,
     /// Declination of the phase centre, degrees (vla: 40; meerkat: -30).
-    #[arg(long, allow_hyphen_values = true)]
-    dec: Option<f64>,
+    #[arg(long = "dec", value_name = "DEC", allow_hyphen_values = true)]
+    dec_deg: Option<f64>,
     /// Right ascension of the phase centre, degrees.
     #[arg(long, default_value_t = 180.0)]
     ra: f64,
     /// Target dynamic range: fixes the noise level (reference formula).
-    #[arg(long, default_value_t = 1e4)]
-    dr: f64,
+    #[arg(long = "dr", value_name = "DR", default_value_t = 1e4)]
+    dynamic_range: f64,
     /// Number of frequency channels (vla: 1; meerkat: 4).
-    #[arg(long)]
-    nfreq: Option<usize>,
+    #[arg(long = "nfreq", value_name = "NFREQ")]
+    channels: Option<usize>,
     /// Lowest frequency, MHz (vla: 1400; meerkat: 856).
-    #[arg(long)]
-    freq_mhz: Option<f64>,
+    #[arg(long = "freq-mhz", value_name = "FREQ_MHZ")]
+    frequency_mhz: Option<f64>,
     /// Highest over lowest frequency (vla: 1; meerkat: 2, L band 856..1712 MHz).
-    #[arg(long)]
-    freq_ratio: Option<f64>,
+    #[arg(long = "freq-ratio", value_name = "FREQ_RATIO")]
+    frequency_ratio: Option<f64>,
     /// Fraction of samples flagged at random.
     #[arg(long, default_value_t = 0.0)]
     flag_fraction: f64,
@@ -106,13 +109,13 @@ pub fn run(args: Args) -> Result<()> {
     crate::fits::check_output_file(&args.out, false).map_err(|m| Error::parameter("--out", m))?;
     let spec = ObservationRequest {
         telescope: args.telescope.clone(),
-        configurations: args.configs.clone(),
+        configurations: args.configurations.clone(),
         hours: args.hours.clone(),
-        dec_deg: args.dec,
+        dec_deg: args.dec_deg,
         integration_s: args.integration_s,
-        channels: args.nfreq,
-        frequency_mhz: args.freq_mhz,
-        frequency_ratio: args.freq_ratio,
+        channels: args.channels,
+        frequency_mhz: args.frequency_mhz,
+        frequency_ratio: args.frequency_ratio,
         flag_fraction: args.flag_fraction,
         random_rotation: !args.no_rotation,
         seed: args.seed,
@@ -147,7 +150,7 @@ pub fn run(args: Args) -> Result<()> {
             Some(p) => PixelScale::Arcsec(p),
             None => PixelScale::SuperResolution(args.superresolution),
         },
-        dynamic_range: args.dr,
+        dynamic_range: args.dynamic_range,
         noise_weighting,
         phase_centre_deg: (args.ra, dec),
         nufft: NufftParams { epsilon: args.epsilon, oversampling: 2.0 },

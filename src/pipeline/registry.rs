@@ -245,15 +245,13 @@ impl<J: Payload> BuildContext<'_, J> {
     }
 
     /// A constructor's parameter error ([`Error::Parameter`]) at the line of the stage key it
-    /// is about (`keys`: the error's parameter name, the key), else the error as it is.
-    pub fn at_key(&self, keys: &[(&str, &str)], e: Error) -> Error {
-        let key = match &e {
-            Error::Parameter { name, .. } => keys.iter().find(|(n, _)| n == name).map(|(_, key)| *key),
-            _ => None,
-        };
-        match key {
-            Some(key) => self.error_caused(key, e),
-            None => e,
+    /// names, else the error as it is. The library names the fields of the parameters it was
+    /// given (`params`): the stage's keys, as `params` serializes them.
+    pub fn at_field(&self, params: &impl serde::Serialize, e: Error) -> Error {
+        let is_key = |name: &str| serde_yaml::to_value(params).is_ok_and(|fields| fields.get(name).is_some());
+        match &e {
+            Error::Parameter { name, .. } if is_key(name) => self.error_caused(&name.clone(), e),
+            _ => e,
         }
     }
 

@@ -46,27 +46,30 @@ pub struct ObservationSpec {
 impl ObservationSpec {
     /// Checks everything a simulation of this observation would refuse, before any sample is
     /// made: the configurations, each track (times, declination), the frequencies, the flag
-    /// fraction, and the memory the samples need.
+    /// fraction, and the memory the samples need. Its errors name the field of
+    /// [`ObservationRequest`] (or of this spec, `frequencies_hz`) the value came from: the
+    /// telescope's `declination` is `dec_deg`, a configuration's observation time `hours`.
     pub fn validate(&self) -> Result<()> {
         if self.configurations.is_empty() {
-            return Err(Error::parameter("configs", "expected at least one telescope configuration"));
+            return Err(Error::parameter("configurations", "expected at least one telescope configuration"));
         }
         let scope = telescope::telescope(&self.telescope)?;
+        let as_fields = |e| as_field(e, &[("telescope configuration", "configurations"), ("declination", "dec_deg"), ("observation time", "hours"), ("integration time", "integration_s")]);
         for (config, hours) in &self.configurations {
-            let (array, hours) = (scope.array(config)?, *hours);
+            let (array, hours) = (scope.array(config).map_err(as_fields)?, *hours);
             // The track first: a zero integration time would otherwise be reported as a
             // sample count that does not fit in memory.
-            TrackSpec { dec_rad: self.dec_deg.to_radians(), hour_angle_span_h: hours, integration_s: self.integration_s }.validate()?;
-            array.check_rises(self.dec_deg.to_radians())?;
+            TrackSpec { dec_rad: self.dec_deg.to_radians(), hour_angle_span_h: hours, integration_s: self.integration_s }.validate().map_err(as_fields)?;
+            array.check_rises(self.dec_deg.to_radians()).map_err(as_fields)?;
         }
         if self.frequencies_hz.is_empty() {
-            return Err(Error::parameter("nfreq", "expected at least one frequency"));
+            return Err(Error::parameter("frequencies_hz", "expected at least one frequency"));
         }
         for &f in &self.frequencies_hz {
-            check_frequency(f, "frequency")?;
+            check_frequency(f, "frequencies_hz")?;
         }
         if !(0.0..1.0).contains(&self.flag_fraction) {
-            return Err(Error::parameter("flag-fraction", format!("expected a fraction in [0, 1), got {}", self.flag_fraction)));
+            return Err(Error::parameter("flag_fraction", format!("expected a fraction in [0, 1), got {}", self.flag_fraction)));
         }
         check_sample_count(self)
     }
@@ -134,23 +137,37 @@ fn check_frequency(hz: f64, what: &str) -> Result<()> {
     Ok(())
 }
 
-/// `count` frequencies spaced evenly from `lowest` to `lowest * ratio`.
+/// A parameter error of a lower layer named as this one's field (`renames`: its name, the
+/// field's); any other error as it is.
+fn as_field(e: Error, renames: &[(&str, &str)]) -> Error {
+    match e {
+        Error::Parameter { name, message } => match renames.iter().find(|(from, _)| *from == name) {
+            Some((_, field)) => Error::parameter(*field, message),
+            None => Error::Parameter { name, message },
+        },
+        other => other,
+    }
+}
+
+/// `count` frequencies spaced evenly from `lowest` to `lowest * ratio`. Its errors name the
+/// fields of [`ObservationRequest`] that give them: `frequency_mhz`, `channels` and
+/// `frequency_ratio`.
 pub fn frequency_channels(lowest_hz: f64, count: usize, ratio: f64) -> Result<Vec<f64>> {
-    check_frequency(lowest_hz, "frequency")?;
+    check_frequency(lowest_hz, "frequency_mhz")?;
     if count == 0 {
-        return Err(Error::parameter("nfreq", "expected at least one frequency"));
+        return Err(Error::parameter("channels", "expected at least one frequency"));
     }
     if !(ratio >= 1.0) || !ratio.is_finite() {
-        return Err(Error::parameter("freq-ratio", format!("expected highest/lowest frequency >= 1, got {ratio}")));
+        return Err(Error::parameter("frequency_ratio", format!("expected highest/lowest frequency >= 1, got {ratio}")));
     }
-    check_frequency(lowest_hz * ratio, "freq-ratio")?;
+    check_frequency(lowest_hz * ratio, "frequency_ratio")?;
     if count == 1 {
         return Ok(vec![lowest_hz]);
     }
     if ratio == 1.0 {
         // Every channel would be the same frequency: the same samples several times over,
         // which no MeasurementSet holds (one sample per channel).
-        return Err(Error::parameter("freq-ratio", format!("{count} frequencies at a ratio of 1 would all be {lowest_hz} Hz: give the band's highest/lowest frequency above 1 (a ratio of 1.2, say), or one frequency")));
+        return Err(Error::parameter("frequency_ratio", format!("{count} frequencies at a ratio of 1 would all be {lowest_hz} Hz: give the band's highest/lowest frequency above 1 (a ratio of 1.2, say), or one frequency")));
     }
     Ok((0..count).map(|k| lowest_hz * (1.0 + (ratio - 1.0) * k as f64 / (count - 1) as f64)).collect())
 }
@@ -314,7 +331,7 @@ pub fn noise_level(
     threads: usize,
 ) -> Result<(f64, f64, f64)> {
     if !(model.dynamic_range > 1.0) || !model.dynamic_range.is_finite() {
-        return Err(Error::parameter("dr", format!("expected a dynamic range > 1, got {}", model.dynamic_range)));
+        return Err(Error::parameter("dynamic_range", format!("expected a dynamic range > 1, got {}", model.dynamic_range)));
     }
     let (u, v) = coverage.uv_wavelengths();
     let keep: Vec<usize> = (0..coverage.len()).filter(|&k| !coverage.flag[k]).collect();
@@ -496,31 +513,49 @@ mod tests {
 
     #[test]
     fn bad_parameters_are_named() {
-        assert!(frequency_channels(1e9, 2, 0.5).unwrap_err().to_string().contains("freq-ratio"));
+        // By the request's fields, which the YAML and the command line each spell their own way.
+        let request = |r: ObservationRequest| r.spec().unwrap_err().to_string();
+        let vla = || ObservationRequest { telescope: "vla".into(), ..Default::default() };
+        let e = request(ObservationRequest { frequency_ratio: Some(0.5), ..vla() });
+        assert!(e.contains("invalid frequency_ratio") && e.contains("got 0.5"), "{e}");
+        let e = request(ObservationRequest { flag_fraction: 1.0, ..vla() });
+        assert!(e.contains("invalid flag_fraction") && e.contains("got 1"), "{e}");
+        let e = request(ObservationRequest { channels: Some(0), ..vla() });
+        assert!(e.contains("invalid channels"), "{e}");
+        let e = request(ObservationRequest { configurations: Some(vec!["q".into()]), hours: Some(vec![1.0]), ..vla() });
+        assert!(e.contains("invalid configurations") && e.contains("a, b, c, d"), "{e}");
+        assert!(frequency_channels(1e9, 2, 0.5).unwrap_err().to_string().contains("invalid frequency_ratio"));
         // Several channels at ratio 1 would be one frequency several times over.
         let e = frequency_channels(1e9, 4, 1.0).unwrap_err().to_string();
-        assert!(e.contains("freq-ratio") && e.contains("4 frequencies"), "{e}");
+        assert!(e.contains("invalid frequency_ratio") && e.contains("4 frequencies"), "{e}");
         // Frequencies the readers would exclude: the simulated data would be unreadable.
         for hz in [1e15, 1e5, 0.0, f64::NAN] {
             let e = frequency_channels(hz, 1, 1.0).unwrap_err().to_string();
-            assert!(e.contains("frequency") && e.contains("from 1e6 to 1e13 Hz"), "{e}");
+            assert!(e.contains("invalid frequency_mhz") && e.contains("from 1e6 to 1e13 Hz"), "{e}");
         }
         assert!(frequency_channels(1e13, 1, 1.0).is_ok());
-        assert!(frequency_channels(1e12, 2, 100.0).unwrap_err().to_string().contains("freq-ratio"));
+        assert!(frequency_channels(1e12, 2, 100.0).unwrap_err().to_string().contains("invalid frequency_ratio"));
+        assert!(frequency_channels(1e9, 0, 1.0).unwrap_err().to_string().contains("invalid channels"));
         let spec = ObservationSpec { frequencies_hz: vec![1e9, 1e14], ..small_spec(1) };
-        assert!(sample_coverage(&spec).unwrap_err().to_string().contains("got 1e14 Hz"));
+        let e = sample_coverage(&spec).unwrap_err().to_string();
+        assert!(e.contains("invalid frequencies_hz") && e.contains("got 1e14 Hz"), "{e}");
         // The track's own checks come before the sample count (which a zero time makes infinite).
         for integration_s in [0.0, -1.0, f64::NAN] {
             let e = sample_coverage(&ObservationSpec { integration_s, ..small_spec(1) }).unwrap_err().to_string();
-            assert!(e.contains("integration time") && !e.contains("memory"), "{e}");
+            assert!(e.contains("invalid integration_s") && !e.contains("memory"), "{e}");
         }
         let e = sample_coverage(&ObservationSpec { configurations: vec![("c".into(), 0.0)], ..small_spec(1) }).unwrap_err().to_string();
-        assert!(e.contains("observation time"), "{e}");
+        assert!(e.contains("invalid hours"), "{e}");
         let e = sample_coverage(&ObservationSpec { dec_deg: -90.0, ..small_spec(1) }).unwrap_err().to_string();
-        assert!(e.contains("declination") && e.contains("-90 deg never rises"), "{e}");
+        assert!(e.contains("invalid dec_deg") && e.contains("-90 deg never rises"), "{e}");
+        let e = sample_coverage(&ObservationSpec { dec_deg: 91.0, ..small_spec(1) }).unwrap_err().to_string();
+        assert!(e.contains("invalid dec_deg") && e.contains("within [-90, 90] deg"), "{e}");
         let spec = ObservationSpec { flag_fraction: 1.5, ..small_spec(1) };
-        assert!(sample_coverage(&spec).unwrap_err().to_string().contains("flag-fraction"));
+        assert!(sample_coverage(&spec).unwrap_err().to_string().contains("invalid flag_fraction"));
         let spec = ObservationSpec { configurations: vec![("x".into(), 1.0)], ..small_spec(1) };
-        assert!(sample_coverage(&spec).is_err());
+        let e = sample_coverage(&spec).unwrap_err().to_string();
+        assert!(e.contains("invalid configurations") && e.contains("got \"x\""), "{e}");
+        let e = sample_coverage(&ObservationSpec { configurations: vec![], ..small_spec(1) }).unwrap_err().to_string();
+        assert!(e.contains("invalid configurations"), "{e}");
     }
 }

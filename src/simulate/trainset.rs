@@ -71,7 +71,7 @@ impl TrainsetParams {
         }
         let (t0, t1) = self.integration_s;
         if !range_ok(self.integration_s, f64::MIN_POSITIVE, 86_400.0) {
-            return Err(Error::parameter("integration-s", format!("expected positive times up to a day, low <= high, got {t0}..{t1}")));
+            return Err(Error::parameter("integration_s", format!("expected positive times up to a day, low <= high, got {t0}..{t1}")));
         }
         let (s0, s1) = self.superresolution;
         if !range_ok(self.superresolution, 1.0, 10.0) {
@@ -84,7 +84,7 @@ impl TrainsetParams {
         }
         if let Some((f0, f1)) = self.truth_fwhm_px {
             if !(range_ok((f0, f1), f64::MIN_POSITIVE, self.size as f64 / 8.0)) {
-                return Err(Error::parameter("truth-fwhm-px", format!("expected 0 < low <= high <= {} pixels (an eighth of the image), got {f0}..{f1}", self.size / 8)));
+                return Err(Error::parameter("truth_fwhm_px", format!("expected 0 < low <= high <= {} pixels (an eighth of the image), got {f0}..{f1}", self.size / 8)));
             }
         }
         ImageGeometry::new(self.size, 1e-6).map(|_| ())

@@ -86,25 +86,10 @@ impl SourceParams for SimulateParams {
     }
 }
 
-/// The stage keys of the parameters the simulation's checks name (its errors are reported at
-/// the key's line).
-const KEYS: &[(&str, &str)] = &[
-    ("configs", "configurations"),
-    ("telescope configuration", "configurations"),
-    ("observation time", "hours"),
-    ("hours", "hours"),
-    ("declination", "dec_deg"),
-    ("integration time", "integration_s"),
-    ("frequency", "frequency_mhz"),
-    ("nfreq", "channels"),
-    ("freq-ratio", "frequency_ratio"),
-    ("flag-fraction", "flag_fraction"),
-    ("robust", "robust"),
-];
-
-/// The kind, as registered.
+/// The kind, as registered. The simulation's errors name its parameters' fields, the stage's
+/// keys: they are reported at the key's line.
 pub(super) const KIND: SourceKind<SimulateParams> =
-    SourceKind::new(|params, c| Ok(Box::new(SimulateSource::new(params, c.image(), c.threads).map_err(|e| c.at_key(KEYS, e))?)));
+    SourceKind::new(|params, c| Ok(Box::new(SimulateSource::new(params.clone(), c.image(), c.threads).map_err(|e| c.at_field(&params, e))?)));
 
 pub struct SimulateSource {
     config: SimulateParams,

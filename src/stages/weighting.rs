@@ -61,7 +61,10 @@ pub(super) const KIND: KindFn = KindFn {
     produces: &[Product::Weights],
     consumes_also: None,
     passes_on: false,
-    build: |c| Ok(Built::Stage(Box::new(WeightingStage::new(c.params()?, c.image()).map_err(|e| c.at_key(&[("robust", "robust")], e))?))),
+    build: |c| {
+        let params: WeightingParams = c.params()?;
+        Ok(Built::Stage(Box::new(WeightingStage::new(params.clone(), c.image()).map_err(|e| c.at_field(&params, e))?)))
+    },
 };
 
 /// Where the truth's FITS grid is not the job's (another pixel size or centre), what differs:
