@@ -1,6 +1,6 @@
 //! NUFFT against a direct (O(N^2 M)) DFT, and adjointness.
 
-use super::direct::{adjoint as direct_adjoint, forward as direct_forward, relative_error};
+use crate::nufft::direct::{adjoint as direct_adjoint, forward as direct_forward, relative_error};
 use super::*;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;

@@ -47,7 +47,7 @@
 //! not depend on the number of threads or their scheduling: tiles are added to the grid row
 //! by row in a fixed order.
 
-use super::kernel::{gauss_legendre, KernelShape, SymKernel};
+use crate::nufft::kernel::{gauss_legendre, KernelShape, SymKernel};
 use super::{
     fit_kernel, grid_position, interp_points, par_filled, spread_tile, spread_tile_pair, GridPosition, Nufft2d, NufftParams, Sink,
     Source, MAX_COORDINATE, TILE,
@@ -196,7 +196,7 @@ pub(crate) fn n_minus_one(r2: f64) -> f64 {
     -r2 / (1.0 + (1.0 - r2).sqrt())
 }
 
-/// The w-direction kernel: one polynomial per covered plane, as [`super::kernel::PolynomialKernel`].
+/// The w-direction kernel: one polynomial per covered plane, as [`crate::nufft::kernel::PolynomialKernel`].
 struct WKernel {
     support: usize,
     /// Coefficients per cell (`terms` each, highest degree first, an even number: a zero
