@@ -132,7 +132,9 @@ impl Engine {
             None => &|_| {},
         };
         let context = RunContext::new(&spec, inputs, sink)?.with_parted(parted);
-        runner::run(&self.registry, &spec, &context, cancel, progress)
+        let mut report = runner::run(&self.registry, &spec, &context, cancel, progress)?;
+        report.written = context.files_written();
+        Ok(report)
     }
 
     /// The spec with the engine's thread count where it sets none.

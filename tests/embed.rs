@@ -150,6 +150,26 @@ fn a_yaml_pipeline_runs_on_several_inputs_and_delivers_each_job() {
     assert_eq!(report.jobs.len(), 2);
 }
 
+/// The run's report names the files each job's writer committed (Python's `run` reads each
+/// job's metrics from them), whatever the writer's prefix.
+#[test]
+fn the_run_report_lists_the_files_each_jobs_writer_wrote() {
+    let engine = engine();
+    let dir = tempfile::tempdir().unwrap();
+    let prefix = dir.path().join("out").join("{job}-x");
+    let yaml = PIPELINE.replace("done: deliver}\n  deliver: {kind: products}", &format!("done: write}}\n  write: {{kind: writer, prefix: '{}', previews: false}}", prefix.display()));
+    let spec = engine.load_yaml(&yaml, "written.yaml", &[]).unwrap();
+    let report = engine.run(&spec, vec![input("a", &observation(1)), input("b", &observation(2))], None, Arc::default()).unwrap();
+    assert_eq!(report.written.keys().collect::<Vec<_>>(), ["a", "b"]);
+    for (job, files) in &report.written {
+        let names: std::collections::BTreeSet<String> = files.iter().map(|f| f.file_name().unwrap().to_string_lossy().into_owned()).collect();
+        for product in ["dirty.fits", "psf.fits", "model.fits", "residual.fits", "image.fits", "metrics.json", "metrics.parquet"] {
+            assert!(names.contains(&format!("{job}-x-{product}")), "{job}: {names:?}");
+        }
+        assert!(files.iter().all(|f| f.starts_with(dir.path().join("out")) && f.is_file()), "{files:?}");
+    }
+}
+
 /// Runs `spec` on one input and returns the job's products.
 fn run_one(engine: &Engine, spec: &r2d2_imaging::PipelineSpec, input: MemoryInput) -> JobProducts {
     let received: Arc<Mutex<Vec<JobProducts>>> = Arc::default();

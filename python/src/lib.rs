@@ -155,17 +155,13 @@ fn run<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     let engine = engine(onnx_runtime).map_err(engine_error)?;
     let config = parse(&engine, text, file_name, overrides)?;
-    // Where the writers put each job's metrics (`<prefix>-metrics.json`).
-    let prefixes: Vec<String> = config
-        .stages
-        .iter()
-        .filter(|s| s.kind == "writer")
-        .filter_map(|s| s.params().get("prefix").and_then(|p| p.as_str()).map(str::to_string))
-        .collect();
     let report = run_released(py, move |cancel| engine.run(&config, Vec::new(), None, cancel))?;
+    // The metrics each job's writers committed (`<prefix>-metrics.json`), as the run reports them.
     let metrics_files = PyDict::new(py);
     for job in &report.jobs {
-        let files: Vec<String> = prefixes.iter().map(|p| format!("{}-metrics.json", p.replace("{job}", job))).collect();
+        let written = report.written.get(job).map(Vec::as_slice).unwrap_or_default();
+        let files: Vec<String> =
+            written.iter().filter(|p| p.to_string_lossy().ends_with("-metrics.json")).map(|p| p.display().to_string()).collect();
         metrics_files.set_item(job, files)?;
     }
     let out = PyDict::new(py);

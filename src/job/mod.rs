@@ -24,7 +24,7 @@ pub use model_column::write_job_model;
 pub use parts::{emit_parts, emit_streamed, emit_parted, job_id_problem, stem_id, Truth};
 pub use products::{check_spares_inputs, record_command_line, JobProducts, WriteOptions};
 pub(crate) use products::Staged;
-pub use run::{ImageContext, ProductSink, RunContext};
+pub use run::{FilesWritten, ImageContext, ProductSink, RunContext};
 pub use source::{Reads, SourceParams};
 pub use state::{Imaging, Iterate, IterationMetrics, Job, LoopStop, StopReason};
 pub(crate) use state::missing;

@@ -98,13 +98,15 @@ pub(crate) struct Staged {
 }
 
 impl Staged {
-    /// Moves every product into place; earlier products this run does not make are removed.
-    pub fn commit(self, id: &str) -> Result<()> {
+    /// Moves every product into place (returns their paths); earlier products this run does
+    /// not make are removed.
+    pub fn commit(self, id: &str) -> Result<Vec<PathBuf>> {
+        let written: Vec<PathBuf> = self.staging.targets().map(|p| p.to_path_buf()).collect();
         for removed in self.staging.commit()? {
             log::info!("job {id}: removed {}, which an earlier run made and this one does not", removed.display());
         }
         log::info!("job {id}: wrote {} files to {}-*", self.count, self.dir.join(&self.stem).display());
-        Ok(())
+        Ok(written)
     }
 }
 
@@ -339,7 +341,7 @@ impl JobProducts {
     pub fn write_with(&self, prefix: impl AsRef<Path>, options: &WriteOptions) -> Result<()> {
         let prefix = prefix.as_ref().to_string_lossy().into_owned();
         crate::fits::check_output_prefix(&prefix).map_err(|m| Error::parameter("prefix", m))?;
-        self.stage(&prefix, options)?.commit(&self.id)
+        self.stage(&prefix, options)?.commit(&self.id).map(|_| ())
     }
 
     /// Writes every product into a staging directory beside the prefix.

@@ -9,7 +9,12 @@ use crate::imaging::ImageConfig;
 use crate::pipeline::{BuildContext, PipelineSpec};
 use crate::vis::{MemoryInput, PartedObservation};
 use crate::Result;
-use std::sync::Mutex;
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+
+/// The files each job's writers committed (job id -> paths), as the run goes.
+pub type FilesWritten = Arc<Mutex<BTreeMap<String, Vec<PathBuf>>>>;
 
 /// Receives each finished job's products (the `products` stage calls it, one job at a time,
 /// from the stage's thread). An error fails the run, naming the stage and job.
@@ -30,6 +35,7 @@ pub struct RunContext {
     inputs: Mutex<Option<Vec<MemoryInput>>>,
     parted: Mutex<Option<Vec<PartedObservation>>>,
     sink: Mutex<Option<Box<dyn ProductSink>>>,
+    written: FilesWritten,
 }
 
 impl RunContext {
@@ -39,7 +45,12 @@ impl RunContext {
         // Before any stage is built: a size this machine cannot take would otherwise surface
         // as an aborted allocation, not as an error about the key.
         crate::limits::check_image_size(image.size).map_err(|m| spec.top_error("image", &format!("image.size = {}: {m}", image.size)))?;
-        Ok(RunContext { image, inputs: Mutex::new(Some(inputs)), parted: Mutex::new(Some(Vec::new())), sink: Mutex::new(sink) })
+        Ok(RunContext { image, inputs: Mutex::new(Some(inputs)), parted: Mutex::new(Some(Vec::new())), sink: Mutex::new(sink), written: FilesWritten::default() })
+    }
+
+    /// The files the run's writers committed so far, by job.
+    pub fn files_written(&self) -> BTreeMap<String, Vec<PathBuf>> {
+        self.written.lock().expect("files written").clone()
     }
 
     /// With observations in parts for the `arrow` source too.
@@ -59,6 +70,8 @@ pub trait ImageContext {
     /// The run's product sink (for the one stage that delivers to it); `None` once taken or
     /// when the run has none.
     fn take_sink(&self) -> Option<Box<dyn ProductSink>>;
+    /// Where a writer records the files it commits, for the run's report.
+    fn files_written(&self) -> FilesWritten;
 }
 
 impl ImageContext for BuildContext<'_, Job> {
@@ -73,5 +86,8 @@ impl ImageContext for BuildContext<'_, Job> {
     }
     fn take_sink(&self) -> Option<Box<dyn ProductSink>> {
         self.context.sink.lock().expect("run sink").take()
+    }
+    fn files_written(&self) -> FilesWritten {
+        self.context.written.clone()
     }
 }

@@ -31,6 +31,9 @@ pub struct RunReport {
     /// Seconds per stage, summed over jobs (stage name -> seconds): work only, not the time
     /// spent waiting for room in the next stage's channel.
     pub stage_seconds: BTreeMap<String, f64>,
+    /// The files each job's sinks wrote (job id -> paths), where the payload's sinks record
+    /// them (the engine's writers do).
+    pub written: BTreeMap<String, Vec<std::path::PathBuf>>,
 }
 
 const POLL: Duration = Duration::from_millis(20);
@@ -332,6 +335,7 @@ fn run_built<J: Payload>(
         jobs: finished.into_inner().expect("finished"),
         seconds: start.elapsed().as_secs_f64(),
         stage_seconds: totals.into_inner().expect("totals"),
+        written: BTreeMap::new(),
     })
 }
 

@@ -10,7 +10,7 @@
 use super::step::holds_until_finished;
 use crate::job::{BuildContext, Built, Emit, Job, KindFn, Product};
 use crate::pipeline::{PipelineSpec, Role, Stage, StageParams, StageSpec};
-use crate::job::{JobProducts, Staged, WriteOptions};
+use crate::job::{FilesWritten, ImageContext, JobProducts, Staged, WriteOptions};
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 
@@ -63,7 +63,7 @@ pub(super) const KIND: KindFn = KindFn {
                 ));
             }
         }
-        Ok(Built::Stage(Box::new(WriterStage::new(config, c.pipeline, c.stage, several_jobs(c)?, holds_until_finished(c))?)))
+        Ok(Built::Stage(Box::new(WriterStage::new(config, c.pipeline, c.stage, several_jobs(c)?, holds_until_finished(c), c.files_written())?)))
     },
 };
 
@@ -85,6 +85,8 @@ pub struct WriterStage {
     /// The prefixes written in this run and the job written to each: a prefix without `{job}`
     /// given several jobs would otherwise keep only the last one's products.
     written: std::collections::HashMap<String, String>,
+    /// Where the files committed are recorded for the run's report.
+    files: FilesWritten,
     /// Whether jobs wait staged until the stage's finish (a native plugin before it), and
     /// those waiting: id, products, and the job itself where its model goes into an MS.
     holds: bool,
@@ -95,7 +97,14 @@ impl WriterStage {
     /// `several_jobs`: why the sources may make several jobs, if they may (a prefix without
     /// `{job}` is then refused: each job would replace the last one's products).
     /// `holds`: keep every job's products staged until the run's end (see the module).
-    pub fn new(config: WriterParams, pipeline: &PipelineSpec, stage: &StageSpec, several_jobs: Option<String>, holds: bool) -> Result<WriterStage> {
+    pub fn new(
+        config: WriterParams,
+        pipeline: &PipelineSpec,
+        stage: &StageSpec,
+        several_jobs: Option<String>,
+        holds: bool,
+        files: FilesWritten,
+    ) -> Result<WriterStage> {
         let name = &stage.name;
         let prefix_error = |m: String| pipeline.stage_error(name, Some("prefix"), &format!("stages.{name}.prefix: {m}"));
         // Placeholders first: a typo would otherwise be written literally into file names.
@@ -127,6 +136,7 @@ impl WriterStage {
             options: WriteOptions { previews: config.previews, preview_dynamic_range: config.preview_dynamic_range },
             model_column: config.model_column,
             written: Default::default(),
+            files,
             holds,
             held: Vec::new(),
         })
@@ -175,12 +185,18 @@ impl WriterStage {
         if let (Some(column), Some(job)) = (&self.model_column, job) {
             if let Err(e) = write_model(job, column) {
                 log::error!("job {id}: `{column}` was not written: {e}");
-                staged.commit(id)?;
+                self.record(id, staged.commit(id)?);
                 log::error!("job {id}: the products were written at \"{prefix}\", but `{column}` was not", prefix = self.prefix.replace("{job}", id));
                 return Err(e);
             }
         }
-        staged.commit(id)
+        self.record(id, staged.commit(id)?);
+        Ok(())
+    }
+
+    /// Records the files committed for job `id`, for the run's report.
+    fn record(&self, id: &str, files: Vec<std::path::PathBuf>) {
+        self.files.lock().expect("files written").entry(id.to_string()).or_default().extend(files);
     }
 }
 
