@@ -102,27 +102,30 @@ pub fn dirty_image(vis: &Visibilities, params: &DirtyParams) -> Result<DirtyProd
     if vis.is_empty() {
         return Err(Error::parameter("visibilities", "no usable visibilities to image (all flagged or empty?)"));
     }
-    let geometry = params.geometry(vis)?;
-    let weight = total_weights(vis, geometry, params.weighting, params.grid_factor)?;
-    let operator = MeasurementOperator::for_mode(params.w_term, geometry, &vis.u, &vis.v, &vis.w, &weight, params.nufft, params.threads)?;
+    let (operator, weight) = weighted_operator(vis, params)?;
     let dirty = operator.dirty_image(&vis.vis);
     let psf = operator.psf();
     Ok(DirtyProducts { operator, dirty, psf, weight })
+}
+
+/// The measurement operator of `vis` on the image `params` describe, and the total weights it
+/// applies.
+fn weighted_operator(vis: &Visibilities, params: &DirtyParams) -> Result<(MeasurementOperator, Vec<f64>)> {
+    let geometry = params.geometry(vis)?;
+    let weight = total_weights(vis, geometry, params.weighting, params.grid_factor)?;
+    let operator = MeasurementOperator::for_mode(params.w_term, geometry, &vis.u, &vis.v, &vis.w, &weight, params.nufft, params.threads)?;
+    Ok((operator, weight))
 }
 
 /// The normal operator `D = kappa Re{Phi^H W Phi}` of `vis` on the image `params` describe
 /// (its weights and w-term rule): `D x` is the dirty image the sky `x` (Jy/pixel) would give.
 pub struct NormalOperator {
     operator: MeasurementOperator,
-    pixels: usize,
 }
 
 impl NormalOperator {
     pub fn new(vis: &Visibilities, params: &DirtyParams) -> Result<NormalOperator> {
-        let geometry = params.geometry(vis)?;
-        let weight = total_weights(vis, geometry, params.weighting, params.grid_factor)?;
-        let operator = MeasurementOperator::for_mode(params.w_term, geometry, &vis.u, &vis.v, &vis.w, &weight, params.nufft, params.threads)?;
-        Ok(NormalOperator { operator, pixels: geometry.pixels() })
+        Ok(NormalOperator { operator: weighted_operator(vis, params)?.0 })
     }
 
     /// `D x` (`x`: N x N, row-major).
@@ -132,7 +135,7 @@ impl NormalOperator {
 
     /// `||D||` (its largest eigenvalue) by power iteration, to relative `tolerance`.
     pub fn norm(&self, tolerance: f64, max_iterations: usize) -> f64 {
-        crate::operator::spectral_norm(|x| self.apply(x), self.pixels, tolerance, max_iterations)
+        crate::operator::spectral_norm(|x| self.apply(x), self.operator.geometry().pixels(), tolerance, max_iterations)
     }
 }
 
