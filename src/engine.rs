@@ -246,6 +246,7 @@ struct ImagePlan {
     /// `None`: the series' own (its manifest's `weighting`) for a series step, else the default.
     weighting: Option<Weighting>,
     weighting_grid_factor: f64,
+    uv: crate::weighting::UvControls,
     epsilon: f64,
     oversampling: f64,
     w_term: crate::operator::WTermMode,
@@ -276,6 +277,7 @@ impl ImagePlan {
             longest_baseline: grid.longest_baseline,
             weighting: grid.weighting()?,
             weighting_grid_factor: grid.weighting_grid_factor,
+            uv: grid.uv()?,
             epsilon: grid.epsilon,
             oversampling: grid.oversampling,
             w_term: grid.w_term,
@@ -339,7 +341,7 @@ fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec
         }
     }
     let (weighting, superresolution) = imaging_setting(params)?;
-    let weights = WeightingParams { grid_factor: params.weighting_grid_factor, ..WeightingParams::new(weighting) };
+    let weights = WeightingParams { grid_factor: params.weighting_grid_factor, ..WeightingParams::new(weighting).with_uv(params.uv) };
     let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling, w_term: params.w_term, hold_mb: params.hold_mb, ..GridderParams::default() };
     let mut stages = vec![
         read.to("weights"),
@@ -639,11 +641,19 @@ mod tests {
     fn engine_image_pipelines_read_back_as_typed_parameters() {
         let mut clean = ImageRequest { name: Some("out/{job}".into()), ..ImageRequest::default() };
         (clean.step.step, clean.step.iterations, clean.grid.weighting) = ("clean".into(), Some(3), Some("uniform".into()));
+        (clean.grid.minuv_l, clean.grid.maxuv_l, clean.grid.taper_gaussian, clean.grid.taper_tukey) = (Some(10.0), Some(1e5), Some(2.0), Some(1e3));
         let clean = plan(clean);
         let arrows = table_file("a.arrows", &[0xff; 8]);
         let (spec, _, _) = image_spec(Observation::Path(arrows.clone()), &clean).unwrap();
         assert_eq!(spec.stage_params::<CleanParams>(spec.stage("step").unwrap()).unwrap().major_cycles, 3);
-        assert_eq!(spec.stage_params::<WeightingParams>(spec.stage("weights").unwrap()).unwrap().scheme, WeightingScheme::Uniform);
+        let weights = spec.stage_params::<WeightingParams>(spec.stage("weights").unwrap()).unwrap();
+        assert_eq!(weights.scheme, WeightingScheme::Uniform);
+        assert_eq!(weights.uv(), crate::weighting::UvControls { minuv_l: Some(10.0), maxuv_l: Some(1e5), taper_gaussian: Some(2.0), taper_tukey: Some(1e3) });
+        // A bad value is refused before anything is read, naming the request's field.
+        let mut bad = ImageRequest::default();
+        bad.grid.taper_tukey = Some(5.0);
+        let e = ImagePlan::of(&bad).err().expect("refused").to_string();
+        assert!(e.contains("taper_tukey") && e.contains("maxuv_l"), "{e}");
         assert_eq!(spec.stage_params::<ArrowIpcParams>(spec.stage("read").unwrap()).unwrap().path, arrows.to_string_lossy());
         let mut native = ImageRequest::default();
         (native.step.step, native.step.plugin_config) = ("p.so".into(), Some("{gain: 1}".into()));

@@ -6,7 +6,7 @@
 use crate::nufft::NufftParams;
 use crate::operator::{ImageGeometry, MeasurementOperator};
 use crate::vis::{chunk_weights, Visibilities};
-use crate::weighting::{DensityGrid, Weighting, DEFAULT_GRID_FACTOR};
+use crate::weighting::{DensityGrid, UvControls, UvCounts, UvShape, Weighting, DEFAULT_GRID_FACTOR};
 use crate::{Error, Result};
 
 pub use crate::operator::{PixelScale, WTermMode, DEFAULT_SUPERRESOLUTION};
@@ -51,6 +51,8 @@ pub struct DirtyParams {
     /// The w-term (see [`WTermMode`]).
     pub w_term: WTermMode,
     pub threads: usize,
+    /// uv cuts and tapers (none by default).
+    pub uv: UvControls,
 }
 
 impl Default for DirtyParams {
@@ -63,14 +65,16 @@ impl Default for DirtyParams {
             nufft: NufftParams::default(),
             w_term: WTermMode::Auto,
             threads: 0,
+            uv: UvControls::default(),
         }
     }
 }
 
 impl DirtyParams {
-    /// The image geometry for these visibilities.
+    /// The image geometry for these visibilities (the super-resolution factor applies to the
+    /// longest baseline `maxuv_l` keeps).
     pub fn geometry(&self, vis: &Visibilities) -> Result<ImageGeometry> {
-        self.geometry_for(vis.max_uv())
+        self.geometry_for(self.uv.longest_kept(vis.max_uv()))
     }
 
     /// The image geometry for samples whose longest baseline is `max_uv` wavelengths.
@@ -88,13 +92,31 @@ pub struct DirtyProducts {
     pub weight: Vec<f64>,
 }
 
-/// Total weights (natural x imaging) of `vis` on `geometry`.
-pub(crate) fn total_weights(vis: &Visibilities, geometry: ImageGeometry, weighting: Weighting, grid_factor: f64) -> Result<Vec<f64>> {
+/// Total weights (natural x imaging, cut and tapered by `uv`) of `vis` on `geometry`.
+pub(crate) fn total_weights(vis: &Visibilities, geometry: ImageGeometry, weighting: Weighting, grid_factor: f64, uv: &UvControls) -> Result<Vec<f64>> {
+    let shape = UvShape::new(uv, geometry.size, grid_factor, geometry.pixel_rad)?;
     if weighting == Weighting::Given {
-        return chunk_weights(&vis.chunk(0..vis.len()), geometry, &DensityGrid::new(weighting, geometry.size, grid_factor)?.finish());
+        return chunk_weights(&vis.chunk(0..vis.len()), geometry, &DensityGrid::new(weighting, geometry.size, grid_factor)?.finish().with_uv(shape));
     }
     let point = |k: usize| geometry.uv_to_phase(vis.u[k], vis.v[k]);
-    crate::weighting::total_weights(point, &vis.weight, geometry.size, weighting, grid_factor)
+    crate::weighting::total_weights(point, &vis.weight, geometry.size, weighting, grid_factor, shape)
+}
+
+/// How many samples of `vis` the uv cuts of `params` (and the grid's edge) leave out on
+/// `geometry`, logged where any is; an error where none would remain.
+fn count_left_out(vis: &Visibilities, geometry: ImageGeometry, params: &DirtyParams) -> Result<()> {
+    let shape = UvShape::new(&params.uv, geometry.size, params.grid_factor, geometry.pixel_rad)?;
+    if shape.is_none() && vis.max_uv() < 0.5 / geometry.pixel_rad {
+        return Ok(());
+    }
+    let mut counts = UvCounts::default();
+    (0..vis.len()).for_each(|k| counts.add(&shape, geometry.uv_to_phase(vis.u[k], vis.v[k])));
+    let limit_l = 0.5 / geometry.pixel_rad;
+    counts.check_kept(limit_l, geometry.pixel_arcsec())?;
+    if let Some(text) = counts.describe(limit_l, geometry.pixel_arcsec()) {
+        log::info!("{text}");
+    }
+    Ok(())
 }
 
 /// Dirty image and PSF (both N x N, PSF peak 1 at (N/2, N/2)).
@@ -112,7 +134,8 @@ pub fn dirty_image(vis: &Visibilities, params: &DirtyParams) -> Result<DirtyProd
 /// applies.
 fn weighted_operator(vis: &Visibilities, params: &DirtyParams) -> Result<(MeasurementOperator, Vec<f64>)> {
     let geometry = params.geometry(vis)?;
-    let weight = total_weights(vis, geometry, params.weighting, params.grid_factor)?;
+    count_left_out(vis, geometry, params)?;
+    let weight = total_weights(vis, geometry, params.weighting, params.grid_factor, &params.uv)?;
     let operator = MeasurementOperator::for_mode(params.w_term, geometry, &vis.u, &vis.v, &vis.w, &weight, params.nufft, params.threads)?;
     Ok((operator, weight))
 }

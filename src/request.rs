@@ -46,9 +46,25 @@ pub struct GridOptions {
     /// Briggs robustness R (implies briggs). Default: the series' own, else 0.
     #[arg(long, allow_hyphen_values = true)]
     pub robust: Option<f64>,
-    /// Weighting grid: cells per axis / image size.
+    /// Weighting grid: cells per axis / image size (the uv cuts and tapers are evaluated on
+    /// it, as WSClean does on its grid of padding x size cells).
     #[arg(long, default_value_t = crate::weighting::DEFAULT_GRID_FACTOR)]
     pub weighting_grid_factor: f64,
+    /// Leave out baselines shorter than this (wavelengths), as WSClean's -minuv-l.
+    #[arg(long, allow_hyphen_values = true)]
+    pub minuv_l: Option<f64>,
+    /// Leave out baselines longer than this (wavelengths), as WSClean's -maxuv-l (the
+    /// super-resolution factor then applies to it, where the data reach it).
+    #[arg(long, allow_hyphen_values = true)]
+    pub maxuv_l: Option<f64>,
+    /// Gaussian taper of the imaging weights whose image-plane FWHM is this (arcsec), as
+    /// WSClean's -taper-gaussian.
+    #[arg(long, allow_hyphen_values = true)]
+    pub taper_gaussian: Option<f64>,
+    /// Tukey taper: the weights fall from 1 to 0 over this many wavelengths inside maxuv-l,
+    /// as WSClean's -taper-tukey (needs maxuv-l).
+    #[arg(long, allow_hyphen_values = true)]
+    pub taper_tukey: Option<f64>,
     /// NUFFT accuracy (relative).
     #[arg(long, default_value_t = crate::nufft::DEFAULT_EPSILON)]
     pub epsilon: f64,
@@ -68,6 +84,13 @@ impl GridOptions {
     /// The weighting asked for (`None`: none; `robust` alone means Briggs).
     pub fn weighting(&self) -> Result<Option<crate::Weighting>> {
         crate::Weighting::from_options(self.weighting.as_deref(), self.robust)
+    }
+
+    /// The uv cuts and tapers asked for, checked.
+    pub fn uv(&self) -> Result<crate::weighting::UvControls> {
+        let uv = crate::weighting::UvControls { minuv_l: self.minuv_l, maxuv_l: self.maxuv_l, taper_gaussian: self.taper_gaussian, taper_tukey: self.taper_tukey };
+        uv.check()?;
+        Ok(uv)
     }
 
     /// A dirty image's parameters: what is not asked for at its default.
@@ -92,6 +115,7 @@ impl GridOptions {
             nufft: crate::nufft::NufftParams { epsilon: self.epsilon, oversampling: self.oversampling },
             w_term: self.w_term,
             threads: self.threads,
+            uv: self.uv()?,
         })
     }
 }
@@ -486,8 +510,13 @@ mod tests {
             ("spw".to_string(), words("0 1")),
             ("robust".to_string(), words("-0.5")),
             ("w_term".to_string(), words("off")),
+            ("minuv_l".to_string(), words("100")),
+            ("maxuv_l".to_string(), words("2e5")),
+            ("taper_gaussian".to_string(), words("1.5")),
+            ("taper_tukey".to_string(), words("5000")),
         ])
         .unwrap();
+        assert_eq!(r.grid.uv().unwrap(), crate::weighting::UvControls { minuv_l: Some(100.0), maxuv_l: Some(2e5), taper_gaussian: Some(1.5), taper_tukey: Some(5000.0) });
         assert_eq!((r.grid.size, r.step.final_clean, r.step.prefetch), (128, false, true));
         assert_eq!((r.ms.channels, r.ms.spw, r.grid.robust, r.grid.w_term), (Some(vec![2, 6]), Some(vec![0, 1]), Some(-0.5), WTermMode::Off));
     }
@@ -507,6 +536,10 @@ mod tests {
         assert!(e.contains("final_clean") && e.contains("true or false"), "{e}");
         let e = error(vec![("backend", words("onnx"))]);
         assert!(e.contains("'backend'") && e.contains("tract"), "{e}");
+        // A negative length is a value (checked where it is used, naming the field).
+        let r = ImageRequest::from_named([("minuv_l".to_string(), words("-5"))]).unwrap();
+        let e = r.grid.uv().unwrap_err().to_string();
+        assert!(e.contains("minuv_l") && e.contains("-5") && !e.contains("--"), "{e}");
     }
 
     #[test]

@@ -745,3 +745,43 @@ fn bracketed_product_names_read_back_and_a_link_loop_is_named() {
     assert_eq!(out.status.code(), Some(1), "{err}");
     assert!(err.contains("loop: a symbolic link that leads round a loop of links (to loop)") && !err.contains("File exists"), "{err}");
 }
+
+/// WSClean's uv cuts and tapers on the command line (its spelling and this engine's): a bad
+/// value is refused naming the option, before anything is read; a selection that leaves
+/// nothing to image is refused, naming what left everything out; a pixel coarser than the
+/// data's Nyquist limit images, the baselines beyond the grid left out and counted in the log.
+#[test]
+fn uv_cuts_tapers_and_a_coarse_pixel_on_the_command_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // Baselines of 360 to 15800 wavelengths.
+    check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64", "--seed", "4", "--out", "obs.parquet"], d));
+    let cases: [(&[&str], &[&str]); 7] = [
+        (&["--minuv-l", "-5"], &["invalid --minuv-l", ">= 0, got -5"]),
+        (&["-minuv-l", "500", "-maxuv-l", "400"], &["invalid --minuv-l", "below maxuv_l"]),
+        (&["--taper-tukey", "100"], &["invalid --taper-tukey", "maxuv_l"]),
+        (&["--taper-gaussian", "nan"], &["invalid --taper-gaussian", "NaN"]),
+        (&["-taper-gaussian", "0"], &["-taper-gaussian 0", "positive angle"]),
+        // Found reading the data (`r2d2 image` names the stage, and the field).
+        (&["--minuv-l", "1e5"], &["invalid ", "nothing would remain", "below minuv_l"]),
+        (&["--pixel-arcsec", "400"], &["pixel", "nothing would remain", "beyond the grid"]),
+    ];
+    for (options, expected) in cases {
+        for command in [&["dirty", "obs.parquet", "--size", "64", "--name", "bad"][..], &["image", "obs.parquet", "--size", "64", "--step", "clean", "--name", "bad"][..]] {
+            let args: Vec<&str> = command.iter().chain(options).copied().collect();
+            let out = r2d2(&args, d);
+            assert!(!out.status.success(), "{args:?} succeeded");
+            for word in expected {
+                assert!(text(&out).contains(word), "{args:?}: '{word}' missing from: {}", text(&out));
+            }
+            assert!(!d.join("bad-dirty.fits").exists(), "{args:?}: products written");
+        }
+    }
+    // A 40 arcsec pixel: a Nyquist limit of 2580 wavelengths.
+    for command in [&["dirty", "obs.parquet"][..], &["image", "obs.parquet", "--step", "clean", "--iterations", "1"][..]] {
+        let args: Vec<&str> = command.iter().copied().chain(["--size", "64", "--pixel-arcsec", "40", "--name", "coarse"]).collect();
+        let out = r2d2(&args, d);
+        check(&out);
+        assert!(text(&out).contains("beyond the grid: |u| or |v| past the Nyquist limit 2578.3 wavelengths"), "{}", text(&out));
+    }
+}

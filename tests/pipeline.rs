@@ -264,6 +264,46 @@ fn image_command_runs_the_default_pipeline() {
     assert!(!out.status.success() && stderr(&out).contains("no model series of that name"), "{}", stderr(&out));
 }
 
+/// WSClean's uv cuts and tapers are keys of the weighting stage: a pipeline with them images as
+/// `r2d2 image` with the same options does (the same dirty image, the super-resolution factor
+/// applied to the longest baseline kept), records them in the metrics and the FITS headers,
+/// logs what each cut left out, and a bad value is reported at its line, naming the key.
+#[test]
+fn uv_cuts_and_tapers_are_keys_of_the_weighting_stage() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // Baselines of 360 to 15800 wavelengths.
+    check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64", "--seed", "4", "--out", "obs.parquet"], d));
+    let source = "  source:\n    kind: parquet\n    files: obs.parquet\n    to: weights\n";
+    let uv = "    robust: 0\n    minuv_l: 2000\n    maxuv_l: 12000\n    taper_gaussian: 10\n    taper_tukey: 3000\n";
+    let yaml = small_pipeline(Some(source)).replace("    robust: 0\n", uv);
+    std::fs::write(d.join("p.yaml"), &yaml).unwrap();
+    let out = r2d2(&["run", "p.yaml"], d);
+    check(&out);
+    assert!(stderr(&out).contains("below minuv_l") && stderr(&out).contains("above maxuv_l"), "{}", stderr(&out));
+    let options = ["--robust", "0", "--minuv-l", "2000", "--maxuv-l", "12000", "--taper-gaussian", "10", "--taper-tukey", "3000"];
+    let mut args = vec!["image", "obs.parquet", "--size", "64", "--step", "clean", "--iterations", "1", "--name", "cli/obs"];
+    args.extend_from_slice(&options);
+    check(&r2d2(&args, d));
+    let (a, b) = (read_image(&d.join("out/obs-dirty.fits")).unwrap(), read_image(&d.join("cli/obs-dirty.fits")).unwrap());
+    assert_eq!(a.wcs, b.wcs);
+    let peak = b.data.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+    assert!(a.data.iter().zip(&b.data).all(|(x, y)| (x - y).abs() <= 1e-9 * peak), "the pipeline's and r2d2 image's dirty images differ");
+    // The pixel is the super-resolution factor's on the longest baseline kept (12000).
+    let pixel_rad = b.wcs.unwrap().pixel_deg.to_radians();
+    assert!((pixel_rad * 1.5 * 2.0 * 12000.0 - 1.0).abs() < 1e-9, "{pixel_rad}");
+    let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("out/obs-metrics.json")).unwrap()).unwrap();
+    let weighting = &v["settings"]["weighting"];
+    assert_eq!((weighting["minuv_l"].as_f64(), weighting["taper_tukey"].as_f64()), (Some(2000.0), Some(3000.0)), "{weighting}");
+    assert!(weighting["left_out"]["minuv_l"].as_u64().unwrap() > 0 && weighting["left_out"]["maxuv_l"].as_u64().unwrap() > 0, "{weighting}");
+    let header = std::fs::read(d.join("out/obs-dirty.fits")).unwrap();
+    let card = "WEIGHTUV= 'minuv_l=2000 maxuv_l=12000 taper_gaussian=10 taper_tukey=3000";
+    assert!(header.windows(card.len()).any(|w| w == card.as_bytes()), "{card} in the header");
+    // A bad value at its line, by its key.
+    validate_fails(d, &yaml.replace("minuv_l: 2000", "minuv_l: -2000"), &[], "negative minuv_l", vec!["stages.weights.minuv_l", "line 13", ">= 0"]);
+    validate_fails(d, &yaml.replace("    maxuv_l: 12000\n", ""), &[], "taper_tukey without maxuv_l", vec!["stages.weights.taper_tukey", "maxuv_l"]);
+}
+
 #[test]
 fn shipped_pipelines_validate() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));

@@ -79,7 +79,7 @@ pub fn part_density(
 /// What a worker's pass over a part needs: the pass, the job's weighting rule and the part.
 fn part_inputs(path: &std::path::Path, pass: &str, density: Vec<f64>, f2: f64) -> Result<(PartPass, WeightRule, parts::VisSource)> {
     let pass = PartPass::from_json(pass)?;
-    let rule = WeightRule::from_raw(pass.weighting()?, density, f2)?;
+    let rule = pass.rule(density, f2)?;
     Ok((pass, rule, open_pass(path, &OpenOptions::default())?))
 }
 

@@ -24,6 +24,10 @@ const OPTIONS: &[(&str, usize, Spelling)] = &[
     ("threshold", 1, Spelling::Same),
     ("mgain", 1, Spelling::Same),
     ("gain", 1, Spelling::Same),
+    ("minuv-l", 1, Spelling::Same),
+    ("maxuv-l", 1, Spelling::Same),
+    ("taper-gaussian", 1, Spelling::Same),
+    ("taper-tukey", 1, Spelling::Same),
     ("auto-mask", 1, Spelling::Counterpart("there is no CLEAN mask here; a network series needs none")),
     ("multiscale", 0, Spelling::Counterpart("there is no multiscale CLEAN here; a network series images extended emission itself (the default step)")),
     ("padding", 1, Spelling::Counterpart("the gridder's padding is fixed by --oversampling (default 2, as -padding 2)")),
@@ -132,7 +136,10 @@ fn translate(name: &str, values: &[String], rest: &mut std::iter::Peekable<std::
             }
             pair("--size", &values[0])
         }
-        "scale" => pair("--pixel-arcsec", &arcsec(&values[0])?.to_string()),
+        "scale" => pair("--pixel-arcsec", &arcsec("scale", &values[0], 3600.0)?.to_string()),
+        // WSClean's bare number is arcsec here.
+        "taper-gaussian" => pair("--taper-gaussian", &arcsec("taper-gaussian", &values[0], 1.0)?.to_string()),
+        "minuv-l" | "maxuv-l" | "taper-tukey" => pair(&format!("--{name}"), &values[0]),
         "weight" => match values[0].to_ascii_lowercase().as_str() {
             "briggs" => {
                 let robust = rest.next().ok_or("-weight briggs: expected the robustness, as in WSClean (-weight briggs 0)")?;
@@ -152,14 +159,15 @@ fn translate(name: &str, values: &[String], rest: &mut std::iter::Peekable<std::
     })
 }
 
-/// WSClean's angle (`1.2asec`, `0.5amin`, `0.01deg`, `10mas`; a bare number is degrees, as in
-/// WSClean) in arcseconds.
-fn arcsec(text: &str) -> Result<f64, String> {
+/// WSClean's angle for `-option` (`1.2asec`, `0.5amin`, `0.01deg`, `10mas`; a bare number is
+/// `bare` arcseconds: degrees for -scale, arcseconds for -taper-gaussian, as in WSClean) in
+/// arcseconds.
+fn arcsec(option: &str, text: &str, bare: f64) -> Result<f64, String> {
     let units = [("masec", 1e-3), ("mas", 1e-3), ("asec", 1.0), ("arcsec", 1.0), ("amin", 60.0), ("arcmin", 60.0), ("deg", 3600.0)];
-    let (number, scale) = units.iter().find_map(|(u, s)| text.strip_suffix(u).map(|n| (n, *s))).unwrap_or((text, 3600.0));
-    let value: f64 = number.trim().parse().map_err(|_| format!("-scale {text}: expected an angle such as 1.2asec, 0.5amin or 0.01deg"))?;
+    let (number, scale) = units.iter().find_map(|(u, s)| text.strip_suffix(u).map(|n| (n, *s))).unwrap_or((text, bare));
+    let value: f64 = number.trim().parse().map_err(|_| format!("-{option} {text}: expected an angle such as 1.2asec, 0.5amin or 0.01deg"))?;
     if !(value > 0.0 && value.is_finite()) {
-        return Err(format!("-scale {text}: expected a positive angle"));
+        return Err(format!("-{option} {text}: expected a positive angle"));
     }
     Ok(value * scale)
 }
@@ -178,6 +186,13 @@ mod tests {
         assert_eq!(got, words("r2d2 image --size 512 --pixel-arcsec 1.5 --weighting briggs --robust=-0.5 --data-column CORRECTED_DATA --name out --threads 2 obs.ms"));
         assert_eq!(rewrite(words("r2d2 dirty obs.ms --size 256 256 -weight natural")).unwrap(), words("r2d2 dirty obs.ms --size 256 --weighting natural"));
         assert_eq!(rewrite(words("r2d2 image obs.ms -scale 0.01deg")).unwrap()[4], "36");
+        // uv cuts and tapers: lengths in wavelengths, the taper's FWHM in arcsec by default.
+        assert_eq!(
+            rewrite(words("r2d2 dirty obs.ms -minuv-l 100 -maxuv-l 2e5 -taper-tukey 5000 -taper-gaussian 2")).unwrap(),
+            words("r2d2 dirty obs.ms --minuv-l 100 --maxuv-l 2e5 --taper-tukey 5000 --taper-gaussian 2")
+        );
+        assert_eq!(rewrite(words("r2d2 image obs.ms -taper-gaussian 0.5amin")).unwrap()[4], "30");
+        assert_eq!(rewrite(words("r2d2 image obs.ms -minuv-l -5")).unwrap(), words("r2d2 image obs.ms --minuv-l=-5"));
         // CLEAN's controls, WSClean's meanings (the engine refuses them with a network series).
         assert_eq!(
             rewrite(words("r2d2 image obs.ms --step clean -niter 10000 -auto-threshold 3 -mgain 0.8 -gain 0.1 -threshold 0.001")).unwrap(),
@@ -206,7 +221,8 @@ mod tests {
             ("r2d2 image obs.ms -size 64 --name x", &["-size 64 --name", "expected 2 value(s)", "--name is an option", "-size 512 512"][..]),
             // Options WSClean has and this engine lacks: named whole, not as clap's `-c`.
             ("r2d2 image obs.ms -channels-out 4", &["-channels-out: not supported by r2d2 image", "-size, -scale"][..]),
-            ("r2d2 dirty obs.ms -taper-gaussian 4", &["-taper-gaussian: not supported by r2d2 dirty"][..]),
+            ("r2d2 dirty obs.ms -taper-edge 4", &["-taper-edge: not supported by r2d2 dirty", "-taper-gaussian"][..]),
+            ("r2d2 dirty obs.ms -taper-gaussian -2", &["-taper-gaussian -2", "positive angle"][..]),
             ("r2d2 image obs.ms -multiscale=1", &["-multiscale=1: -multiscale takes no value"][..]),
         ] {
             let e = rewrite(words(line)).unwrap_err();

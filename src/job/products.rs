@@ -267,6 +267,15 @@ impl JobProducts {
             if !text.is_empty() {
                 cards.push(("WEIGHT", text));
             }
+            // The uv cuts and tapers, by the request's field names (values in wavelengths, the
+            // Gaussian's FWHM in arcsec).
+            let uv: Vec<String> = ["minuv_l", "maxuv_l", "taper_gaussian", "taper_tukey"]
+                .into_iter()
+                .filter_map(|name| weighting.get(name).and_then(|v| v.as_f64()).map(|v| format!("{name}={v}")))
+                .collect();
+            if !uv.is_empty() {
+                cards.push(("WEIGHTUV", uv.join(" ")));
+            }
         }
         if let Some(series) = self.settings.get("step").and_then(|s| s.get("series")).and_then(|s| s.as_str()) {
             cards.push(("R2D2SER", series.to_string()));

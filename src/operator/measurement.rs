@@ -97,8 +97,9 @@ pub struct MeasurementOperator {
 
 impl MeasurementOperator {
     /// `u`, `v` in wavelengths; `weight` the total weight per visibility (natural x imaging;
-    /// zero excludes a visibility). Baselines beyond the image's Nyquist limit (`|u| >= 1 / (2
-    /// pixel)`) would alias and are rejected: choose a smaller pixel.
+    /// zero excludes a visibility). Baselines weighted above zero beyond the image's Nyquist
+    /// limit (`|u| >= 1 / (2 pixel)`) would alias and are rejected: choose a smaller pixel (the
+    /// weighting gives those beyond the grid weight 0).
     pub fn new(
         geometry: ImageGeometry,
         u: &[f64],
@@ -357,16 +358,17 @@ pub fn predict(
 }
 
 /// Checks what [`MeasurementOperator::new`] needs of its points: equal lengths, baselines
-/// within the image's Nyquist limit (`|u| >= 1 / (2 pixel)` would alias), weights finite and
-/// not negative.
+/// weighted above zero within the image's Nyquist limit (`|u| >= 1 / (2 pixel)` would alias;
+/// the weighting gives those beyond it weight 0), weights finite and not negative.
 pub(crate) fn check_points(geometry: ImageGeometry, u: &[f64], v: &[f64], weight: &[f64]) -> Result<()> {
     if u.len() != v.len() || u.len() != weight.len() {
         return Err(Error::parameter("visibilities", "u, v and weight arrays differ in length"));
     }
     let limit = 0.5 / geometry.pixel_rad;
-    let beyond = u.iter().zip(v).filter(|(u, v)| u.abs() >= limit || v.abs() >= limit).count();
+    let weighted = || u.iter().zip(v).zip(weight).filter(|(_, w)| **w != 0.0).map(|(uv, _)| uv);
+    let beyond = weighted().filter(|(u, v)| u.abs() >= limit || v.abs() >= limit).count();
     if beyond > 0 {
-        let max_uv = u.iter().zip(v).map(|(u, v)| u.abs().max(v.abs())).fold(0.0, f64::max);
+        let max_uv = weighted().map(|(u, v)| u.abs().max(v.abs())).fold(0.0, f64::max);
         return Err(Error::parameter(
             "pixel size",
             format!(
@@ -592,6 +594,10 @@ pub(crate) mod tests {
         let g = ImageGeometry::new(16, 1e-3).unwrap();
         let err = MeasurementOperator::new(g, &[600.0], &[0.0], &[1.0], NufftParams::default(), 1).err().unwrap().to_string();
         assert!(err.contains("Nyquist") && err.contains("arcsec"), "{err}");
+        // Weighted 0 (left out by the weighting), a baseline beyond the limit changes nothing.
+        let alone = MeasurementOperator::new(g, &[100.0], &[50.0], &[1.0], NufftParams::default(), 1).unwrap();
+        let with = MeasurementOperator::new(g, &[100.0, 600.0], &[50.0, 0.0], &[1.0, 0.0], NufftParams::default(), 1).unwrap();
+        assert!(alone.psf().iter().zip(with.psf()).all(|(a, b)| (a - b).abs() < 1e-12));
     }
 
     /// A wide field where the w-term matters: 48 pixels of 0.5 deg (24 deg), |w| up to the

@@ -281,6 +281,7 @@ pub fn make_sample(truth: TruthSource, params: &TrainsetParams, seed: u64, threa
         // Training is coplanar: the series learns D as the PSF convolution it is then.
         w_term: WTermMode::Off,
         threads,
+        uv: Default::default(),
     };
     let products = dirty_image(&vis, &dirty_params)?;
     let kappa = products.operator.kappa();

@@ -61,7 +61,7 @@ pub fn grid_planned(id: &str, source: VisSource, rule: WeightRule, mut plan: Ope
 type Branch = (Vec<f64>, Vec<f64>, Vec<f64>, Option<Arc<DataOperator>>, Option<Visibilities>, Option<(WTaylor, f64)>);
 
 fn pass(plan: &OperatorPlan, rule: &WeightRule, w_term: bool, chunk_rows: usize) -> PartPass {
-    PartPass::new(plan.geometry, rule.scheme(), 0.0, w_term, plan.params.nufft, plan.params.threads, chunk_rows)
+    PartPass { uv: rule.uv(), ..PartPass::new(plan.geometry, rule.scheme(), 0.0, w_term, plan.params.nufft, plan.params.threads, chunk_rows) }
 }
 
 /// One pass over `source` for the dirty image and the kernels of `D`'s w-aware Toeplitz form,

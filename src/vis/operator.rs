@@ -3,12 +3,12 @@
 //! summed over the chunks where the samples are not held.
 
 use super::parted::{PartImages, PartPass};
-use super::parts::{no_given_weights, part_apply_normal, part_density, part_doubled_psf_of, part_images};
+use super::parts::{density_and_counts, no_given_weights, part_apply_normal, part_doubled_psf_of, part_images};
 use super::data::VisSummary;
 use super::stream::VisSource;
 use crate::nufft::NufftParams;
 use crate::operator::{ImageGeometry, MeasurementOperator};
-use crate::weighting::{DensityGrid, WeightRule, Weighting};
+use crate::weighting::{DensityGrid, UvControls, UvCounts, UvShape, WeightRule, Weighting};
 use crate::{Error, Result};
 use num_complex::Complex64;
 
@@ -18,20 +18,24 @@ pub fn weighting_problem(weighting: Weighting, summary: &VisSummary) -> Option<E
     (weighting == Weighting::Given && !summary.imaging_weights).then(no_given_weights)
 }
 
-/// The imaging weight of every sample of `vis` (of which `summary` tells) on `geometry`: for
-/// uniform and Briggs, a pass over the samples (over every part, where in parts) gathers the
-/// density of the uv-coverage first.
-pub fn weight_rule(vis: &VisSource, summary: &VisSummary, geometry: ImageGeometry, weighting: Weighting, grid_factor: f64) -> Result<WeightRule> {
+/// The imaging weight of every sample of `vis` (of which `summary` tells) on `geometry`, with
+/// the uv cuts and tapers `uv`: for uniform and Briggs, a pass over the samples (over every
+/// part, where in parts) gathers the density of the uv-coverage first. Where a sample may be
+/// left out (a cut is asked for, or a baseline reaches beyond the grid), how many each cut
+/// leaves out is counted in the same pass (or a pass of its own), except in parts.
+pub(crate) fn weight_rule(vis: &VisSource, summary: &VisSummary, geometry: ImageGeometry, weighting: Weighting, grid_factor: f64, uv: &UvControls) -> Result<(WeightRule, Option<UvCounts>)> {
     if let Some(e) = weighting_problem(weighting, summary) {
         return Err(e);
     }
+    let shape = UvShape::new(uv, geometry.size, grid_factor, geometry.pixel_rad)?;
     let pass = PartPass::new(geometry, weighting, grid_factor, false, NufftParams::default(), 0, 1 << 20);
-    let density = match vis {
-        VisSource::Parts(parts) if weighting.needs_density() => parts.passes.density(&pass)?,
-        VisSource::Parts(_) => DensityGrid::new(weighting, geometry.size, grid_factor)?,
-        _ => part_density(vis, &pass)?,
+    let may_exclude = !shape.is_none() || summary.max_uv >= 0.5 / geometry.pixel_rad;
+    let (density, counts) = match vis {
+        VisSource::Parts(parts) if weighting.needs_density() => (parts.passes.density(&pass)?, None),
+        VisSource::Parts(_) => (DensityGrid::new(weighting, geometry.size, grid_factor)?, None),
+        _ => density_and_counts(vis, &pass, may_exclude.then_some(&shape))?,
     };
-    Ok(density.finish())
+    Ok((density.finish().with_uv(shape), counts))
 }
 
 /// The operator the residual update runs through where the PSF convolution is not `D` (the

@@ -8,7 +8,7 @@ use super::data::{ObservationMeta, VisSummary};
 use crate::nufft::NufftParams;
 use crate::operator::{normalise_by_psf_peak, ImageGeometry};
 use crate::operator::toeplitz::WToeplitzBuilder;
-use crate::weighting::{DensityGrid, WeightRule, Weighting, WeightingScheme};
+use crate::weighting::{DensityGrid, UvShape, WeightRule, Weighting, WeightingScheme};
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 
@@ -29,6 +29,9 @@ pub struct PartPass {
     pub threads: usize,
     /// Samples gridded at a time.
     pub chunk_rows: usize,
+    /// The uv cuts and tapers of the job's weighting rule (none by default).
+    #[serde(default)]
+    pub uv: UvShape,
 }
 
 impl PartPass {
@@ -44,7 +47,14 @@ impl PartPass {
             oversampling: nufft.oversampling,
             threads,
             chunk_rows: chunk_rows.max(1),
+            uv: UvShape::default(),
         }
+    }
+
+    /// The job's weighting rule from what [`WeightRule::raw`] gave of it, with this pass's uv
+    /// cuts and tapers: the rule where a part is weighted.
+    pub fn rule(&self, density: Vec<f64>, f2: f64) -> Result<WeightRule> {
+        Ok(WeightRule::from_raw(self.weighting()?, density, f2)?.with_uv(self.uv))
     }
 
     pub fn geometry(&self) -> Result<ImageGeometry> {

@@ -8,7 +8,7 @@ use super::stream::VisSource;
 use crate::operator::{DoubledKernelGridder, ImageGeometry, ImageGridder, MeasurementOperator};
 use num_complex::Complex64;
 use crate::operator::toeplitz::WToeplitzBuilder;
-use crate::weighting::{DensityGrid, WeightRule, Weighting};
+use crate::weighting::{DensityGrid, UvCounts, UvShape, WeightRule, Weighting};
 use crate::{Error, Result};
 use rayon::prelude::*;
 
@@ -20,31 +20,43 @@ pub(super) fn no_given_weights() -> Error {
 }
 
 /// Total weights (natural x imaging, x the given imaging weight for `given`) of a chunk's
-/// samples.
+/// samples, the rule's uv cuts and tapers applied.
 pub fn chunk_weights(chunk: &VisChunk<'_>, geometry: ImageGeometry, rule: &WeightRule) -> Result<Vec<f64>> {
     let n = chunk.len();
     let natural = |k: usize| f64::from(chunk.weight[k]);
+    let point = |k: usize| geometry.uv_to_phase(chunk.u[k], chunk.v[k]);
     if rule.scheme() == Weighting::Given {
         if chunk.imaging_weight.len() != n {
             return Err(no_given_weights());
         }
-        return Ok((0..n).into_par_iter().map(|k| natural(k) * f64::from(chunk.imaging_weight[k])).collect());
+        return Ok((0..n).into_par_iter().map(|k| natural(k) * f64::from(chunk.imaging_weight[k]) * rule.selection(point(k))).collect());
     }
-    Ok((0..n).into_par_iter().map(|k| rule.imaging_weight(geometry.uv_to_phase(chunk.u[k], chunk.v[k])) * natural(k)).collect())
+    Ok((0..n).into_par_iter().map(|k| rule.imaging_weight(point(k)) * natural(k)).collect())
 }
 
 /// The uv density of a part's samples on the weighting grid (uniform and Briggs; an empty
 /// grid for natural and given weighting).
 pub fn part_density(vis: &VisSource, pass: &PartPass) -> Result<DensityGrid> {
+    Ok(density_and_counts(vis, pass, None)?.0)
+}
+
+/// [`part_density`], and with `uv`, how many samples its cuts (and the grid's edge) leave
+/// out: one pass over the samples where either is asked for, none otherwise.
+pub(crate) fn density_and_counts(vis: &VisSource, pass: &PartPass, uv: Option<&UvShape>) -> Result<(DensityGrid, Option<UvCounts>)> {
     let (geometry, weighting) = (pass.geometry()?, pass.weighting()?);
     let mut density = DensityGrid::new(weighting, geometry.size, pass.grid_factor)?;
-    if weighting.needs_density() {
+    let mut counts = uv.map(|_| UvCounts::default());
+    if weighting.needs_density() || counts.is_some() {
         vis.for_each_chunk(pass.chunk_rows, &mut |c| {
-            density.add(c.len(), |k| geometry.uv_to_phase(c.u[k], c.v[k]), |k| f64::from(c.weight[k]));
+            let point = |k: usize| geometry.uv_to_phase(c.u[k], c.v[k]);
+            density.add(c.len(), point, |k| f64::from(c.weight[k]));
+            if let (Some(counts), Some(uv)) = (&mut counts, uv) {
+                (0..c.len()).for_each(|k| counts.add(uv, point(k)));
+            }
             Ok(())
         })?;
     }
-    Ok(density)
+    Ok((density, counts))
 }
 
 /// A part's images, weighted by `rule` (the whole observation's): with the w-term, each chunk
