@@ -1,7 +1,7 @@
 //! The embedding API: an [`Engine`] holds the stage registry and the run-wide settings (the
 //! thread pool's size, the ONNX Runtime library), loads and checks pipeline specs, and runs
 //! them with in-memory inputs and a product sink as well as with files. [`Engine::image`] is
-//! the one-call path `r2d2 image` itself takes.
+//! the one-call path `r2d2 image` itself takes, [`Engine::dirty`] that of `r2d2 dirty`.
 //!
 #![doc = include_str!("../docs/embedding.md")]
 
@@ -15,8 +15,8 @@ use crate::params::{
     WeightingParams, WriterParams,
 };
 use crate::params::MatParams;
-use crate::job::JobProducts;
-use crate::request::{ImageRequest, StepChoice};
+use crate::job::{JobProducts, ProductSet};
+use crate::request::{DirtyRequest, ImageRequest, StepChoice};
 use crate::weighting::Weighting;
 use crate::{Error, Result};
 use std::path::{Path, PathBuf};
@@ -150,13 +150,28 @@ impl Engine {
     /// residual update) and returns its products; with the request's `name`, also writes them
     /// as `r2d2 image` does.
     pub fn image(&self, obs: impl Into<Observation>, request: &ImageRequest) -> Result<JobProducts> {
-        let obs = obs.into();
-        let params = &ImagePlan::of(request)?;
+        self.run_plan(obs.into(), &ImagePlan::of(request)?)
+    }
+
+    /// The dirty image and PSF of one observation (what `r2d2 dirty` makes): read, weighted
+    /// and gridded by the stages [`image`](Self::image) runs (the samples read in passes, not
+    /// held), with no step; with the request's `name`, also writes `<name>-dirty.fits` and
+    /// `<name>-psf.fits`, both or neither, and nothing else.
+    pub fn dirty(&self, obs: impl Into<Observation>, request: &DirtyRequest) -> Result<JobProducts> {
+        self.run_plan(obs.into(), &ImagePlan::of_dirty(request)?)
+    }
+
+    /// Runs the pipeline of `params` on `obs` and returns its one job's products.
+    fn run_plan(&self, obs: Observation, params: &ImagePlan) -> Result<JobProducts> {
         if let (Observation::Path(path), Some(prefix)) = (&obs, &params.write) {
             // Before imaging: products that would replace the observation or the truth.
             let mut inputs = vec![path.as_path()];
             inputs.extend(params.truth.as_deref());
-            crate::job::check_spares_inputs(prefix, &crate::job::stem_id(path), &inputs)?;
+            crate::job::check_spares_inputs(prefix, &crate::job::stem_id(path), &inputs, params.products).map_err(|e| match e {
+                // The prefix is the request's `name`.
+                Error::Parameter { message, .. } => Error::parameter("name", message),
+                other => other,
+            })?;
         }
         let (spec, inputs, parted) = image_spec(obs, params)?;
         let delivered: Arc<Mutex<Vec<JobProducts>>> = Arc::default();
@@ -174,7 +189,7 @@ impl Engine {
     }
 }
 
-/// An observation for [`Engine::image`]: a file (Parquet, Arrow IPC, a MeasurementSet),
+/// An observation for [`Engine::image`] and [`Engine::dirty`]: a file (Parquet, Arrow IPC, a .mat observation, a MeasurementSet),
 /// record batches in memory, or parts gridded where they live (a cluster's workers).
 pub enum Observation {
     Path(PathBuf),
@@ -263,6 +278,8 @@ struct ImagePlan {
     write: Option<String>,
     model_column: Option<String>,
     ms: crate::request::MsOptions,
+    /// `All`: the imaging loop and every product; `Dirty`: the dirty image and the PSF, no step.
+    products: ProductSet,
 }
 
 impl ImagePlan {
@@ -270,6 +287,9 @@ impl ImagePlan {
         let (grid, step) = (&request.grid, &request.step);
         crate::limits::check_image_size(grid.size).map_err(|m| Error::parameter("size", m))?;
         crate::limits::check_threads(grid.threads).map_err(|m| Error::parameter("threads", m))?;
+        if let Some(name) = &request.name {
+            crate::fits::check_output_prefix(name).map_err(|m| Error::parameter("name", m))?;
+        }
         Ok(ImagePlan {
             size: grid.size,
             superresolution: grid.superresolution,
@@ -294,13 +314,24 @@ impl ImagePlan {
             write: request.name.clone(),
             model_column: request.model_column.clone(),
             ms: request.ms.clone(),
+            products: ProductSet::All,
         })
+    }
+
+    /// The plan of a dirty image: `request`'s grid, MS selection and name, every other choice
+    /// at its default (and none of a series': no step runs).
+    fn of_dirty(request: &DirtyRequest) -> Result<ImagePlan> {
+        let image = ImageRequest { grid: request.grid.clone(), ms: request.ms.clone(), name: request.name.clone(), ..ImageRequest::default() };
+        Ok(ImagePlan { products: ProductSet::Dirty, ..ImagePlan::of(&image)? })
     }
 }
 
 /// The `r2d2 image` pipeline for `obs` and `params`, and the in-memory inputs it reads.
 fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec<MemoryInput>, Vec<PartedObservation>)> {
-    let (resolved, clean_because) = resolve_auto(params, || observation_telescope(&obs))?;
+    let (resolved, clean_because) = match params.products {
+        ProductSet::All => resolve_auto(params, || observation_telescope(&obs))?,
+        ProductSet::Dirty => (params.clone(), None),
+    };
     let params = &resolved;
     let (mut inputs, mut parted) = (Vec::new(), Vec::new());
     let truth = params.truth.clone();
@@ -343,25 +374,31 @@ fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec
     let (weighting, superresolution) = imaging_setting(params)?;
     let weights = WeightingParams { grid_factor: params.weighting_grid_factor, ..WeightingParams::new(weighting).with_uv(params.uv) };
     let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling, w_term: params.w_term, hold_mb: params.hold_mb, ..GridderParams::default() };
-    let mut stages = vec![
-        read.to("weights"),
-        StageSpec::typed("weights", &weights)?.to("grid"),
-        StageSpec::typed("grid", &grid)?.to("step"),
-        step_stage(params, clean_because)?.to("update"),
-    ];
-    // A network series' model gets CLEAN's final cycles on its residual; CLEAN's and a
-    // plugin's end where they end.
-    if params.final_clean && matches!(params.step, StepChoice::Auto | StepChoice::Series(_)) {
-        stages.push(StageSpec::typed("update", &ResidualParams::default())?.to("step").done("final"));
-        stages.push(StageSpec::typed("final", &FinalCleanParams::default())?.to("products"));
-    } else {
-        stages.push(StageSpec::typed("update", &ResidualParams::default())?.to("step").done("products"));
+    let mut stages = vec![read.to("weights"), StageSpec::typed("weights", &weights)?.to("grid")];
+    match params.products {
+        // The gridded job's images are its products: no step, and no form of D is made.
+        ProductSet::Dirty => stages.push(StageSpec::typed("grid", &grid)?.to("products")),
+        ProductSet::All => {
+            stages.push(StageSpec::typed("grid", &grid)?.to("step"));
+            stages.push(step_stage(params, clean_because)?.to("update"));
+            // A network series' model gets CLEAN's final cycles on its residual; CLEAN's and a
+            // plugin's end where they end.
+            if params.final_clean && matches!(params.step, StepChoice::Auto | StepChoice::Series(_)) {
+                stages.push(StageSpec::typed("update", &ResidualParams::default())?.to("step").done("final"));
+                stages.push(StageSpec::typed("final", &FinalCleanParams::default())?.to("products"));
+            } else {
+                stages.push(StageSpec::typed("update", &ResidualParams::default())?.to("step").done("products"));
+            }
+        }
     }
     let products = StageSpec::typed("products", &ProductsParams::default())?;
     match &params.write {
         Some(prefix) => {
             stages.push(products.to("write"));
-            let write = WriterParams { prefix: prefix.clone(), model_column: params.model_column.clone(), ..WriterParams::default() };
+            // A dirty image's FITS files only, as `r2d2 dirty` (and WSClean's `-niter 0`) writes
+            // them: no previews, no metrics, nothing else at the prefix touched.
+            let dirty = params.products == ProductSet::Dirty;
+            let write = WriterParams { prefix: prefix.clone(), model_column: params.model_column.clone(), products: params.products, previews: !dirty, ..WriterParams::default() };
             stages.push(StageSpec::typed("write", &write)?);
         }
         None => stages.push(products),
@@ -372,19 +409,23 @@ fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec
         pixel_arcsec: params.pixel_arcsec,
         longest_baseline: params.longest_baseline,
     };
-    let mut spec = PipelineSpec::new("image", &image, stages)?;
+    let name = match params.products {
+        ProductSet::All => "image",
+        ProductSet::Dirty => "dirty",
+    };
+    let mut spec = PipelineSpec::new(name, &image, stages)?;
     spec.threads = params.threads;
     Ok((spec, inputs, parted))
 }
 
 /// Weighting and super-resolution of an image: what `params` asks for; where it asks for none,
-/// a series step's own (its manifest's, as it was trained), else Briggs 0 and SR 1.5. The log
-/// says when the series' setting is used.
+/// a series step's own (its manifest's, as it was trained), else Briggs 0 and SR 1.5 (a dirty
+/// image's, which no step follows). The log says when the series' setting is used.
 fn imaging_setting(params: &ImagePlan) -> Result<(Weighting, f64)> {
     const DEFAULT: (Weighting, f64) = (crate::weighting::DEFAULT_WEIGHTING, crate::imaging::DEFAULT_SUPERRESOLUTION);
     let needs_series = params.weighting.is_none() || (params.superresolution.is_none() && params.pixel_arcsec.is_none());
     let own = match &params.step {
-        StepChoice::Auto | StepChoice::Series(_) if needs_series => {
+        StepChoice::Auto | StepChoice::Series(_) if needs_series && params.products == ProductSet::All => {
             // A series that does not resolve or open is reported by the step itself, as is
             // `auto`'s off-size warning (not repeated here).
             let dir = match &params.step {
@@ -634,6 +675,33 @@ mod tests {
             assert!(same_params(&a.kind, (&yaml, a), (&code, b)), "stage '{}': the YAML's parameters differ from Engine::image's", a.name);
         }
         assert!(code.stages.iter().any(|s| s.kind == ProductsParams::KIND));
+    }
+
+    /// `Engine::dirty`'s pipeline is `Engine::image`'s source and gridder, the weighting at its
+    /// default (no series is consulted), then the products stage and a writer of the dirty image
+    /// and the PSF only, without previews; a name that cannot be a prefix is refused by name.
+    #[test]
+    fn engine_dirty_is_the_image_pipeline_without_the_step() {
+        let request = DirtyRequest { name: Some("out/{job}".into()), ..DirtyRequest::default() };
+        let obs = table_file("d.parquet", b"PAR1");
+        let (dirty, inputs, _) = image_spec(Observation::Path(obs.clone()), &ImagePlan::of_dirty(&request).unwrap()).unwrap();
+        assert!(inputs.is_empty());
+        let (image, _, _) = image_spec(Observation::Path(obs), &plan(ImageRequest { name: request.name.clone(), ..ImageRequest::default() })).unwrap();
+        let shape: Vec<(&str, &str, Option<&str>)> = dirty.stages.iter().map(|s| (s.name.as_str(), s.kind.as_str(), s.to.as_deref())).collect();
+        assert_eq!(
+            shape,
+            [("read", "parquet", Some("weights")), ("weights", "weighting", Some("grid")), ("grid", "gridder", Some("products")), ("products", "products", Some("write")), ("write", "writer", None)]
+        );
+        for (stage, kind) in [("read", "parquet"), ("grid", "gridder")] {
+            assert!(same_params(kind, (&dirty, dirty.stage(stage).unwrap()), (&image, image.stage(stage).unwrap())), "{stage}");
+        }
+        assert_eq!(dirty.stage_params::<WeightingParams>(dirty.stage("weights").unwrap()).unwrap(), WeightingParams::default());
+        let image_config: crate::imaging::ImageConfig = serde_yaml::from_value(dirty.image.clone()).unwrap();
+        assert_eq!(image_config.pixel_scale(), crate::imaging::PixelScale::SuperResolution(crate::imaging::DEFAULT_SUPERRESOLUTION));
+        let write = dirty.stage_params::<WriterParams>(dirty.stage("write").unwrap()).unwrap();
+        assert_eq!((write.products, write.previews, write.prefix.as_str()), (ProductSet::Dirty, false, "out/{job}"));
+        let e = ImagePlan::of_dirty(&DirtyRequest { name: Some("out/".into()), ..DirtyRequest::default() }).err().expect("refused").to_string();
+        assert!(e.contains("name") && e.contains("names a directory"), "{e}");
     }
 
     /// Each choice of `Engine::image` reaches its stage's parameters (read back typed).

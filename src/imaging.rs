@@ -176,6 +176,7 @@ impl WTerm {
     /// peak for a phase spread this wide; the error grows as the square of the field).
     pub const WARN_PHASE_RAD: f64 = 0.3;
 
+    #[cfg(test)]
     pub fn of(vis: &Visibilities, geometry: ImageGeometry) -> WTerm {
         let max_abs_w = vis.w.iter().fold(0.0f64, |m, &w| m.max(w.abs()));
         let half = 0.5 * geometry.size as f64 * geometry.pixel_rad;

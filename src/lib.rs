@@ -55,7 +55,7 @@ pub use job::{
 pub use nufft::NufftParams;
 pub use parallel::claim_process;
 pub use pipeline::{Payload, PipelineSpec, Port, Progress, Role, RunReport, Source, Stage, StageKind, StageParams, StageSpec};
-pub use request::{GridOptions, ImageRequest, MsOptions, NamedValue, StepOptions};
+pub use request::{DirtyRequest, GridOptions, ImageRequest, MsOptions, NamedValue, StepOptions};
 /// The typed parameters of the built-in stage kinds, for pipelines built in code.
 pub use stages::params;
 pub use nufft::SimdLevel;

@@ -1,5 +1,6 @@
 //! The imaging request: what `r2d2 image`, Python's `image()`, the Stimela cab and
-//! [`Engine::image`](crate::Engine::image) take, declared once.
+//! [`Engine::image`](crate::Engine::image) take, declared once; and the dirty image's
+//! ([`DirtyRequest`]: its grid and MS groups, `r2d2 dirty`'s options).
 //!
 //! The command line's options are this declaration (clap, flattened into the commands), Python's
 //! keyword arguments are parsed by it ([`ImageRequest::from_named`]), and the cab is generated
@@ -294,6 +295,20 @@ pub struct ImageRequest {
     /// and the final residual where a Taylor series in w replaces the operator).
     #[arg(long, default_value_t = crate::params::DEFAULT_HOLD_MB)]
     pub hold_mb: f64,
+}
+
+/// One observation's dirty image and PSF (what `r2d2 dirty` and
+/// [`Engine::dirty`](crate::Engine::dirty) take): the grid, what to read, and where they go.
+#[derive(Args, Clone, Debug, Default, PartialEq)]
+pub struct DirtyRequest {
+    #[command(flatten)]
+    pub grid: GridOptions,
+    #[command(flatten)]
+    pub ms: MsOptions,
+    /// Output prefix (WSClean's -name): writes NAME-dirty.fits and NAME-psf.fits. `r2d2 dirty`
+    /// writes at `r2d2` when none is given; from the library, nothing is written unless one is.
+    #[arg(long)]
+    pub name: Option<String>,
 }
 
 impl Default for ImageRequest {

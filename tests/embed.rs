@@ -8,8 +8,8 @@ use r2d2_imaging::simulate::ObservationSpec;
 use r2d2_imaging::simulate::{simulate, SimulationOutput, SimulationRequest, SkyModel};
 use r2d2_imaging::vis::to_record_batches;
 use r2d2_imaging::{
-    BuildContext, Built, Emit, Engine, EngineOptions, ImageRequest, Job, JobProducts, MemoryInput, Product, Role, Stage, StageKind,
-    Weighting,
+    BuildContext, Built, DirtyRequest, Emit, Engine, EngineOptions, ImageRequest, Job, JobProducts, MemoryInput, Product, Role, Stage,
+    StageKind, Weighting,
 };
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
@@ -118,6 +118,51 @@ fn memory_and_parquet_inputs_give_the_same_products_and_files() {
     for suffix in ["metrics.json", "metrics.parquet"] {
         assert!(dir.path().join(format!("memory-{suffix}")).is_file(), "{suffix}");
     }
+}
+
+/// `Engine::dirty` (`r2d2 dirty`) runs the stages `image` runs, with no step: its images are
+/// those the library's `imaging::dirty_image` makes of the same samples in one operator, which
+/// `r2d2 dirty` called before, to the NUFFT's accuracy (the gridder stage grids them as read,
+/// with the w-term each chunk through its own w-planes), the same from record batches as from
+/// the file; there is no model, residual or metrics, and with a name only the dirty image and
+/// the PSF are written, as the products hold them.
+#[test]
+fn dirty_is_the_library_dirty_image_through_the_image_stages() {
+    use r2d2_imaging::imaging::WTermMode;
+    let obs = observation(9);
+    let engine = engine();
+    let (vis, _) = obs.table.to_visibilities("table").unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let parquet = dir.path().join("obs.parquet");
+    r2d2_imaging::vis::write_parquet(&parquet, &obs.table, &obs.meta).unwrap();
+    let mut names = vec!["obs.parquet".to_string()];
+    // Off: coplanar; auto includes the w-term on this field (as the image test above says).
+    for (w_term, tolerance) in [("off", 1e-6), ("auto", 1e-5)] {
+        let mut request = DirtyRequest::default();
+        (request.grid.size, request.grid.threads, request.grid.w_term) = (SIZE, 2, WTermMode::from_name(w_term).unwrap());
+        let reference = dirty_image(&vis, &request.grid.dirty_params().unwrap()).unwrap();
+        let from_memory = engine.dirty(input("obs", &obs), &request).unwrap();
+        let prefix = dir.path().join(format!("d-{w_term}")).to_string_lossy().into_owned();
+        let from_file = engine.dirty(parquet.as_path(), &DirtyRequest { name: Some(prefix.clone()), ..request.clone() }).unwrap();
+        assert_eq!((&from_memory.dirty, &from_memory.psf, &from_memory.header), (&from_file.dirty, &from_file.psf, &from_file.header), "{w_term}");
+        assert!(from_memory.model.is_none() && from_memory.residual.is_none() && from_memory.image.is_none(), "{w_term}");
+        assert!(from_memory.iterations == 0 && from_memory.metrics.is_empty(), "{w_term}");
+        for (product, ours, theirs) in [("dirty", &from_file.dirty, &reference.dirty), ("psf", &from_file.psf, &reference.psf)] {
+            let peak = theirs.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+            let worst = ours.iter().zip(theirs.iter()).fold(0.0f64, |m, (a, b)| m.max((f64::from(*a) - b).abs()));
+            eprintln!("w_term {w_term}, {product}: Engine::dirty vs imaging::dirty_image: {:e} of the peak", worst / peak);
+            assert!(worst <= tolerance * peak, "w_term {w_term}, {product}: {worst:e} of {peak}");
+            let written = r2d2_imaging::fits::read_image(std::path::Path::new(&format!("{prefix}-{product}.fits"))).unwrap();
+            assert_eq!(written.data, ours.iter().map(|&v| f64::from(v)).collect::<Vec<_>>(), "{w_term} {product}");
+            names.push(format!("d-{w_term}-{product}.fits"));
+        }
+        let key = |k: &str| from_file.header.iter().find(|(name, _)| name == k).map(|(_, v)| v.clone());
+        assert_eq!((key("TELESCOP").as_deref(), key("WEIGHT").as_deref(), key("CTYPE1").as_deref()), (Some("VLA"), Some("briggs 0"), Some("RA---SIN")));
+    }
+    let mut written: Vec<String> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    written.sort();
+    names.sort();
+    assert_eq!(written, names, "the dirty images and PSFs only");
 }
 
 const PIPELINE: &str = "\

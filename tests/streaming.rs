@@ -95,6 +95,61 @@ fn a_table_read_in_passes_images_as_the_same_table_held() {
     }
 }
 
+/// A dirty-image pipeline of `obs.parquet` (64 x 64, Briggs 0): `source` extra keys, the
+/// gridder's `grid` keys, and a writer of the dirty image and the PSF at `<job>-<name>`.
+fn dirty_pipeline(name: &str, source: &str, grid: &str) -> String {
+    format!(
+        "name: dirty\nimage:\n  size: 64\nstages:\n  read:\n    kind: parquet\n    files: obs.parquet\n    batch_rows: 300\n{source}    to: weights\n  weights:\n    kind: weighting\n    scheme: briggs\n    to: grid\n  grid:\n    kind: gridder\n{grid}    to: write\n  write:\n    kind: writer\n    products: dirty\n    prefix: \"{{job}}-{name}\"\n"
+    )
+}
+
+/// The files in `dir` whose names start with `prefix`, sorted.
+fn files_of(dir: &Path, prefix: &str) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).filter(|n| n.starts_with(prefix)).collect();
+    names.sort();
+    names
+}
+
+/// `r2d2 dirty` is `Engine::dirty`: the source, weighting and gridder stages `r2d2 image` runs,
+/// with no step. A table file is read in passes, never held, and with the w-term too no
+/// operator and no kernels of `D` are made (each chunk is gridded through its own w-planes);
+/// its images are those of the same table held in memory (a split by frequency holds it) and
+/// of the table streamed in chunks of 257 samples, through pipelines of the same stages whose
+/// writer writes `products: dirty`. Only the dirty image and the PSF are written.
+#[test]
+fn dirty_reads_a_table_in_passes_as_image_does() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    observation(dir);
+    for w_term in ["off", "on"] {
+        let name = format!("cli-{w_term}");
+        let out = r2d2(&["dirty", "obs.parquet", "--size", "64", "--w-term", w_term, "--name", &name], dir);
+        check(&out);
+        let log = stderr(&out);
+        assert!(log.contains("read from a decoded copy of obs.parquet at each pass") || log.contains("read from obs.parquet at each pass"), "{log}");
+        assert!(!log.contains("holds the") && !log.contains("residual update") && !log.contains("again from"), "no form of D: {log}");
+        assert_eq!(log.contains("the w-term is corrected by w-gridding"), w_term == "on", "{log}");
+        assert_eq!(files_of(dir, &name), [format!("{name}-dirty.fits"), format!("{name}-psf.fits")]);
+        let grid = format!("    w_term: {w_term}\n");
+        run(dir, &format!("held-{w_term}"), &dirty_pipeline(&format!("held-{w_term}"), "    split_by: {column: frequency}\n", &grid));
+        let chunked = format!("{grid}    chunk_rows: 257\n");
+        let log = run(dir, &format!("chunked-{w_term}"), &dirty_pipeline(&format!("chunked-{w_term}"), "", &chunked));
+        assert!(!log.contains("holds the") && !log.contains("residual update"), "{log}");
+        // The writer's previews (on by default), no metrics.
+        let chunked_files = ["dirty.fits", "dirty.png", "psf.fits", "psf.png"].map(|p| format!("obs-chunked-{w_term}-{p}"));
+        assert_eq!(files_of(dir, &format!("obs-chunked-{w_term}")), chunked_files);
+        // Coplanar, the sums in another order; with the w-term, each chunk's w-planes its own.
+        let tolerance = if w_term == "off" { 1e-9 } else { 1e-5 };
+        for product in ["dirty", "psf"] {
+            let cli = format!("{name}-{product}.fits");
+            let d = relative(dir, &format!("obs-ch00-held-{w_term}-{product}.fits"), &cli);
+            assert!(d < 1e-9, "{w_term} {product}, held: {d:e}");
+            let d = relative(dir, &format!("obs-chunked-{w_term}-{product}.fits"), &cli);
+            assert!(d < tolerance, "{w_term} {product}, chunks of 257: {d:e}");
+        }
+    }
+}
+
 /// A 512 x 512 field where the w-term turns phases by a tenth of a radian: with the samples held
 /// and the w-aware Toeplitz form above hold_mb, the residual update is a Taylor series in `w` of
 /// the PSF convolution, checked against the operator on the dirty image, and the job's products

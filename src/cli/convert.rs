@@ -1,23 +1,8 @@
 //! `r2d2 convert OBS.ms OBS.parquet` (a MeasurementSet's Stokes I samples as a Parquet
-//! visibility table) and back; and the MS options and input detection shared by `r2d2 dirty` and
-//! `r2d2 image`.
+//! visibility table) and back.
 
-use crate::vis::{IngestStats, ObservationMeta, Visibilities};
 use crate::Result;
-use std::path::{Path, PathBuf};
-
-/// What of a MeasurementSet to read (ignored for Parquet input).
-/// Reads a table of any format whole.
-pub fn read_input(path: &Path, ms: &crate::MsOptions) -> Result<(Visibilities, ObservationMeta, IngestStats)> {
-    #[cfg(not(feature = "ms"))]
-    let _ = ms;
-    let options = crate::vis::OpenOptions {
-        #[cfg(feature = "ms")]
-        ms: ms.selection()?,
-        ..Default::default()
-    };
-    crate::vis::read_table(path, &options)
-}
+use std::path::PathBuf;
 
 #[derive(clap::Args)]
 pub struct Args {

@@ -4,9 +4,6 @@
 use crate::{ImageRequest, Result};
 use std::path::PathBuf;
 
-/// Where `r2d2 image` writes its products when no `--name` is given.
-const DEFAULT_NAME: &str = "r2d2";
-
 #[derive(clap::Args)]
 pub struct Args {
     /// Visibilities (Parquet) or a MeasurementSet.
@@ -20,7 +17,7 @@ pub struct Args {
 /// exits with [`super::EXIT_MODEL_REJECTED`], so that a pipeline step can tell.
 pub fn run(args: Args) -> Result<bool> {
     let mut request = args.request;
-    request.name.get_or_insert_with(|| DEFAULT_NAME.to_string());
+    request.name.get_or_insert_with(|| super::DEFAULT_NAME.to_string());
     let onnx = request.step.runs_a_series() && request.step.backend != crate::BackendChoice::Tract;
     let (engine, _bar) = super::engine::engine(request.grid.threads, onnx)?;
     let engine = engine.with_cancel(super::run::cancel_on_ctrl_c());

@@ -97,6 +97,9 @@ enum Command {
     Info(info::Args),
 }
 
+/// Where `r2d2 image` and `r2d2 dirty` write their products when no `--name` is given.
+const DEFAULT_NAME: &str = "r2d2";
+
 /// Exit status of `r2d2 image` where the products were written but the divergence guard
 /// rejected the step's model (a series or CLEAN that diverged: the products hold the best
 /// earlier iterate, or the empty model). 1 is every error, where nothing was delivered.

@@ -94,6 +94,10 @@ pub fn rewrite(args: Vec<String>) -> Result<Vec<String>, String> {
             values.push(value);
         }
         if command == "dirty" && CLEAN_OPTIONS.contains(&name) {
+            // WSClean's dirty image is `-niter 0`: what r2d2 dirty makes.
+            if name == "niter" && values[0].parse::<u64>() == Ok(0) {
+                continue;
+            }
             return Err(format!("-{name} (WSClean's option) controls CLEAN; r2d2 dirty makes the dirty image only (r2d2 image --step clean -{name} ... cleans)"));
         }
         match spelling {
@@ -203,6 +207,11 @@ mod tests {
         assert_eq!(rewrite(words("r2d2 image obs.ms --step clean -threshold=-1")).unwrap(), words("r2d2 image obs.ms --step clean --threshold=-1"));
         assert_eq!(rewrite(words("r2d2 image obs.ms -mgain=0.8 -vv -q")).unwrap(), words("r2d2 image obs.ms --mgain 0.8 -vv -q"));
         assert_eq!(rewrite(words("r2d2 image --size 64 -- -odd-name.ms")).unwrap(), words("r2d2 image --size 64 -- -odd-name.ms"));
+        // WSClean's dirty image, `-niter 0`, is what r2d2 dirty makes; r2d2 image takes it as
+        // CLEAN's (zero components with --step clean; refused with a network series).
+        assert_eq!(rewrite(words("r2d2 dirty obs.ms -niter 0 -size 64 64")).unwrap(), words("r2d2 dirty obs.ms --size 64"));
+        assert_eq!(rewrite(words("r2d2 dirty obs.ms -niter=0")).unwrap(), words("r2d2 dirty obs.ms"));
+        assert_eq!(rewrite(words("r2d2 image obs.ms --step clean -niter 0")).unwrap(), words("r2d2 image obs.ms --step clean --niter 0"));
         // Other commands, and this engine's own spellings, pass untouched.
         assert_eq!(rewrite(words("r2d2 simulate -size 4 4")).unwrap(), words("r2d2 simulate -size 4 4"));
         assert_eq!(rewrite(words("r2d2 -q image obs.ms --size 64 -v")).unwrap(), words("r2d2 -q image obs.ms --size 64 -v"));
@@ -212,6 +221,7 @@ mod tests {
     fn wsclean_options_without_counterpart_name_what_to_use() {
         for (line, words_expected) in [
             ("r2d2 dirty obs.ms -niter 10000", &["-niter", "dirty image only", "--step clean"][..]),
+            ("r2d2 dirty obs.ms -niter 0 -mgain 0.8", &["-mgain", "dirty image only"][..]),
             ("r2d2 image obs.ms -multiscale", &["-multiscale"][..]),
             ("r2d2 image -size 512 256 obs.ms", &["square"][..]),
             ("r2d2 image --size 512 256 obs.ms", &["square"][..]),

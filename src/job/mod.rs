@@ -22,7 +22,7 @@ pub use product::Product;
 #[cfg(feature = "ms")]
 pub use model_column::write_job_model;
 pub use parts::{emit_parts, emit_streamed, emit_parted, job_id_problem, stem_id, Truth};
-pub use products::{check_spares_inputs, record_command_line, JobProducts, WriteOptions};
+pub use products::{check_spares_inputs, record_command_line, JobProducts, ProductSet, WriteOptions};
 pub(crate) use products::Staged;
 pub use run::{FilesWritten, ImageContext, ProductSink, RunContext};
 pub use source::{Reads, SourceParams};

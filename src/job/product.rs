@@ -15,7 +15,9 @@ pub enum Product {
     /// The measurement operator and the visibilities, kept past gridding for an exact
     /// residual update (asked for by a `residual` stage with `method: nufft`).
     Operator,
-    /// An estimate made by a network step.
+    /// An estimate made by a network step. A stage that consumes one updates a residual: the
+    /// gridder makes a form of `D` only where one is downstream (else the job's products are
+    /// its dirty image and PSFs, as `r2d2 dirty` writes them).
     Model,
 }
 

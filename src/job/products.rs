@@ -1,6 +1,7 @@
 //! A finished job's products as arrays ([`JobProducts`]): what the product sink hands an
 //! embedding program, and what the writer stage writes (FITS named like WSClean's, a PNG
-//! preview beside each, the per-iteration metrics as JSON and Parquet), all or nothing.
+//! preview beside each, the per-iteration metrics as JSON and Parquet; or only the dirty
+//! image and the PSF, [`ProductSet`]), all or nothing.
 
 use crate::fits::{write_image, Beam, BrightnessUnit, ImageWcs};
 use super::state::{IterationMetrics, Job, LoopStop};
@@ -81,6 +82,30 @@ pub struct WriteOptions {
 impl Default for WriteOptions {
     fn default() -> Self {
         WriteOptions { previews: true, preview_dynamic_range: None }
+    }
+}
+
+/// Which of a job's products a writer writes at its prefix.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ProductSet {
+    /// Every product the job has (`r2d2 image`'s): its images, a preview beside each, the
+    /// metrics; products of an earlier run at the prefix that this one does not make are
+    /// removed.
+    #[default]
+    All,
+    /// The dirty image and the PSF (`r2d2 dirty`'s, as WSClean's `-niter 0`), with a preview
+    /// beside each where previews are asked for; every other file at the prefix is left as it is.
+    Dirty,
+}
+
+impl ProductSet {
+    /// The names (`<prefix>-<suffix>`) the set may write, or retire.
+    fn suffixes(self) -> Vec<String> {
+        match self {
+            ProductSet::All => product_suffixes(),
+            ProductSet::Dirty => ["dirty.fits", "dirty.png", "psf.fits", "psf.png"].map(str::to_string).to_vec(),
+        }
     }
 }
 
@@ -350,17 +375,17 @@ impl JobProducts {
     pub fn write_with(&self, prefix: impl AsRef<Path>, options: &WriteOptions) -> Result<()> {
         let prefix = prefix.as_ref().to_string_lossy().into_owned();
         crate::fits::check_output_prefix(&prefix).map_err(|m| Error::parameter("prefix", m))?;
-        self.stage(&prefix, options)?.commit(&self.id).map(|_| ())
+        self.stage(&prefix, options, ProductSet::All)?.commit(&self.id).map(|_| ())
     }
 
-    /// Writes every product into a staging directory beside the prefix.
-    pub(crate) fn stage(&self, prefix: &str, options: &WriteOptions) -> Result<Staged> {
+    /// Writes the products of `set` into a staging directory beside the prefix.
+    pub(crate) fn stage(&self, prefix: &str, options: &WriteOptions, set: ProductSet) -> Result<Staged> {
         // The prefix was checked with `{job}` in it; a long job id can still make the names too long.
         if prefix.contains("{job}") {
             crate::fits::check_output_prefix(&prefix.replace("{job}", &self.id)).map_err(|m| Error::parameter("prefix", format!("job '{}': {m}", self.id)))?;
         }
         let inputs: Vec<&Path> = self.inputs.iter().map(PathBuf::as_path).collect();
-        check_spares_inputs(prefix, &self.id, &inputs)?;
+        check_spares_inputs(prefix, &self.id, &inputs, set)?;
         let (dir, stem) = prefix_parts(prefix, &self.id);
         let target = |suffix: &str| dir.join(format!("{stem}-{suffix}"));
         let mut staging = Staging::new(&dir)?;
@@ -369,15 +394,17 @@ impl JobProducts {
         extra.extend(self.history());
         let mut images: Vec<(&str, &[f32], BrightnessUnit)> =
             vec![("dirty", &self.dirty, BrightnessUnit::JyPerBeam), ("psf", &self.psf, BrightnessUnit::JyPerBeam)];
-        if let (Some(model), Some(residual)) = (&self.model, &self.residual) {
-            images.push(("model", model, BrightnessUnit::JyPerPixel));
-            images.push(("residual", residual, BrightnessUnit::JyPerBeam));
-        }
-        if let Some(image) = &self.image {
-            images.push(("image", image, BrightnessUnit::JyPerBeam));
-        }
-        if let Some(uncertainty) = &self.uncertainty {
-            images.push(("uncertainty", uncertainty, BrightnessUnit::Ratio));
+        if set == ProductSet::All {
+            if let (Some(model), Some(residual)) = (&self.model, &self.residual) {
+                images.push(("model", model, BrightnessUnit::JyPerPixel));
+                images.push(("residual", residual, BrightnessUnit::JyPerBeam));
+            }
+            if let Some(image) = &self.image {
+                images.push(("image", image, BrightnessUnit::JyPerBeam));
+            }
+            if let Some(uncertainty) = &self.uncertainty {
+                images.push(("uncertainty", uncertainty, BrightnessUnit::Ratio));
+            }
         }
         let scale = PreviewScale::Log { dynamic_range: preview_dynamic_range(options.preview_dynamic_range.or(self.dynamic_range)) };
         for (name, pixels, unit) in &images {
@@ -402,14 +429,16 @@ impl JobProducts {
                 staging.write(target(&format!("{name}.png")), |path| write_png_on_sky(path, &data, n, n, scale, &title, Some(&sky)))?;
             }
         }
-        let metrics = self.metrics_json();
-        let text = serde_json::to_string_pretty(&metrics).expect("metrics serialise");
-        staging.write(target("metrics.json"), |path| std::fs::write(path, &text).map_err(|e| Error::io(path, e)))?;
-        staging.write(target("metrics.parquet"), |path| self.write_metrics_parquet(path))?;
-        for suffix in product_suffixes() {
-            let earlier = target(&suffix);
-            if !staging.targets().any(|to| to == earlier) {
-                staging.retire(earlier);
+        if set == ProductSet::All {
+            let metrics = self.metrics_json();
+            let text = serde_json::to_string_pretty(&metrics).expect("metrics serialise");
+            staging.write(target("metrics.json"), |path| std::fs::write(path, &text).map_err(|e| Error::io(path, e)))?;
+            staging.write(target("metrics.parquet"), |path| self.write_metrics_parquet(path))?;
+            for suffix in product_suffixes() {
+                let earlier = target(&suffix);
+                if !staging.targets().any(|to| to == earlier) {
+                    staging.retire(earlier);
+                }
             }
         }
         let count = staging.targets().count();
@@ -470,16 +499,23 @@ fn prefix_parts(prefix: &str, id: &str) -> (PathBuf, String) {
     (dir, stem)
 }
 
-/// Refuses a prefix at which the products of job `id` (any the writer makes or retires) would
-/// replace one of `inputs` (its visibilities, truth, MeasurementSet).
-pub fn check_spares_inputs(prefix: &str, id: &str, inputs: &[&Path]) -> Result<()> {
+/// Refuses a prefix at which the products of job `id` (any of `set` the writer makes or
+/// retires) would replace one of `inputs` (its visibilities, truth, MeasurementSet), or lie
+/// inside one (a MeasurementSet's directory).
+pub fn check_spares_inputs(prefix: &str, id: &str, inputs: &[&Path], set: ProductSet) -> Result<()> {
     let (dir, stem) = prefix_parts(prefix, id);
-    for suffix in product_suffixes() {
+    for suffix in set.suffixes() {
         let target = dir.join(format!("{stem}-{suffix}"));
         if let Some(input) = crate::staging::destroys_input(&target, inputs) {
+            // Inside: the nearest existing directory above the product is the input or in it.
+            let existing = target.ancestors().skip(1).find_map(|a| if a.as_os_str().is_empty() { Path::new(".") } else { a }.canonicalize().ok());
+            let inside = existing.zip(input.canonicalize().ok()).is_some_and(|(dir, input)| dir.starts_with(input));
+            let what = if inside { "lie inside" } else { "replace" };
+            // Named as the prefix names it (`out/x-dirty.fits`, `x-dirty.fits`).
+            let product = format!("{}-{suffix}", prefix.replace("{job}", id));
             return Err(Error::parameter(
                 "prefix",
-                format!("job '{id}': the product {} would replace the input {}: choose another output name (the request's `name`, the writer's `prefix`)", target.display(), input.display()),
+                format!("job '{id}': the product {product} would {what} the input {}: choose another output name (the request's `name`, the writer's `prefix`)", input.display()),
             ));
         }
     }

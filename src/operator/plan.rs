@@ -9,6 +9,9 @@
 //! gridding pass; else the operator, its samples held or read again at each update, with a
 //! Taylor series in w (`super::taylor`) in its place at the updates where one agrees with it.
 //! Without the w-term, `D` is the PSF convolution and no operator is kept unless asked for.
+//! Where no stage applies `D` (only the dirty image and the PSFs are asked for: `r2d2 dirty`),
+//! no form of it is made: the samples are gridded as read, through each chunk's own w-planes
+//! where the w-term is included.
 
 use super::geometry::ImageGeometry;
 use super::measurement::WTermMode;
@@ -40,6 +43,9 @@ pub struct PlanParams {
     /// The residual update's exact NUFFT round trip: the operator is kept, with or without
     /// the w-term.
     pub keep_operator: bool,
+    /// Only the images are asked for (no stage after the gridder applies `D`): no form of `D`
+    /// is planned, and the samples are gridded a chunk at a time as read.
+    pub images_only: bool,
 }
 
 /// The job's samples, as far as the plan needs to know them.
@@ -77,8 +83,8 @@ pub enum Form {
     Streamed { chunk_rows: usize },
     /// The operator, its samples held in memory.
     Held,
-    /// No operator: the samples gridded a chunk at a time as read, then released; `D` is the
-    /// PSF convolution.
+    /// No operator: the samples gridded a chunk at a time as read (with the w-term, through
+    /// each chunk's own w-planes: images only), then released; `D` is the PSF convolution.
     Chunked,
 }
 
@@ -121,9 +127,9 @@ impl OperatorPlan {
         let w_term = params.w_term.includes(geometry, samples.max_abs_w, params.nufft.epsilon);
         // With the w-term the PSF convolution is not D (the response depends on the position in
         // the field): the operator, which holds the samples, is kept for the residual update.
-        // Otherwise the samples are gridded a chunk at a time as they are read, and nothing the
-        // size of the table is ever held.
-        let needs_operator = w_term || params.keep_operator;
+        // Otherwise, and where no stage applies D (images only), the samples are gridded a chunk
+        // at a time as they are read, and nothing the size of the table is ever held.
+        let needs_operator = !params.images_only && (w_term || params.keep_operator);
         let held_bytes = OPERATOR_BYTES_PER_SAMPLE * samples.count as f64;
         let form = if needs_operator && (samples.in_parts || (samples.streamed && held_bytes > params.hold_bytes)) {
             // Chunks as large as the hold limit allows: each costs its w-planes' FFTs.
@@ -137,7 +143,8 @@ impl OperatorPlan {
         // With the w-term and the convolution form of the residual update, one pass makes the
         // dirty image and the kernels of D's w-aware Toeplitz form: the samples are not needed
         // again, whatever their number.
-        let w_toeplitz = (w_term && !params.keep_operator)
+        let convolution_form = w_term && !params.keep_operator && !params.images_only;
+        let w_toeplitz = convolution_form
             .then(|| toeplitz_pass(geometry, samples, params).map_err(|why| reasons.push(Reason::info(why))).ok())
             .flatten();
         let bytes = match (&w_toeplitz, form) {
@@ -155,7 +162,7 @@ impl OperatorPlan {
             w_toeplitz,
             form,
             // Parts elsewhere make no kernels of the series.
-            taylor: w_term && !params.keep_operator && !samples.in_parts,
+            taylor: convolution_form && !samples.in_parts,
             held_bytes,
             bytes,
             reasons,
@@ -261,7 +268,7 @@ mod tests {
     use super::*;
 
     fn params(w_term: WTermMode, hold_mb: f64, keep_operator: bool) -> PlanParams {
-        PlanParams { nufft: NufftParams::default(), w_term, hold_bytes: hold_mb * 1e6, chunk_rows: 1000, threads: 1, keep_operator }
+        PlanParams { nufft: NufftParams::default(), w_term, hold_bytes: hold_mb * 1e6, chunk_rows: 1000, threads: 1, keep_operator, images_only: false }
     }
 
     fn samples(count: u64, streamed: bool, in_parts: bool) -> Samples {
@@ -306,6 +313,18 @@ mod tests {
         // The exact round trip asked for: the operator, never a convolution form.
         let exact = OperatorPlan::new(field(), samples(100, false, false), params(WTermMode::On, 1000.0, true));
         assert!(exact.w_toeplitz.is_none() && !exact.taylor && exact.reasons.is_empty());
+    }
+
+    /// Images only (no stage applies `D`): whatever the w-term and the samples, no form of `D`
+    /// is planned and the samples are gridded as read.
+    #[test]
+    fn images_only_plan_no_form_of_d() {
+        for (w_term, streamed, in_parts) in [(WTermMode::On, true, false), (WTermMode::On, false, false), (WTermMode::On, false, true), (WTermMode::Off, true, false)] {
+            let p = OperatorPlan::new(field(), samples(1_000_000, streamed, in_parts), PlanParams { images_only: true, ..params(w_term, 0.0, false) });
+            assert_eq!(p.w_term, w_term == WTermMode::On);
+            assert!(p.w_toeplitz.is_none() && !p.taylor && p.reasons.is_empty(), "{w_term:?}");
+            assert_eq!((p.form, p.bytes), (Form::Chunked, 1000.0 * STREAMED_BYTES_PER_SAMPLE));
+        }
     }
 
     #[test]

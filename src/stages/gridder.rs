@@ -1,6 +1,7 @@
 //! `kind: gridder`: dirty image, PSF (N and 2N), kappa and the restoring beam, and the form of
 //! `D` the residual update applies, as `crate::operator::plan` chooses it from the job's
-//! samples and the gridder's limits (`crate::vis::grid_planned` builds it).
+//! samples and the gridder's limits (`crate::vis::grid_planned` builds it); none where no stage
+//! after it updates a residual (the dirty image and the PSFs are the job's products).
 
 use super::params::GridderParams;
 use crate::imaging::WTerm;
@@ -18,7 +19,9 @@ pub struct GridderStage {
 }
 
 impl GridderStage {
-    pub fn new(config: GridderParams, threads: usize, keep_operator: bool) -> Result<GridderStage> {
+    /// `keep_operator`: a stage after it runs the exact NUFFT round trip; `images_only`: no
+    /// stage after it applies `D` (no residual update), so no form of `D` is made.
+    pub fn new(config: GridderParams, threads: usize, keep_operator: bool, images_only: bool) -> Result<GridderStage> {
         let nufft = NufftParams { epsilon: config.epsilon, oversampling: config.oversampling };
         crate::nufft::kernel::KernelShape::for_accuracy(nufft.epsilon, nufft.oversampling)?;
         if !(config.hold_mb >= 0.0) || !config.hold_mb.is_finite() {
@@ -27,7 +30,7 @@ impl GridderStage {
         if config.chunk_rows == 0 {
             return Err(Error::parameter("chunk_rows", "expected at least 1 sample per chunk"));
         }
-        Ok(GridderStage { params: PlanParams { nufft, w_term: config.w_term, hold_bytes: config.hold_mb * 1e6, chunk_rows: config.chunk_rows, threads, keep_operator } })
+        Ok(GridderStage { params: PlanParams { nufft, w_term: config.w_term, hold_bytes: config.hold_mb * 1e6, chunk_rows: config.chunk_rows, threads, keep_operator, images_only } })
     }
 }
 

@@ -35,10 +35,13 @@ const GRIDDER: KindFn = KindFn {
     produces: &[Product::Imaging, Product::Operator],
     consumes_also: None,
     passes_on: false,
-    // The operator (and the visibilities) stay only if a stage downstream consumes them.
+    // The operator (and the visibilities) stay only if a stage downstream consumes them; a form
+    // of `D` is made only if one updates a residual (consumes a model): without, the job's
+    // products are the dirty image and the PSFs (`r2d2 dirty`).
     build: |c| {
         let keep_operator = c.consumed_downstream(Product::Operator);
-        Ok(Built::Stage(Box::new(gridder::GridderStage::new(c.params()?, c.threads, keep_operator)?)))
+        let images_only = !c.consumed_downstream(Product::Model);
+        Ok(Built::Stage(Box::new(gridder::GridderStage::new(c.params()?, c.threads, keep_operator, images_only)?)))
     },
 };
 

@@ -39,6 +39,7 @@ pub use super::weighting::WeightingParams;
 pub use super::writer::WriterParams;
 #[cfg(feature = "ms")]
 pub use crate::ms::{FieldSelector, MsSelection};
+pub use crate::job::ProductSet;
 pub use crate::operator::WTermMode;
 pub use crate::steps::clean::CleanConfig as CleanParams;
 pub use crate::steps::native::{Isolation, NativeConfig as NativeParams};

@@ -1,7 +1,8 @@
 //! `kind: writer`: FITS products named like WSClean's (`<prefix>-dirty.fits`, `-psf.fits`,
 //! `-model.fits`, `-residual.fits`, and `-image.fits` for CLEAN) with full WCS and beam, a
 //! PNG preview beside each (`<prefix>-dirty.png`, ...; `previews: false` turns them off),
-//! and the per-iteration metrics as `<prefix>-metrics.json` and `<prefix>-metrics.parquet`.
+//! and the per-iteration metrics as `<prefix>-metrics.json` and `<prefix>-metrics.parquet`;
+//! with `products: dirty`, the dirty image and the PSF only (`r2d2 dirty`'s).
 //! A job's products appear together or not at all: they are written into a staging
 //! directory and moved into place only when all are complete (`crate::staging`). After a
 //! native plugin, every job's products wait staged until the run's end and are moved into
@@ -10,7 +11,7 @@
 use super::step::holds_until_finished;
 use crate::job::{BuildContext, Built, Emit, Job, KindFn, Product};
 use crate::pipeline::{PipelineSpec, Role, Stage, StageParams, StageSpec};
-use crate::job::{FilesWritten, ImageContext, JobProducts, Staged, WriteOptions};
+use crate::job::{FilesWritten, ImageContext, JobProducts, ProductSet, Staged, WriteOptions};
 use crate::{Error, Result};
 use serde::{Deserialize, Serialize};
 
@@ -28,11 +29,15 @@ pub struct WriterParams {
     /// Predict the final model's visibilities into this column of the input MeasurementSet
     /// (`kind: ms` jobs), e.g. MODEL_DATA; created when missing.
     pub model_column: Option<String>,
+    /// `all` (default): every product the job has, the metrics, and earlier products at the
+    /// prefix that this run does not make removed; `dirty`: `<prefix>-dirty.fits` and
+    /// `-psf.fits` (and their previews) only, every other file at the prefix left as it is.
+    pub products: ProductSet,
 }
 
 impl Default for WriterParams {
     fn default() -> Self {
-        WriterParams { prefix: "{job}".into(), previews: true, preview_dynamic_range: None, model_column: None }
+        WriterParams { prefix: "{job}".into(), previews: true, preview_dynamic_range: None, model_column: None, products: ProductSet::All }
     }
 }
 
@@ -81,6 +86,7 @@ const PLACEHOLDERS: &[&str] = &["{job}"];
 pub struct WriterStage {
     prefix: String,
     options: WriteOptions,
+    products: ProductSet,
     model_column: Option<String>,
     /// The prefixes written in this run and the job written to each: a prefix without `{job}`
     /// given several jobs would otherwise keep only the last one's products.
@@ -131,9 +137,13 @@ impl WriterStage {
         if config.model_column.as_deref().is_some_and(|c| c.trim().is_empty()) {
             return Err(Error::parameter("model_column", "expected a column name such as MODEL_DATA"));
         }
+        if config.model_column.is_some() && config.products == ProductSet::Dirty {
+            return Err(Error::parameter("model_column", "products: dirty writes the dirty image and the PSF only, no model"));
+        }
         Ok(WriterStage {
             prefix: config.prefix,
             options: WriteOptions { previews: config.previews, preview_dynamic_range: config.preview_dynamic_range },
+            products: config.products,
             model_column: config.model_column,
             written: Default::default(),
             files,
@@ -156,7 +166,7 @@ impl Stage<Job> for WriterStage {
             ));
         }
         self.written.insert(resolved, job.id.clone());
-        let staged = JobProducts::from_job(&mut job, self.options.preview_dynamic_range)?.stage(&self.prefix, &self.options)?;
+        let staged = JobProducts::from_job(&mut job, self.options.preview_dynamic_range)?.stage(&self.prefix, &self.options, self.products)?;
         if self.holds {
             let id = job.id.clone();
             self.held.push((id, staged, self.model_column.is_some().then_some(job)));

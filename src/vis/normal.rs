@@ -44,16 +44,19 @@ pub fn grid_planned(id: &str, source: VisSource, rule: WeightRule, mut plan: Ope
             return Ok(gridded);
         }
     }
+    let mut planes = None;
     let (dirty, psf, psf_2n, operator, kept, w_taylor) = match plan.form {
         Form::Streamed { chunk_rows } => streamed(id, source, rule, &plan, chunk_rows)?,
         Form::Held => held(id, source, rule, &plan)?,
         Form::Chunked => {
-            // Gridded a chunk at a time as read (or where its parts live), then released.
-            let images = source_images(&source, &pass(&plan, &rule, false, plan.params.chunk_rows), &rule)?.normalise(plan.geometry.size)?;
+            // Gridded a chunk at a time as read (or where its parts live), then released: with
+            // the w-term (images only), through each chunk's own w-planes.
+            let images = source_images(&source, &pass(&plan, &rule, plan.w_term, plan.params.chunk_rows), &rule)?.normalise(plan.geometry.size)?;
+            planes = images.planes;
             (images.dirty, images.psf, images.psf_2n, None, None, None)
         }
     };
-    let planes = operator.as_ref().and_then(|op| op.w_planes());
+    let planes = planes.or_else(|| operator.as_ref().and_then(|op| op.w_planes()));
     Ok(GriddedForm { dirty, psf, psf_2n, operator, kept, w_toeplitz: None, w_taylor, planes })
 }
 
