@@ -287,6 +287,9 @@ impl ImagePlan {
         let (grid, step) = (&request.grid, &request.step);
         crate::limits::check_image_size(grid.size).map_err(|m| Error::parameter("size", m))?;
         crate::limits::check_threads(grid.threads).map_err(|m| Error::parameter("threads", m))?;
+        if !(grid.weighting_grid_factor > 0.0 && grid.weighting_grid_factor.is_finite()) {
+            return Err(Error::parameter("weighting_grid_factor", format!("expected a positive number, got {}", grid.weighting_grid_factor)));
+        }
         if let Some(name) = &request.name {
             crate::fits::check_output_prefix(name).map_err(|m| Error::parameter("name", m))?;
         }

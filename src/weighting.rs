@@ -430,11 +430,11 @@ pub(crate) fn total_weights(
 /// anything is allocated: 1e4 asked for terabytes, 1e9 overflowed).
 pub(crate) fn check_grid(grid_factor: f64, image_size: usize) -> Result<()> {
     if !(grid_factor > 0.0) || !grid_factor.is_finite() {
-        return Err(Error::parameter("weighting grid factor", format!("expected a positive number, got {grid_factor}")));
+        return Err(Error::parameter("grid_factor", format!("expected a positive number, got {grid_factor}")));
     }
     let cells = (grid_factor * image_size as f64).floor().max(1.0);
     crate::limits::check_memory(cells * cells * 8.0, &format!("a weighting grid of {cells:.0} x {cells:.0} cells (grid factor {grid_factor} x {image_size} pixels)"))
-        .map_err(|m| Error::parameter("weighting grid factor", m))
+        .map_err(|m| Error::parameter("grid_factor", m))
 }
 
 fn weigh(

@@ -201,7 +201,7 @@ fn bad_input_gives_errors_that_name_the_problem() {
 fn simulate_and_trainset_errors_name_the_option_as_typed() {
     let dir = tempfile::tempdir().unwrap();
     let d = dir.path();
-    let cases: [(&[&str], &str); 10] = [
+    let cases: [(&[&str], &str); 13] = [
         (&["simulate", "--freq-ratio", "0.5"], "invalid --freq-ratio: expected highest/lowest frequency >= 1, got 0.5"),
         (&["simulate", "--nfreq", "2", "--freq-ratio", "1"], "invalid --freq-ratio: 2 frequencies at a ratio of 1"),
         (&["simulate", "--flag-fraction", "1.5"], "invalid --flag-fraction: expected a fraction in [0, 1), got 1.5"),
@@ -212,6 +212,9 @@ fn simulate_and_trainset_errors_name_the_option_as_typed() {
         (&["simulate", "--integration-s", "0"], "invalid --integration-s: must be a positive number of seconds"),
         (&["trainset", "--procedural", "1", "--truth-fwhm-px", "100"], "invalid --truth-fwhm-px: expected 0 < low <= high <= 16 pixels"),
         (&["trainset", "--procedural", "1", "--integration-s", "0"], "invalid --integration-s: expected positive times up to a day"),
+        (&["simulate", "--ra", "400", "--size", "64"], "invalid --ra: 400: expected a right ascension within [0, 360) degrees"),
+        (&["simulate", "--dr", "0.5", "--size", "64"], "invalid --dr: must be a finite number greater than 1, got 0.5"),
+        (&["trainset", "--procedural", "1", "--dr-min", "0.5"], "invalid --dr-min/--dr-max: expected 1 < low <= high"),
     ];
     for (args, expected) in cases {
         let args: Vec<&str> = args.iter().copied().chain(["--out", "out"]).collect();
@@ -266,8 +269,9 @@ fn options_are_refused_before_any_work_naming_what_is_expected() {
 
     let long_name = format!("out/{long}");
     let deep_name = format!("{deep}/obs");
-    let cases: [(&[&str], &[&str]); 4] = [
+    let cases: [(&[&str], &[&str]); 5] = [
         (&["--size", "63"], &["--size", "even image size of at least 8", "got 63"]),
+        (&["--weighting-grid-factor=-1"], &["--weighting-grid-factor", "positive number, got -1"]),
         (&["--robust", "-1e30"], &["robust", "from -5 to 5"]),
         (&["--name", &long_name], &["--name", &long_name, "file name would have", "255"]),
         (&["--name", &deep_name], &["--name", "cfitsio", "1024"]),

@@ -631,6 +631,8 @@ fn small_configuration_mistakes_are_refused_by_validate() {
         ("frequency ratio under 1", small_pipeline(None).replace("hours: [1]\n", "hours: [1]\n    frequency_ratio: 0.5\n"), vec![], vec!["line 11, column 5: stages.source.frequency_ratio: invalid frequency_ratio: expected highest/lowest frequency >= 1, got 0.5"]),
         ("flag fraction of 1", small_pipeline(None).replace("hours: [1]\n", "hours: [1]\n    flag_fraction: 1\n"), vec![], vec!["line 11, column 5: stages.source.flag_fraction: invalid flag_fraction: expected a fraction in [0, 1), got 1"]),
         ("unknown configuration", small_pipeline(None).replace("configurations: [c]", "configurations: [q]"), vec![], vec!["line 9, column 5: stages.source.configurations: invalid configurations: expected one of a, b, c, d"]),
+        ("right ascension out of range", small_pipeline(None).replace("hours: [1]\n", "hours: [1]\n    ra_deg: 400\n"), vec![], vec!["line 11, column 5: stages.source.ra_deg: invalid ra_deg: 400: expected a right ascension within [0, 360) degrees"]),
+        ("negative weighting grid factor", small_pipeline(None).replace("robust: 0\n", "robust: 0\n    grid_factor: -1\n"), vec![], vec!["line 17, column 5: stages.weights.grid_factor: invalid grid_factor: expected a positive number, got -1"]),
         ("prefix too long", small_pipeline(None).replace("out/{job}", &format!("out/{}{{job}}", "x".repeat(250))), vec![], vec!["stages.write.prefix", "file name would have", "255"]),
     ];
     for (what, text, sets, expected) in cases {

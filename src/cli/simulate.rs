@@ -142,6 +142,7 @@ pub fn run(args: Args) -> Result<()> {
             }
         }
     };
+    crate::vis::check_phase_centre(args.ra, dec, ["ra", "dec_deg"])?;
     let request = SimulationRequest {
         observation: spec.clone(),
         sky,

@@ -200,7 +200,11 @@ pub fn run(args: Args) -> Result<()> {
         truth_fwhm_px: args.truth_fwhm_px,
         nufft: NufftParams { epsilon: args.epsilon, oversampling: 2.0 },
     };
-    params.validate()?;
+    // The library's field is the range; the command line gives it as two options.
+    params.validate().map_err(|e| match e {
+        Error::Parameter { name, message } if name == "dynamic_range" => Error::parameter("--dr-min/--dr-max", message),
+        other => other,
+    })?;
     crate::limits::check_image_size(args.size).map_err(|m| Error::parameter("--size", m))?;
     crate::limits::check_threads(args.threads).map_err(|m| Error::parameter("--threads", m))?;
     let (sources, truths): (Vec<String>, Vec<Option<Vec<f64>>>) = match (&args.truths, args.procedural) {

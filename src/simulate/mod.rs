@@ -58,7 +58,7 @@ pub struct SimulationOutput {
 
 /// Simulate the observation: coverage, sky on its pixel grid, visibilities with noise.
 pub fn simulate(req: &SimulationRequest) -> Result<SimulationOutput> {
-    crate::vis::check_phase_centre(req.phase_centre_deg.0, req.phase_centre_deg.1)?;
+    crate::vis::check_phase_centre(req.phase_centre_deg.0, req.phase_centre_deg.1, ["phase_centre_deg", "phase_centre_deg"])?;
     crate::limits::check_image_size(req.size).map_err(|m| Error::parameter("size", m))?;
     crate::limits::check_threads(req.threads).map_err(|m| Error::parameter("threads", m))?;
     let coverage = sample_coverage(&req.observation)?;

@@ -52,7 +52,7 @@ impl SkyParams {
     pub fn validate(&self) -> Result<()> {
         if self.size < 32 {
             return Err(Error::parameter(
-                "image size",
+                "size",
                 format!(
                     "a procedural sky needs at least 32 pixels per side, got {}",
                     self.size
@@ -61,7 +61,7 @@ impl SkyParams {
         }
         if !(self.dynamic_range.is_finite() && self.dynamic_range > 1.0) {
             return Err(Error::parameter(
-                "dynamic range",
+                "dynamic_range",
                 format!(
                     "must be a finite number greater than 1, got {}",
                     self.dynamic_range
@@ -70,7 +70,7 @@ impl SkyParams {
         }
         if !(self.support_fraction > 0.3 && self.support_fraction <= 1.0) {
             return Err(Error::parameter(
-                "support fraction",
+                "support_fraction",
                 format!("must be in (0.3, 1], got {}", self.support_fraction),
             ));
         }
@@ -195,13 +195,13 @@ pub fn procedural_sky(p: &SkyParams) -> Result<Vec<f64>> {
 pub fn exponentiate(image: &mut [f64], source_dr: f64, target_dr: f64) -> Result<f64> {
     if !(source_dr.is_finite() && source_dr > 1.0) {
         return Err(Error::parameter(
-            "source dynamic range",
+            "source_dr",
             format!("must be a finite number greater than 1, got {source_dr}"),
         ));
     }
     if !target_dr.is_finite() || target_dr <= source_dr {
         return Err(Error::parameter(
-            "target dynamic range",
+            "dynamic_range",
             format!(
                 "exponentiation raises the dynamic range, so the target must exceed the \
                  source's {source_dr}; got {target_dr} (an image already at or above the \
@@ -236,7 +236,7 @@ pub fn solve_exponent_base(source_dr: f64, target_dr: f64) -> Result<f64> {
     let l_star = (s0 / (s * (1.0 - s0))).ln();
     if g(l_star) >= 0.0 {
         return Err(Error::parameter(
-            "target dynamic range",
+            "dynamic_range",
             format!(
                 "exponentiation from dynamic range {source_dr} to {target_dr} has no \
                  nontrivial solution (the ratio must be at least about e = 2.72); use a \
@@ -252,7 +252,7 @@ pub fn solve_exponent_base(source_dr: f64, target_dr: f64) -> Result<f64> {
         l_hi = l_star + step;
         if !l_hi.is_finite() || step > 1e6 {
             return Err(Error::parameter(
-                "target dynamic range",
+                "dynamic_range",
                 format!("could not bracket the exponentiation base for {source_dr} -> {target_dr}"),
             ));
         }
@@ -804,7 +804,7 @@ mod tests {
     fn exponentiate_rejects_bad_ranges() {
         let mut img = vec![0.0, 1.0];
         let e = exponentiate(&mut img, 1e3, 1e3).unwrap_err().to_string();
-        assert!(e.contains("target dynamic range"), "{e}");
+        assert!(e.contains("dynamic_range"), "{e}");
         assert!(exponentiate(&mut img, 1e3, 10.0).is_err());
         assert!(exponentiate(&mut img, 1.0, 10.0).is_err());
         // Too small a ratio: no nontrivial root.

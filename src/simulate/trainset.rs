@@ -67,7 +67,7 @@ impl TrainsetParams {
     pub fn validate(&self) -> Result<()> {
         let (lo, hi) = self.dynamic_range;
         if !(lo > 1.0 && hi >= lo && hi.is_finite()) {
-            return Err(Error::parameter("dr", format!("expected 1 < low <= high, got {lo}..{hi}")));
+            return Err(Error::parameter("dynamic_range", format!("expected 1 < low <= high, got {lo}..{hi}")));
         }
         let (t0, t1) = self.integration_s;
         if !range_ok(self.integration_s, f64::MIN_POSITIVE, 86_400.0) {

@@ -103,7 +103,7 @@ pub struct SimulateSource {
 impl SimulateSource {
     pub fn new(config: SimulateParams, image: &ImageConfig, threads: usize) -> Result<SimulateSource> {
         let observation = observation(&config)?;
-        crate::vis::check_phase_centre(config.ra_deg, observation.dec_deg)?;
+        crate::vis::check_phase_centre(config.ra_deg, observation.dec_deg, ["ra_deg", "dec_deg"])?;
         if config.jobs == 0 {
             return Err(Error::parameter("jobs", "expected at least one job"));
         }

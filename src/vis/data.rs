@@ -137,10 +137,12 @@ impl ObservationMeta {
 }
 
 /// Checks a phase centre given as parameters (right ascension, declination in degrees) as the
-/// reader would check it in a file, so that no file is written that cannot be read back.
-pub fn check_phase_centre(ra_deg: f64, dec_deg: f64) -> Result<()> {
-    for (key, value) in [(KEY_RA, ra_deg), (KEY_DEC, dec_deg)] {
-        check_meta_number(key, value).map_err(|msg| Error::parameter(key, format!("{value}: {msg}")))?;
+/// reader would check it in a file, so that no file is written that cannot be read back;
+/// errors name `fields` (right ascension, declination): the fields of the parameters that
+/// gave them.
+pub(crate) fn check_phase_centre(ra_deg: f64, dec_deg: f64, fields: [&str; 2]) -> Result<()> {
+    for ((key, value), field) in [(KEY_RA, ra_deg), (KEY_DEC, dec_deg)].into_iter().zip(fields) {
+        check_meta_number(key, value).map_err(|msg| Error::parameter(field, format!("{value}: {msg}")))?;
     }
     Ok(())
 }
