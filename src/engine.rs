@@ -262,6 +262,7 @@ struct ImagePlan {
     weighting: Option<Weighting>,
     weighting_grid_factor: f64,
     uv: crate::weighting::UvControls,
+    restoring_beam: crate::params::RestoringBeam,
     epsilon: f64,
     oversampling: f64,
     w_term: crate::operator::WTermMode,
@@ -298,6 +299,7 @@ impl ImagePlan {
             weighting: grid.weighting()?,
             weighting_grid_factor: grid.weighting_grid_factor,
             uv: grid.uv()?,
+            restoring_beam: grid.restoring_beam()?,
             epsilon: grid.epsilon,
             oversampling: grid.oversampling,
             w_term: grid.w_term,
@@ -373,7 +375,7 @@ fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec
     }
     let (weighting, superresolution) = imaging_setting(params)?;
     let weights = WeightingParams { grid_factor: params.weighting_grid_factor, ..WeightingParams::new(weighting).with_uv(params.uv) };
-    let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling, w_term: params.w_term, hold_mb: params.hold_mb, ..GridderParams::default() };
+    let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling, w_term: params.w_term, hold_mb: params.hold_mb, restoring_beam: params.restoring_beam, ..GridderParams::default() };
     let mut stages = vec![read.to("weights"), StageSpec::typed("weights", &weights)?.to("grid")];
     match params.products {
         // The gridded job's images are its products: no step, and no form of D is made.

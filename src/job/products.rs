@@ -302,8 +302,17 @@ impl JobProducts {
                 cards.push(("WEIGHTUV", uv.join(" ")));
             }
         }
-        if let Some(series) = self.settings.get("step").and_then(|s| s.get("series")).and_then(|s| s.as_str()) {
-            cards.push(("R2D2SER", series.to_string()));
+        // What made the model: `clean`, `series NAME` or `plugin FILE` (and the series alone,
+        // as earlier products carry it).
+        if let Some(step) = self.settings.get("step") {
+            let text = |key: &str| step.get(key).and_then(|s| s.as_str());
+            let what = match text("kind") {
+                Some("series") => text("series").map(|name| format!("series {name}")),
+                Some("plugin") => Some(format!("plugin {}", text("library").unwrap_or("?"))),
+                other => other.map(str::to_string),
+            };
+            cards.extend(what.map(|w| ("R2D2STEP", w)));
+            cards.extend(text("series").map(|series| ("R2D2SER", series.to_string())));
         }
         cards
     }
@@ -313,6 +322,11 @@ impl JobProducts {
         let mut lines = vec![("HISTORY", format!("r2d2-imaging {} imaged job '{}'", env!("CARGO_PKG_VERSION"), fits_safe(&self.id)))];
         if let Some(command) = command_line() {
             lines.push(("HISTORY", format!("command: {}", fits_safe(&command))));
+        }
+        // Beams chosen differently differ for the same PSF (fitted ones by several per cent in
+        // area between imagers): the header says how this one was.
+        if let Some(how) = self.beam.and(self.settings.get("restoring_beam")).and_then(|b| b.get("how")).and_then(|h| h.as_str()) {
+            lines.push(("HISTORY", fits_safe(how)));
         }
         lines
     }

@@ -5,7 +5,7 @@ use super::{
     MsSelection, Origin, SampleColumns, StokesI, Window, ORIGIN_KEY,
 };
 use crate::vis::TableReader;
-use crate::vis::{ObservationMeta, DATE_OBS_KEY, OBJECT_KEY};
+use crate::vis::{ObservationMeta, CHANNEL_WIDTH_KEY, DATE_OBS_KEY, OBJECT_KEY};
 use crate::{Error, Result};
 use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, RecordBatch};
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
@@ -173,6 +173,9 @@ impl MsReader {
             extra.insert(OBJECT_KEY.to_string(), layout.field_name.trim().to_string());
         }
         extra.insert("ms_data_column".to_string(), selection.data_column.clone());
+        if let Some(width) = layout.windows.iter().flatten().filter_map(|w| w.width_hz).reduce(f64::max) {
+            extra.insert(CHANNEL_WIDTH_KEY.to_string(), width.to_string());
+        }
         if let Some(date) = &layout.date_obs {
             extra.insert(DATE_OBS_KEY.to_string(), date.clone());
         }

@@ -262,6 +262,9 @@ pub(crate) struct Window {
     pub channels: std::ops::Range<usize>,
     /// Every channel's frequency, Hz.
     pub frequencies: Vec<f64>,
+    /// The widest |CHAN_WIDTH| (Hz) of the channels kept; `None` where the MS has no
+    /// usable widths.
+    pub width_hz: Option<f64>,
     pub ncorr: usize,
     pub stokes: StokesI,
 }
@@ -470,6 +473,7 @@ pub(crate) fn read_windows(ms: &Path, selection: &MsSelection, used_dd: &[usize]
     let spw_table = open_subtable(ms, "SPECTRAL_WINDOW")?;
     let spw_path = ms.join("SPECTRAL_WINDOW");
     let freq_column = column_index(&spw_table, &spw_path, "CHAN_FREQ")?;
+    let width_column = optional_column(&spw_table, "CHAN_WIDTH");
     let pol_table = open_subtable(ms, "POLARIZATION")?;
     let pol_path = ms.join("POLARIZATION");
     let corr_column = column_index(&pol_table, &pol_path, "CORR_TYPE")?;
@@ -512,6 +516,13 @@ pub(crate) fn read_windows(ms: &Path, selection: &MsSelection, used_dd: &[usize]
                 ))
             }
         };
+        // Widths only describe the band (the bandwidth written as CDELT3): a missing or
+        // unreadable column leaves it unknown rather than failing the read.
+        let width_hz = width_column
+            .and_then(|column| read_cells(&spw_table, &spw_path, column, "CHAN_WIDTH", spw as u64, 1).ok())
+            .and_then(|cell| cell.first().and_then(array_f64).map(|(_, widths)| widths))
+            .filter(|widths| widths.len() == nchan)
+            .and_then(|widths| widths[channels.clone()].iter().map(|w| w.abs()).filter(|w| w.is_finite() && *w > 0.0).reduce(f64::max));
         if pol as u64 >= pol_table.nrows() {
             return Err(invalid(&dd_path, format!("row {dd} refers to polarization {pol}; POLARIZATION has {} rows", pol_table.nrows())));
         }
@@ -531,7 +542,7 @@ pub(crate) fn read_windows(ms: &Path, selection: &MsSelection, used_dd: &[usize]
                 ),
             )
         })?;
-        windows[dd] = Some(Window { spw, channels, frequencies, ncorr: codes.len(), stokes });
+        windows[dd] = Some(Window { spw, channels, frequencies, width_hz, ncorr: codes.len(), stokes });
     }
     Ok(windows)
 }

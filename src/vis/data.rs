@@ -26,6 +26,11 @@ pub const DATE_OBS_KEY: &str = "date_obs";
 /// Metadata key of what was observed (FITS `OBJECT`): an MS's field name, or a table's own.
 pub const OBJECT_KEY: &str = "object";
 
+/// Metadata key of the widest channel's width (Hz) of the samples, where a reader knows it (an
+/// MS's `SPECTRAL_WINDOW.CHAN_WIDTH`): an image's bandwidth is its channels' span plus one
+/// width (edge to edge, as WSClean's `CDELT3`), not the span of their centres.
+pub const CHANNEL_WIDTH_KEY: &str = "channel_width_hz";
+
 /// What the observation is, as recorded in the file's key-value metadata.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ObservationMeta {
