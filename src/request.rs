@@ -177,6 +177,15 @@ pub struct MsOptions {
     /// MS input: channel range START END (END excluded) of every window.
     #[arg(long, num_args = 2, value_names = ["START", "END"])]
     pub channels: Option<Vec<usize>>,
+    /// MS input: image N groups of the channels (all windows' channels in order of
+    /// frequency, cut into N runs of equal counts) one after another on one grid, as WSClean's
+    /// -channels-out: NAME-0000-*.fits, ..., and a cube of each product (NAME-*-cube.fits).
+    #[arg(long)]
+    pub channels_out: Option<usize>,
+    /// MS input, with channels-out: also image the whole band on the same grid, as
+    /// NAME-MFS-*.fits (WSClean's -join-channels MFS products).
+    #[arg(long, requires = "channels_out")]
+    pub join_channels: bool,
 }
 
 impl MsOptions {
@@ -188,6 +197,7 @@ impl MsOptions {
             ("field", self.field.is_some()),
             ("spw", self.spw.is_some()),
             ("channels", self.channels.is_some()),
+            ("channels_out", self.channels_out.is_some()),
         ]
         .into_iter()
         .find_map(|(name, given)| given.then_some(name))
@@ -211,6 +221,7 @@ impl MsOptions {
             }),
             spw: self.spw.clone(),
             channels,
+            channel_group: None,
         })
     }
 }

@@ -1006,6 +1006,68 @@ fn wsclean_beam_options_choose_the_beam_wsclean_does() {
     }
 }
 
+/// WSClean's `-channels-out 4 -join-channels` (`r2d2 dirty`, the same spelling): four channel
+/// images on one grid named as WSClean names them, each equal to the engine's image of that
+/// channel alone on that grid and to WSClean's channel image (w-gridder at 1e-6), each saying
+/// WSClean's band; the MFS image equal to the whole band's; cubes whose FREQ axis and planes
+/// are the channels' (read by astropy). `r2d2 image --step clean` writes every product so.
+#[test]
+fn channels_out_images_each_group_on_one_grid_as_wsclean_does() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d, 4);
+    make_ms(d, "obs.ms", &[]);
+    check(&r2d2(&["dirty", "obs.ms", "-size", "64", "64", "-weight", "natural", "-channels-out", "4", "-join-channels", "-name", "ch"], d));
+    let whole = r2d2_imaging::fits::read_image(&d.join("ch-MFS-dirty.fits")).unwrap();
+    let pixel = whole.wcs.unwrap().pixel_deg * 3600.0;
+    let scale = format!("{pixel:.12}asec");
+    // The MFS image is the whole band's, on the grid of its longest baseline.
+    check(&r2d2(&["dirty", "obs.ms", "--size", "64", "--weighting", "natural", "--name", "band"], d));
+    assert!(relative(&whole.data, &read(&d.join("band-dirty.fits"))) < 1e-6, "MFS against the whole band");
+    let out = Command::new("wsclean")
+        .args(["-quiet", "-use-wgridder", "-wgridder-accuracy", "1e-6", "-padding", "2", "-no-small-inversion", "-niter", "0", "-make-psf", "-weight", "natural"])
+        .args(["-size", "64", "64", "-scale", &scale, "-channels-out", "4", "-name", "ws", "obs.ms"])
+        .current_dir(d)
+        .output()
+        .expect("wsclean runs (apt-get install wsclean; .ci/run installs it)");
+    assert!(out.status.success(), "wsclean failed: {}", text(&out));
+    for k in 0..4 {
+        let ours = r2d2_imaging::fits::read_image(&d.join(format!("ch-{k:04}-dirty.fits"))).unwrap();
+        let wcs = ours.wcs.unwrap();
+        assert!((wcs.pixel_deg * 3600.0 / pixel - 1.0).abs() < 1e-12, "channel {k} on the MFS grid");
+        // The channel alone, on that grid.
+        let range = [k.to_string(), (k + 1).to_string()];
+        check(&r2d2(&["dirty", "obs.ms", "--size", "64", "--weighting", "natural", "--pixel-arcsec", &format!("{pixel:.15}"), "--channels", &range[0], &range[1], "--name", "one"], d));
+        let alone = relative(&ours.data, &read(&d.join("one-dirty.fits")));
+        let theirs = r2d2_imaging::fits::read_image(&d.join(format!("ws-{k:04}-dirty.fits"))).unwrap();
+        let against_wsclean = relative(&ours.data, &theirs.data);
+        let (band, their_band) = ((wcs.freq_hz.unwrap(), wcs.bandwidth_hz.unwrap()), (theirs.wcs.unwrap().freq_hz.unwrap(), theirs.wcs.unwrap().bandwidth_hz.unwrap()));
+        eprintln!("channel {k}: against the channel alone {alone:.2e}, against WSClean {against_wsclean:.2e}; band {band:?}, WSClean's {their_band:?}");
+        assert!(alone < 1e-6 && against_wsclean < 1e-4, "channel {k}: {alone:e} {against_wsclean:e}");
+        assert!((band.0 / their_band.0 - 1.0).abs() < 1e-9 && (band.1 / their_band.1 - 1.0).abs() < 1e-9, "channel {k}: band {band:?}, WSClean's {their_band:?}");
+    }
+    // The cubes, read by astropy: four planes, the FREQ axis through the channels' centres.
+    let script = "from astropy.io import fits\nimport numpy as np\nc = fits.open('ch-cube-dirty.fits')[0]\nassert c.data.shape == (1, 4, 64, 64), c.data.shape\nfor k in range(4):\n    p = fits.open('ch-%04d-dirty.fits' % k)[0]\n    assert np.array_equal(c.data[0, k], p.data[0, 0]), k\n    f = c.header['CRVAL3'] + (k + 1 - c.header['CRPIX3']) * c.header['CDELT3']\n    assert abs(f / p.header['CRVAL3'] - 1) < 1e-12, (k, f, p.header['CRVAL3'])\nassert c.header['CTYPE3'] == 'FREQ'\nprint('ok')";
+    let out = Command::new("python3").args(["-c", script]).current_dir(d).output().expect("python3 runs");
+    assert!(out.status.success(), "{}", text(&out));
+    // r2d2 image: every product of every group, the MFS products and the cubes.
+    check(&r2d2(&["image", "obs.ms", "--size", "64", "--step", "clean", "--iterations", "1", "--channels-out", "2", "--join-channels", "--name", "img"], d));
+    for label in ["0000", "0001", "MFS", "cube"] {
+        for product in ["dirty", "psf", "model", "residual", "image"] {
+            assert!(d.join(format!("img-{label}-{product}.fits")).exists(), "img-{label}-{product}.fits");
+        }
+    }
+    // Refused: a table input, more groups than channels, a prediction into the MS.
+    for (args, words) in [
+        (&["dirty", "obs.parquet", "--channels-out", "2"][..], &["channels_out", "MeasurementSet"][..]),
+        (&["dirty", "obs.ms", "--channels-out", "5"][..], &["5 channel groups", "4 channels"][..]),
+        (&["image", "obs.ms", "--step", "clean", "--channels-out", "2", "--model-column", "MODEL_DATA"][..], &["model_column"][..]),
+    ] {
+        let out = r2d2(args, d);
+        assert!(!out.status.success() && words.iter().all(|w| stderr(&out).contains(w)), "{args:?}: {}", stderr(&out));
+    }
+}
+
 /// A wide field where the w-term matters (VLA D at 74 MHz, a 9.6 deg field: the largest |w|
 /// turns the phase at the corners by 4.3 rad): the engine's dirty image (w-term included by
 /// default) agrees with WSClean's w-corrected one (w-stacking with 200 layers and its most

@@ -29,6 +29,9 @@ const OPTIONS: &[(&str, usize, Spelling)] = &[
     ("taper-gaussian", 1, Spelling::Same),
     ("taper-tukey", 1, Spelling::Same),
     ("pol", 1, Spelling::Same),
+    ("channels-out", 1, Spelling::Same),
+    ("channel-range", 2, Spelling::Same),
+    ("join-channels", 0, Spelling::Same),
     ("beam-size", 1, Spelling::Same),
     ("beam-shape", 3, Spelling::Same),
     ("circular-beam", 0, Spelling::Same),
@@ -168,7 +171,9 @@ fn translate(name: &str, values: &[String], rest: &mut std::iter::Peekable<std::
             words.push(pa.to_string());
             words
         }
-        "circular-beam" | "no-fit-beam" | "theoretic-beam" => vec![format!("--{name}")],
+        "circular-beam" | "no-fit-beam" | "theoretic-beam" | "join-channels" => vec![format!("--{name}")],
+        "channels-out" => pair("--channels-out", &values[0]),
+        "channel-range" => vec!["--channels".into(), values[0].clone(), values[1].clone()],
         "elliptical-beam" | "fit-beam" => vec![],
         "weight" => match values[0].to_ascii_lowercase().as_str() {
             "briggs" => {
@@ -244,6 +249,7 @@ mod tests {
         );
         assert_eq!(rewrite(words("r2d2 dirty obs.ms -beam-size 0.5amin -no-fit-beam")).unwrap(), words("r2d2 dirty obs.ms --beam-size 30 --no-fit-beam"));
         assert_eq!(rewrite(words("r2d2 dirty obs.ms -pol i")).unwrap(), words("r2d2 dirty obs.ms --pol I"));
+        assert_eq!(rewrite(words("r2d2 image obs.ms -channels-out 4 -join-channels -channel-range 2 10")).unwrap(), words("r2d2 image obs.ms --channels-out 4 --join-channels --channels 2 10"));
         assert_eq!(rewrite(words("r2d2 image obs.ms -circular-beam -theoretic-beam")).unwrap(), words("r2d2 image obs.ms --circular-beam --theoretic-beam"));
         // CLEAN's controls, WSClean's meanings (the engine refuses them with a network series).
         assert_eq!(
@@ -278,7 +284,7 @@ mod tests {
             // WSClean's -size with one number: the next option is not its height.
             ("r2d2 image obs.ms -size 64 --name x", &["-size 64 --name", "expected 2 value(s)", "--name is an option", "-size 512 512"][..]),
             // Options WSClean has and this engine lacks: named whole, not as clap's `-c`.
-            ("r2d2 image obs.ms -channels-out 4", &["-channels-out: not supported by r2d2 image", "-size, -scale"][..]),
+            ("r2d2 image obs.ms -intervals-out 4", &["-intervals-out: not supported by r2d2 image", "-size, -scale"][..]),
             ("r2d2 dirty obs.ms -taper-edge 4", &["-taper-edge: not supported by r2d2 dirty", "-taper-gaussian"][..]),
             ("r2d2 dirty obs.ms -taper-gaussian -2", &["-taper-gaussian -2", "positive angle"][..]),
             ("r2d2 image obs.ms -multiscale=1", &["-multiscale=1: -multiscale takes no value"][..]),

@@ -264,7 +264,7 @@ impl JobProducts {
     /// The keywords beside the WCS that every product carries, as WSClean records them where
     /// the meaning is shared: telescope, object, date, the MS column imaged, the weighting, and
     /// what made the model (the series and its networks run, or the step).
-    fn extra_keywords(&self) -> Vec<(&'static str, String)> {
+    pub(crate) fn extra_keywords(&self) -> Vec<(&'static str, String)> {
         let mut cards: Vec<(&'static str, String)> = self.text_keywords().into_iter().map(|(k, v)| (k, crate::fits::header_text(&v).0)).collect();
         cards.push(("R2D2ITER", self.iterations.to_string()));
         cards
@@ -401,8 +401,15 @@ impl JobProducts {
         let inputs: Vec<&Path> = self.inputs.iter().map(PathBuf::as_path).collect();
         check_spares_inputs(prefix, &self.id, &inputs, set)?;
         let (dir, stem) = prefix_parts(prefix, &self.id);
-        let target = |suffix: &str| dir.join(format!("{stem}-{suffix}"));
         let mut staging = Staging::new(&dir)?;
+        self.stage_into(&mut staging, &dir, &stem, options, set)?;
+        let count = staging.targets().count();
+        Ok(Staged { staging, count, dir, stem })
+    }
+
+    /// Writes the products of `set` into `staging`, named `<dir>/<stem>-<product>`.
+    pub(crate) fn stage_into(&self, staging: &mut Staging, dir: &Path, stem: &str, options: &WriteOptions, set: ProductSet) -> Result<()> {
+        let target = |suffix: &str| dir.join(format!("{stem}-{suffix}"));
         let n = self.size;
         let mut extra = self.extra_keywords();
         extra.extend(self.history());
@@ -455,8 +462,7 @@ impl JobProducts {
                 }
             }
         }
-        let count = staging.targets().count();
-        Ok(Staged { staging, count, dir, stem })
+        Ok(())
     }
 
     /// `<prefix>-metrics.parquet`: one row per iteration (`iteration`, `residual_ratio`,
@@ -506,7 +512,7 @@ impl JobProducts {
 }
 
 /// The directory and file-name part of job `id`'s products at `prefix` (`{job}` replaced).
-fn prefix_parts(prefix: &str, id: &str) -> (PathBuf, String) {
+pub(crate) fn prefix_parts(prefix: &str, id: &str) -> (PathBuf, String) {
     let prefix = PathBuf::from(prefix.replace("{job}", id));
     let dir = prefix.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).to_path_buf();
     let stem = prefix.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| id.to_string());

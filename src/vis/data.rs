@@ -31,6 +31,15 @@ pub const OBJECT_KEY: &str = "object";
 /// width (edge to edge, as WSClean's `CDELT3`), not the span of their centres.
 pub const CHANNEL_WIDTH_KEY: &str = "channel_width_hz";
 
+/// Group `index` of `count` groups of an observation's channels, lowest frequency first (a
+/// MeasurementSet's `channel_group`: WSClean's `-channels-out`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct ChannelGroup {
+    pub index: usize,
+    pub count: usize,
+}
+
 /// What the observation is, as recorded in the file's key-value metadata.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ObservationMeta {
