@@ -272,6 +272,9 @@ pub(crate) struct Window {
     /// The widest |CHAN_WIDTH| (Hz) of the channels kept; `None` where the MS has no
     /// usable widths.
     pub width_hz: Option<f64>,
+    /// The lowest and highest edge (Hz) of the channels kept (`CHAN_FREQ` -+ half of
+    /// |`CHAN_WIDTH`|), where the widths are usable.
+    pub edges_hz: Option<(f64, f64)>,
     pub ncorr: usize,
     pub stokes: StokesI,
 }
@@ -525,11 +528,14 @@ pub(crate) fn read_windows(ms: &Path, selection: &MsSelection, used_dd: &[usize]
         };
         // Widths only describe the band (the bandwidth written as CDELT3): a missing or
         // unreadable column leaves it unknown rather than failing the read.
-        let width_hz = width_column
+        let widths: Option<Vec<f64>> = width_column
             .and_then(|column| read_cells(&spw_table, &spw_path, column, "CHAN_WIDTH", spw as u64, 1).ok())
             .and_then(|cell| cell.first().and_then(array_f64).map(|(_, widths)| widths))
-            .filter(|widths| widths.len() == nchan)
-            .and_then(|widths| widths[channels.clone()].iter().map(|w| w.abs()).filter(|w| w.is_finite() && *w > 0.0).reduce(f64::max));
+            .filter(|widths| widths.len() == nchan && widths[channels.clone()].iter().all(|w| w.is_finite() && *w != 0.0));
+        let width_hz = widths.as_ref().and_then(|w| w[channels.clone()].iter().map(|w| w.abs()).reduce(f64::max));
+        let edges_hz = widths.as_ref().and_then(|w| {
+            channels.clone().map(|c| (frequencies[c] - 0.5 * w[c].abs(), frequencies[c] + 0.5 * w[c].abs())).reduce(|a, b| (a.0.min(b.0), a.1.max(b.1)))
+        });
         if pol as u64 >= pol_table.nrows() {
             return Err(invalid(&dd_path, format!("row {dd} refers to polarization {pol}; POLARIZATION has {} rows", pol_table.nrows())));
         }
@@ -549,7 +555,7 @@ pub(crate) fn read_windows(ms: &Path, selection: &MsSelection, used_dd: &[usize]
                 ),
             )
         })?;
-        windows[dd] = Some(Window { spw, channels, frequencies, width_hz, ncorr: codes.len(), stokes });
+        windows[dd] = Some(Window { spw, channels, frequencies, width_hz, edges_hz, ncorr: codes.len(), stokes });
     }
     if let Some(group) = selection.channel_group {
         keep_channel_group(&mut windows, group, &spw_path)?;
@@ -583,7 +589,15 @@ fn keep_channel_group(windows: &mut [Option<Window>], group: ChannelGroup, spw_p
         let Some(window) = slot else { continue };
         let mine: Vec<usize> = kept.iter().filter(|k| k.1 == window.spw).map(|k| k.2).collect();
         match (mine.iter().min(), mine.iter().max()) {
-            (Some(&lo), Some(&hi)) if hi - lo + 1 == mine.len() => window.channels = lo..hi + 1,
+            (Some(&lo), Some(&hi)) if hi - lo + 1 == mine.len() => {
+                // The group's edges: its first and last channels' (the widths were read for
+                // the whole selection).
+                if let (Some(width), Some(_)) = (window.width_hz, window.edges_hz) {
+                    let (f0, f1) = (window.frequencies[lo], window.frequencies[hi]);
+                    window.edges_hz = Some((f0.min(f1) - 0.5 * width, f0.max(f1) + 0.5 * width));
+                }
+                window.channels = lo..hi + 1
+            }
             (Some(_), Some(_)) => {
                 return Err(invalid(
                     spw_path,

@@ -43,13 +43,20 @@ impl Stage<Job> for GridderStage {
         let (geometry, rule) = job.take_weights("gridder")?;
         let source = job.take_visibilities("gridder")?;
         let summary = source.summary();
-        // The band edge to edge where the channels' width is known (WSClean's CDELT3), else
-        // the span of the samples' frequencies (none for one frequency).
+        // The band edge to edge: the selected channels' where the reader knows them (WSClean's
+        // CRVAL3 and CDELT3), else the samples' span plus a channel's width where that is
+        // known, else the span of the samples' frequencies (none for one frequency).
         let channel_width = job.meta.extra.get(crate::vis::CHANNEL_WIDTH_KEY).and_then(|w| w.parse::<f64>().ok()).filter(|w| w.is_finite() && *w > 0.0);
-        let (frequency_hz, bandwidth_hz) = summary.band().map_or((None, None), |(centre, span)| match channel_width {
-            Some(width) => (Some(centre), Some(span.unwrap_or(0.0) + width)),
-            None => (Some(centre), span),
+        let edges = job.meta.extra.get(crate::vis::BAND_EDGES_KEY).and_then(|e| {
+            let (low, high) = e.split_once(' ')?;
+            let (low, high) = (low.parse::<f64>().ok()?, high.parse::<f64>().ok()?);
+            (low.is_finite() && high > low).then_some((low, high))
         });
+        let (frequency_hz, bandwidth_hz) = match (edges, summary.band()) {
+            (Some((low, high)), Some(_)) => (Some(0.5 * (low + high)), Some(high - low)),
+            (None, Some((centre, span))) => (Some(centre), channel_width.map(|w| span.unwrap_or(0.0) + w).or(span)),
+            (_, None) => (None, None),
+        };
         let in_parts = matches!(source, VisSource::Parts(_));
         if in_parts && self.params.keep_operator {
             return Err(Error::parameter(

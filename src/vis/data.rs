@@ -31,6 +31,11 @@ pub const OBJECT_KEY: &str = "object";
 /// width (edge to edge, as WSClean's `CDELT3`), not the span of their centres.
 pub const CHANNEL_WIDTH_KEY: &str = "channel_width_hz";
 
+/// Metadata key of the band the selected channels cover, edge to edge (`"LOW HIGH"`, Hz),
+/// where a reader knows it (an MS's `CHAN_FREQ` and `CHAN_WIDTH`): an image's band is
+/// WSClean's (all the channels selected, whatever their flags). A split's parts drop it.
+pub const BAND_EDGES_KEY: &str = "band_edges_hz";
+
 /// Group `index` of `count` groups of an observation's channels, lowest frequency first (a
 /// MeasurementSet's `channel_group`: WSClean's `-channels-out`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
