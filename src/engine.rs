@@ -15,7 +15,7 @@ use crate::params::{
     WeightingParams, WriterParams,
 };
 use crate::params::MatParams;
-use crate::job::{JobProducts, ProductSet};
+use crate::job::{ChannelProducts, JobProducts, ProductSet, WriteOptions};
 use crate::request::{DirtyRequest, ImageRequest, StepChoice};
 use crate::weighting::Weighting;
 use crate::{Error, Result};
@@ -150,7 +150,81 @@ impl Engine {
     /// residual update) and returns its products; with the request's `name`, also writes them
     /// as `r2d2 image` does.
     pub fn image(&self, obs: impl Into<Observation>, request: &ImageRequest) -> Result<JobProducts> {
+        one_group(request.ms.channels_out, "image_channels")?;
         self.run_plan(obs.into(), &ImagePlan::of(request)?)
+    }
+
+    /// Images a MeasurementSet in `request.ms.channels_out` groups of its channels, one after
+    /// another on one grid (the pixel of the whole band's longest baseline), and with
+    /// `join_channels` the whole band on it too; with the request's `name`, writes every
+    /// group's products as WSClean names them (`<name>-0000-image.fits`, ...,
+    /// `<name>-MFS-image.fits`) and a cube of each image product (`<name>-cube-image.fits`),
+    /// all together or none.
+    pub fn image_channels(&self, obs: impl Into<Observation>, request: &ImageRequest) -> Result<ChannelProducts> {
+        self.run_channels(obs.into(), ImagePlan::of(request)?)
+    }
+
+    /// [`image_channels`](Self::image_channels)' dirty images and PSFs only (`r2d2 dirty
+    /// --channels-out N`).
+    pub fn dirty_channels(&self, obs: impl Into<Observation>, request: &DirtyRequest) -> Result<ChannelProducts> {
+        self.run_channels(obs.into(), ImagePlan::of_dirty(request)?)
+    }
+
+    fn run_channels(&self, obs: Observation, mut plan: ImagePlan) -> Result<ChannelProducts> {
+        let count = plan.ms.channels_out.unwrap_or(1);
+        let path = match &obs {
+            Observation::Path(path) if crate::vis::format_of(path)? == TableFormat::MeasurementSet => path.clone(),
+            _ => return Err(Error::parameter("channels_out", "channel groups are made of a MeasurementSet's channels, and the observation is not one (a table splits by frequency with a pipeline's split_by)")),
+        };
+        if count == 0 {
+            return Err(Error::parameter("channels_out", "expected at least 1 channel group"));
+        }
+        if plan.model_column.is_some() {
+            return Err(Error::parameter("model_column", "channel groups are not predicted into the MS: image the band as one (without channels_out) to predict its model"));
+        }
+        let id = crate::job::stem_id(&path);
+        if let Some(prefix) = &plan.write {
+            let mut inputs = vec![path.as_path()];
+            inputs.extend(plan.truth.as_deref());
+            ChannelProducts::check_spares_inputs(prefix, &id, count, &inputs, plan.products).map_err(|e| match e {
+                Error::Parameter { message, .. } => Error::parameter("name", message),
+                other => other,
+            })?;
+        }
+        // One grid for every group: the pixel the whole band's longest baseline (of those kept)
+        // gives, as WSClean's -channels-out images every channel at one -scale.
+        if plan.pixel_arcsec.is_none() && plan.longest_baseline.is_none() {
+            let options = crate::vis::OpenOptions { ms: plan.ms.selection()?, ..crate::vis::OpenOptions::default() };
+            let summary = crate::vis::open::open_source(&path, &options)?.1.summary();
+            plan.longest_baseline = Some(plan.uv.longest_kept(summary.max_uv));
+        }
+        let write = plan.write.take();
+        let mut channels = Vec::with_capacity(count);
+        for index in 0..count {
+            let group = ImagePlan { channel_group: Some(crate::vis::ChannelGroup { index, count }), ..plan.clone() };
+            log::info!("{id}: channel group {} of {count}", index + 1);
+            let mut products = self.run_plan(Observation::Path(path.clone()), &group)?;
+            products.id = format!("{id}-{}", crate::job::group_label(index));
+            channels.push(products);
+        }
+        let mfs = match plan.ms.join_channels {
+            true => {
+                log::info!("{id}: the whole band (MFS)");
+                let mut products = self.run_plan(Observation::Path(path.clone()), &plan)?;
+                products.id = format!("{id}-{}", crate::job::MFS_LABEL);
+                Some(products)
+            }
+            false => None,
+        };
+        let all = ChannelProducts { channels, mfs };
+        if let Some(prefix) = write {
+            let options = WriteOptions { previews: plan.products == ProductSet::All, ..WriteOptions::default() };
+            let (_, no_cubes) = all.write(&prefix, &options, plan.products)?;
+            if let Some(why) = no_cubes {
+                log::warn!("{id}: no cubes written: {why}");
+            }
+        }
+        Ok(all)
     }
 
     /// The dirty image and PSF of one observation (what `r2d2 dirty` makes): read, weighted
@@ -158,6 +232,7 @@ impl Engine {
     /// held), with no step; with the request's `name`, also writes `<name>-dirty.fits` and
     /// `<name>-psf.fits`, both or neither, and nothing else.
     pub fn dirty(&self, obs: impl Into<Observation>, request: &DirtyRequest) -> Result<JobProducts> {
+        one_group(request.ms.channels_out, "dirty_channels")?;
         self.run_plan(obs.into(), &ImagePlan::of_dirty(request)?)
     }
 
@@ -186,6 +261,15 @@ impl Engine {
             1 => Ok(delivered.remove(0)),
             n => Err(Error::parameter("observation", format!("made {n} jobs where one was expected"))),
         }
+    }
+}
+
+/// Refuses several channel groups where one job's products are returned (`instead` returns
+/// them all).
+fn one_group(channels_out: Option<usize>, instead: &str) -> Result<()> {
+    match channels_out {
+        Some(n) if n > 1 => Err(Error::parameter("channels_out", format!("{n} channel groups make {n} jobs' products: Engine::{instead} returns them"))),
+        _ => Ok(()),
     }
 }
 
@@ -262,6 +346,7 @@ struct ImagePlan {
     weighting: Option<Weighting>,
     weighting_grid_factor: f64,
     uv: crate::weighting::UvControls,
+    restoring_beam: crate::params::RestoringBeam,
     epsilon: f64,
     oversampling: f64,
     w_term: crate::operator::WTermMode,
@@ -280,6 +365,9 @@ struct ImagePlan {
     ms: crate::request::MsOptions,
     /// `All`: the imaging loop and every product; `Dirty`: the dirty image and the PSF, no step.
     products: ProductSet,
+    /// One group of the MS's channels (`channels_out`); `None`: all of them.
+    #[cfg_attr(not(feature = "ms"), allow(dead_code))]
+    channel_group: Option<crate::vis::ChannelGroup>,
 }
 
 impl ImagePlan {
@@ -301,6 +389,7 @@ impl ImagePlan {
             weighting: grid.weighting()?,
             weighting_grid_factor: grid.weighting_grid_factor,
             uv: grid.uv()?,
+            restoring_beam: grid.restoring_beam()?,
             epsilon: grid.epsilon,
             oversampling: grid.oversampling,
             w_term: grid.w_term,
@@ -318,6 +407,7 @@ impl ImagePlan {
             model_column: request.model_column.clone(),
             ms: request.ms.clone(),
             products: ProductSet::All,
+            channel_group: None,
         })
     }
 
@@ -376,7 +466,7 @@ fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec
     }
     let (weighting, superresolution) = imaging_setting(params)?;
     let weights = WeightingParams { grid_factor: params.weighting_grid_factor, ..WeightingParams::new(weighting).with_uv(params.uv) };
-    let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling, w_term: params.w_term, hold_mb: params.hold_mb, ..GridderParams::default() };
+    let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling, w_term: params.w_term, hold_mb: params.hold_mb, restoring_beam: params.restoring_beam, ..GridderParams::default() };
     let mut stages = vec![read.to("weights"), StageSpec::typed("weights", &weights)?.to("grid")];
     match params.products {
         // The gridded job's images are its products: no step, and no form of D is made.
@@ -579,7 +669,8 @@ pub fn is_ms(path: &Path) -> bool {
 
 #[cfg(feature = "ms")]
 fn ms_read(path: &Path, params: &ImagePlan) -> Result<StageSpec> {
-    StageSpec::typed("read", &MsParams { truth: params.truth.clone(), selection: params.ms.selection()?, ..MsParams::new(path) })
+    let selection = crate::ms::MsSelection { channel_group: params.channel_group, ..params.ms.selection()? };
+    StageSpec::typed("read", &MsParams { truth: params.truth.clone(), selection, ..MsParams::new(path) })
 }
 
 #[cfg(not(feature = "ms"))]

@@ -49,7 +49,7 @@ pub use engine::{BackendChoice, Engine, EngineOptions, GraphOptimization, Observ
 pub use error::{Error, Result};
 pub use imaging::ImageConfig;
 pub use job::{
-    BuildContext, Built, Emit, ImageContext, Imaging, Iterate, IterationMetrics, Job, JobProducts, KindFn, LoopStop, Product, ProductSink, Reads, Registry,
+    BuildContext, Built, ChannelProducts, Emit, ImageContext, Imaging, Iterate, IterationMetrics, Job, JobProducts, KindFn, LoopStop, Product, ProductSink, Reads, Registry,
     RunContext, SourceKind, SourceParams, StopReason, WriteOptions,
 };
 pub use nufft::NufftParams;

@@ -66,6 +66,30 @@ pub struct GridOptions {
     /// as WSClean's -taper-tukey (needs maxuv-l).
     #[arg(long, allow_hyphen_values = true)]
     pub taper_tukey: Option<f64>,
+    /// Restoring beam: circular, of this FWHM (arcsec), not fitted to the PSF, as WSClean's
+    /// -beam-size.
+    #[arg(long, conflicts_with = "beam_shape", allow_hyphen_values = true)]
+    pub beam_size: Option<f64>,
+    /// Restoring beam: FWHM of the major and minor axes (arcsec) and position angle (degrees
+    /// east of north), not fitted to the PSF, as WSClean's -beam-shape.
+    #[arg(long, num_args = 3, value_names = ["MAJOR", "MINOR", "PA"], allow_hyphen_values = true, conflicts_with_all = ["circular_beam", "theoretic_beam"])]
+    pub beam_shape: Option<Vec<f64>>,
+    /// Restoring beam: a circular Gaussian fitted to the PSF's main lobe, as WSClean's
+    /// -circular-beam.
+    #[arg(long)]
+    pub circular_beam: bool,
+    /// Restoring beam: not fitted to the PSF; without a beam size or shape, the theoretic beam
+    /// (as --theoretic-beam; WSClean 3.1 then restores with none).
+    #[arg(long = "no-fit-beam", action = ArgAction::SetFalse)]
+    pub fit_beam: bool,
+    /// Restoring beam: circular, FWHM 1 / the longest baseline kept (radians), or the
+    /// Gaussian taper's FWHM where wider, as WSClean's -theoretic-beam.
+    #[arg(long, conflicts_with_all = ["beam_size", "circular_beam"])]
+    pub theoretic_beam: bool,
+    /// Stokes parameter to image, as WSClean's -pol: only I (from I, XX+YY or RR+LL) is
+    /// imaged here.
+    #[arg(long, default_value = "I", value_parser = PossibleValuesParser::new(["I"]), ignore_case = true)]
+    pub pol: String,
     /// NUFFT accuracy (relative).
     #[arg(long, default_value_t = crate::nufft::DEFAULT_EPSILON)]
     pub epsilon: f64,
@@ -92,6 +116,22 @@ impl GridOptions {
         let uv = crate::weighting::UvControls { minuv_l: self.minuv_l, maxuv_l: self.maxuv_l, taper_gaussian: self.taper_gaussian, taper_tukey: self.taper_tukey };
         uv.check()?;
         Ok(uv)
+    }
+
+    /// The restoring beam asked for, checked: a given size or shape, else the theoretic beam
+    /// where no fit is asked for, else a fit (circular or elliptical).
+    pub fn restoring_beam(&self) -> Result<crate::params::RestoringBeam> {
+        use crate::params::RestoringBeam;
+        let beam = match (self.beam_size, self.beam_shape.as_deref()) {
+            (Some(size), _) => ("beam_size", RestoringBeam::Given { major_arcsec: size, minor_arcsec: size, pa_deg: 0.0 }),
+            (None, Some(&[major_arcsec, minor_arcsec, pa_deg])) => ("beam_shape", RestoringBeam::Given { major_arcsec, minor_arcsec, pa_deg }),
+            (None, Some(other)) => return Err(Error::parameter("beam_shape", format!("expected three numbers, MAJOR MINOR PA, got {}", other.len()))),
+            (None, None) if self.theoretic_beam || !self.fit_beam => ("theoretic_beam", RestoringBeam::Theoretic),
+            (None, None) if self.circular_beam => ("circular_beam", RestoringBeam::FitCircular),
+            (None, None) => ("fit_beam", RestoringBeam::Fit),
+        };
+        beam.1.check(beam.0)?;
+        Ok(beam.1)
     }
 
     /// A dirty image's parameters: what is not asked for at its default.
@@ -137,6 +177,15 @@ pub struct MsOptions {
     /// MS input: channel range START END (END excluded) of every window.
     #[arg(long, num_args = 2, value_names = ["START", "END"])]
     pub channels: Option<Vec<usize>>,
+    /// MS input: image N groups of the channels (all windows' channels in order of
+    /// frequency, cut into N runs of equal counts) one after another on one grid, as WSClean's
+    /// -channels-out: NAME-0000-*.fits, ..., and a cube of each product (NAME-*-cube.fits).
+    #[arg(long)]
+    pub channels_out: Option<usize>,
+    /// MS input, with channels-out: also image the whole band on the same grid, as
+    /// NAME-MFS-*.fits (WSClean's -join-channels MFS products).
+    #[arg(long, requires = "channels_out")]
+    pub join_channels: bool,
 }
 
 impl MsOptions {
@@ -148,6 +197,7 @@ impl MsOptions {
             ("field", self.field.is_some()),
             ("spw", self.spw.is_some()),
             ("channels", self.channels.is_some()),
+            ("channels_out", self.channels_out.is_some()),
         ]
         .into_iter()
         .find_map(|(name, given)| given.then_some(name))
@@ -171,6 +221,7 @@ impl MsOptions {
             }),
             spw: self.spw.clone(),
             channels,
+            channel_group: None,
         })
     }
 }
@@ -454,7 +505,7 @@ pub(crate) fn cab_inputs() -> serde_yaml::Mapping {
         } else if parser == std::any::TypeId::of::<usize>() {
             Some(if several || delimited.is_some() { "List[int]" } else { "int" })
         } else if parser == std::any::TypeId::of::<f64>() {
-            Some("float")
+            Some(if several { "List[float]" } else { "float" })
         } else if parser == std::any::TypeId::of::<PathBuf>() {
             Some("File")
         } else {
@@ -529,8 +580,10 @@ mod tests {
             ("maxuv_l".to_string(), words("2e5")),
             ("taper_gaussian".to_string(), words("1.5")),
             ("taper_tukey".to_string(), words("5000")),
+            ("beam_shape".to_string(), words("10 5 -30")),
         ])
         .unwrap();
+        assert_eq!(r.grid.restoring_beam().unwrap(), crate::params::RestoringBeam::Given { major_arcsec: 10.0, minor_arcsec: 5.0, pa_deg: -30.0 });
         assert_eq!(r.grid.uv().unwrap(), crate::weighting::UvControls { minuv_l: Some(100.0), maxuv_l: Some(2e5), taper_gaussian: Some(1.5), taper_tukey: Some(5000.0) });
         assert_eq!((r.grid.size, r.step.final_clean, r.step.prefetch), (128, false, true));
         assert_eq!((r.ms.channels, r.ms.spw, r.grid.robust, r.grid.w_term), (Some(vec![2, 6]), Some(vec![0, 1]), Some(-0.5), WTermMode::Off));
@@ -549,8 +602,28 @@ mod tests {
         assert!(e.contains("sise") && e.contains("size"), "{e}");
         let e = error(vec![("final_clean", words("no"))]);
         assert!(e.contains("final_clean") && e.contains("true or false"), "{e}");
+        let e = error(vec![("pol", words("IQUV"))]);
+        assert!(e.contains("'pol'") && e.contains("IQUV") && e.contains('I'), "{e}");
+        assert!(ImageRequest::from_named([("pol".to_string(), words("i"))]).is_ok());
         let e = error(vec![("backend", words("onnx"))]);
         assert!(e.contains("'backend'") && e.contains("tract"), "{e}");
+        // The restoring beam: the widths checked, naming the option; the choices combined as
+        // WSClean combines them.
+        use crate::params::RestoringBeam;
+        let beam = |options: Vec<(&str, NamedValue)>| ImageRequest::from_named(options.into_iter().map(|(n, v)| (n.to_string(), v))).and_then(|r| r.grid.restoring_beam());
+        let e = beam(vec![("beam_shape", words("5 10 0"))]).unwrap_err().to_string();
+        assert!(e.contains("beam_shape") && e.contains("major axis first"), "{e}");
+        let e = beam(vec![("beam_size", words("-3"))]).unwrap_err().to_string();
+        assert!(e.contains("beam_size") && e.contains("positive"), "{e}");
+        let e = beam(vec![("beam_shape", words("5 3"))]).unwrap_err().to_string();
+        assert!(e.contains("beam_shape") && e.contains('3'), "{e}");
+        let e = beam(vec![("beam_size", words("3")), ("beam_shape", words("5 3 0"))]).unwrap_err().to_string();
+        assert!(e.contains("'beam_size'") && e.contains("'beam_shape'"), "{e}");
+        assert_eq!(beam(vec![]).unwrap(), RestoringBeam::Fit);
+        assert_eq!(beam(vec![("circular_beam", NamedValue::Switch(true))]).unwrap(), RestoringBeam::FitCircular);
+        assert_eq!(beam(vec![("fit_beam", NamedValue::Switch(false))]).unwrap(), RestoringBeam::Theoretic);
+        assert_eq!(beam(vec![("theoretic_beam", NamedValue::Switch(true))]).unwrap(), RestoringBeam::Theoretic);
+        assert_eq!(beam(vec![("beam_size", words("4")), ("fit_beam", NamedValue::Switch(false))]).unwrap(), RestoringBeam::Given { major_arcsec: 4.0, minor_arcsec: 4.0, pa_deg: 0.0 });
         // A negative length is a value (checked where it is used, naming the field).
         let r = ImageRequest::from_named([("minuv_l".to_string(), words("-5"))]).unwrap();
         let e = r.grid.uv().unwrap_err().to_string();
@@ -568,6 +641,8 @@ mod tests {
         assert_eq!(get("truth", "dtype"), "File");
         assert_eq!(get("no_final_clean", "dtype"), "bool");
         assert_eq!(get("channels", "dtype"), "List[int]");
+        assert_eq!(get("beam_shape", "dtype"), "List[float]");
+        assert_eq!(get("no_fit_beam", "dtype"), "bool");
         assert_eq!(get("spw", "policies")["repeat"], ",");
         assert_eq!(get("backend", "choices"), serde_yaml::from_str::<serde_yaml::Value>("[auto, ort, tract]").unwrap());
     }

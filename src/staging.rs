@@ -180,6 +180,9 @@ impl Journal {
                 .filter_map(|suffix| bytes.strip_suffix(suffix.as_bytes())?.strip_suffix(b"-"))
                 .find(|own| !own.is_empty())
                 .ok_or_else(|| format!("{shown:?} is not the name of a product (<prefix>-dirty.fits, <prefix>-psf.fits, ...)"))?;
+            // Channel groups' products are one prefix's too: `<prefix>-0000-dirty.fits`,
+            // `<prefix>-MFS-...`, `<prefix>-cube-...`.
+            let own = group_base(own);
             if *stem.get_or_insert(own) != own {
                 return Err(format!("{shown:?} is a product of another prefix than the journal's first name"));
             }
@@ -188,6 +191,18 @@ impl Journal {
             }
         }
         Ok(())
+    }
+}
+
+/// `prefix` less a channel group's label (`-0000`, `-MFS`, `-cube`), where it ends with one.
+fn group_base(prefix: &[u8]) -> &[u8] {
+    let Some(dash) = prefix.iter().rposition(|&b| b == b'-') else { return prefix };
+    let label = &prefix[dash + 1..];
+    let is_group = (label.len() == 4 && label.iter().all(u8::is_ascii_digit)) || label == b"MFS" || label == b"cube";
+    if is_group && dash > 0 {
+        &prefix[..dash]
+    } else {
+        prefix
     }
 }
 
@@ -758,6 +773,9 @@ mod tests {
             (vec!["x-dirty.fits", "../victimdir/precious.txt"], vec!["../precious2.txt", &absolute]),
             (vec!["x-dirty.fits"], vec!["x-psf.fits", "notes.txt"]),
             (vec!["x-dirty.fits", "y-psf.fits"], vec![]),
+            // Channel groups: one prefix's, but not another's (`y-0000`).
+            (vec!["x-0000-dirty.fits", "y-0000-psf.fits"], vec![]),
+            (vec!["x-MFS-dirty.fits", "y-psf.fits"], vec![]),
             (vec!["x-dirty.fits", "x-psf.fits", "x-psf.fits"], vec![]),
             (vec!["x-dirty.fits", "x-psf.fits\u{0}"], vec![]),
             (vec!["x-dirty.fits", "."], vec![]),
@@ -790,6 +808,15 @@ mod tests {
         recover(&out).unwrap();
         let after: Vec<_> = tree(root.path()).into_iter().filter(|(p, _)| !p.starts_with(&planted)).collect();
         assert_eq!(after, before, "a file of the directory `earlier` links to was moved");
+    }
+
+    #[test]
+    fn a_channel_groups_products_are_one_prefixs() {
+        let journal = |names: &[&str]| Journal { version: 1, products: names.iter().map(|n| Name::of(std::path::Path::new(n))).collect(), retired: Vec::new() };
+        assert!(journal(&["x-0000-dirty.fits", "x-0001-dirty.fits", "x-MFS-psf.fits", "x-cube-image.fits", "x-dirty.fits"]).check_names().is_ok());
+        for names in [&["x-0000-dirty.fits", "y-0001-dirty.fits"][..], &["x-00001-dirty.fits", "x-dirty.fits"][..], &["x-mfs-dirty.fits", "x-dirty.fits"][..]] {
+            assert!(journal(names).check_names().is_err(), "{names:?}");
+        }
     }
 
     #[test]

@@ -208,6 +208,14 @@ impl UvControls {
         self.maxuv_l.map_or(max_uv, |m| m.min(max_uv))
     }
 
+    /// The theoretic beam's FWHM (radians) of data whose longest baseline is `max_uv`
+    /// wavelengths: 1 / the longest baseline kept, or the Gaussian taper's FWHM where that is
+    /// wider (WSClean's theoretic beam).
+    pub fn theoretic_beam_rad(&self, max_uv: f64) -> f64 {
+        let taper = self.taper_gaussian.map_or(0.0, |fwhm_arcsec| (fwhm_arcsec / 3600.0).to_radians());
+        (1.0 / self.longest_kept(max_uv)).max(taper)
+    }
+
     /// The controls given, by the request's field names (`minuv_l 100, taper_gaussian 2`),
     /// empty where none is.
     pub fn describe(&self) -> String {

@@ -145,3 +145,37 @@ fn the_residual_is_the_dirty_image_of_the_data_less_the_models_visibilities_on_a
     assert!(values[0] < 1e-5, "dirty image vs direct sum: {}", values[0]);
     assert!(values[1] < 1e-5, "residual vs direct sum of y - Phi x: {}", values[1]);
 }
+
+/// The band a real MS's image says it covers (FREQ axis: CRVAL3 the centre, CDELT3 the
+/// bandwidth) is WSClean's for the same MS: the channels edge to edge (their span plus a
+/// channel's width, from `SPECTRAL_WINDOW.CHAN_WIDTH`), not the span of their centres.
+#[test]
+fn real_mss_images_say_the_band_wsclean_says() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    for (tgz, pixel) in [("tNDPPP-generic.MS.tgz", "5.68"), ("tOSKAR.in_MS.tgz", "220"), ("1090008640_birli_trunc.ms.tgz", "600")] {
+        let ms = unpack(d, tgz);
+        check(&r2d2(&["dirty", &ms, "--size", "64", "--pixel-arcsec", pixel, "--name", "r2d2"], d));
+        let scale = format!("{pixel}asec");
+        let out = Command::new("wsclean")
+            .args(["-quiet", "-niter", "0", "-size", "64", "64", "-scale", &scale, "-name", "ws", &ms])
+            .current_dir(d)
+            .output()
+            .expect("wsclean runs (apt-get install wsclean; .ci/run installs it)");
+        assert!(out.status.success(), "wsclean on {ms}: {}", text(&out));
+        let band = |name: &str| {
+            let wcs = r2d2_imaging::fits::read_image(&d.join(format!("{name}-dirty.fits"))).unwrap().wcs.unwrap();
+            (wcs.freq_hz.unwrap(), wcs.bandwidth_hz)
+        };
+        let (ours, theirs) = (band("r2d2"), band("ws"));
+        println!("{ms}: r2d2 {ours:?}, WSClean {theirs:?} (centre, bandwidth in Hz)");
+        let close = |a: f64, b: f64| (a / b - 1.0).abs() < 1e-9;
+        // OSKAR's MS says its channel is 1 Hz wide: CDELT3 = 1 in both, which reads back as the
+        // FITS default (unknown).
+        let same_width = match (ours.1, theirs.1) {
+            (Some(a), Some(b)) => close(a, b),
+            (a, b) => a == b,
+        };
+        assert!(close(ours.0, theirs.0) && same_width, "{ms}: r2d2's band {ours:?}, WSClean's {theirs:?}");
+    }
+}

@@ -155,7 +155,7 @@ def info() -> dict:
     return _native.info(_onnx_runtime())
 
 
-def image(obs, *, id: Optional[str] = None, onnx_runtime: Optional[PathLike] = None, **options) -> Products:
+def image(obs, *, id: Optional[str] = None, onnx_runtime: Optional[PathLike] = None, **options):
     """Image one observation as ``r2d2 image`` does, in this process.
 
     ``obs`` is a path (Parquet, Arrow IPC, MeasurementSet) or a table in the documented
@@ -180,17 +180,20 @@ def image(obs, *, id: Optional[str] = None, onnx_runtime: Optional[PathLike] = N
     Returns :class:`Products`: ``dirty``, ``psf``, ``model``, ``residual`` (and ``image`` for
     CLEAN) as float32 arrays (N, N) in FITS orientation (row 0 at the bottom, as astropy reads
     the files), owned by numpy without a copy; ``metrics``; ``header``; ``write(prefix)``.
+    With ``channels_out=N`` (a MeasurementSet), a list: each channel group's :class:`Products`,
+    lowest frequency first, then the whole band's with ``join_channels=True``.
     The engine runs with the GIL released; Ctrl-C stops it and raises KeyboardInterrupt;
     its errors raise :class:`R2D2Error`."""
     if not isinstance(obs, (str, os.PathLike, _native.Parts)) and not hasattr(obs, "__arrow_c_stream__"):
         raise TypeError(f"obs: expected a path or an Arrow table (pyarrow.Table, RecordBatchReader), got {type(obs).__name__}")
-    products = _native.image(
+    every = _native.image(
         os.fspath(obs) if isinstance(obs, os.PathLike) else obs,
         [(name, _option_value(value)) for name, value in options.items() if value is not None],
         id=id, onnx_runtime=os.fspath(onnx_runtime) if onnx_runtime is not None else _onnx_runtime())
-    for message in products.metrics.get("warnings", []):
-        warnings.warn(f"job {products.id}: {message}", R2D2Warning, stacklevel=2)
-    return products
+    for products in every:
+        for message in products.metrics.get("warnings", []):
+            warnings.warn(f"job {products.id}: {message}", R2D2Warning, stacklevel=2)
+    return every if options.get("channels_out") not in (None, 1) else every[0]
 
 
 def image_options() -> list:

@@ -21,7 +21,7 @@ pub enum OptionValue {
 /// wrapper `r2d2_imaging.image`.
 #[pyfunction]
 #[pyo3(signature = (obs, options, *, id=None, onnx_runtime=None))]
-pub fn image(py: Python<'_>, obs: &Bound<'_, PyAny>, options: Vec<(String, OptionValue)>, id: Option<String>, onnx_runtime: Option<PathBuf>) -> PyResult<Products> {
+pub fn image(py: Python<'_>, obs: &Bound<'_, PyAny>, options: Vec<(String, OptionValue)>, id: Option<String>, onnx_runtime: Option<PathBuf>) -> PyResult<Vec<Products>> {
     let named = options.into_iter().map(|(name, value)| {
         let value = match value {
             OptionValue::Switch(on) => NamedValue::Switch(on),
@@ -39,14 +39,24 @@ pub fn image(py: Python<'_>, obs: &Bound<'_, PyAny>, options: Vec<(String, Optio
         Observation::Batches(MemoryInput::new(id.clone().unwrap_or_else(|| "table".into()), stream))
     };
     let threads = request.grid.threads;
-    let mut products = run_released(py, move |cancel| {
+    // Several channel groups: every group's products, then the whole band's (join_channels).
+    let groups = request.ms.channels_out.is_some_and(|n| n > 1);
+    let products = run_released(py, move |cancel| {
         let engine = Engine::new(EngineOptions { threads, onnx_runtime })?.with_cancel(cancel);
-        engine.image(observation, &request)
+        match groups {
+            true => engine.image_channels(observation, &request).map(|all| all.channels.into_iter().chain(all.mfs).collect::<Vec<_>>()),
+            false => engine.image(observation, &request).map(|one| vec![one]),
+        }
     })?;
-    if let Some(id) = id {
-        products.id = id;
-    }
-    Products::new(py, products)
+    products
+        .into_iter()
+        .map(|mut job| {
+            if let Some(id) = id.as_ref().filter(|_| !groups) {
+                job.id = id.clone();
+            }
+            Products::new(py, job)
+        })
+        .collect()
 }
 
 /// The options `image()` takes (every option of `r2d2 image`, named as the request's fields).

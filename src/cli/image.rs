@@ -21,6 +21,11 @@ pub fn run(args: Args) -> Result<bool> {
     let onnx = request.step.runs_a_series() && request.step.backend != crate::BackendChoice::Tract;
     let (engine, _bar) = super::engine::engine(request.grid.threads, onnx)?;
     let engine = engine.with_cancel(super::run::cancel_on_ctrl_c());
+    let rejected = |p: &crate::JobProducts| p.stop.as_ref().is_some_and(|s| s.reason.is_rejection());
+    if request.ms.channels_out.is_some_and(|n| n > 1) {
+        let groups = engine.image_channels(args.input.as_path(), &request)?;
+        return Ok(groups.channels.iter().chain(&groups.mfs).any(rejected));
+    }
     let products = engine.image(args.input.as_path(), &request)?;
-    Ok(products.stop.as_ref().is_some_and(|s| s.reason.is_rejection()))
+    Ok(rejected(&products))
 }

@@ -28,6 +28,18 @@ const OPTIONS: &[(&str, usize, Spelling)] = &[
     ("maxuv-l", 1, Spelling::Same),
     ("taper-gaussian", 1, Spelling::Same),
     ("taper-tukey", 1, Spelling::Same),
+    ("pol", 1, Spelling::Same),
+    ("channels-out", 1, Spelling::Same),
+    ("channel-range", 2, Spelling::Same),
+    ("join-channels", 0, Spelling::Same),
+    ("beam-size", 1, Spelling::Same),
+    ("beam-shape", 3, Spelling::Same),
+    ("circular-beam", 0, Spelling::Same),
+    ("elliptical-beam", 0, Spelling::Same),
+    ("fit-beam", 0, Spelling::Same),
+    ("no-fit-beam", 0, Spelling::Same),
+    ("theoretic-beam", 0, Spelling::Same),
+    ("beam-fitting-size", 1, Spelling::Counterpart("the beam is fitted to the PSF's main lobe (the pixels above 0.35 of its peak), with no fitting box to size")),
     ("auto-mask", 1, Spelling::Counterpart("there is no CLEAN mask here; a network series needs none")),
     ("multiscale", 0, Spelling::Counterpart("there is no multiscale CLEAN here; a network series images extended emission itself (the default step)")),
     ("padding", 1, Spelling::Counterpart("the gridder's padding is fixed by --oversampling (default 2, as -padding 2)")),
@@ -87,7 +99,7 @@ pub fn rewrite(args: Vec<String>) -> Result<Vec<String>, String> {
         let mut values: Vec<String> = joined.into_iter().collect();
         while values.len() < *count {
             let value = rest.next().ok_or_else(|| format!("-{name}: expected {count} value(s), as in WSClean"))?;
-            if value.starts_with('-') && !is_number(&value) {
+            if value.starts_with('-') && !is_number(&value) && !is_angle(&value) {
                 let got: Vec<&str> = values.iter().map(String::as_str).chain([value.as_str()]).collect();
                 return Err(format!("-{name} {}: expected {count} value(s), as in WSClean{}, but {value} is an option", got.join(" "), example(name)));
             }
@@ -118,6 +130,11 @@ fn is_number(word: &str) -> bool {
     word.parse::<f64>().is_ok()
 }
 
+/// A number with an angle's unit (`-30deg`): a value, not an option.
+fn is_angle(word: &str) -> bool {
+    ["deg", "rad", "asec", "amin"].iter().any(|u| word.strip_suffix(u).is_some_and(is_number))
+}
+
 /// How WSClean writes `-name` with its values, where the values are not plain.
 fn example(name: &str) -> &'static str {
     match name {
@@ -144,6 +161,20 @@ fn translate(name: &str, values: &[String], rest: &mut std::iter::Peekable<std::
         // WSClean's bare number is arcsec here.
         "taper-gaussian" => pair("--taper-gaussian", &arcsec("taper-gaussian", &values[0], 1.0)?.to_string()),
         "minuv-l" | "maxuv-l" | "taper-tukey" => pair(&format!("--{name}"), &values[0]),
+        // The restoring beam: widths in arcsec by default, the position angle in degrees; the
+        // defaults (an elliptical, fitted beam) need no option here.
+        "beam-size" => pair("--beam-size", &arcsec("beam-size", &values[0], 1.0)?.to_string()),
+        "beam-shape" => {
+            let pa = degrees("beam-shape", &values[2])?;
+            let mut words = vec!["--beam-shape".to_string(), arcsec("beam-shape", &values[0], 1.0)?.to_string(), arcsec("beam-shape", &values[1], 1.0)?.to_string()];
+            // A negative angle joined to nothing: clap takes it as a value of the three.
+            words.push(pa.to_string());
+            words
+        }
+        "circular-beam" | "no-fit-beam" | "theoretic-beam" | "join-channels" => vec![format!("--{name}")],
+        "channels-out" => pair("--channels-out", &values[0]),
+        "channel-range" => vec!["--channels".into(), values[0].clone(), values[1].clone()],
+        "elliptical-beam" | "fit-beam" => vec![],
         "weight" => match values[0].to_ascii_lowercase().as_str() {
             "briggs" => {
                 let robust = rest.next().ok_or("-weight briggs: expected the robustness, as in WSClean (-weight briggs 0)")?;
@@ -154,6 +185,10 @@ fn translate(name: &str, values: &[String], rest: &mut std::iter::Peekable<std::
             other => return Err(format!("-weight {other}: expected briggs R, natural or uniform")),
         },
         "data-column" => pair("--data-column", &values[0]),
+        "pol" => match values[0].to_ascii_lowercase().as_str() {
+            "i" => pair("--pol", "I"),
+            _ => return Err(format!("-pol {}: only Stokes I is imaged here (from I, XX and YY, or RR and LL); -pol I, or leave it out", values[0])),
+        },
         "name" => pair("--name", &values[0]),
         "j" => pair("--threads", &values[0]),
         // CLEAN's controls: the same meanings, with --step clean (the engine refuses them with
@@ -172,6 +207,16 @@ fn arcsec(option: &str, text: &str, bare: f64) -> Result<f64, String> {
     let value: f64 = number.trim().parse().map_err(|_| format!("-{option} {text}: expected an angle such as 1.2asec, 0.5amin or 0.01deg"))?;
     if !(value > 0.0 && value.is_finite()) {
         return Err(format!("-{option} {text}: expected a positive angle"));
+    }
+    Ok(value * scale)
+}
+
+/// WSClean's position angle (`45deg`, `0.5rad`; a bare number is degrees) in degrees.
+fn degrees(option: &str, text: &str) -> Result<f64, String> {
+    let (number, scale) = [("deg", 1.0), ("rad", 180.0 / std::f64::consts::PI)].iter().find_map(|(u, s)| text.strip_suffix(u).map(|n| (n, *s))).unwrap_or((text, 1.0));
+    let value: f64 = number.trim().parse().map_err(|_| format!("-{option} ... {text}: expected an angle such as 45deg or 0.5rad"))?;
+    if !value.is_finite() {
+        return Err(format!("-{option} ... {text}: expected a finite angle"));
     }
     Ok(value * scale)
 }
@@ -197,6 +242,15 @@ mod tests {
         );
         assert_eq!(rewrite(words("r2d2 image obs.ms -taper-gaussian 0.5amin")).unwrap()[4], "30");
         assert_eq!(rewrite(words("r2d2 image obs.ms -minuv-l -5")).unwrap(), words("r2d2 image obs.ms --minuv-l=-5"));
+        // The restoring beam: widths in arcsec by default, the angle in degrees.
+        assert_eq!(
+            rewrite(words("r2d2 image obs.ms -beam-shape 1amin 20 -30deg -fit-beam -elliptical-beam")).unwrap(),
+            words("r2d2 image obs.ms --beam-shape 60 20 -30")
+        );
+        assert_eq!(rewrite(words("r2d2 dirty obs.ms -beam-size 0.5amin -no-fit-beam")).unwrap(), words("r2d2 dirty obs.ms --beam-size 30 --no-fit-beam"));
+        assert_eq!(rewrite(words("r2d2 dirty obs.ms -pol i")).unwrap(), words("r2d2 dirty obs.ms --pol I"));
+        assert_eq!(rewrite(words("r2d2 image obs.ms -channels-out 4 -join-channels -channel-range 2 10")).unwrap(), words("r2d2 image obs.ms --channels-out 4 --join-channels --channels 2 10"));
+        assert_eq!(rewrite(words("r2d2 image obs.ms -circular-beam -theoretic-beam")).unwrap(), words("r2d2 image obs.ms --circular-beam --theoretic-beam"));
         // CLEAN's controls, WSClean's meanings (the engine refuses them with a network series).
         assert_eq!(
             rewrite(words("r2d2 image obs.ms --step clean -niter 10000 -auto-threshold 3 -mgain 0.8 -gain 0.1 -threshold 0.001")).unwrap(),
@@ -230,10 +284,13 @@ mod tests {
             // WSClean's -size with one number: the next option is not its height.
             ("r2d2 image obs.ms -size 64 --name x", &["-size 64 --name", "expected 2 value(s)", "--name is an option", "-size 512 512"][..]),
             // Options WSClean has and this engine lacks: named whole, not as clap's `-c`.
-            ("r2d2 image obs.ms -channels-out 4", &["-channels-out: not supported by r2d2 image", "-size, -scale"][..]),
+            ("r2d2 image obs.ms -intervals-out 4", &["-intervals-out: not supported by r2d2 image", "-size, -scale"][..]),
             ("r2d2 dirty obs.ms -taper-edge 4", &["-taper-edge: not supported by r2d2 dirty", "-taper-gaussian"][..]),
             ("r2d2 dirty obs.ms -taper-gaussian -2", &["-taper-gaussian -2", "positive angle"][..]),
             ("r2d2 image obs.ms -multiscale=1", &["-multiscale=1: -multiscale takes no value"][..]),
+            ("r2d2 image obs.ms -beam-shape 10 5 north", &["north", "45deg"][..]),
+            ("r2d2 image obs.ms -pol IQUV", &["-pol IQUV", "only Stokes I"][..]),
+            ("r2d2 image obs.ms -beam-fitting-size 4", &["-beam-fitting-size", "main lobe"][..]),
         ] {
             let e = rewrite(words(line)).unwrap_err();
             for w in words_expected {

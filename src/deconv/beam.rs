@@ -84,12 +84,61 @@ pub fn fit_beam(psf: &[f64], size: usize, pixel_rad: f64) -> Result<Beam> {
     })
 }
 
-/// The restoring beam of a PSF: [`fit_beam`], checked against the PSF's main lobe. A fit that
-/// fails, is wider than the field, or whose area at the main lobe's level differs from the
-/// lobe's by more than a factor 3 (a sparse snapshot's PSF gave a beam of 882 335 deg) is
-/// replaced by a circular beam of the main lobe's area; the warning says so.
-pub fn restoring_beam(psf: &[f64], size: usize, pixel_rad: f64) -> Result<(Beam, Option<String>)> {
-    let fitted = fit_beam(psf, size, pixel_rad);
+/// The shape a restoring beam is fitted with.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum BeamFit {
+    /// An elliptical Gaussian ([`fit_beam`]).
+    Elliptical,
+    /// A circular Gaussian, one width fitted to the whole main lobe ([`fit_circular_beam`]).
+    Circular,
+}
+
+/// The circular Gaussian (peak 1, centre `(N/2, N/2)`) fitted by least squares to the PSF's
+/// main lobe, the same pixels [`fit_beam`] fits: as WSClean's `-circular-beam` fits one width
+/// to the PSF rather than keeping one axis of the elliptical fit, so that a restored source's
+/// peak is that of a beam as wide as the lobe on average.
+pub fn fit_circular_beam(psf: &[f64], size: usize, pixel_rad: f64) -> Result<Beam> {
+    // The elliptical fit checks the PSF and gives the starting width (the geometric mean).
+    let elliptical = fit_beam(psf, size, pixel_rad)?;
+    let peak = psf[(size / 2) * size + size / 2];
+    let lobe = main_lobe(psf, size, peak);
+    let sigma_pix = |fwhm_deg: f64| fwhm_deg.to_radians() / pixel_rad / FWHM_PER_SIGMA;
+    let start = sigma_pix((elliptical.major_deg * elliptical.minor_deg).sqrt());
+    let cost = |sigma: f64| {
+        let a = 0.5 / (sigma * sigma);
+        lobe.iter().map(|&(x, y, p)| ((-a * (x * x + y * y)).exp() - p).powi(2)).sum::<f64>()
+    };
+    // The cost of one width is unimodal between the minor and major axes' widths (and a
+    // little beyond): a golden-section search on ln sigma over a bracket around them.
+    let (mut lo, mut hi) = ((start / 4.0).ln(), (start * 4.0).ln());
+    let ratio = (5f64.sqrt() - 1.0) / 2.0;
+    let (mut x1, mut x2) = (hi - ratio * (hi - lo), lo + ratio * (hi - lo));
+    let (mut f1, mut f2) = (cost(x1.exp()), cost(x2.exp()));
+    while hi - lo > 1e-10 {
+        if f1 <= f2 {
+            (hi, x2, f2) = (x2, x1, f1);
+            x1 = hi - ratio * (hi - lo);
+            f1 = cost(x1.exp());
+        } else {
+            (lo, x1, f1) = (x1, x2, f2);
+            x2 = lo + ratio * (hi - lo);
+            f2 = cost(x2.exp());
+        }
+    }
+    let fwhm_deg = ((0.5 * (lo + hi)).exp() * pixel_rad * FWHM_PER_SIGMA).to_degrees();
+    Ok(Beam { major_deg: fwhm_deg, minor_deg: fwhm_deg, pa_deg: 0.0 })
+}
+
+/// The restoring beam of a PSF: [`fit_beam`] (or [`fit_circular_beam`]), checked against the
+/// PSF's main lobe. A fit that fails, is wider than the field, or whose area at the main
+/// lobe's level differs from the lobe's by more than a factor 3 (a sparse snapshot's PSF gave
+/// a beam of 882 335 deg) is replaced by a circular beam of the main lobe's area; the warning
+/// says so.
+pub fn restoring_beam(psf: &[f64], size: usize, pixel_rad: f64, shape: BeamFit) -> Result<(Beam, Option<String>)> {
+    let fitted = match shape {
+        BeamFit::Elliptical => fit_beam(psf, size, pixel_rad),
+        BeamFit::Circular => fit_circular_beam(psf, size, pixel_rad),
+    };
     let peak = psf.get((size / 2) * size + size / 2).copied().unwrap_or(0.0);
     if !(peak > 0.0) {
         return fitted.map(|b| (b, None));

@@ -9,7 +9,7 @@ mod beam;
 mod hogbom;
 mod restore;
 
-pub use beam::{restoring_beam, Beam};
+pub use beam::{restoring_beam, Beam, BeamFit};
 pub use hogbom::{hogbom, HogbomParams};
 pub use restore::restore;
 

@@ -1,6 +1,6 @@
 //! Tests of CLEAN, the beam fit and restoration.
 
-use super::beam::{fit_beam, restoring_beam, Beam, FWHM_PER_SIGMA};
+use super::beam::{fit_beam, fit_circular_beam, restoring_beam, Beam, BeamFit, FWHM_PER_SIGMA};
 use super::hogbom::{hogbom, HogbomParams};
 use super::restore::{fast_len, restore};
 
@@ -8,17 +8,49 @@ use super::restore::{fast_len, restore};
 fn an_absurd_beam_fit_is_replaced_by_the_main_lobes_circle_with_a_warning() {
     let (n, pixel_rad) = (64, 1e-4);
     // A Gaussian PSF: the fit stands, no warning.
-    let (beam, warning) = restoring_beam(&sky_gaussian(n, 6.0, 3.0, 30.0), n, pixel_rad).unwrap();
+    let (beam, warning) = restoring_beam(&sky_gaussian(n, 6.0, 3.0, 30.0), n, pixel_rad, BeamFit::Elliptical).unwrap();
     assert!(warning.is_none(), "{warning:?}");
     assert!((beam.major_deg - fit_beam(&sky_gaussian(n, 6.0, 3.0, 30.0), n, pixel_rad).unwrap().major_deg).abs() < 1e-12);
     // One baseline's fringes (a snapshot of two antennas): the main lobe is a stripe across
     // the whole field, which no beam narrower than the field fits.
     let psf: Vec<f64> = (0..n * n).map(|k| (2.0 * std::f64::consts::PI * ((k % n) as f64 - (n / 2) as f64) / 16.0).cos()).collect();
-    let (beam, warning) = restoring_beam(&psf, n, pixel_rad).unwrap();
+    let (beam, warning) = restoring_beam(&psf, n, pixel_rad, BeamFit::Elliptical).unwrap();
     let warning = warning.expect("a warning");
     assert!(warning.contains("circular beam"), "{warning}");
     let field_deg = (n as f64 * pixel_rad).to_degrees();
     assert!(beam.major_deg == beam.minor_deg && beam.major_deg < field_deg, "{beam:?} field {field_deg}");
+    // The circular fit has the same fallback.
+    let (circle, warning) = restoring_beam(&psf, n, pixel_rad, BeamFit::Circular).unwrap();
+    assert!(warning.is_some() && circle == beam, "{circle:?} {warning:?}");
+}
+
+#[test]
+fn a_circular_beam_fit_finds_a_circles_width_and_the_best_single_width_of_an_ellipse() {
+    let (n, pixel_rad) = (64, 1e-4_f64);
+    let pix_deg = pixel_rad.to_degrees();
+    // A circular Gaussian PSF: its own FWHM.
+    let beam = fit_circular_beam(&sky_gaussian(n, 5.0, 5.0, 0.0), n, pixel_rad).unwrap();
+    assert!((beam.major_deg / pix_deg - 5.0).abs() < 1e-6 && beam.minor_deg == beam.major_deg && beam.pa_deg == 0.0, "{beam:?}");
+    // A 6 x 3 pixel ellipse: one width between the axes, which no nearby width fits better
+    // over the main lobe (the pixels above 0.35 of the peak and the centre's neighbours).
+    let psf = sky_gaussian(n, 6.0, 3.0, 30.0);
+    let fwhm = fit_circular_beam(&psf, n, pixel_rad).unwrap().major_deg / pix_deg;
+    assert!(fwhm > 3.0 && fwhm < 6.0 && (fwhm / 18f64.sqrt() - 1.0).abs() < 0.15, "{fwhm}");
+    let cost = |fwhm_pix: f64| {
+        let circle = sky_gaussian(n, fwhm_pix, fwhm_pix, 0.0);
+        let (c, mut total) = (n / 2, 0.0);
+        for iy in 0..n {
+            for ix in 0..n {
+                let k = iy * n + ix;
+                let neighbour = ix.abs_diff(c) <= 1 && iy.abs_diff(c) <= 1;
+                if psf[k] >= 0.35 || neighbour {
+                    total += (circle[k] - psf[k]).powi(2);
+                }
+            }
+        }
+        total
+    };
+    assert!(cost(fwhm) < cost(fwhm * 1.01) && cost(fwhm) < cost(fwhm * 0.99), "{} {} {}", cost(fwhm * 0.99), cost(fwhm), cost(fwhm * 1.01));
 }
 use crate::nufft::NufftParams;
 use crate::operator::{doubled_psf, ImageGeometry, MeasurementOperator};

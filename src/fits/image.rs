@@ -244,7 +244,43 @@ pub fn write_image(
     beam: Option<&Beam>,
     extra: &[(&str, String)],
 ) -> Result<()> {
-    check_shape(image.len(), nx, ny)?;
+    write_planes(path, image, nx, ny, 1, wcs, unit, beam, extra)
+}
+
+/// Writes `planes` images of `nx x ny` pixels (plane after plane in `cube`) as a FITS cube
+/// whose FREQ axis runs over them: `wcs.freq_hz` is the first plane's frequency and
+/// `wcs.bandwidth_hz` the step from plane to plane (CDELT3). Otherwise as [`write_image`].
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn write_cube(
+    path: &Path,
+    cube: &[f64],
+    nx: usize,
+    ny: usize,
+    planes: usize,
+    wcs: &ImageWcs,
+    unit: BrightnessUnit,
+    beam: Option<&Beam>,
+    extra: &[(&str, String)],
+) -> Result<()> {
+    if wcs.freq_hz.is_none() || wcs.bandwidth_hz.is_none() {
+        return Err(Error::parameter("wcs", "a cube needs its first plane's frequency and the step between planes"));
+    }
+    write_planes(path, cube, nx, ny, planes, wcs, unit, beam, extra)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn write_planes(
+    path: &Path,
+    image: &[f64],
+    nx: usize,
+    ny: usize,
+    planes: usize,
+    wcs: &ImageWcs,
+    unit: BrightnessUnit,
+    beam: Option<&Beam>,
+    extra: &[(&str, String)],
+) -> Result<()> {
+    check_shape(image.len(), nx, ny.checked_mul(planes).unwrap_or(0))?;
     check_wcs(wcs)?;
     if let Some(beam) = beam {
         check_beam(beam)?;
@@ -255,7 +291,7 @@ pub fn write_image(
 
     let tmp = TempSibling::new(path)?;
     let tmp_name = fitsio_path(tmp.path())?;
-    let header = Header { nx, ny, wcs, unit, beam, extra: &extra };
+    let header = Header { nx, ny, planes, wcs, unit, beam, extra: &extra };
     write_fits(&tmp_name, &pixels, &header).map_err(|e| {
         let disk = why_unwritable(path);
         let kind = disk.as_ref().map_or(std::io::ErrorKind::Other, std::io::Error::kind);
@@ -419,6 +455,8 @@ fn bytes_per_pixel(image_type: ImageType) -> usize {
 struct Header<'a> {
     nx: usize,
     ny: usize,
+    /// Planes along the FREQ axis (1: an image).
+    planes: usize,
     wcs: &'a ImageWcs,
     unit: BrightnessUnit,
     beam: Option<&'a Beam>,
@@ -443,9 +481,6 @@ fn remove_primary_extname(file: &mut FitsFile) -> fitsio::errors::Result<()> {
     }
 }
 
-/// How the restoring beam (BMAJ, BMIN, BPA) was fitted: `crate::deconv::fit_beam`.
-pub(crate) const BEAM_FIT_NOTE: &str = "Restoring beam: an elliptical Gaussian fitted by least squares to the PSF main lobe (the pixels connected to the centre above 0.35 of the peak, as CASA psfcutoff); WSClean fits a box ten FWHM wide, sidelobes included. A fit that fails is replaced by the main lobe's circle, with a warning.";
-
 /// A HISTORY record (cfitsio continues a long one over several cards).
 fn write_history(file: &mut FitsFile, text: &str) -> fitsio::errors::Result<()> {
     let text = std::ffi::CString::new(text).map_err(|_| fitsio::errors::Error::Message("HISTORY text with a NUL byte".into()))?;
@@ -465,7 +500,7 @@ fn write_history(file: &mut FitsFile, text: &str) -> fitsio::errors::Result<()> 
 fn write_fits(file_name: &str, pixels: &[f32], h: &Header) -> fitsio::errors::Result<()> {
     // fitsio takes the shape slowest axis first: [STOKES, FREQ, Dec, RA].
     let dimensions: Vec<usize> =
-        if h.wcs.freq_hz.is_some() { vec![1, 1, h.ny, h.nx] } else { vec![1, h.ny, h.nx] };
+        if h.wcs.freq_hz.is_some() { vec![1, h.planes, h.ny, h.nx] } else { vec![1, h.ny, h.nx] };
     let description = ImageDescription { data_type: ImageType::Float, dimensions: &dimensions };
     let mut file = FitsFile::create(file_name).with_custom_primary(&description).overwrite().open()?;
     let hdu = file.primary_hdu()?;
@@ -473,13 +508,14 @@ fn write_fits(file_name: &str, pixels: &[f32], h: &Header) -> fitsio::errors::Re
     let f = &mut file;
 
     hdu.write_key(f, "BUNIT", h.unit.as_fits())?;
+    // What the pixels are, as CASA's images say it (viewers label the axis with it).
+    if h.unit != BrightnessUnit::Ratio {
+        hdu.write_key(f, "BTYPE", "Intensity")?;
+    }
     if let Some(beam) = h.beam {
         hdu.write_key(f, "BMAJ", (beam.major_deg, "[deg] restoring beam major axis FWHM"))?;
         hdu.write_key(f, "BMIN", (beam.minor_deg, "[deg] restoring beam minor axis FWHM"))?;
         hdu.write_key(f, "BPA", (beam.pa_deg, "[deg] restoring beam position angle"))?;
-        // Beams fitted differently differ for the same PSF (WSClean's by several per cent in
-        // area on MeerKAT's): the header says how this one was.
-        write_history(f, BEAM_FIT_NOTE)?;
     }
     hdu.write_key(f, "EQUINOX", 2000.0f64)?;
     hdu.write_key(f, "RADESYS", "FK5")?;
@@ -508,6 +544,7 @@ fn write_fits(file_name: &str, pixels: &[f32], h: &Header) -> fitsio::errors::Re
             // WSClean (its -predict) requires CDELT3: an unknown bandwidth is written as the
             // FITS default, 1, which this module reads back as unknown.
             match h.wcs.bandwidth_hz {
+                Some(step) if h.planes > 1 => hdu.write_key(f, "CDELT3", (step, "[Hz] from plane to plane"))?,
                 Some(bandwidth) => hdu.write_key(f, "CDELT3", (bandwidth, "[Hz] bandwidth"))?,
                 None => hdu.write_key(f, "CDELT3", (UNKNOWN_BANDWIDTH, "bandwidth unknown (the FITS default)"))?,
             }
@@ -1129,8 +1166,6 @@ mod tests {
         assert_eq!(hdu.read_key::<f64>(&mut f, "GAIN").unwrap(), 0.1);
         assert_eq!(hdu.read_key::<String>(&mut f, "OBJECT").unwrap(), "3C 286");
         assert_eq!(hdu.read_key::<f64>(&mut f, "BMAJ").unwrap(), 2e-3);
-        let raw = std::fs::read(&path).unwrap();
-        assert!(raw.windows(40).any(|w| w == &BEAM_FIT_NOTE.as_bytes()[..40]), "a HISTORY card says how the beam was fitted");
         assert_eq!(hdu.read_key::<String>(&mut f, "RADESYS").unwrap(), "FK5");
     }
 

@@ -7,6 +7,7 @@
 //! [`BuildContext`], ...) are its instances for jobs, as the built-in stages and an embedding
 //! program use them.
 
+mod channels;
 mod contract;
 #[cfg(feature = "ms")]
 mod model_column;
@@ -17,6 +18,8 @@ mod run;
 mod source;
 mod state;
 
+pub use channels::ChannelProducts;
+pub(crate) use channels::{group_label, MFS_LABEL};
 pub use contract::{BuildContext, Built, Emit, KindFn, Registry, SourceKind};
 pub use product::Product;
 #[cfg(feature = "ms")]

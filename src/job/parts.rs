@@ -54,7 +54,12 @@ pub fn emit_parts(
             None => id.to_string(),
         };
         log::info!("job {job_id}: {} visibilities", part.vis.len());
-        let mut job = Job::new(job_id, meta.clone(), part.vis);
+        let mut meta = meta.clone();
+        if part.suffix.is_some() {
+            // The band of the whole selection is not a part's: its samples' frequencies say it.
+            meta.extra.remove(crate::vis::BAND_EDGES_KEY);
+        }
+        let mut job = Job::new(job_id, meta, part.vis);
         job.split_max_uv = split_max_uv;
         if let Some(t) = truth {
             job.truth = Some(t.image.clone());

@@ -264,7 +264,7 @@ impl JobProducts {
     /// The keywords beside the WCS that every product carries, as WSClean records them where
     /// the meaning is shared: telescope, object, date, the MS column imaged, the weighting, and
     /// what made the model (the series and its networks run, or the step).
-    fn extra_keywords(&self) -> Vec<(&'static str, String)> {
+    pub(crate) fn extra_keywords(&self) -> Vec<(&'static str, String)> {
         let mut cards: Vec<(&'static str, String)> = self.text_keywords().into_iter().map(|(k, v)| (k, crate::fits::header_text(&v).0)).collect();
         cards.push(("R2D2ITER", self.iterations.to_string()));
         cards
@@ -302,8 +302,17 @@ impl JobProducts {
                 cards.push(("WEIGHTUV", uv.join(" ")));
             }
         }
-        if let Some(series) = self.settings.get("step").and_then(|s| s.get("series")).and_then(|s| s.as_str()) {
-            cards.push(("R2D2SER", series.to_string()));
+        // What made the model: `clean`, `series NAME` or `plugin FILE` (and the series alone,
+        // as earlier products carry it).
+        if let Some(step) = self.settings.get("step") {
+            let text = |key: &str| step.get(key).and_then(|s| s.as_str());
+            let what = match text("kind") {
+                Some("series") => text("series").map(|name| format!("series {name}")),
+                Some("plugin") => Some(format!("plugin {}", text("library").unwrap_or("?"))),
+                other => other.map(str::to_string),
+            };
+            cards.extend(what.map(|w| ("R2D2STEP", w)));
+            cards.extend(text("series").map(|series| ("R2D2SER", series.to_string())));
         }
         cards
     }
@@ -313,6 +322,11 @@ impl JobProducts {
         let mut lines = vec![("HISTORY", format!("r2d2-imaging {} imaged job '{}'", env!("CARGO_PKG_VERSION"), fits_safe(&self.id)))];
         if let Some(command) = command_line() {
             lines.push(("HISTORY", format!("command: {}", fits_safe(&command))));
+        }
+        // Beams chosen differently differ for the same PSF (fitted ones by several per cent in
+        // area between imagers): the header says how this one was.
+        if let Some(how) = self.beam.and(self.settings.get("restoring_beam")).and_then(|b| b.get("how")).and_then(|h| h.as_str()) {
+            lines.push(("HISTORY", fits_safe(how)));
         }
         lines
     }
@@ -387,8 +401,15 @@ impl JobProducts {
         let inputs: Vec<&Path> = self.inputs.iter().map(PathBuf::as_path).collect();
         check_spares_inputs(prefix, &self.id, &inputs, set)?;
         let (dir, stem) = prefix_parts(prefix, &self.id);
-        let target = |suffix: &str| dir.join(format!("{stem}-{suffix}"));
         let mut staging = Staging::new(&dir)?;
+        self.stage_into(&mut staging, &dir, &stem, options, set)?;
+        let count = staging.targets().count();
+        Ok(Staged { staging, count, dir, stem })
+    }
+
+    /// Writes the products of `set` into `staging`, named `<dir>/<stem>-<product>`.
+    pub(crate) fn stage_into(&self, staging: &mut Staging, dir: &Path, stem: &str, options: &WriteOptions, set: ProductSet) -> Result<()> {
+        let target = |suffix: &str| dir.join(format!("{stem}-{suffix}"));
         let n = self.size;
         let mut extra = self.extra_keywords();
         extra.extend(self.history());
@@ -441,8 +462,7 @@ impl JobProducts {
                 }
             }
         }
-        let count = staging.targets().count();
-        Ok(Staged { staging, count, dir, stem })
+        Ok(())
     }
 
     /// `<prefix>-metrics.parquet`: one row per iteration (`iteration`, `residual_ratio`,
@@ -492,7 +512,7 @@ impl JobProducts {
 }
 
 /// The directory and file-name part of job `id`'s products at `prefix` (`{job}` replaced).
-fn prefix_parts(prefix: &str, id: &str) -> (PathBuf, String) {
+pub(crate) fn prefix_parts(prefix: &str, id: &str) -> (PathBuf, String) {
     let prefix = PathBuf::from(prefix.replace("{job}", id));
     let dir = prefix.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new(".")).to_path_buf();
     let stem = prefix.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| id.to_string());

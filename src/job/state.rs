@@ -175,6 +175,9 @@ pub struct Job {
     /// The super-resolution of the job's pixel: its longest baseline is sampled this many
     /// times finer than Nyquist (set with the geometry).
     pub superresolution: Option<f64>,
+    /// The theoretic restoring beam's FWHM (radians): 1 / the longest baseline kept, or the
+    /// Gaussian taper's FWHM where that is wider, as WSClean's (set with the geometry).
+    pub theoretic_beam_rad: Option<f64>,
     /// The longest baseline (wavelengths) of all the jobs one table was split into, for a job
     /// of a split: the pixel size is set by it, so that every job of the split is imaged on one
     /// grid (time windows of A and C configurations compared or stacked pixel for pixel).
@@ -221,6 +224,7 @@ impl Job {
             warnings: Vec::new(),
             settings: BTreeMap::new(),
             superresolution: None,
+            theoretic_beam_rad: None,
             split_max_uv: None,
             track_hours: None,
             integration_s: None,

@@ -5,7 +5,7 @@ use super::{
     MsSelection, Origin, SampleColumns, StokesI, Window, ORIGIN_KEY,
 };
 use crate::vis::TableReader;
-use crate::vis::{ObservationMeta, DATE_OBS_KEY, OBJECT_KEY};
+use crate::vis::{ObservationMeta, BAND_EDGES_KEY, CHANNEL_WIDTH_KEY, DATE_OBS_KEY, OBJECT_KEY};
 use crate::{Error, Result};
 use arrow::array::{ArrayRef, BooleanArray, Float64Array, Int32Array, RecordBatch};
 use arrow::datatypes::{DataType, Field, Schema, SchemaRef};
@@ -173,6 +173,13 @@ impl MsReader {
             extra.insert(OBJECT_KEY.to_string(), layout.field_name.trim().to_string());
         }
         extra.insert("ms_data_column".to_string(), selection.data_column.clone());
+        if let Some(width) = layout.windows.iter().flatten().filter_map(|w| w.width_hz).reduce(f64::max) {
+            extra.insert(CHANNEL_WIDTH_KEY.to_string(), width.to_string());
+        }
+        let edges: Option<Vec<(f64, f64)>> = layout.windows.iter().flatten().map(|w| w.edges_hz).collect();
+        if let Some((low, high)) = edges.and_then(|e| e.into_iter().reduce(|a, b| (a.0.min(b.0), a.1.max(b.1)))) {
+            extra.insert(BAND_EDGES_KEY.to_string(), format!("{low} {high}"));
+        }
         if let Some(date) = &layout.date_obs {
             extra.insert(DATE_OBS_KEY.to_string(), date.clone());
         }

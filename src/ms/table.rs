@@ -6,6 +6,7 @@ use super::error::MsError;
 use crate::{Error, Result};
 use casacure::record::{ArrayData, RecordValue};
 use casacure::Table;
+use crate::vis::ChannelGroup;
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::path::{Path, PathBuf};
@@ -76,7 +77,13 @@ pub struct MsSelection {
     /// Channels `[start, end)` of every selected window (WSClean's `-channel-range`).
     #[serde(default)]
     pub channels: Option<[usize; 2]>,
+    /// One of `count` groups of the selected channels, as WSClean's `-channels-out` makes
+    /// them: every selected channel of every window, in order of frequency, cut into `count`
+    /// runs of (nearly) equal numbers of channels; `index` counts from the lowest frequency.
+    #[serde(default)]
+    pub channel_group: Option<ChannelGroup>,
 }
+
 
 /// The data column chosen as WSClean chooses it ([`MsSelection::data_column`]).
 pub const AUTO_DATA_COLUMN: &str = "auto";
@@ -87,7 +94,7 @@ pub fn default_data_column() -> String {
 
 impl Default for MsSelection {
     fn default() -> Self {
-        MsSelection { data_column: default_data_column(), field: None, spw: None, channels: None }
+        MsSelection { data_column: default_data_column(), field: None, spw: None, channels: None, channel_group: None }
     }
 }
 
@@ -262,6 +269,12 @@ pub(crate) struct Window {
     pub channels: std::ops::Range<usize>,
     /// Every channel's frequency, Hz.
     pub frequencies: Vec<f64>,
+    /// The widest |CHAN_WIDTH| (Hz) of the channels kept; `None` where the MS has no
+    /// usable widths.
+    pub width_hz: Option<f64>,
+    /// The lowest and highest edge (Hz) of the channels kept (`CHAN_FREQ` -+ half of
+    /// |`CHAN_WIDTH`|), where the widths are usable.
+    pub edges_hz: Option<(f64, f64)>,
     pub ncorr: usize,
     pub stokes: StokesI,
 }
@@ -470,6 +483,7 @@ pub(crate) fn read_windows(ms: &Path, selection: &MsSelection, used_dd: &[usize]
     let spw_table = open_subtable(ms, "SPECTRAL_WINDOW")?;
     let spw_path = ms.join("SPECTRAL_WINDOW");
     let freq_column = column_index(&spw_table, &spw_path, "CHAN_FREQ")?;
+    let width_column = optional_column(&spw_table, "CHAN_WIDTH");
     let pol_table = open_subtable(ms, "POLARIZATION")?;
     let pol_path = ms.join("POLARIZATION");
     let corr_column = column_index(&pol_table, &pol_path, "CORR_TYPE")?;
@@ -512,6 +526,16 @@ pub(crate) fn read_windows(ms: &Path, selection: &MsSelection, used_dd: &[usize]
                 ))
             }
         };
+        // Widths only describe the band (the bandwidth written as CDELT3): a missing or
+        // unreadable column leaves it unknown rather than failing the read.
+        let widths: Option<Vec<f64>> = width_column
+            .and_then(|column| read_cells(&spw_table, &spw_path, column, "CHAN_WIDTH", spw as u64, 1).ok())
+            .and_then(|cell| cell.first().and_then(array_f64).map(|(_, widths)| widths))
+            .filter(|widths| widths.len() == nchan && widths[channels.clone()].iter().all(|w| w.is_finite() && *w != 0.0));
+        let width_hz = widths.as_ref().and_then(|w| w[channels.clone()].iter().map(|w| w.abs()).reduce(f64::max));
+        let edges_hz = widths.as_ref().and_then(|w| {
+            channels.clone().map(|c| (frequencies[c] - 0.5 * w[c].abs(), frequencies[c] + 0.5 * w[c].abs())).reduce(|a, b| (a.0.min(b.0), a.1.max(b.1)))
+        });
         if pol as u64 >= pol_table.nrows() {
             return Err(invalid(&dd_path, format!("row {dd} refers to polarization {pol}; POLARIZATION has {} rows", pol_table.nrows())));
         }
@@ -531,9 +555,59 @@ pub(crate) fn read_windows(ms: &Path, selection: &MsSelection, used_dd: &[usize]
                 ),
             )
         })?;
-        windows[dd] = Some(Window { spw, channels, frequencies, ncorr: codes.len(), stokes });
+        windows[dd] = Some(Window { spw, channels, frequencies, width_hz, edges_hz, ncorr: codes.len(), stokes });
+    }
+    if let Some(group) = selection.channel_group {
+        keep_channel_group(&mut windows, group, &spw_path)?;
     }
     Ok(windows)
+}
+
+/// Narrows `windows` to the channels of `group`: every window's selected channels (a window
+/// that two data descriptions share counted once), in order of frequency, cut into
+/// `group.count` runs as WSClean's `-channels-out` cuts them (run `k` holds channels
+/// `k n / count .. (k + 1) n / count` of `n`). A window left with none is not read.
+fn keep_channel_group(windows: &mut [Option<Window>], group: ChannelGroup, spw_path: &Path) -> Result<()> {
+    let ChannelGroup { index, count } = group;
+    let mut all: Vec<(f64, usize, usize)> = Vec::new();
+    let mut seen = std::collections::BTreeSet::new();
+    for window in windows.iter().flatten() {
+        if seen.insert(window.spw) {
+            all.extend(window.channels.clone().map(|c| (window.frequencies[c], window.spw, c)));
+        }
+    }
+    let n = all.len();
+    if count == 0 || index >= count {
+        return Err(Error::parameter("channel_group", format!("expected group index < count (count >= 1), got {index} of {count}")));
+    }
+    if count > n {
+        return Err(Error::parameter("channels_out", format!("{count} channel groups asked for, but the selection has {n} channels")));
+    }
+    all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)).then(a.2.cmp(&b.2)));
+    let kept = &all[index * n / count..(index + 1) * n / count];
+    for slot in windows.iter_mut() {
+        let Some(window) = slot else { continue };
+        let mine: Vec<usize> = kept.iter().filter(|k| k.1 == window.spw).map(|k| k.2).collect();
+        match (mine.iter().min(), mine.iter().max()) {
+            (Some(&lo), Some(&hi)) if hi - lo + 1 == mine.len() => {
+                // The group's edges: its first and last channels' (the widths were read for
+                // the whole selection).
+                if let (Some(width), Some(_)) = (window.width_hz, window.edges_hz) {
+                    let (f0, f1) = (window.frequencies[lo], window.frequencies[hi]);
+                    window.edges_hz = Some((f0.min(f1) - 0.5 * width, f0.max(f1) + 0.5 * width));
+                }
+                window.channels = lo..hi + 1
+            }
+            (Some(_), Some(_)) => {
+                return Err(invalid(
+                    spw_path,
+                    format!("spectral window {}: the channels of group {index} of {count} are not contiguous (CHAN_FREQ out of order?)", window.spw),
+                ))
+            }
+            _ => *slot = None,
+        }
+    }
+    Ok(())
 }
 
 /// Stokes I samples column by column, as the Parquet format has them (baselines in metres),

@@ -3,7 +3,9 @@
 //! samples and the gridder's limits (`crate::vis::grid_planned` builds it); none where no stage
 //! after it updates a residual (the dirty image and the PSFs are the job's products).
 
+use super::params::RestoringBeam;
 use super::params::GridderParams;
+use crate::deconv::Beam;
 use crate::imaging::WTerm;
 use crate::job::{Emit, Imaging, Job};
 use crate::nufft::NufftParams;
@@ -16,6 +18,7 @@ use std::sync::Arc;
 
 pub struct GridderStage {
     params: PlanParams,
+    restoring_beam: RestoringBeam,
 }
 
 impl GridderStage {
@@ -27,10 +30,11 @@ impl GridderStage {
         if !(config.hold_mb >= 0.0) || !config.hold_mb.is_finite() {
             return Err(Error::parameter("hold_mb", format!("expected a number of megabytes >= 0, got {}", config.hold_mb)));
         }
+        config.restoring_beam.check("restoring_beam")?;
         if config.chunk_rows == 0 {
             return Err(Error::parameter("chunk_rows", "expected at least 1 sample per chunk"));
         }
-        Ok(GridderStage { params: PlanParams { nufft, w_term: config.w_term, hold_bytes: config.hold_mb * 1e6, chunk_rows: config.chunk_rows, threads, keep_operator, images_only } })
+        Ok(GridderStage { params: PlanParams { nufft, w_term: config.w_term, hold_bytes: config.hold_mb * 1e6, chunk_rows: config.chunk_rows, threads, keep_operator, images_only }, restoring_beam: config.restoring_beam })
     }
 }
 
@@ -39,7 +43,20 @@ impl Stage<Job> for GridderStage {
         let (geometry, rule) = job.take_weights("gridder")?;
         let source = job.take_visibilities("gridder")?;
         let summary = source.summary();
-        let (frequency_hz, bandwidth_hz) = summary.band().map_or((None, None), |(centre, width)| (Some(centre), width));
+        // The band edge to edge: the selected channels' where the reader knows them (WSClean's
+        // CRVAL3 and CDELT3), else the samples' span plus a channel's width where that is
+        // known, else the span of the samples' frequencies (none for one frequency).
+        let channel_width = job.meta.extra.get(crate::vis::CHANNEL_WIDTH_KEY).and_then(|w| w.parse::<f64>().ok()).filter(|w| w.is_finite() && *w > 0.0);
+        let edges = job.meta.extra.get(crate::vis::BAND_EDGES_KEY).and_then(|e| {
+            let (low, high) = e.split_once(' ')?;
+            let (low, high) = (low.parse::<f64>().ok()?, high.parse::<f64>().ok()?);
+            (low.is_finite() && high > low).then_some((low, high))
+        });
+        let (frequency_hz, bandwidth_hz) = match (edges, summary.band()) {
+            (Some((low, high)), Some(_)) => (Some(0.5 * (low + high)), Some(high - low)),
+            (None, Some((centre, span))) => (Some(centre), channel_width.map(|w| span.unwrap_or(0.0) + w).or(span)),
+            (_, None) => (None, None),
+        };
         let in_parts = matches!(source, VisSource::Parts(_));
         if in_parts && self.params.keep_operator {
             return Err(Error::parameter(
@@ -74,9 +91,10 @@ impl Stage<Job> for GridderStage {
         );
         crate::sanity::check_image(&g.dirty, geometry.size, "dirty image", "the visibilities or weights hold values too large to image (check the data column and the weights)")?;
         let psf_convolution = Arc::new(PsfConvolution::new(geometry.size, &g.psf_2n)?);
-        let beam = match crate::deconv::restoring_beam(&g.psf, geometry.size, geometry.pixel_rad) {
-            Ok((b, warning)) => {
+        let beam = match choose_beam(self.restoring_beam, &g.psf, geometry.size, geometry.pixel_rad, job.theoretic_beam_rad) {
+            Ok((b, how, warning)) => {
                 warning.into_iter().for_each(|w| job.warn(w));
+                job.settings.insert("restoring_beam".into(), serde_json::json!({"how": how, "major_arcsec": b.major_deg * 3600.0, "minor_arcsec": b.minor_deg * 3600.0, "pa_deg": b.pa_deg}));
                 Some(b)
             }
             Err(e) => {
@@ -94,3 +112,33 @@ impl Stage<Job> for GridderStage {
         emit(Port::Next, job)
     }
 }
+
+/// The restoring beam `choice` asks for, how it was chosen (for the products' headers), and a
+/// warning where a fit was replaced.
+fn choose_beam(choice: RestoringBeam, psf: &[f64], size: usize, pixel_rad: f64, theoretic_rad: Option<f64>) -> Result<(Beam, String, Option<String>)> {
+    use crate::deconv::{restoring_beam, BeamFit};
+    let fitted = |shape| restoring_beam(psf, size, pixel_rad, shape).map(|(beam, warning)| (beam, warning));
+    Ok(match choice {
+        RestoringBeam::Fit => {
+            let (beam, warning) = fitted(BeamFit::Elliptical)?;
+            (beam, BEAM_FITTED.into(), warning)
+        }
+        RestoringBeam::FitCircular => {
+            let (beam, warning) = fitted(BeamFit::Circular)?;
+            (beam, BEAM_FITTED_CIRCULAR.into(), warning)
+        }
+        RestoringBeam::Theoretic => {
+            let fwhm = theoretic_rad.ok_or_else(|| Error::parameter("restoring_beam", "a theoretic beam needs the longest baseline, and the job has none"))?.to_degrees();
+            (Beam { major_deg: fwhm, minor_deg: fwhm, pa_deg: 0.0 }, BEAM_THEORETIC.into(), None)
+        }
+        RestoringBeam::Given { major_arcsec, minor_arcsec, pa_deg } => {
+            (Beam { major_deg: major_arcsec / 3600.0, minor_deg: minor_arcsec / 3600.0, pa_deg }, BEAM_GIVEN.into(), None)
+        }
+    })
+}
+
+/// How each restoring beam was chosen, as the products' headers say it.
+pub(crate) const BEAM_FITTED: &str = "Restoring beam: an elliptical Gaussian fitted by least squares to the PSF main lobe (the pixels connected to the centre above 0.35 of the peak, as CASA psfcutoff); WSClean fits a box ten FWHM wide, sidelobes included. A fit that fails is replaced by the main lobe's circle, with a warning.";
+const BEAM_FITTED_CIRCULAR: &str = "Restoring beam: a circular Gaussian fitted by least squares to the PSF main lobe (the pixels connected to the centre above 0.35 of the peak), as asked (circular beam). A fit that fails is replaced by the main lobe's circle, with a warning.";
+const BEAM_THEORETIC: &str = "Restoring beam: not fitted; circular, FWHM 1 / the longest baseline kept (radians), or the Gaussian taper's FWHM where wider, as WSClean's theoretic beam.";
+const BEAM_GIVEN: &str = "Restoring beam: given by the request (beam size or shape), not fitted to the PSF.";

@@ -29,6 +29,46 @@ pub struct GridderParams {
     /// Samples per chunk of a pass over the data: what gridding holds beside its grids (about
     /// 100 bytes a sample). Default 1048576.
     pub chunk_rows: usize,
+    /// The restoring beam: `fit` (default: an elliptical Gaussian fitted to the PSF's main
+    /// lobe), `fit_circular` (one width fitted to it), `theoretic` (circular, 1 / the longest
+    /// baseline kept, or the Gaussian taper's width where that is wider) or
+    /// `{given: {major_arcsec, minor_arcsec, pa_deg}}`.
+    pub restoring_beam: RestoringBeam,
+}
+
+/// How the restoring beam is chosen (WSClean's `-fit-beam`, `-circular-beam`,
+/// `-no-fit-beam`/`-theoretic-beam`, `-beam-shape`/`-beam-size`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Deserialize, Serialize)]
+#[serde(rename_all = "snake_case", deny_unknown_fields)]
+pub enum RestoringBeam {
+    /// An elliptical Gaussian fitted to the PSF's main lobe.
+    #[default]
+    Fit,
+    /// A circular Gaussian fitted to the PSF's main lobe.
+    FitCircular,
+    /// Circular, FWHM 1 / the longest baseline kept (radians), or the Gaussian taper's FWHM
+    /// where that is wider: no PSF fit.
+    Theoretic,
+    /// Given: FWHM of the axes in arcsec, position angle in degrees east of north.
+    Given { major_arcsec: f64, minor_arcsec: f64, pa_deg: f64 },
+}
+
+impl RestoringBeam {
+    /// `Err` names `field` and what was expected, for a given beam that is not one.
+    pub fn check(&self, field: &str) -> crate::Result<()> {
+        if let RestoringBeam::Given { major_arcsec, minor_arcsec, pa_deg } = *self {
+            if !(major_arcsec > 0.0 && major_arcsec.is_finite() && minor_arcsec > 0.0 && minor_arcsec.is_finite()) {
+                return Err(crate::Error::parameter(field, format!("expected positive beam widths in arcsec, got {major_arcsec} x {minor_arcsec}")));
+            }
+            if minor_arcsec > major_arcsec {
+                return Err(crate::Error::parameter(field, format!("the minor axis ({minor_arcsec} arcsec) is wider than the major axis ({major_arcsec} arcsec): give the major axis first")));
+            }
+            if !pa_deg.is_finite() {
+                return Err(crate::Error::parameter(field, format!("expected a finite position angle in degrees, got {pa_deg}")));
+            }
+        }
+        Ok(())
+    }
 }
 
 /// The default of [`GridderParams::hold_mb`].
@@ -42,7 +82,7 @@ pub const DEFAULT_CHUNK_ROWS: usize = 1 << 20;
 impl Default for GridderParams {
     fn default() -> Self {
         let NufftParams { epsilon, oversampling } = NufftParams::default();
-        GridderParams { epsilon, oversampling, w_term: WTermMode::Auto, hold_mb: DEFAULT_HOLD_MB, chunk_rows: DEFAULT_CHUNK_ROWS }
+        GridderParams { epsilon, oversampling, w_term: WTermMode::Auto, hold_mb: DEFAULT_HOLD_MB, chunk_rows: DEFAULT_CHUNK_ROWS, restoring_beam: RestoringBeam::Fit }
     }
 }
 

@@ -210,7 +210,7 @@ mod tests {
     #[test]
     fn the_selection_keys_are_the_stages_and_errors_name_them() {
         let params = read("    data_column: DATA\n    spw: [0, 2]\n    channels: [1, 4]\n    batch_rows: 10\n").unwrap();
-        let selection = MsSelection { data_column: "DATA".into(), field: None, spw: Some(vec![0, 2]), channels: Some([1, 4]) };
+        let selection = MsSelection { data_column: "DATA".into(), field: None, spw: Some(vec![0, 2]), channels: Some([1, 4]), channel_group: None };
         assert_eq!(params, MsParams { selection, batch_rows: 10, ..MsParams::new("a.ms") });
         assert_eq!(read("").unwrap(), MsParams::new("a.ms"));
         // An unknown key, a misspelt selection key among them.

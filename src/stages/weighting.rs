@@ -190,6 +190,7 @@ impl Stage<Job> for WeightingStage {
         }
         job.geometry = Some(geometry);
         job.superresolution = geometry.superresolution(max_uv);
+        job.theoretic_beam_rad = (max_uv > 0.0).then(|| self.uv.theoretic_beam_rad(summary.max_uv));
         (job.track_hours, job.integration_s) = (summary.times.track_hours(), summary.times.integration_s());
         if let Some(problem) = truth_grid_problem(&job, geometry) {
             job.warn(problem);

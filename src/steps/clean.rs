@@ -129,6 +129,11 @@ impl NetworkStep for CleanStep {
         Ok(self.config.chosen_because.iter().cloned().collect())
     }
 
+    fn describe(&self) -> Option<serde_json::Value> {
+        let c = &self.config;
+        Some(serde_json::json!({"kind": "clean", "gain": c.gain, "major_gain": c.major_gain, "auto_threshold": c.auto_threshold, "threshold": c.threshold, "max_components": c.max_components}))
+    }
+
     fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>> {
         let c = &self.config;
         if iteration == 1 {

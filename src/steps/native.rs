@@ -145,6 +145,12 @@ impl NetworkStep for NativeStep {
         self.iterations
     }
 
+    fn describe(&self) -> Option<serde_json::Value> {
+        // The library's file name: where it lay is the machine's, not the product's.
+        let name = self.library.file_name().map(|n| n.to_string_lossy().into_owned());
+        Some(serde_json::json!({"kind": "plugin", "library": name}))
+    }
+
     fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>> {
         let n = input.size;
         let path = &self.library;

@@ -26,6 +26,25 @@ pub const DATE_OBS_KEY: &str = "date_obs";
 /// Metadata key of what was observed (FITS `OBJECT`): an MS's field name, or a table's own.
 pub const OBJECT_KEY: &str = "object";
 
+/// Metadata key of the widest channel's width (Hz) of the samples, where a reader knows it (an
+/// MS's `SPECTRAL_WINDOW.CHAN_WIDTH`): an image's bandwidth is its channels' span plus one
+/// width (edge to edge, as WSClean's `CDELT3`), not the span of their centres.
+pub const CHANNEL_WIDTH_KEY: &str = "channel_width_hz";
+
+/// Metadata key of the band the selected channels cover, edge to edge (`"LOW HIGH"`, Hz),
+/// where a reader knows it (an MS's `CHAN_FREQ` and `CHAN_WIDTH`): an image's band is
+/// WSClean's (all the channels selected, whatever their flags). A split's parts drop it.
+pub const BAND_EDGES_KEY: &str = "band_edges_hz";
+
+/// Group `index` of `count` groups of an observation's channels, lowest frequency first (a
+/// MeasurementSet's `channel_group`: WSClean's `-channels-out`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Deserialize, serde::Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct ChannelGroup {
+    pub index: usize,
+    pub count: usize,
+}
+
 /// What the observation is, as recorded in the file's key-value metadata.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ObservationMeta {

@@ -406,7 +406,7 @@ impl NetworkStep for OnnxStep {
 
     fn describe(&self) -> Option<serde_json::Value> {
         let domain = self.series.manifest.as_ref().and_then(|m| m.validity.as_ref());
-        Some(serde_json::json!({"series": self.series.name, "networks": self.iterations, "domain": domain}))
+        Some(serde_json::json!({"kind": "series", "series": self.series.name, "networks": self.iterations, "domain": domain}))
     }
 
     fn realisations(&self) -> usize {
