@@ -225,3 +225,22 @@ def test_info_names_the_build_and_backend():
     i = r2d2_imaging.info()
     assert set(i) >= {"version", "gridder_simd", "threads", "onnx_backend", "model_dirs", "series"}
     assert "ONNX Runtime" in i["onnx_backend"] or "tract" in i["onnx_backend"], i
+
+
+def test_channel_groups_return_every_groups_products(r2d2_bin, tmp_path):
+    """`channels_out` (a MeasurementSet): a list of every group's products, then the whole
+    band's with `join_channels`, each the files written at `name` (WSClean's names)."""
+    obs = tmp_path / "obs.parquet"
+    subprocess.run([str(r2d2_bin), "-q", "simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64",
+                    "--nfreq", "2", "--freq-ratio", "1.2", "--seed", "3", "--out", str(obs)], check=True)
+    subprocess.run([str(r2d2_bin), "-q", "convert", str(obs), str(tmp_path / "obs.ms")], check=True)
+    every = r2d2_imaging.image(tmp_path / "obs.ms", size=64, step="clean", iterations=1, threads=1, channels_out=2,
+                               join_channels=True, name=str(tmp_path / "out/obs"))
+    assert [p.id for p in every] == ["obs-0000", "obs-0001", "obs-MFS"]
+    for label, p in zip(["0000", "0001", "MFS"], every):
+        data, header = read_fits(tmp_path / f"out/obs-{label}-model.fits")
+        np.testing.assert_array_equal(p.model, data, err_msg=label)
+    cube, header = read_fits(tmp_path / "out/obs-cube-image.fits")
+    assert cube.shape == (2, 64, 64) and header["CTYPE3"] == "FREQ"
+    one = r2d2_imaging.image(tmp_path / "obs.ms", size=64, step="clean", iterations=1, threads=1, channels_out=1)
+    assert isinstance(one, r2d2_imaging.Products)
