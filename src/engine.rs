@@ -320,6 +320,9 @@ impl ImagePlan {
                     crate::primary_beam::check_limit(request.primary_beam_limit).map_err(|m| Error::parameter("primary_beam_limit", m))?;
                     Some(request.primary_beam_limit)
                 }
+                false if request.primary_beam_limit != crate::primary_beam::DEFAULT_LIMIT => {
+                    return Err(Error::parameter("primary_beam_limit", "blanks the primary-beam corrected images: give apply_primary_beam as well"));
+                }
                 false => None,
             },
             ms: request.ms.clone(),

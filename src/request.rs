@@ -290,7 +290,7 @@ pub struct ImageRequest {
     pub apply_primary_beam: bool,
     /// The beam level below which the primary-beam corrected images are blank (NaN), as
     /// WSClean's -primary-beam-limit (whose own default is lower, for EveryBeam's beams).
-    #[arg(long, default_value_t = crate::primary_beam::DEFAULT_LIMIT, requires = "apply_primary_beam")]
+    #[arg(long, default_value_t = crate::primary_beam::DEFAULT_LIMIT)]
     pub primary_beam_limit: f64,
     /// Ground truth (FITS) for SNR/logSNR per iteration.
     #[arg(long)]
@@ -563,8 +563,6 @@ mod tests {
         assert!(e.contains("sise") && e.contains("size"), "{e}");
         let e = error(vec![("final_clean", words("no"))]);
         assert!(e.contains("final_clean") && e.contains("true or false"), "{e}");
-        let e = error(vec![("primary_beam_limit", words("0.2"))]);
-        assert!(e.contains("'primary_beam_limit'") && e.contains("'apply_primary_beam'") && !e.contains("--"), "{e}");
         let e = error(vec![("backend", words("onnx"))]);
         assert!(e.contains("'backend'") && e.contains("tract"), "{e}");
         // A negative length is a value (checked where it is used, naming the field).

@@ -147,7 +147,7 @@ fn a_telescope_without_a_beam_model_is_refused_before_imaging() {
     assert!(!out.status.success() && err.contains("primary") && err.contains("between 0 and 1"), "{err}");
     let out = r2d2(&["image", "atca.parquet", "--primary-beam-limit", "0.2", "--name", "x"], d);
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && err.contains("--apply-primary-beam"), "{err}");
+    assert!(!out.status.success() && err.contains("primary-beam-limit") && err.contains("apply_primary_beam as well"), "{err}");
     // r2d2 dirty writes the dirty image and the PSF only.
     let out = r2d2(&["dirty", "atca.parquet", "-apply-primary-beam", "--name", "x"], d);
     let err = String::from_utf8_lossy(&out.stderr);
