@@ -362,6 +362,8 @@ struct ImagePlan {
     truth: Option<PathBuf>,
     write: Option<String>,
     model_column: Option<String>,
+    /// With `--apply-primary-beam`: the beam level below which the corrected images are blank.
+    primary_beam: Option<f64>,
     ms: crate::request::MsOptions,
     /// `All`: the imaging loop and every product; `Dirty`: the dirty image and the PSF, no step.
     products: ProductSet,
@@ -405,6 +407,16 @@ impl ImagePlan {
             truth: request.truth.clone(),
             write: request.name.clone(),
             model_column: request.model_column.clone(),
+            primary_beam: match request.apply_primary_beam {
+                true => {
+                    crate::primary_beam::check_limit(request.primary_beam_limit).map_err(|m| Error::parameter("primary_beam_limit", m))?;
+                    Some(request.primary_beam_limit)
+                }
+                false if request.primary_beam_limit != crate::primary_beam::DEFAULT_LIMIT => {
+                    return Err(Error::parameter("primary_beam_limit", "blanks the primary-beam corrected images: give apply_primary_beam as well"));
+                }
+                false => None,
+            },
             ms: request.ms.clone(),
             products: ProductSet::All,
             channel_group: None,
@@ -426,6 +438,10 @@ fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec
         ProductSet::Dirty => (params.clone(), None),
     };
     let params = &resolved;
+    // A telescope without a beam model is refused before imaging, not after.
+    if params.primary_beam.is_some() {
+        crate::job::beam_telescope(observation_telescope(&obs).as_deref().unwrap_or(""))?;
+    }
     let (mut inputs, mut parted) = (Vec::new(), Vec::new());
     let truth = params.truth.clone();
     let reads_ms = matches!(&obs, Observation::Path(path) if is_ms(path));
@@ -491,7 +507,15 @@ fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec
             // A dirty image's FITS files only, as `r2d2 dirty` (and WSClean's `-niter 0`) writes
             // them: no previews, no metrics, nothing else at the prefix touched.
             let dirty = params.products == ProductSet::Dirty;
-            let write = WriterParams { prefix: prefix.clone(), model_column: params.model_column.clone(), products: params.products, previews: !dirty, ..WriterParams::default() };
+            let write = WriterParams {
+                prefix: prefix.clone(),
+                model_column: params.model_column.clone(),
+                products: params.products,
+                previews: !dirty,
+                apply_primary_beam: params.primary_beam.is_some(),
+                primary_beam_limit: params.primary_beam.unwrap_or(crate::primary_beam::DEFAULT_LIMIT),
+                ..WriterParams::default()
+            };
             stages.push(StageSpec::typed("write", &write)?);
         }
         None => stages.push(products),

@@ -38,6 +38,7 @@ mod operator;
 mod parallel;
 mod pipeline;
 mod preview;
+mod primary_beam;
 mod progress;
 mod sanity;
 mod stages;

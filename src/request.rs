@@ -333,6 +333,16 @@ pub struct ImageRequest {
     /// MODEL_DATA; created when missing).
     #[arg(long)]
     pub model_column: Option<String>,
+    /// Also write NAME-pb.fits, the telescope's published primary beam at the observation's
+    /// centre frequency about the phase centre (the VLA's of EVLA Memo 195; MeerKAT's L band of
+    /// Mauch et al. 2020), and NAME-image-pb.fits and NAME-model-pb.fits divided by it, blank
+    /// where it is below primary_beam_limit, as WSClean's -apply-primary-beam.
+    #[arg(long)]
+    pub apply_primary_beam: bool,
+    /// The beam level below which the primary-beam corrected images are blank (NaN), as
+    /// WSClean's -primary-beam-limit (whose own default is lower, for EveryBeam's beams).
+    #[arg(long, default_value_t = crate::primary_beam::DEFAULT_LIMIT)]
+    pub primary_beam_limit: f64,
     /// Ground truth (FITS) for SNR/logSNR per iteration.
     #[arg(long)]
     pub truth: Option<PathBuf>,
@@ -564,6 +574,7 @@ mod tests {
         assert_eq!((r.grid.superresolution, r.grid.weighting.as_deref(), r.name.as_deref()), (None, None, None));
         assert_eq!((r.step.step.as_str(), r.step.prefetch, r.step.final_clean), (crate::steps::series::AUTO_SERIES, true, true));
         assert_eq!((r.grid.w_term, r.step.backend, r.step.graph_optimization), (WTermMode::Auto, BackendChoice::Auto, GraphOptimization::Auto));
+        assert_eq!((r.apply_primary_beam, r.primary_beam_limit), (false, crate::primary_beam::DEFAULT_LIMIT));
     }
 
     #[test]
@@ -581,9 +592,12 @@ mod tests {
             ("taper_gaussian".to_string(), words("1.5")),
             ("taper_tukey".to_string(), words("5000")),
             ("beam_shape".to_string(), words("10 5 -30")),
+            ("apply_primary_beam".to_string(), NamedValue::Switch(true)),
+            ("primary_beam_limit".to_string(), words("0.2")),
         ])
         .unwrap();
         assert_eq!(r.grid.restoring_beam().unwrap(), crate::params::RestoringBeam::Given { major_arcsec: 10.0, minor_arcsec: 5.0, pa_deg: -30.0 });
+        assert_eq!((r.apply_primary_beam, r.primary_beam_limit), (true, 0.2));
         assert_eq!(r.grid.uv().unwrap(), crate::weighting::UvControls { minuv_l: Some(100.0), maxuv_l: Some(2e5), taper_gaussian: Some(1.5), taper_tukey: Some(5000.0) });
         assert_eq!((r.grid.size, r.step.final_clean, r.step.prefetch), (128, false, true));
         assert_eq!((r.ms.channels, r.ms.spw, r.grid.robust, r.grid.w_term), (Some(vec![2, 6]), Some(vec![0, 1]), Some(-0.5), WTermMode::Off));
@@ -640,6 +654,7 @@ mod tests {
         assert_eq!(get("epsilon", "dtype"), "float");
         assert_eq!(get("truth", "dtype"), "File");
         assert_eq!(get("no_final_clean", "dtype"), "bool");
+        assert_eq!((get("apply_primary_beam", "dtype"), get("primary_beam_limit", "dtype")), ("bool".into(), "float".into()));
         assert_eq!(get("channels", "dtype"), "List[int]");
         assert_eq!(get("beam_shape", "dtype"), "List[float]");
         assert_eq!(get("no_fit_beam", "dtype"), "bool");

@@ -70,7 +70,7 @@ const PREFIX: &str = ".r2d2-staging-";
 /// `r2d2 dirty` write no others): a journal naming anything else was not written by a commit.
 pub const PRODUCT_SUFFIXES: &[&str] = &[
     "dirty.fits", "dirty.png", "psf.fits", "psf.png", "model.fits", "model.png", "residual.fits", "residual.png", "image.fits", "image.png",
-    "uncertainty.fits", "uncertainty.png", "metrics.json", "metrics.parquet",
+    "uncertainty.fits", "uncertainty.png", "metrics.json", "metrics.parquet", "pb.fits", "image-pb.fits", "model-pb.fits",
 ];
 /// The commit journal, and the name it is written under before being renamed into place.
 const JOURNAL: &str = "journal.json";
@@ -162,7 +162,9 @@ impl Journal {
     /// shared output directory cannot have files elsewhere, or other files here, removed or
     /// overwritten. The message names the first offending name.
     fn check_names(&self) -> std::result::Result<(), String> {
-        let mut stem: Option<&[u8]> = None;
+        // The prefixes the names so far can all be products of (`a-image-pb.fits` is prefix
+        // `a`'s `image-pb.fits` or prefix `a-image`'s `pb.fits`).
+        let mut stems: Option<Vec<&[u8]>> = None;
         let mut seen = std::collections::BTreeSet::new();
         for name in self.products.iter().chain(&self.retired) {
             let bytes = name.bytes();
@@ -175,17 +177,25 @@ impl Journal {
             if !plain {
                 return Err(format!("{shown:?} is not a plain file name (it holds a separator or NUL, or is empty, `.` or `..`)"));
             }
-            let own = PRODUCT_SUFFIXES
+            let own: Vec<&[u8]> = PRODUCT_SUFFIXES
                 .iter()
                 .filter_map(|suffix| bytes.strip_suffix(suffix.as_bytes())?.strip_suffix(b"-"))
-                .find(|own| !own.is_empty())
-                .ok_or_else(|| format!("{shown:?} is not the name of a product (<prefix>-dirty.fits, <prefix>-psf.fits, ...)"))?;
-            // Channel groups' products are one prefix's too: `<prefix>-0000-dirty.fits`,
-            // `<prefix>-MFS-...`, `<prefix>-cube-...`.
-            let own = group_base(own);
-            if *stem.get_or_insert(own) != own {
+                .filter(|own| !own.is_empty())
+                // Channel groups' products are one prefix's too: `<prefix>-0000-dirty.fits`,
+                // `<prefix>-MFS-...`, `<prefix>-cube-...`.
+                .map(group_base)
+                .collect();
+            if own.is_empty() {
+                return Err(format!("{shown:?} is not the name of a product (<prefix>-dirty.fits, <prefix>-psf.fits, ...)"));
+            }
+            let common: Vec<&[u8]> = match stems.take() {
+                None => own,
+                Some(earlier) => earlier.into_iter().filter(|s| own.contains(s)).collect(),
+            };
+            if common.is_empty() {
                 return Err(format!("{shown:?} is a product of another prefix than the journal's first name"));
             }
+            stems = Some(common);
             if !seen.insert(bytes) {
                 return Err(format!("{shown:?} is named twice"));
             }

@@ -22,7 +22,7 @@ const FLOORS: &[(&str, &[&str])] = &[
 fn floor_of_module(top: &str) -> Option<&'static str> {
     Some(match top {
         "error" | "limits" | "parallel" | "allocator" | "progress" | "staging" | "sanity" | "fft2" => "base",
-        "nufft" | "operator" | "weighting" | "deconv" | "metrics" => "numerics",
+        "nufft" | "operator" | "weighting" | "deconv" | "metrics" | "primary_beam" => "numerics",
         "vis" | "fits" | "ms" => "data",
         "pipeline" => "pipeline",
         "imaging" | "simulate" | "job" | "steps" | "preview" => "domain",

@@ -40,6 +40,8 @@ const OPTIONS: &[(&str, usize, Spelling)] = &[
     ("no-fit-beam", 0, Spelling::Same),
     ("theoretic-beam", 0, Spelling::Same),
     ("beam-fitting-size", 1, Spelling::Counterpart("the beam is fitted to the PSF's main lobe (the pixels above 0.35 of its peak), with no fitting box to size")),
+    ("apply-primary-beam", 0, Spelling::Same),
+    ("primary-beam-limit", 1, Spelling::Same),
     ("auto-mask", 1, Spelling::Counterpart("there is no CLEAN mask here; a network series needs none")),
     ("multiscale", 0, Spelling::Counterpart("there is no multiscale CLEAN here; a network series images extended emission itself (the default step)")),
     ("padding", 1, Spelling::Counterpart("the gridder's padding is fixed by --oversampling (default 2, as -padding 2)")),
@@ -47,6 +49,10 @@ const OPTIONS: &[(&str, usize, Spelling)] = &[
 
 /// WSClean's CLEAN controls, which `r2d2 image --step clean` takes with the same meanings.
 const CLEAN_OPTIONS: [&str; 5] = ["niter", "auto-threshold", "threshold", "mgain", "gain"];
+
+/// WSClean's primary-beam options, which `r2d2 image` takes and `r2d2 dirty` (the dirty image
+/// and the PSF only) refuses.
+const PRIMARY_BEAM_OPTIONS: [&str; 2] = ["apply-primary-beam", "primary-beam-limit"];
 
 /// `args` (the whole command line) with WSClean's spellings rewritten, for `image` and `dirty`
 /// only; `Err` names the option and its counterpart.
@@ -105,6 +111,9 @@ pub fn rewrite(args: Vec<String>) -> Result<Vec<String>, String> {
             }
             values.push(value);
         }
+        if command == "dirty" && PRIMARY_BEAM_OPTIONS.contains(&name) {
+            return Err(format!("-{name} (WSClean's option): r2d2 dirty writes the dirty image and the PSF only; r2d2 image --apply-primary-beam writes NAME-pb.fits, NAME-image-pb.fits and NAME-model-pb.fits"));
+        }
         if command == "dirty" && CLEAN_OPTIONS.contains(&name) {
             // WSClean's dirty image is `-niter 0`: what r2d2 dirty makes.
             if name == "niter" && values[0].parse::<u64>() == Ok(0) {
@@ -160,7 +169,6 @@ fn translate(name: &str, values: &[String], rest: &mut std::iter::Peekable<std::
         "scale" => pair("--pixel-arcsec", &arcsec("scale", &values[0], 3600.0)?.to_string()),
         // WSClean's bare number is arcsec here.
         "taper-gaussian" => pair("--taper-gaussian", &arcsec("taper-gaussian", &values[0], 1.0)?.to_string()),
-        "minuv-l" | "maxuv-l" | "taper-tukey" => pair(&format!("--{name}"), &values[0]),
         // The restoring beam: widths in arcsec by default, the position angle in degrees; the
         // defaults (an elliptical, fitted beam) need no option here.
         "beam-size" => pair("--beam-size", &arcsec("beam-size", &values[0], 1.0)?.to_string()),
@@ -175,6 +183,8 @@ fn translate(name: &str, values: &[String], rest: &mut std::iter::Peekable<std::
         "channels-out" => pair("--channels-out", &values[0]),
         "channel-range" => vec!["--channels".into(), values[0].clone(), values[1].clone()],
         "elliptical-beam" | "fit-beam" => vec![],
+        "minuv-l" | "maxuv-l" | "taper-tukey" | "primary-beam-limit" => pair(&format!("--{name}"), &values[0]),
+        "apply-primary-beam" => vec!["--apply-primary-beam".to_string()],
         "weight" => match values[0].to_ascii_lowercase().as_str() {
             "briggs" => {
                 let robust = rest.next().ok_or("-weight briggs: expected the robustness, as in WSClean (-weight briggs 0)")?;
@@ -251,6 +261,11 @@ mod tests {
         assert_eq!(rewrite(words("r2d2 dirty obs.ms -pol i")).unwrap(), words("r2d2 dirty obs.ms --pol I"));
         assert_eq!(rewrite(words("r2d2 image obs.ms -channels-out 4 -join-channels -channel-range 2 10")).unwrap(), words("r2d2 image obs.ms --channels-out 4 --join-channels --channels 2 10"));
         assert_eq!(rewrite(words("r2d2 image obs.ms -circular-beam -theoretic-beam")).unwrap(), words("r2d2 image obs.ms --circular-beam --theoretic-beam"));
+        // The primary beam: a switch and its cut.
+        assert_eq!(
+            rewrite(words("r2d2 image -apply-primary-beam obs.ms -primary-beam-limit 0.2")).unwrap(),
+            words("r2d2 image --apply-primary-beam obs.ms --primary-beam-limit 0.2")
+        );
         // CLEAN's controls, WSClean's meanings (the engine refuses them with a network series).
         assert_eq!(
             rewrite(words("r2d2 image obs.ms --step clean -niter 10000 -auto-threshold 3 -mgain 0.8 -gain 0.1 -threshold 0.001")).unwrap(),
@@ -276,6 +291,8 @@ mod tests {
         for (line, words_expected) in [
             ("r2d2 dirty obs.ms -niter 10000", &["-niter", "dirty image only", "--step clean"][..]),
             ("r2d2 dirty obs.ms -niter 0 -mgain 0.8", &["-mgain", "dirty image only"][..]),
+            ("r2d2 dirty obs.ms -apply-primary-beam", &["-apply-primary-beam", "dirty image and the PSF only", "r2d2 image --apply-primary-beam"][..]),
+            ("r2d2 image obs.ms -apply-primary-beam=1", &["-apply-primary-beam takes no value"][..]),
             ("r2d2 image obs.ms -multiscale", &["-multiscale"][..]),
             ("r2d2 image -size 512 256 obs.ms", &["square"][..]),
             ("r2d2 image --size 512 256 obs.ms", &["square"][..]),

@@ -227,16 +227,17 @@ pub(crate) fn check_output_file(path: &Path, fits: bool) -> std::result::Result<
 /// The file gets axes RA, Dec, FREQ (only when `wcs.freq_hz` is known: a made-up
 /// frequency would be worse than none) and STOKES (I), float32 pixels, the celestial
 /// WCS, BUNIT, the beam if given, and the `extra` keywords; values of `extra` that parse
-/// as numbers are written as numbers, others as strings.
+/// as numbers are written as numbers, others as strings. Pixels must be finite, unless given
+/// as [`Pixels::blanked`] (NaN allowed).
 ///
 /// Nothing is ever left half-written at `path`: the file is written to a temporary
 /// sibling and renamed over the target, and the temporary is removed on failure.
 /// Header floats are written by cfitsio with 15 significant digits (as in WSClean's
 /// files); the `EXTNAME = '_PRIMARY'` fitsio adds to the primary HDU is removed.
 #[allow(clippy::too_many_arguments)]
-pub fn write_image(
+pub fn write_image<'a>(
     path: &Path,
-    image: &[f64],
+    image: impl Into<Pixels<'a>>,
     nx: usize,
     ny: usize,
     wcs: &ImageWcs,
@@ -244,7 +245,7 @@ pub fn write_image(
     beam: Option<&Beam>,
     extra: &[(&str, String)],
 ) -> Result<()> {
-    write_planes(path, image, nx, ny, 1, wcs, unit, beam, extra)
+    write_planes(path, image.into(), nx, ny, 1, wcs, unit, beam, extra)
 }
 
 /// Writes `planes` images of `nx x ny` pixels (plane after plane in `cube`) as a FITS cube
@@ -265,13 +266,13 @@ pub(crate) fn write_cube(
     if wcs.freq_hz.is_none() || wcs.bandwidth_hz.is_none() {
         return Err(Error::parameter("wcs", "a cube needs its first plane's frequency and the step between planes"));
     }
-    write_planes(path, cube, nx, ny, planes, wcs, unit, beam, extra)
+    write_planes(path, cube.into(), nx, ny, planes, wcs, unit, beam, extra)
 }
 
 #[allow(clippy::too_many_arguments)]
 fn write_planes(
     path: &Path,
-    image: &[f64],
+    image: Pixels<'_>,
     nx: usize,
     ny: usize,
     planes: usize,
@@ -280,6 +281,7 @@ fn write_planes(
     beam: Option<&Beam>,
     extra: &[(&str, String)],
 ) -> Result<()> {
+    let Pixels { values: image, blanks } = image;
     check_shape(image.len(), nx, ny.checked_mul(planes).unwrap_or(0))?;
     check_wcs(wcs)?;
     if let Some(beam) = beam {
@@ -287,7 +289,7 @@ fn write_planes(
     }
     let extra =
         extra.iter().map(|(name, value)| ExtraKeyword::parse(name, value)).collect::<Result<Vec<_>>>()?;
-    let pixels = to_float32(image)?;
+    let pixels = to_float32(image, blanks)?;
 
     let tmp = TempSibling::new(path)?;
     let tmp_name = fitsio_path(tmp.path())?;
@@ -689,10 +691,45 @@ fn check_beam(beam: &Beam) -> Result<()> {
     Ok(())
 }
 
-/// Converts to the float32 the file stores, refusing values float32 cannot hold.
-fn to_float32(image: &[f64]) -> Result<Vec<f32>> {
+/// The pixels [`write_image`] writes: finite (a slice, a vector or an array of `f64`), or
+/// with blanks allowed ([`Pixels::blanked`]).
+#[derive(Clone, Copy, Debug)]
+pub struct Pixels<'a> {
+    values: &'a [f64],
+    blanks: bool,
+}
+
+impl<'a> Pixels<'a> {
+    /// Pixels that may be blank (NaN, the blank of float FITS images): a primary-beam
+    /// corrected image where the beam is below its cut. Infinite values are refused still.
+    pub fn blanked(values: &'a [f64]) -> Pixels<'a> {
+        Pixels { values, blanks: true }
+    }
+}
+
+impl<'a> From<&'a [f64]> for Pixels<'a> {
+    fn from(values: &'a [f64]) -> Self {
+        Pixels { values, blanks: false }
+    }
+}
+
+impl<'a> From<&'a Vec<f64>> for Pixels<'a> {
+    fn from(values: &'a Vec<f64>) -> Self {
+        Pixels { values, blanks: false }
+    }
+}
+
+impl<'a, const N: usize> From<&'a [f64; N]> for Pixels<'a> {
+    fn from(values: &'a [f64; N]) -> Self {
+        Pixels { values, blanks: false }
+    }
+}
+
+/// Converts to the float32 the file stores, refusing values float32 cannot hold (and NaN,
+/// unless blanks are allowed).
+fn to_float32(image: &[f64], blanks: bool) -> Result<Vec<f32>> {
     let pixels: Vec<f32> = image.iter().map(|&v| v as f32).collect();
-    let bad = pixels.iter().filter(|v| !v.is_finite()).count();
+    let bad = pixels.iter().filter(|v| !(v.is_finite() || (blanks && v.is_nan()))).count();
     if bad > 0 {
         return Err(Error::parameter(
             "image",
@@ -1294,6 +1331,14 @@ mod tests {
         let err = write_image(&path, &[f64::NAN; 4], 2, 2, &test_wcs(), BrightnessUnit::JyPerBeam, None, &[])
             .unwrap_err();
         assert!(err.to_string().contains("4 of 4"), "{err}");
+        // Blanks where they are meant (a primary-beam corrected image): NaN written, infinity not.
+        let blanked = [f64::NAN, 1.0, 2.0, f64::NAN];
+        write_image(&path, Pixels::blanked(&blanked), 2, 2, &test_wcs(), BrightnessUnit::JyPerBeam, None, &[]).unwrap();
+        let mut f = FitsFile::open(&path).unwrap();
+        let back: Vec<f32> = f.primary_hdu().unwrap().read_image(&mut f).unwrap();
+        assert!(back[0].is_nan() && back[3].is_nan() && back[1..3] == [1.0, 2.0], "{back:?}");
+        let err = write_image(&path, Pixels::blanked(&[f64::INFINITY, 0.0]), 2, 1, &test_wcs(), BrightnessUnit::JyPerBeam, None, &[]).unwrap_err();
+        assert!(err.to_string().contains("1 of 2"), "{err}");
     }
 
     #[test]

@@ -16,5 +16,5 @@ mod image;
 
 pub use crate::deconv::Beam;
 pub use error::FitsError;
-pub use image::{read_image, write_image, BrightnessUnit, FitsImage, ImageWcs};
+pub use image::{read_image, write_image, BrightnessUnit, FitsImage, ImageWcs, Pixels};
 pub(crate) use image::*;

@@ -26,7 +26,7 @@ pub use product::Product;
 pub use model_column::write_job_model;
 pub use parts::{emit_parts, emit_streamed, emit_parted, job_id_problem, stem_id, Truth};
 pub use products::{check_spares_inputs, record_command_line, JobProducts, ProductSet, WriteOptions};
-pub(crate) use products::Staged;
+pub(crate) use products::{beam_telescope, Staged};
 pub use run::{FilesWritten, ImageContext, ProductSink, RunContext};
 pub use source::{Reads, SourceParams};
 pub use state::{Imaging, Iterate, IterationMetrics, Job, LoopStop, StopReason};

@@ -3,7 +3,8 @@
 //! preview beside each, the per-iteration metrics as JSON and Parquet; or only the dirty
 //! image and the PSF, [`ProductSet`]), all or nothing.
 
-use crate::fits::{write_image, Beam, BrightnessUnit, ImageWcs};
+use crate::fits::{write_image, Beam, BrightnessUnit, ImageWcs, Pixels};
+use crate::primary_beam::{BeamTelescope, PrimaryBeam};
 use super::state::{IterationMetrics, Job, LoopStop};
 use crate::preview::{write_png_on_sky, PreviewScale, SkyFrame};
 use crate::staging::Staging;
@@ -77,11 +78,15 @@ pub struct WriteOptions {
     pub previews: bool,
     /// Decades the previews show; default: the job's known dynamic range, else 1e3.
     pub preview_dynamic_range: Option<f64>,
+    /// With `Some(limit)`: also the primary beam (`<prefix>-pb.fits`) and the restored image
+    /// and the model divided by it (`-image-pb.fits`, `-model-pb.fits`), blank (NaN) where the
+    /// beam is below `limit`, as WSClean's `-apply-primary-beam`; no previews of these.
+    pub primary_beam: Option<f64>,
 }
 
 impl Default for WriteOptions {
     fn default() -> Self {
-        WriteOptions { previews: true, preview_dynamic_range: None }
+        WriteOptions { previews: true, preview_dynamic_range: None, primary_beam: None }
     }
 }
 
@@ -450,6 +455,22 @@ impl JobProducts {
                 staging.write(target(&format!("{name}.png")), |path| write_png_on_sky(path, &data, n, n, scale, &title, Some(&sky)))?;
             }
         }
+        if let (ProductSet::All, Some(limit)) = (set, options.primary_beam) {
+            let (beam, model) = self.primary_beam()?;
+            let description = model.description();
+            let mut extra = extra.clone();
+            extra.push(("PBMODEL", description.clone()));
+            extra.push(("PBLIMIT", limit.to_string()));
+            extra.push(("HISTORY", format!("primary beam: {description}, about the phase centre (taken as the pointing centre); blank where below {limit}")));
+            staging.write(target("pb.fits"), |path| write_image(path, &beam, n, n, &self.wcs, BrightnessUnit::Ratio, self.beam.as_ref(), &extra))?;
+            let corrected = [("image-pb.fits", &self.image, BrightnessUnit::JyPerBeam), ("model-pb.fits", &self.model, BrightnessUnit::JyPerPixel)];
+            for (suffix, pixels, unit) in corrected {
+                let Some(pixels) = pixels else { continue };
+                let data: Vec<f64> = pixels.iter().map(|&v| f64::from(v)).collect();
+                let data = crate::primary_beam::correct(&data, &beam, limit);
+                staging.write(target(suffix), |path| write_image(path, Pixels::blanked(&data), n, n, &self.wcs, unit, self.beam.as_ref(), &extra))?;
+            }
+        }
         if set == ProductSet::All {
             let metrics = self.metrics_json();
             let text = serde_json::to_string_pretty(&metrics).expect("metrics serialise");
@@ -463,6 +484,15 @@ impl JobProducts {
             }
         }
         Ok(())
+    }
+
+    /// The primary beam on the products' grid: the published model of the job's telescope at
+    /// the centre frequency (`CRVAL3`), centred on the phase centre.
+    fn primary_beam(&self) -> Result<(Vec<f64>, PrimaryBeam)> {
+        let telescope = beam_telescope(&self.telescope)?;
+        let frequency = self.wcs.freq_hz.ok_or_else(|| Error::parameter("apply_primary_beam", format!("job '{}': its frequency is unknown, and the beam depends on it", self.id)))?;
+        let beam = PrimaryBeam::new(telescope, frequency).map_err(|m| Error::parameter("apply_primary_beam", format!("job '{}': {m}", self.id)))?;
+        Ok((beam.image(self.size, self.wcs.pixel_deg.to_radians()), beam))
     }
 
     /// `<prefix>-metrics.parquet`: one row per iteration (`iteration`, `residual_ratio`,
@@ -509,6 +539,25 @@ impl JobProducts {
         writer.close().map_err(|e| io_error(&e))?;
         Ok(())
     }
+}
+
+/// The telescope `name` (as data name it: `EVLA`, `MeerKAT`, ...) as the primary-beam models
+/// know it; an error, naming `apply_primary_beam`, where there is no model for it.
+pub(crate) fn beam_telescope(name: &str) -> Result<BeamTelescope> {
+    // Found by the registry's names and aliases (CASA writes `EVLA` for the VLA).
+    let found = match crate::simulate::telescope::telescope(name).ok().map(|t| t.key.as_str()) {
+        Some("vla") => Some(BeamTelescope::Vla),
+        Some("meerkat") => Some(BeamTelescope::MeerKat),
+        _ => None,
+    };
+    found.ok_or_else(|| {
+        let supported: Vec<&str> = BeamTelescope::ALL.iter().map(|t| t.name()).collect();
+        let which = match crate::vis::named_telescope(name) {
+            Some(named) => format!("telescope '{named}'"),
+            None => "an observation that names no telescope".to_string(),
+        };
+        Error::parameter("apply_primary_beam", format!("there is no primary-beam model for {which}; the telescopes with one: {}", supported.join(", ")))
+    })
 }
 
 /// The directory and file-name part of job `id`'s products at `prefix` (`{job}` replaced).

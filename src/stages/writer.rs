@@ -2,7 +2,9 @@
 //! `-model.fits`, `-residual.fits`, and `-image.fits` for CLEAN) with full WCS and beam, a
 //! PNG preview beside each (`<prefix>-dirty.png`, ...; `previews: false` turns them off),
 //! and the per-iteration metrics as `<prefix>-metrics.json` and `<prefix>-metrics.parquet`;
-//! with `products: dirty`, the dirty image and the PSF only (`r2d2 dirty`'s).
+//! with `products: dirty`, the dirty image and the PSF only (`r2d2 dirty`'s); with
+//! `apply_primary_beam`, the primary beam and the images corrected by it (`-pb.fits`,
+//! `-image-pb.fits`, `-model-pb.fits`).
 //! A job's products appear together or not at all: they are written into a staging
 //! directory and moved into place only when all are complete (`crate::staging`). After a
 //! native plugin, every job's products wait staged until the run's end and are moved into
@@ -33,11 +35,26 @@ pub struct WriterParams {
     /// prefix that this run does not make removed; `dirty`: `<prefix>-dirty.fits` and
     /// `-psf.fits` (and their previews) only, every other file at the prefix left as it is.
     pub products: ProductSet,
+    /// Also write `<prefix>-pb.fits` (the telescope's published primary beam, VLA or MeerKAT
+    /// L band, at the observation's centre frequency about the phase centre), and
+    /// `<prefix>-image-pb.fits` and `<prefix>-model-pb.fits` divided by it, blank (NaN) where
+    /// it is below `primary_beam_limit`; as WSClean's `-apply-primary-beam`. Default false.
+    pub apply_primary_beam: bool,
+    /// The beam level below which the corrected images are blank; default 0.1.
+    pub primary_beam_limit: f64,
 }
 
 impl Default for WriterParams {
     fn default() -> Self {
-        WriterParams { prefix: "{job}".into(), previews: true, preview_dynamic_range: None, model_column: None, products: ProductSet::All }
+        WriterParams {
+            prefix: "{job}".into(),
+            previews: true,
+            preview_dynamic_range: None,
+            model_column: None,
+            products: ProductSet::All,
+            apply_primary_beam: false,
+            primary_beam_limit: crate::primary_beam::DEFAULT_LIMIT,
+        }
     }
 }
 
@@ -140,9 +157,19 @@ impl WriterStage {
         if config.model_column.is_some() && config.products == ProductSet::Dirty {
             return Err(Error::parameter("model_column", "products: dirty writes the dirty image and the PSF only, no model"));
         }
+        if config.apply_primary_beam {
+            crate::primary_beam::check_limit(config.primary_beam_limit).map_err(|m| Error::parameter("primary_beam_limit", m))?;
+            if config.products == ProductSet::Dirty {
+                return Err(Error::parameter("apply_primary_beam", "products: dirty writes the dirty image and the PSF only, no primary-beam corrected images"));
+            }
+        }
         Ok(WriterStage {
             prefix: config.prefix,
-            options: WriteOptions { previews: config.previews, preview_dynamic_range: config.preview_dynamic_range },
+            options: WriteOptions {
+                previews: config.previews,
+                preview_dynamic_range: config.preview_dynamic_range,
+                primary_beam: config.apply_primary_beam.then_some(config.primary_beam_limit),
+            },
             products: config.products,
             model_column: config.model_column,
             written: Default::default(),
