@@ -184,8 +184,12 @@ pub struct Job {
     /// with the geometry).
     pub track_hours: Option<f64>,
     pub integration_s: Option<f64>,
-    /// The files the job was read from (visibilities, truth): its products never replace them.
+    /// The files the job was read from (visibilities, truth, mask): its products never
+    /// replace them.
     pub inputs: Vec<std::path::PathBuf>,
+    /// Where the model may have emission (the step's `fits_mask`, on the job's grid), set by
+    /// the step stage at the job's first step: the final CLEAN cycles keep to it as well.
+    pub mask: Option<Arc<Vec<bool>>>,
 }
 
 impl Job {
@@ -225,6 +229,7 @@ impl Job {
             track_hours: None,
             integration_s: None,
             inputs: Vec::new(),
+            mask: None,
         }
     }
 
