@@ -314,6 +314,11 @@ impl JobProducts {
         if let Some(command) = command_line() {
             lines.push(("HISTORY", format!("command: {}", fits_safe(&command))));
         }
+        // The mask the model was kept to, by the request's field names (any command).
+        if let Some(mask) = self.settings.get("mask").and_then(|m| m.as_object()) {
+            let said: Vec<String> = mask.iter().map(|(k, v)| format!("{k}={}", v.as_str().map_or_else(|| v.to_string(), str::to_string))).collect();
+            lines.push(("HISTORY", format!("mask: {}", fits_safe(&said.join(" ")))));
+        }
         lines
     }
 

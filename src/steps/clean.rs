@@ -295,8 +295,55 @@ mod tests {
         let parsed: CleanConfig = serde_yaml::from_str("{gain: 0.1}").unwrap();
         assert_eq!(parsed, CleanConfig::default());
 
-        for bad in [CleanConfig { major_gain: Some(0.0), ..CleanConfig::default() }, CleanConfig { auto_threshold: Some(-1.0), ..CleanConfig::default() }, CleanConfig { threshold: f64::NAN, ..CleanConfig::default() }] {
+        for bad in [
+            CleanConfig { major_gain: Some(0.0), ..CleanConfig::default() },
+            CleanConfig { auto_threshold: Some(-1.0), ..CleanConfig::default() },
+            CleanConfig { threshold: f64::NAN, ..CleanConfig::default() },
+            CleanConfig { auto_mask: Some(0.0), ..CleanConfig::default() },
+        ] {
             assert!(CleanStep::new(bad).is_err());
+        }
+    }
+
+    /// `-auto-mask 5 -auto-threshold 1`: the open cycles stop at 5 sigma, the mask is the
+    /// pixels holding components then, and the cycles after it take components there only,
+    /// down to 1 sigma; the loop ends with the model unchanged (converged).
+    #[test]
+    fn auto_mask_cleans_deeper_inside_the_components_it_found() {
+        let (psf_2n, dirty, convolution) = problem();
+        let noisy: Vec<f64> = dirty.iter().enumerate().map(|(k, d)| d + 0.004 * ((k * 7919 % 1000) as f64 / 500.0 - 1.0)).collect();
+        let config = CleanConfig { auto_mask: Some(5.0), auto_threshold: Some(1.0), components_per_cycle: 100_000, major_cycles: 50, ..CleanConfig::default() };
+        let mut step = CleanStep::new(config).unwrap();
+        let mut model = vec![0.0; N * N];
+        let mut residual = noisy.clone();
+        let mut mask_at_switch = None;
+        let mut converged = false;
+        for iteration in 1..=50 {
+            let next = cycle(&mut step, iteration, &model, &residual, &psf_2n, &convolution);
+            if let (None, Some(mask)) = (&mask_at_switch, step.auto_masks.get("job")) {
+                // The mask is made from the cycle that reached 5 sigma: its components, and
+                // only those.
+                assert_eq!(*mask, next.iter().map(|&x| x != 0.0).collect::<Vec<_>>());
+                mask_at_switch = Some(mask.clone());
+            }
+            if next == model {
+                converged = true;
+                break;
+            }
+            model = next;
+            residual = noisy.iter().zip(convolution.apply(&model)).map(|(d, x)| d - x).collect();
+        }
+        assert!(converged, "the loop did not converge");
+        let mask = mask_at_switch.expect("the cycles reached the auto-mask level");
+        let outside: Vec<usize> = (0..N * N).filter(|&k| model[k] != 0.0 && !mask[k]).collect();
+        assert!(outside.is_empty(), "components outside the auto mask at {outside:?}");
+        // Deeper than 5 sigma inside the mask; noise peaks outside it untouched.
+        let sigma = crate::metrics::robust_sigma(&residual);
+        let inside_peak = (0..N * N).filter(|&k| mask[k]).fold(0.0f64, |m, k| m.max(residual[k].abs()));
+        assert!(inside_peak < 1.5 * sigma, "inside the mask: peak {inside_peak} against sigma {sigma}");
+        for (x, y, s) in [(10, 12, 1.0), (20, 8, 0.5), (16, 24, 0.25)] {
+            let near: f64 = (0..N * N).filter(|&k| (k % N).abs_diff(x) <= 2 && (k / N).abs_diff(y) <= 2).map(|k| model[k]).sum();
+            assert!((near - s).abs() < 0.1 * s, "source at ({x}, {y}): {near} against {s}");
         }
     }
 }
