@@ -181,20 +181,7 @@ impl MaskFile {
             problems.push(format!("it is {} x {} pixels, the image {n} x {n}", image.nx, image.ny));
         }
         match &image.wcs {
-            Some(wcs) => {
-                let pixel_deg = geometry.pixel_rad.to_degrees();
-                // Within a thousandth of a pixel: a mask written from one of the image's own
-                // products, or by astropy from its header, agrees to the header's digits.
-                let close = |a: f64, b: f64| (a - b).abs() <= 1e-3 * pixel_deg;
-                if (wcs.pixel_deg - pixel_deg).abs() > 1e-3 * pixel_deg {
-                    problems.push(format!("its pixel is {:.6e} deg, the image's {pixel_deg:.6e} deg", wcs.pixel_deg));
-                }
-                let (ra, dec) = (job.meta.phase_centre_ra_deg, job.meta.phase_centre_dec_deg);
-                let dra = (wcs.ra_deg - ra + 540.0).rem_euclid(360.0) - 180.0;
-                if !close(dra * dec.to_radians().cos(), 0.0) || !close(wcs.dec_deg, dec) {
-                    problems.push(format!("its centre is RA {:.6} Dec {:.6} deg, the image's RA {ra:.6} Dec {dec:.6} deg", wcs.ra_deg, wcs.dec_deg));
-                }
-            }
+            Some(wcs) => problems.extend(job.grid_differences(wcs, geometry)),
             None if problems.is_empty() => {
                 log::warn!("{}: the mask has no celestial coordinates; its pixels are taken to be the image's", self.path.display());
             }
