@@ -318,6 +318,9 @@ struct CleanControls {
     auto_threshold: Option<f64>,
     /// Stop below this residual peak, Jy/beam (`-threshold`).
     threshold: Option<f64>,
+    /// Clean without a mask to this many noise sigmas, then in the components' mask
+    /// (`-auto-mask`).
+    auto_mask: Option<f64>,
 }
 
 impl CleanControls {
@@ -355,6 +358,8 @@ struct ImagePlan {
     step: StepChoice,
     iterations: Option<usize>,
     clean: CleanControls,
+    /// The step's mask file (`-fits-mask`).
+    fits_mask: Option<PathBuf>,
     final_clean: bool,
     backend: BackendChoice,
     prefetch: bool,
@@ -399,7 +404,8 @@ impl ImagePlan {
             threads: grid.threads,
             step: StepChoice::parse(&step.step, step.plugin_config.as_deref())?,
             iterations: step.iterations,
-            clean: CleanControls { niter: step.niter, gain: step.gain, mgain: step.mgain, auto_threshold: step.auto_threshold, threshold: step.threshold },
+            clean: CleanControls { niter: step.niter, gain: step.gain, mgain: step.mgain, auto_threshold: step.auto_threshold, threshold: step.threshold, auto_mask: step.auto_mask },
+            fits_mask: step.fits_mask.clone(),
             final_clean: step.final_clean,
             backend: step.backend,
             prefetch: step.prefetch,
@@ -592,7 +598,7 @@ fn observation_telescope(obs: &Observation) -> Option<String> {
 
 /// Components the CLEAN that `auto` falls back to may take: its stopping rule is the
 /// auto-threshold, as in WSClean's usual command (`-auto-threshold 3 -mgain 0.8`).
-const FALLBACK_CLEAN: CleanControls = CleanControls { niter: Some(1_000_000), gain: None, mgain: Some(crate::steps::clean::DEFAULT_MAJOR_GAIN), auto_threshold: Some(crate::steps::clean::DEFAULT_AUTO_THRESHOLD), threshold: None };
+const FALLBACK_CLEAN: CleanControls = CleanControls { niter: Some(1_000_000), gain: None, mgain: Some(crate::steps::clean::DEFAULT_MAJOR_GAIN), auto_threshold: Some(crate::steps::clean::DEFAULT_AUTO_THRESHOLD), threshold: None, auto_mask: None };
 
 /// `auto` where the data's telescope is known: among the series trained for the image size,
 /// one trained for that telescope (and the setting, where one is); where no series was
@@ -643,8 +649,11 @@ fn step_stage(params: &ImagePlan, clean_because: Option<String>) -> Result<Stage
     if params.clean.any() && params.step != StepChoice::Clean {
         return Err(Error::parameter(
             "step",
-            "the CLEAN controls (niter, gain, mgain, auto_threshold, threshold) are for the step clean; the default step is a network series, which needs none",
+            "the CLEAN controls (niter, gain, mgain, auto_threshold, threshold, auto_mask) are for the step clean; the default step is a network series, which needs none",
         ));
+    }
+    if params.fits_mask.is_some() && matches!(params.step, StepChoice::Native { .. }) {
+        return Err(Error::parameter("fits_mask", "a mask is for the step clean and for a network series; a native plugin's model is its own"));
     }
     match &params.step {
         StepChoice::Clean => {
@@ -660,6 +669,8 @@ fn step_stage(params: &ImagePlan, clean_because: Option<String>) -> Result<Stage
                     max_components: c.niter,
                     major_gain: c.mgain.or(defaults.major_gain),
                     auto_threshold: c.auto_threshold.or(defaults.auto_threshold),
+                    auto_mask: c.auto_mask,
+                    fits_mask: params.fits_mask.clone(),
                     chosen_because: clean_because,
                     ..defaults
                 },
@@ -676,6 +687,7 @@ fn step_stage(params: &ImagePlan, clean_because: Option<String>) -> Result<Stage
                 graph_optimization: params.graph_optimization,
                 networks: params.iterations,
                 prefetch: params.prefetch,
+                fits_mask: params.fits_mask.clone(),
                 ..OnnxParams::new(series)
             };
             StageSpec::typed("step", &onnx)

@@ -254,6 +254,16 @@ pub struct StepOptions {
     /// CLEAN: stop below this residual peak in Jy/beam, as WSClean's -threshold.
     #[arg(long)]
     pub threshold: Option<f64>,
+    /// CLEAN: clean without a mask down to this many times the residual's noise, then only
+    /// where components were taken, down to auto-threshold, as WSClean's -auto-mask.
+    #[arg(long)]
+    pub auto_mask: Option<f64>,
+    /// A FITS mask on the image's grid (same size, pixel and centre; further axes of length
+    /// 1), as WSClean's -fits-mask: CLEAN takes components only where it is not zero; a
+    /// series' model is kept to it after each network, and its final CLEAN cycles clean
+    /// inside it.
+    #[arg(long)]
+    pub fits_mask: Option<PathBuf>,
     /// Configuration of a native plugin, a YAML/JSON mapping (e.g. '{gain: 0.1}').
     #[arg(long)]
     pub plugin_config: Option<String>,

@@ -790,3 +790,131 @@ fn uv_cuts_tapers_and_a_coarse_pixel_on_the_command_line() {
         assert!(text(&out).contains("beyond the grid: |u| or |v| past the Nyquist limit 2578.3 wavelengths"), "{}", text(&out));
     }
 }
+
+/// Point sources `(east, north, flux)` (offsets in pixels of the SR 1.5 grid, true angle) of
+/// a VLA C observation at 1.4 GHz, phase centre RA 150, Dec 40, with Gaussian noise of
+/// `noise` Jy per visibility (real and imaginary parts); the pixel size in degrees.
+fn point_sources_table(path: &Path, sources: &[(f64, f64, f64)], noise: f64) -> f64 {
+    let (ra0, dec0) = (150.0f64, 40.0f64);
+    let cov = sample_coverage(&vla_at_1_4_ghz(('c', 2.0), dec0, 300.0)).unwrap();
+    let pixel_rad = 1.0 / (1.5 * 2.0 * cov.max_uv());
+    let lm: Vec<(f64, f64, f64)> = sources.iter().map(|&(e, n, s)| (e * pixel_rad, n * pixel_rad, s)).collect();
+    // Box-Muller on a xorshift: reproducible without a generator crate.
+    let mut state = 0x9E37_79B9_7F4A_7C15u64;
+    let mut uniform = move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    };
+    let vis: Vec<Complex64> = (0..cov.len())
+        .map(|k| {
+            let scale = cov.frequency_hz[k] / SPEED_OF_LIGHT;
+            let (u, v) = (cov.u_m[k] * scale, cov.v_m[k] * scale);
+            let (r, t) = ((-2.0 * uniform().ln()).sqrt(), 2.0 * std::f64::consts::PI * uniform());
+            let sky: Complex64 = lm.iter().map(|&(l, m, s)| Complex64::from_polar(s, 2.0 * std::f64::consts::PI * (u * l + v * m))).sum();
+            sky + noise * Complex64::new(r * t.cos(), r * t.sin())
+        })
+        .collect();
+    let n = cov.len();
+    let table = VisTable { u_m: cov.u_m, v_m: cov.v_m, w_m: cov.w_m, frequency: cov.frequency_hz, vis, weight: vec![1.0; n], ..Default::default() };
+    write_parquet(path, &table, &ObservationMeta::new(ra0, dec0, "VLA")).unwrap();
+    pixel_rad.to_degrees()
+}
+
+/// Whether a FITS file's header has `text` (HISTORY records are ASCII in the header blocks).
+fn header_has(path: &Path, text: &str) -> bool {
+    let bytes = std::fs::read(path).unwrap();
+    let header = &bytes[..bytes.len().min(2880 * 4)];
+    header.windows(text.len()).any(|w| w == text.as_bytes())
+}
+
+/// `--fits-mask` with `--step clean`: a mask made as users make it (the restored image of an
+/// unmasked run above a level, written on its header's grid, here with one source left out)
+/// confines the components to it, so the source left out stays whole in the residual and
+/// the one inside gets the flux of the unmasked run; a mask on another grid is refused naming
+/// the file, what it has and what the image has.
+#[test]
+fn a_fits_mask_confines_clean_and_one_on_another_grid_is_refused() {
+    use r2d2_imaging::fits::{write_image, BrightnessUnit};
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    // One source east (left), one west (right), both north of the centre.
+    point_sources_table(&d.join("obs.parquet"), &[(12.0, 6.0, 1.0), (-14.0, 9.0, 0.5)], 0.1);
+    let clean = ["--size", "64", "--step", "clean", "--niter", "20000", "--auto-threshold", "1"];
+    let run = |extra: &[&str], name: &str| {
+        let mut args = vec!["image", "obs.parquet", "--name", name];
+        args.extend(clean);
+        args.extend(extra);
+        r2d2(&args, d)
+    };
+    check(&run(&[], "open"));
+    let image = read_image(&d.join("open-image.fits")).unwrap();
+    let open_model = read_image(&d.join("open-model.fits")).unwrap().data;
+    let n = image.nx;
+    let peak = image.data.iter().fold(0.0f64, |m, v| m.max(*v));
+    // Above a tenth of the peak, in the left half only (FITS order: x along RA, east left).
+    let left = |k: usize| k % n < n / 2;
+    let mask: Vec<f64> = (0..n * n).map(|k| if image.data[k] > 0.1 * peak && left(k) { 1.0 } else { 0.0 }).collect();
+    assert!(mask.iter().sum::<f64>() > 4.0);
+    write_image(&d.join("mask.fits"), &mask, n, n, &image.wcs.unwrap(), BrightnessUnit::Ratio, None, &[]).unwrap();
+    check(&run(&["--fits-mask", "mask.fits"], "masked"));
+    let model = read_image(&d.join("masked-model.fits")).unwrap().data;
+    let outside: Vec<usize> = (0..n * n).filter(|&k| model[k] != 0.0 && mask[k] == 0.0).collect();
+    assert!(outside.is_empty(), "components outside the mask at {outside:?}");
+    // The source inside: its flux as the unmasked run found it (the mask is on it: the
+    // orientation of the file is the image's).
+    let flux = |m: &[f64], half: &dyn Fn(usize) -> bool| (0..n * n).filter(|&k| half(k)).map(|k| m[k]).sum::<f64>();
+    let (inside, open_inside) = (flux(&model, &left), flux(&open_model, &left));
+    assert!((inside - open_inside).abs() < 0.05 * open_inside && (inside - 1.0).abs() < 0.1, "masked {inside} against unmasked {open_inside}");
+    // The source outside: no model, and its peak in the residual as in the dirty image.
+    let right = |k: usize| !left(k);
+    assert_eq!(flux(&model, &right), 0.0);
+    assert!(flux(&open_model, &right) > 0.4, "the unmasked run cleaned it: {}", flux(&open_model, &right));
+    let right_peak = |path: &str| {
+        let data = read_image(&d.join(path)).unwrap().data;
+        (0..n * n).filter(|&k| right(k)).fold(0.0f64, |m, k| m.max(data[k]))
+    };
+    let (residual, dirty, open_residual) = (right_peak("masked-residual.fits"), right_peak("masked-dirty.fits"), right_peak("open-residual.fits"));
+    assert!((residual - dirty).abs() < 0.25 * dirty && open_residual < 0.2 * dirty, "right half: residual {residual}, dirty {dirty}, unmasked residual {open_residual}");
+    // The products say which mask.
+    assert!(header_has(&d.join("masked-model.fits"), "mask: fits_mask=mask.fits"));
+    assert!(!header_has(&d.join("open-model.fits"), "mask:"));
+
+    // A mask on another grid: refused, naming the file, what it has and what the image has.
+    let wcs = image.wcs.unwrap();
+    write_image(&d.join("small.fits"), &mask[..32 * 32], 32, 32, &wcs, BrightnessUnit::Ratio, None, &[]).unwrap();
+    write_image(&d.join("pixel.fits"), &mask, n, n, &r2d2_imaging::fits::ImageWcs { pixel_deg: wcs.pixel_deg * 2.0, ..wcs }, BrightnessUnit::Ratio, None, &[]).unwrap();
+    write_image(&d.join("centre.fits"), &mask, n, n, &r2d2_imaging::fits::ImageWcs { dec_deg: wcs.dec_deg + 1.0, ..wcs }, BrightnessUnit::Ratio, None, &[]).unwrap();
+    for (file, said) in [("small.fits", &["32 x 32", "64 x 64"][..]), ("pixel.fits", &["its pixel is"][..]), ("centre.fits", &["its centre is"][..]), ("none.fits", &["none.fits"][..])] {
+        let out = run(&["--fits-mask", file], "bad");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains(file) && said.iter().all(|s| err.contains(s)), "{file}: {err}");
+        assert!(!d.join("bad-model.fits").exists());
+    }
+    // WSClean's spelling, and a native plugin refuses a mask.
+    check(&run(&["-fits-mask", "mask.fits"], "ws"));
+    assert_eq!(read_image(&d.join("ws-model.fits")).unwrap().data, model);
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "plugin.so", "--fits-mask", "mask.fits", "--name", "p"], d);
+    assert!(!out.status.success() && text(&out).contains("fits-mask"), "{}", text(&out));
+}
+
+/// `--auto-mask 5 --auto-threshold 1` (WSClean's usual deep clean): the run converges,
+/// cleans deeper than the auto-threshold alone would leave the sources, and says so.
+#[test]
+fn auto_mask_runs_to_convergence_and_is_recorded() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    point_sources_table(&d.join("obs.parquet"), &[(12.0, 6.0, 1.0), (-14.0, 9.0, 0.5), (3.0, -15.0, 0.05)], 0.1);
+    check(&r2d2(&["image", "obs.parquet", "--size", "64", "--step", "clean", "-niter", "100000", "-auto-mask", "5", "-auto-threshold", "1", "--name", "auto"], d));
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("auto-metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["stop"]["reason"], "converged", "{metrics}");
+    assert_eq!(metrics["settings"]["mask"]["auto_mask"], 5.0);
+    assert!(header_has(&d.join("auto-model.fits"), "mask: auto_mask=5"));
+    let model = read_image(&d.join("auto-model.fits")).unwrap().data;
+    let total: f64 = model.iter().sum();
+    assert!((total - 1.55).abs() < 0.05 * 1.55, "model flux {total}");
+    // A network series takes no auto-mask (its final CLEAN has its own).
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--auto-mask", "5", "--name", "net"], d);
+    assert!(!out.status.success() && text(&out).contains("are for the step clean"), "{}", text(&out));
+}

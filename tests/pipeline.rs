@@ -614,6 +614,10 @@ fn small_configuration_mistakes_are_refused_by_validate() {
         // The truth is 64 x 64 (the simulated sky): nothing to compare at 128.
         ("truth of another size", with_source("    files: obs.parquet\n    truth: obs.sky.fits\n"), vec!["image.size=128"], vec!["obs.sky.fits", "64 x 64", "128 x 128"]),
         ("no files", with_source("    files: []\n"), vec![], vec!["stages.source.files", "at least one"]),
+        // A mask names its key and file; a level that is no level names its key.
+        ("mask file missing", small_pipeline(None).replace("    major_cycles: 3\n", "    major_cycles: 3\n    fits_mask: no-mask.fits\n"), vec![], vec!["stages.step.fits_mask", "no-mask.fits"]),
+        ("mask file missing, series", onnx.replace("    series: vla-r2d2-128\n", "    series: vla-r2d2-128\n    fits_mask: no-mask.fits\n"), vec![], vec!["stages.step.fits_mask", "no-mask.fits"]),
+        ("auto-mask of no level", small_pipeline(None).replace("    major_cycles: 3\n", "    major_cycles: 3\n    auto_mask: -1\n"), vec![], vec!["stages.step.auto_mask", "positive number of noise sigmas", "-1"]),
         ("unknown placeholder", small_pipeline(None).replace("out/{job}", "out/{jobb}"), vec![], vec!["stages.write.prefix", "{jobb}", "{job}"]),
         ("prefix without a file name", small_pipeline(None).replace("out/{job}", "out/"), vec![], vec!["stages.write.prefix", "out/", "file name"]),
         ("size the series cannot take", onnx.clone(), vec!["image.size=100"], vec!["vla-r2d2-128", "multiple of 8", "100"]),

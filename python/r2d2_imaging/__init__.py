@@ -171,7 +171,7 @@ def image(obs, *, id: Optional[str] = None, onnx_runtime: Optional[PathLike] = N
     directory, or a plugin library), ``iterations``, ``weighting`` and ``robust``,
     ``superresolution`` or ``pixel_arcsec``, ``truth``, ``threads`` (0: every core),
     ``w_term``, WSClean's CLEAN controls (``niter``, ``gain``, ``mgain``, ``auto_threshold``,
-    ``threshold``), the MeasurementSet's ``data_column``, ``field``, ``spw``, ``channels`` and
+    ``threshold``, ``auto_mask``), a mask (``fits_mask``), the MeasurementSet's ``data_column``, ``field``, ``spw``, ``channels`` and
     ``model_column``, ``name`` (also write the products at this prefix), ... A switch is named
     for what it turns on: ``final_clean=False`` is ``--no-final-clean``, ``prefetch=False``
     ``--no-prefetch``. ``None`` leaves an option at its default. The engine checks each as the

@@ -200,7 +200,7 @@ fn native_isolation(library: &std::path::Path, n: usize, steps: usize) -> Result
         let mut model = vec![0.0; n * n];
         let mut times = Vec::new();
         for i in 1..=steps {
-            let input = StepInput { job: "bench", size: n, model: &model, residual: &dirty, dirty: &dirty, psf: &dirty, psf_2n: &psf_2n, psf_convolution: &convolution };
+            let input = StepInput { job: "bench", size: n, model: &model, residual: &dirty, dirty: &dirty, psf: &dirty, psf_2n: &psf_2n, psf_convolution: &convolution, mask: None };
             let t = Instant::now();
             model = step.step(i, &input)?;
             times.push(t.elapsed().as_secs_f64());

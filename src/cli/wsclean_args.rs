@@ -42,13 +42,15 @@ const OPTIONS: &[(&str, usize, Spelling)] = &[
     ("beam-fitting-size", 1, Spelling::Counterpart("the beam is fitted to the PSF's main lobe (the pixels above 0.35 of its peak), with no fitting box to size")),
     ("apply-primary-beam", 0, Spelling::Same),
     ("primary-beam-limit", 1, Spelling::Same),
-    ("auto-mask", 1, Spelling::Counterpart("there is no CLEAN mask here; a network series needs none")),
+    ("auto-mask", 1, Spelling::Same),
+    ("fits-mask", 1, Spelling::Same),
     ("multiscale", 0, Spelling::Counterpart("there is no multiscale CLEAN here; a network series images extended emission itself (the default step)")),
     ("padding", 1, Spelling::Counterpart("the gridder's padding is fixed by --oversampling (default 2, as -padding 2)")),
 ];
 
-/// WSClean's CLEAN controls, which `r2d2 image --step clean` takes with the same meanings.
-const CLEAN_OPTIONS: [&str; 5] = ["niter", "auto-threshold", "threshold", "mgain", "gain"];
+/// WSClean's CLEAN controls, which `r2d2 image --step clean` takes with the same meanings (a
+/// mask also with a network series).
+const CLEAN_OPTIONS: [&str; 7] = ["niter", "auto-threshold", "threshold", "mgain", "gain", "auto-mask", "fits-mask"];
 
 /// WSClean's primary-beam options, which `r2d2 image` takes and `r2d2 dirty` (the dirty image
 /// and the PSF only) refuses.
@@ -271,6 +273,11 @@ mod tests {
             rewrite(words("r2d2 image obs.ms --step clean -niter 10000 -auto-threshold 3 -mgain 0.8 -gain 0.1 -threshold 0.001")).unwrap(),
             words("r2d2 image obs.ms --step clean --niter 10000 --auto-threshold 3 --mgain 0.8 --gain 0.1 --threshold 0.001")
         );
+        // Masks: a file, and the auto-mask level in noise sigmas.
+        assert_eq!(
+            rewrite(words("r2d2 image obs.ms --step clean -fits-mask m.fits -auto-mask 5 -auto-threshold 1")).unwrap(),
+            words("r2d2 image obs.ms --step clean --fits-mask m.fits --auto-mask 5 --auto-threshold 1")
+        );
         // A value joined by `=`, a negative one kept as a value; this engine's one-letter flags
         // and whatever follows `--` pass as they are.
         assert_eq!(rewrite(words("r2d2 image obs.ms --step clean -threshold=-1")).unwrap(), words("r2d2 image obs.ms --step clean --threshold=-1"));
@@ -293,6 +300,7 @@ mod tests {
             ("r2d2 dirty obs.ms -niter 0 -mgain 0.8", &["-mgain", "dirty image only"][..]),
             ("r2d2 dirty obs.ms -apply-primary-beam", &["-apply-primary-beam", "dirty image and the PSF only", "r2d2 image --apply-primary-beam"][..]),
             ("r2d2 image obs.ms -apply-primary-beam=1", &["-apply-primary-beam takes no value"][..]),
+            ("r2d2 dirty obs.ms -fits-mask m.fits", &["-fits-mask", "dirty image only"][..]),
             ("r2d2 image obs.ms -multiscale", &["-multiscale"][..]),
             ("r2d2 image -size 512 256 obs.ms", &["square"][..]),
             ("r2d2 image --size 512 256 obs.ms", &["square"][..]),

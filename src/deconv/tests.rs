@@ -129,6 +129,39 @@ fn two_separated_sources_get_their_fluxes() {
     assert!(max_abs(&out.residual) < 1e-3);
 }
 
+/// A mask (WSClean's `-fits-mask`): no component outside it, whatever is brighter there (of
+/// either sign, in either search), and the sources inside get their fluxes with the outside
+/// one's sidelobes subtracted nowhere but left in the residual.
+#[test]
+fn a_mask_keeps_every_component_inside_it() {
+    let n = 64;
+    let (_, _, psf2) = real_psf(n, 1.5, 5);
+    // The brightest source, a negative one, and a faint one outside a box around the two inside.
+    let sources = [(12, 14, 5.0), (50, 40, -3.0), (30, 52, 0.3), (40, 20, 1.0), (44, 24, 0.5)];
+    let dirty = dirty_of(&sources, &psf2, n);
+    let inside = |k: usize| (34..50).contains(&(k % n)) && (14..30).contains(&(k / n));
+    let mask: Vec<bool> = (0..n * n).map(inside).collect();
+    for positive_only in [false, true] {
+        let params = HogbomParams { threshold: 1e-3, positive_only, mask: Some(mask.clone()), max_components: 5000, ..Default::default() };
+        let out = hogbom(&dirty, &psf2, n, &params);
+        let outside: Vec<usize> = (0..n * n).filter(|&k| out.components[k] != 0.0 && !inside(k)).collect();
+        assert!(outside.is_empty(), "positive_only {positive_only}: components outside the mask at {outside:?}");
+        assert!(out.n_components > 0);
+        // The two inside are cleaned; their fluxes are off by the outside sources' sidelobes.
+        for &(px, py, s) in &sources[3..] {
+            let flux = out.components[py * n + px];
+            assert!((flux - s).abs() < 0.1 * s, "source at ({px}, {py}): {flux} vs {s}");
+        }
+        // The outside sources stay in the residual.
+        assert!((out.residual[14 * n + 12] - dirty[14 * n + 12]).abs() < 0.5, "{}", out.residual[14 * n + 12]);
+    }
+    // An empty mask takes nothing; a mask of every pixel is no mask.
+    let none = hogbom(&dirty, &psf2, n, &HogbomParams { mask: Some(vec![false; n * n]), ..Default::default() });
+    assert_eq!((none.n_components, &none.residual), (0, &dirty));
+    let all = HogbomParams { threshold: 1e-3, mask: Some(vec![true; n * n]), ..Default::default() };
+    assert_eq!(hogbom(&dirty, &psf2, n, &all), hogbom(&dirty, &psf2, n, &HogbomParams { mask: None, ..all.clone() }));
+}
+
 #[test]
 fn threshold_stops_cleaning_at_the_right_component() {
     let n = 32;

@@ -333,6 +333,11 @@ impl JobProducts {
         if let Some(how) = self.beam.and(self.settings.get("restoring_beam")).and_then(|b| b.get("how")).and_then(|h| h.as_str()) {
             lines.push(("HISTORY", fits_safe(how)));
         }
+        // The mask the model was kept to, by the request's field names (any command).
+        if let Some(mask) = self.settings.get("mask").and_then(|m| m.as_object()) {
+            let said: Vec<String> = mask.iter().map(|(k, v)| format!("{k}={}", v.as_str().map_or_else(|| v.to_string(), str::to_string))).collect();
+            lines.push(("HISTORY", format!("mask: {}", fits_safe(&said.join(" ")))));
+        }
         lines
     }
 

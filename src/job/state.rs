@@ -187,11 +187,33 @@ pub struct Job {
     /// with the geometry).
     pub track_hours: Option<f64>,
     pub integration_s: Option<f64>,
-    /// The files the job was read from (visibilities, truth): its products never replace them.
+    /// The files the job was read from (visibilities, truth, mask): its products never
+    /// replace them.
     pub inputs: Vec<std::path::PathBuf>,
+    /// Where the model may have emission (the step's `fits_mask`, on the job's grid), set by
+    /// the step stage at the job's first step: the final CLEAN cycles keep to it as well.
+    pub mask: Option<Arc<Vec<bool>>>,
 }
 
 impl Job {
+    /// Where an image's coordinates `wcs` put it on another grid than the job's `geometry`
+    /// (pixel size, or centre against the phase centre, each to a thousandth of a pixel), one
+    /// phrase per difference; none where it is on the job's grid.
+    pub fn grid_differences(&self, wcs: &ImageWcs, geometry: &ImageGeometry) -> Vec<String> {
+        let pixel_deg = geometry.pixel_rad.to_degrees();
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-3 * pixel_deg;
+        let mut problems = Vec::new();
+        if !close(wcs.pixel_deg, pixel_deg) {
+            problems.push(format!("its pixel is {:.6e} deg, the image's {pixel_deg:.6e} deg", wcs.pixel_deg));
+        }
+        let (ra, dec) = (self.meta.phase_centre_ra_deg, self.meta.phase_centre_dec_deg);
+        let dra = (wcs.ra_deg - ra + 540.0).rem_euclid(360.0) - 180.0;
+        if !close(dra * dec.to_radians().cos(), 0.0) || !close(wcs.dec_deg, dec) {
+            problems.push(format!("its centre is RA {:.6} Dec {:.6} deg, the phase centre RA {ra:.6} Dec {dec:.6} deg", wcs.ra_deg, wcs.dec_deg));
+        }
+        problems
+    }
+
     pub fn new(id: impl Into<String>, meta: ObservationMeta, vis: Visibilities) -> Job {
         Job::from_source(id, meta, VisSource::Held(Arc::new(vis)))
     }
@@ -229,6 +251,7 @@ impl Job {
             track_hours: None,
             integration_s: None,
             inputs: Vec::new(),
+            mask: None,
         }
     }
 

@@ -138,15 +138,15 @@ impl FinalCleanStage {
     /// to `sigmas` times its noise, then the exact residual of the new model. Kept (model and residual updated, `ratio`
     /// lowered) where the residual ratio falls; the components taken, or `None` where nothing
     /// was kept.
-    fn cycle(&self, im: &mut Imaging, ratio: &mut f64, mask: Option<&[f64]>, sigmas: f64) -> Result<Option<Vec<f64>>> {
+    fn cycle(&self, im: &mut Imaging, ratio: &mut f64, mask: Option<&[bool]>, sigmas: f64) -> Result<Option<Vec<f64>>> {
         let c = &self.config;
         let n = im.geometry.size;
         let peak = match mask {
-            Some(mask) => im.residual.iter().zip(mask).fold(0.0f64, |m, (v, k)| m.max(v.abs() * k)),
+            Some(mask) => im.residual.iter().zip(mask).filter(|(_, inside)| **inside).fold(0.0f64, |m, (v, _)| m.max(v.abs())),
             None => max_abs(&im.residual),
         };
         let level = ((1.0 - c.major_gain) * peak).max(sigmas * robust_sigma(&im.residual));
-        let params = HogbomParams { gain: c.gain, threshold: level, max_components: c.components_per_cycle, positive_only: false, mask: mask.map(<[f64]>::to_vec) };
+        let params = HogbomParams { gain: c.gain, threshold: level, max_components: c.components_per_cycle, positive_only: false, mask: mask.map(<[bool]>::to_vec) };
         let found = hogbom(&im.residual, &im.psf_2n, n, &params);
         log::debug!("final CLEAN: {} cycle from peak {peak:.3e} to {level:.3e} Jy/beam: {} components, stopped at {:.3e}", if mask.is_some() { "masked" } else { "open" }, found.n_components, found.last_peak);
         if found.n_components == 0 {
@@ -218,15 +218,16 @@ fn compact_island_pixels(model: &[f64], n: usize, max_pixels: usize, min_flux: f
 /// uncertain by a tenth or more, and cleaning them deeper turns noise into model.
 const COMPACT_MIN_SIGMAS: f64 = 10.0;
 
-/// The pixels of `components` that are not zero, and their eight neighbours: where the masked
-/// cycles may take more (a source's flux spreads over the pixels around its peak).
-fn mask_of(components: &[f64], n: usize) -> Vec<f64> {
-    let mut mask = vec![0.0; n * n];
+/// The pixels of `components` that are not zero, and their eight neighbours, within `within`
+/// (the user's mask) where there is one: where the masked cycles may take more (a source's
+/// flux spreads over the pixels around its peak).
+fn mask_of(components: &[f64], n: usize, within: Option<&[bool]>) -> Vec<bool> {
+    let mut mask = vec![false; n * n];
     for (k, _) in components.iter().enumerate().filter(|(_, c)| **c != 0.0) {
         let (x, y) = (k % n, k / n);
         for yy in y.saturating_sub(1)..(y + 2).min(n) {
             for xx in x.saturating_sub(1)..(x + 2).min(n) {
-                mask[yy * n + xx] = 1.0;
+                mask[yy * n + xx] = within.is_none_or(|w| w[yy * n + xx]);
             }
         }
     }
@@ -246,9 +247,12 @@ impl FinalCleanStage {
     /// Major cycles over the whole image down to `auto_mask` sigmas, then inside the mask of
     /// what they took down to `auto_threshold`, then inside `compact` (a mask of the compact
     /// islands) down to `compact_threshold`; each kept cycle an iteration of the job's
-    /// metrics. The cycles kept, the pixels they put components at, and the residual ratio.
-    fn cycles(&self, job: &mut Job, compact: Option<Vec<f64>>) -> Result<(usize, usize, f64)> {
+    /// metrics; every phase within the job's mask where it has one. The cycles kept, the
+    /// pixels they put components at, and the residual ratio.
+    fn cycles(&self, job: &mut Job, compact: Option<Vec<bool>>) -> Result<(usize, usize, f64)> {
         let c = &self.config;
+        let user = job.mask.clone();
+        let user = user.as_deref().map(Vec::as_slice);
         let im = job.imaging_mut("final_clean")?;
         let n = im.geometry.size;
         let mut ratio = residual_ratio(&im.residual, &im.dirty);
@@ -261,14 +265,14 @@ impl FinalCleanStage {
         while cycles < c.major_cycles {
             let began = Instant::now();
             let (mask, sigmas) = match &phase {
-                Phase::Open => (None, c.auto_mask),
+                Phase::Open => (user, c.auto_mask),
                 Phase::Masked(mask) => (Some(mask.as_slice()), c.auto_threshold),
                 Phase::Compact(mask) => (Some(mask.as_slice()), c.compact_threshold),
             };
             let found = self.cycle(job.imaging_mut("final_clean")?, &mut ratio, mask, sigmas)?;
             let Some(found) = found else {
                 phase = match phase {
-                    Phase::Open if taken.iter().any(|t| *t != 0.0) => Phase::Masked(mask_of(&taken, n)),
+                    Phase::Open if taken.iter().any(|t| *t != 0.0) => Phase::Masked(mask_of(&taken, n, user)),
                     Phase::Open | Phase::Masked(_) if c.compact_threshold < c.auto_threshold => match &compact {
                         Some(mask) => Phase::Compact(mask.clone()),
                         None => break,
@@ -296,9 +300,9 @@ enum Phase {
     /// The whole image, down to `auto_mask` sigmas.
     Open,
     /// Around what the step's model and the open cycles found, down to `auto_threshold`.
-    Masked(Vec<f64>),
+    Masked(Vec<bool>),
     /// Around the compact islands, down to `compact_threshold`.
-    Compact(Vec<f64>),
+    Compact(Vec<bool>),
 }
 
 impl Stage<Job> for FinalCleanStage {
@@ -324,9 +328,10 @@ impl Stage<Job> for FinalCleanStage {
             compact.iter().for_each(|&k| im.model[k] = 0.0);
             let d_x = normal(im, &im.model)?;
             im.residual = im.dirty.iter().zip(&d_x).map(|(d, x)| d - x).collect();
-            let mut mask = vec![0.0; n * n];
-            compact.iter().for_each(|&k| mask[k] = 1.0);
-            (cycles, components, ratio) = self.cycles(&mut job, Some(mask_of(&mask, n)))?;
+            let mut islands = vec![0.0; n * n];
+            compact.iter().for_each(|&k| islands[k] = 1.0);
+            let mask = mask_of(&islands, n, job.mask.as_deref().map(Vec::as_slice));
+            (cycles, components, ratio) = self.cycles(&mut job, Some(mask))?;
             if !(ratio < step_ratio) {
                 // CLEAN explained the data worse than the step's compact islands did: they
                 // stay, and the cycles build on them instead (their iterations forgotten).

@@ -10,7 +10,7 @@ use crate::steps::onnx::runtime::{BackendChoice, GraphOptimization};
 use crate::steps::onnx::{OnnxConfig, OnnxStep, ValidityMode};
 use crate::steps::series::ImagingSetup;
 use crate::steps::{JobDomain, NetworkStep, StepInput};
-use crate::Result;
+use crate::{Error, Result};
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -42,6 +42,7 @@ impl OnnxConfig {
             graph_optimization: GraphOptimization::default(),
             realisation: None,
             validity: ValidityMode::default(),
+            fits_mask: None,
         }
     }
 }
@@ -59,14 +60,21 @@ const fn step(name: &'static str, build: fn(&BuildContext<'_>) -> Result<Built>)
 }
 
 /// The kinds, as registered.
-pub(super) const CLEAN: KindFn = step(CleanConfig::KIND, |c| Ok(Built::Stage(Box::new(StepStage::clean(c.params()?)?))));
+pub(super) const CLEAN: KindFn = step(CleanConfig::KIND, |c| {
+    let config: CleanConfig = c.params()?;
+    let mask = MaskFile::read(config.fits_mask.as_deref()).map_err(|e| c.error_caused("fits_mask", e))?;
+    let auto_mask = config.auto_mask;
+    let step = StepStage::clean(config.clone()).map_err(|e| c.at_field(&config, e))?;
+    Ok(Built::Stage(Box::new(StepStage { mask, auto_mask, ..step })))
+});
 
 /// The series is checked against the pipeline (image size, network shapes): say where.
 pub(super) const ONNX: KindFn = step(OnnxConfig::KIND, |c| {
     let config: OnnxConfig = c.params()?;
+    let mask = MaskFile::read(config.fits_mask.as_deref()).map_err(|e| c.error_caused("fits_mask", e))?;
     let setup = imaging_setup(c, config.series.as_os_str() == crate::steps::series::AUTO_SERIES)?;
     let step = StepStage::onnx(config, c.image().size, c.threads, &setup).map_err(|e| c.error_caused("series", e))?;
-    Ok(Built::Stage(Box::new(step)))
+    Ok(Built::Stage(Box::new(StepStage { mask, ..step })))
 });
 
 pub(super) const NATIVE: KindFn = step(NativeConfig::KIND, |c| {
@@ -126,21 +134,66 @@ fn source_telescope(ctx: &BuildContext<'_>) -> Result<Option<String>> {
 pub struct StepStage {
     kind: &'static str,
     step: Box<dyn NetworkStep>,
+    /// The step's `fits_mask`: each job's model is kept to it.
+    mask: Option<MaskFile>,
+    /// CLEAN's `auto_mask` level (noise sigmas), for the products' record.
+    auto_mask: Option<f64>,
 }
 
 impl StepStage {
     pub fn clean(config: CleanConfig) -> Result<StepStage> {
-        Ok(StepStage { kind: "clean", step: Box::new(CleanStep::new(config)?) })
+        Ok(StepStage { kind: "clean", step: Box::new(CleanStep::new(config)?), mask: None, auto_mask: None })
     }
 
     /// An R2D2/R3D3 series for `size x size` images (checked now, before any job runs).
     pub fn onnx(config: OnnxConfig, size: usize, threads: usize, setup: &ImagingSetup) -> Result<StepStage> {
-        Ok(StepStage { kind: "onnx", step: Box::new(OnnxStep::new(&config, size, threads, setup)?) })
+        Ok(StepStage { kind: "onnx", step: Box::new(OnnxStep::new(&config, size, threads, setup)?), mask: None, auto_mask: None })
     }
 
     /// Loads and creates the plugin now, so that every plugin error comes before imaging.
     pub fn native(config: NativeConfig, image_size: usize, stage: &str) -> Result<StepStage> {
-        Ok(StepStage { kind: "native", step: Box::new(NativeStep::new(config, image_size, stage)?) })
+        Ok(StepStage { kind: "native", step: Box::new(NativeStep::new(config, image_size, stage)?), mask: None, auto_mask: None })
+    }
+}
+
+/// A mask file (`fits_mask`, WSClean's `-fits-mask`): read when the stage is built, checked
+/// against each job's grid at its first step.
+struct MaskFile {
+    path: PathBuf,
+    image: crate::fits::FitsImage,
+}
+
+impl MaskFile {
+    /// The mask at `path` (none without one): a FITS image, any further axes of length 1, as
+    /// WSClean's masks have them.
+    fn read(path: Option<&std::path::Path>) -> Result<Option<MaskFile>> {
+        let Some(path) = path else { return Ok(None) };
+        let image = crate::fits::read_image(path)?;
+        Ok(Some(MaskFile { path: path.to_path_buf(), image }))
+    }
+
+    /// The mask on `job`'s grid (true where the file is not zero), or an error naming the file,
+    /// what it has and what the image has: a mask on another grid is refused, not reprojected.
+    fn on_grid(&self, job: &Job, geometry: &crate::operator::ImageGeometry) -> Result<Vec<bool>> {
+        let (image, n) = (&self.image, geometry.size);
+        let mut problems = Vec::new();
+        if (image.nx, image.ny) != (n, n) {
+            problems.push(format!("it is {} x {} pixels, the image {n} x {n}", image.nx, image.ny));
+        }
+        match &image.wcs {
+            Some(wcs) => problems.extend(job.grid_differences(wcs, geometry)),
+            None if problems.is_empty() => {
+                log::warn!("{}: the mask has no celestial coordinates; its pixels are taken to be the image's", self.path.display());
+            }
+            None => {}
+        }
+        if !problems.is_empty() {
+            return Err(Error::parameter(
+                "fits_mask",
+                format!("{}: the mask is not on the image's grid ({}): make it on that grid (a mask is not reprojected)", self.path.display(), problems.join("; ")),
+            ));
+        }
+        Ok(image.data.iter().map(|&v| v != 0.0).collect())
     }
 }
 
@@ -192,8 +245,28 @@ impl Stage<Job> for StepStage {
             if let Some(described) = self.step.describe() {
                 job.settings.insert("step".into(), described);
             }
+            let geometry = job.imaging.as_ref().map(|im| im.geometry);
+            if let (Some(mask), Some(geometry)) = (&self.mask, geometry) {
+                let pixels = mask.on_grid(&job, &geometry)?;
+                let inside = pixels.iter().filter(|&&p| p).count();
+                if inside == 0 {
+                    job.warn(format!("{}: the mask is zero everywhere: the model stays empty", mask.path.display()));
+                }
+                job.mask = Some(std::sync::Arc::new(pixels));
+                job.inputs.push(mask.path.clone());
+            }
+            let mut record = serde_json::Map::new();
+            if let Some(mask) = &self.mask {
+                record.insert("fits_mask".into(), mask.path.display().to_string().into());
+            }
+            if let Some(sigmas) = self.auto_mask {
+                record.insert("auto_mask".into(), sigmas.into());
+            }
+            if !record.is_empty() {
+                job.settings.insert("mask".into(), record.into());
+            }
         }
-        let Job { id, imaging, .. } = &mut job;
+        let Job { id, imaging, mask, .. } = &mut job;
         let im = imaging.as_mut().ok_or_else(|| crate::job::missing(self.kind, id, crate::job::Product::Imaging))?;
         let input = StepInput {
             job: id,
@@ -204,8 +277,15 @@ impl Stage<Job> for StepStage {
             psf: &im.psf,
             psf_2n: &im.psf_2n,
             psf_convolution: &im.psf_convolution,
+            mask: mask.as_deref().map(Vec::as_slice),
         };
-        let model = self.step.step(iteration, &input)?;
+        let mut model = self.step.step(iteration, &input)?;
+        // A step that knows no mask (a network) has its model kept to it: the pixels outside
+        // are set to 0 after each step, and the residual update puts what they held back into
+        // the residual.
+        if let Some(mask) = mask.as_deref() {
+            model.iter_mut().zip(mask.iter()).filter(|(_, inside)| !**inside).for_each(|(x, _)| *x = 0.0);
+        }
         let cause = format!("the {} step made it from a finite residual: a diverging network or plugin", self.kind);
         crate::sanity::check_image(&model, im.geometry.size, &format!("model after step {iteration}"), &cause)?;
         im.model = model;

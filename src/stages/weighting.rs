@@ -95,20 +95,7 @@ pub(super) const KIND: KindFn = KindFn {
 /// Where the truth's FITS grid is not the job's (another pixel size or centre), what differs:
 /// its SNR and logSNR would compare images of different skies.
 fn truth_grid_problem(job: &Job, geometry: crate::operator::ImageGeometry) -> Option<String> {
-    let wcs = job.truth_wcs.as_ref()?;
-    let pixel_deg = geometry.pixel_rad.to_degrees();
-    let close = |a: f64, b: f64, scale: f64| (a - b).abs() <= 1e-3 * scale;
-    let mut problems = Vec::new();
-    if !close(wcs.pixel_deg, pixel_deg, pixel_deg) {
-        problems.push(format!("its pixel is {:.6e} deg, the image's {pixel_deg:.6e} deg", wcs.pixel_deg));
-    }
-    let dra = (wcs.ra_deg - job.meta.phase_centre_ra_deg + 540.0).rem_euclid(360.0) - 180.0;
-    if !close(dra * job.meta.phase_centre_dec_deg.to_radians().cos(), 0.0, pixel_deg) || !close(wcs.dec_deg, job.meta.phase_centre_dec_deg, pixel_deg) {
-        problems.push(format!(
-            "its centre is RA {:.6} Dec {:.6} deg, the phase centre RA {:.6} Dec {:.6} deg",
-            wcs.ra_deg, wcs.dec_deg, job.meta.phase_centre_ra_deg, job.meta.phase_centre_dec_deg
-        ));
-    }
+    let problems = job.grid_differences(job.truth_wcs.as_ref()?, &geometry);
     (!problems.is_empty()).then(|| format!("the truth is on another grid than the image ({}): its SNR and logSNR compare different pixels", problems.join("; ")))
 }
 

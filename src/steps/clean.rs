@@ -14,6 +14,13 @@
 //! diverges once the w-term makes each position's response its own (measured on DP3's,
 //! OSKAR's and Birli's public MSs, where WSClean without a threshold diverges as well).
 //! `major_gain: 1` and `auto_threshold: 0` switch either off.
+//!
+//! Masks mean what WSClean's do. `fits_mask` (read by the step stage, which hands each job's
+//! mask in [`StepInput::mask`]): components are taken inside it only. `auto_mask`
+//! (`-auto-mask`): the major cycles clean without a mask of their own down to this many times
+//! the residual's robust noise; from the cycle that reaches that level, only the pixels that
+//! already hold components are cleaned, down to `auto_threshold` (WSClean's Högbom auto-mask:
+//! the components' own pixels, no scales and no dilation).
 
 use super::{NetworkStep, StepInput};
 use crate::deconv::{hogbom, HogbomParams};
@@ -49,6 +56,14 @@ pub struct CleanConfig {
     /// (or none): no noise threshold.
     #[serde(default = "auto_threshold")]
     pub auto_threshold: Option<f64>,
+    /// Clean without a mask down to this many times the residual's robust noise, then only
+    /// where components were taken, down to `auto_threshold` (WSClean's `-auto-mask`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub auto_mask: Option<f64>,
+    /// A FITS image on the image's grid: components only where it is not zero (WSClean's
+    /// `-fits-mask`). Read and checked against each job's grid by the step stage.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fits_mask: Option<std::path::PathBuf>,
     /// Why CLEAN runs where a series was asked for (`auto` found none trained for the data's
     /// telescope): every job carries it as a warning. Set by the engine.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -66,6 +81,8 @@ impl Default for CleanConfig {
             max_components: None,
             major_gain: major_gain(),
             auto_threshold: auto_threshold(),
+            auto_mask: None,
+            fits_mask: None,
             chosen_because: None,
         }
     }
@@ -97,6 +114,9 @@ pub struct CleanStep {
     config: CleanConfig,
     /// Components taken so far per job (for `max_components`).
     taken: std::collections::HashMap<String, usize>,
+    /// Per job, under `auto_mask`, once its cycles have reached that level: the pixels that
+    /// held components then, the only ones cleaned from there on.
+    auto_masks: std::collections::HashMap<String, Vec<bool>>,
 }
 
 impl CleanStep {
@@ -116,7 +136,10 @@ impl CleanStep {
         if let Some(s) = config.auto_threshold.filter(|s| !(*s >= 0.0 && s.is_finite())) {
             return Err(Error::parameter("auto_threshold", format!("expected a number of noise sigmas of 0 or more, got {s}")));
         }
-        Ok(CleanStep { config, taken: std::collections::HashMap::new() })
+        if let Some(s) = config.auto_mask.filter(|s| !(*s > 0.0 && s.is_finite())) {
+            return Err(Error::parameter("auto_mask", format!("expected a positive number of noise sigmas, got {s}")));
+        }
+        Ok(CleanStep { config, taken: std::collections::HashMap::new(), auto_masks: std::collections::HashMap::new() })
     }
 }
 
@@ -138,25 +161,56 @@ impl NetworkStep for CleanStep {
         let c = &self.config;
         if iteration == 1 {
             self.taken.remove(input.job);
+            self.auto_masks.remove(input.job);
         }
         let taken = self.taken.get(input.job).copied().unwrap_or(0);
         let budget = c.max_components.map_or(c.components_per_cycle, |total| c.components_per_cycle.min(total.saturating_sub(taken)));
         if budget == 0 {
             return Ok(input.model.to_vec());
         }
-        let peak = input.residual.iter().map(|&r| if c.positive_only { r } else { r.abs() }).fold(0.0, f64::max);
+        let sigma = crate::metrics::robust_sigma(input.residual);
+        let score = |r: f64| if c.positive_only { r } else { r.abs() };
+        let peak_within = |mask: Option<&[bool]>| input.residual.iter().enumerate().filter(|(k, _)| mask.is_none_or(|m| m[*k])).map(|(_, &r)| score(r)).fold(0.0, f64::max);
+        // Under auto_mask, a job whose residual is already below that level inside the user's
+        // mask goes on inside the auto mask at once (an open cycle would take nothing, and a
+        // model left as it was ends the loop).
+        if let Some(sigmas) = c.auto_mask {
+            if !self.auto_masks.contains_key(input.job) && !(peak_within(input.mask) >= sigmas * sigma) {
+                self.auto_masks.insert(input.job.to_string(), input.model.iter().map(|&x| x != 0.0).collect());
+            }
+        }
+        let auto_mask = self.auto_masks.get(input.job);
+        let mask = auto_mask.map(Vec::as_slice).or(input.mask);
         let mut level = c.threshold;
         if let Some(m) = c.major_gain {
-            level = level.max((1.0 - m) * peak);
+            level = level.max((1.0 - m) * peak_within(mask));
         }
         if let Some(sigmas) = c.auto_threshold {
-            level = level.max(sigmas * crate::metrics::robust_sigma(input.residual));
+            level = level.max(sigmas * sigma);
         }
-        let params = HogbomParams { gain: c.gain, threshold: level, max_components: budget, positive_only: c.positive_only, mask: None };
+        let open = c.auto_mask.filter(|_| auto_mask.is_none());
+        if let Some(sigmas) = open {
+            level = level.max(sigmas * sigma);
+        }
+        let params = HogbomParams { gain: c.gain, threshold: level, max_components: budget, positive_only: c.positive_only, mask: mask.map(<[bool]>::to_vec) };
         let result = hogbom(input.residual, input.psf_2n, input.size, &params);
         *self.taken.entry(input.job.to_string()).or_insert(0) += result.n_components;
-        log::debug!("job {}: major cycle {iteration}: {} components down to {:.3e} Jy/beam (stop level {level:.3e})", input.job, result.n_components, result.last_peak);
-        Ok(input.model.iter().zip(&result.components).map(|(x, c)| x + c).collect())
+        let phase = match (auto_mask, input.mask) {
+            (Some(_), _) => "in the auto mask",
+            (None, Some(_)) => "in the mask",
+            (None, None) => "open",
+        };
+        log::debug!("job {}: major cycle {iteration} ({phase}): {} components down to {:.3e} Jy/beam (stop level {level:.3e})", input.job, result.n_components, result.last_peak);
+        let model: Vec<f64> = input.model.iter().zip(&result.components).map(|(x, c)| x + c).collect();
+        // The cycle that cleaned down to the auto-mask level makes the mask the next ones
+        // keep to: every pixel that holds a component.
+        if let Some(sigmas) = open {
+            if !(score(result.last_peak) >= sigmas * sigma) {
+                log::debug!("job {}: reached the auto-mask level ({sigmas} sigma) at major cycle {iteration}: cleaning on in the mask of the components", input.job);
+                self.auto_masks.insert(input.job.to_string(), model.iter().map(|&x| x != 0.0).collect());
+            }
+        }
+        Ok(model)
     }
 }
 
@@ -187,7 +241,7 @@ mod tests {
 
     fn cycle(step: &mut CleanStep, iteration: usize, model: &[f64], residual: &[f64], psf_2n: &[f64], convolution: &PsfConvolution) -> Vec<f64> {
         let psf = vec![0.0; N * N];
-        let input = StepInput { job: "job", size: N, model, residual, dirty: residual, psf: &psf, psf_2n, psf_convolution: convolution };
+        let input = StepInput { job: "job", size: N, model, residual, dirty: residual, psf: &psf, psf_2n, psf_convolution: convolution, mask: None };
         step.step(iteration, &input).unwrap()
     }
 
@@ -246,8 +300,55 @@ mod tests {
         let parsed: CleanConfig = serde_yaml::from_str("{gain: 0.1}").unwrap();
         assert_eq!(parsed, CleanConfig::default());
 
-        for bad in [CleanConfig { major_gain: Some(0.0), ..CleanConfig::default() }, CleanConfig { auto_threshold: Some(-1.0), ..CleanConfig::default() }, CleanConfig { threshold: f64::NAN, ..CleanConfig::default() }] {
+        for bad in [
+            CleanConfig { major_gain: Some(0.0), ..CleanConfig::default() },
+            CleanConfig { auto_threshold: Some(-1.0), ..CleanConfig::default() },
+            CleanConfig { threshold: f64::NAN, ..CleanConfig::default() },
+            CleanConfig { auto_mask: Some(0.0), ..CleanConfig::default() },
+        ] {
             assert!(CleanStep::new(bad).is_err());
+        }
+    }
+
+    /// `-auto-mask 5 -auto-threshold 1`: the open cycles stop at 5 sigma, the mask is the
+    /// pixels holding components then, and the cycles after it take components there only,
+    /// down to 1 sigma; the loop ends with the model unchanged (converged).
+    #[test]
+    fn auto_mask_cleans_deeper_inside_the_components_it_found() {
+        let (psf_2n, dirty, convolution) = problem();
+        let noisy: Vec<f64> = dirty.iter().enumerate().map(|(k, d)| d + 0.004 * ((k * 7919 % 1000) as f64 / 500.0 - 1.0)).collect();
+        let config = CleanConfig { auto_mask: Some(5.0), auto_threshold: Some(1.0), components_per_cycle: 100_000, major_cycles: 50, ..CleanConfig::default() };
+        let mut step = CleanStep::new(config).unwrap();
+        let mut model = vec![0.0; N * N];
+        let mut residual = noisy.clone();
+        let mut mask_at_switch = None;
+        let mut converged = false;
+        for iteration in 1..=50 {
+            let next = cycle(&mut step, iteration, &model, &residual, &psf_2n, &convolution);
+            if let (None, Some(mask)) = (&mask_at_switch, step.auto_masks.get("job")) {
+                // The mask is made from the cycle that reached 5 sigma: its components, and
+                // only those.
+                assert_eq!(*mask, next.iter().map(|&x| x != 0.0).collect::<Vec<_>>());
+                mask_at_switch = Some(mask.clone());
+            }
+            if next == model {
+                converged = true;
+                break;
+            }
+            model = next;
+            residual = noisy.iter().zip(convolution.apply(&model)).map(|(d, x)| d - x).collect();
+        }
+        assert!(converged, "the loop did not converge");
+        let mask = mask_at_switch.expect("the cycles reached the auto-mask level");
+        let outside: Vec<usize> = (0..N * N).filter(|&k| model[k] != 0.0 && !mask[k]).collect();
+        assert!(outside.is_empty(), "components outside the auto mask at {outside:?}");
+        // Deeper than 5 sigma inside the mask; noise peaks outside it untouched.
+        let sigma = crate::metrics::robust_sigma(&residual);
+        let inside_peak = (0..N * N).filter(|&k| mask[k]).fold(0.0f64, |m, k| m.max(residual[k].abs()));
+        assert!(inside_peak < 1.5 * sigma, "inside the mask: peak {inside_peak} against sigma {sigma}");
+        for (x, y, s) in [(10, 12, 1.0), (20, 8, 0.5), (16, 24, 0.25)] {
+            let near: f64 = (0..N * N).filter(|&k| (k % N).abs_diff(x) <= 2 && (k / N).abs_diff(y) <= 2).map(|k| model[k]).sum();
+            assert!((near - s).abs() < 0.1 * s, "source at ({x}, {y}): {near} against {s}");
         }
     }
 }

@@ -30,6 +30,10 @@ pub struct StepInput<'a> {
     pub psf_2n: &'a [f64],
     /// `D x` as a convolution with `psf_2n`, prepared once per job by the gridder.
     pub psf_convolution: &'a crate::operator::PsfConvolution,
+    /// Where the model may have emission (the user's mask, N x N, true inside); none: the
+    /// whole image. CLEAN takes components there only; the stage keeps any other step's
+    /// model to it.
+    pub mask: Option<&'a [bool]>,
 }
 
 /// What a step may check about a job before its first iteration: where the data come from

@@ -40,6 +40,10 @@ pub struct OnnxConfig {
     /// (the default) or `error`.
     #[serde(default)]
     pub validity: ValidityMode,
+    /// A FITS image on the image's grid: after each network the model is kept to where it is
+    /// not zero (the step stage reads it and checks it against each job's grid).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fits_mask: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
@@ -560,6 +564,7 @@ pub(crate) mod tests {
             graph_optimization: GraphOptimization::default(),
             realisation: None,
             validity: ValidityMode::Warn,
+            fits_mask: None,
         }
     }
 
@@ -574,7 +579,7 @@ pub(crate) mod tests {
         let (mut model, mut residual) = (vec![0.0; N * N], dirty.to_vec());
         let mut models = Vec::new();
         for i in 1..=step.series_length() {
-            let input = StepInput { job: "job", size: N, model: &model, residual: &residual, dirty, psf: &psf_n, psf_2n: psf, psf_convolution: &convolution };
+            let input = StepInput { job: "job", size: N, model: &model, residual: &residual, dirty, psf: &psf_n, psf_2n: psf, psf_convolution: &convolution, mask: None };
             model = step.step(i, &input).unwrap();
             assert!(step.resident.len() + step.pending.is_some() as usize <= RESIDENT);
             residual = self::residual(psf, dirty, &model);
@@ -721,7 +726,7 @@ pub(crate) mod tests {
         for (job, i) in order {
             let (model, residual, models) = &mut jobs[job];
             let id = ["a", "b"][job];
-            let input = StepInput { job: id, size: N, model, residual, dirty: &dirty, psf: &psf_n, psf_2n: &psf, psf_convolution: &convolution };
+            let input = StepInput { job: id, size: N, model, residual, dirty: &dirty, psf: &psf_n, psf_2n: &psf, psf_convolution: &convolution, mask: None };
             *model = step.step(i, &input).unwrap();
             assert!(step.resident.len() + step.pending.is_some() as usize <= RESIDENT, "more than {RESIDENT} networks");
             *residual = self::residual(&psf, &dirty, model);
