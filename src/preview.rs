@@ -321,9 +321,12 @@ fn draw_sky(canvas: &mut Canvas, l: &Layout, sky: &SkyFrame) {
         let y = l.image_y + l.image_h - margin as usize - 1;
         canvas.fill(x0, y - 1, length, 3, INK);
         let text_w = label.chars().count() * CHAR_ADVANCE;
-        let tx = (x0 + x1) / 2;
-        canvas.fill(tx.saturating_sub(text_w / 2 + 2), y - 4 - TEXT_H - 2, text_w + 4, TEXT_H + 4, BACKGROUND);
-        canvas.text(tx.saturating_sub(text_w / 2), y - 4 - TEXT_H, &label, INK);
+        // Centred over the bar, but kept inside the image: a label wider than the bar would
+        // otherwise run past the image's right edge and be cut by the colour bar.
+        let right = l.image_x + l.image_w;
+        let tx = ((x0 + x1) / 2).saturating_sub(text_w / 2).min(right.saturating_sub(text_w + 3)).max(l.image_x + 2);
+        canvas.fill(tx - 2, y - 4 - TEXT_H - 2, text_w + 4, TEXT_H + 4, BACKGROUND);
+        canvas.text(tx, y - 4 - TEXT_H, &label, INK);
     }
 }
 
@@ -643,6 +646,16 @@ mod tests {
         assert!(ink(&framed, PAD, l.image_y, l.image_x - PAD, l.image_h) > 20);
         assert!((0..=100).all(|k| diverging(k as f64 / 100.0) != INK));
         assert!(ink(&framed, l.image_x, l.image_y + l.image_h / 2, l.image_w / 3, l.image_h / 2) > 0);
+        // The scale bar's label stays inside the image, however much wider than the bar it is.
+        for (n, pixel_arcsec) in [(16, 0.001), (32, 0.013), (64, 2.0), (512, 0.3)] {
+            let image: Vec<f64> = (0..n * n).map(|k| ((k % n) as f64 - n as f64 / 2.0) * 0.01).collect();
+            let sky = SkyFrame { pixel_arcsec, beam: None };
+            let framed = render(&image, n, n, PreviewScale::Signed { softening: 0.01 }, "t", Some(&sky)).unwrap();
+            let l = layout_with(n, n, 1, 5, true);
+            let inside = ink(&framed, l.image_x + l.image_w / 2, l.image_y + l.image_h / 2, l.image_w / 2, l.image_h / 2);
+            let beyond = ink(&framed, l.image_x + l.image_w, l.image_y, l.bar_x - l.image_x - l.image_w, l.image_h);
+            assert!(inside > 0 && beyond == 0, "{n} px of {pixel_arcsec} arcsec: label ink {inside} inside, {beyond} beyond the image");
+        }
     }
 
     #[test]
