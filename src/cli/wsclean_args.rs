@@ -174,13 +174,13 @@ fn translate(name: &str, values: &[String], rest: &mut std::iter::Peekable<std::
         // The restoring beam: widths in arcsec by default, the position angle in degrees; the
         // defaults (an elliptical, fitted beam) need no option here.
         "beam-size" => pair("--beam-size", &arcsec("beam-size", &values[0], 1.0)?.to_string()),
-        "beam-shape" => {
-            let pa = degrees("beam-shape", &values[2])?;
-            let mut words = vec!["--beam-shape".to_string(), arcsec("beam-shape", &values[0], 1.0)?.to_string(), arcsec("beam-shape", &values[1], 1.0)?.to_string()];
-            // A negative angle joined to nothing: clap takes it as a value of the three.
-            words.push(pa.to_string());
-            words
-        }
+        // A negative angle stays a word of its own: clap takes it as one of the three values.
+        "beam-shape" => vec![
+            "--beam-shape".to_string(),
+            arcsec("beam-shape", &values[0], 1.0)?.to_string(),
+            arcsec("beam-shape", &values[1], 1.0)?.to_string(),
+            degrees("beam-shape", &values[2])?.to_string(),
+        ],
         "circular-beam" | "no-fit-beam" | "theoretic-beam" | "join-channels" => vec![format!("--{name}")],
         "channels-out" => pair("--channels-out", &values[0]),
         "channel-range" => vec!["--channels".into(), values[0].clone(), values[1].clone()],

@@ -117,7 +117,7 @@ impl Stage<Job> for GridderStage {
 /// warning where a fit was replaced.
 fn choose_beam(choice: RestoringBeam, psf: &[f64], size: usize, pixel_rad: f64, theoretic_rad: Option<f64>) -> Result<(Beam, String, Option<String>)> {
     use crate::deconv::{restoring_beam, BeamFit};
-    let fitted = |shape| restoring_beam(psf, size, pixel_rad, shape).map(|(beam, warning)| (beam, warning));
+    let fitted = |shape| restoring_beam(psf, size, pixel_rad, shape);
     Ok(match choice {
         RestoringBeam::Fit => {
             let (beam, warning) = fitted(BeamFit::Elliptical)?;
