@@ -191,31 +191,20 @@ impl Engine {
                 other => other,
             })?;
         }
-        // One grid for every group: the pixel the whole band's longest baseline (of those kept)
-        // gives, as WSClean's -channels-out images every channel at one -scale.
-        if plan.pixel_arcsec.is_none() && plan.longest_baseline.is_none() {
-            let options = crate::vis::OpenOptions { ms: plan.ms.selection()?, ..crate::vis::OpenOptions::default() };
-            let summary = crate::vis::open::open_source(&path, &options)?.1.summary();
-            plan.longest_baseline = Some(plan.uv.longest_kept(summary.max_uv));
-        }
+        // One pipeline: the source reads every group (and the whole band) as a job of its
+        // own, all on the grid of the whole band's longest baseline.
         let write = plan.write.take();
-        let mut channels = Vec::with_capacity(count);
-        for index in 0..count {
-            let group = ImagePlan { channel_group: Some(crate::vis::ChannelGroup { index, count }), ..plan.clone() };
-            log::info!("{id}: channel group {} of {count}", index + 1);
-            let mut products = self.run_plan(Observation::Path(path.clone()), &group)?;
-            products.id = format!("{id}-{}", crate::job::group_label(index));
-            channels.push(products);
-        }
+        let groups = ImagePlan { channel_groups: true, ..plan.clone() };
+        let mut channels = self.run_plan_jobs(Observation::Path(path.clone()), &groups)?;
         let mfs = match plan.ms.join_channels {
-            true => {
-                log::info!("{id}: the whole band (MFS)");
-                let mut products = self.run_plan(Observation::Path(path.clone()), &plan)?;
-                products.id = format!("{id}-{}", crate::job::MFS_LABEL);
-                Some(products)
-            }
+            true => channels.pop(),
             false => None,
         };
+        let expected = |k: usize| format!("{id}-{}", crate::job::group_label(k));
+        if channels.len() != count || channels.iter().enumerate().any(|(k, p)| p.id != expected(k)) || mfs.as_ref().is_some_and(|p| p.id != format!("{id}-{}", crate::job::MFS_LABEL)) {
+            let made: Vec<&str> = channels.iter().chain(&mfs).map(|p| p.id.as_str()).collect();
+            return Err(Error::parameter("channels_out", format!("expected {count} channel groups' jobs in order, made {}", made.join(", "))));
+        }
         let all = ChannelProducts { channels, mfs };
         if let Some(prefix) = write {
             let options = WriteOptions { previews: plan.products == ProductSet::All, ..WriteOptions::default() };
@@ -248,6 +237,16 @@ impl Engine {
                 other => other,
             })?;
         }
+        let mut delivered = self.run_plan_jobs(obs, params)?;
+        match delivered.len() {
+            1 => Ok(delivered.remove(0)),
+            n => Err(Error::parameter("observation", format!("made {n} jobs where one was expected"))),
+        }
+    }
+
+    /// Runs the pipeline of `params` on `obs` and returns every job's products, in the order
+    /// the jobs were made.
+    fn run_plan_jobs(&self, obs: Observation, params: &ImagePlan) -> Result<Vec<JobProducts>> {
         let (spec, inputs, parted) = image_spec(obs, params)?;
         let delivered: Arc<Mutex<Vec<JobProducts>>> = Arc::default();
         let into = delivered.clone();
@@ -256,11 +255,8 @@ impl Engine {
             Ok(())
         };
         self.run_with_parts(&spec, inputs, parted, Some(Box::new(sink)), self.cancel.clone())?;
-        let mut delivered = std::mem::take(&mut *delivered.lock().expect("products"));
-        match delivered.len() {
-            1 => Ok(delivered.remove(0)),
-            n => Err(Error::parameter("observation", format!("made {n} jobs where one was expected"))),
-        }
+        let delivered = std::mem::take(&mut *delivered.lock().expect("products"));
+        Ok(delivered)
     }
 }
 
@@ -372,9 +368,10 @@ struct ImagePlan {
     ms: crate::request::MsOptions,
     /// `All`: the imaging loop and every product; `Dirty`: the dirty image and the PSF, no step.
     products: ProductSet,
-    /// One group of the MS's channels (`channels_out`); `None`: all of them.
+    /// Whether the MS is read as `ms.channels_out` channel groups (and with `join_channels`
+    /// the whole band), each a job; else as one job of every selected channel.
     #[cfg_attr(not(feature = "ms"), allow(dead_code))]
-    channel_group: Option<crate::vis::ChannelGroup>,
+    channel_groups: bool,
 }
 
 impl ImagePlan {
@@ -425,7 +422,7 @@ impl ImagePlan {
             },
             ms: request.ms.clone(),
             products: ProductSet::All,
-            channel_group: None,
+            channel_groups: false,
         })
     }
 
@@ -705,8 +702,11 @@ pub fn is_ms(path: &Path) -> bool {
 
 #[cfg(feature = "ms")]
 fn ms_read(path: &Path, params: &ImagePlan) -> Result<StageSpec> {
-    let selection = crate::ms::MsSelection { channel_group: params.channel_group, ..params.ms.selection()? };
-    StageSpec::typed("read", &MsParams { truth: params.truth.clone(), selection, ..MsParams::new(path) })
+    let (channels_out, join_channels) = match params.channel_groups {
+        true => (params.ms.channels_out, params.ms.join_channels),
+        false => (None, false),
+    };
+    StageSpec::typed("read", &MsParams { truth: params.truth.clone(), selection: params.ms.selection()?, channels_out, join_channels, ..MsParams::new(path) })
 }
 
 #[cfg(not(feature = "ms"))]

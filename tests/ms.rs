@@ -1058,6 +1058,26 @@ fn channels_out_images_each_group_on_one_grid_as_wsclean_does() {
             assert!(d.join(format!("img-{label}-{product}.fits")).exists(), "img-{label}-{product}.fits");
         }
     }
+    // A YAML pipeline: an `ms` source with `channels_out` makes each group a job of its own
+    // on one grid, named so in the log, and the whole band with `join_channels`: the same
+    // dirty images as `r2d2 dirty --channels-out`, on its grid.
+    let yaml = "image: {size: 64}\nstages:\n  read: {kind: ms, path: obs.ms, channels_out: 4, join_channels: true, to: weights}\n  weights: {kind: weighting, scheme: natural, to: grid}\n  grid: {kind: gridder, to: step}\n  step: {kind: clean, major_cycles: 1, to: update}\n  update: {kind: residual, to: step, done: write}\n  write: {kind: writer, prefix: \"p/{job}\", previews: false}\n";
+    std::fs::write(d.join("groups.yaml"), yaml).unwrap();
+    let out = r2d2(&["run", "groups.yaml"], d);
+    check(&out);
+    for label in ["0000", "0001", "0002", "0003", "MFS"] {
+        let [piped, direct] = [format!("p/obs-{label}-dirty.fits"), format!("ch-{label}-dirty.fits")].map(|f| r2d2_imaging::fits::read_image(&d.join(f)).unwrap());
+        let pixels = (piped.wcs.unwrap().pixel_deg * 3600.0, direct.wcs.unwrap().pixel_deg * 3600.0);
+        let apart = relative(&piped.data, &direct.data);
+        // The pipeline's gridder keeps its own default accuracy, `r2d2 dirty` its own.
+        assert!(apart < 1e-5 && pixels.0 == pixels.1, "group {label}: the pipeline's {apart:e} from r2d2 dirty's; pixels {pixels:?}");
+        assert!(stderr(&out).contains(&format!("job obs-{label}:")), "the log names group {label}: {}", stderr(&out));
+    }
+    for (keys, words) in [("channels_out: 0", "at least 1"), ("channels_out: 2, split_by: {column: spw}", "not both"), ("join_channels: true", "channels_out")] {
+        std::fs::write(d.join("bad.yaml"), yaml.replace("channels_out: 4, join_channels: true", keys)).unwrap();
+        let out = r2d2(&["run", "bad.yaml"], d);
+        assert!(!out.status.success() && stderr(&out).contains(words) && stderr(&out).contains("stages.read."), "{keys}: {}", stderr(&out));
+    }
     // Refused: a table input, more groups than channels, a prediction into the MS.
     for (args, words) in [
         (&["dirty", "obs.parquet", "--channels-out", "2"][..], &["--channels-out", "MeasurementSet"][..]),

@@ -1,6 +1,8 @@
 //! `kind: ms`: one imaging job per MeasurementSet (Stokes I of `data_column`, one field, the
 //! selected windows and channels), or several with `split_by` (time windows, channels,
-//! `spw`, or `field`: one job per field, each with its own phase centre), read in row chunks.
+//! `spw`, or `field`: one job per field, each with its own phase centre), or with
+//! `channels_out` one job per channel group on one grid (WSClean's `-channels-out`), read in
+//! row chunks.
 
 use super::writer::WriterParams;
 use crate::job::{emit_parts, emit_streamed, job_id_problem, stem_id, Truth};
@@ -13,8 +15,8 @@ use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 
 /// `kind: ms`: a MeasurementSet. Its keys are `path`, `id`, what of the MS to read (the keys
-/// of [`MsSelection`]: `data_column`, `field`, `spw`, `channels`), `batch_rows`, `truth` and
-/// `split_by`.
+/// of [`MsSelection`]: `data_column`, `field`, `spw`, `channels`), `batch_rows`, `truth`,
+/// `split_by`, `channels_out` and `join_channels`.
 #[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct MsParams {
@@ -39,12 +41,30 @@ pub struct MsParams {
     /// `{column: spw}`, `{column: field}`, or another numeric column of the batches.
     #[serde(default)]
     pub split_by: Option<SplitBy>,
+    /// WSClean's `-channels-out`: the selected channels in this many groups, each a job
+    /// `<id>-0000`, `<id>-0001`, ... imaged on one grid (the pixel of the whole band's longest
+    /// baseline, where the image's pixel is not given).
+    #[serde(default)]
+    pub channels_out: Option<usize>,
+    /// WSClean's `-join-channels`: with `channels_out`, the whole band too, as the job
+    /// `<id>-MFS` on the same grid.
+    #[serde(default)]
+    pub join_channels: bool,
 }
 
 impl MsParams {
     /// `path` with the defaults of the other keys.
     pub fn new(path: impl Into<PathBuf>) -> MsParams {
-        MsParams { path: path.into(), id: None, selection: MsSelection::default(), batch_rows: crate::vis::default_batch_rows(), truth: None, split_by: None }
+        MsParams {
+            path: path.into(),
+            id: None,
+            selection: MsSelection::default(),
+            batch_rows: crate::vis::default_batch_rows(),
+            truth: None,
+            split_by: None,
+            channels_out: None,
+            join_channels: false,
+        }
     }
 }
 
@@ -57,7 +77,11 @@ impl SourceParams for MsParams {
         Reads::MeasurementSet(self.path.clone())
     }
     fn several_jobs(&self) -> Option<String> {
-        self.split_by.as_ref().map(|_| "an ms source has split_by".to_string())
+        match (&self.split_by, self.channels_out) {
+            (Some(_), _) => Some("an ms source has split_by".to_string()),
+            (None, Some(n)) if n > 1 || self.join_channels => Some("an ms source has channels_out".to_string()),
+            _ => None,
+        }
     }
 }
 
@@ -79,6 +103,8 @@ pub struct MsSource {
     truth: Option<Truth>,
     split_by: Option<SplitBy>,
     split_key: String,
+    channels_out: Option<usize>,
+    join_channels: bool,
     reading: bool,
 }
 
@@ -101,6 +127,20 @@ impl MsSource {
             return Err(error("batch_rows", "expected at least 1".into()));
         }
         let selection = config.selection;
+        if let Some(count) = config.channels_out {
+            let refused = match () {
+                _ if count == 0 => Some("expected at least 1 channel group".to_string()),
+                _ if config.split_by.is_some() => Some("channel groups are jobs of their own: give `channels_out` or `split_by`, not both".into()),
+                _ if selection.channel_group.is_some() => Some("`channel_group` selects one group; `channels_out` makes every group: give one".into()),
+                _ if writes_model => Some("a writer has `model_column`: channel groups are not predicted into the MS (image the band as one to predict its model)".into()),
+                _ => None,
+            };
+            if let Some(message) = refused {
+                return Err(error("channels_out", message));
+            }
+        } else if config.join_channels {
+            return Err(error("join_channels", "the whole band joins channel groups: give `channels_out` too".into()));
+        }
         let split_key = format!("stages.{name}.split_by.column");
         if let Some(split) = &config.split_by {
             split.check().map_err(|m| error("split_by", format!("window: {m}")))?;
@@ -128,7 +168,7 @@ impl MsSource {
             crate::ms::check_model_write(&config.path, column, &selection.data_column)?;
         }
         let truth = Truth::load(config.truth.as_deref(), image_size).map_err(|e| error("truth", e.to_string()))?;
-        Ok(MsSource { path: config.path, id, selection, batch_rows: config.batch_rows, truth, split_by: config.split_by, split_key, reading: false })
+        Ok(MsSource { path: config.path, id, selection, batch_rows: config.batch_rows, truth, split_by: config.split_by, split_key, channels_out: config.channels_out, join_channels: config.join_channels, reading: false })
     }
 
     /// Reads one selection into jobs; `suffix` is appended to the id (a field's part).
@@ -141,17 +181,7 @@ impl MsSource {
     ) -> Result<bool> {
         let split = self.split_by.as_ref().filter(|s| s.column != FIELD_SPLIT);
         if split.is_none() {
-            // One job of the selection, read again at each pass: nothing the size of the
-            // table is held.
-            let (path, chosen, batch_rows) = (self.path.clone(), selection.clone(), self.batch_rows);
-            let reopen = move || -> Result<Box<dyn TableReader>> { Ok(Box::new(MsReader::open(&path, &chosen, batch_rows)?)) };
-            let reader = MsReader::open(&self.path, selection, self.batch_rows)?;
-            let (field, field_name) = (reader.field().0, reader.field().1.to_string());
-            let Some(table) = StreamedTable::scan(Box::new(reader), Box::new(reopen), Some(&crate::vis::spill_dir()), cancelled)? else {
-                return Ok(false);
-            };
-            let column = table.meta().extra.get("ms_data_column").cloned().unwrap_or_default();
-            log::info!("{} (field {field} '{field_name}', column {column}): {}; {}", self.path.display(), table.stats(), table.reader_summary().unwrap_or_default());
+            let Some(table) = self.scan(selection, cancelled)? else { return Ok(false) };
             emit_streamed(id, table, self.truth.as_ref(), emit)?;
             return Ok(true);
         }
@@ -162,6 +192,48 @@ impl MsSource {
         let column = reader.meta().extra.get("ms_data_column").cloned().unwrap_or_default();
         log::info!("{} (field {} '{}', column {column}): {stats}; {}", self.path.display(), reader.field().0, reader.field().1, reader.counts());
         emit_parts(id, reader.meta(), parts, self.truth.as_ref(), Some(&self.path), emit)?;
+        Ok(true)
+    }
+
+    /// One job's samples of `selection`, read again at each pass: nothing the size of the
+    /// table is held. `None` where the run was cancelled.
+    fn scan(&self, selection: &MsSelection, cancelled: &dyn Fn() -> bool) -> Result<Option<StreamedTable>> {
+        let (path, chosen, batch_rows) = (self.path.clone(), selection.clone(), self.batch_rows);
+        let reopen = move || -> Result<Box<dyn TableReader>> { Ok(Box::new(MsReader::open(&path, &chosen, batch_rows)?)) };
+        let reader = MsReader::open(&self.path, selection, self.batch_rows)?;
+        let (field, field_name) = (reader.field().0, reader.field().1.to_string());
+        let Some(table) = StreamedTable::scan(Box::new(reader), Box::new(reopen), Some(&crate::vis::spill_dir()), cancelled)? else {
+            return Ok(None);
+        };
+        let column = table.meta().extra.get("ms_data_column").cloned().unwrap_or_default();
+        let group = selection.channel_group.map(|g| format!(", channel group {} of {}", g.index + 1, g.count)).unwrap_or_default();
+        log::info!("{} (field {field} '{field_name}', column {column}{group}): {}; {}", self.path.display(), table.stats(), table.reader_summary().unwrap_or_default());
+        Ok(Some(table))
+    }
+
+    /// `count` channel groups of `selection`, each a job `<id>-0000`, ... on one grid, and with
+    /// `join_channels` the whole band as `<id>-MFS`. Every group is scanned before any is
+    /// emitted: the whole band's longest baseline, which sets the grid, is the longest of
+    /// the groups'.
+    fn read_channel_groups(&self, count: usize, id: &str, emit: &mut dyn FnMut(Job) -> Result<()>, cancelled: &dyn Fn() -> bool) -> Result<bool> {
+        let mut groups = Vec::with_capacity(count);
+        for index in 0..count {
+            let chosen = MsSelection { channel_group: Some(crate::vis::ChannelGroup { index, count }), ..self.selection.clone() };
+            let Some(table) = self.scan(&chosen, cancelled)? else { return Ok(false) };
+            groups.push(table);
+        }
+        let band_max_uv = groups.iter().map(|t| t.max_uv()).fold(0.0, f64::max);
+        let mut on_one_grid = |mut job: Job| {
+            job.split_max_uv = Some(band_max_uv);
+            emit(job)
+        };
+        for (index, table) in groups.into_iter().enumerate() {
+            emit_streamed(&format!("{id}-{}", crate::job::group_label(index)), table, self.truth.as_ref(), &mut on_one_grid)?;
+        }
+        if self.join_channels {
+            let Some(table) = self.scan(&self.selection, cancelled)? else { return Ok(false) };
+            emit_streamed(&format!("{id}-{}", crate::job::MFS_LABEL), table, self.truth.as_ref(), &mut on_one_grid)?;
+        }
         Ok(true)
     }
 }
@@ -179,6 +251,10 @@ impl Source<Job> for MsSource {
                 if !self.read(&selection, &id, emit, cancelled)? {
                     return Ok(());
                 }
+            }
+        } else if let Some(count) = self.channels_out {
+            if !self.read_channel_groups(count, &self.id, emit, cancelled)? {
+                return Ok(());
             }
         } else if !self.read(&self.selection, &self.id, emit, cancelled)? {
             return Ok(());

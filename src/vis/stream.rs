@@ -206,6 +206,11 @@ impl StreamedTable {
     pub fn reader_summary(&self) -> Option<&str> {
         self.reader_summary.as_deref()
     }
+
+    /// Longest projected baseline of the samples kept, wavelengths.
+    pub fn max_uv(&self) -> f64 {
+        self.summary.max_uv
+    }
 }
 
 impl VisSource {
