@@ -183,9 +183,46 @@ pub struct Coverage {
     pub antenna1: Vec<i32>,
     pub antenna2: Vec<i32>,
     pub flag: Vec<bool>,
+    /// Each configuration's track, in the order observed.
+    pub tracks: Vec<CoverageTrack>,
+    /// The angle the whole (u, v) coverage was rotated by, radians (0: not rotated).
+    pub rotation_rad: f64,
+}
+
+/// One configuration's share of a [`Coverage`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct CoverageTrack {
+    /// The configuration (a layout of the telescope), lower case.
+    pub configuration: String,
+    /// Its samples, every channel's: `coverage.u_m[samples]`.
+    pub samples: std::ops::Range<usize>,
+    /// Its samples' `time_s` less this are seconds from its track's start.
+    pub time_offset_s: f64,
+    /// The track's length, seconds (its integrations, whole): transit is at its middle.
+    pub duration_s: f64,
+    /// East longitude of its array's centre, radians: what its hour angles are reckoned from.
+    pub longitude_rad: f64,
 }
 
 impl Coverage {
+    /// The samples' times as a real observation's: MJD seconds, UTC (a MeasurementSet's TIME).
+    /// Configuration `k` is observed on day `k` after [`super::epoch::REFERENCE_MJD`], its
+    /// track centred on the transit of right ascension `ra_deg` nearest that day's noon, so
+    /// that each sample's local sidereal time is the right ascension plus the hour angle its
+    /// (u, v, w) were computed for. `time_s` itself stays seconds from the first track's start
+    /// (training's tracks need no date).
+    pub fn utc_times(&self, ra_deg: f64) -> Vec<f64> {
+        let mut times = self.time_s.clone();
+        for (day, track) in self.tracks.iter().enumerate() {
+            let transit = super::epoch::transit_on_day(ra_deg.to_radians(), track.longitude_rad, day);
+            let start = transit * super::epoch::SECONDS_PER_DAY - 0.5 * track.duration_s;
+            for t in &mut times[track.samples.clone()] {
+                *t = start + (*t - track.time_offset_s);
+            }
+        }
+        times
+    }
+
     pub fn len(&self) -> usize {
         self.u_m.len()
     }
@@ -242,31 +279,40 @@ pub fn sample_coverage(spec: &ObservationSpec) -> Result<Coverage> {
     spec.validate()?;
     let mut cov = Coverage::default();
     let mut time_offset = 0.0;
+    // Antenna numbers of later configurations continue after the earlier ones'.
+    let mut first_antenna = 0;
     let scope = telescope::telescope(&spec.telescope)?;
-    for (k, (config, hours)) in spec.configurations.iter().enumerate() {
+    for (config, hours) in &spec.configurations {
         let (array, hours) = (scope.array(config)?, *hours);
-        let track = telescope::uvw_tracks(
-            &array,
-            &TrackSpec { dec_rad: spec.dec_deg.to_radians(), hour_angle_span_h: hours, integration_s: spec.integration_s },
-        )?;
+        let track_spec = TrackSpec { dec_rad: spec.dec_deg.to_radians(), hour_angle_span_h: hours, integration_s: spec.integration_s };
+        let track = telescope::uvw_tracks(&array, &track_spec)?;
+        let base = first_antenna as i32;
+        cov.tracks.push(CoverageTrack {
+            configuration: config.trim().to_ascii_lowercase(),
+            samples: cov.len()..cov.len() + track.len() * spec.frequencies_hz.len(),
+            time_offset_s: time_offset,
+            duration_s: track_spec.n_times() as f64 * spec.integration_s,
+            longitude_rad: array.longitude_rad(),
+        });
         for &f in &spec.frequencies_hz {
             cov.u_m.extend_from_slice(&track.u_m);
             cov.v_m.extend_from_slice(&track.v_m);
             cov.w_m.extend_from_slice(&track.w_m);
             cov.frequency_hz.extend(std::iter::repeat(f).take(track.len()));
-            // Configurations are observed one after another; times stay distinct.
+            // One track after another, times distinct (training's relative times; simulate
+            // dates each on its own day: `utc_times`).
             cov.time_s.extend(track.time_s.iter().map(|t| t + time_offset));
-            // Antenna numbers of later configurations continue after the earlier ones'.
-            let base = (k * array.n_antennas()) as i32;
             cov.antenna1.extend(track.antenna1.iter().map(|a| a + base));
             cov.antenna2.extend(track.antenna2.iter().map(|a| a + base));
         }
         time_offset += hours * 3600.0;
+        first_antenna += array.n_antennas();
     }
     if spec.random_rotation {
         let mut rng = ChaCha8Rng::seed_from_u64(spec.seed);
         rng.set_stream(STREAM_ROTATION);
         let angle: f64 = rng.gen_range(0.0..std::f64::consts::TAU);
+        cov.rotation_rad = angle;
         let (s, c) = angle.sin_cos();
         for (u, v) in cov.u_m.iter_mut().zip(cov.v_m.iter_mut()) {
             let (uu, vv) = (*u, *v);

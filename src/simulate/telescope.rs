@@ -18,7 +18,7 @@ use std::collections::BTreeMap;
 use std::sync::OnceLock;
 
 /// Sidereal rate: hours of hour angle per hour of (UTC) time.
-const SIDEREAL_PER_SOLAR: f64 = 1.002_737_909_35;
+pub(crate) const SIDEREAL_PER_SOLAR: f64 = 1.002_737_909_35;
 
 /// Where the registry is, for its errors.
 const REGISTRY_PATH: &str = "data/telescopes/telescopes.yaml";
@@ -171,6 +171,8 @@ pub struct Array {
     pub positions_itrf: Vec<[f64; 3]>,
     /// Dish diameter of each antenna in metres (same order as `positions_itrf`).
     pub dish_diameter_m: Vec<f64>,
+    /// Station name of each antenna: the table's fifth column (`M000`), else its number.
+    pub stations: Vec<String>,
 }
 
 impl Array {
@@ -252,13 +254,15 @@ impl Array {
 
 /// Parse an antenna table: lines starting with `#` and blank lines are ignored; every other
 /// line holds `X Y Z dish_diameter [station [mount]]`, with X, Y, Z in ITRF metres and the
-/// dish diameter in metres. Extra columns (station name, mount) are accepted and ignored.
+/// dish diameter in metres. The station name is kept (a converted MS names its antennas by
+/// it; an antenna without one is named by its number); the mount is accepted and ignored.
 ///
 /// `name` is the array name and is used as the "path" in errors, together with the 1-based
 /// line number, so a broken table can be fixed without reading code.
 pub fn parse_itrf_table(text: &str, name: &str) -> Result<Array> {
     let mut positions = Vec::new();
     let mut diameters = Vec::new();
+    let mut stations = Vec::new();
     for (idx, raw) in text.lines().enumerate() {
         let line = raw.trim();
         if line.is_empty() || line.starts_with('#') {
@@ -304,6 +308,7 @@ pub fn parse_itrf_table(text: &str, name: &str) -> Result<Array> {
                 ),
             ));
         }
+        stations.push(fields.get(4).map_or_else(|| format!("{:02}", positions.len()), |s| s.to_string()));
         positions.push([vals[0], vals[1], vals[2]]);
         diameters.push(vals[3]);
     }
@@ -320,6 +325,7 @@ pub fn parse_itrf_table(text: &str, name: &str) -> Result<Array> {
         name: name.to_string(),
         positions_itrf: positions,
         dish_diameter_m: diameters,
+        stations,
     })
 }
 
