@@ -491,6 +491,32 @@ mod tests {
         assert!((flagged - 0.1).abs() < 0.01, "flagged fraction {flagged}");
     }
 
+    /// Each configuration's track is recorded with its samples, its antennas numbered after the
+    /// earlier ones'; dated, configuration k lies on day k after the reference date, centred on
+    /// the transit of the right ascension at its array's longitude, its integrations as far
+    /// apart as in `time_s`.
+    #[test]
+    fn tracks_are_recorded_and_dated_a_day_apart() {
+        let cov = sample_coverage(&small_spec(4)).unwrap();
+        assert_eq!(cov.tracks.iter().map(|t| t.configuration.as_str()).collect::<Vec<_>>(), ["c", "d"]);
+        assert_eq!((cov.tracks[0].samples.clone(), cov.tracks[1].samples.clone()), (0..30 * 351 * 2, 30 * 351 * 2..45 * 351 * 2));
+        assert_eq!((cov.tracks[0].duration_s, cov.tracks[1].duration_s), (3600.0, 1800.0));
+        let ids = |k: usize| cov.antenna1[cov.tracks[k].samples.clone()].iter().chain(&cov.antenna2[cov.tracks[k].samples.clone()]).fold((i32::MAX, 0), |(lo, hi), &a| (lo.min(a), hi.max(a)));
+        assert_eq!((ids(0), ids(1)), ((0, 26), (27, 53)));
+        assert!(cov.rotation_rad != 0.0);
+        let ra = 123.0f64;
+        let times = cov.utc_times(ra);
+        for (day, track) in cov.tracks.iter().enumerate() {
+            let t = &times[track.samples.clone()];
+            let (first, last) = t.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| (a.min(x), b.max(x)));
+            let middle = (first + last) / 2.0 / crate::simulate::epoch::SECONDS_PER_DAY;
+            let transit = crate::simulate::epoch::transit_on_day(ra.to_radians(), track.longitude_rad, day);
+            assert!((middle - transit).abs() * 86_400.0 < 1e-3, "day {day}: middle {middle}, transit {transit}");
+            assert_eq!(last - first, track.duration_s - 120.0);
+            assert!((middle - crate::simulate::epoch::REFERENCE_MJD - day as f64 - 0.5).abs() < 0.5);
+        }
+    }
+
     /// Dense `Re{Phi^H diag(w) Phi}` from a direct DFT, for an independent check of the norms.
     fn dense_normal_norm(g: ImageGeometry, u: &[f64], v: &[f64], w: &[f64]) -> f64 {
         let n = g.size;

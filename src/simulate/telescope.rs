@@ -550,6 +550,7 @@ mod tests {
         let meerkat = telescope("meerkat").unwrap().array("meerkat").unwrap();
         assert_eq!((meerkat.n_antennas(), meerkat.n_baselines()), (64, 2016));
         assert!(meerkat.dish_diameter_m.iter().all(|&d| d == 13.5));
+        assert_eq!((meerkat.stations[0].as_str(), meerkat.stations[63].as_str()), ("M000", "M063"));
         // MeerKAT's longest baseline is 7.7 km; the site is at 30.7 deg S (geodetic; the
         // geocentric latitude reported here is 0.17 deg nearer the equator), 21.4 deg E.
         let longest = meerkat.max_baseline_m();
@@ -610,6 +611,9 @@ mod tests {
             e.contains("bad.txt") && e.contains("line 3") && e.contains("Z"),
             "{e}"
         );
+        // Stations from the fifth column, else numbered.
+        assert_eq!(parse_itrf_table("1 2 3 25 W01\n4 5 6 25 E02 ALT-AZ\n", "named").unwrap().stations, ["W01", "E02"]);
+        assert_eq!(parse_itrf_table("1 2 3 25\n4 5 6 25\n", "bare").unwrap().stations, ["00", "01"]);
         let e = parse_itrf_table("1 2 3\n", "short.txt")
             .unwrap_err()
             .to_string();
