@@ -123,7 +123,9 @@ def main():
     if len(set(widths)) != 1:
         sys.exit(f"--spw {args.spw}: {nchan} channels do not divide into equal windows")
     wchan = widths[0]
-    times, a1, a2 = MJD_OFFSET_S + rows[:, 0], rows[:, 1].astype(np.int32), rows[:, 2].astype(np.int32)
+    # `r2d2 simulate` writes MJD seconds; a table of seconds from its start is moved to a date.
+    offset = MJD_OFFSET_S if rows[:, 0].max() < MJD_OFFSET_S / 2 else 0.0
+    times, a1, a2 = offset + rows[:, 0], rows[:, 1].astype(np.int32), rows[:, 2].astype(np.int32)
 
     def per_window(x):
         return np.concatenate([x[:, a:b] for a, b in zip(bounds[:-1], bounds[1:])], axis=0)

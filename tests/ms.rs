@@ -25,7 +25,7 @@ fn observation(dir: &Path, nfreq: usize) {
 
 /// An MS's track and integration time are read from its TIME and INTERVAL columns and checked
 /// against the series' (VLA: 6..13 h at 300 s): the INTERVAL given wins over the steps between
-/// times; an MS whose INTERVAL says nothing (0, as `r2d2 convert` writes it) has the steps'.
+/// times; `r2d2 convert` writes the simulation's integration time as INTERVAL.
 #[test]
 fn an_ms_track_and_integration_are_checked_against_the_series() {
     let dir = tempfile::tempdir().unwrap();
@@ -1389,4 +1389,98 @@ fn self_calibration_against_the_model_converges_to_the_true_gains() {
     assert!(ours.windows(2).all(|w| w[1] < w[0]), "the gain error must fall at each round: {ours:?}");
     assert!(ours[2] < ours[0] / 3.0, "round 2's gain error {} against {} uncorrected", ours[2], ours[0]);
     assert!(ours[2] < 1.35 * wsclean[2], "gain error {} against WSClean's loop's {}", ours[2], wsclean[2]);
+}
+
+/// `r2d2 simulate` + `r2d2 convert` make a plausible MS (issue 58), read back by
+/// python-casacore: ANTENNA holds the layout's positions, stations and dishes (MeerKAT's
+/// 13.5 m; a VLA A+C table's C antennas after its A ones), INTERVAL and EXPOSURE the
+/// integration, FEED and POINTING a row per antenna (POINTING tracking the phase centre), and
+/// WSClean dates its image on the day observed, 2025-06-01 (not 1858-11-17, MJD 0). A table
+/// whose metadata do not name its layouts converts as before, with a warning saying so.
+#[test]
+fn simulate_and_convert_write_a_plausible_ms() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let layouts = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/telescopes");
+    let simulate = |args: &[&str], out: &str| {
+        let mut all = vec!["simulate", "--size", "64", "--nfreq", "1", "--integration-s", "60", "--ra", "30", "--out", out];
+        all.extend_from_slice(args);
+        check(&r2d2(&all, d));
+    };
+    simulate(&["--telescope", "meerkat", "--hours", "0.25", "--no-rotation"], "mk.parquet");
+    simulate(&["--telescope", "vla", "--configs", "a,c", "--hours", "0.1,0.1"], "ac.parquet");
+    check(&r2d2(&["convert", "mk.parquet", "mk.ms"], d));
+    let out = r2d2(&["convert", "ac.parquet", "ac.ms"], d);
+    check(&out);
+    assert!(stderr(&out).contains("rotated by") && !stderr(&out).contains("WARN"), "{}", stderr(&out));
+    let script = r##"
+import sys
+import numpy as np
+from casacore.tables import table
+from astropy.time import Time
+ms, interval, ra_deg, layouts = sys.argv[1], float(sys.argv[2]), float(sys.argv[3]), sys.argv[4:]
+rows = [l.split() for f in layouts for l in open(f) if l.strip() and not l.startswith("#")]
+positions = np.array([[float(x) for x in r[:3]] for r in rows])
+a = table(ms + "/ANTENNA", ack=False)
+n = a.nrows()
+assert n == len(rows), (n, len(rows))
+assert np.abs(a.getcol("POSITION") - positions).max() < 1e-6
+assert list(a.getcol("DISH_DIAMETER")) == [float(r[3]) for r in rows], a.getcol("DISH_DIAMETER")
+assert list(a.getcol("STATION")) == [r[4] for r in rows], a.getcol("STATION")
+assert len(set(a.getcol("NAME"))) == n, a.getcol("NAME")
+t = table(ms, ack=False)
+assert (t.getcol("INTERVAL") == interval).all() and (t.getcol("EXPOSURE") == interval).all(), (t.getcol("INTERVAL")[:3], interval)
+assert (t.getcol("TIME_CENTROID") == t.getcol("TIME")).all()
+assert max(t.getcol("ANTENNA2")) < n
+f = table(ms + "/FEED", ack=False)
+assert f.nrows() == n and list(f.getcol("ANTENNA_ID")) == list(range(n)), f.nrows()
+types = f.getcol("POLARIZATION_TYPE")  # python-casacore gives a string array as a dict
+assert types["shape"] == [n, 2] and types["array"] == ["X", "Y"] * n and (f.getcol("NUM_RECEPTORS") == 2).all(), types["shape"]
+assert (f.getcol("SPECTRAL_WINDOW_ID") == -1).all()
+p = table(ms + "/POINTING", ack=False)
+assert p.nrows() == n and list(p.getcol("ANTENNA_ID")) == list(range(n)), p.nrows()
+direction = p.getcol("DIRECTION")
+phase = table(ms + "/FIELD", ack=False).getcol("PHASE_DIR")
+assert direction.shape == (n, 1, 2) and np.allclose(direction, phase[0]) and np.isclose(direction[0, 0, 0], np.radians(ra_deg)), direction[0]
+assert p.getcol("TRACKING").all()
+start, end = table(ms + "/OBSERVATION", ack=False).getcol("TIME_RANGE")[0]
+times = t.getcol("TIME")
+assert np.isclose(start, times.min() - interval / 2) and np.isclose(end, times.max() + interval / 2), (start, end)
+assert np.isclose(p.getcol("TIME")[0], (start + end) / 2) and np.isclose(p.getcol("INTERVAL")[0], end - start)
+assert Time(start / 86400.0, format="mjd", scale="utc").iso.startswith("2025-06-01"), start
+print("ok", n)
+"##;
+    let read_back = |ms: &str, interval: &str, files: &[&str]| {
+        let out = Command::new("python3")
+            .args(["-c", script, ms, interval, "30"])
+            .args(files.iter().map(|f| layouts.join(f)))
+            .current_dir(d)
+            .output()
+            .expect("python3 runs");
+        assert!(out.status.success() && String::from_utf8_lossy(&out.stdout).starts_with("ok"), "{ms}: {}", text(&out));
+    };
+    read_back("mk.ms", "60", &["meerkat.itrf.txt"]);
+    read_back("ac.ms", "60", &["vlaa.itrf.txt", "vlac.itrf.txt"]);
+    casacore(d, "mk.ms", "assert (table(ms + '/ANTENNA', ack=False).getcol('DISH_DIAMETER') == 13.5).all()");
+
+    let out = Command::new("wsclean")
+        .args(["-quiet", "-size", "64", "64", "-scale", "1asec", "-niter", "0", "-name", "ws", "mk.ms"])
+        .current_dir(d)
+        .output()
+        .expect("wsclean runs (apt-get install wsclean; .ci/run installs it)");
+    assert!(out.status.success(), "wsclean failed: {}", text(&out));
+    let date = "from astropy.io import fits\nh = fits.getheader('ws-dirty.fits')\nassert h['DATE-OBS'].startswith('2025-06-01'), h['DATE-OBS']";
+    let out = Command::new("python3").args(["-c", date]).current_dir(d).output().expect("python3 runs");
+    assert!(out.status.success(), "{}", text(&out));
+
+    // Without the layouts in its metadata: antennas at the origin (25 m dishes), INTERVAL from
+    // the steps between times, and a warning naming what is unknown.
+    let strip = "import pyarrow.parquet as pq\nt = pq.read_table('mk.parquet')\nm = {k: v for k, v in t.schema.metadata.items() if k not in (b'configurations', b'integration_s')}\npq.write_table(t.replace_schema_metadata(m), 'bare.parquet')";
+    let out = Command::new("python3").args(["-c", strip]).current_dir(d).output().expect("python3 runs");
+    assert!(out.status.success(), "{}", text(&out));
+    let out = r2d2(&["convert", "bare.parquet", "bare.ms"], d);
+    check(&out);
+    let err = stderr(&out);
+    assert!(err.contains("WARN") && err.contains("bare.parquet") && err.contains("no `configurations` in its metadata"), "{err}");
+    casacore(d, "bare.ms", "a = table(ms + '/ANTENNA', ack=False)\nassert a.nrows() == 64 and (a.getcol('POSITION') == 0).all() and (a.getcol('DISH_DIAMETER') == 25).all()\nassert (table(ms, ack=False).getcol('INTERVAL') == 60).all()");
 }

@@ -159,3 +159,62 @@ fn auto_runs_the_series_trained_for_the_datas_telescope() {
     // telescope is said to be without a series.
     assert!(listing.contains("no telescope declared") && !listing.contains("without a series"), "{listing}");
 }
+
+/// `r2d2 simulate` dates its samples as a real observation's (MJD seconds, UTC): at each
+/// configuration's middle integration the local mean sidereal time at its array's centre is
+/// the phase centre's right ascension, by astropy (UT1 taken as UTC, as the simulation does;
+/// they differ by under 0.9 s), configuration k observed on day k after 2025-06-01. The
+/// metadata name the configurations and the integration time.
+#[test]
+fn simulated_times_put_the_phase_centre_on_the_meridian_mid_track() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let layouts = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/telescopes");
+    let script = r#"
+import sys
+import numpy as np, pyarrow.parquet as pq
+from astropy.utils import iers
+iers.conf.auto_download = False
+from astropy.time import Time
+from astropy.coordinates import EarthLocation
+import astropy.units as u
+parquet, ra, configs, integration, layouts = sys.argv[1], float(sys.argv[2]), sys.argv[3], sys.argv[4], sys.argv[5:]
+t = pq.read_table(parquet)
+meta = {k.decode(): v.decode() for k, v in t.schema.metadata.items()}
+assert meta["configurations"] == configs and float(meta["integration_s"]) == float(integration), meta
+times = np.unique(t["time"].to_numpy())
+tracks = np.split(times, np.nonzero(np.diff(times) > 3600.0)[0] + 1)
+assert len(tracks) == len(layouts), (len(tracks), len(layouts))
+for day, (track, layout) in enumerate(zip(tracks, layouts)):
+    assert len(track) % 2 == 1, len(track)
+    xyz = np.loadtxt(layout, usecols=(0, 1, 2)).mean(axis=0)
+    lon = EarthLocation.from_geocentric(*xyz, unit=u.m).lon
+    middle = Time(track[len(track) // 2] / 86400.0, format="mjd", scale="utc")
+    middle.delta_ut1_utc = 0.0
+    lst = middle.sidereal_time("mean", longitude=lon).hour
+    off = ((lst - ra / 15.0 + 12.0) % 24.0 - 12.0) * 3600.0
+    assert abs(off) < 1.0, (day, off)
+    assert middle.iso[:10] == f"2025-06-{day + 1:02d}", (day, middle.iso)
+    print(f"day {day}: {middle.iso}, LST - RA = {off * 1e3:.1f} ms")
+"#;
+    for (telescope, configs, hours, ra, files) in [
+        ("vla", "a,c", "0.75,0.25", "250", vec!["vlaa.itrf.txt", "vlac.itrf.txt"]),
+        ("meerkat", "meerkat", "0.25", "30.5", vec!["meerkat.itrf.txt"]),
+    ] {
+        // Odd numbers of integrations (9 and 3 of 300 s): the middle one is at transit.
+        check(&r2d2(
+            &["simulate", "--telescope", telescope, "--configs", configs, "--hours", hours, "--integration-s", "300", "--ra", ra, "--size", "64", "--nfreq", "1", "--out", "t.parquet"],
+            d,
+        ));
+        let out = Command::new("python3")
+            .arg("-c")
+            .arg(script)
+            .args(["t.parquet", ra, configs, "300"])
+            .args(files.iter().map(|f| layouts.join(f)))
+            .current_dir(d)
+            .output()
+            .expect("python3 runs");
+        assert!(out.status.success(), "{telescope}: {}{}", String::from_utf8_lossy(&out.stdout), String::from_utf8_lossy(&out.stderr));
+        eprint!("{telescope}: {}", String::from_utf8_lossy(&out.stdout));
+    }
+}

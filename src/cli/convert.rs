@@ -32,7 +32,7 @@ pub fn run(args: Args) -> Result<()> {
         }
         #[cfg(feature = "ms")]
         TableFormat::Parquet => {
-            let made = crate::ms::convert_parquet_to_ms(&args.input, &args.output)?;
+            let made = crate::ms::convert_parquet_to_ms(&args.input, &args.output, &layout_antennas)?;
             log::info!(
                 "{}: wrote {} samples as {} rows x {} channels (XX, YY) to {}",
                 args.input.display(),
@@ -62,4 +62,34 @@ pub fn run(args: Args) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// The antennas of the configurations a simulated table's metadata name (`configurations`, of
+/// its `telescope` in the registry), in the order `r2d2 simulate` numbers them: each
+/// configuration's after the earlier ones'. Named by station, with the configuration where
+/// there are several (the VLA's pads differ between them); an error says what is unknown.
+#[cfg(feature = "ms")]
+fn layout_antennas(meta: &crate::vis::ObservationMeta) -> std::result::Result<Vec<crate::ms::AntennaRow>, String> {
+    use crate::vis::CONFIGURATIONS_KEY;
+    let configurations = meta
+        .extra
+        .get(CONFIGURATIONS_KEY)
+        .ok_or_else(|| format!("no `{CONFIGURATIONS_KEY}` in its metadata, which `r2d2 simulate` writes"))?;
+    let telescope = crate::simulate::telescope::telescope(&meta.telescope)
+        .map_err(|_| format!("metadata `telescope` {:?} is not a telescope of data/telescopes/telescopes.yaml", meta.telescope))?;
+    let names: Vec<&str> = configurations.split(',').map(str::trim).collect();
+    let mut rows = Vec::new();
+    for config in &names {
+        let array = telescope.array(config).map_err(|e| format!("metadata `{CONFIGURATIONS_KEY}` {configurations:?}: {e}"))?;
+        for k in 0..array.n_antennas() {
+            let station = array.stations[k].clone();
+            rows.push(crate::ms::AntennaRow {
+                name: if names.len() > 1 { format!("{station}-{config}") } else { station.clone() },
+                station,
+                position_m: array.positions_itrf[k],
+                dish_diameter_m: array.dish_diameter_m[k],
+            });
+        }
+    }
+    Ok(rows)
 }

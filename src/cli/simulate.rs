@@ -1,4 +1,6 @@
 //! `r2d2 simulate`: an observation of a sky by a telescope of the registry (FITS or procedural) into a Parquet table.
+//! Its `time` column is MJD seconds (UTC): configuration k observed on day k after
+//! 2025-06-01, centred on the phase centre's transit (`simulate::epoch`).
 
 use crate::fits::{read_image, write_image, BrightnessUnit, ImageWcs};
 use crate::nufft::NufftParams;
@@ -53,7 +55,11 @@ pub struct Args {
     /// Integration time, seconds (vla: 30; meerkat: 8).
     #[arg(long)]
     integration_s: Option<f64>,
-    /// Do not rotate the uv coverage by a random angle.
+    /// Do not rotate the uv coverage by a random angle. By default it is rotated (varying
+    /// the PSF, as training does): the UVW then no longer follow from the antenna positions
+    /// and times that `r2d2 convert` writes into an MS (the metadata's `uv_rotation_deg` says
+    /// by how much), which matters to tools that recompute UVW; give --no-rotation for
+    /// geometrically consistent data.
     #[arg(long)]
     no_rotation: bool,
     /// Raise a FITS sky's dynamic range to --dr by exponentiation (Terris et al. 2022).
@@ -83,7 +89,8 @@ pub struct Args {
     /// Threads (0: all cores).
     #[arg(long, default_value_t = 0)]
     threads: usize,
-    /// Output Parquet file.
+    /// Output Parquet file. Its `time` column is MJD seconds (UTC): configuration k is
+    /// observed on day k after 2025-06-01, its track centred on the phase centre's transit.
     #[arg(long)]
     out: PathBuf,
 }

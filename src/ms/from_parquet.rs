@@ -6,10 +6,17 @@
 //! I weight (`(XX + YY) / 2`, `4 / (1/wA + 1/wB)`) are the table's. Channels a row lacks, and
 //! samples the reader would exclude (flagged, non-finite, non-positive weight), are flagged.
 //! The whole table is held in memory (rows are gathered from anywhere in it).
+//!
+//! The subtables are what a real observation's would be where the table's metadata say
+//! (`r2d2 simulate` writes them): ANTENNA from the layouts of the configurations observed
+//! (positions, dishes, station names), INTERVAL and EXPOSURE from the integration time (else
+//! the most common step between times), a FEED (receptors X and Y) and a POINTING (tracking
+//! the phase centre) row per antenna, OBSERVATION's time range. What is unknown is said in a
+//! warning and written as before: antennas at the origin with 25 m dishes, an INTERVAL of 0.
 
 use super::model::exchange;
 use super::{invalid, MsError, SampleColumns, TempDir};
-use crate::vis::{check_no_nulls, VisReader, DEFAULT_BATCH_ROWS};
+use crate::vis::{check_no_nulls, VisReader, CONFIGURATIONS_KEY, DEFAULT_BATCH_ROWS, INTEGRATION_KEY, ROTATION_KEY};
 use crate::{Error, Result};
 use arrow::array::{Array, BooleanArray, Float64Array, Int32Array, RecordBatch};
 use arrow::datatypes::DataType;
@@ -77,6 +84,48 @@ fn read_samples(parquet: &Path) -> Result<(SampleColumns, crate::vis::Observatio
 /// largest): far beyond any array's stations, far below what would exhaust memory.
 const MAX_ANTENNA_ID: i32 = 1 << 16;
 
+/// One row of an MS's ANTENNA table.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AntennaRow {
+    pub name: String,
+    pub station: String,
+    /// ITRF X, Y, Z, metres.
+    pub position_m: [f64; 3],
+    pub dish_diameter_m: f64,
+}
+
+/// The antennas a table's metadata say it was observed with, in the order of its antenna
+/// ids; an error says what is unknown (the metadata lack them, name an unknown layout, ...).
+pub type AntennaLayouts<'a> = &'a dyn Fn(&crate::vis::ObservationMeta) -> std::result::Result<Vec<AntennaRow>, String>;
+
+/// The ANTENNA table of a conversion: `layouts` where they fit the antenna ids, else (with a
+/// warning naming what is unknown) anonymous antennas at the origin with 25 m dishes.
+fn antennas(parquet: &Path, meta: &crate::vis::ObservationMeta, ids: usize, layouts: AntennaLayouts<'_>) -> Vec<AntennaRow> {
+    let known = layouts(meta).and_then(|rows| match rows.len() >= ids {
+        true => Ok(rows),
+        false => Err(format!("its antenna ids count {ids} antennas, its layouts (metadata `{CONFIGURATIONS_KEY}`, telescope `{}`) {}", meta.telescope, rows.len())),
+    });
+    known.unwrap_or_else(|why| {
+        log::warn!("{}: antenna positions and dishes unknown ({why}): the MS's {ids} antennas are written at position 0 with 25 m dishes", parquet.display());
+        (0..ids).map(|k| AntennaRow { name: format!("ANT{k:02}"), station: format!("ST{k:02}"), position_m: [0.0; 3], dish_diameter_m: 25.0 }).collect()
+    })
+}
+
+/// A row's INTERVAL and EXPOSURE, seconds: the metadata's integration time, else the most
+/// common step between successive times; 0 (with a warning) where neither says.
+fn integration_s(parquet: &Path, meta: &crate::vis::ObservationMeta, times: &[f64]) -> f64 {
+    let given = meta.extra.get(INTEGRATION_KEY).and_then(|v| v.trim().parse::<f64>().ok()).filter(|v| v.is_finite() && *v > 0.0);
+    if let Some(seconds) = given {
+        return seconds;
+    }
+    let mut observed = crate::vis::ObservedTimes::default();
+    times.iter().for_each(|&t| observed.add_time(t));
+    observed.integration_s().unwrap_or_else(|| {
+        log::warn!("{}: integration time unknown (no positive `{INTEGRATION_KEY}` in its metadata, one time stamp): INTERVAL and EXPOSURE written as 0", parquet.display());
+        0.0
+    })
+}
+
 /// What the conversion made.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ParquetToMs {
@@ -86,8 +135,9 @@ pub struct ParquetToMs {
 }
 
 /// Writes the Parquet table at `parquet` as a MeasurementSet at `out` (built in a hidden
-/// sibling directory and moved into place whole; an existing `out` is replaced).
-pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> {
+/// sibling directory and moved into place whole; an existing `out` is replaced). `layouts`
+/// gives the antennas its metadata name (module doc).
+pub fn convert_parquet_to_ms(parquet: &Path, out: &Path, layouts: AntennaLayouts<'_>) -> Result<ParquetToMs> {
     super::lock::check_conversion_output(parquet, out, true)?;
     let (s, meta) = read_samples(parquet)?;
     if s.u.is_empty() {
@@ -164,8 +214,13 @@ pub fn convert_parquet_to_ms(parquet: &Path, out: &Path) -> Result<ParquetToMs> 
     if building.path.exists() {
         std::fs::remove_dir_all(&building.path).map_err(|e| Error::io(&building.path, e))?;
     }
+    let ids = s.antenna1.iter().chain(&s.antenna2).copied().max().unwrap_or(0).max(0) as usize + 1;
+    if let Some(angle) = meta.extra.get(ROTATION_KEY).and_then(|a| a.trim().parse::<f64>().ok()).filter(|a| *a != 0.0) {
+        log::info!("{}: its uv coverage was rotated by {angle} deg (`r2d2 simulate` without --no-rotation): its UVW do not follow from the antenna positions and times", parquet.display());
+    }
+    let observed = Observed { antennas: antennas(parquet, &meta, ids, layouts), integration_s: integration_s(parquet, &meta, &s.time) };
     let table = MainTable { s: &s, first: &first, data, wspec, flag, nchan };
-    write_ms(&building.path, &table, &channels, &meta).map_err(|e| match e {
+    write_ms(&building.path, &table, &channels, &meta, &observed).map_err(|e| match e {
         Error::Input { message, .. } => invalid(out, message),
         Error::Ms(mut e) => {
             *e.path_mut() = out.to_path_buf();
@@ -196,6 +251,12 @@ struct MainTable<'a> {
     wspec: Vec<f32>,
     flag: Vec<bool>,
     nchan: usize,
+}
+
+/// What the subtables say of the observation beyond the table's columns.
+struct Observed {
+    antennas: Vec<AntennaRow>,
+    integration_s: f64,
 }
 
 fn casacure_error<E: std::error::Error + Send + Sync + 'static>(path: &Path, what: &str, e: E) -> Error {
@@ -230,7 +291,7 @@ fn fill_table(path: &Path, rows: u64, fill: impl FnOnce(&mut WritableTable) -> R
     Ok(())
 }
 
-fn write_ms(path: &Path, table: &MainTable<'_>, channels: &[f64], meta: &crate::vis::ObservationMeta) -> Result<()> {
+fn write_ms(path: &Path, table: &MainTable<'_>, channels: &[f64], meta: &crate::vis::ObservationMeta, observed: &Observed) -> Result<()> {
     let nchan = table.nchan;
     let column = |value_type: &str| {
         format!(
@@ -247,6 +308,9 @@ fn write_ms(path: &Path, table: &MainTable<'_>, channels: &[f64], meta: &crate::
         let scalar_f64 = |f: &dyn Fn(usize) -> f64| table.first.iter().map(move |&j| RecordValue::Double(f(j))).collect::<Vec<_>>();
         put(t, path, "TIME", scalar_f64(&|j| s.time[j]))?;
         put(t, path, "TIME_CENTROID", scalar_f64(&|j| s.time[j]))?;
+        for name in ["INTERVAL", "EXPOSURE"] {
+            put(t, path, name, (0..rows).map(|_| RecordValue::Double(observed.integration_s)))?;
+        }
         put(t, path, "ANTENNA1", table.first.iter().map(|&j| RecordValue::Int(s.antenna1[j])))?;
         put(t, path, "ANTENNA2", table.first.iter().map(|&j| RecordValue::Int(s.antenna2[j])))?;
         put(t, path, "STATE_ID", (0..rows).map(|_| RecordValue::Int(-1)))?;
@@ -304,33 +368,75 @@ fn write_ms(path: &Path, table: &MainTable<'_>, channels: &[f64], meta: &crate::
         put(t, &p, "CORR_PRODUCT", [array(&[2, 2], ArrayData::Int(vec![0, 0, 1, 1]))])
     })?;
     fill_table(&path.join("DATA_DESCRIPTION"), 1, |_| Ok(()))?;
+    // The observation spans its integrations, whole: from the first's start to the last's end.
+    let (first_time, last_time) = s.time.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &t| (a.min(t), b.max(t)));
+    let (t0, t1) = (first_time - observed.integration_s / 2.0, last_time + observed.integration_s / 2.0);
+    let (middle, span) = ((t0 + t1) / 2.0, t1 - t0);
+    // A direction column's cell: [2, n] in casacore's (Fortran) order, one polynomial term.
     let direction = || array(&[1, 2], ArrayData::Double(vec![meta.phase_centre_ra_deg.to_radians(), meta.phase_centre_dec_deg.to_radians()]));
+    let field_name = meta.extra.get("ms_field").cloned().unwrap_or_else(|| "TARGET".into());
     fill_table(&path.join("FIELD"), 1, |t| {
         let p = path.join("FIELD");
         for name in ["PHASE_DIR", "DELAY_DIR", "REFERENCE_DIR"] {
             put(t, &p, name, [direction()])?;
         }
-        let name = meta.extra.get("ms_field").cloned().unwrap_or_else(|| "TARGET".into());
-        put(t, &p, "NAME", [RecordValue::String(name)])?;
+        put(t, &p, "NAME", [RecordValue::String(field_name.clone())])?;
+        put(t, &p, "TIME", [RecordValue::Double(t0)])?;
         put(t, &p, "SOURCE_ID", [RecordValue::Int(-1)])
     })?;
-    let (t0, t1) = s.time.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &t| (a.min(t), b.max(t)));
+    let simulated = meta.extra.get("simulation_seed");
     fill_table(&path.join("OBSERVATION"), 1, |t| {
         let p = path.join("OBSERVATION");
         put(t, &p, "TELESCOPE_NAME", [RecordValue::String(meta.telescope.clone())])?;
         put(t, &p, "TIME_RANGE", [array(&[2], ArrayData::Double(vec![t0, t1]))])?;
-        put(t, &p, "OBSERVER", [RecordValue::String("r2d2 convert".into())])
+        let (observer, project) = match simulated {
+            Some(seed) => ("r2d2 simulate".to_string(), format!("r2d2 simulation, seed {seed}")),
+            None => ("r2d2 convert".to_string(), "r2d2 convert".to_string()),
+        };
+        put(t, &p, "OBSERVER", [RecordValue::String(observer)])?;
+        put(t, &p, "PROJECT", [RecordValue::String(project)])
     })?;
-    let nant = s.antenna1.iter().chain(&s.antenna2).copied().max().unwrap_or(0).max(0) as usize + 1;
+    let antennas = &observed.antennas;
+    let nant = antennas.len();
     fill_table(&path.join("ANTENNA"), nant as u64, |t| {
         let p = path.join("ANTENNA");
-        put(t, &p, "NAME", (0..nant).map(|k| RecordValue::String(format!("ANT{k:02}"))))?;
-        put(t, &p, "STATION", (0..nant).map(|k| RecordValue::String(format!("ST{k:02}"))))?;
+        put(t, &p, "NAME", antennas.iter().map(|a| RecordValue::String(a.name.clone())))?;
+        put(t, &p, "STATION", antennas.iter().map(|a| RecordValue::String(a.station.clone())))?;
         put(t, &p, "TYPE", (0..nant).map(|_| RecordValue::String("GROUND-BASED".into())))?;
         put(t, &p, "MOUNT", (0..nant).map(|_| RecordValue::String("ALT-AZ".into())))?;
-        // Positions are not in the Parquet format; imaging does not use them.
-        put(t, &p, "POSITION", (0..nant).map(|_| array(&[3], ArrayData::Double(vec![0.0; 3]))))?;
+        put(t, &p, "POSITION", antennas.iter().map(|a| array(&[3], ArrayData::Double(a.position_m.to_vec()))))?;
         put(t, &p, "OFFSET", (0..nant).map(|_| array(&[3], ArrayData::Double(vec![0.0; 3]))))?;
-        put(t, &p, "DISH_DIAMETER", (0..nant).map(|_| RecordValue::Double(25.0)))
+        put(t, &p, "DISH_DIAMETER", antennas.iter().map(|a| RecordValue::Double(a.dish_diameter_m)))
+    })?;
+    // One feed per antenna, linear receptors X and Y (the correlations are XX and YY), valid
+    // for the whole observation and every window.
+    fill_table(&path.join("FEED"), nant as u64, |t| {
+        let p = path.join("FEED");
+        put(t, &p, "ANTENNA_ID", (0..nant).map(|k| RecordValue::Int(k as i32)))?;
+        put(t, &p, "FEED_ID", (0..nant).map(|_| RecordValue::Int(0)))?;
+        put(t, &p, "SPECTRAL_WINDOW_ID", (0..nant).map(|_| RecordValue::Int(-1)))?;
+        put(t, &p, "TIME", (0..nant).map(|_| RecordValue::Double(middle)))?;
+        put(t, &p, "INTERVAL", (0..nant).map(|_| RecordValue::Double(span)))?;
+        put(t, &p, "NUM_RECEPTORS", (0..nant).map(|_| RecordValue::Int(2)))?;
+        put(t, &p, "BEAM_ID", (0..nant).map(|_| RecordValue::Int(-1)))?;
+        put(t, &p, "BEAM_OFFSET", (0..nant).map(|_| array(&[2, 2], ArrayData::Double(vec![0.0; 4]))))?;
+        put(t, &p, "POLARIZATION_TYPE", (0..nant).map(|_| array(&[2], ArrayData::String(vec!["X".into(), "Y".into()]))))?;
+        let identity = vec![(1.0, 0.0), (0.0, 0.0), (0.0, 0.0), (1.0, 0.0)];
+        put(t, &p, "POL_RESPONSE", (0..nant).map(|_| array(&[2, 2], ArrayData::Complex(identity.clone()))))?;
+        put(t, &p, "POSITION", (0..nant).map(|_| array(&[3], ArrayData::Double(vec![0.0; 3]))))?;
+        put(t, &p, "RECEPTOR_ANGLE", (0..nant).map(|_| array(&[2], ArrayData::Double(vec![0.0, std::f64::consts::FRAC_PI_2]))))
+    })?;
+    // Every antenna tracks the phase centre throughout.
+    fill_table(&path.join("POINTING"), nant as u64, |t| {
+        let p = path.join("POINTING");
+        put(t, &p, "ANTENNA_ID", (0..nant).map(|k| RecordValue::Int(k as i32)))?;
+        put(t, &p, "TIME", (0..nant).map(|_| RecordValue::Double(middle)))?;
+        put(t, &p, "INTERVAL", (0..nant).map(|_| RecordValue::Double(span)))?;
+        put(t, &p, "TIME_ORIGIN", (0..nant).map(|_| RecordValue::Double(middle)))?;
+        put(t, &p, "NAME", (0..nant).map(|_| RecordValue::String(field_name.clone())))?;
+        put(t, &p, "NUM_POLY", (0..nant).map(|_| RecordValue::Int(0)))?;
+        put(t, &p, "DIRECTION", (0..nant).map(|_| direction()))?;
+        put(t, &p, "TARGET", (0..nant).map(|_| direction()))?;
+        put(t, &p, "TRACKING", (0..nant).map(|_| RecordValue::Bool(true)))
     })
 }

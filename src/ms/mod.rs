@@ -31,7 +31,7 @@ mod table;
 
 pub use convert::convert_ms_to_parquet;
 pub use error::MsError;
-pub use from_parquet::convert_parquet_to_ms;
+pub use from_parquet::{convert_parquet_to_ms, AntennaRow};
 pub use lock::{check_conversion_output, check_model_write};
 pub use model::{write_model_column, ModelReport, ModelTarget};
 pub use reader::{batch_schema, fields_with_rows, MsCounts, MsReader};

@@ -5,6 +5,7 @@
 //! antenna tables are compiled into the binary, and every random choice comes from a
 //! caller-supplied seed so a data set can be regenerated bit for bit.
 
+pub(crate) mod epoch;
 pub(crate) mod extended;
 pub(crate) mod observe;
 pub(crate) mod sky;
@@ -16,7 +17,7 @@ pub use observe::{frequency_channels, sample_coverage, ObservationSpec};
 use crate::imaging::PixelScale;
 use crate::nufft::NufftParams;
 use crate::operator::{ImageGeometry, WTermMode};
-use crate::vis::{ObservationMeta, VisTable};
+use crate::vis::{ObservationMeta, VisTable, CONFIGURATIONS_KEY, INTEGRATION_KEY, ROTATION_KEY};
 use crate::weighting::Weighting;
 use crate::{metrics, Error, Result};
 use observe::{simulate_visibilities, NoiseModel};
@@ -56,7 +57,11 @@ pub struct SimulationOutput {
     pub geometry: ImageGeometry,
 }
 
-/// Simulate the observation: coverage, sky on its pixel grid, visibilities with noise.
+/// Simulate the observation: coverage, sky on its pixel grid, visibilities with noise. The
+/// table's times are dated as a real observation's (MJD seconds, UTC; [`epoch`]: configuration
+/// `k` on day `k` after 2025-06-01, centred on transit), its metadata name the configurations
+/// and integration time (`r2d2 convert` writes the antennas and INTERVAL from them) and the
+/// coverage's random rotation.
 pub fn simulate(req: &SimulationRequest) -> Result<SimulationOutput> {
     crate::vis::check_phase_centre(req.phase_centre_deg.0, req.phase_centre_deg.1, ["phase_centre_deg", "phase_centre_deg"])?;
     crate::limits::check_image_size(req.size).map_err(|m| Error::parameter("size", m))?;
@@ -94,6 +99,12 @@ pub fn simulate(req: &SimulationRequest) -> Result<SimulationOutput> {
     log::debug!("noise sigma {:.4e} Jy per visibility (eta {:.4})", sim.noise_sigma, sim.eta);
     let weight = 1.0 / (sim.noise_sigma * sim.noise_sigma);
     let n = coverage.len();
+    let time = coverage.utc_times(req.phase_centre_deg.0);
+    let configurations: Vec<&str> = coverage.tracks.iter().map(|t| t.configuration.as_str()).collect();
+    let mut extra = BTreeMap::new();
+    extra.insert(CONFIGURATIONS_KEY.into(), configurations.join(","));
+    extra.insert(INTEGRATION_KEY.into(), req.observation.integration_s.to_string());
+    extra.insert(ROTATION_KEY.into(), coverage.rotation_rad.to_degrees().to_string());
     let table = VisTable {
         u_m: coverage.u_m,
         v_m: coverage.v_m,
@@ -102,11 +113,10 @@ pub fn simulate(req: &SimulationRequest) -> Result<SimulationOutput> {
         vis: sim.vis,
         weight: vec![weight; n],
         flag: coverage.flag,
-        time: coverage.time_s,
+        time,
         antenna1: coverage.antenna1,
         antenna2: coverage.antenna2,
     };
-    let mut extra = BTreeMap::new();
     extra.insert("simulation_seed".into(), seed.to_string());
     extra.insert("sky_pixel_arcsec".into(), format!("{}", geometry.pixel_arcsec()));
     extra.insert("sky_size".into(), geometry.size.to_string());

@@ -183,9 +183,46 @@ pub struct Coverage {
     pub antenna1: Vec<i32>,
     pub antenna2: Vec<i32>,
     pub flag: Vec<bool>,
+    /// Each configuration's track, in the order observed.
+    pub tracks: Vec<CoverageTrack>,
+    /// The angle the whole (u, v) coverage was rotated by, radians (0: not rotated).
+    pub rotation_rad: f64,
+}
+
+/// One configuration's share of a [`Coverage`].
+#[derive(Clone, Debug, PartialEq)]
+pub struct CoverageTrack {
+    /// The configuration (a layout of the telescope), lower case.
+    pub configuration: String,
+    /// Its samples, every channel's: `coverage.u_m[samples]`.
+    pub samples: std::ops::Range<usize>,
+    /// Its samples' `time_s` less this are seconds from its track's start.
+    pub time_offset_s: f64,
+    /// The track's length, seconds (its integrations, whole): transit is at its middle.
+    pub duration_s: f64,
+    /// East longitude of its array's centre, radians: what its hour angles are reckoned from.
+    pub longitude_rad: f64,
 }
 
 impl Coverage {
+    /// The samples' times as a real observation's: MJD seconds, UTC (a MeasurementSet's TIME).
+    /// Configuration `k` is observed on day `k` after [`super::epoch::REFERENCE_MJD`], its
+    /// track centred on the transit of right ascension `ra_deg` nearest that day's noon, so
+    /// that each sample's local sidereal time is the right ascension plus the hour angle its
+    /// (u, v, w) were computed for. `time_s` itself stays seconds from the first track's start
+    /// (training's tracks need no date).
+    pub fn utc_times(&self, ra_deg: f64) -> Vec<f64> {
+        let mut times = self.time_s.clone();
+        for (day, track) in self.tracks.iter().enumerate() {
+            let transit = super::epoch::transit_on_day(ra_deg.to_radians(), track.longitude_rad, day);
+            let start = transit * super::epoch::SECONDS_PER_DAY - 0.5 * track.duration_s;
+            for t in &mut times[track.samples.clone()] {
+                *t = start + (*t - track.time_offset_s);
+            }
+        }
+        times
+    }
+
     pub fn len(&self) -> usize {
         self.u_m.len()
     }
@@ -242,31 +279,40 @@ pub fn sample_coverage(spec: &ObservationSpec) -> Result<Coverage> {
     spec.validate()?;
     let mut cov = Coverage::default();
     let mut time_offset = 0.0;
+    // Antenna numbers of later configurations continue after the earlier ones'.
+    let mut first_antenna = 0;
     let scope = telescope::telescope(&spec.telescope)?;
-    for (k, (config, hours)) in spec.configurations.iter().enumerate() {
+    for (config, hours) in &spec.configurations {
         let (array, hours) = (scope.array(config)?, *hours);
-        let track = telescope::uvw_tracks(
-            &array,
-            &TrackSpec { dec_rad: spec.dec_deg.to_radians(), hour_angle_span_h: hours, integration_s: spec.integration_s },
-        )?;
+        let track_spec = TrackSpec { dec_rad: spec.dec_deg.to_radians(), hour_angle_span_h: hours, integration_s: spec.integration_s };
+        let track = telescope::uvw_tracks(&array, &track_spec)?;
+        let base = first_antenna as i32;
+        cov.tracks.push(CoverageTrack {
+            configuration: config.trim().to_ascii_lowercase(),
+            samples: cov.len()..cov.len() + track.len() * spec.frequencies_hz.len(),
+            time_offset_s: time_offset,
+            duration_s: track_spec.n_times() as f64 * spec.integration_s,
+            longitude_rad: array.longitude_rad(),
+        });
         for &f in &spec.frequencies_hz {
             cov.u_m.extend_from_slice(&track.u_m);
             cov.v_m.extend_from_slice(&track.v_m);
             cov.w_m.extend_from_slice(&track.w_m);
             cov.frequency_hz.extend(std::iter::repeat(f).take(track.len()));
-            // Configurations are observed one after another; times stay distinct.
+            // One track after another, times distinct (training's relative times; simulate
+            // dates each on its own day: `utc_times`).
             cov.time_s.extend(track.time_s.iter().map(|t| t + time_offset));
-            // Antenna numbers of later configurations continue after the earlier ones'.
-            let base = (k * array.n_antennas()) as i32;
             cov.antenna1.extend(track.antenna1.iter().map(|a| a + base));
             cov.antenna2.extend(track.antenna2.iter().map(|a| a + base));
         }
         time_offset += hours * 3600.0;
+        first_antenna += array.n_antennas();
     }
     if spec.random_rotation {
         let mut rng = ChaCha8Rng::seed_from_u64(spec.seed);
         rng.set_stream(STREAM_ROTATION);
         let angle: f64 = rng.gen_range(0.0..std::f64::consts::TAU);
+        cov.rotation_rad = angle;
         let (s, c) = angle.sin_cos();
         for (u, v) in cov.u_m.iter_mut().zip(cov.v_m.iter_mut()) {
             let (uu, vv) = (*u, *v);
@@ -443,6 +489,32 @@ mod tests {
         assert_eq!(c1.len(), (30 + 15) * 351 * 2);
         let flagged = c1.flag.iter().filter(|f| **f).count() as f64 / c1.len() as f64;
         assert!((flagged - 0.1).abs() < 0.01, "flagged fraction {flagged}");
+    }
+
+    /// Each configuration's track is recorded with its samples, its antennas numbered after the
+    /// earlier ones'; dated, configuration k lies on day k after the reference date, centred on
+    /// the transit of the right ascension at its array's longitude, its integrations as far
+    /// apart as in `time_s`.
+    #[test]
+    fn tracks_are_recorded_and_dated_a_day_apart() {
+        let cov = sample_coverage(&small_spec(4)).unwrap();
+        assert_eq!(cov.tracks.iter().map(|t| t.configuration.as_str()).collect::<Vec<_>>(), ["c", "d"]);
+        assert_eq!((cov.tracks[0].samples.clone(), cov.tracks[1].samples.clone()), (0..30 * 351 * 2, 30 * 351 * 2..45 * 351 * 2));
+        assert_eq!((cov.tracks[0].duration_s, cov.tracks[1].duration_s), (3600.0, 1800.0));
+        let ids = |k: usize| cov.antenna1[cov.tracks[k].samples.clone()].iter().chain(&cov.antenna2[cov.tracks[k].samples.clone()]).fold((i32::MAX, 0), |(lo, hi), &a| (lo.min(a), hi.max(a)));
+        assert_eq!((ids(0), ids(1)), ((0, 26), (27, 53)));
+        assert!(cov.rotation_rad != 0.0);
+        let ra = 123.0f64;
+        let times = cov.utc_times(ra);
+        for (day, track) in cov.tracks.iter().enumerate() {
+            let t = &times[track.samples.clone()];
+            let (first, last) = t.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| (a.min(x), b.max(x)));
+            let middle = (first + last) / 2.0 / crate::simulate::epoch::SECONDS_PER_DAY;
+            let transit = crate::simulate::epoch::transit_on_day(ra.to_radians(), track.longitude_rad, day);
+            assert!((middle - transit).abs() * 86_400.0 < 1e-3, "day {day}: middle {middle}, transit {transit}");
+            assert_eq!(last - first, track.duration_s - 120.0);
+            assert!((middle - crate::simulate::epoch::REFERENCE_MJD - day as f64 - 0.5).abs() < 0.5);
+        }
     }
 
     /// Dense `Re{Phi^H diag(w) Phi}` from a direct DFT, for an independent check of the norms.

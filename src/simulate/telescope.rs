@@ -18,7 +18,7 @@ use std::collections::BTreeMap;
 use std::sync::OnceLock;
 
 /// Sidereal rate: hours of hour angle per hour of (UTC) time.
-const SIDEREAL_PER_SOLAR: f64 = 1.002_737_909_35;
+pub(crate) const SIDEREAL_PER_SOLAR: f64 = 1.002_737_909_35;
 
 /// Where the registry is, for its errors.
 const REGISTRY_PATH: &str = "data/telescopes/telescopes.yaml";
@@ -171,6 +171,8 @@ pub struct Array {
     pub positions_itrf: Vec<[f64; 3]>,
     /// Dish diameter of each antenna in metres (same order as `positions_itrf`).
     pub dish_diameter_m: Vec<f64>,
+    /// Station name of each antenna: the table's fifth column (`M000`), else its number.
+    pub stations: Vec<String>,
 }
 
 impl Array {
@@ -252,13 +254,15 @@ impl Array {
 
 /// Parse an antenna table: lines starting with `#` and blank lines are ignored; every other
 /// line holds `X Y Z dish_diameter [station [mount]]`, with X, Y, Z in ITRF metres and the
-/// dish diameter in metres. Extra columns (station name, mount) are accepted and ignored.
+/// dish diameter in metres. The station name is kept (a converted MS names its antennas by
+/// it; an antenna without one is named by its number); the mount is accepted and ignored.
 ///
 /// `name` is the array name and is used as the "path" in errors, together with the 1-based
 /// line number, so a broken table can be fixed without reading code.
 pub fn parse_itrf_table(text: &str, name: &str) -> Result<Array> {
     let mut positions = Vec::new();
     let mut diameters = Vec::new();
+    let mut stations = Vec::new();
     for (idx, raw) in text.lines().enumerate() {
         let line = raw.trim();
         if line.is_empty() || line.starts_with('#') {
@@ -304,6 +308,7 @@ pub fn parse_itrf_table(text: &str, name: &str) -> Result<Array> {
                 ),
             ));
         }
+        stations.push(fields.get(4).map_or_else(|| format!("{:02}", positions.len()), |s| s.to_string()));
         positions.push([vals[0], vals[1], vals[2]]);
         diameters.push(vals[3]);
     }
@@ -320,6 +325,7 @@ pub fn parse_itrf_table(text: &str, name: &str) -> Result<Array> {
         name: name.to_string(),
         positions_itrf: positions,
         dish_diameter_m: diameters,
+        stations,
     })
 }
 
@@ -544,6 +550,7 @@ mod tests {
         let meerkat = telescope("meerkat").unwrap().array("meerkat").unwrap();
         assert_eq!((meerkat.n_antennas(), meerkat.n_baselines()), (64, 2016));
         assert!(meerkat.dish_diameter_m.iter().all(|&d| d == 13.5));
+        assert_eq!((meerkat.stations[0].as_str(), meerkat.stations[63].as_str()), ("M000", "M063"));
         // MeerKAT's longest baseline is 7.7 km; the site is at 30.7 deg S (geodetic; the
         // geocentric latitude reported here is 0.17 deg nearer the equator), 21.4 deg E.
         let longest = meerkat.max_baseline_m();
@@ -604,6 +611,9 @@ mod tests {
             e.contains("bad.txt") && e.contains("line 3") && e.contains("Z"),
             "{e}"
         );
+        // Stations from the fifth column, else numbered.
+        assert_eq!(parse_itrf_table("1 2 3 25 W01\n4 5 6 25 E02 ALT-AZ\n", "named").unwrap().stations, ["W01", "E02"]);
+        assert_eq!(parse_itrf_table("1 2 3 25\n4 5 6 25\n", "bare").unwrap().stations, ["00", "01"]);
         let e = parse_itrf_table("1 2 3\n", "short.txt")
             .unwrap_err()
             .to_string();

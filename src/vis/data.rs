@@ -45,6 +45,15 @@ pub struct ChannelGroup {
     pub count: usize,
 }
 
+/// Metadata keys (in [`ObservationMeta::extra`]) of a simulated table that `r2d2 convert`
+/// writes an MS's subtables from: the configurations observed, in the order their antenna ids
+/// count (`a,c`), and the integration time, seconds.
+pub const CONFIGURATIONS_KEY: &str = "configurations";
+pub const INTEGRATION_KEY: &str = "integration_s";
+/// The angle the simulated (u, v) coverage was rotated by, degrees (0: none): UVW rotated so
+/// no longer follow from the antenna positions and times.
+pub const ROTATION_KEY: &str = "uv_rotation_deg";
+
 /// What the observation is, as recorded in the file's key-value metadata.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ObservationMeta {

@@ -36,6 +36,7 @@ pub(crate) use parts::chunk_weights;
 pub(crate) use spill::spill_dir;
 pub(crate) use stream::{StreamedTable, VisSource};
 pub(crate) use split::{nothing_to_image, read_parts, Part, SplitBy};
+pub(crate) use times::ObservedTimes;
 pub(crate) use convert::*;
 pub(crate) use guard::*;
 pub(crate) use parquet::*;

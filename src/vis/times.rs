@@ -5,7 +5,8 @@
 //! A series is trained on tracks of so many hours, each sampled every so many seconds
 //! (`track_hours`, `integration_s` in its manifest). Training observes the configurations of a
 //! sample one after the other and counts its track as their sum (A 5..10 h + C 1..3 h: 6..13 h).
-//! Real data of several configurations were taken days or months apart, so the span from the
+//! Real data of several configurations were taken days or months apart (`r2d2 simulate` dates
+//! them a day apart), so the span from the
 //! first to the last sample says nothing; what matches training's count is the time spent
 //! tracking: the samples' times fall into tracks (a gap of more than [`TRACK_GAP_S`] starts a
 //! new one), and the track length is the sum of their lengths, each from its first to its last
@@ -217,7 +218,7 @@ mod tests {
             assert_eq!(times.tracks(), 2);
             assert!((times.track_hours().unwrap() - 8.0).abs() < 1e-9);
         }
-        // As `r2d2 simulate` observes them: one after the other.
+        // As training's coverage holds them: one after the other.
         let mut times = ObservedTimes::default();
         track(&mut times, 0.0, 72, 300.0, 2);
         track(&mut times, 6.0 * 3600.0, 24, 300.0, 2);
