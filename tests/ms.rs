@@ -362,9 +362,15 @@ fn bad_ms_input_names_the_ms_and_column_and_writes_nothing() {
 
 /// Runs python-casacore `script` (it gets the MS path as `sys.argv[1]`) on `dir/<ms>`.
 fn casacore(dir: &Path, ms: &str, script: &str) {
+    casacore_output(dir, ms, script);
+}
+
+/// [`casacore`], returning what the script printed.
+fn casacore_output(dir: &Path, ms: &str, script: &str) -> String {
     let script = format!("import sys\nimport numpy as np\nfrom casacore.tables import table\nms = sys.argv[1]\n{script}");
     let out = Command::new("python3").args(["-c", &script, ms]).current_dir(dir).output().expect("python3 runs");
     assert!(out.status.success(), "{}", text(&out));
+    String::from_utf8_lossy(&out.stdout).into_owned()
 }
 
 /// An MS name, make_ms.py options, a python-casacore script run on it, r2d2 options, and
@@ -763,13 +769,14 @@ fn a_dp3_layout_takes_a_model_column() {
 }
 
 /// The public MSs of tests/data/real written by DP3 (big-endian, FLAG_CATEGORY, SIGMA and
-/// WEIGHT in one IncrementalStMan), OSKAR and Birli: archive, the MS it holds, the image size
-/// (Birli's 34 deg field at 32 pixels: at 64 its CLEAN diverges, issue 55 part 2, and leaves no
-/// model to check).
-const REAL_MSS: [(&str, &str, &str); 3] = [
+/// WEIGHT in one IncrementalStMan), OSKAR, Birli and CASA (circular hands, every array column
+/// in TiledShapeStMan): archive, the MS it holds, the image size (Birli's 34 deg field at 32
+/// pixels: at 64 its CLEAN diverges, issue 55 part 2, and leaves no model to check).
+const REAL_MSS: [(&str, &str, &str); 4] = [
     ("tNDPPP-generic.MS.tgz", "tNDPPP-generic.MS", "64"),
     ("tOSKAR.in_MS.tgz", "tOSKAR.in_MS", "64"),
     ("1090008640_birli_trunc.ms.tgz", "1090008640_birli_trunc.ms", "32"),
+    ("day2_TDEM0003_10s_norx_1src_1spw.ms.tgz", "day2_TDEM0003_10s_norx_1src_1spw.ms", "64"),
 ];
 
 /// Unpacks `archive` of tests/data/real into `dir/into`.
@@ -854,8 +861,12 @@ fn real_mss_take_a_model_column_that_is_the_direct_dft_of_the_model() {
     }
 }
 
-/// WSClean reads the MODEL_DATA the engine wrote into the real MSs (imaging it), and writes its
-/// own prediction into it (`-predict`), which python-casacore reads back.
+/// WSClean reads the MODEL_DATA the engine wrote into the real MSs (imaging it), and its own
+/// prediction of the engine's model (`-predict`), read back by python-casacore, is the engine's
+/// MODEL_DATA: measured max |difference| / max |model| 5e-7 to 1.5e-6 on the four MSs. WSClean
+/// predicts with its w-gridder at 1e-6 and `-no-small-inversion`: by default it predicts from
+/// the model resampled to a coarser grid, off by 2 to 45 % of a unit component away from the
+/// centre of CASA's set.
 #[test]
 fn wsclean_reads_and_predicts_into_the_model_column_of_real_mss() {
     for (archive, ms, size) in REAL_MSS {
@@ -873,8 +884,15 @@ fn wsclean_reads_and_predicts_into_the_model_column_of_real_mss() {
         wsclean(&["-data-column", "MODEL_DATA", "-name", "ws"]);
         let image = read(&d.join("ws-dirty.fits"));
         assert!(image.iter().all(|x| x.is_finite()) && common::max_abs(&image) > 0.0, "{ms}: WSClean's image of MODEL_DATA is empty");
-        wsclean(&["-predict", "-name", "img"]);
-        casacore(d, ms, "t = table(ms, ack=False)\nm = t.getcol('MODEL_DATA')\nassert m.shape == t.getcol('DATA').shape and np.isfinite(m).all() and np.abs(m).max() > 0, m.shape");
+        casacore(d, ms, "np.save('engine.npy', table(ms, ack=False).getcol('MODEL_DATA'))");
+        wsclean(&["-predict", "-use-wgridder", "-wgridder-accuracy", "1e-6", "-no-small-inversion", "-name", "img"]);
+        let compare = "t = table(ms, ack=False)\nm, e = t.getcol('MODEL_DATA'), np.load('engine.npy')\n\
+                       assert m.shape == t.getcol('DATA').shape and np.isfinite(m).all(), m.shape\n\
+                       hands = [0, m.shape[2] - 1]\n\
+                       print(f'{np.abs(m[..., hands] - e[..., hands]).max() / np.abs(e).max():.3e}')";
+        let error: f64 = casacore_output(d, ms, compare).trim().parse().unwrap();
+        println!("{ms}: WSClean's prediction vs the engine's MODEL_DATA: max |difference| / max |model| {error:.2e}");
+        assert!(error < 1e-5, "{ms}: WSClean's prediction of the engine's model differs from its MODEL_DATA by {error:e}");
     }
 }
 
