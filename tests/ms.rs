@@ -849,9 +849,9 @@ fn a_dp3_layout_takes_a_model_column() {
 }
 
 /// The public MSs of tests/data/real written by DP3 (big-endian, FLAG_CATEGORY, SIGMA and
-/// WEIGHT in one IncrementalStMan), OSKAR, Birli and CASA (circular hands, every array column
-/// in TiledShapeStMan): archive, the MS it holds, the image size (Birli's 34 deg field at 32
-/// pixels: at 64 its CLEAN diverges, issue 55 part 2, and leaves no model to check).
+/// WEIGHT in one IncrementalStMan), OSKAR, Birli and CASA (circular hands; data, flags and
+/// weights in TiledShapeStMan): archive, the MS it holds, the image size (Birli's 34 deg field
+/// at 32 pixels: at 64 its CLEAN diverges, issue 55 part 2, and leaves no model to check).
 const REAL_MSS: [(&str, &str, &str); 4] = [
     ("tNDPPP-generic.MS.tgz", "tNDPPP-generic.MS", "64"),
     ("tOSKAR.in_MS.tgz", "tOSKAR.in_MS", "64"),
