@@ -587,7 +587,7 @@ mod tests {
             })
         };
         let e = read(&declaring(1 << 40)).unwrap_err().to_string();
-        assert!(e.contains("in.arrows") && e.contains("declares 10995116") && e.contains("(1.1 TB) once decompressed, more than"), "{e}");
+        assert!(e.contains("in.arrows") && e.contains("declares 1099511") && e.contains("(1.1 TB) once decompressed, more than"), "{e}");
         let e = read(&declaring(1 << 20)).unwrap_err().to_string();
         assert!(e.contains("in.arrows") && e.contains("ZSTD-compressed") && e.contains("fewer than the 1048576 it declares"), "{e}");
         let bomb = with_first_batch_buffers(&stream, |buffers| {
