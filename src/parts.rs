@@ -11,5 +11,5 @@ pub use crate::vis::open::{open_pass, open_source};
 pub use crate::vis::parted::{PartImages, PartPass, PartPasses, PartedObservation};
 pub use crate::vis::parts::{part_apply_normal, part_density, part_images, w_toeplitz_images, LocalParts};
 pub use crate::vis::split::{split_rows, SplitBy, SplitRows};
-pub use crate::vis::stream::VisSource;
+pub use crate::vis::stream::{PartCheck, VisSource};
 pub use crate::weighting::{DensityGrid, WeightRule};

@@ -1,12 +1,16 @@
 //! A deterministic mutation fuzzer over the inputs r2d2 takes from outside: a Parquet table,
-//! an Arrow IPC stream, a pipeline's YAML, a FITS truth image, a series manifest, a
-//! MeasurementSet's table files (written by python-casacore, tests/make_ms.py) and the
-//! networks and manifest of an ONNX series (tests/make_test_models.py; on ONNX Runtime where
-//! it is found, and on tract). Each valid seed file (for an MS or a series, one of its files
-//! picked at random) is mutated (bit flips, interesting bytes, cut, duplicated or deleted
-//! ranges, truncation) by a seeded generator and given to the release binary; every case must
-//! end with success (exit 0) or a clean error (exit 1, an `error:` line naming the input),
-//! never a panic (exit 101, or "panicked" printed), a signal (abort, segfault) or a hang (60 s).
+//! an Arrow IPC stream (plain, and with LZ4 and ZSTD buffers), a pipeline's YAML, a FITS truth
+//! image (plain and gzip-compressed), a series manifest, a MeasurementSet's table files
+//! (written by python-casacore, tests/make_ms.py), the networks and manifest of an ONNX
+//! series (tests/make_test_models.py; on ONNX Runtime where it is found, and on tract) and a
+//! staging journal planted in an output directory. Each valid seed file (for an MS or a
+//! series, one of its files picked at random) is mutated (bit flips, interesting bytes, cut,
+//! duplicated or deleted ranges, truncation) by a seeded generator and given to the release
+//! binary; every case must end with success (exit 0) or a clean error (exit 1, an `error:`
+//! line naming the input), never a panic (exit 101, or "panicked" printed), a signal (abort,
+//! segfault) or a hang (60 s). A planted journal is first written from names picked at random
+//! (the prefix's products, paths out of the directory, other files, empty and odd names), and
+//! whatever it says, no file but the run's products may change.
 //!
 //! `cargo test --release --test fuzz` runs 12 cases per input kind (about a minute in all);
 //! more by hand:
@@ -115,6 +119,39 @@ struct Kind {
     args: Vec<String>,
     /// What an error must name (the input).
     names: &'static str,
+    /// Makes the mutable file's content afresh for each case (before its mutations), from the
+    /// generator and the case directory.
+    craft: Option<fn(&mut ChaCha8Rng, &Path) -> Vec<u8>>,
+    /// Whether files outside `out/` and those named `keep*` inside it must be left as they
+    /// were, none added.
+    guarded: bool,
+}
+
+/// A staging journal planted in `out/`: products and retired files from a pool of names, most
+/// of them nothing a commit of prefix `out/x` writes.
+fn planted_journal(rng: &mut ChaCha8Rng, case_dir: &Path) -> Vec<u8> {
+    let absolute = case_dir.join("precious2.txt").display().to_string();
+    let pool = [
+        "x-dirty.fits", "x-psf.fits", "x-model.fits", "x-residual.fits", "../victim/precious.txt", "../precious2.txt", absolute.as_str(), "keep.txt", "y-dirty.fits", ".", "..", "",
+        "x-dirty.fits/../keep.txt", "new/x-dirty.fits", "x-dirty.fits\0.txt", "./x-dirty.fits", "x-dirty.fits ",
+    ];
+    let mut names = || -> Vec<String> { (0..rng.gen_range(0..4)).map(|_| pool[rng.gen_range(0..pool.len())].to_string()).collect() };
+    let (products, retired) = (names(), names());
+    let version = [1, 1, 1, 0, 2, -1][rng.gen_range(0..6)];
+    serde_json::json!({"version": version, "products": products, "retired": retired}).to_string().into_bytes()
+}
+
+/// Files of `dir`, relative to it, that a guarded kind must leave as they were.
+fn guarded_files(dir: &Path) -> Vec<(String, Vec<u8>)> {
+    tree(dir, dir).into_iter().filter(|(name, _)| !name.starts_with("out/") || name.starts_with("out/keep")).collect()
+}
+
+/// `bytes` gzip-compressed.
+fn gzipped(bytes: &[u8]) -> Vec<u8> {
+    use std::io::Write;
+    let mut encoder = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+    encoder.write_all(bytes).unwrap();
+    encoder.finish().unwrap()
 }
 
 /// Every file under `dir`, as (path relative to `under`, bytes), in name order.
@@ -132,13 +169,15 @@ fn tree(dir: &Path, under: &Path) -> Vec<(String, Vec<u8>)> {
     files
 }
 
-/// An Arrow IPC stream of the observation's table (schema metadata included).
-fn ipc_stream(parquet: &Path) -> Vec<u8> {
+/// An Arrow IPC stream of the observation's table (schema metadata included), its buffers
+/// compressed with `compression`.
+fn ipc_stream(parquet: &Path, compression: Option<arrow::ipc::CompressionType>) -> Vec<u8> {
     use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
     let builder = ParquetRecordBatchReaderBuilder::try_new(std::fs::File::open(parquet).unwrap()).unwrap();
     let schema = builder.schema().clone();
     let mut out = Vec::new();
-    let mut writer = arrow::ipc::writer::StreamWriter::try_new(&mut out, &schema).unwrap();
+    let options = arrow::ipc::writer::IpcWriteOptions::default().try_with_compression(compression).unwrap();
+    let mut writer = arrow::ipc::writer::StreamWriter::try_new_with_options(&mut out, &schema, options).unwrap();
     for batch in builder.with_batch_size(1000).build().unwrap() {
         writer.write(&batch.unwrap()).unwrap();
     }
@@ -193,31 +232,40 @@ fn mutated_inputs_end_in_success_or_a_clean_error() {
     series_files.push(("manifest.yaml".into(), manifest_pipeline.into_bytes()));
     let ms_files: Vec<(String, Vec<u8>)> = tree(&d.join("obs.ms"), d).into_iter().map(|(n, b)| (n.replacen("obs.ms", "in.ms", 1), b)).collect();
     let dp3_files: Vec<(String, Vec<u8>)> = tree(&d.join("dp3.ms"), d).into_iter().map(|(n, b)| (n.replacen("dp3.ms", "in.ms", 1), b)).collect();
+    // An Arrow IPC stream of the observation (its buffers compressed with `compression`) and a
+    // pipeline reading it.
+    let ipc_kind = |name: &'static str, compression| Kind {
+        name,
+        files: [file("in.arrows", ipc_stream(&obs, compression)), file("ipc.yaml", pipeline("    kind: arrow-ipc\n    path: in.arrows\n", clean).into_bytes())].concat(),
+        mutable: 1,
+        args: s(&["run", "ipc.yaml"]),
+        names: "in.arrows",
+        craft: None,
+        guarded: false,
+    };
     let networks = onnx_series(false, "auto").iter().filter(|(n, _)| n.ends_with(".onnx")).count();
     let kinds = [
-        Kind { name: "parquet", files: file("in.parquet", std::fs::read(&obs).unwrap()), mutable: 1, args: image("in.parquet"), names: "in.parquet" },
-        Kind {
-            name: "arrow-ipc",
-            files: [file("in.arrows", ipc_stream(&obs)), file("ipc.yaml", pipeline("    kind: arrow-ipc\n    path: in.arrows\n", clean).into_bytes())].concat(),
-            mutable: 1,
-            args: s(&["run", "ipc.yaml"]),
-            names: "in.arrows",
-        },
-        Kind { name: "yaml", files: file("in.yaml", pipeline(from_obs, clean).into_bytes()), mutable: 1, args: s(&["run", "in.yaml"]), names: "" },
+        Kind { name: "parquet", files: file("in.parquet", std::fs::read(&obs).unwrap()), mutable: 1, args: image("in.parquet"), names: "in.parquet", craft: None, guarded: false },
+        ipc_kind("arrow-ipc", None),
+        Kind { name: "yaml", files: file("in.yaml", pipeline(from_obs, clean).into_bytes()), mutable: 1, args: s(&["run", "in.yaml"]), names: "", craft: None, guarded: false },
         Kind {
             name: "fits-truth",
             files: file("truth.fits", std::fs::read(d.join("obs.sky.fits")).unwrap()),
             mutable: 1,
             args: s(&["image", "../obs.parquet", "--size", &SIZE.to_string(), "--step", "clean", "--truth", "truth.fits", "--name", "out/x"]),
             names: "truth.fits",
+            craft: None,
+            guarded: false,
         },
-        Kind { name: "manifest", files: series_files, mutable: 1, args: s(&["validate", "manifest.yaml"]), names: "" },
+        Kind { name: "manifest", files: series_files, mutable: 1, args: s(&["validate", "manifest.yaml"]), names: "", craft: None, guarded: false },
         Kind {
             name: "measurement-set",
             mutable: ms_files.len(),
             files: ms_files,
             args: s(&["dirty", "in.ms", "--size", &SIZE.to_string(), "--name", "out/x"]),
             names: "in.ms",
+            craft: None,
+            guarded: false,
         },
         Kind {
             name: "measurement-set-dp3",
@@ -225,10 +273,43 @@ fn mutated_inputs_end_in_success_or_a_clean_error() {
             files: dp3_files,
             args: s(&["dirty", "in.ms", "--size", &SIZE.to_string(), "--name", "out/x"]),
             names: "in.ms",
+            craft: None,
+            guarded: false,
         },
-        Kind { name: "onnx-manifest", files: onnx_series(true, "auto"), mutable: 1, args: s(&["run", "onnx.yaml"]), names: "landweber" },
-        Kind { name: "onnx-network-ort", files: onnx_series(false, "auto"), mutable: networks, args: s(&["run", "onnx.yaml"]), names: "landweber" },
-        Kind { name: "onnx-network-tract", files: onnx_series(false, "tract"), mutable: networks, args: s(&["run", "onnx.yaml"]), names: "landweber" },
+        ipc_kind("arrow-ipc-lz4", Some(arrow::ipc::CompressionType::LZ4_FRAME)),
+        ipc_kind("arrow-ipc-zstd", Some(arrow::ipc::CompressionType::ZSTD)),
+        Kind {
+            name: "fits-gzip",
+            files: file("truth.fits.gz", gzipped(&std::fs::read(d.join("obs.sky.fits")).unwrap())),
+            mutable: 1,
+            args: s(&["image", "../obs.parquet", "--size", &SIZE.to_string(), "--step", "clean", "--truth", "truth.fits.gz", "--name", "out/x"]),
+            names: "truth.fits.gz",
+            craft: None,
+            guarded: false,
+        },
+        Kind {
+            name: "staging-journal",
+            files: [
+                file("out/.r2d2-staging-planted/journal.json", b"{}".to_vec()),
+                file("out/.r2d2-staging-planted/new/x-dirty.fits", b"planted bytes".to_vec()),
+                file("out/.r2d2-staging-planted/new/keep.txt", b"planted bytes".to_vec()),
+                file("out/.r2d2-staging-planted/earlier/0", b"planted bytes".to_vec()),
+                file("out/.r2d2-staging-planted/earlier/1", b"planted bytes".to_vec()),
+                file("out/keep.txt", b"the user's file beside the products".to_vec()),
+                file("out/keep-y-dirty.fits", b"another prefix's product".to_vec()),
+                file("victim/precious.txt", b"the user's file".to_vec()),
+                file("precious2.txt", b"the user's other file".to_vec()),
+            ]
+            .concat(),
+            mutable: 1,
+            args: s(&["dirty", "../obs.parquet", "--size", &SIZE.to_string(), "--name", "out/x"]),
+            names: "",
+            craft: Some(planted_journal),
+            guarded: true,
+        },
+        Kind { name: "onnx-manifest", files: onnx_series(true, "auto"), mutable: 1, args: s(&["run", "onnx.yaml"]), names: "landweber", craft: None, guarded: false },
+        Kind { name: "onnx-network-ort", files: onnx_series(false, "auto"), mutable: networks, args: s(&["run", "onnx.yaml"]), names: "landweber", craft: None, guarded: false },
+        Kind { name: "onnx-network-tract", files: onnx_series(false, "tract"), mutable: networks, args: s(&["run", "onnx.yaml"]), names: "landweber", craft: None, guarded: false },
     ];
     // The unmutated seeds succeed: the harness starts from valid inputs.
     let mut failures = Vec::new();
@@ -240,7 +321,11 @@ fn mutated_inputs_end_in_success_or_a_clean_error() {
             let case_dir = d.join(format!("{}-{case}", kind.name));
             let mut files = kind.files.clone();
             let mutated = rng.gen_range(0..kind.mutable);
-            if case > 0 {
+            if let Some(craft) = kind.craft.filter(|_| case > 0) {
+                files[mutated].1 = craft(&mut rng, &case_dir);
+            }
+            // A crafted file is mutated one case in two (the rest test it as crafted).
+            if case > 0 && (kind.craft.is_none() || rng.gen_bool(0.5)) {
                 for _ in 0..rng.gen_range(1..=4) {
                     mutate(&mut files[mutated].1, &mut rng);
                 }
@@ -251,7 +336,16 @@ fn mutated_inputs_end_in_success_or_a_clean_error() {
                 std::fs::write(path, bytes).unwrap();
             }
             let args: Vec<&str> = kind.args.iter().map(String::as_str).collect();
-            let outcome = run_bounded(&args, &case_dir, kind.names);
+            let before = kind.guarded.then(|| guarded_files(&case_dir));
+            let mut outcome = run_bounded(&args, &case_dir, kind.names);
+            if let Some(before) = before {
+                let after = guarded_files(&case_dir);
+                if after != before {
+                    let names = |files: &[(String, Vec<u8>)]| files.iter().map(|(n, _)| n.clone()).collect::<Vec<_>>();
+                    let changed = format!("files outside the run's products changed: before {:?}, after {:?}", names(&before), names(&after));
+                    outcome = Some(outcome.map_or(changed.clone(), |o| format!("{o}; {changed}")));
+                }
+            }
             if case == 0 {
                 assert!(outcome.is_none(), "{}: the unmutated seed failed: {outcome:?}", kind.name);
                 let out = Command::new(env!("CARGO_BIN_EXE_r2d2")).args(&args).current_dir(&case_dir).output().unwrap();

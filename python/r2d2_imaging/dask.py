@@ -195,6 +195,10 @@ class _DaskPasses:
         self.token = os.urandom(6).hex()
         self.calls = itertools.count()
         self.rule = (None, None)
+        # What each part's first reading found (its summary's ``check``): every pass over a
+        # part is checked against it where it runs, so a part replaced or written to between
+        # passes fails the pass, named, rather than summing samples of two tables.
+        self.checks = [None] * len(parts)
 
     def describe(self) -> str:
         return f"{len(self.parts)} parts on a Dask cluster"
@@ -205,15 +209,17 @@ class _DaskPasses:
         spec["threads"] = self.threads
         return json.dumps(spec)
 
-    def _submit(self, function, *args):
-        """``function(part, *args)`` for every part, one task each: the futures in part order."""
+    def _submit(self, function, *args, checked=True):
+        """``function(part, check, *args)`` for every part (``function(part, *args)`` where not
+        ``checked``), one task each: the futures in part order."""
         name = f"r2d2-parts-{self.token}-{next(self.calls)}"
         where = [{} if self.workers is None else {"workers": [self.workers[i]], "allow_other_workers": False} for i in range(len(self.parts))]
-        return [self.client.submit(function, part, *args, key=(name, i), pure=False, **where[i]) for i, part in enumerate(self.parts)]
+        first = [(part, self.checks[i]) if checked else (part,) for i, part in enumerate(self.parts)]
+        return [self.client.submit(function, *first[i], *args, key=(name, i), pure=False, **where[i]) for i in range(len(self.parts))]
 
-    def _map(self, function, *args):
-        """``function(part, *args)`` for every part, one task each; the results in part order."""
-        return _gather(self.client, self._submit(function, *args))
+    def _map(self, function, *args, checked=True):
+        """``function(part, check, *args)`` for every part, one task each; the results in part order."""
+        return _gather(self.client, self._submit(function, *args, checked=checked))
 
     def _scattered_rule(self, density, f2):
         """The weighting rule on the workers, sent once (every pass after the density's uses it)."""
@@ -322,7 +328,8 @@ def image_parts(client, parts: Sequence[Union[str, "os.PathLike[str]"]], *, id: 
     if workers is not None and len(workers) != len(parts):
         raise ValueError(f"workers: expected one worker per part ({len(parts)}), got {len(workers)}")
     passes = _DaskPasses(client, parts, list(workers) if workers is not None else None, part_threads)
-    summaries = passes._map(_part_summary_and_identity)
+    summaries = passes._map(_part_summary_and_identity, checked=False)
+    passes.checks = [summary.get("check") for _, summary, _ in summaries]
     _refuse_parts_given_twice(parts, workers, [identity for _, _, identity in summaries])
     described = [(part, meta, summary) for part, (meta, summary, _) in zip(parts, summaries)]
     name = id or _stem(parts[0], 0)

@@ -8,7 +8,7 @@ use crate::run_released;
 use numpy::{PyArray1, PyReadonlyArray1};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
-use r2d2_imaging::parts::{self, open_pass, open_source, PartImages, PartPass, PartPasses, PartedObservation, VisSummary};
+use r2d2_imaging::parts::{self, open_pass, open_source, PartCheck, PartImages, PartPass, PartPasses, PartedObservation, VisSummary};
 use r2d2_imaging::vis::{ObservationMeta, OpenOptions};
 use r2d2_imaging::parts::{WToeplitzBuilder, WToeplitzPlan};
 use r2d2_imaging::parts::{DensityGrid, WeightRule};
@@ -46,17 +46,27 @@ fn summary_of(d: &Bound<'_, PyDict>) -> PyResult<VisSummary> {
 }
 
 /// What imaging must know of a part before the first pass: `(metadata pairs, summary dict)`.
-/// Reads the part once (on the worker that holds it).
+/// Reads the part once (on the worker that holds it). The summary's `check` (what this
+/// reading found) goes with every later pass over the part, which fails where it finds other
+/// samples.
 #[pyfunction]
 pub fn part_summary(
     py: Python<'_>,
     path: PathBuf,
 ) -> PyResult<(Vec<(String, String)>, Bound<'_, PyDict>)> {
-    let (meta, summary) = run_released(py, move |_| {
+    let (meta, summary, check) = run_released(py, move |_| {
         let (meta, source) = open_source(&path, &OpenOptions::default())?;
-        Ok((meta.to_pairs()?, source.summary()))
+        Ok((meta.to_pairs()?, source.summary(), source.part_check().map(|c| c.to_text())))
     })?;
-    Ok((meta, summary_dict(py, &summary)?))
+    let summary = summary_dict(py, &summary)?;
+    summary.set_item("check", check)?;
+    Ok((meta, summary))
+}
+
+/// A part opened for one pass, checked against its first reading's `check` (from its summary).
+fn open_checked(path: &std::path::Path, check: Option<&str>) -> Result<parts::VisSource> {
+    let check = check.map(PartCheck::from_text).transpose()?;
+    open_pass(path, &OpenOptions::default(), check.as_ref())
 }
 
 /// The uv density of a part on the weighting grid: `(density, sum of natural weights)`.
@@ -64,11 +74,12 @@ pub fn part_summary(
 pub fn part_density(
     py: Python<'_>,
     path: PathBuf,
+    check: Option<String>,
     pass: String,
 ) -> PyResult<(Bound<'_, PyArray1<f64>>, f64)> {
     let (density, sum_w) = run_released(py, move |_| {
         let pass = PartPass::from_json(&pass)?;
-        let source = open_pass(&path, &OpenOptions::default())?;
+        let source = open_checked(&path, check.as_deref())?;
         let grid = parts::part_density(&source, &pass)?;
         let (density, sum_w) = grid.raw();
         Ok((density.to_vec(), sum_w))
@@ -77,10 +88,10 @@ pub fn part_density(
 }
 
 /// What a worker's pass over a part needs: the pass, the job's weighting rule and the part.
-fn part_inputs(path: &std::path::Path, pass: &str, density: Vec<f64>, f2: f64) -> Result<(PartPass, WeightRule, parts::VisSource)> {
+fn part_inputs(path: &std::path::Path, check: Option<&str>, pass: &str, density: Vec<f64>, f2: f64) -> Result<(PartPass, WeightRule, parts::VisSource)> {
     let pass = PartPass::from_json(pass)?;
     let rule = pass.rule(density, f2)?;
-    Ok((pass, rule, open_pass(path, &OpenOptions::default())?))
+    Ok((pass, rule, open_checked(path, check)?))
 }
 
 /// A part's images, not normalised: `(dirty, psf, psf_2n, samples, planes)`, the images
@@ -90,6 +101,7 @@ fn part_inputs(path: &std::path::Path, pass: &str, density: Vec<f64>, f2: f64) -
 pub fn part_images<'py>(
     py: Python<'py>,
     path: PathBuf,
+    check: Option<String>,
     pass: String,
     density: PyReadonlyArray1<'py, f64>,
     f2: f64,
@@ -102,7 +114,7 @@ pub fn part_images<'py>(
 )> {
     let density = density.as_slice()?.to_vec();
     let images = run_released(py, move |_| {
-        let (pass, rule, source) = part_inputs(&path, &pass, density, f2)?;
+        let (pass, rule, source) = part_inputs(&path, check.as_deref(), &pass, density, f2)?;
         parts::part_images(&source, &pass, &rule)
     })?;
     Ok((
@@ -123,6 +135,7 @@ pub fn part_images<'py>(
 pub fn part_w_toeplitz<'py>(
     py: Python<'py>,
     path: PathBuf,
+    check: Option<String>,
     pass: String,
     density: PyReadonlyArray1<'py, f64>,
     f2: f64,
@@ -131,7 +144,7 @@ pub fn part_w_toeplitz<'py>(
 ) -> PyResult<Option<(Bound<'py, PyArray1<f64>>, u64, Option<usize>, Bound<'py, PyArray1<f64>>, Bound<'py, PyArray1<f64>>, String)>> {
     let density = density.as_slice()?.to_vec();
     let built = run_released(py, move |_| {
-        let (pass, rule, source) = part_inputs(&path, &pass, density, f2)?;
+        let (pass, rule, source) = part_inputs(&path, check.as_deref(), &pass, density, f2)?;
         let geometry = pass.geometry()?;
         let Some(plan) = WToeplitzPlan::new(geometry, max_abs_w, pass.epsilon) else {
             return Ok(None);
@@ -154,6 +167,7 @@ pub fn part_w_toeplitz<'py>(
 pub fn part_apply_normal<'py>(
     py: Python<'py>,
     path: PathBuf,
+    check: Option<String>,
     pass: String,
     density: PyReadonlyArray1<'py, f64>,
     f2: f64,
@@ -162,7 +176,7 @@ pub fn part_apply_normal<'py>(
     let density = density.as_slice()?.to_vec();
     let x = x.as_slice()?.to_vec();
     let out = run_released(py, move |_| {
-        let (pass, rule, source) = part_inputs(&path, &pass, density, f2)?;
+        let (pass, rule, source) = part_inputs(&path, check.as_deref(), &pass, density, f2)?;
         parts::part_apply_normal(&source, &pass, &rule, &x)
     })?;
     Ok(PyArray1::from_vec(py, out))

@@ -168,6 +168,30 @@ def test_parts_of_two_observations_are_refused_naming_the_part(client, parted, r
         image_parts(client, [parts[0], other], **PARAMS)
 
 
+def test_a_part_changed_between_passes_is_refused_naming_it(client, parted, tmp_path, monkeypatch):
+    """A part replaced after its summary by one of as many samples with other values (w x 0.9,
+    the weights doubled): the next pass over it fails naming it, as a table read again at each
+    pass does (the sum of the parts' sample counts, all that was compared, was unchanged)."""
+    import shutil
+    import pyarrow.compute as pc
+    import r2d2_imaging.dask as dask_module
+    _, parts = parted
+    copies = [shutil.copy(part, tmp_path / os.path.basename(part)) for part in parts]
+    density = dask_module._DaskPasses.density
+
+    def replace_then_density(self, text):
+        table = pq.read_table(copies[1])
+        for column, factor in [("w", 0.9), ("weight", 2.0)]:
+            i = table.schema.get_field_index(column)
+            table = table.set_column(i, table.schema.field(i), pc.multiply(table.column(column), factor).cast(table.schema.field(i).type))
+        pq.write_table(table, copies[1])
+        return density(self, text)
+
+    monkeypatch.setattr(dask_module._DaskPasses, "density", replace_then_density)
+    with pytest.raises(r2d2_imaging.R2D2Error, match=r"part1\.parquet: this part of the observation changed between passes: a later pass found as many samples"):
+        image_parts(client, copies, **dict(PARAMS, weighting="briggs", robust=0.0))
+
+
 def test_a_part_given_twice_is_refused_naming_both(client, parted, tmp_path):
     """The same part twice, by its own path, through a link, or by another spelling of the
     path: its samples would be summed twice into every image; refused before any pass."""

@@ -287,18 +287,38 @@ impl IpcMessages {
             MessageHeader::RecordBatch => {
                 let schema = schema.ok_or("a record batch before the schema")?;
                 let batch = message.header_as_record_batch().ok_or_else(|| missing("record batch"))?;
-                check_decompressed_size(&body, batch, "record batch")?;
-                read_record_batch(&body, batch, schema.clone(), &self.dictionaries, None, &version)
-                    .map(IpcMessage::Batch)
-                    .map_err(|e| e.to_string())
+                let read = |body: &arrow::buffer::Buffer, batch| read_record_batch(body, batch, schema.clone(), &self.dictionaries, None, &version);
+                let batch = match decompress_body(&body, batch, "record batch")? {
+                    None => read(&body, batch),
+                    Some((buffers, body)) => {
+                        let mut fbb = flatbuffers::FlatBufferBuilder::new();
+                        let uncompressed = uncompressed_batch(&mut fbb, batch, &buffers);
+                        fbb.finish_minimal(uncompressed);
+                        read(&body, flatbuffers::root::<arrow::ipc::RecordBatch>(fbb.finished_data()).map_err(|e| e.to_string())?)
+                    }
+                };
+                batch.map(IpcMessage::Batch).map_err(|e| e.to_string())
             }
             MessageHeader::DictionaryBatch => {
                 let schema = schema.ok_or("a dictionary before the schema")?;
                 let dictionary = message.header_as_dictionary_batch().ok_or_else(|| missing("dictionary"))?;
-                if let Some(batch) = dictionary.data() {
-                    check_decompressed_size(&body, batch, "dictionary")?;
-                }
-                read_dictionary(&body, dictionary, schema, &mut self.dictionaries, &version).map_err(|e| e.to_string())?;
+                let decompressed = match dictionary.data() {
+                    Some(batch) => decompress_body(&body, batch, "dictionary")?.map(|(buffers, body)| (batch, buffers, body)),
+                    None => None,
+                };
+                let read = match decompressed {
+                    None => read_dictionary(&body, dictionary, schema, &mut self.dictionaries, &version),
+                    Some((batch, buffers, body)) => {
+                        let mut fbb = flatbuffers::FlatBufferBuilder::new();
+                        let data = Some(uncompressed_batch(&mut fbb, batch, &buffers));
+                        let args = arrow::ipc::DictionaryBatchArgs { id: dictionary.id(), data, isDelta: dictionary.isDelta() };
+                        let uncompressed = arrow::ipc::DictionaryBatch::create(&mut fbb, &args);
+                        fbb.finish_minimal(uncompressed);
+                        let dictionary = flatbuffers::root::<arrow::ipc::DictionaryBatch>(fbb.finished_data()).map_err(|e| e.to_string())?;
+                        read_dictionary(&body, dictionary, schema, &mut self.dictionaries, &version)
+                    }
+                };
+                read.map_err(|e| e.to_string())?;
                 Ok(IpcMessage::Other)
             }
             MessageHeader::NONE => Ok(IpcMessage::Other),
@@ -307,30 +327,275 @@ impl IpcMessages {
     }
 }
 
-/// Refuses a compressed (LZ4 or ZSTD) batch whose buffers declare more bytes once decompressed
-/// than the memory budget allows: arrow sizes each buffer's allocation by the length that its
-/// first 8 bytes declare, before decompressing anything.
-fn check_decompressed_size(body: &[u8], batch: arrow::ipc::RecordBatch<'_>, what: &str) -> std::result::Result<(), String> {
-    if batch.compression().is_none() {
-        return Ok(());
-    }
-    let mut declared = 0u64;
-    for buffer in batch.buffers().into_iter().flatten() {
-        if buffer.length() < 8 {
-            continue; // empty: nothing is decompressed
+/// How a compressed batch's buffer is stored: its first 8 bytes declare its length once
+/// decompressed, -1 meaning stored as it is (after the 8 bytes), 0 empty.
+enum Stored {
+    Empty,
+    Raw,
+    Compressed(usize),
+}
+
+/// The body of a compressed (LZ4 or ZSTD) batch decompressed, and its buffers' places there;
+/// `None` for an uncompressed batch. arrow's decoder would size each buffer by the length its
+/// first 8 bytes declare and then decompress to the end of the stream, however far past that
+/// it goes (a buffer of a few kilobytes can hold gigabytes of zstd output): here the declared
+/// lengths are summed and checked against the memory budget before anything is allocated, and
+/// each buffer must decompress to exactly what it declares, decoding stopped one byte past it.
+fn decompress_body(body: &[u8], batch: arrow::ipc::RecordBatch<'_>, what: &str) -> std::result::Result<Option<(Vec<arrow::ipc::Buffer>, arrow::buffer::Buffer)>, String> {
+    use arrow::ipc::CompressionType;
+    let Some(compression) = batch.compression() else {
+        return Ok(None);
+    };
+    let codec = match compression.codec() {
+        CompressionType::LZ4_FRAME => "LZ4",
+        CompressionType::ZSTD => "ZSTD",
+        other => return Err(format!("a {what} compressed with codec {other:?}: expected LZ4_FRAME or ZSTD")),
+    };
+    let mut stored = Vec::new();
+    let mut total = 0u64;
+    for (k, buffer) in batch.buffers().into_iter().flatten().enumerate() {
+        let (offset, length) = (buffer.offset(), buffer.length());
+        let range = usize::try_from(offset)
+            .ok()
+            .zip(usize::try_from(length).ok())
+            .and_then(|(start, length)| Some(start..start.checked_add(length)?))
+            .filter(|range| range.end <= body.len())
+            .ok_or_else(|| format!("buffer {k} of the {what} (offset {offset}, {length} bytes) lies outside its body of {} bytes", body.len()))?;
+        let kind = match range.len() {
+            0 => Stored::Empty,
+            1..=7 => return Err(format!("buffer {k} of the compressed {what} has {} bytes, fewer than the 8 that declare its length", range.len())),
+            _ => match i64::from_le_bytes(body[range.start..range.start + 8].try_into().expect("8 bytes")) {
+                -1 => Stored::Raw,
+                0 => Stored::Empty,
+                declared => {
+                    let declared = u64::try_from(declared).map_err(|_| format!("buffer {k} of the compressed {what} declares a length of {declared} bytes"))?;
+                    total = total.saturating_add(declared);
+                    Stored::Compressed(usize::try_from(declared).unwrap_or(usize::MAX))
+                }
+            },
+        };
+        if matches!(kind, Stored::Raw) {
+            total = total.saturating_add(range.len() as u64 - 8);
         }
-        let start = usize::try_from(buffer.offset()).ok();
-        let prefix = start.and_then(|start| body.get(start..start.checked_add(8)?)).ok_or_else(|| {
-            format!("a compressed buffer at offset {} of the {what}'s body lies past its end ({} bytes)", buffer.offset(), body.len())
-        })?;
-        // -1: stored uncompressed; 0: empty.
-        let length = i64::from_le_bytes(prefix.try_into().expect("8 bytes"));
-        declared = declared.saturating_add(u64::try_from(length).unwrap_or(0));
+        total = total.saturating_add(7); // each buffer starts 8-aligned
+        stored.push((range, kind));
     }
     let budget = crate::limits::memory_budget();
-    if declared > budget.bytes {
-        let size = crate::limits::format_bytes(declared as f64);
-        return Err(format!("a compressed {what} declares {declared} bytes ({size}) once decompressed, more than {budget}"));
+    if total > budget.bytes {
+        let size = crate::limits::format_bytes(total as f64);
+        return Err(format!("a compressed {what} declares {total} bytes ({size}) once decompressed, more than {budget}"));
+    }
+    let mut out = arrow::buffer::MutableBuffer::new(0);
+    let mut buffers = Vec::with_capacity(stored.len());
+    for (k, (range, kind)) in stored.into_iter().enumerate() {
+        out.resize(out.len().next_multiple_of(8), 0);
+        let start = out.len();
+        let data = &body[range];
+        match kind {
+            Stored::Empty => {}
+            Stored::Raw => out.extend_from_slice(&data[8..]),
+            Stored::Compressed(declared) => {
+                out.resize(start + declared, 0);
+                decompress_exactly(codec, &data[8..], &mut out.as_slice_mut()[start..])
+                    .map_err(|why| format!("buffer {k} of the {what} ({codec}-compressed, {} bytes) {why}", data.len()))?;
+            }
+        }
+        buffers.push(arrow::ipc::Buffer::new(start as i64, (out.len() - start) as i64));
+    }
+    Ok(Some((buffers, out.into())))
+}
+
+/// Decompresses `input` into `out`, which must be exactly what it decompresses to.
+fn decompress_exactly(codec: &str, input: &[u8], out: &mut [u8]) -> std::result::Result<(), String> {
+    let mut reader: Box<dyn Read + '_> = match codec {
+        "LZ4" => Box::new(lz4_flex::frame::FrameDecoder::new(input)),
+        _ => Box::new(zstd::Decoder::with_buffer(input).map_err(|e| format!("does not decompress: {e}"))?),
+    };
+    let mut got = 0;
+    let mut past = [0u8; 1];
+    loop {
+        let into = if got < out.len() { &mut out[got..] } else { &mut past[..] };
+        match reader.read(into) {
+            Ok(0) => break,
+            Ok(_) if got == out.len() => {
+                return Err(format!("decompresses to more than the {} bytes it declares (a damaged file, or one made to exhaust memory)", out.len()));
+            }
+            Ok(n) => got += n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(format!("does not decompress: {e}")),
+        }
+    }
+    if got < out.len() {
+        return Err(format!("decompresses to {got} bytes, fewer than the {} it declares", out.len()));
     }
     Ok(())
+}
+
+/// `batch`'s flatbuffer with `buffers` in place of its own and no compression: the batch as
+/// [`decompress_body`] left it.
+fn uncompressed_batch<'f>(fbb: &mut flatbuffers::FlatBufferBuilder<'f>, batch: arrow::ipc::RecordBatch<'_>, buffers: &[arrow::ipc::Buffer]) -> flatbuffers::WIPOffset<arrow::ipc::RecordBatch<'f>> {
+    let nodes: Vec<arrow::ipc::FieldNode> = batch.nodes().map(|nodes| nodes.iter().copied().collect()).unwrap_or_default();
+    let variadic: Option<Vec<i64>> = batch.variadicBufferCounts().map(|counts| counts.iter().collect());
+    let args = arrow::ipc::RecordBatchArgs {
+        length: batch.length(),
+        nodes: Some(fbb.create_vector(&nodes)),
+        buffers: Some(fbb.create_vector(buffers)),
+        compression: None,
+        variadicBufferCounts: variadic.map(|counts| fbb.create_vector(&counts)),
+    };
+    arrow::ipc::RecordBatch::create(fbb, &args)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use arrow::ipc::writer::{IpcWriteOptions, StreamWriter};
+    use arrow::ipc::CompressionType;
+
+    /// An Arrow IPC stream of a 4096-sample table in batches of 1024, its buffers compressed
+    /// (those that compression makes smaller: the others are stored as they are).
+    fn compressed_stream(codec: CompressionType) -> Vec<u8> {
+        use super::super::table::{tests::test_table, to_record_batches};
+        let t = test_table(4096);
+        let (schema, batches) = to_record_batches(&t, &ObservationMeta::new(10.0, 20.0, "VLA"), 1024).unwrap();
+        let options = IpcWriteOptions::default().try_with_compression(Some(codec)).unwrap();
+        let mut writer = StreamWriter::try_new_with_options(Vec::new(), &schema, options).unwrap();
+        for batch in &batches {
+            writer.write(batch).unwrap();
+        }
+        writer.finish().unwrap();
+        writer.into_inner().unwrap()
+    }
+
+    /// `stream` with the buffers of its first record batch replaced by what `change` makes of
+    /// them (each as stored: its 8-byte length, then the compressed bytes), laid out again.
+    fn with_first_batch_buffers(stream: &[u8], change: impl FnOnce(&mut Vec<Vec<u8>>)) -> Vec<u8> {
+        let mut out = Vec::new();
+        let (mut at, mut change) = (0, Some(change));
+        while at < stream.len() {
+            assert_eq!(stream[at..at + 4], CONTINUATION);
+            let length = i32::from_le_bytes(stream[at + 4..at + 8].try_into().unwrap()) as usize;
+            if length == 0 {
+                out.extend_from_slice(&stream[at..]);
+                break;
+            }
+            let header = &stream[at + 8..at + 8 + length];
+            let message = arrow::ipc::root_as_message(header).unwrap();
+            let body = &stream[at + 8 + length..at + 8 + length + message.bodyLength() as usize];
+            let next = at + 8 + length + body.len();
+            let batch = message.header_as_record_batch().filter(|_| change.is_some());
+            let Some(batch) = batch else {
+                out.extend_from_slice(&stream[at..next]);
+                at = next;
+                continue;
+            };
+            let mut buffers: Vec<Vec<u8>> = batch.buffers().unwrap().iter().map(|b| body[b.offset() as usize..(b.offset() + b.length()) as usize].to_vec()).collect();
+            (change.take().unwrap())(&mut buffers);
+            let (mut new_body, mut places) = (Vec::new(), Vec::new());
+            for bytes in &buffers {
+                places.push(arrow::ipc::Buffer::new(new_body.len() as i64, bytes.len() as i64));
+                new_body.extend_from_slice(bytes);
+                new_body.resize(new_body.len().next_multiple_of(8), 0);
+            }
+            let mut fbb = flatbuffers::FlatBufferBuilder::new();
+            let nodes: Vec<arrow::ipc::FieldNode> = batch.nodes().unwrap().iter().copied().collect();
+            let compression = batch.compression().unwrap();
+            let compression = arrow::ipc::BodyCompression::create(&mut fbb, &arrow::ipc::BodyCompressionArgs { codec: compression.codec(), method: compression.method() });
+            let args = arrow::ipc::RecordBatchArgs {
+                length: batch.length(),
+                nodes: Some(fbb.create_vector(&nodes)),
+                buffers: Some(fbb.create_vector(&places)),
+                compression: Some(compression),
+                variadicBufferCounts: None,
+            };
+            let batch = arrow::ipc::RecordBatch::create(&mut fbb, &args);
+            let args = arrow::ipc::MessageArgs {
+                version: message.version(),
+                header_type: MessageHeader::RecordBatch,
+                header: Some(batch.as_union_value()),
+                bodyLength: new_body.len() as i64,
+                custom_metadata: None,
+            };
+            let message = arrow::ipc::Message::create(&mut fbb, &args);
+            fbb.finish_minimal(message);
+            let mut header = fbb.finished_data().to_vec();
+            header.resize(header.len().next_multiple_of(8), 0);
+            out.extend_from_slice(&CONTINUATION);
+            out.extend_from_slice(&(header.len() as i32).to_le_bytes());
+            out.extend_from_slice(&header);
+            out.extend_from_slice(&new_body);
+            at = next;
+        }
+        out
+    }
+
+    /// A zstd frame that decompresses to `blocks` x 128 KiB of zeros: each block is stored as
+    /// one byte repeated (an RLE block, 4 bytes in all), so 32 KiB of it make 1 GiB.
+    fn zstd_bomb(blocks: usize) -> Vec<u8> {
+        let mut frame = 0xfd2f_b528u32.to_le_bytes().to_vec();
+        // Frame header: no content size, no checksum; a window of 128 KiB (2^(10 + 7)).
+        frame.extend_from_slice(&[0x00, 7 << 3]);
+        for k in 0..blocks {
+            let last = u32::from(k + 1 == blocks);
+            let header = (128 << 10) << 3 | 1 << 1 | last;
+            frame.extend_from_slice(&header.to_le_bytes()[..3]);
+            frame.push(0);
+        }
+        frame
+    }
+
+    /// Every batch of the stream `bytes`, read from a file: the first error.
+    fn read(bytes: &[u8]) -> Result<u64> {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("in.arrows");
+        std::fs::write(&path, bytes).unwrap();
+        let mut reader = IpcReader::open(path.to_str().unwrap(), false)?;
+        let mut rows = 0;
+        while let Some(batch) = reader.next_batch() {
+            rows += batch?.num_rows() as u64;
+        }
+        Ok(rows)
+    }
+
+    #[test]
+    fn compressed_buffers_read_as_the_uncompressed_table() {
+        let plain = read(&compressed_stream(CompressionType::LZ4_FRAME)).unwrap();
+        assert_eq!(plain, 4096);
+        for codec in [CompressionType::LZ4_FRAME, CompressionType::ZSTD] {
+            // Laid out again unchanged, the batch still reads (the rewriting is sound).
+            let same = with_first_batch_buffers(&compressed_stream(codec), |_| {});
+            assert_eq!(read(&same).unwrap(), 4096, "{codec:?}");
+        }
+    }
+
+    /// A buffer whose first 8 bytes declare 2^40 bytes once decompressed is refused before
+    /// anything is allocated; one that declares 8 bytes and holds a zstd frame of 256 MiB (a
+    /// decompression bomb: arrow decoded to the end of the frame, however far, before comparing)
+    /// is refused once decoding passes the 8 bytes, naming the buffer and what it declares; one
+    /// that decompresses to fewer bytes than it declares too.
+    #[test]
+    fn compressed_buffers_must_decompress_to_what_they_declare() {
+        let stream = compressed_stream(CompressionType::ZSTD);
+        let compressed = |buffers: &mut Vec<Vec<u8>>| -> usize {
+            buffers.iter().position(|b| b.len() > 8 && i64::from_le_bytes(b[..8].try_into().unwrap()) > 0).expect("a compressed buffer")
+        };
+        let declaring = |length: i64| {
+            with_first_batch_buffers(&stream, |buffers| {
+                let k = compressed(buffers);
+                let buffer = &mut buffers[k];
+                buffer[..8].copy_from_slice(&length.to_le_bytes());
+            })
+        };
+        let e = read(&declaring(1 << 40)).unwrap_err().to_string();
+        assert!(e.contains("in.arrows") && e.contains("declares 1099511") && e.contains("(1.1 TB) once decompressed, more than"), "{e}");
+        let e = read(&declaring(1 << 20)).unwrap_err().to_string();
+        assert!(e.contains("in.arrows") && e.contains("ZSTD-compressed") && e.contains("fewer than the 1048576 it declares"), "{e}");
+        let bomb = with_first_batch_buffers(&stream, |buffers| {
+            let k = compressed(buffers);
+            buffers[k] = 8i64.to_le_bytes().to_vec();
+            buffers[k].extend(zstd_bomb(2048));
+        });
+        let e = read(&bomb).unwrap_err().to_string();
+        assert!(e.contains("in.arrows") && e.contains("decompresses to more than the 8 bytes it declares"), "{e}");
+    }
 }

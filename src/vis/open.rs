@@ -6,6 +6,7 @@
 use super::reader::{TableReader, STDIN};
 use super::error::TableError;
 use super::split::read_parts;
+use super::stream::{part_changed, PartCheck};
 use super::mat::MatReader;
 use super::{named_telescope, StreamedTable, VisSource, IngestStats, IpcReader, ObservationMeta, VisReader, Visibilities, DEFAULT_BATCH_ROWS};
 use crate::{Error, Result};
@@ -176,14 +177,21 @@ pub fn open_source(path: &Path, options: &OpenOptions) -> Result<(ObservationMet
 }
 
 /// A table for one pass of a part of an observation, not read first (see
-/// [`StreamedTable::unscanned`]): its caller checks the samples the pass found.
-pub fn open_pass(path: &Path, options: &OpenOptions) -> Result<VisSource> {
+/// [`StreamedTable::unscanned`]): the pass fails, naming the part, where its samples are not
+/// those its first reading found (`expected`: [`VisSource::part_check`] of [`open_source`]'s).
+pub fn open_pass(path: &Path, options: &OpenOptions, expected: Option<&PartCheck>) -> Result<VisSource> {
     if format_of(path)? == TableFormat::Mat {
-        return Ok(VisSource::Held(std::sync::Arc::new(read_table(path, options)?.0)));
+        let held = VisSource::Held(std::sync::Arc::new(read_table(path, options)?.0));
+        if let (Some(first), Some(now)) = (expected, held.part_check()) {
+            if now != *first {
+                return Err(part_changed(path, first, &now));
+            }
+        }
+        return Ok(held);
     }
     let (file, opts) = (path.to_path_buf(), options.clone());
     let reopen = move || open(&file, &opts);
-    Ok(VisSource::Streamed(std::sync::Arc::new(StreamedTable::unscanned(reopen()?, Box::new(reopen)))))
+    Ok(VisSource::Streamed(std::sync::Arc::new(StreamedTable::unscanned(reopen()?, Box::new(reopen), expected.copied()))))
 }
 
 /// Streams every batch of `reader` into a Parquet table at `out` with `meta` as its metadata

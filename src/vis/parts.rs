@@ -222,4 +222,45 @@ mod tests {
         assert!(WeightRule::from_raw(scheme, vec![1.0; 7], f2).is_err());
         assert!(DensityGrid::from_raw(scheme, 64, 1.5, vec![1.0; 7], 1.0).is_err());
     }
+
+    /// A part of 200 samples, its `w` and weights scaled by `w` and `weight`.
+    fn part_table(w: f64, weight: f64) -> crate::vis::VisTable {
+        let mut t = crate::vis::table::tests::test_table(200);
+        t.w_m.iter_mut().for_each(|x| *x *= w);
+        t.weight.iter_mut().for_each(|x| *x *= weight);
+        t
+    }
+
+    /// A part replaced between passes by one of as many samples with other values (`w` x 0.9,
+    /// the weights doubled), as a Dask worker opens it for each pass: the pass fails naming the
+    /// part, checked against what its first reading found (which travels as text); before, only
+    /// the sum of the parts' sample counts was compared, and the pass imaged the new table.
+    #[test]
+    fn a_part_changed_between_passes_fails_the_pass_naming_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("part0.parquet");
+        let meta = crate::vis::ObservationMeta::new(10.0, 20.0, "VLA");
+        crate::vis::write_parquet(&path, &part_table(1.0, 1.0), &meta).unwrap();
+        let options = crate::vis::OpenOptions::default();
+        let (_, first) = crate::parts::open_source(&path, &options).unwrap();
+        let check = first.part_check().expect("a part read first has a check");
+        let check = crate::parts::PartCheck::from_text(&check.to_text()).unwrap();
+        assert_eq!(Some(check), first.part_check());
+        let geometry = ImageGeometry::new(64, 1e-4).unwrap();
+        let pass = PartPass::new(geometry, Weighting::Natural, 1.0, true, NufftParams::default(), 1, 64);
+        let rule = part_density(&first, &pass).unwrap().finish();
+        // Unchanged, every pass reads it.
+        let again = crate::parts::open_pass(&path, &options, Some(&check)).unwrap();
+        assert_eq!(part_images(&again, &pass, &rule).unwrap().samples, 200);
+        crate::vis::write_parquet(&path, &part_table(0.9, 2.0), &meta).unwrap();
+        let changed = crate::parts::open_pass(&path, &options, Some(&check)).unwrap();
+        for e in [part_images(&changed, &pass, &rule).unwrap_err(), part_apply_normal(&changed, &pass, &rule, &vec![0.0; 64 * 64]).unwrap_err()] {
+            let e = e.to_string();
+            assert!(e.contains("part0.parquet") && e.contains("changed between passes") && e.contains("as many samples as its first reading (200)"), "{e}");
+        }
+        // Unchecked, as every pass was before, the changed part images without a word.
+        let unchecked = crate::parts::open_pass(&path, &options, None).unwrap();
+        assert_eq!(part_images(&unchecked, &pass, &rule).unwrap().samples, 200);
+        assert!(crate::parts::PartCheck::from_text("200:12").is_err());
+    }
 }

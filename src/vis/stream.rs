@@ -64,6 +64,46 @@ impl SampleDigest {
     }
 }
 
+/// What the first reading of one part of an observation found (its samples and their
+/// digest), for each later pass over the part to be checked against: such a pass opens the
+/// part again where it lives (a Dask worker), so the check travels with the pass, as text.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PartCheck {
+    samples: u64,
+    digest: SampleDigest,
+}
+
+impl PartCheck {
+    /// `SAMPLES:DIGEST`, the digest as 64 hex digits.
+    pub fn to_text(&self) -> String {
+        let [a, b, c, d] = self.digest.0;
+        format!("{}:{a:016x}{b:016x}{c:016x}{d:016x}", self.samples)
+    }
+
+    pub fn from_text(text: &str) -> Result<PartCheck> {
+        let parsed = text.split_once(':').and_then(|(samples, digest)| {
+            let lane = |k: usize| digest.get(16 * k..16 * (k + 1)).and_then(|hex| u64::from_str_radix(hex, 16).ok());
+            let digest = SampleDigest([lane(0)?, lane(1)?, lane(2)?, lane(3)?]);
+            (text.len() == text.find(':')? + 65).then_some(())?;
+            Some(PartCheck { samples: samples.parse().ok()?, digest })
+        });
+        parsed.ok_or_else(|| Error::parameter("check", format!("expected what a part's first reading found, as SAMPLES:DIGEST (64 hex digits; the `check` of its summary), got {text:.100}")))
+    }
+}
+
+/// The error of a pass over the part `path` that found `now` where its first reading found
+/// `first`.
+pub(crate) fn part_changed(path: &Path, first: &PartCheck, now: &PartCheck) -> Error {
+    let found = if now.samples == first.samples {
+        format!("as many samples as its first reading ({}) but other values (baselines, visibilities, weights or frequencies)", first.samples)
+    } else if now.samples > first.samples {
+        format!("more samples than the {} its first reading found", first.samples)
+    } else {
+        format!("{} samples where its first reading found {}", now.samples, first.samples)
+    };
+    Error::input(path, format!("this part of the observation changed between passes: a later pass found {found} (was it replaced or written to meanwhile?); nothing was written"))
+}
+
 /// A table read again from its file at every pass. Each pass must find the samples the first
 /// found (their counts and their digest): a file changed or replaced under a running job is
 /// an error, not an image of two tables.
@@ -82,6 +122,8 @@ pub struct StreamedTable {
     /// The samples as the first reading decoded them, read back by every later pass in place
     /// of the file (`None`: the file is read again at each pass).
     spill: Option<Spill>,
+    /// What a first reading elsewhere found, for a part opened for one pass.
+    expected: Option<PartCheck>,
 }
 
 impl StreamedTable {
@@ -165,13 +207,14 @@ impl StreamedTable {
             summary,
             reader_summary: reader.summary(),
             spill,
+            expected: None,
         }))
     }
 
-    /// A table for passes that are not checked against a first reading (nothing is read
-    /// now; its summary is empty): one part of an observation, whose caller checks the
-    /// samples a pass found against those its first reading found.
-    pub fn unscanned(reader: Box<dyn TableReader>, reopen: Box<Reopen>) -> StreamedTable {
+    /// A table for passes not checked against a reading of its own (nothing is read now; its
+    /// summary is empty): one part of an observation, each pass checked against `expected`,
+    /// what the part's first reading found where it was summarised.
+    pub fn unscanned(reader: Box<dyn TableReader>, reopen: Box<Reopen>, expected: Option<PartCheck>) -> StreamedTable {
         StreamedTable {
             path: reader.source().to_path_buf(),
             reopen,
@@ -182,6 +225,7 @@ impl StreamedTable {
             summary: VisSummary::empty(),
             reader_summary: None,
             spill: None,
+            expected,
         }
     }
 
@@ -234,6 +278,20 @@ impl VisSource {
         self.len() == 0
     }
 
+    /// What the first reading of these samples found, for passes over them elsewhere to be
+    /// checked against: `None` for parts (each has its own) or a table not read first.
+    pub fn part_check(&self) -> Option<PartCheck> {
+        match self {
+            VisSource::Held(vis) => {
+                let mut digest = SampleDigest::default();
+                digest.add(vis);
+                Some(PartCheck { samples: vis.len() as u64, digest })
+            }
+            VisSource::Streamed(table) => table.scanned.then_some(PartCheck { samples: table.stats.kept(), digest: table.digest }),
+            VisSource::Parts(_) => None,
+        }
+    }
+
     /// Whether each pass reads the samples again (from their file, or where their parts live).
     pub fn is_streamed(&self) -> bool {
         !matches!(self, VisSource::Held(_))
@@ -265,10 +323,12 @@ impl VisSource {
                 let mut buffer = Visibilities::default();
                 while let Some(batch) = reader.next_batch() {
                     let vis = record_batch_to_visibilities(&batch?, &mut stats, &source)?;
-                    if table.scanned && stats.kept() > table.stats.kept() {
+                    let expected_samples = table.expected.map_or(table.stats.kept(), |check| check.samples);
+                    let checked = table.scanned || table.expected.is_some();
+                    if checked && stats.kept() > expected_samples {
                         break;
                     }
-                    if table.scanned {
+                    if checked {
                         digest.add(&vis);
                     }
                     if buffer.is_empty() && vis.len() >= chunk_rows {
@@ -297,6 +357,12 @@ impl VisSource {
                             "the table changed while it was imaged: a later reading found as many samples as the first ({stats}) but other values (baselines, visibilities, weights or frequencies; was it replaced or written to meanwhile?); nothing was written"
                         ),
                     ));
+                }
+                if let Some(first) = &table.expected {
+                    let now = PartCheck { samples: stats.kept(), digest };
+                    if now != *first {
+                        return Err(part_changed(&table.path, first, &now));
+                    }
                 }
                 if !buffer.is_empty() {
                     f(buffer.chunk(0..buffer.len()))?;

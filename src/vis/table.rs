@@ -230,7 +230,7 @@ pub fn write_parquet(path: &Path, table: &VisTable, meta: &ObservationMeta) -> R
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::vis::{contain_panics, read_parquet, VisReader, PARQUET};
     use arrow::array::Float32Array;
@@ -249,7 +249,7 @@ mod tests {
     }
 
     /// `n` rows with distinct values and nothing to exclude.
-    fn test_table(n: usize) -> VisTable {
+    pub(crate) fn test_table(n: usize) -> VisTable {
         VisTable {
             u_m: (0..n).map(|i| 10.0 + i as f64).collect(),
             v_m: (0..n).map(|i| -3.5 * i as f64).collect(),
