@@ -216,7 +216,7 @@ pub fn convert_parquet_to_ms(parquet: &Path, out: &Path, layouts: AntennaLayouts
     }
     let ids = s.antenna1.iter().chain(&s.antenna2).copied().max().unwrap_or(0).max(0) as usize + 1;
     if let Some(angle) = meta.extra.get(ROTATION_KEY).and_then(|a| a.trim().parse::<f64>().ok()).filter(|a| *a != 0.0) {
-        log::info!("{}: its uv coverage was rotated by {angle} deg (`r2d2 simulate` without --no-rotation): its UVW do not follow from the antenna positions and times", parquet.display());
+        log::info!("{}: its uv coverage was rotated by {angle} deg (the simulation's `random_rotation`): its UVW do not follow from the antenna positions and times", parquet.display());
     }
     let observed = Observed { antennas: antennas(parquet, &meta, ids, layouts), integration_s: integration_s(parquet, &meta, &s.time) };
     let table = MainTable { s: &s, first: &first, data, wspec, flag, nchan };
