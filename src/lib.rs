@@ -51,7 +51,7 @@ pub use error::{Error, Result};
 pub use imaging::ImageConfig;
 pub use job::{
     BuildContext, Built, ChannelProducts, Emit, ImageContext, Imaging, Iterate, IterationMetrics, Job, JobProducts, KindFn, LoopStop, Product, ProductSink, Reads, Registry,
-    RunContext, SourceKind, SourceParams, StopReason, WriteOptions,
+    RunContext, SourceKind, SourceParams, StopReason, StopRule, WriteOptions,
 };
 pub use nufft::NufftParams;
 pub use parallel::claim_process;
@@ -61,6 +61,8 @@ pub use request::{DirtyRequest, GridOptions, ImageRequest, MsOptions, NamedValue
 pub use stages::params;
 pub use nufft::SimdLevel;
 pub use operator::PsfConvolution;
+pub use steps::driven::{Cycle, DrivenConfig, DrivenOutcome, DrivenSeries};
+pub use steps::series::ImagingSetup;
 pub use steps::{JobDomain, NetworkStep, StepInput};
 pub use vis::MemoryInput;
 pub use weighting::{Weighting, WeightingScheme};

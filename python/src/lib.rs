@@ -10,6 +10,7 @@
 //! of `R2D2Error` for it, so Python can catch that kind alone.
 
 mod arrow_in;
+mod driven;
 mod image;
 mod logging;
 mod parts;
@@ -262,6 +263,8 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(products::_products, m)?)?;
     m.add_class::<products::Products>()?;
     m.add_class::<parts::Parts>()?;
+    m.add_class::<driven::DrivenSeries>()?;
+    m.add_function(wrap_pyfunction!(driven::observation_domain, m)?)?;
     m.add_function(wrap_pyfunction!(parts::part_summary, m)?)?;
     m.add_function(wrap_pyfunction!(parts::part_density, m)?)?;
     m.add_function(wrap_pyfunction!(parts::part_images, m)?)?;

@@ -17,6 +17,7 @@ mod products;
 mod run;
 mod source;
 mod state;
+mod stopping;
 
 pub use channels::ChannelProducts;
 pub(crate) use channels::{group_label, MFS_LABEL};
@@ -30,4 +31,6 @@ pub(crate) use products::{beam_telescope, Staged};
 pub use run::{FilesWritten, ImageContext, ProductSink, RunContext};
 pub use source::{Reads, SourceParams};
 pub use state::{Imaging, Iterate, IterationMetrics, Job, LoopStop, StopReason};
+pub(crate) use state::iteration_figures;
+pub use stopping::{StopRule, DIVERGING_RISE};
 pub(crate) use state::missing;

@@ -122,6 +122,17 @@ pub struct IterationMetrics {
     pub logsnr: Option<f64>,
 }
 
+/// One iteration's figures for `model` and its residual (SNR and logSNR against `truth` where
+/// it is known and on the same grid), its step having taken `step_seconds`; the iteration's
+/// number and realisation are the job's to set.
+pub(crate) fn iteration_figures(model: &[f64], residual: &[f64], dirty: &[f64], truth: Option<&[f64]>, truth_dynamic_range: Option<f64>, step_seconds: f64) -> IterationMetrics {
+    let (snr, logsnr) = match truth {
+        Some(t) if t.len() == model.len() => (Some(metrics::snr(model, t)), truth_dynamic_range.map(|dr| metrics::log_snr(model, t, dr))),
+        _ => (None, None),
+    };
+    IterationMetrics { iteration: 0, realisation: None, residual_ratio: metrics::residual_ratio(residual, dirty), step_seconds, residual_seconds: 0.0, snr, logsnr }
+}
+
 /// A dataset being imaged, with everything the stages have made of it so far.
 pub struct Job {
     pub id: String,
@@ -293,22 +304,16 @@ impl Job {
     /// Record iteration figures after a residual update.
     pub fn record_iteration(&mut self, residual_seconds: f64) {
         let Some(im) = &self.imaging else { return };
-        let (snr, logsnr) = match &self.truth {
-            Some(t) if t.len() == im.model.len() => (
-                Some(metrics::snr(&im.model, t)),
-                self.truth_dynamic_range.map(|dr| metrics::log_snr(&im.model, t, dr)),
-            ),
-            _ => (None, None),
-        };
-        self.metrics.push(IterationMetrics {
-            iteration: self.iteration,
-            realisation: (self.realisation > 0).then_some(self.realisation),
-            residual_ratio: metrics::residual_ratio(&im.residual, &im.dirty),
-            step_seconds: self.last_step_seconds,
-            residual_seconds,
-            snr,
-            logsnr,
-        });
+        let mut figures = iteration_figures(&im.model, &im.residual, &im.dirty, self.truth.as_deref(), self.truth_dynamic_range, self.last_step_seconds);
+        figures.residual_seconds = residual_seconds;
+        self.push_iteration(figures);
+    }
+
+    /// Records `figures` as the job's current iteration (its number and realisation set here).
+    pub(crate) fn push_iteration(&mut self, mut figures: IterationMetrics) {
+        figures.iteration = self.iteration;
+        figures.realisation = (self.realisation > 0).then_some(self.realisation);
+        self.metrics.push(figures);
     }
 }
 

@@ -88,8 +88,7 @@ impl Default for CleanConfig {
     }
 }
 
-/// WSClean's usual `-mgain`.
-pub const DEFAULT_MAJOR_GAIN: f64 = 0.8;
+pub use crate::deconv::DEFAULT_MAJOR_GAIN;
 /// WSClean's usual `-auto-threshold`.
 pub const DEFAULT_AUTO_THRESHOLD: f64 = 3.0;
 

@@ -4,6 +4,7 @@
 //! versioned C ABI) and ONNX series implement the same trait.
 
 pub(crate) mod clean;
+pub mod driven;
 mod error;
 pub(crate) mod native;
 pub(crate) mod native_file;

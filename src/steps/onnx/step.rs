@@ -358,6 +358,18 @@ fn normalisation(image: &[f64], what: &str, iteration: usize, path: &Path) -> Re
     Ok(m + NORMALISATION_EPSILON)
 }
 
+impl OnnxStep {
+    pub(crate) fn series_name(&self) -> &str {
+        &self.series.name
+    }
+
+    /// Whether a network step needs `D` between its layers (R3D3's data fidelity), which only
+    /// the engine's own operator gives.
+    pub(crate) fn needs_d_between_layers(&self) -> bool {
+        self.series.architecture == Architecture::R3d3
+    }
+}
+
 impl NetworkStep for OnnxStep {
     fn series_length(&self) -> usize {
         self.iterations

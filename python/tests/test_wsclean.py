@@ -1,0 +1,124 @@
+"""R2D2 as WSClean's deconvolver (`r2d2_imaging.wsclean`, WSClean's -python-deconvolution):
+the Debian WSClean runs the engine's series, one network per major cycle, and its model is
+`r2d2 image`'s on the same MS; a joined-channel run writes WSClean's products with R2D2
+models."""
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import r2d2_imaging
+from r2d2_imaging import wsclean as hook
+from conftest import read_fits
+
+SIZE = 128
+
+
+def run(args, cwd, env=None):
+    out = subprocess.run([str(a) for a in args], cwd=cwd, env=env, capture_output=True, text=True)
+    assert out.returncode == 0, f"{args[0]} failed ({out.returncode}):\n{out.stdout[-4000:]}\n{out.stderr[-4000:]}"
+    return out.stdout + out.stderr
+
+
+@pytest.fixture(scope="module")
+def ms(r2d2_bin, tmp_path_factory):
+    """A VLA A+C track inside vla-r2d2-128's domain (6 h), as an MS; 4 channels over 20 %."""
+    assert shutil.which("wsclean"), "WSClean is a test requirement (apt-get install wsclean; .ci/run installs it)"
+    d = tmp_path_factory.mktemp("wsclean")
+    run([r2d2_bin, "-q", "simulate", "--sky", "procedural:11", "--size", SIZE, "--hours", "5,1", "--integration-s", "120",
+         "--nfreq", "4", "--freq-ratio", "1.2", "--no-rotation", "--seed", "11", "--out", "obs.parquet"], d)
+    run([r2d2_bin, "-q", "convert", "obs.parquet", "obs.ms"], d)
+    return d
+
+
+def onnx_runtime() -> str:
+    lib = r2d2_imaging._onnx_runtime()
+    assert lib, "onnxruntime is a test requirement (tests/requirements.txt)"
+    return lib
+
+
+def wsclean(d, name, extra, env_words=""):
+    env = dict(os.environ)
+    env["R2D2_WSCLEAN"] = f"onnx_runtime={onnx_runtime()} {env_words}".strip()
+    scale = f"{read_fits(d / 'r2d2-model.fits')[1]['CDELT2'] * 3600:.12f}asec"
+    # The engine's grid and weighting (Briggs 0 on a weighting grid of twice the image),
+    # gridded to 1e-6 at full size, as the other WSClean comparisons take them.
+    args = ["wsclean", "-python-deconvolution", hook.HOOK, "-mgain", "0.8", "-niter", "1000000", "-nmiter", "200",
+            "-size", SIZE, SIZE, "-scale", scale, "-weight", "briggs", "0", "-use-wgridder", "-wgridder-accuracy", "1e-6",
+            "-padding", "2", "-no-small-inversion", "-j", "2", "-name", name, *extra, "obs.ms"]
+    return run(args, d, env)
+
+
+@pytest.fixture(scope="module")
+def engine_run(ms, r2d2_bin):
+    """`r2d2 image` on the MS's band, the series chosen for the size (vla-r2d2-128)."""
+    env = dict(os.environ, ORT_DYLIB_PATH=onnx_runtime())
+    log = run([r2d2_bin, "image", "obs.ms", "--size", SIZE, "--backend", "ort", "--name", "r2d2"], ms, env)
+    return log
+
+
+def test_the_hook_is_found_and_reads_wsclean_s_command_line():
+    out = subprocess.run([sys.executable, "-m", "r2d2_imaging.wsclean"], capture_output=True, text=True, check=True)
+    assert Path(out.stdout.strip()) == Path(hook.HOOK) and Path(hook.HOOK).is_file()
+    job = hook.command_line_job(["-size", "128", "128", "-scale", "0.5asec", "-weight", "briggs", "-0.5", "-name", "x", "/"])
+    assert job == {"scale_deg": 0.5 / 3600, "weighting": "briggs", "robust": -0.5, "ms": "/"}
+    assert hook.command_line_job(["-scale", "2amin", "-weight", "natural"])["scale_deg"] == pytest.approx(2 / 60)
+    assert hook.command_line_job([])["weighting"] == "uniform", "WSClean's default weighting"
+    with pytest.raises(ValueError, match="-scale"):
+        hook.command_line_job(["-scale", "3parsec"])
+    with pytest.raises(ValueError, match="R2D2_WSCLEAN"):
+        hook._options("series")
+
+
+def snr(truth, x):
+    return 20 * np.log10(np.linalg.norm(truth) / np.linalg.norm(truth - x))
+
+
+def test_wsclean_with_the_r2d2_deconvolver_gives_r2d2_image_s_model(ms, engine_run, r2d2_bin):
+    truth, _ = read_fits(ms / "obs.sky.fits")
+    # The series alone: WSClean's major cycles and the engine's residual update give the
+    # same residual to the gridders' agreement, so each network sees the same input.
+    env = dict(os.environ, ORT_DYLIB_PATH=onnx_runtime())
+    run([r2d2_bin, "-q", "image", "obs.ms", "--size", SIZE, "--backend", "ort", "--no-final-clean", "--name", "r2d2-series"], ms, env)
+    log = wsclean(ms, "ws-series", [], "final_clean=off")
+    assert "r2d2: series vla-r2d2-128 (8 networks)" in log, log[-3000:]
+    assert "8 networks, kept 8" in log, log[-3000:]
+    ours, theirs = read_fits(ms / "r2d2-series-model.fits")[0], read_fits(ms / "ws-series-model.fits")[0]
+    series_difference = np.linalg.norm(theirs - ours) / np.linalg.norm(ours)
+    # With the final CLEAN: its minor cycles subtract the N x N PSF WSClean gives (the
+    # engine's, the 2N x 2N one), so a component can land on a neighbouring pixel of a
+    # near-tie; the fluxes and the precision are the same.
+    log = wsclean(ms, "ws", [])
+    assert "final CLEAN" in log, log[-3000:]
+    ours, theirs = read_fits(ms / "r2d2-model.fits")[0], read_fits(ms / "ws-model.fits")[0]
+    difference = np.linalg.norm(theirs - ours) / np.linalg.norm(ours)
+    print(f"WSClean + R2D2 vs r2d2 image: the series' model {series_difference:.2e}, with the final CLEAN {difference:.2e} (relative L2); "
+          f"SNR {snr(truth, theirs):.3f} dB vs {snr(truth, ours):.3f} dB; fluxes {theirs.sum():.5f} / {ours.sum():.5f} Jy")
+    assert series_difference < 1e-5, f"the series' models differ by {series_difference:.2e}"
+    assert difference < 5e-3, f"WSClean's R2D2 model differs from r2d2 image's by {difference:.2e}"
+    assert abs(snr(truth, theirs) - snr(truth, ours)) < 0.05
+    assert abs(theirs.sum() / ours.sum() - 1) < 1e-3
+
+
+def test_a_joined_channel_run_writes_wsclean_s_products_with_r2d2_models(ms, engine_run):
+    log = wsclean(ms, "wsj", ["-channels-out", "4", "-join-channels"])
+    assert "4 channels joined" in log, log[-3000:]
+    truth, _ = read_fits(ms / "obs.sky.fits")
+    models = []
+    for c in ["0000", "0001", "0002", "0003", "MFS"]:
+        for product in ["model", "residual", "image"]:
+            assert (ms / f"wsj-{c}-{product}.fits").is_file(), f"wsj-{c}-{product}.fits"
+        models.append(read_fits(ms / f"wsj-{c}-model.fits")[0])
+    # One series on the channels' weighted mean, its model each channel's (a flat spectrum,
+    # as the simulated sky's): as precise as the whole band imaged as one channel.
+    mfs = models[-1]
+    single = read_fits(ms / "r2d2-model.fits")[0]
+    spread = max(np.linalg.norm(m - mfs) / np.linalg.norm(mfs) for m in models[:-1])
+    print(f"joined channels: MFS model SNR {snr(truth, mfs):.3f} dB (r2d2 image on the band: {snr(truth, single):.3f} dB); channel models within {spread:.1e} of it")
+    assert spread < 1e-6
+    assert abs(snr(truth, mfs) - snr(truth, single)) < 0.1

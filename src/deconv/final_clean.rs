@@ -1,0 +1,388 @@
+//! The final CLEAN: major cycles of components of both signs, with the PSF, on what an
+//! imaging loop's model leaves in the residual.
+//!
+//! A network series stops when its residual ratio stops changing, not when the residual is
+//! noise: on compact sources its models come out too bright, with negative bowls in the
+//! residual far above the noise. Components of both signs taken from that residual with the
+//! PSF, each major cycle ending in the exact residual `x_d - D x`, give the model the fluxes
+//! the data measure (the paper's data-fidelity criterion: a residual compatible with the
+//! noise), while extended emission the series already explains leaves little above the
+//! threshold to take. Who computes that exact residual is the caller's: the engine's operator
+//! (`kind: final_clean`), or an outside imager's major cycle (`crate::steps::driven`).
+
+use super::{hogbom, HogbomParams, DEFAULT_MAJOR_GAIN};
+use crate::metrics::{residual_ratio, robust_sigma};
+use crate::{Error, Result};
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+/// `kind: final_clean`: after the imaging loop, CLEAN major cycles on what the step's model
+/// leaves in the residual (components of both signs, with the PSF, each major cycle's residual
+/// the exact `x_d - D x`), so that the model's fluxes are what the data say: a network series
+/// leaves its compact sources too bright, with negative bowls in the residual, that the
+/// stopping rule does not see. A cycle that does not lower the residual is undone.
+#[derive(Clone, Debug, PartialEq, Deserialize, Serialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FinalCleanParams {
+    /// Most major cycles; default 20. 0 turns the stage into a pass-through.
+    pub major_cycles: usize,
+    /// Minor-cycle loop gain; default 0.1.
+    pub gain: f64,
+    /// Fraction of the residual's peak each major cycle cleans away (WSClean's `-mgain`);
+    /// default 0.8.
+    pub major_gain: f64,
+    /// Clean the whole image down to this many times the residual's robust noise, then only
+    /// where components were taken (WSClean's `-auto-mask`); default 5.
+    pub auto_mask: f64,
+    /// Inside that mask, stop at this many times the residual's robust noise (WSClean's
+    /// `-auto-threshold`); default 2. Noise peaks elsewhere stay in the residual, where they
+    /// belong, instead of becoming model components.
+    pub auto_threshold: f64,
+    /// Most components per major cycle; default 10 000.
+    pub components_per_cycle: usize,
+    /// Islands of the step's model (connected positive pixels) no larger than this many PSF
+    /// main lobes are taken out of the model before the cycles and cleaned afresh; default 4,
+    /// 0 keeps every island. A network series draws a point source as a blob wider than
+    /// the PSF, which components added on top correct in flux only with a ring of negative
+    /// ones around it; CLEAN's own components give a point source a point.
+    pub compact_beams: f64,
+    /// Around those islands, stop at this many times the residual's robust noise; default 1.
+    /// A point source's flux is then what the data measure to a fraction of the noise, while
+    /// extended emission keeps `auto_threshold` (deeper there, noise becomes model).
+    pub compact_threshold: f64,
+}
+
+impl Default for FinalCleanParams {
+    fn default() -> Self {
+        FinalCleanParams {
+            major_cycles: 20,
+            gain: 0.1,
+            major_gain: DEFAULT_MAJOR_GAIN,
+            auto_mask: 5.0,
+            auto_threshold: 2.0,
+            components_per_cycle: 10_000,
+            compact_beams: 4.0,
+            compact_threshold: 1.0,
+        }
+    }
+}
+
+impl FinalCleanParams {
+    /// The parameters, or an error naming the first one out of range.
+    pub fn checked(self) -> Result<FinalCleanParams> {
+        let c = &self;
+        if !(c.gain > 0.0 && c.gain <= 1.0) {
+            return Err(Error::parameter("gain", format!("expected a loop gain in (0, 1], got {}", c.gain)));
+        }
+        if !(c.major_gain > 0.0 && c.major_gain <= 1.0) {
+            return Err(Error::parameter("major_gain", format!("expected a major-cycle gain in (0, 1], got {}", c.major_gain)));
+        }
+        if !(c.auto_threshold > 0.0 && c.auto_threshold.is_finite()) {
+            return Err(Error::parameter("auto_threshold", format!("expected a positive number of noise sigmas, got {}", c.auto_threshold)));
+        }
+        if !(c.compact_threshold > 0.0 && c.compact_threshold.is_finite()) {
+            return Err(Error::parameter("compact_threshold", format!("expected a positive number of noise sigmas, got {}", c.compact_threshold)));
+        }
+        if !(c.auto_mask >= c.auto_threshold && c.auto_mask.is_finite()) {
+            return Err(Error::parameter("auto_mask", format!("expected a number of noise sigmas of auto_threshold ({}) or more, got {}", c.auto_threshold, c.auto_mask)));
+        }
+        if !(c.compact_beams >= 0.0 && c.compact_beams.is_finite()) {
+            return Err(Error::parameter("compact_beams", format!("expected a number of PSF main lobes, 0 or more, got {}", c.compact_beams)));
+        }
+        if c.components_per_cycle == 0 {
+            return Err(Error::parameter("components_per_cycle", "expected at least one component per cycle"));
+        }
+        Ok(self)
+    }
+}
+
+/// The residual's peak in units of its robust noise.
+pub fn peak_sigmas(residual: &[f64]) -> f64 {
+    max_abs(residual) / robust_sigma(residual)
+}
+
+/// What the final CLEAN works on: the images a step's loop leaves, and the residual of any
+/// model (`x_d - D x`) from whoever owns the data: the engine's exact operator, or an outside
+/// imager's major cycle (`crate::steps::driven`).
+pub struct CleanInput<'a> {
+    pub n: usize,
+    pub dirty: &'a [f64],
+    /// N x N, peak at (N/2, N/2): its main lobe sizes the compact islands.
+    pub psf: &'a [f64],
+    /// 2N x 2N, peak at (N, N): the minor cycles subtract it.
+    pub psf_2n: &'a [f64],
+    /// The user's mask (N x N, true inside), if any.
+    pub mask: Option<&'a [bool]>,
+}
+
+/// The final CLEAN's result: the model, its exact residual, and what the cycles did. `kept`
+/// holds what `on_kept` returned for each kept major cycle, in order (the cycles of a pass
+/// that was undone are not in it).
+pub struct CleanOutcome<T> {
+    pub model: Vec<f64>,
+    pub residual: Vec<f64>,
+    pub cycles: usize,
+    pub components: usize,
+    pub ratio: f64,
+    pub kept: Vec<T>,
+}
+
+/// The state of one run of the final CLEAN.
+struct Cleaning<'a, 'b, T> {
+    config: &'a FinalCleanParams,
+    input: &'a CleanInput<'a>,
+    model: Vec<f64>,
+    residual: Vec<f64>,
+    residual_of: &'b mut dyn FnMut(&[f64]) -> Result<Vec<f64>>,
+    on_kept: &'b mut dyn FnMut(&[f64], &[f64], f64) -> T,
+    kept: Vec<T>,
+}
+
+impl<T> Cleaning<'_, '_, T> {
+    /// One major cycle: Hogbom on the residual (inside `mask` where there is one) down to
+    /// `sigmas` times its noise, then the exact residual of the new model. Kept (model and
+    /// residual updated, `ratio` lowered) where the residual ratio falls; the components
+    /// taken, or `None` where nothing was kept.
+    fn cycle(&mut self, ratio: &mut f64, mask: Option<&[bool]>, sigmas: f64) -> Result<Option<Vec<f64>>> {
+        let c = self.config;
+        let n = self.input.n;
+        let peak = match mask {
+            Some(mask) => self.residual.iter().zip(mask).filter(|(_, inside)| **inside).fold(0.0f64, |m, (v, _)| m.max(v.abs())),
+            None => max_abs(&self.residual),
+        };
+        let level = ((1.0 - c.major_gain) * peak).max(sigmas * robust_sigma(&self.residual));
+        let params = HogbomParams { gain: c.gain, threshold: level, max_components: c.components_per_cycle, positive_only: false, mask: mask.map(<[bool]>::to_vec) };
+        let found = hogbom(&self.residual, self.input.psf_2n, n, &params);
+        log::debug!("final CLEAN: {} cycle from peak {peak:.3e} to {level:.3e} Jy/beam: {} components, stopped at {:.3e}", if mask.is_some() { "masked" } else { "open" }, found.n_components, found.last_peak);
+        if found.n_components == 0 {
+            return Ok(None);
+        }
+        let model: Vec<f64> = self.model.iter().zip(&found.components).map(|(x, c)| x + c).collect();
+        let residual = (self.residual_of)(&model)?;
+        crate::sanity::check_image(&residual, n, "residual after a final CLEAN cycle", "the model is too large for the residual update to stay finite")?;
+        let new_ratio = residual_ratio(&residual, self.input.dirty);
+        // A cycle the data do not confirm is undone: the model never explains them worse.
+        if !(new_ratio < *ratio) {
+            log::debug!("final CLEAN: a cycle would take the residual ratio from {ratio:.4e} to {new_ratio:.4e}; undone");
+            return Ok(None);
+        }
+        *ratio = new_ratio;
+        self.model = model;
+        self.residual = residual;
+        Ok(Some(found.components))
+    }
+
+    /// Major cycles over the whole image down to `auto_mask` sigmas, then inside the mask of
+    /// what they took down to `auto_threshold`, then inside `compact` (a mask of the compact
+    /// islands) down to `compact_threshold`; each kept cycle handed to `on_kept`; every phase
+    /// within the user's mask where there is one. The cycles kept, the pixels they put
+    /// components at, and the residual ratio.
+    fn cycles(&mut self, compact: Option<Vec<bool>>) -> Result<(usize, usize, f64)> {
+        let c = self.config;
+        let user = self.input.mask;
+        let n = self.input.n;
+        let mut ratio = residual_ratio(&self.residual, self.input.dirty);
+        let (mut cycles, mut components) = (0, 0);
+        // The mask starts from where the step found emission: pixels of the model above the
+        // residual's noise (a source of a few sigma puts at least that in its brightest pixel).
+        let sigma = robust_sigma(&self.residual);
+        let mut taken: Vec<f64> = self.model.iter().map(|&x| if x > sigma { x } else { 0.0 }).collect();
+        let mut phase = Phase::Open;
+        while cycles < c.major_cycles {
+            let began = Instant::now();
+            let (mask, sigmas) = match &phase {
+                Phase::Open => (user, c.auto_mask),
+                Phase::Masked(mask) => (Some(mask.as_slice()), c.auto_threshold),
+                Phase::Compact(mask) => (Some(mask.as_slice()), c.compact_threshold),
+            };
+            let mask = mask.map(<[bool]>::to_vec);
+            let found = self.cycle(&mut ratio, mask.as_deref(), sigmas)?;
+            let Some(found) = found else {
+                phase = match phase {
+                    Phase::Open if taken.iter().any(|t| *t != 0.0) => Phase::Masked(mask_of(&taken, n, user)),
+                    Phase::Open | Phase::Masked(_) if c.compact_threshold < c.auto_threshold => match &compact {
+                        Some(mask) => Phase::Compact(mask.clone()),
+                        None => break,
+                    },
+                    _ => break,
+                };
+                continue;
+            };
+            if matches!(phase, Phase::Open) {
+                taken.iter_mut().zip(&found).for_each(|(t, f)| *t += f);
+            }
+            cycles += 1;
+            components += found.iter().filter(|c| **c != 0.0).count();
+            let kept = (self.on_kept)(&self.model, &self.residual, began.elapsed().as_secs_f64());
+            self.kept.push(kept);
+        }
+        Ok((cycles, components, ratio))
+    }
+}
+
+/// The final CLEAN of `model` (with its exact residual `residual`): compact islands of the
+/// model cleaned afresh where that explains the data better, then major cycles on what is left
+/// (see [`FinalCleanParams`]). `residual_of` gives the exact residual of a model; `on_kept` is
+/// told each kept major cycle's model, residual and seconds.
+pub fn final_clean<T>(
+    config: &FinalCleanParams,
+    input: &CleanInput<'_>,
+    model: Vec<f64>,
+    residual: Vec<f64>,
+    residual_of: &mut dyn FnMut(&[f64]) -> Result<Vec<f64>>,
+    on_kept: &mut dyn FnMut(&[f64], &[f64], f64) -> T,
+) -> Result<CleanOutcome<T>> {
+    let n = input.n;
+    let step_ratio = residual_ratio(&residual, input.dirty);
+    let max_pixels = (config.compact_beams * main_lobe_pixels(input.psf, n) as f64) as usize;
+    let compact = compact_island_pixels(&model, n, max_pixels, COMPACT_MIN_SIGMAS * robust_sigma(&residual));
+    let mut run = Cleaning { config, input, model, residual, residual_of, on_kept, kept: Vec::new() };
+    let (mut cycles, mut components, mut ratio) = (0, 0, step_ratio);
+    if !compact.is_empty() {
+        let step = (run.model.clone(), run.residual.clone());
+        // Compact islands are cleaned afresh: their model leaves, its flux goes back to the
+        // residual by the exact update.
+        compact.iter().for_each(|&k| run.model[k] = 0.0);
+        run.residual = (run.residual_of)(&run.model)?;
+        let mut islands = vec![0.0; n * n];
+        compact.iter().for_each(|&k| islands[k] = 1.0);
+        let mask = mask_of(&islands, n, input.mask);
+        (cycles, components, ratio) = run.cycles(Some(mask))?;
+        if !(ratio < step_ratio) {
+            // CLEAN explained the data worse than the step's compact islands did: they stay,
+            // and the cycles build on them instead (their kept cycles forgotten).
+            log::warn!("final CLEAN: the {} pixels of compact islands cleaned afresh left the residual ratio at {ratio:.4e}, above the step's {step_ratio:.4e}; the step's islands are kept", compact.len());
+            (run.model, run.residual) = step;
+            run.kept.clear();
+            (cycles, components, ratio) = (0, 0, step_ratio);
+        }
+    }
+    if cycles == 0 {
+        (cycles, components, ratio) = run.cycles(None)?;
+    }
+    Ok(CleanOutcome { model: run.model, residual: run.residual, cycles, components, ratio, kept: run.kept })
+}
+
+/// The pixels of the PSF's main lobe: those at half its peak or above, connected to it.
+fn main_lobe_pixels(psf: &[f64], n: usize) -> usize {
+    let peak = psf.iter().copied().enumerate().fold((0, f64::MIN), |b, (k, v)| if v > b.1 { (k, v) } else { b });
+    island(psf, n, peak.0, |v| v >= 0.5 * peak.1, &mut vec![false; n * n]).len()
+}
+
+/// The 8-connected pixels where `inside` holds, from `start`; `seen` marks them.
+fn island(image: &[f64], n: usize, start: usize, inside: impl Fn(f64) -> bool, seen: &mut [bool]) -> Vec<usize> {
+    let mut pixels = vec![start];
+    seen[start] = true;
+    let mut next = 0;
+    while next < pixels.len() {
+        let k = pixels[next];
+        next += 1;
+        let (x, y) = (k % n, k / n);
+        for yy in y.saturating_sub(1)..(y + 2).min(n) {
+            for xx in x.saturating_sub(1)..(x + 2).min(n) {
+                let j = yy * n + xx;
+                if !seen[j] && inside(image[j]) {
+                    seen[j] = true;
+                    pixels.push(j);
+                }
+            }
+        }
+    }
+    pixels
+}
+
+/// The pixels of the islands of `model` (8-connected positive pixels) of at most
+/// `max_pixels` pixels and at least `min_flux` in all.
+fn compact_island_pixels(model: &[f64], n: usize, max_pixels: usize, min_flux: f64) -> Vec<usize> {
+    let mut seen = vec![false; n * n];
+    let mut compact = Vec::new();
+    for k in 0..n * n {
+        if !seen[k] && model[k] > 0.0 {
+            let pixels = island(model, n, k, |v| v > 0.0, &mut seen);
+            if pixels.len() <= max_pixels && pixels.iter().map(|&j| model[j]).sum::<f64>() >= min_flux {
+                compact.extend(pixels);
+            }
+        }
+    }
+    compact
+}
+
+/// Islands fainter than this many times the residual's noise (in Jy, the flux of a point
+/// source of that peak) are left as the step drew them: noise alone makes their fluxes
+/// uncertain by a tenth or more, and cleaning them deeper turns noise into model.
+const COMPACT_MIN_SIGMAS: f64 = 10.0;
+
+/// The pixels of `components` that are not zero, and their eight neighbours, within `within`
+/// (the user's mask) where there is one: where the masked cycles may take more (a source's
+/// flux spreads over the pixels around its peak).
+fn mask_of(components: &[f64], n: usize, within: Option<&[bool]>) -> Vec<bool> {
+    let mut mask = vec![false; n * n];
+    for (k, _) in components.iter().enumerate().filter(|(_, c)| **c != 0.0) {
+        let (x, y) = (k % n, k / n);
+        for yy in y.saturating_sub(1)..(y + 2).min(n) {
+            for xx in x.saturating_sub(1)..(x + 2).min(n) {
+                mask[yy * n + xx] = within.is_none_or(|w| w[yy * n + xx]);
+            }
+        }
+    }
+    mask
+}
+
+fn max_abs(v: &[f64]) -> f64 {
+    v.iter().fold(0.0f64, |m, x| m.max(x.abs()))
+}
+
+
+/// The stages of the final CLEAN's cycles: each goes on until a cycle takes nothing.
+enum Phase {
+    /// The whole image, down to `auto_mask` sigmas.
+    Open,
+    /// Around what the step's model and the open cycles found, down to `auto_threshold`.
+    Masked(Vec<bool>),
+    /// Around the compact islands, down to `compact_threshold`.
+    Compact(Vec<bool>),
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn compact_islands_are_the_small_bright_ones() {
+        let n = 32;
+        let mut model = vec![0.0; n * n];
+        // A 3 x 3 blob of 9 in all, a faint 2-pixel island, and a 10 x 10 patch.
+        for y in 2..5 {
+            for x in 2..5 {
+                model[y * n + x] = 1.0;
+            }
+        }
+        model[10 * n + 2] = 0.1;
+        model[10 * n + 3] = 0.1;
+        for y in 15..25 {
+            for x in 15..25 {
+                model[y * n + x] = 1.0;
+            }
+        }
+        let mut compact = compact_island_pixels(&model, n, 20, 1.0);
+        compact.sort();
+        let blob: Vec<usize> = (2..5).flat_map(|y| (2..5).map(move |x| y * n + x)).collect();
+        assert_eq!(compact, blob);
+        // Diagonal neighbours belong to the same island.
+        model[5 * n + 5] = 1.0;
+        assert!(compact_island_pixels(&model, n, 9, 1.0).is_empty());
+        assert_eq!(compact_island_pixels(&model, n, 10, 1.0).len(), 10);
+    }
+
+    #[test]
+    fn the_main_lobe_is_the_connected_half_power_region() {
+        let n = 16;
+        let mut psf = vec![0.0; n * n];
+        psf[8 * n + 8] = 1.0;
+        psf[8 * n + 9] = 0.6;
+        psf[9 * n + 9] = 0.5;
+        // A sidelobe at half power, not connected to the peak, is not part of it.
+        psf[2 * n + 2] = 0.7;
+        assert_eq!(main_lobe_pixels(&psf, n), 3);
+    }
+}
