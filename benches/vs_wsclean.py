@@ -271,6 +271,15 @@ def image_wsclean(args, ms, work, scale_arcsec):
     return cmd, wall, peak, text
 
 
+def image_wsclean_r2d2(args, ms, work, scale_arcsec):
+    """WSClean with the R2D2 deconvolver (`python -m r2d2_imaging.wsclean`, the Python package
+    installed for --python): the engine's pixel and weighting, the paper command's padding."""
+    cmd = [args.python, "-m", "r2d2_imaging.wsclean", "-size", args.size, args.size, "-scale", f"{scale_arcsec:.10g}asec",
+           "-j", args.threads, "-weight", "briggs", f"{args.robust:g}", "-padding", "2", "-name", "wsr2d2", ms]
+    text, wall, peak = run(cmd, cwd=work, timed=True, logfile=os.path.join(work, "wsr2d2.log"))
+    return cmd, wall, peak, text
+
+
 def image_r2d2(args, r2d2, obs, sky, work, name, step):
     cmd = [r2d2, "image", obs, "--size", args.size, "--name", name, "--truth", sky, "--threads", args.threads,
            f"--robust={args.robust:g}", "--superresolution", args.superresolution]
@@ -302,7 +311,9 @@ METHODS = [
     ("clean_model", "engine CLEAN, model"),
 ]
 TIMED = {"r2d2": "r2d2", "wsclean_restored": "wsclean", "wsclean_model": "wsclean",
-         "clean_restored": "clean", "clean_model": "clean"}
+         "clean_restored": "clean", "clean_model": "clean", "wsclean_r2d2": "wsclean_r2d2"}
+#: With --wsclean-r2d2: WSClean with the R2D2 deconvolver, scored by its model.
+WSCLEAN_R2D2 = ("wsclean_r2d2", "WSClean + R2D2 deconvolver (`r2d2-wsclean`), model")
 
 
 def one_sky(args, r2d2, data_dir, k, sample, out):
@@ -347,6 +358,10 @@ def one_sky(args, r2d2, data_dir, k, sample, out):
                     "series_log": [l.strip() for l in re.findall(r"[^\n]*(?:series|trained for)[^\n]*", text)][:4]}
     cmd, wall, peak, text = image_r2d2(args, r2d2, obs, sky, work, "clean", "clean")
     runs["clean"] = {"command": " ".join(map(str, cmd)), "wall_s": wall, "peak_mb": peak}
+    if args.wsclean_r2d2:
+        cmd, wall, peak, text = image_wsclean_r2d2(args, ms, work, scale)
+        runs["wsclean_r2d2"] = {"command": " ".join(map(str, cmd)), "wall_s": wall, "peak_mb": peak,
+                                "summary": re.findall(r"r2d2: series [^\n]*networks, kept[^\n]*", text)}
     rec["runs"] = runs
 
     img = lambda name: read_fits(os.path.join(work, name))
@@ -365,6 +380,8 @@ def one_sky(args, r2d2, data_dir, k, sample, out):
         rec[f"{key}_beam_pixels"] = beam_area_pixels(header)
         images[f"{key}_restored"] = (restored / rec[f"{key}_beam_pixels"], res, dirt)
         images[f"{key}_model"] = (model, res, dirt)
+    if args.wsclean_r2d2:
+        images["wsclean_r2d2"] = tuple(img(f"wsr2d2-{p}.fits")[0] for p in ("model", "residual", "dirty"))
 
     rec["scores"] = {}
     for key, (est, res, dirt) in images.items():
@@ -415,7 +432,7 @@ def _final_metrics(m):
 def table_md(means, n):
     lines = [f"| method | SNR (dB) | logSNR (dB) | residual ratio | wall (s) | peak (MB) |",
              "|---|---|---|---|---|---|"]
-    for key, label in METHODS:
+    for key, label in METHODS + ([WSCLEAN_R2D2] if "wsclean_r2d2" in means else []):
         s = means[key]
         lines.append(f"| {label} | {s['snr_db']:.2f} | {s['logsnr_db']:.2f} | {s['residual_ratio']:.2e} | "
                      f"{s['wall_s']:.1f} | {s['peak_mb']:.0f} |")
@@ -500,6 +517,9 @@ def main():
     ap.add_argument("--sky-fits", nargs="+", default=None, metavar="FITS",
                     help="image these skies (FITS, Jy/pixel, --size square, e.g. real radio images) instead of procedural ones: "
                          "each observed by `r2d2 simulate` at the setting, its DR drawn in --dr")
+    ap.add_argument("--wsclean-r2d2", action="store_true",
+                    help="also image with WSClean and the R2D2 deconvolver (`python -m r2d2_imaging.wsclean`, run by --python)")
+    ap.add_argument("--python", default=sys.executable, help="the Python with r2d2_imaging installed, for --wsclean-r2d2")
     ap.add_argument("--hours", default=None,
                     help="with --sky-fits: hours per array configuration (`r2d2 simulate --hours`, VLA A,C e.g. 5.5,1.1)")
     args = ap.parse_args()
@@ -537,11 +557,11 @@ def main():
             panels.append(pan)
         s = rec["scores"]
         log(f"sky {k} (DR {rec['dynamic_range']:.3g}, {rec['ms']['samples']} vis): "
-            + ", ".join(f"{key} {s[key]['snr_db']:.1f}/{s[key]['logsnr_db']:.1f} dB" for key, _ in METHODS)
+            + ", ".join(f"{key} {s[key]['snr_db']:.1f}/{s[key]['logsnr_db']:.1f} dB" for key in s)
             + f"; MS round trip {rec['dirty_natural_rel_diff']:.2e}; {time.time() - t:.0f} s")
 
     means = {key: {m: float(np.mean([r["scores"][key][m] for r in records]))
-                   for m in ("snr_db", "logsnr_db", "residual_ratio", "wall_s", "peak_mb")} for key, _ in METHODS}
+                   for m in ("snr_db", "logsnr_db", "residual_ratio", "wall_s", "peak_mb")} for key in records[0]["scores"]}
     rt = [r["dirty_natural_rel_diff"] for r in records]
     series_log = sorted({l for r in records for l in r["runs"]["r2d2"]["series_log"]})
     series_used = sorted({s for r in records for s in r["runs"]["r2d2"]["series"]}) or [args.series or "?"]

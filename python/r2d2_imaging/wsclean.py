@@ -262,12 +262,26 @@ def _setup_logging() -> None:
         handler = logging.StreamHandler(sys.stdout)
         handler.setFormatter(logging.Formatter("r2d2: %(message)s"))
         handler.setLevel(logging.WARNING)
+        # This module's own records are on WSClean's output already (_say).
+        handler.addFilter(lambda record: not record.name.startswith(log.name))
         root.addHandler(handler)
         root.setLevel(logging.INFO)
 
 
 def deconvolve(residual, model, psf, meta):
-    """WSClean's entry point: one major cycle (see the module's documentation)."""
+    """WSClean's entry point: one major cycle (see the module's documentation). An error is
+    said on WSClean's output before it is raised: WSClean 3.1 stops on it without a word."""
+    try:
+        return _deconvolve(residual, model, psf, meta)
+    except Exception as e:
+        message = f"ERROR: {type(e).__name__}: {e}"
+        print(f"r2d2: {message}", flush=True)
+        print(f"r2d2: {message}", file=sys.stderr, flush=True)
+        log.error(message)
+        raise
+
+
+def _deconvolve(residual, model, psf, meta):
     global _JOB
     residual = np.asarray(residual, dtype=float)
     model = np.asarray(model, dtype=float)
@@ -321,8 +335,13 @@ def main(argv: Optional[list] = None) -> int:
 
     command = wsclean_command(args)
     print("r2d2: " + " ".join(command), flush=True)
+    # WSClean's Python may not see this environment's onnxruntime: its library is named.
+    env = dict(os.environ)
+    runtime = _onnx_runtime()
+    if runtime and "onnx_runtime=" not in env.get("R2D2_WSCLEAN", ""):
+        env["R2D2_WSCLEAN"] = f"{env.get('R2D2_WSCLEAN', '')} onnx_runtime={runtime}".strip()
     try:
-        return subprocess.run(command).returncode
+        return subprocess.run(command, env=env).returncode
     except FileNotFoundError:
         print("r2d2: wsclean is not on PATH (Debian/Ubuntu: apt-get install wsclean)", file=sys.stderr)
         return 127

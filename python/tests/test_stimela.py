@@ -48,3 +48,19 @@ def test_recipe_simulates_then_images(r2d2_bin, tmp_path):
         b, _ = read_fits(direct / f"obs-{product}.fits")
         assert a.dtype.kind == "f" and a.dtype.itemsize == 4 and a.shape == (128, 128)
         np.testing.assert_array_equal(a, b, err_msg=product)
+
+
+def test_recipe_images_in_wsclean_with_the_r2d2_deconvolver(r2d2_bin, tmp_path):
+    """The `r2d2-wsclean` cab: WSClean with the R2D2 deconvolver, on an MS the recipe writes."""
+    shutil.copy(RECIPE, tmp_path / "recipe.yml")
+    env = dict(os.environ, COLUMNS="1000", PATH=f"{r2d2_bin.parent}{os.pathsep}{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}")
+    stimela = Path(sys.executable).parent / "stimela"
+    done = subprocess.run([str(stimela), "run", "recipe.yml", "simulate_and_image_in_wsclean"], cwd=tmp_path, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-4000:]
+    log = (tmp_path / "logs" / "log-simulate_and_image_in_wsclean.image.txt").read_text()
+    assert "r2d2: series vla-r2d2-128 (8 networks) on 128 x 128; telescope VLA, super-resolution 1.5" in log, log[-3000:]
+    assert "was not trained for this job" not in log, "the recipe's pixel is the series' super-resolution"
+    model, header = read_fits(tmp_path / "products/ws-model.fits")
+    truth, _ = read_fits(tmp_path / "obs.sky.fits")
+    snr = 20 * np.log10(np.linalg.norm(truth) / np.linalg.norm(truth - model))
+    assert model.shape == (128, 128) and snr > 10, f"SNR {snr:.2f} dB"

@@ -122,3 +122,18 @@ def test_a_joined_channel_run_writes_wsclean_s_products_with_r2d2_models(ms, eng
     print(f"joined channels: MFS model SNR {snr(truth, mfs):.3f} dB (r2d2 image on the band: {snr(truth, single):.3f} dB); channel models within {spread:.1e} of it")
     assert spread < 1e-6
     assert abs(snr(truth, mfs) - snr(truth, single)) < 0.1
+
+
+def test_what_the_deconvolver_cannot_do_is_said_on_wsclean_s_output(ms, engine_run):
+    """WSClean 3.1 stops on a Python exception without printing it: the deconvolver says it."""
+    env = dict(os.environ)
+    for extra, words, expected in [
+        (["-mgain", "1"], "", "give -mgain below 1"),
+        ([], "series=no-such-series", "no-such-series: no model series of that name"),
+        ([], "channels=some", "channels='some': expected joined or each"),
+    ]:
+        env["R2D2_WSCLEAN"] = words
+        out = subprocess.run([sys.executable, "-m", "r2d2_imaging.wsclean", *extra, "-size", str(SIZE), str(SIZE), "-scale", "0.3asec", "-name", "bad", "obs.ms"],
+                             cwd=ms, env=env, capture_output=True, text=True)
+        assert out.returncode != 0, out.stdout[-2000:]
+        assert f"r2d2: ERROR:" in out.stdout and expected in out.stdout, out.stdout[-3000:]
