@@ -88,24 +88,31 @@ def log(msg):
 
 
 def run(cmd, cwd=None, timed=False, logfile=None):
-    """Run cmd (under /usr/bin/time -v if timed); returns (stdout + stderr, wall s, peak MB)."""
+    """Run cmd (under /usr/bin/time -v if timed); returns (stdout + stderr, wall s, peak MB). With
+    `logfile` the output goes there as it comes (a run that hangs shows where)."""
     full = (["/usr/bin/time", "-v"] if timed else []) + [str(c) for c in cmd]
     t = time.time()
-    out = subprocess.run(full, cwd=cwd, capture_output=True, text=True)
-    wall = time.time() - t
     if logfile:
         with open(logfile, "w") as f:
-            f.write(" ".join(full) + "\n" + out.stdout + out.stderr)
-    if out.returncode != 0:
-        sys.exit(f"failed ({out.returncode}): {' '.join(full)}\n{out.stdout[-4000:]}\n{out.stderr[-4000:]}")
+            f.write(" ".join(full) + "\n")
+            f.flush()
+            code = subprocess.run(full, cwd=cwd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL).returncode
+        with open(logfile) as f:
+            text = f.read()
+    else:
+        out = subprocess.run(full, cwd=cwd, capture_output=True, text=True, stdin=subprocess.DEVNULL)
+        code, text = out.returncode, out.stdout + out.stderr
+    wall = time.time() - t
+    if code != 0:
+        sys.exit(f"failed ({code}): {' '.join(full)}\n{text[-4000:]}")
     peak = None
     if timed:
-        m = re.search(r"Maximum resident set size \(kbytes\): (\d+)", out.stderr)
+        m = re.search(r"Maximum resident set size \(kbytes\): (\d+)", text)
         peak = int(m.group(1)) / 1024 if m else None
-        m = re.search(r"Elapsed \(wall clock\) time \(h:mm:ss or m:ss\): ([0-9:.]+)", out.stderr)
+        m = re.search(r"Elapsed \(wall clock\) time \(h:mm:ss or m:ss\): ([0-9:.]+)", text)
         if m:
             wall = sum(float(p) * 60 ** i for i, p in enumerate(reversed(m.group(1).split(":"))))
-    return out.stdout + out.stderr, wall, peak
+    return text, wall, peak
 
 
 # ---------------------------------------------------------------- FITS

@@ -335,8 +335,12 @@ def main(argv: Optional[list] = None) -> int:
 
     command = wsclean_command(args)
     print("r2d2: " + " ".join(command), flush=True)
-    # WSClean's Python may not see this environment's onnxruntime: its library is named.
+    # WSClean's embedded Python takes its prefix (the standard library, site-packages) from the
+    # first `python3` on PATH: this interpreter's, so that it sees this environment (numpy,
+    # this package) and not whichever Python comes first (a conda or pyenv one lacking them).
     env = dict(os.environ)
+    env["PATH"] = os.pathsep.join([os.path.dirname(sys.executable), env.get("PATH", "")])
+    # WSClean's Python may not see this environment's onnxruntime: its library is named.
     runtime = _onnx_runtime()
     if runtime and "onnx_runtime=" not in env.get("R2D2_WSCLEAN", ""):
         env["R2D2_WSCLEAN"] = f"{env.get('R2D2_WSCLEAN', '')} onnx_runtime={runtime}".strip()

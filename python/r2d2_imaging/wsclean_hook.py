@@ -16,9 +16,14 @@ if _site not in sys.path:
 
 try:
     from r2d2_imaging.wsclean import deconvolve  # noqa: F401 (WSClean calls it)
-except ImportError as e:
-    raise ImportError(
+except Exception as e:
+    # WSClean 3.1 stops on this without printing it: it is said here first.
+    message = (
         f"r2d2_imaging could not be imported into WSClean's Python {sys.version.split()[0]} "
-        f"(from {_site}): {e}. The package must be installed for the Python WSClean embeds "
-        f"(the same major.minor version; `ldd $(which wsclean) | grep python` names it)"
-    ) from e
+        f"(prefix {sys.prefix}; the package from {_site}): {type(e).__name__}: {e}. The package "
+        f"must be installed for the Python WSClean embeds (the same major.minor version; "
+        f"`ldd $(which wsclean) | grep python` names it)"
+    )
+    print(f"r2d2: ERROR: {message}", flush=True)
+    print(f"r2d2: ERROR: {message}", file=sys.stderr, flush=True)
+    raise ImportError(message) from e
