@@ -282,7 +282,7 @@ def image_wsclean_r2d2(args, ms, work, scale_arcsec):
     """WSClean with the R2D2 deconvolver (`python -m r2d2_imaging.wsclean`, the Python package
     installed for --python): the engine's pixel and weighting, the paper command's padding."""
     cmd = [args.python, "-m", "r2d2_imaging.wsclean", "-size", args.size, args.size, "-scale", f"{scale_arcsec:.10g}asec",
-           "-j", args.threads, "-weight", "briggs", f"{args.robust:g}", "-padding", "2", "-name", "wsr2d2", ms]
+           "-j", args.threads, "-weight", "briggs", f"{args.robust:g}", "-padding", "2", *args.wsclean_r2d2_args.split(), "-name", "wsr2d2", ms]
     text, wall, peak = run(cmd, cwd=work, timed=True, logfile=os.path.join(work, "wsr2d2.log"))
     return cmd, wall, peak, text
 
@@ -453,6 +453,8 @@ def plot(path, panels, records, title):
 
     cols = [("truth", "truth"), ("r2d2", "R2D2"), ("wsclean_restored", "WSClean restored / beam"),
             ("clean_restored", "engine CLEAN restored / beam")]
+    if "wsclean_r2d2" in panels[0]:
+        cols.append(("wsclean_r2d2", "WSClean + R2D2 deconvolver"))
     rows = len(panels)
     fig, axes = plt.subplots(rows, len(cols), figsize=(3.2 * len(cols) + 0.8, 3.3 * rows), squeeze=False)
     im = None
@@ -526,6 +528,7 @@ def main():
                          "each observed by `r2d2 simulate` at the setting, its DR drawn in --dr")
     ap.add_argument("--wsclean-r2d2", action="store_true",
                     help="also image with WSClean and the R2D2 deconvolver (`python -m r2d2_imaging.wsclean`, run by --python)")
+    ap.add_argument("--wsclean-r2d2-args", default="", help="further WSClean options for --wsclean-r2d2 (e.g. '-use-wgridder')")
     ap.add_argument("--python", default=sys.executable, help="the Python with r2d2_imaging installed, for --wsclean-r2d2")
     ap.add_argument("--hours", default=None,
                     help="with --sky-fits: hours per array configuration (`r2d2 simulate --hours`, VLA A,C e.g. 5.5,1.1)")

@@ -10,7 +10,7 @@ WSClean's next residual. The series, its stop rule and the final CLEAN are the e
     r2d2-wsclean -size 512 512 -scale 0.2asec -weight briggs 0 obs.ms
     # the same as
     wsclean -python-deconvolution "$(python -m r2d2_imaging.wsclean)" -mgain 0.8 \\
-        -niter 1000000 -nmiter 200 -size 512 512 -scale 0.2asec -weight briggs 0 obs.ms
+        -niter 1000000 -nmiter 200 -use-wgridder -size 512 512 -scale 0.2asec -weight briggs 0 obs.ms
 
 Units: WSClean's residual is in Jy/beam with the PSF's peak 1, its model in Jy/pixel: the
 engine's own conventions (its dirty images equal WSClean's), so images pass unscaled.
@@ -147,7 +147,10 @@ class _Job:
         if meta.mgain >= 1.0:
             raise ValueError("R2D2 needs WSClean's major cycles (one network each): give -mgain below 1 (its value is not used otherwise)")
         env = _options(os.environ.get("R2D2_WSCLEAN", ""))
-        cmd = command_line_job(_wsclean_args())
+        words = _wsclean_args()
+        cmd = command_line_job(words)
+        if words and not any(g in words for g in GRIDDERS):
+            _say("WARNING: WSClean's default gridder is less exact than the series needs (held-out skies lost 3.4 dB logSNR): give -use-wgridder (r2d2-wsclean adds it)", logging.WARNING)
         self.size = width
         self.nchan = nchan
         self.mode = env.get("channels", "joined")
@@ -309,13 +312,22 @@ def _deconvolve(residual, model, psf, meta):
 #: its final CLEAN's cycles.
 DEFAULTS = {"-mgain": ["0.8"], "-niter": ["1000000"], "-nmiter": ["200"]}
 
+#: WSClean's gridder options: without one, `-use-wgridder` is added. The networks see each
+#: major cycle's residual; with WSClean's default w-stacking gridder (about 2e-3 of the dirty
+#: image from the exact one) the held-out skies' logSNR came out 3.4 dB below `r2d2 image`'s,
+#: with the w-gridder equal to it.
+GRIDDERS = ("-use-wgridder", "-use-idg", "-gridder")
+
 
 def wsclean_command(args: list) -> list:
-    """``wsclean`` with this deconvolver and :data:`DEFAULTS` where ``args`` lacks them."""
+    """``wsclean`` with this deconvolver, :data:`DEFAULTS` where ``args`` lacks them and the
+    w-gridder unless ``args`` chooses a gridder."""
     command = ["wsclean", "-python-deconvolution", HOOK]
     for option, values in DEFAULTS.items():
         if option not in args:
             command += [option, *values]
+    if not any(g in args for g in GRIDDERS):
+        command.append("-use-wgridder")
     return command + list(args)
 
 
@@ -323,7 +335,7 @@ def main(argv: Optional[list] = None) -> int:
     """``python -m r2d2_imaging.wsclean`` (or ``r2d2-wsclean``): with no arguments (or
     ``--path``), prints the path of the script to give WSClean's ``-python-deconvolution``;
     with WSClean's arguments, runs WSClean with it (and -mgain 0.8 -niter 1000000 -nmiter 200
-    where not given)."""
+    where not given, and -use-wgridder unless a gridder is chosen)."""
     args = list(sys.argv[1:] if argv is None else argv)
     if not args or args == ["--path"]:
         print(HOOK)

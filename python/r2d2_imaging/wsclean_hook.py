@@ -1,7 +1,7 @@
 # WSClean's `-python-deconvolution` script: R2D2 as WSClean's deconvolver.
 #
 #   wsclean -python-deconvolution "$(python -m r2d2_imaging.wsclean)" -mgain 0.8 \
-#       -niter 1000000 -nmiter 100 -size 512 512 -scale 0.2asec -weight briggs 0 obs.ms
+#       -niter 1000000 -nmiter 200 -use-wgridder -size 512 512 -scale 0.2asec -weight briggs 0 obs.ms
 #
 # WSClean runs this file in its own embedded Python, which is not the environment the package
 # was installed into: the package's directory is put at the end of the search path (whatever
