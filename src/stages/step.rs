@@ -43,6 +43,7 @@ impl OnnxConfig {
             realisation: None,
             validity: ValidityMode::default(),
             fits_mask: None,
+            tiles: Default::default(),
         }
     }
 }

@@ -10,6 +10,10 @@
 //! the step numbers its iterations across them (realisation r's network i is iteration
 //! (r - 1) I + i) and the step stage resets the job between them and images their mean.
 //!
+//! An image larger than the sizes a series was trained at runs each network in overlapping
+//! tiles of the trained size (`tiles: auto`, `tiles.rs`), each tile one field as the series
+//! knows it, blended into the image; the residual update stays global and exact.
+//!
 //! Networks load lazily and at most two are resident, whatever the series length. One job
 //! walking the series keeps only the network running and the next, which loads on a background
 //! thread while the current one infers (with `prefetch: false`, only the one running). When
@@ -20,5 +24,6 @@ mod mapped_weights;
 pub mod runtime;
 pub mod series;
 mod step;
+pub mod tiles;
 
 pub use step::*;

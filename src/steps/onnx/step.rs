@@ -44,7 +44,26 @@ pub struct OnnxConfig {
     /// not zero (the step stage reads it and checks it against each job's grid).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fits_mask: Option<PathBuf>,
+    /// An image larger than every size the series was trained at: `on` runs each network in
+    /// overlapping tiles of the largest trained size, blended (memory bounded by the tile);
+    /// `off` on the whole image at once; `auto` (the default) tiles an image more than twice
+    /// the trained size across and runs a smaller one whole (faster, the same image).
+    #[serde(default)]
+    pub tiles: TileMode,
 }
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum TileMode {
+    #[default]
+    Auto,
+    On,
+    Off,
+}
+
+/// Tiles share this fraction of their edge with each neighbour: wide enough that the part of
+/// a tile its network saw near a mirrored edge is weighted down to nothing.
+const TILE_OVERLAP_FRACTION: usize = 4;
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
 #[serde(rename_all = "lowercase")]
@@ -90,6 +109,8 @@ pub struct OnnxStep {
     validity: ValidityMode,
     /// The series runs at a size it was not trained for.
     size_warning: Option<String>,
+    /// The networks run in tiles of a trained size (an image larger than every one).
+    tiling: Option<super::tiles::Tiling>,
 }
 
 type Key = (usize, usize);
@@ -99,8 +120,25 @@ impl OnnxStep {
     /// output checked here, before imaging starts.
     pub fn new(config: &OnnxConfig, size: usize, pipeline_threads: usize, setup: &ImagingSetup) -> Result<OnnxStep> {
         let series = Series::open(&super::series::resolve_for(&config.series, size, setup)?)?;
+        let largest = series.image_sizes.iter().copied().max().filter(|&t| t < size);
+        // Tiles and the whole image give the same image (the networks are convolutional; see
+        // `tiles.rs`): tiles bound the networks' memory by the tile, the whole image is faster
+        // where there are few tiles (a 1024 image takes nine overlapping 512 tiles).
+        let tiling = match (config.tiles, largest) {
+            (TileMode::On, Some(t)) | (TileMode::Auto, Some(t)) if (config.tiles == TileMode::On || size > 2 * t) && series.architecture == Architecture::R2d2 && series.check_size(t)?.is_none() => {
+                super::tiles::Tiling::new(size, t, t / TILE_OVERLAP_FRACTION)
+            }
+            _ => None,
+        };
         // Said per job (its log line and its metrics), before its first network.
-        let size_warning = series.check_size(size)?;
+        let size_warning = match &tiling {
+            Some(tiling) => {
+                log::info!("series '{}' was trained for {t} x {t}: its networks run over the {size} x {size} image in {} tiles of {t} x {t} (overlap {} pixels)", series.name, tiling.count(), tiling.overlap, t = tiling.tile);
+                None
+            }
+            None => series.check_size(size)?,
+        };
+        let network_edge = tiling.as_ref().map_or(size, |t| t.tile);
         // What the pipeline fixes (weighting, a super-resolution factor) is refused here, before
         // any data are read, under `validity: error`; each job is checked with what only its
         // data tell (telescope, the pixel's super-resolution) before its first network.
@@ -124,15 +162,15 @@ impl OnnxStep {
         let plan: Vec<Vec<PathBuf>> = chosen.iter().flat_map(|&r| series.realisation(r)[..per_realisation].to_vec()).collect();
         let iterations = plan.len();
         let pad = series.edge_padding;
-        if pad >= size {
+        if pad >= network_edge {
             return Err(Error::parameter(
                 "edge_padding",
-                format!("series '{}' pads its networks' inputs by {pad} pixels, which a {size} x {size} image cannot mirror (at most {})", series.name, size - 1),
+                format!("series '{}' pads its networks' inputs by {pad} pixels, which a {network_edge} x {network_edge} image cannot mirror (at most {})", series.name, network_edge - 1),
             ));
         }
         let signatures = plan
             .iter()
-            .map(|layers| layers.iter().map(|file| check_network(file, size + 2 * pad)).collect::<Result<Vec<_>>>())
+            .map(|layers| layers.iter().map(|file| check_network(file, network_edge + 2 * pad)).collect::<Result<Vec<_>>>())
             .collect::<Result<Vec<_>>>()?;
         crate::limits::check_threads(config.threads).map_err(|m| Error::parameter("threads", m))?;
         let threads = if config.threads > 0 { config.threads } else { pipeline_threads };
@@ -168,6 +206,7 @@ impl OnnxStep {
             setup: setup.clone(),
             validity: config.validity,
             size_warning,
+            tiling,
         })
     }
 
@@ -234,7 +273,7 @@ impl OnnxStep {
     /// The edge of the images the networks run on: the job's, padded by the series'
     /// `edge_padding` on each side.
     fn network_size(&self) -> usize {
-        self.size + 2 * self.pad
+        self.tiling.as_ref().map_or(self.size, |t| t.tile) + 2 * self.pad
     }
 
     fn load(&self, key: Key) -> Result<Box<dyn Network>> {
@@ -278,15 +317,17 @@ impl OnnxStep {
         let mut input = Vec::with_capacity(2 * first.len());
         input.extend(first.iter().map(|v| (v / alpha) as f32));
         input.extend(second.iter().map(|v| (v / alpha) as f32));
-        let input = orientation.apply(input, self.size);
+        // The whole image, or one tile of it.
+        let n = self.network_size() - 2 * self.pad;
+        let input = orientation.apply(input, n);
         let output = if self.pad == 0 {
             self.network(job, iteration, layer)?.run(&input)?
         } else {
-            let (n, pad) = (self.size, self.pad);
+            let pad = self.pad;
             let padded: Vec<f32> = input.chunks_exact(n * n).flat_map(|channel| mirror_pad(channel, n, pad)).collect();
             crop(&self.network(job, iteration, layer)?.run(&padded)?, self.network_size(), pad)
         };
-        let output = orientation.inverse().apply(output, self.size);
+        let output = orientation.inverse().apply(output, n);
         if let Some(bad) = output.iter().position(|v| !v.is_finite()) {
             let path = self.plan[iteration - 1][layer].clone();
             return Err(super::runtime::OnnxError::Output { path, message: format!("network output is not finite at pixel {bad} (iteration {iteration})") }.into());
@@ -445,15 +486,31 @@ impl NetworkStep for OnnxStep {
         let first = (iteration - 1) % self.per_realisation == 0;
         match self.series.architecture {
             Architecture::R2d2 => {
-                let (alpha, increment) = if first {
-                    let alpha = normalisation(input.dirty, "dirty image", iteration, &path)?;
-                    let zero = vec![0.0; input.dirty.len()];
-                    (alpha, self.run_network(input.job, iteration, 0, input.dirty, &zero, alpha)?)
+                let zero;
+                let (image, second, what) = if first {
+                    zero = vec![0.0; input.dirty.len()];
+                    (input.dirty, zero.as_slice(), "dirty image")
                 } else {
-                    let alpha = normalisation(input.model, "image", iteration, &path)?;
-                    (alpha, self.run_network(input.job, iteration, 0, input.model, input.residual, alpha)?)
+                    (input.model, input.residual, "image")
                 };
-                Ok(input.model.iter().zip(&increment).map(|(x, d)| ((d + x / alpha) * alpha).max(0.0)).collect())
+                let alpha = normalisation(image, what, iteration, &path)?;
+                let Some(tiling) = self.tiling.clone() else {
+                    let increment = self.run_network(input.job, iteration, 0, image, second, alpha)?;
+                    return Ok(input.model.iter().zip(&increment).map(|(x, d)| ((d + x / alpha) * alpha).max(0.0)).collect());
+                };
+                // Each tile's next estimate, as the series makes it for a field of its size,
+                // blended into the image's.
+                let (mut sum, mut weights) = (vec![0.0; input.model.len()], vec![0.0; input.model.len()]);
+                for (x0, y0) in tiling.origins() {
+                    // Normalised by the whole image's mean, as without tiles: the networks are
+                    // near enough homogeneous that a tile's own mean gave the same residuals.
+                    let (a, b) = (tiling.extract(image, x0, y0), tiling.extract(second, x0, y0));
+                    let increment = self.run_network(input.job, iteration, 0, &a, &b, alpha)?;
+                    let x = tiling.extract(input.model, x0, y0);
+                    let next: Vec<f64> = x.iter().zip(&increment).map(|(x, d)| ((d + x / alpha) * alpha).max(0.0)).collect();
+                    tiling.accumulate(&next, x0, y0, &mut sum, &mut weights);
+                }
+                Ok(sum.iter().zip(&weights).map(|(s, w)| s / w).collect())
             }
             Architecture::R3d3 => {
                 let layers = self.plan[iteration - 1].len();
@@ -577,6 +634,7 @@ pub(crate) mod tests {
             realisation: None,
             validity: ValidityMode::Warn,
             fits_mask: None,
+            tiles: TileMode::Auto,
         }
     }
 
@@ -585,19 +643,7 @@ pub(crate) mod tests {
             crate::steps::onnx::runtime::use_onnx_runtime_for_tests();
         }
         let config = OnnxConfig { backend, prefetch, ..test_config(series) };
-        let mut step = OnnxStep::new(&config, N, 1, &ImagingSetup::default()).unwrap();
-        let psf_n = vec![0.0; N * N];
-        let convolution = PsfConvolution::new(N, psf).unwrap();
-        let (mut model, mut residual) = (vec![0.0; N * N], dirty.to_vec());
-        let mut models = Vec::new();
-        for i in 1..=step.series_length() {
-            let input = StepInput { job: "job", size: N, model: &model, residual: &residual, dirty, psf: &psf_n, psf_2n: psf, psf_convolution: &convolution, mask: None };
-            model = step.step(i, &input).unwrap();
-            assert!(step.resident.len() + step.pending.is_some() as usize <= RESIDENT);
-            residual = self::residual(psf, dirty, &model);
-            models.push(model.clone());
-        }
-        models
+        run_with(&mut OnnxStep::new(&config, N, 1, &ImagingSetup::default()).unwrap(), psf, dirty)
     }
 
     #[test]
@@ -629,6 +675,59 @@ pub(crate) mod tests {
         let r1: f64 = residual(&psf, &dirty, &expected[0]).iter().map(|v| v * v).sum();
         let r4: f64 = residual(&psf, &dirty, &expected[3]).iter().map(|v| v * v).sum();
         assert!(r4 < 0.5 * r1, "Landweber reduces the residual: {r1} -> {r4}");
+    }
+
+    /// The Landweber series as if trained at 16 x 16 (its manifest's `image_sizes`).
+    fn landweber_trained_at_16() -> tempfile::TempDir {
+        let series = landweber_with("");
+        let path = series.path().join("manifest.yaml");
+        let manifest = std::fs::read_to_string(&path).unwrap();
+        let sizes = manifest.lines().find(|l| l.starts_with("image_sizes:")).unwrap().to_string();
+        std::fs::write(&path, manifest.replace(&sizes, "image_sizes: [16]")).unwrap();
+        series
+    }
+
+    #[test]
+    fn an_image_larger_than_the_trained_size_runs_in_blended_tiles() {
+        let psf = psf_2n();
+        let dirty = direct_d(&psf, &sky());
+        let series = landweber_trained_at_16();
+        // `auto` runs an image up to twice the trained size whole, `on` in tiles.
+        assert!(OnnxStep::new(&test_config(series.path()), N, 1, &ImagingSetup::default()).unwrap().tiling.is_none());
+        let on = OnnxConfig { tiles: TileMode::On, ..test_config(series.path()) };
+        let step = OnnxStep::new(&on, N, 1, &ImagingSetup::default()).unwrap();
+        let tiling = step.tiling.clone().expect("32 x 32 with a series trained at 16 runs in tiles");
+        assert_eq!((tiling.tile, tiling.overlap, tiling.count()), (16, 4, 9));
+        assert!(step.size_warning.is_none(), "tiles of the trained size: no warning of a size it was not trained for");
+        // A pointwise network normalised by the whole image's mean gives, tile by tile, exactly
+        // what it gives on the whole image: the blend is seamless.
+        let whole = {
+            let off = OnnxConfig { tiles: TileMode::Off, ..test_config(series.path()) };
+            let mut step = OnnxStep::new(&off, N, 1, &ImagingSetup::default()).unwrap();
+            assert!(step.tiling.is_none() && step.size_warning.is_some());
+            run_with(&mut step, &psf, &dirty)
+        };
+        let tiled = run_with(&mut OnnxStep::new(&on, N, 1, &ImagingSetup::default()).unwrap(), &psf, &dirty);
+        for (i, (t, w)) in tiled.iter().zip(&whole).enumerate() {
+            assert!(rel(t, w) < 1e-6, "iteration {}: tiled vs whole {:.2e}", i + 1, rel(t, w));
+        }
+        // A 64 x 64 image (more than twice 16) is tiled by `auto`.
+        assert!(OnnxStep::new(&test_config(series.path()), 64, 1, &ImagingSetup::default()).unwrap().tiling.is_some());
+    }
+
+    fn run_with(step: &mut OnnxStep, psf: &[f64], dirty: &[f64]) -> Vec<Vec<f64>> {
+        let psf_n = vec![0.0; N * N];
+        let convolution = PsfConvolution::new(N, psf).unwrap();
+        let (mut model, mut residual) = (vec![0.0; N * N], dirty.to_vec());
+        let mut models = Vec::new();
+        for i in 1..=step.series_length() {
+            let input = StepInput { job: "job", size: N, model: &model, residual: &residual, dirty, psf: &psf_n, psf_2n: psf, psf_convolution: &convolution, mask: None };
+            model = step.step(i, &input).unwrap();
+            assert!(step.resident.len() + step.pending.is_some() as usize <= RESIDENT);
+            residual = self::residual(psf, dirty, &model);
+            models.push(model.clone());
+        }
+        models
     }
 
     /// A copy of the Landweber test series with `extra` added to its manifest.
