@@ -5,7 +5,7 @@ use crate::run_released;
 use numpy::{PyArray1, PyReadonlyArray1};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
-use r2d2_imaging::params::{FinalCleanParams, OnnxParams};
+use r2d2_imaging::params::{FinalCleanParams, OnnxParams, ResidualParams};
 use r2d2_imaging::{Cycle, DrivenConfig, DrivenOutcome, Engine, EngineOptions, ImagingSetup, StopRule};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
@@ -62,7 +62,7 @@ impl DrivenSeries {
             step,
             size,
             setup: ImagingSetup { superresolution, weighting, robust, telescope, track_hours, integration_s },
-            stop: StopRule { early_stop, tolerance: 1e-4, divergence_guard },
+            stop: StopRule { early_stop, tolerance: ResidualParams::default().tolerance, divergence_guard },
             final_clean: final_clean.then(FinalCleanParams::default),
         };
         let inner = run_released(py, move |_| {

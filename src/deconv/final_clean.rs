@@ -195,8 +195,7 @@ impl<T> Cleaning<'_, '_, T> {
                 Phase::Masked(mask) => (Some(mask.as_slice()), c.auto_threshold),
                 Phase::Compact(mask) => (Some(mask.as_slice()), c.compact_threshold),
             };
-            let mask = mask.map(<[bool]>::to_vec);
-            let found = self.cycle(&mut ratio, mask.as_deref(), sigmas)?;
+            let found = self.cycle(&mut ratio, mask, sigmas)?;
             let Some(found) = found else {
                 phase = match phase {
                     Phase::Open if taken.iter().any(|t| *t != 0.0) => Phase::Masked(mask_of(&taken, n, user)),
@@ -331,7 +330,6 @@ fn mask_of(components: &[f64], n: usize, within: Option<&[bool]>) -> Vec<bool> {
 fn max_abs(v: &[f64]) -> f64 {
     v.iter().fold(0.0f64, |m, x| m.max(x.abs()))
 }
-
 
 /// The stages of the final CLEAN's cycles: each goes on until a cycle takes nothing.
 enum Phase {

@@ -11,7 +11,7 @@ use super::onnx::{OnnxConfig, OnnxStep};
 use super::series::ImagingSetup;
 use super::{JobDomain, NetworkStep, StepInput};
 use crate::deconv::final_clean::{final_clean, CleanInput, FinalCleanParams};
-use crate::job::{StopReason, StopRule};
+use crate::job::{Iterate, StopReason, StopRule};
 use crate::metrics::residual_ratio;
 use crate::operator::PsfConvolution;
 use crate::{Error, Result};
@@ -112,14 +112,14 @@ impl DrivenSeries {
     /// the loop; [`DrivenSeries::next`] then gives the first model to evaluate.
     pub fn start(config: DrivenConfig, dirty: Vec<f64>, psf: Vec<f64>) -> Result<DrivenSeries> {
         let n = config.size;
+        if n < 2 {
+            return Err(Error::parameter("image size", format!("expected at least 2 x 2 pixels, got {n} x {n}")));
+        }
         for (what, image) in [("dirty image", &dirty), ("PSF", &psf)] {
             if image.len() != n * n {
                 return Err(Error::parameter(what, format!("expected {n} x {n} pixels, got {}", image.len())));
             }
             crate::sanity::check_image(image, n, what, "the imager gave it")?;
-        }
-        if n < 2 {
-            return Err(Error::parameter("image size", format!("expected at least 2 x 2 pixels, got {n} x {n}")));
         }
         let step = OnnxStep::new(&config.step, n, 0, &config.setup)?;
         if step.realisations() != 1 || step.needs_d_between_layers() {
@@ -210,7 +210,8 @@ fn drive(mut step: OnnxStep, config: &DrivenConfig, dirty: Vec<f64>, psf: Vec<f6
     let total = step.series_length();
     let (mut model, mut residual) = (vec![0.0; n * n], dirty.clone());
     let mut ratios = Vec::new();
-    let mut best: Option<(usize, Vec<f64>, Vec<f64>)> = None;
+    // The iterate of lowest residual ratio so far (none: the empty model, ratio 1).
+    let mut best: Option<Iterate> = None;
     let (mut stop, mut kept_network) = (None, 0);
     for iteration in 1..=total {
         let input = StepInput {
@@ -235,7 +236,10 @@ fn drive(mut step: OnnxStep, config: &DrivenConfig, dirty: Vec<f64>, psf: Vec<f6
         let reason = config.stop.stop_reason(&ratios, iteration == total, step.early_stop_from());
         match reason {
             Some(reason) if reason.is_rejection() && config.stop.divergence_guard => {
-                (kept_network, model, residual) = best.take().unwrap_or((0, vec![0.0; n * n], dirty.clone()));
+                (kept_network, model, residual) = match best.take() {
+                    Some(best) => (best.iteration, best.model, best.residual),
+                    None => (0, vec![0.0; n * n], dirty.clone()),
+                };
                 log::warn!(
                     "the series diverged ({reason:?}, residual ratio {ratio:.4} after network {iteration}); stopped and kept {}. The data are probably outside what the series was trained for",
                     if kept_network == 0 { "the empty model".to_string() } else { format!("the model of network {kept_network}") }
@@ -249,9 +253,8 @@ fn drive(mut step: OnnxStep, config: &DrivenConfig, dirty: Vec<f64>, psf: Vec<f6
                 break;
             }
             None if config.stop.divergence_guard => {
-                let best_ratio = best.as_ref().map_or(1.0, |(k, _, _)| ratios[k - 1]);
-                if ratio < best_ratio {
-                    best = Some((iteration, model.clone(), residual.clone()));
+                if ratio < best.as_ref().map_or(1.0, |b| b.residual_ratio) {
+                    best = Some(Iterate { iteration, residual_ratio: ratio, model: model.clone(), residual: residual.clone() });
                 }
             }
             None => {}

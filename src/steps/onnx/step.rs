@@ -61,8 +61,8 @@ pub enum TileMode {
     Off,
 }
 
-/// Tiles share this fraction of their edge with each neighbour: wide enough that the part of
-/// a tile its network saw near a mirrored edge is weighted down to nothing.
+/// Tiles share 1 / TILE_OVERLAP_FRACTION of their edge with each neighbour: wide enough that
+/// the part of a tile its network saw near a mirrored edge is weighted down to nothing.
 const TILE_OVERLAP_FRACTION: usize = 4;
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
@@ -124,10 +124,13 @@ impl OnnxStep {
         // Tiles and the whole image give the same image (the networks are convolutional; see
         // `tiles.rs`): tiles bound the networks' memory by the tile, the whole image is faster
         // where there are few tiles (a 1024 image takes nine overlapping 512 tiles).
-        let tiling = match (config.tiles, largest) {
-            (TileMode::On, Some(t)) | (TileMode::Auto, Some(t)) if (config.tiles == TileMode::On || size > 2 * t) && series.architecture == Architecture::R2d2 && series.check_size(t)?.is_none() => {
-                super::tiles::Tiling::new(size, t, t / TILE_OVERLAP_FRACTION)
-            }
+        let tile_edge = match config.tiles {
+            TileMode::Off => None,
+            TileMode::On => largest,
+            TileMode::Auto => largest.filter(|&t| size > 2 * t),
+        };
+        let tiling = match tile_edge {
+            Some(t) if series.architecture == Architecture::R2d2 && series.check_size(t)?.is_none() => super::tiles::Tiling::new(size, t, t / TILE_OVERLAP_FRACTION),
             _ => None,
         };
         // Said per job (its log line and its metrics), before its first network.
@@ -399,6 +402,11 @@ fn normalisation(image: &[f64], what: &str, iteration: usize, path: &Path) -> Re
     Ok(m + NORMALISATION_EPSILON)
 }
 
+/// R2D2's update from a network's normalised increment: `x_i = max(0, (N_i + x_{i-1} / alpha) alpha)`.
+fn next_estimate(model: &[f64], increment: &[f64], alpha: f64) -> Vec<f64> {
+    model.iter().zip(increment).map(|(x, d)| ((d + x / alpha) * alpha).max(0.0)).collect()
+}
+
 impl OnnxStep {
     pub(crate) fn series_name(&self) -> &str {
         &self.series.name
@@ -496,7 +504,7 @@ impl NetworkStep for OnnxStep {
                 let alpha = normalisation(image, what, iteration, &path)?;
                 let Some(tiling) = self.tiling.clone() else {
                     let increment = self.run_network(input.job, iteration, 0, image, second, alpha)?;
-                    return Ok(input.model.iter().zip(&increment).map(|(x, d)| ((d + x / alpha) * alpha).max(0.0)).collect());
+                    return Ok(next_estimate(input.model, &increment, alpha));
                 };
                 // Each tile's next estimate, as the series makes it for a field of its size,
                 // blended into the image's.
@@ -507,8 +515,7 @@ impl NetworkStep for OnnxStep {
                     let (a, b) = (tiling.extract(image, x0, y0), tiling.extract(second, x0, y0));
                     let increment = self.run_network(input.job, iteration, 0, &a, &b, alpha)?;
                     let x = tiling.extract(input.model, x0, y0);
-                    let next: Vec<f64> = x.iter().zip(&increment).map(|(x, d)| ((d + x / alpha) * alpha).max(0.0)).collect();
-                    tiling.accumulate(&next, x0, y0, &mut sum, &mut weights);
+                    tiling.accumulate(&next_estimate(&x, &increment, alpha), x0, y0, &mut sum, &mut weights);
                 }
                 Ok(sum.iter().zip(&weights).map(|(s, w)| s / w).collect())
             }
