@@ -343,7 +343,9 @@ struct ImagePlan {
     longest_baseline: Option<f64>,
     /// `None`: the series' own (its manifest's `weighting`) for a series step, else the default.
     weighting: Option<Weighting>,
-    weighting_grid_factor: f64,
+    /// `None`: a series' trained field's grid where a series runs off its trained size, else
+    /// the default.
+    weighting_grid_factor: Option<f64>,
     uv: crate::weighting::UvControls,
     restoring_beam: crate::params::RestoringBeam,
     epsilon: f64,
@@ -379,8 +381,8 @@ impl ImagePlan {
         let (grid, step) = (&request.grid, &request.step);
         crate::limits::check_image_size(grid.size).map_err(|m| Error::parameter("size", m))?;
         crate::limits::check_threads(grid.threads).map_err(|m| Error::parameter("threads", m))?;
-        if !(grid.weighting_grid_factor > 0.0 && grid.weighting_grid_factor.is_finite()) {
-            return Err(Error::parameter("weighting_grid_factor", format!("expected a positive number, got {}", grid.weighting_grid_factor)));
+        if let Some(factor) = grid.weighting_grid_factor.filter(|f| !(*f > 0.0 && f.is_finite())) {
+            return Err(Error::parameter("weighting_grid_factor", format!("expected a positive number, got {factor}")));
         }
         if let Some(name) = &request.name {
             crate::fits::check_output_prefix(name).map_err(|m| Error::parameter("name", m))?;
@@ -483,8 +485,8 @@ fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec
             return Err(Error::parameter(option, "only a MeasurementSet input has it; the observation is not one"));
         }
     }
-    let (weighting, superresolution) = imaging_setting(params)?;
-    let weights = WeightingParams { grid_factor: params.weighting_grid_factor, ..WeightingParams::new(weighting).with_uv(params.uv) };
+    let (weighting, superresolution, grid_factor) = imaging_setting(params)?;
+    let weights = WeightingParams { grid_factor, ..WeightingParams::new(weighting).with_uv(params.uv) };
     let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling, w_term: params.w_term, hold_mb: params.hold_mb, restoring_beam: params.restoring_beam, ..GridderParams::default() };
     let mut stages = vec![read.to("weights"), StageSpec::typed("weights", &weights)?.to("grid")];
     match params.products {
@@ -538,12 +540,12 @@ fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec
     Ok((spec, inputs, parted))
 }
 
-/// Weighting and super-resolution of an image: what `params` asks for; where it asks for none,
-/// a series step's own (its manifest's, as it was trained), else Briggs 0 and SR 1.5 (a dirty
-/// image's, which no step follows). The log says when the series' setting is used.
-fn imaging_setting(params: &ImagePlan) -> Result<(Weighting, f64)> {
+/// The weighting, super-resolution and weighting grid factor a job is imaged with: the
+/// request's, else the series' own (its manifest's; for the grid, its trained field's where
+/// the image is not that size, so the PSF is the one it was trained on), else the defaults.
+fn imaging_setting(params: &ImagePlan) -> Result<(Weighting, f64, f64)> {
     const DEFAULT: (Weighting, f64) = (crate::weighting::DEFAULT_WEIGHTING, crate::imaging::DEFAULT_SUPERRESOLUTION);
-    let needs_series = params.weighting.is_none() || (params.superresolution.is_none() && params.pixel_arcsec.is_none());
+    let needs_series = params.weighting.is_none() || (params.superresolution.is_none() && params.pixel_arcsec.is_none()) || params.weighting_grid_factor.is_none();
     let own = match &params.step {
         StepChoice::Auto | StepChoice::Series(_) if needs_series && params.products == ProductSet::All => {
             // A series that does not resolve or open is reported by the step itself, as is
@@ -556,7 +558,7 @@ fn imaging_setting(params: &ImagePlan) -> Result<(Weighting, f64)> {
                     crate::steps::series::select_for(params.size, &fixed_setup(params, None)).ok().map(|(dir, _)| dir)
                 }
             };
-            dir.and_then(|d| crate::steps::series::Series::open(&d).ok()).and_then(|s| s.manifest.map(|m| (s.name, m)))
+            dir.and_then(|d| crate::steps::series::Series::open(&d).ok()).and_then(|s| s.manifest.clone().map(|m| (s, m)))
         }
         _ => None,
     };
@@ -568,7 +570,15 @@ fn imaging_setting(params: &ImagePlan) -> Result<(Weighting, f64)> {
     let own_superresolution = own.as_ref().and_then(|(_, m)| m.superresolution);
     let weighting = params.weighting.or(own_weighting).unwrap_or(DEFAULT.0);
     let superresolution = params.superresolution.or(own_superresolution).unwrap_or(DEFAULT.1);
-    if let Some((name, _)) = &own {
+    // Off its trained size, a series sees the PSF it was trained on only with the weights of
+    // its trained field's uv cell.
+    let trained_field = own.as_ref().and_then(|(s, _)| s.nearest_trained_size(params.size)).filter(|&t| t != params.size && weighting.needs_density());
+    let grid_factor = match (params.weighting_grid_factor, trained_field) {
+        (Some(factor), _) => factor,
+        (None, Some(trained)) => crate::weighting::grid_factor_of_trained_field(trained, params.size),
+        (None, None) => crate::weighting::DEFAULT_GRID_FACTOR,
+    };
+    if let Some((series, _)) = &own {
         let mut used = Vec::new();
         if params.weighting.is_none() && own_weighting.is_some() {
             used.push(format!("weighting {weighting}"));
@@ -576,11 +586,18 @@ fn imaging_setting(params: &ImagePlan) -> Result<(Weighting, f64)> {
         if params.superresolution.is_none() && params.pixel_arcsec.is_none() && own_superresolution.is_some() {
             used.push(format!("super-resolution {superresolution}"));
         }
+        if let (None, Some(trained)) = (params.weighting_grid_factor, trained_field) {
+            used.push(format!(
+                "the weighting grid of its trained {trained} x {trained} field at {size} x {size} ({cells} cells across, grid factor {grid_factor}, as WSClean's -super-weight: the uv cell and so the PSF it was trained on)",
+                size = params.size,
+                cells = crate::weighting::cells_of(grid_factor, params.size),
+            ));
+        }
         if !used.is_empty() {
-            log::info!("imaging with series '{name}''s own setting: {} (the options set none)", used.join(", "));
+            log::info!("imaging with series '{}''s own setting: {} (the options set none)", series.name, used.join(", "));
         }
     }
-    Ok((weighting, superresolution))
+    Ok((weighting, superresolution, grid_factor))
 }
 
 /// The telescope an observation says its data come from, read without its samples (none

@@ -48,9 +48,11 @@ pub struct GridOptions {
     #[arg(long, allow_hyphen_values = true)]
     pub robust: Option<f64>,
     /// Weighting grid: cells per axis / image size (the uv cuts and tapers are evaluated on
-    /// it, as WSClean does on its grid of padding x size cells).
-    #[arg(long, default_value_t = crate::weighting::DEFAULT_GRID_FACTOR)]
-    pub weighting_grid_factor: f64,
+    /// it, as WSClean does on its grid of padding x size cells). Default: 2; a series run at a
+    /// size it was not trained for weighs on its trained field's grid (the same uv cell, so the
+    /// PSF it was trained on), as WSClean's -super-weight does.
+    #[arg(long)]
+    pub weighting_grid_factor: Option<f64>,
     /// Leave out baselines shorter than this (wavelengths), as WSClean's -minuv-l.
     #[arg(long, allow_hyphen_values = true)]
     pub minuv_l: Option<f64>,
@@ -152,7 +154,7 @@ impl GridOptions {
                 }
             },
             weighting: self.weighting()?.unwrap_or(crate::weighting::DEFAULT_WEIGHTING),
-            grid_factor: self.weighting_grid_factor,
+            grid_factor: self.weighting_grid_factor.unwrap_or(crate::weighting::DEFAULT_GRID_FACTOR),
             nufft: crate::nufft::NufftParams { epsilon: self.epsilon, oversampling: self.oversampling },
             w_term: self.w_term,
             threads: self.threads,
@@ -579,7 +581,7 @@ mod tests {
         assert_eq!(r.grid.size, DEFAULT_SIZE);
         assert_eq!(r.grid.epsilon, crate::nufft::DEFAULT_EPSILON);
         assert_eq!(r.grid.oversampling, crate::nufft::DEFAULT_OVERSAMPLING);
-        assert_eq!(r.grid.weighting_grid_factor, crate::weighting::DEFAULT_GRID_FACTOR);
+        assert_eq!(r.grid.weighting_grid_factor, None);
         assert_eq!(r.hold_mb, crate::params::DEFAULT_HOLD_MB);
         assert_eq!((r.grid.superresolution, r.grid.weighting.as_deref(), r.name.as_deref()), (None, None, None));
         assert_eq!((r.step.step.as_str(), r.step.prefetch, r.step.final_clean), (crate::steps::series::AUTO_SERIES, true, true));

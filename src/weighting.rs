@@ -397,7 +397,23 @@ impl UvCounts {
 /// The weighting grid's cells per axis for `grid_factor` and `image_size`, checked.
 fn grid_cells(grid_factor: f64, image_size: usize) -> Result<usize> {
     check_grid(grid_factor, image_size)?;
-    Ok(((grid_factor * image_size as f64).floor() as usize).max(1))
+    Ok(cells_of(grid_factor, image_size))
+}
+
+/// `floor(grid_factor N)`, at least 1; a product a rounding error below a whole number counts
+/// as that number (a factor computed as `cells / N` gives back `cells`).
+pub fn cells_of(grid_factor: f64, image_size: usize) -> usize {
+    let exact = grid_factor * image_size as f64;
+    ((exact + 1e-9 * exact.max(1.0)).floor() as usize).max(1)
+}
+
+/// The grid factor whose weighting grid at `image_size` has the cells of the default grid at
+/// `trained_size`: the same uv cell in wavelengths at the same pixel, so uniform and Briggs
+/// weights, and the PSF, are those a series trained at `trained_size` saw (the weights of a
+/// fixed set of samples depend on the cell: a field twice as wide halves it, and Briggs 0's
+/// PSF at 1024 pixels is not its PSF at 512). WSClean's `-super-weight` is its inverse ratio.
+pub fn grid_factor_of_trained_field(trained_size: usize, image_size: usize) -> f64 {
+    DEFAULT_GRID_FACTOR * trained_size as f64 / image_size.max(1) as f64
 }
 
 /// Imaging weights (multiplying the natural weights) for visibilities at `(u, v)` given in the
@@ -440,7 +456,7 @@ pub(crate) fn check_grid(grid_factor: f64, image_size: usize) -> Result<()> {
     if !(grid_factor > 0.0) || !grid_factor.is_finite() {
         return Err(Error::parameter("grid_factor", format!("expected a positive number, got {grid_factor}")));
     }
-    let cells = (grid_factor * image_size as f64).floor().max(1.0);
+    let cells = cells_of(grid_factor, image_size) as f64;
     crate::limits::check_memory(cells * cells * 8.0, &format!("a weighting grid of {cells:.0} x {cells:.0} cells (grid factor {grid_factor} x {image_size} pixels)"))
         .map_err(|m| Error::parameter("grid_factor", m))
 }
@@ -664,6 +680,18 @@ mod tests {
     }
 
     use super::*;
+
+    #[test]
+    fn a_trained_fields_grid_factor_gives_its_cells_at_any_size() {
+        for trained in [128, 512] {
+            for size in [64, 100, 256, 512, 768, 999, 1000, 1024, 1536, 2048, 3000, 4096] {
+                let factor = grid_factor_of_trained_field(trained, size);
+                assert_eq!(cells_of(factor, size), 2 * trained, "trained {trained}, size {size}, factor {factor}");
+            }
+        }
+        assert_eq!(cells_of(DEFAULT_GRID_FACTOR, 512), 1024);
+        assert_eq!((cells_of(1.5, 3), cells_of(0.1, 3)), (4, 1));
+    }
 
     #[test]
     fn grids_beyond_memory_are_refused() {

@@ -215,6 +215,51 @@ fn a_diverging_series_is_stopped_and_its_best_iterate_kept() {
     assert_eq!(metrics["final"]["residual_ratio"].as_f64(), Some(ratios[3]), "{metrics}");
 }
 
+/// A series run at twice its trained size weighs on its trained field's uv grid: Briggs
+/// weights depend on the grid's cell, and with the default grid of the larger image the same
+/// data have another PSF than the series was trained on (a 512 series diverged at 1024). The
+/// PSF's centre then equals the trained size's PSF; a grid factor given is kept, with a warning.
+#[test]
+fn a_series_off_its_trained_size_weighs_on_its_trained_fields_grid() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    make_models(&d.join("models"), ReferenceOperator::new(&d.join("obs.parquet")).landweber_gain());
+    let half = SIZE / 2;
+    let small = d.join("models/landweber-small");
+    std::fs::create_dir_all(&small).unwrap();
+    for entry in std::fs::read_dir(d.join("models/landweber")).unwrap() {
+        let path = entry.unwrap().path();
+        std::fs::copy(&path, small.join(path.file_name().unwrap())).unwrap();
+    }
+    let manifest = std::fs::read_to_string(small.join("manifest.yaml")).unwrap();
+    std::fs::write(small.join("manifest.yaml"), manifest.replace(&format!("image_sizes: [{SIZE}]"), &format!("image_sizes: [{half}]"))).unwrap();
+
+    check(&r2d2(&["dirty", "obs.parquet", "--size", &half.to_string(), "--name", "trained"], d));
+    let out = r2d2(&["image", "obs.parquet", "--size", &SIZE.to_string(), "--step", "models/landweber-small", "--iterations", "1", "--no-final-clean", "--name", "off"], d);
+    check(&out);
+    assert!(text(&out).contains(&format!("the weighting grid of its trained {half} x {half} field")), "{}", text(&out));
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("off-metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["settings"]["weighting"]["grid_factor"], 1.0, "{}", metrics["settings"]);
+    assert!(!metrics["warnings"].to_string().contains("uv grid"), "{}", metrics["warnings"]);
+    let (trained, off) = (read(&d.join("trained-psf.fits")), read(&d.join("off-psf.fits")));
+    let centre: Vec<f64> = (0..half).flat_map(|y| (0..half).map(move |x| (y + half / 2) * SIZE + x + half / 2)).map(|k| off[k]).collect();
+    let difference = max_diff(&centre, &trained);
+    assert!(difference < 1e-4, "the PSF's centre differs from the trained size's PSF by {difference}");
+
+    // The default grid of the larger image (as before): another PSF, said in the warnings.
+    check(&r2d2(&["dirty", "obs.parquet", "--size", &SIZE.to_string(), "--name", "default"], d));
+    let default: Vec<f64> = read(&d.join("default-psf.fits"));
+    let default_centre: Vec<f64> = (0..half).flat_map(|y| (0..half).map(move |x| (y + half / 2) * SIZE + x + half / 2)).map(|k| default[k]).collect();
+    assert!(max_diff(&default_centre, &trained) > 100.0 * difference.max(1e-6), "the default grid's PSF is another one");
+    let out = r2d2(&["image", "obs.parquet", "--size", &SIZE.to_string(), "--step", "models/landweber-small", "--iterations", "1", "--no-final-clean", "--weighting-grid-factor", "2", "--name", "given"], d);
+    check(&out);
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("given-metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["settings"]["weighting"]["grid_factor"], 2.0);
+    let warnings = metrics["warnings"].to_string();
+    assert!(warnings.contains(&format!("weights made on the uv grid of its {half} x {half} field ({SIZE} cells across)")) && warnings.contains("grid_factor: 1"), "{warnings}");
+}
+
 /// A dirty image whose mean is not positive (the data lack the short baselines that measure
 /// the total flux; here the visibilities negated) is outside what a series normalised by that
 /// mean was trained on: the job says so in its warnings; CLEAN does not depend on it.

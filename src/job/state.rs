@@ -198,6 +198,10 @@ pub struct Job {
     /// with the geometry).
     pub track_hours: Option<f64>,
     pub integration_s: Option<f64>,
+    /// The weighting grid's cells across where the weights depend on it (uniform and Briggs;
+    /// `None` for natural or given weights), set by the weighting stage: a series sees the PSF
+    /// it was trained on only with its trained field's cells.
+    pub weighting_cells: Option<usize>,
     /// The files the job was read from (visibilities, truth, mask): its products never
     /// replace them.
     pub inputs: Vec<std::path::PathBuf>,
@@ -261,6 +265,7 @@ impl Job {
             split_max_uv: None,
             track_hours: None,
             integration_s: None,
+            weighting_cells: None,
             inputs: Vec::new(),
             mask: None,
         }

@@ -239,6 +239,7 @@ impl Stage<Job> for StepStage {
                 track_hours: job.track_hours,
                 integration_s: job.integration_s,
                 dirty_mean,
+                weighting_cells: job.weighting_cells,
             };
             for problem in self.step.domain_problems(&domain)? {
                 job.warn(problem);

@@ -176,6 +176,7 @@ impl Stage<Job> for WeightingStage {
             log::info!("job {}: the data carry imaging weights (`imaging_weight`, a .mat file's `nWimag`), not used: the weighting is {} (`given` uses them)", job.id, self.weighting);
         }
         job.geometry = Some(geometry);
+        job.weighting_cells = self.weighting.needs_density().then(|| crate::weighting::cells_of(self.grid_factor, self.image.size));
         job.superresolution = geometry.superresolution(max_uv);
         job.theoretic_beam_rad = (max_uv > 0.0).then(|| self.uv.theoretic_beam_rad(summary.max_uv));
         (job.track_hours, job.integration_s) = (summary.times.track_hours(), summary.times.integration_s());

@@ -135,6 +135,8 @@ impl DrivenSeries {
             track_hours: setup.track_hours,
             integration_s: setup.integration_s,
             dirty_mean: Some(dirty.iter().sum::<f64>() / dirty.len() as f64),
+            // The outside imager weighs on its own grid, which it does not tell.
+            weighting_cells: None,
         };
         let warnings = step.domain_problems(&domain)?;
         let (networks, name) = (step.series_length(), step.series_name().to_string());

@@ -49,6 +49,8 @@ pub struct JobDomain<'a> {
     pub integration_s: Option<f64>,
     /// The mean of the job's dirty image (a series normalises its first input by it).
     pub dirty_mean: Option<f64>,
+    /// The weighting grid's cells across where the weights depend on it (uniform, Briggs).
+    pub weighting_cells: Option<usize>,
 }
 
 pub trait NetworkStep: Send {

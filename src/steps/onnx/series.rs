@@ -677,6 +677,12 @@ impl Series {
         self.files.first().map_or(1, |f| f.len())
     }
 
+    /// The trained image size nearest to `size` (the larger of two as near); `None` for a
+    /// series that names none.
+    pub fn nearest_trained_size(&self, size: usize) -> Option<usize> {
+        self.image_sizes.iter().copied().min_by_key(|&t| (t.abs_diff(size), std::cmp::Reverse(t)))
+    }
+
     /// Whether the series may image `size x size` pixels; `Ok(Some(warning))` when it runs at a
     /// size nobody vouched for.
     pub fn check_size(&self, size: usize) -> Result<Option<String>> {

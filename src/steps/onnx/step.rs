@@ -412,6 +412,26 @@ impl OnnxStep {
         &self.series.name
     }
 
+    /// Where the job's uniform or Briggs weights were made on a uv grid other than the one the
+    /// series was trained with (the default grid of its trained field nearest the image size;
+    /// a weighting other than the series' own is the domain check's to say):
+    /// the same data then have another PSF than any the series saw. A 512 series at 1024 pixels
+    /// with the default grid diverges at its first network; on its trained field's grid it
+    /// converges.
+    fn weighting_grid_problem(&self, job_cells: Option<usize>) -> Option<String> {
+        let (cells, trained) = (job_cells?, self.series.nearest_trained_size(self.size)?);
+        let trained_cells = crate::weighting::cells_of(crate::weighting::DEFAULT_GRID_FACTOR, trained);
+        if cells == trained_cells {
+            return None;
+        }
+        let factor = crate::weighting::grid_factor_of_trained_field(trained, self.size);
+        Some(format!(
+            "series '{}' was trained with weights made on the uv grid of its {trained} x {trained} field ({trained_cells} cells across); this job's were made on {cells} cells, so its PSF is not one the series saw and its image may be wrong: give the weighting stage `grid_factor: {factor}` (that field's uv cell at {size} x {size}; `r2d2 image` does so by itself)",
+            self.series.name,
+            size = self.size,
+        ))
+    }
+
     /// Whether a network step needs `D` between its layers (R3D3's data fidelity), which only
     /// the engine's own operator gives.
     pub(crate) fn needs_d_between_layers(&self) -> bool {
@@ -442,6 +462,9 @@ impl NetworkStep for OnnxStep {
                 "the dirty image's mean is {m:.3e}, not positive: the data lack the short baselines of the observations series '{}' was trained on (its input is normalised by that mean), so its image may be wrong; the step `clean` does not depend on it",
                 self.series.name
             ));
+        }
+        if let Some(problem) = self.weighting_grid_problem(job.weighting_cells) {
+            warnings.push(problem);
         }
         // Data that name no telescope cannot be checked against the series' telescopes: the
         // job says so, since a series run on another telescope's data gives a confident image.
