@@ -485,8 +485,8 @@ fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec
             return Err(Error::parameter(option, "only a MeasurementSet input has it; the observation is not one"));
         }
     }
-    let (weighting, superresolution, grid_factor) = imaging_setting(params)?;
-    let weights = WeightingParams { grid_factor, ..WeightingParams::new(weighting).with_uv(params.uv) };
+    let (weighting, superresolution) = imaging_setting(params)?;
+    let weights = WeightingParams { grid_factor: params.weighting_grid_factor, ..WeightingParams::new(weighting).with_uv(params.uv) };
     let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling, w_term: params.w_term, hold_mb: params.hold_mb, restoring_beam: params.restoring_beam, ..GridderParams::default() };
     let mut stages = vec![read.to("weights"), StageSpec::typed("weights", &weights)?.to("grid")];
     match params.products {
@@ -540,12 +540,13 @@ fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec
     Ok((spec, inputs, parted))
 }
 
-/// The weighting, super-resolution and weighting grid factor a job is imaged with: the
-/// request's, else the series' own (its manifest's; for the grid, its trained field's where
-/// the image is not that size, so the PSF is the one it was trained on), else the defaults.
-fn imaging_setting(params: &ImagePlan) -> Result<(Weighting, f64, f64)> {
+/// Weighting and super-resolution of an image: what `params` asks for; where it asks for none,
+/// a series step's own (its manifest's, as it was trained), else Briggs 0 and SR 1.5 (a dirty
+/// image's, which no step follows). The log says when the series' setting is used. (The
+/// weighting grid of a series run off its trained size is the weighting stage's to choose.)
+fn imaging_setting(params: &ImagePlan) -> Result<(Weighting, f64)> {
     const DEFAULT: (Weighting, f64) = (crate::weighting::DEFAULT_WEIGHTING, crate::imaging::DEFAULT_SUPERRESOLUTION);
-    let needs_series = params.weighting.is_none() || (params.superresolution.is_none() && params.pixel_arcsec.is_none()) || params.weighting_grid_factor.is_none();
+    let needs_series = params.weighting.is_none() || (params.superresolution.is_none() && params.pixel_arcsec.is_none());
     let own = match &params.step {
         StepChoice::Auto | StepChoice::Series(_) if needs_series && params.products == ProductSet::All => {
             // A series that does not resolve or open is reported by the step itself, as is
@@ -558,7 +559,7 @@ fn imaging_setting(params: &ImagePlan) -> Result<(Weighting, f64, f64)> {
                     crate::steps::series::select_for(params.size, &fixed_setup(params, None)).ok().map(|(dir, _)| dir)
                 }
             };
-            dir.and_then(|d| crate::steps::series::Series::open(&d).ok()).and_then(|s| s.manifest.clone().map(|m| (s, m)))
+            dir.and_then(|d| crate::steps::series::Series::open(&d).ok()).and_then(|s| s.manifest.map(|m| (s.name, m)))
         }
         _ => None,
     };
@@ -570,15 +571,7 @@ fn imaging_setting(params: &ImagePlan) -> Result<(Weighting, f64, f64)> {
     let own_superresolution = own.as_ref().and_then(|(_, m)| m.superresolution);
     let weighting = params.weighting.or(own_weighting).unwrap_or(DEFAULT.0);
     let superresolution = params.superresolution.or(own_superresolution).unwrap_or(DEFAULT.1);
-    // Off its trained size, a series sees the PSF it was trained on only with the weights of
-    // its trained field's uv cell.
-    let trained_field = own.as_ref().and_then(|(s, _)| s.nearest_trained_size(params.size)).filter(|&t| t != params.size && weighting.needs_density());
-    let grid_factor = match (params.weighting_grid_factor, trained_field) {
-        (Some(factor), _) => factor,
-        (None, Some(trained)) => crate::weighting::grid_factor_of_trained_field(trained, params.size),
-        (None, None) => crate::weighting::DEFAULT_GRID_FACTOR,
-    };
-    if let Some((series, _)) = &own {
+    if let Some((name, _)) = &own {
         let mut used = Vec::new();
         if params.weighting.is_none() && own_weighting.is_some() {
             used.push(format!("weighting {weighting}"));
@@ -586,18 +579,11 @@ fn imaging_setting(params: &ImagePlan) -> Result<(Weighting, f64, f64)> {
         if params.superresolution.is_none() && params.pixel_arcsec.is_none() && own_superresolution.is_some() {
             used.push(format!("super-resolution {superresolution}"));
         }
-        if let (None, Some(trained)) = (params.weighting_grid_factor, trained_field) {
-            used.push(format!(
-                "the weighting grid of its trained {trained} x {trained} field at {size} x {size} ({cells} cells across, grid factor {grid_factor}, as WSClean's -super-weight: the uv cell and so the PSF it was trained on)",
-                size = params.size,
-                cells = crate::weighting::cells_of(grid_factor, params.size),
-            ));
-        }
         if !used.is_empty() {
-            log::info!("imaging with series '{}''s own setting: {} (the options set none)", series.name, used.join(", "));
+            log::info!("imaging with series '{name}''s own setting: {} (the options set none)", used.join(", "));
         }
     }
-    Ok((weighting, superresolution, grid_factor))
+    Ok((weighting, superresolution))
 }
 
 /// The telescope an observation says its data come from, read without its samples (none

@@ -238,7 +238,7 @@ fn a_series_off_its_trained_size_weighs_on_its_trained_fields_grid() {
     check(&r2d2(&["dirty", "obs.parquet", "--size", &half.to_string(), "--name", "trained"], d));
     let out = r2d2(&["image", "obs.parquet", "--size", &SIZE.to_string(), "--step", "models/landweber-small", "--iterations", "1", "--no-final-clean", "--name", "off"], d);
     check(&out);
-    assert!(text(&out).contains(&format!("the weighting grid of its trained {half} x {half} field")), "{}", text(&out));
+    assert!(text(&out).contains(&format!("weighting on the uv grid of series 'landweber''s trained {half} x {half} field")), "{}", text(&out));
     let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("off-metrics.json")).unwrap()).unwrap();
     assert_eq!(metrics["settings"]["weighting"]["grid_factor"], 1.0, "{}", metrics["settings"]);
     assert!(!metrics["warnings"].to_string().contains("uv grid"), "{}", metrics["warnings"]);
@@ -246,6 +246,13 @@ fn a_series_off_its_trained_size_weighs_on_its_trained_fields_grid() {
     let centre: Vec<f64> = (0..half).flat_map(|y| (0..half).map(move |x| (y + half / 2) * SIZE + x + half / 2)).map(|k| off[k]).collect();
     let difference = max_diff(&centre, &trained);
     assert!(difference < 1e-4, "the PSF's centre differs from the trained size's PSF by {difference}");
+
+    // A YAML pipeline's weighting stage does the same where it gives no grid factor.
+    std::fs::write(d.join("off.yaml"), pipeline("models/landweber-small", "ort")).unwrap();
+    check(&r2d2(&["run", "off.yaml"], d));
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("out-ort/obs-metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["settings"]["weighting"]["grid_factor"], 1.0, "{}", metrics["settings"]);
+    assert!(max_diff(&read(&d.join("out-ort/obs-psf.fits")), &off) < 1e-5, "the pipeline's PSF is r2d2 image's");
 
     // The default grid of the larger image (as before): another PSF, said in the warnings.
     check(&r2d2(&["dirty", "obs.parquet", "--size", &SIZE.to_string(), "--name", "default"], d));

@@ -23,8 +23,11 @@ pub struct WeightingParams {
     pub robust: f64,
     /// Uniform and Briggs weights count the visibilities in a uv grid of `grid_factor x size`
     /// cells per axis (the uv cuts and tapers are evaluated on it too, as WSClean does).
-    #[serde(default = "grid_factor")]
-    pub grid_factor: f64,
+    /// Default: 2; where the jobs go on to a network series run off its trained size, its
+    /// trained field's grid (`2 x trained size / size`: the uv cell, so the PSF, it was trained
+    /// on; WSClean's `-super-weight` does the same).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub grid_factor: Option<f64>,
     /// Leave out samples nearer the uv origin than this (wavelengths), as WSClean's minimum uv
     /// distance.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -52,7 +55,7 @@ impl Default for WeightingParams {
 }
 
 impl WeightingParams {
-    /// The stage for `weighting`, with the default grid factor.
+    /// The stage for `weighting`, with the default grid factor (the series' field's off its size).
     pub fn new(weighting: Weighting) -> WeightingParams {
         let (scheme, robust) = match weighting {
             Weighting::Natural => (WeightingScheme::Natural, 0.0),
@@ -60,7 +63,7 @@ impl WeightingParams {
             Weighting::Briggs { robust } => (WeightingScheme::Briggs, robust),
             Weighting::Given => (WeightingScheme::Given, 0.0),
         };
-        WeightingParams { scheme, robust, grid_factor: grid_factor(), minuv_l: None, maxuv_l: None, taper_gaussian: None, taper_tukey: None }
+        WeightingParams { scheme, robust, grid_factor: None, minuv_l: None, maxuv_l: None, taper_gaussian: None, taper_tukey: None }
     }
 
     /// The stage with the uv cuts and tapers `uv`.
@@ -74,9 +77,6 @@ impl WeightingParams {
     }
 }
 
-fn grid_factor() -> f64 {
-    DEFAULT_GRID_FACTOR
-}
 
 /// The kind, as registered.
 pub(super) const KIND: KindFn = KindFn {
@@ -88,9 +88,35 @@ pub(super) const KIND: KindFn = KindFn {
     passes_on: false,
     build: |c| {
         let params: WeightingParams = c.params()?;
-        Ok(Built::Stage(Box::new(WeightingStage::new(params.clone(), c.image()).map_err(|e| c.at_field(&params, e))?)))
+        let grid_factor = grid_factor_of(c, &params).map_err(|e| c.at_field(&params, e))?;
+        Ok(Built::Stage(Box::new(WeightingStage::new(params.clone(), grid_factor, c.image()).map_err(|e| c.at_field(&params, e))?)))
     },
 };
+
+/// The stage's weighting grid factor: the one given, else the trained field's of the series the
+/// jobs go on to where it runs off its trained size (uniform and Briggs weights, so the PSF,
+/// depend on the grid's cell: a 512 series at 1024 x 1024 on that image's own grid diverged at
+/// its first network), else the default.
+fn grid_factor_of(c: &crate::job::BuildContext<'_>, params: &WeightingParams) -> Result<f64> {
+    if let Some(factor) = params.grid_factor {
+        return Ok(factor);
+    }
+    if !params.scheme.with_robust(params.robust)?.needs_density() {
+        return Ok(DEFAULT_GRID_FACTOR);
+    }
+    let size = c.image().size;
+    Ok(match super::step::series_field_off_size(c, params)? {
+        Some((name, trained)) => {
+            let factor = crate::weighting::grid_factor_of_trained_field(trained, size);
+            log::info!(
+                "weighting on the uv grid of series '{name}''s trained {trained} x {trained} field at {size} x {size} ({} cells across, grid factor {factor}, as WSClean's -super-weight): the PSF it was trained on",
+                crate::weighting::cells_of(factor, size)
+            );
+            factor
+        }
+        None => DEFAULT_GRID_FACTOR,
+    })
+}
 
 /// Where the truth's FITS grid is not the job's (another pixel size or centre), what differs:
 /// its SNR and logSNR would compare images of different skies.
@@ -128,17 +154,17 @@ pub struct WeightingStage {
 }
 
 impl WeightingStage {
-    pub fn new(config: WeightingParams, image: &ImageConfig) -> Result<WeightingStage> {
+    pub fn new(config: WeightingParams, grid_factor: f64, image: &ImageConfig) -> Result<WeightingStage> {
         // Before any data are read (and in `validate`): a grid this machine cannot hold, a cut
         // or taper out of range.
         let uv = config.uv();
         uv.check()?;
         if !matches!(config.scheme, WeightingScheme::Natural) || !uv.is_empty() {
-            crate::weighting::check_grid(config.grid_factor, image.size)?;
+            crate::weighting::check_grid(grid_factor, image.size)?;
         }
         Ok(WeightingStage {
             weighting: config.scheme.with_robust(config.robust)?,
-            grid_factor: config.grid_factor,
+            grid_factor,
             uv,
             image: image.clone(),
         })

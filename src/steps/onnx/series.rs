@@ -640,14 +640,6 @@ impl Series {
         100.0 * mismatches + measured + robust
     }
 
-    /// How wide a range of settings its declared domain spans: the super-resolution span plus
-    /// the Briggs robust span (0 where it declares neither).
-    pub fn domain_breadth(&self) -> f64 {
-        let Some(v) = self.manifest.as_ref().and_then(|m| m.validity.as_ref()) else { return 0.0 };
-        let width = |r: Option<[f64; 2]>| r.map_or(0.0, |[lo, hi]| (hi - lo).max(0.0));
-        width(v.superresolution) + width(v.robust)
-    }
-
     /// Whether the series was trained for data of `telescope` (it declares that telescope,
     /// or declares none).
     pub fn trained_for_telescope(&self, telescope: &str) -> bool {
@@ -795,16 +787,15 @@ fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(Pa
     };
     // `found` is in rank order and min_by keeps the first of equals: ties go to the higher rank.
     // The data's telescope counts before the size: its PSFs are what the networks learnt.
-    // Among the nearest, one whose domain holds the setting, then the broadest domain: off
-    // its trained size a job is outside every series' domain, and the series trained over
-    // the widest range of settings and skies held where a narrow one diverged (held-out VLA
-    // skies at 1024 x 1024, training/README.md).
+    // Among the nearest, one whose domain holds the setting, then the rank, as at the trained
+    // size: weighted on its trained field's grid, `vla-r2d2-512` held at 1024 x 1024 where
+    // the broad series lost a validation sky (training/README.md, "Off the trained size").
     let resizable: Vec<&(PathBuf, Series)> = found.iter().filter(|(_, s)| s.any_size && !s.image_sizes.is_empty()).collect();
-    let preference = |s: &Series| (distance(s), !s.validity_problems(setup).is_empty(), -s.domain_breadth());
+    let preference = |s: &Series| (distance(s), !s.validity_problems(setup).is_empty());
     let nearest = |of_telescope: bool| {
         resizable.iter().copied().filter(|(_, s)| !of_telescope || same_telescope(s)).min_by(|a, b| {
             let (pa, pb) = (preference(&a.1), preference(&b.1));
-            pa.0.total_cmp(&pb.0).then(pa.1.cmp(&pb.1)).then(pa.2.total_cmp(&pb.2))
+            pa.0.total_cmp(&pb.0).then(pa.1.cmp(&pb.1))
         })
     };
     let nearest = nearest(true).or_else(|| nearest(false));
@@ -1071,7 +1062,7 @@ mod tests {
         assert!(warning96.unwrap().contains("no series was trained for 96 x 96"));
         assert!(warning.unwrap().contains("256 x 256"));
         assert_eq!(pick(2048).0, root.path().join("vla-r2d2-512"));
-        // Equally near: the broader declared domain (a series trained over a range of settings).
+        // Equally near: one whose domain holds the setting, then the rank.
         series_dir(root.path(), "vla-r2d2-512-broad", "[512]", true);
         let broad = root.path().join("vla-r2d2-512-broad/manifest.yaml");
         let text = std::fs::read_to_string(&broad).unwrap();
@@ -1079,8 +1070,10 @@ mod tests {
         let narrow = root.path().join("vla-r2d2-512/manifest.yaml");
         let text = std::fs::read_to_string(&narrow).unwrap();
         std::fs::write(&narrow, format!("{text}validity: {{superresolution: [1.5, 2.0], robust: [-1.0, 0.0]}}\n")).unwrap();
-        assert_eq!(pick(2048).0, root.path().join("vla-r2d2-512-broad"));
-        assert_eq!(pick(1024).0, root.path().join("vla-r2d2-512-broad"));
+        assert_eq!(pick(2048).0, root.path().join("vla-r2d2-512"));
+        assert_eq!(pick(1024).0, root.path().join("vla-r2d2-512"));
+        let briggs1 = ImagingSetup { weighting: Some("briggs".into()), robust: Some(1.0), ..ImagingSetup::default() };
+        assert_eq!(select_in(&roots, 1024, &briggs1).unwrap().0, root.path().join("vla-r2d2-512-broad"));
         // At its size the project's order stands.
         assert_eq!(pick(512).0, root.path().join("vla-r2d2-512"));
         // A setting outside every domain at the size: the domain nearest to it, not the first
