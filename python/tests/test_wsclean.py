@@ -73,6 +73,11 @@ def test_the_hook_is_found_and_reads_wsclean_s_command_line():
         hook.command_line_job(["-scale", "3parsec"])
     with pytest.raises(ValueError, match="R2D2_WSCLEAN"):
         hook._options("series")
+    # The series' weighting grid (twice the image size: -padding 2) unless given.
+    command = hook.wsclean_command(["-size", "512", "512", "obs.ms"])
+    assert command[command.index("-padding") + 1] == "2" and "-use-wgridder" in command, command
+    command = hook.wsclean_command(["-padding", "1.5", "-size", "512", "512", "obs.ms"])
+    assert command.count("-padding") == 1 and command[command.index("-padding") + 1] == "1.5", command
 
 
 def snr(truth, x):
