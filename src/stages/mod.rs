@@ -18,6 +18,7 @@ pub mod params;
 mod parquet;
 mod products;
 mod residual;
+mod series_field;
 mod simulate;
 mod step;
 mod weighting;

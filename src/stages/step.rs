@@ -8,7 +8,8 @@ use crate::steps::clean::{CleanConfig, CleanStep};
 use crate::steps::native::{Isolation, NativeConfig, NativeStep};
 use crate::steps::onnx::runtime::{BackendChoice, GraphOptimization};
 use crate::steps::onnx::{OnnxConfig, OnnxStep, ValidityMode};
-use crate::steps::series::{ImagingSetup, Series};
+use crate::steps::series::ImagingSetup;
+use super::series_field::source_telescope;
 use crate::steps::{JobDomain, NetworkStep, StepInput};
 use crate::{Error, Result};
 use std::path::PathBuf;
@@ -118,49 +119,6 @@ fn imaging_setup(ctx: &BuildContext<'_>, choosing: bool) -> Result<ImagingSetup>
         track_hours: None,
         integration_s: None,
     })
-}
-
-/// The series a weighting stage's jobs go on to, with its trained image size nearest the
-/// image's, where that is not the image's size: the `kind: onnx` stages after it (all on one
-/// trained size), each series resolved as its step resolves it. `None` where none runs off
-/// its size or a series does not resolve (its step says why).
-pub(super) fn series_field_off_size(ctx: &BuildContext<'_>, weighting: &WeightingParams) -> Result<Option<(String, usize)>> {
-    let image = ctx.image();
-    let mut fields = Vec::new();
-    for config in ctx.downstream_params::<OnnxConfig>()? {
-        let choosing = config.series.as_os_str() == crate::steps::series::AUTO_SERIES;
-        let setup = ImagingSetup {
-            superresolution: image.pixel_arcsec.is_none().then(|| image.superresolution.unwrap_or(crate::imaging::DEFAULT_SUPERRESOLUTION)),
-            weighting: Some(weighting.scheme.name().to_string()),
-            robust: Some(weighting.robust),
-            telescope: if choosing { source_telescope(ctx)? } else { None },
-            track_hours: None,
-            integration_s: None,
-        };
-        let dir = match choosing {
-            true => crate::steps::series::select_for(image.size, &setup).ok().map(|(dir, _)| dir),
-            false => crate::steps::series::resolve(&config.series).ok(),
-        };
-        let Some(series) = dir.and_then(|d| Series::open(&d).ok()) else { return Ok(None) };
-        fields.push((series.name.clone(), series.nearest_trained_size(image.size)));
-    }
-    fields.dedup_by_key(|(_, trained)| *trained);
-    Ok(match fields.as_slice() {
-        [(name, Some(trained))] if *trained != image.size => Some((name.clone(), *trained)),
-        _ => None,
-    })
-}
-
-/// The telescope of the sources before the step (`auto` prefers a series trained for it): the
-/// first that says one, in file order (a simulation names its own; a file source's first file
-/// says, read without its samples); none where none says.
-fn source_telescope(ctx: &BuildContext<'_>) -> Result<Option<String>> {
-    for (_, source) in ctx.upstream_sources()? {
-        if let Some(telescope) = source.telescope()? {
-            return Ok(Some(telescope));
-        }
-    }
-    Ok(None)
 }
 
 pub struct StepStage {
