@@ -79,12 +79,17 @@ def _angle_deg(text: str) -> float:
 
 def command_line_job(args: list) -> dict:
     """What WSClean's command line ``args`` (without the program) says of the job: ``scale_deg``,
-    ``weighting``, ``robust``, ``ms`` (the first measurement set) where given."""
-    job: dict = {"weighting": "uniform"}  # WSClean's default weighting
+    ``weighting``, ``robust``, ``ms`` (the first measurement set) where given, ``padding`` and
+    ``super_weight`` (WSClean's defaults 1.2 and 1 where not)."""
+    job: dict = {"weighting": "uniform", "padding": 1.2, "super_weight": 1.0}  # WSClean's defaults
     i = 0
     positional = []
     while i < len(args):
         a = args[i]
+        if a in ("-padding", "-super-weight") and i + 1 < len(args):
+            job[a[1:].replace("-", "_")] = float(args[i + 1])
+            i += 2
+            continue
         if a == "-scale" and i + 1 < len(args):
             job["scale_deg"] = _angle_deg(args[i + 1])
             i += 2
@@ -116,6 +121,21 @@ def _wsclean_args() -> list:
     except OSError:
         return []
     return [w.decode(errors="replace") for w in words[1:] if w]
+
+
+def weighting_grid_problem(size: int, padding: float, super_weight: float, trained: int, series: str) -> Optional[str]:
+    """Where WSClean's uniform or Briggs weights (made on a grid of ``padding x size /
+    super_weight`` cells) are not made on the grid the series was trained with (twice its
+    trained field, ``trained`` pixels across): the same data then have another PSF than the
+    series saw. What to give, else None."""
+    cells, trained_cells = padding * size / super_weight, 2 * trained
+    if abs(cells - trained_cells) <= 0.01 * trained_cells:
+        return None
+    return (
+        f"WSClean weighs on a grid of {cells:.0f} cells across (-padding {padding:g} x {size} / -super-weight {super_weight:g}); "
+        f"series {series} was trained with weights on {trained_cells} (twice its {trained} x {trained} field), so the PSF is not one it saw "
+        f"and its image may be wrong: give -padding 2 -super-weight {size / trained:g}"
+    )
 
 
 def _say(message: str, level: int = logging.INFO) -> None:
@@ -187,9 +207,28 @@ class _Job:
             self.series = [self._start(self._mean(self.dirty), self._mean_psf(psf))]
         else:
             self.series = [self._start(self.dirty[c], psf[c]) for c in range(nchan)]
+        self._check_weighting_grid(cmd, env)
         self.models: list = [None] * len(self.series)
         self.done: list = [None] * len(self.series)
         self.cycles = 0
+
+    def _check_weighting_grid(self, cmd: dict, env: dict) -> None:
+        """Warn where WSClean's weighting grid is not the one the series was trained with."""
+        weighting = env.get("weighting", cmd.get("weighting"))
+        if weighting not in ("uniform", "briggs"):
+            return
+        name = self.series[0].series
+        try:
+            sizes = next((s["image_sizes"] for s in _native.info(None)["series"] if s["name"] == name), None)
+        except Exception:  # advice only: imaging goes on without it
+            return
+        if not sizes:
+            return
+        trained = min(sizes, key=lambda t: (abs(t - self.size), -t))
+        problem = weighting_grid_problem(self.size, cmd["padding"], cmd["super_weight"], trained, name)
+        if problem:
+            _say(f"WARNING: {problem}", logging.WARNING)
+            warnings.warn(problem, R2D2Warning, stacklevel=3)
 
     def _mean(self, images: np.ndarray) -> np.ndarray:
         return np.tensordot(self.weights, images, axes=1)

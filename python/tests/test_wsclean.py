@@ -66,7 +66,14 @@ def test_the_hook_is_found_and_reads_wsclean_s_command_line():
     out = subprocess.run([sys.executable, "-m", "r2d2_imaging.wsclean"], capture_output=True, text=True, check=True)
     assert Path(out.stdout.strip()) == Path(hook.HOOK) and Path(hook.HOOK).is_file()
     job = hook.command_line_job(["-size", "128", "128", "-scale", "0.5asec", "-weight", "briggs", "-0.5", "-name", "x", "/"])
-    assert job == {"scale_deg": 0.5 / 3600, "weighting": "briggs", "robust": -0.5, "ms": "/"}
+    assert job == {"scale_deg": 0.5 / 3600, "weighting": "briggs", "robust": -0.5, "ms": "/", "padding": 1.2, "super_weight": 1.0}
+    job = hook.command_line_job(["-padding", "2", "-super-weight", "0.5", "-size", "64", "64"])
+    assert (job["padding"], job["super_weight"]) == (2.0, 0.5)
+    # WSClean weighs on padding x size / super-weight cells; the series on twice its field.
+    assert hook.weighting_grid_problem(512, 2.0, 1.0, 512, "s") is None
+    assert hook.weighting_grid_problem(1024, 2.0, 2.0, 512, "s") is None
+    assert "-padding 2 -super-weight 1" in hook.weighting_grid_problem(512, 1.2, 1.0, 512, "s")
+    assert "-padding 2 -super-weight 2" in hook.weighting_grid_problem(1024, 2.0, 1.0, 512, "s")
     assert hook.command_line_job(["-scale", "2amin", "-weight", "natural"])["scale_deg"] == pytest.approx(2 / 60)
     assert hook.command_line_job([])["weighting"] == "uniform", "WSClean's default weighting"
     with pytest.raises(ValueError, match="-scale"):
