@@ -15,6 +15,16 @@ fn pipeline(series: &str, backend: &str) -> String {
     )
 }
 
+/// A copy of the series directory `from` at `to` (its manifest to be edited), returned.
+fn copy_series(from: &std::path::Path, to: &std::path::Path) -> std::path::PathBuf {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let path = entry.unwrap().path();
+        std::fs::copy(&path, to.join(path.file_name().unwrap())).unwrap();
+    }
+    to.to_path_buf()
+}
+
 #[test]
 fn onnx_series_images_through_a_yaml_pipeline_on_both_backends() {
     let dir = tempfile::tempdir().unwrap();
@@ -99,12 +109,7 @@ fn image_command_takes_a_series_and_models_lists_them() {
     assert_eq!(v["iterations"].as_array().unwrap().len(), 2);
 
     // A series whose networks see their images turned says so.
-    let turned = d.join("models/landweber-turned");
-    std::fs::create_dir_all(&turned).unwrap();
-    for entry in std::fs::read_dir(d.join("models/landweber")).unwrap() {
-        let path = entry.unwrap().path();
-        std::fs::copy(&path, turned.join(path.file_name().unwrap())).unwrap();
-    }
+    let turned = copy_series(&d.join("models/landweber"), &d.join("models/landweber-turned"));
     let manifest = std::fs::read_to_string(turned.join("manifest.yaml")).unwrap().replace("name: landweber\n", "name: landweber-turned\n");
     std::fs::write(turned.join("manifest.yaml"), format!("{manifest}orientation_cycle: [mirror_x, rotate_90]\n")).unwrap();
     let out = r2d2(&["models", "models"], d);
@@ -226,12 +231,7 @@ fn a_series_off_its_trained_size_weighs_on_its_trained_fields_grid() {
     observation(d);
     make_models(&d.join("models"), ReferenceOperator::new(&d.join("obs.parquet")).landweber_gain());
     let half = SIZE / 2;
-    let small = d.join("models/landweber-small");
-    std::fs::create_dir_all(&small).unwrap();
-    for entry in std::fs::read_dir(d.join("models/landweber")).unwrap() {
-        let path = entry.unwrap().path();
-        std::fs::copy(&path, small.join(path.file_name().unwrap())).unwrap();
-    }
+    let small = copy_series(&d.join("models/landweber"), &d.join("models/landweber-small"));
     let manifest = std::fs::read_to_string(small.join("manifest.yaml")).unwrap();
     std::fs::write(small.join("manifest.yaml"), manifest.replace(&format!("image_sizes: [{SIZE}]"), &format!("image_sizes: [{half}]"))).unwrap();
 

@@ -207,25 +207,20 @@ class _Job:
             self.series = [self._start(self._mean(self.dirty), self._mean_psf(psf))]
         else:
             self.series = [self._start(self.dirty[c], psf[c]) for c in range(nchan)]
-        self._check_weighting_grid(cmd, env)
+        self._check_weighting_grid(cmd)
         self.models: list = [None] * len(self.series)
         self.done: list = [None] * len(self.series)
         self.cycles = 0
 
-    def _check_weighting_grid(self, cmd: dict, env: dict) -> None:
-        """Warn where WSClean's weighting grid is not the one the series was trained with."""
-        weighting = env.get("weighting", cmd.get("weighting"))
-        if weighting not in ("uniform", "briggs"):
+    def _check_weighting_grid(self, cmd: dict) -> None:
+        """Warn where WSClean's weighting grid (its own weighting's, whatever R2D2_WSCLEAN
+        tells the domain check) is not the one the series was trained with."""
+        if cmd["weighting"] not in ("uniform", "briggs"):
             return
-        name = self.series[0].series
-        try:
-            sizes = next((s["image_sizes"] for s in _native.info(None)["series"] if s["name"] == name), None)
-        except Exception:  # advice only: imaging goes on without it
+        trained = self.series[0].trained_size
+        if trained is None:
             return
-        if not sizes:
-            return
-        trained = min(sizes, key=lambda t: (abs(t - self.size), -t))
-        problem = weighting_grid_problem(self.size, cmd["padding"], cmd["super_weight"], trained, name)
+        problem = weighting_grid_problem(self.size, cmd["padding"], cmd["super_weight"], trained, self.series[0].series)
         if problem:
             _say(f"WARNING: {problem}", logging.WARNING)
             warnings.warn(problem, R2D2Warning, stacklevel=3)

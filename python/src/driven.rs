@@ -16,6 +16,7 @@ pub struct DrivenSeries {
     warnings: Vec<String>,
     networks: usize,
     name: String,
+    trained_size: Option<usize>,
 }
 
 fn outcome_dict<'py>(py: Python<'py>, o: &DrivenOutcome) -> PyResult<Bound<'py, PyDict>> {
@@ -70,7 +71,7 @@ impl DrivenSeries {
             Engine::new(EngineOptions { threads: 0, onnx_runtime })?;
             r2d2_imaging::DrivenSeries::start(config, dirty, psf)
         })?;
-        Ok(DrivenSeries { warnings: inner.warnings().to_vec(), networks: inner.networks(), name: inner.series_name().to_string(), inner: Arc::new(Mutex::new(inner)) })
+        Ok(DrivenSeries { warnings: inner.warnings().to_vec(), networks: inner.networks(), name: inner.series_name().to_string(), trained_size: inner.trained_size(), inner: Arc::new(Mutex::new(inner)) })
     }
 
     /// What the domain check found, one sentence each.
@@ -87,6 +88,12 @@ impl DrivenSeries {
     #[getter]
     fn series(&self) -> String {
         self.name.clone()
+    }
+
+    /// The series' trained image size nearest the image's (None where it names none).
+    #[getter]
+    fn trained_size(&self) -> Option<usize> {
+        self.trained_size
     }
 
     /// The next model and whether it is the result: `(model, None)` asks for its residual at

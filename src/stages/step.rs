@@ -9,7 +9,7 @@ use crate::steps::native::{Isolation, NativeConfig, NativeStep};
 use crate::steps::onnx::runtime::{BackendChoice, GraphOptimization};
 use crate::steps::onnx::{OnnxConfig, OnnxStep, ValidityMode};
 use crate::steps::series::ImagingSetup;
-use super::series_field::source_telescope;
+use super::series_field::imaging_setup;
 use crate::steps::{JobDomain, NetworkStep, StepInput};
 use crate::{Error, Result};
 use std::path::PathBuf;
@@ -74,7 +74,7 @@ pub(super) const CLEAN: KindFn = step(CleanConfig::KIND, |c| {
 pub(super) const ONNX: KindFn = step(OnnxConfig::KIND, |c| {
     let config: OnnxConfig = c.params()?;
     let mask = MaskFile::read(config.fits_mask.as_deref()).map_err(|e| c.error_caused("fits_mask", e))?;
-    let setup = imaging_setup(c, config.series.as_os_str() == crate::steps::series::AUTO_SERIES)?;
+    let setup = upstream_imaging_setup(c, config.series.as_os_str() == crate::steps::series::AUTO_SERIES)?;
     let step = StepStage::onnx(config, c.image().size, c.threads, &setup).map_err(|e| c.error_caused("series", e))?;
     Ok(Built::Stage(Box::new(StepStage { mask, ..step })))
 });
@@ -96,29 +96,17 @@ pub(super) fn holds_until_finished(c: &BuildContext<'_>) -> bool {
     c.upstream_stages().iter().any(|&(_, kind)| kind == NativeConfig::KIND)
 }
 
-/// The jobs' imaging as a series' validity sees it: the super-resolution (unknown when the
-/// pixel size is given in arcsec: it then depends on each job's longest baseline) and the
-/// weighting of the weighting stage before the step (unknown if there are several that
-/// disagree, or none of the built-in kind).
-/// The telescope is looked up only for `auto` (`choosing`), whose choice it takes part in; a
-/// named series meets each job's telescope at the job.
-fn imaging_setup(ctx: &BuildContext<'_>, choosing: bool) -> Result<ImagingSetup> {
-    let image = ctx.image();
+/// The jobs' imaging as a series' validity sees it ([`imaging_setup`]), with the weighting of
+/// the weighting stage before the step (unknown if there are several that disagree, or none
+/// of the built-in kind).
+fn upstream_imaging_setup(ctx: &BuildContext<'_>, choosing: bool) -> Result<ImagingSetup> {
     let mut weightings = ctx.upstream_params::<WeightingParams>()?;
     weightings.dedup();
     let weighting = match weightings.as_slice() {
-        [one] => Some(one),
+        [one] => Some((one.scheme.name(), one.robust)),
         _ => None,
     };
-    Ok(ImagingSetup {
-        superresolution: image.pixel_arcsec.is_none().then(|| image.superresolution.unwrap_or(crate::imaging::DEFAULT_SUPERRESOLUTION)),
-        weighting: weighting.map(|w| w.scheme.name().to_string()),
-        robust: weighting.map(|w| w.robust),
-        telescope: if choosing { source_telescope(ctx)? } else { None },
-        // Known once the data are read: each job's are checked at its first step.
-        track_hours: None,
-        integration_s: None,
-    })
+    imaging_setup(ctx, weighting, choosing)
 }
 
 pub struct StepStage {
@@ -323,7 +311,7 @@ mod tests {
             registry: &registry,
             validating: false,
         };
-        imaging_setup(&ctx, true).unwrap()
+        upstream_imaging_setup(&ctx, true).unwrap()
     }
 
     const PIPELINE: &str = "image: {size: 16, superresolution: 2}\nstages:\n  source: {kind: simulate, to: weights}\n  weights: {kind: weighting, scheme: robust, robust: -0.5, to: grid}\n  grid: {kind: gridder, to: step}\n  step: {kind: clean, to: update}\n  update: {kind: residual, to: step, done: write}\n  write: {kind: writer}\n";

@@ -105,7 +105,7 @@ fn grid_factor_of(c: &crate::job::BuildContext<'_>, params: &WeightingParams) ->
         return Ok(DEFAULT_GRID_FACTOR);
     }
     let size = c.image().size;
-    Ok(match super::series_field::series_field_off_size(c, params.scheme.name(), params.robust)? {
+    Ok(match super::series_field::series_field_off_size(c, (params.scheme.name(), params.robust))? {
         Some((name, trained)) => {
             let factor = crate::weighting::grid_factor_of_trained_field(trained, size);
             log::info!(

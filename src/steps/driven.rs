@@ -65,6 +65,7 @@ pub struct DrivenSeries {
     warnings: Vec<String>,
     networks: usize,
     name: String,
+    trained_size: Option<usize>,
     done: bool,
 }
 
@@ -139,7 +140,7 @@ impl DrivenSeries {
             weighting_cells: None,
         };
         let warnings = step.domain_problems(&domain)?;
-        let (networks, name) = (step.series_length(), step.series_name().to_string());
+        let (networks, name, trained_size) = (step.series_length(), step.series_name().to_string(), step.trained_size());
         let (ask_tx, ask_rx) = bounded(1);
         let (res_tx, res_rx) = bounded(1);
         let imager = Imager { asks: ask_tx, residuals: res_rx, n };
@@ -152,7 +153,7 @@ impl DrivenSeries {
                 let _ = imager.asks.send(outcome.map(Cycle::Done));
             })
             .map_err(|e| Error::OutOfMemory(format!("cannot start the driven series' thread: {e}")))?;
-        Ok(DrivenSeries { residuals: Some(res_tx), asks: ask_rx, worker: Some(worker), warnings, networks, name, done: false })
+        Ok(DrivenSeries { residuals: Some(res_tx), asks: ask_rx, worker: Some(worker), warnings, networks, name, trained_size, done: false })
     }
 
     /// What the domain check found (one sentence each), to be shown to the user.
@@ -167,6 +168,12 @@ impl DrivenSeries {
 
     pub fn series_name(&self) -> &str {
         &self.name
+    }
+
+    /// The series' trained image size nearest the image's: the imager's uniform and Briggs
+    /// weights should be made on twice that many cells across, the grid it was trained with.
+    pub fn trained_size(&self) -> Option<usize> {
+        self.trained_size
     }
 
     /// The next thing to do: `residual` is that of the model last asked for (none at the first

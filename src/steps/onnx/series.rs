@@ -669,10 +669,10 @@ impl Series {
         self.files.first().map_or(1, |f| f.len())
     }
 
-    /// The trained image size nearest to `size` (the larger of two as near); `None` for a
-    /// series that names none.
+    /// The trained image size nearest to `size` by ratio, as `auto` measures it (the larger of
+    /// two as near); `None` for a series that names none.
     pub fn nearest_trained_size(&self, size: usize) -> Option<usize> {
-        self.image_sizes.iter().copied().min_by_key(|&t| (t.abs_diff(size), std::cmp::Reverse(t)))
+        self.image_sizes.iter().copied().min_by(|&a, &b| size_ratio_distance(a, size).total_cmp(&size_ratio_distance(b, size)).then(b.cmp(&a)))
     }
 
     /// Whether the series may image `size x size` pixels; `Ok(Some(warning))` when it runs at a
@@ -705,6 +705,11 @@ impl Series {
         }
         Ok(Some(format!("series '{}' was trained for {trained}; running it at {size} x {size}", self.name)))
     }
+}
+
+/// How far a trained size is from an image size: `|ln(trained / size)|`.
+fn size_ratio_distance(trained: usize, size: usize) -> f64 {
+    (trained as f64 / size as f64).ln().abs()
 }
 
 /// The value of a step's `series` (and the default of `r2d2 image --step`) that picks the
@@ -782,9 +787,7 @@ fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(Pa
         }
         return Ok((dir.clone(), None));
     }
-    let distance = |s: &Series| {
-        s.image_sizes.iter().map(|&t| (t as f64 / size as f64).ln().abs()).fold(f64::INFINITY, f64::min)
-    };
+    let distance = |s: &Series| s.nearest_trained_size(size).map_or(f64::INFINITY, |t| size_ratio_distance(t, size));
     // `found` is in rank order and min_by keeps the first of equals: ties go to the higher rank.
     // The data's telescope counts before the size: its PSFs are what the networks learnt.
     // Among the nearest, one whose domain holds the setting, then the rank, as at the trained
@@ -826,14 +829,20 @@ pub fn covering_series(size: usize, setup: &ImagingSetup, except: &str) -> Optio
 /// The series directory for a step's `series` value, image size and imaging setting:
 /// [`select_for`] for [`AUTO_SERIES`], else [`resolve`].
 pub fn resolve_for(series: &Path, size: usize, setup: &ImagingSetup) -> Result<PathBuf> {
-    if series.as_os_str() == AUTO_SERIES {
-        let (dir, warning) = select_for(size, setup)?;
-        if let Some(w) = warning {
-            log::warn!("{w}");
-        }
-        return Ok(dir);
+    let (dir, warning) = choose_for(series, size, setup)?;
+    if let Some(w) = warning {
+        log::warn!("{w}");
     }
-    resolve(series)
+    Ok(dir)
+}
+
+/// [`resolve_for`]'s series directory and `auto`'s off-size warning, not logged (a stage
+/// before the step that needs to know the series; the step says the warning).
+pub fn choose_for(series: &Path, size: usize, setup: &ImagingSetup) -> Result<(PathBuf, Option<String>)> {
+    if series.as_os_str() == AUTO_SERIES {
+        return select_for(size, setup);
+    }
+    Ok((resolve(series)?, None))
 }
 
 /// Directories an embedding host ships series in (the Python package's own `models/`), looked
@@ -1038,6 +1047,15 @@ mod tests {
             let e = Series::open(&dir).err().expect("refused").to_string();
             assert!(e.contains("manifest.yaml") && e.contains("early_stop_from: expected a network of the series, 1 to 2"), "{e}");
         }
+    }
+
+    #[test]
+    fn the_nearest_trained_size_is_by_ratio_the_larger_of_two_as_near() {
+        let root = tempfile::tempdir().unwrap();
+        series_dir(root.path(), "two", "[128, 512]", true);
+        let series = Series::open(&root.path().join("two")).unwrap();
+        let nearest = |size| series.nearest_trained_size(size).unwrap();
+        assert_eq!((nearest(128), nearest(200), nearest(256), nearest(300), nearest(2048)), (128, 128, 512, 512, 512));
     }
 
     #[test]

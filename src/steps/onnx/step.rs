@@ -411,6 +411,11 @@ fn next_estimate(model: &[f64], increment: &[f64], alpha: f64) -> Vec<f64> {
 }
 
 impl OnnxStep {
+    /// The series' trained image size nearest the image's (its weighting grid's field).
+    pub(crate) fn trained_size(&self) -> Option<usize> {
+        self.series.nearest_trained_size(self.size)
+    }
+
     pub(crate) fn series_name(&self) -> &str {
         &self.series.name
     }
@@ -422,7 +427,7 @@ impl OnnxStep {
     /// with the default grid diverges at its first network; on its trained field's grid it
     /// converges.
     fn weighting_grid_problem(&self, job_cells: Option<usize>) -> Option<String> {
-        let (cells, trained) = (job_cells?, self.series.nearest_trained_size(self.size)?);
+        let (cells, trained) = (job_cells?, self.trained_size()?);
         let trained_cells = crate::weighting::cells_of(crate::weighting::DEFAULT_GRID_FACTOR, trained);
         if cells == trained_cells {
             return None;
