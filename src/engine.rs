@@ -646,10 +646,13 @@ fn fixed_setup(params: &ImagePlan, telescope: Option<&str>) -> crate::steps::ser
 
 /// The step stage for `params.step` (`clean_because`: why CLEAN runs where `auto` was asked).
 fn step_stage(params: &ImagePlan, clean_because: Option<String>) -> Result<StageSpec> {
-    if params.clean.any() && params.step != StepChoice::Clean {
+    // auto_mask also keeps a series' model to where the data show emission.
+    let series_step = matches!(params.step, StepChoice::Auto | StepChoice::Series(_));
+    let clean_only = CleanControls { auto_mask: if series_step { None } else { params.clean.auto_mask }, ..params.clean };
+    if clean_only.any() && params.step != StepChoice::Clean {
         return Err(Error::parameter(
             "step",
-            "the CLEAN controls (niter, gain, mgain, auto_threshold, threshold, auto_mask) are for the step clean; the default step is a network series, which needs none",
+            "the CLEAN controls (niter, gain, mgain, auto_threshold, threshold) are for the step clean (auto_mask for it and a network series); the default step is a network series, which needs none",
         ));
     }
     if params.fits_mask.is_some() && matches!(params.step, StepChoice::Native { .. }) {
@@ -688,6 +691,7 @@ fn step_stage(params: &ImagePlan, clean_because: Option<String>) -> Result<Stage
                 networks: params.iterations,
                 prefetch: params.prefetch,
                 fits_mask: params.fits_mask.clone(),
+                auto_mask: params.clean.auto_mask,
                 ..OnnxParams::new(series)
             };
             StageSpec::typed("step", &onnx)

@@ -257,7 +257,10 @@ pub struct StepOptions {
     #[arg(long)]
     pub threshold: Option<f64>,
     /// CLEAN: clean without a mask down to this many times the residual's noise, then only
-    /// where components were taken, down to auto-threshold, as WSClean's -auto-mask.
+    /// where components were taken, down to auto-threshold, as WSClean's -auto-mask. A
+    /// series: keep the model to where the residual, smoothed to the beam or wider, has risen
+    /// above this many of its noise sigmas (default 5 on an image more than twice the series'
+    /// trained size across, else none; 0: none).
     #[arg(long)]
     pub auto_mask: Option<f64>,
     /// A FITS mask on the image's grid (same size, pixel and centre; further axes of length

@@ -267,6 +267,66 @@ fn a_series_off_its_trained_size_weighs_on_its_trained_fields_grid() {
     assert!(warnings.contains(&format!("weights made on the uv grid of its {half} x {half} field ({SIZE} cells across)")) && warnings.contains("grid_factor: 1"), "{warnings}");
 }
 
+/// `--auto-mask` with a series: each network's model is kept to where the data show emission
+/// (the residual above 5 of its noise sigmas at some scale), so the projected Landweber
+/// series, which puts positive flux on every sidelobe and noise peak, holds its flux on the
+/// sources only, and explains the data as well; the products record the mask. By default a
+/// series run at more than twice its trained size gets the mask (`auto_mask 0` turns it off).
+#[test]
+fn a_series_keeps_its_model_to_where_the_data_show_emission() {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    observation(d);
+    make_models(&d.join("models"), ReferenceOperator::new(&d.join("obs.parquet")).landweber_gain());
+    let run = |extra: &[&str], name: &str| {
+        let mut args = vec!["image", "obs.parquet", "--size", "64", "--step", "models/landweber", "--iterations", "4", "--no-final-clean", "--name", name];
+        args.extend(extra);
+        let out = r2d2(&args, d);
+        check(&out);
+        out
+    };
+    run(&[], "open");
+    run(&["--auto-mask", "5"], "masked");
+    let (open, masked) = (read(&d.join("open-model.fits")), read(&d.join("masked-model.fits")));
+    let support = |m: &[f64]| m.iter().filter(|&&v| v > 0.0).count();
+    assert!(support(&masked) * 3 < support(&open), "masked model on {} pixels, the open one on {}", support(&masked), support(&open));
+    let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+    let (r_open, r_masked) = (norm(&read(&d.join("open-residual.fits"))), norm(&read(&d.join("masked-residual.fits"))));
+    assert!(r_masked < 1.1 * r_open, "the masked model explains the data as well: residual {r_masked} against {r_open}");
+    // Where the masked model has flux, the dirty image is bright: the mask is on the sources.
+    let dirty = read(&d.join("open-dirty.fits"));
+    let mean_where = |inside: bool| {
+        let v: Vec<f64> = (0..dirty.len()).filter(|&k| (masked[k] > 0.0) == inside).map(|k| dirty[k]).collect();
+        v.iter().sum::<f64>() / v.len() as f64
+    };
+    assert!(mean_where(true) > 5.0 * mean_where(false).abs(), "dirty mean {} inside the model, {} outside", mean_where(true), mean_where(false));
+    let auto_mask = |name: &str| {
+        let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join(format!("{name}-metrics.json"))).unwrap()).unwrap();
+        metrics["settings"]["mask"]["auto_mask"].as_f64()
+    };
+    assert_eq!(auto_mask("masked"), Some(5.0));
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/landweber", "--auto-mask=-1", "--name", "bad"], d);
+    assert!(!out.status.success() && text(&out).contains("--auto-mask") && text(&out).contains("got -1"), "{}", text(&out));
+
+    // A series trained at 16 run at 64: the mask by default, said; `--auto-mask 0`: none.
+    let small = copy_series(&d.join("models/landweber"), &d.join("models/landweber-16"));
+    let manifest = std::fs::read_to_string(small.join("manifest.yaml")).unwrap();
+    std::fs::write(small.join("manifest.yaml"), manifest.replace(&format!("image_sizes: [{SIZE}]"), "image_sizes: [16]")).unwrap();
+    let by_default = |extra: &[&str], name: &str| {
+        let mut args = vec!["image", "obs.parquet", "--size", "64", "--step", "models/landweber-16", "--iterations", "4", "--no-final-clean", "--name", name];
+        args.extend(extra);
+        let out = r2d2(&args, d);
+        check(&out);
+        (text(&out), read(&d.join(format!("{name}-model.fits"))))
+    };
+    let (log, model) = by_default(&[], "default");
+    assert!(log.contains("its model is kept to where the data show emission (auto_mask 5"), "{log}");
+    assert_eq!(auto_mask("default"), Some(5.0));
+    let (log, unmasked) = by_default(&["--auto-mask", "0"], "off");
+    assert!(!log.contains("kept to where the data show emission") && auto_mask("off").is_none(), "{log}");
+    assert!(support(&model) * 3 < support(&unmasked), "default mask on {} pixels, none on {}", support(&model), support(&unmasked));
+}
+
 /// A dirty image whose mean is not positive (the data lack the short baselines that measure
 /// the total flux; here the visibilities negated) is outside what a series normalised by that
 /// mean was trained on: the job says so in its warnings; CLEAN does not depend on it.

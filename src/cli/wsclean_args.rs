@@ -48,8 +48,8 @@ const OPTIONS: &[(&str, usize, Spelling)] = &[
     ("padding", 1, Spelling::Counterpart("the gridder's padding is fixed by --oversampling (default 2, as -padding 2)")),
 ];
 
-/// WSClean's CLEAN controls, which `r2d2 image --step clean` takes with the same meanings (a
-/// mask also with a network series).
+/// WSClean's CLEAN controls, which `r2d2 image --step clean` takes with the same meanings (the
+/// masks also with a network series).
 const CLEAN_OPTIONS: [&str; 7] = ["niter", "auto-threshold", "threshold", "mgain", "gain", "auto-mask", "fits-mask"];
 
 /// WSClean's primary-beam options, which `r2d2 image` takes and `r2d2 dirty` (the dirty image

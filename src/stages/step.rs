@@ -44,6 +44,7 @@ impl OnnxConfig {
             realisation: None,
             validity: ValidityMode::default(),
             fits_mask: None,
+            auto_mask: None,
             tiles: Default::default(),
         }
     }
@@ -74,9 +75,11 @@ pub(super) const CLEAN: KindFn = step(CleanConfig::KIND, |c| {
 pub(super) const ONNX: KindFn = step(OnnxConfig::KIND, |c| {
     let config: OnnxConfig = c.params()?;
     let mask = MaskFile::read(config.fits_mask.as_deref()).map_err(|e| c.error_caused("fits_mask", e))?;
+    config.given_auto_mask().map_err(|e| c.error_caused("auto_mask", e))?;
     let setup = upstream_imaging_setup(c, config.series.as_os_str() == crate::steps::series::AUTO_SERIES)?;
     let step = StepStage::onnx(config, c.image().size, c.threads, &setup).map_err(|e| c.error_caused("series", e))?;
-    Ok(Built::Stage(Box::new(StepStage { mask, ..step })))
+    let auto_mask = step.step.auto_mask();
+    Ok(Built::Stage(Box::new(StepStage { mask, auto_mask, ..step })))
 });
 
 pub(super) const NATIVE: KindFn = step(NativeConfig::KIND, |c| {
@@ -114,7 +117,7 @@ pub struct StepStage {
     step: Box<dyn NetworkStep>,
     /// The step's `fits_mask`: each job's model is kept to it.
     mask: Option<MaskFile>,
-    /// CLEAN's `auto_mask` level (noise sigmas), for the products' record.
+    /// The `auto_mask` level (noise sigmas) CLEAN or a series applies, for the products' record.
     auto_mask: Option<f64>,
 }
 

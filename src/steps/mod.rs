@@ -77,6 +77,11 @@ pub trait NetworkStep: Send {
     fn early_stop_from(&self) -> usize {
         1
     }
+    /// The `auto_mask` level (noise sigmas) a series keeps its model to
+    /// ([`crate::deconv::EmissionMask`]), given or by default, for the products' record.
+    fn auto_mask(&self) -> Option<f64> {
+        None
+    }
     /// Iteration `iteration` (1-based): the new estimate `x_i`.
     fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>>;
     /// After the last job, before anything the step computed is committed: releases what the

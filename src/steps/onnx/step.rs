@@ -2,6 +2,7 @@
 
 
 use crate::steps::{JobDomain, NetworkStep, StepInput};
+use crate::deconv::{main_lobe_fwhm_px, EmissionMask, DEFAULT_AUTO_MASK};
 use super::check::{check_network, Signature};
 use super::runtime::{BackendChoice, GraphOptimization, Network, Runtime};
 use super::series::{Architecture, ImagingSetup, Series};
@@ -44,12 +45,29 @@ pub struct OnnxConfig {
     /// not zero (the step stage reads it and checks it against each job's grid).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub fits_mask: Option<PathBuf>,
+    /// Keep the model to where the data show emission, found as the series runs: the pixels
+    /// where the residual, smoothed to the beam or wider, has risen above this many of its
+    /// robust standard deviations (`crate::deconv::EmissionMask`; WSClean's `-auto-mask` for
+    /// CLEAN). Unset: 5 on an image more than twice every trained size across, else none; 0:
+    /// none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub auto_mask: Option<f64>,
     /// An image larger than every size the series was trained at: `on` runs each network in
     /// overlapping tiles of the largest trained size, blended (memory bounded by the tile);
     /// `off` on the whole image at once; `auto` (the default) tiles an image more than twice
     /// the trained size across and runs a smaller one whole (faster, the same image).
     #[serde(default)]
     pub tiles: TileMode,
+}
+
+impl OnnxConfig {
+    /// `auto_mask` as given (0: no mask, not even the default one), or an error.
+    pub fn given_auto_mask(&self) -> Result<Option<f64>> {
+        match self.auto_mask {
+            Some(s) if !(s >= 0.0 && s.is_finite()) => Err(Error::parameter("auto_mask", format!("expected a positive number of noise sigmas (or 0: no mask), got {s}"))),
+            given => Ok(given),
+        }
+    }
 }
 
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Deserialize, Serialize)]
@@ -111,6 +129,10 @@ pub struct OnnxStep {
     size_warning: Option<String>,
     /// The networks run in tiles of a trained size (an image larger than every one).
     tiling: Option<super::tiles::Tiling>,
+    /// The level of the emission mask each job's model is kept to: the config's, or by default
+    /// on an image more than twice every trained size across; one mask per job, growing.
+    auto_mask: Option<f64>,
+    emission: std::collections::HashMap<String, EmissionMask>,
 }
 
 type Key = (usize, usize);
@@ -132,6 +154,16 @@ impl OnnxStep {
         let tiling = match tile_edge {
             Some(t) if series.architecture == Architecture::R2d2 && series.check_size(t)?.is_none() => super::tiles::Tiling::new(size, t, t / TILE_OVERLAP_FRACTION),
             _ => None,
+        };
+        // A series run on a field much larger than it was trained on makes emission in the
+        // large empty areas and far sidelobes it never saw (a 512 series diverged at 2048):
+        // its model is kept to where the data show emission unless the user says otherwise.
+        let auto_mask = match config.given_auto_mask()? {
+            Some(s) => Some(s).filter(|&s| s > 0.0),
+            None => largest.filter(|&t| size > 2 * t).map(|t| {
+                log::info!("series '{}' was trained for {t} x {t}: on the {size} x {size} image its model is kept to where the data show emission (auto_mask {}; auto_mask 0 turns that off)", series.name, DEFAULT_AUTO_MASK);
+                DEFAULT_AUTO_MASK
+            }),
         };
         // Said per job (its log line and its metrics), before its first network.
         let size_warning = match &tiling {
@@ -210,6 +242,8 @@ impl OnnxStep {
             validity: config.validity,
             size_warning,
             tiling,
+            auto_mask,
+            emission: Default::default(),
         })
     }
 
@@ -513,7 +547,32 @@ impl NetworkStep for OnnxStep {
         self.series.early_stop_from
     }
 
+    fn auto_mask(&self) -> Option<f64> {
+        self.auto_mask
+    }
+
     fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>> {
+        let mut model = self.next_image(iteration, input)?;
+        if let Some(sigmas) = self.auto_mask {
+            let n = input.size;
+            if iteration == 1 {
+                self.emission.insert(input.job.to_string(), EmissionMask::new(n, main_lobe_fwhm_px(input.psf, n), sigmas));
+            }
+            let mask = self.emission.entry(input.job.to_string()).or_insert_with(|| EmissionMask::new(n, main_lobe_fwhm_px(input.psf, n), sigmas));
+            let joined = mask.grow(if iteration == 1 { input.dirty } else { input.residual });
+            log::debug!("job {}: network {iteration}: {joined} pixels joined the emission mask ({:.2} % of the image)", input.job, 100.0 * mask.fraction());
+            model.iter_mut().zip(mask.inside()).filter(|(_, inside)| !**inside).for_each(|(x, _)| *x = 0.0);
+            if iteration == self.iterations {
+                self.emission.remove(input.job);
+            }
+        }
+        Ok(model)
+    }
+}
+
+impl OnnxStep {
+    /// The series' next image `x_i` for `input`, before any mask.
+    fn next_image(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>> {
         if iteration == 0 || iteration > self.iterations {
             return Err(Error::parameter("iteration", format!("expected 1..={}, got {iteration}", self.iterations)));
         }
@@ -672,6 +731,7 @@ pub(crate) mod tests {
             realisation: None,
             validity: ValidityMode::Warn,
             fits_mask: None,
+            auto_mask: None,
             tiles: TileMode::Auto,
         }
     }
