@@ -1,6 +1,7 @@
 //! Classical deconvolution in the image plane: Högbom CLEAN minor cycles, the final CLEAN's
-//! major cycles on what a series leaves, the restoring beam fitted to the PSF main lobe, and
-//! restoration of a model with that beam.
+//! major cycles on what a series leaves, the restoring beam fitted to the PSF main lobe,
+//! restoration of a model with that beam; and the emission mask a network series' model is
+//! kept to (found from the residual as the series runs).
 //!
 //! Images follow `operator`'s conventions: row-major `x[iy * N + ix]`, PSF peak 1 at
 //! `(N/2, N/2)`, doubled PSF `2N x 2N` with its peak at `(N, N)`. In pixel terms east is `-x`
