@@ -20,7 +20,7 @@ simulator's procedural radio sky). The corruption: phases uniform in +-`--phase-
 amplitudes 1 +- `--amp` (uniform), seeded.
 
 Usage: python3 benches/selfcal.py [--sky compact|extended] [--rounds 3] [--size 512]
-       [--r2d2 target/release/r2d2] [--out DIR] [--seed 1]
+       [--r2d2 target/release/r2d2] [--r2d2-args '--auto-mask 5'] [--out DIR] [--seed 1]
 Needs python-casacore, astropy and WSClean (`apt-get install wsclean`).
 """
 
@@ -139,6 +139,7 @@ def main():
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--r2d2", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "target", "release", "r2d2"))
     p.add_argument("--wsclean", default="wsclean")
+    p.add_argument("--r2d2-args", default="", help="further options for `r2d2 image` (e.g. '--auto-mask 5')")
     p.add_argument("--out", default="selfcal-bench")
     p.add_argument("--json", help="write the figures here too")
     a = p.parse_args()
@@ -179,7 +180,7 @@ def main():
             column = "DATA" if k == 0 else "CORRECTED_DATA"
             name = f"{imager}-r{k}"
             if imager == "r2d2":
-                out = subprocess.run([r2d2, "image", ms, "--size", str(n), "--data-column", column, "--model-column", "MODEL_DATA", "--name", name], cwd=d, capture_output=True, text=True)
+                out = subprocess.run([r2d2, "image", ms, "--size", str(n), "--data-column", column, "--model-column", "MODEL_DATA", "--name", name] + a.r2d2_args.split(), cwd=d, capture_output=True, text=True)
                 if out.returncode not in (0, 3):
                     sys.exit(f"r2d2 image failed:\n{out.stderr[-3000:]}")
                 pixel = abs(fits.getheader(os.path.join(d, f"{name}-model.fits"))["CDELT1"]) * 3600
