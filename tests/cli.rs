@@ -900,7 +900,8 @@ fn a_fits_mask_confines_clean_and_one_on_another_grid_is_refused() {
 }
 
 /// `--auto-mask 5 --auto-threshold 1` (WSClean's usual deep clean): the run converges,
-/// cleans deeper than the auto-threshold alone would leave the sources, and says so.
+/// cleans deeper than the auto-threshold alone would leave the sources, and says so; a series
+/// takes `--auto-mask` as well.
 #[test]
 fn auto_mask_runs_to_convergence_and_is_recorded() {
     let dir = tempfile::tempdir().unwrap();
@@ -914,7 +915,11 @@ fn auto_mask_runs_to_convergence_and_is_recorded() {
     let model = read_image(&d.join("auto-model.fits")).unwrap().data;
     let total: f64 = model.iter().sum();
     assert!((total - 1.55).abs() < 0.05 * 1.55, "model flux {total}");
-    // A network series takes no auto-mask (its final CLEAN has its own).
-    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--auto-mask", "5", "--name", "net"], d);
+    // A network series takes it too (its model kept to where the data show emission), WSClean's
+    // spelling included; the other CLEAN controls are still for CLEAN only.
+    check(&r2d2(&["image", "obs.parquet", "--size", "64", "-auto-mask", "5", "--name", "net"], d));
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("net-metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["settings"]["mask"]["auto_mask"], 5.0);
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "-auto-threshold", "1", "--name", "net2"], d);
     assert!(!out.status.success() && text(&out).contains("are for the step clean"), "{}", text(&out));
 }
