@@ -278,16 +278,16 @@ fn a_series_keeps_its_model_to_where_the_data_show_emission() {
     let d = dir.path();
     observation(d);
     make_models(&d.join("models"), ReferenceOperator::new(&d.join("obs.parquet")).landweber_gain());
-    let run = |extra: &[&str], name: &str| {
-        let mut args = vec!["image", "obs.parquet", "--size", "64", "--step", "models/landweber", "--iterations", "4", "--no-final-clean", "--name", name];
+    // The log and the model of `r2d2 image` with `series` and `extra` options.
+    let run = |series: &str, extra: &[&str], name: &str| {
+        let mut args = vec!["image", "obs.parquet", "--size", "64", "--step", series, "--iterations", "4", "--no-final-clean", "--name", name];
         args.extend(extra);
         let out = r2d2(&args, d);
         check(&out);
-        out
+        (text(&out), read(&d.join(format!("{name}-model.fits"))))
     };
-    run(&[], "open");
-    run(&["--auto-mask", "5"], "masked");
-    let (open, masked) = (read(&d.join("open-model.fits")), read(&d.join("masked-model.fits")));
+    let (_, open) = run("models/landweber", &[], "open");
+    let (_, masked) = run("models/landweber", &["--auto-mask", "5"], "masked");
     let support = |m: &[f64]| m.iter().filter(|&&v| v > 0.0).count();
     assert!(support(&masked) * 3 < support(&open), "masked model on {} pixels, the open one on {}", support(&masked), support(&open));
     let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
@@ -312,17 +312,10 @@ fn a_series_keeps_its_model_to_where_the_data_show_emission() {
     let small = copy_series(&d.join("models/landweber"), &d.join("models/landweber-16"));
     let manifest = std::fs::read_to_string(small.join("manifest.yaml")).unwrap();
     std::fs::write(small.join("manifest.yaml"), manifest.replace(&format!("image_sizes: [{SIZE}]"), "image_sizes: [16]")).unwrap();
-    let by_default = |extra: &[&str], name: &str| {
-        let mut args = vec!["image", "obs.parquet", "--size", "64", "--step", "models/landweber-16", "--iterations", "4", "--no-final-clean", "--name", name];
-        args.extend(extra);
-        let out = r2d2(&args, d);
-        check(&out);
-        (text(&out), read(&d.join(format!("{name}-model.fits"))))
-    };
-    let (log, model) = by_default(&[], "default");
+    let (log, model) = run("models/landweber-16", &[], "default");
     assert!(log.contains("its model is kept to where the data show emission (auto_mask 5"), "{log}");
     assert_eq!(auto_mask("default"), Some(5.0));
-    let (log, unmasked) = by_default(&["--auto-mask", "0"], "off");
+    let (log, unmasked) = run("models/landweber-16", &["--auto-mask", "0"], "off");
     assert!(!log.contains("kept to where the data show emission") && auto_mask("off").is_none(), "{log}");
     assert!(support(&model) * 3 < support(&unmasked), "default mask on {} pixels, none on {}", support(&model), support(&unmasked));
 }

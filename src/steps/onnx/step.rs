@@ -555,8 +555,9 @@ impl NetworkStep for OnnxStep {
         let mut model = self.next_image(iteration, input)?;
         if let Some(sigmas) = self.auto_mask {
             let n = input.size;
+            // A job's mask starts empty at its first network.
             if iteration == 1 {
-                self.emission.insert(input.job.to_string(), EmissionMask::new(n, main_lobe_fwhm_px(input.psf, n), sigmas));
+                self.emission.remove(input.job);
             }
             let mask = self.emission.entry(input.job.to_string()).or_insert_with(|| EmissionMask::new(n, main_lobe_fwhm_px(input.psf, n), sigmas));
             let joined = mask.grow(if iteration == 1 { input.dirty } else { input.residual });
