@@ -89,6 +89,12 @@ pub struct Manifest {
     /// cycle"). Default: every network as trained.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub orientation_cycle: Vec<Orientation>,
+    /// The emission mask (noise sigmas, as the step's `auto_mask`) the series runs with unless
+    /// the step says otherwise, chosen on the validation sets: a series whose networks leave
+    /// low ripples around compact sources then keeps them out of its model. Default: none (on
+    /// an image more than twice its trained size across, a mask is on regardless).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub auto_mask: Option<f64>,
     #[serde(default)]
     pub provenance: serde_yaml::Value,
     #[serde(default)]
@@ -358,6 +364,8 @@ pub struct Series {
     pub edge_padding: usize,
     /// The manifest's `orientation_cycle` (empty: every network as trained).
     pub orientation_cycle: Vec<Orientation>,
+    /// The manifest's `auto_mask` (none without one).
+    pub auto_mask: Option<f64>,
     pub manifest: Option<Manifest>,
     /// How the series was read (for the log and `r2d2 models`).
     pub origin: String,
@@ -443,6 +451,9 @@ impl Series {
             return Err(invalid(path, "layers: expected at least 1"));
         }
         let per_realisation = lists[0].1.len();
+        if let Some(s) = manifest.auto_mask.filter(|s| !(s.is_finite() && *s > 0.0)) {
+            return Err(invalid(path, format!("auto_mask: expected a positive number of noise sigmas, got {s}")));
+        }
         if let Some(from) = manifest.early_stop_from.filter(|&f| f == 0 || f > per_realisation) {
             return Err(invalid(path, format!("early_stop_from: expected a network of the series, 1 to {per_realisation}, got {from}")));
         }
@@ -465,6 +476,7 @@ impl Series {
             early_stop_from: manifest.early_stop_from.unwrap_or(1),
             edge_padding: manifest.edge_padding,
             orientation_cycle: manifest.orientation_cycle.clone(),
+            auto_mask: manifest.auto_mask,
             realisations: lists.len(),
             origin: format!("manifest {}", path.display()),
             manifest: Some(manifest),
@@ -512,6 +524,7 @@ impl Series {
                 early_stop_from: 1,
                 edge_padding: 0,
                 orientation_cycle: Vec::new(),
+                auto_mask: None,
                 realisations: 1,
                 manifest: None,
                 origin: "reference file names R2D2_UNet_N{i}.onnx (no manifest)".into(),
@@ -544,6 +557,7 @@ impl Series {
                 early_stop_from: 1,
                 edge_padding: 0,
                 orientation_cycle: Vec::new(),
+                auto_mask: None,
                 realisations: 1,
                 manifest: None,
                 origin: format!("reference file names R3D3_R2D2Net_{j}Layers_N{{i}} (no manifest)"),
@@ -1027,6 +1041,25 @@ mod tests {
         }
         std::fs::write(&manifest, format!("{text}validity: {{superresolution: [1.5, 2.0], robust: [-1.0, 0.0]}}\n")).unwrap();
         assert!(Series::open(&dir).is_ok());
+    }
+
+    /// A series' own emission-mask level is read; zero, negative or not a number is refused,
+    /// naming the key.
+    #[test]
+    fn a_series_auto_mask_is_read_and_must_be_a_positive_number() {
+        let root = tempfile::tempdir().unwrap();
+        series_dir(root.path(), "s", "[512]", true);
+        let dir = root.path().join("s");
+        assert_eq!(Series::open(&dir).unwrap().auto_mask, None);
+        let manifest = dir.join("manifest.yaml");
+        let text = std::fs::read_to_string(&manifest).unwrap();
+        std::fs::write(&manifest, format!("{text}auto_mask: 5\n")).unwrap();
+        assert_eq!(Series::open(&dir).unwrap().auto_mask, Some(5.0));
+        for bad in ["0", "-1", ".nan", ".inf"] {
+            std::fs::write(&manifest, format!("{text}auto_mask: {bad}\n")).unwrap();
+            let e = Series::open(&dir).err().expect("refused").to_string();
+            assert!(e.contains("auto_mask") && e.contains("positive"), "{bad}: {e}");
+        }
     }
 
     #[test]

@@ -158,12 +158,20 @@ impl OnnxStep {
         // A series run on a field much larger than it was trained on makes emission in the
         // large empty areas and far sidelobes it never saw (a 512 series diverged at 2048):
         // its model is kept to where the data show emission unless the user says otherwise.
+        // A series may name its own level, chosen on its validation sets (its manifest's
+        // `auto_mask`).
         let auto_mask = match config.given_auto_mask()? {
             Some(s) => Some(s).filter(|&s| s > 0.0),
-            None => largest.filter(|&t| size > 2 * t).map(|t| {
-                log::info!("series '{}' was trained for {t} x {t}: on the {size} x {size} image its model is kept to where the data show emission (auto_mask {}; auto_mask 0 turns that off)", series.name, DEFAULT_AUTO_MASK);
-                DEFAULT_AUTO_MASK
-            }),
+            None => match largest.filter(|&t| size > 2 * t) {
+                Some(t) => {
+                    let sigmas = series.auto_mask.unwrap_or(DEFAULT_AUTO_MASK);
+                    log::info!("series '{}' was trained for {t} x {t}: on the {size} x {size} image its model is kept to where the data show emission (auto_mask {sigmas}; auto_mask 0 turns that off)", series.name);
+                    Some(sigmas)
+                }
+                None => series.auto_mask.inspect(|sigmas| {
+                    log::info!("series '{}' keeps its model to where the data show emission (its manifest's auto_mask {sigmas}; auto_mask 0 turns that off)", series.name);
+                }),
+            },
         };
         // Said per job (its log line and its metrics), before its first network.
         let size_warning = match &tiling {
