@@ -84,6 +84,9 @@ fn describe(dir: &std::path::Path, s: &crate::steps::series::Series) -> Result<(
         let turns: Vec<String> = s.orientation_cycle.iter().map(|o| serde_yaml::to_string(o).unwrap_or_default().trim().to_string()).collect();
         out!("    network k sees its images turned by entry (k - 1) mod {} of [{}]", turns.len(), turns.join(", "))?;
     }
+    if let Some(sigmas) = s.auto_mask {
+        out!("    its model is kept to where the data show emission (auto_mask {sigmas} unless the step sets one; 0: none)")?;
+    }
     if s.early_stop_from > 1 {
         out!("    networks 1 to {} always run; the early stop (stalled, converged) applies from network {} on", s.early_stop_from - 1, s.early_stop_from)?;
     }
