@@ -560,28 +560,32 @@ impl NetworkStep for OnnxStep {
     }
 
     fn step(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>> {
-        let mut model = self.next_image(iteration, input)?;
-        if let Some(sigmas) = self.auto_mask {
-            let n = input.size;
-            // A job's mask starts empty at its first network.
-            if iteration == 1 {
-                self.emission.remove(input.job);
-            }
-            let mask = self.emission.entry(input.job.to_string()).or_insert_with(|| EmissionMask::new(n, main_lobe_fwhm_px(input.psf, n), sigmas));
-            let joined = mask.grow(if iteration == 1 { input.dirty } else { input.residual });
-            log::debug!("job {}: network {iteration}: {joined} pixels joined the emission mask ({:.2} % of the image)", input.job, 100.0 * mask.fraction());
-            model.iter_mut().zip(mask.inside()).filter(|(_, inside)| !**inside).for_each(|(x, _)| *x = 0.0);
-            if iteration == self.iterations {
-                self.emission.remove(input.job);
-            }
+        let Some(sigmas) = self.auto_mask else {
+            return self.next_image(iteration, input, None);
+        };
+        let n = input.size;
+        // A job's mask starts empty at its first network, and is grown before the network
+        // runs, from what the network sees, so that tiles wholly outside it need not run.
+        let mut mask = match self.emission.remove(input.job) {
+            Some(mask) if iteration > 1 => mask,
+            _ => EmissionMask::new(n, main_lobe_fwhm_px(input.psf, n), sigmas),
+        };
+        let joined = mask.grow(if iteration == 1 { input.dirty } else { input.residual });
+        log::debug!("job {}: network {iteration}: {joined} pixels joined the emission mask ({:.2} % of the image)", input.job, 100.0 * mask.fraction());
+        let mut model = self.next_image(iteration, input, Some(mask.inside()))?;
+        model.iter_mut().zip(mask.inside()).filter(|(_, inside)| !**inside).for_each(|(x, _)| *x = 0.0);
+        if iteration < self.iterations {
+            self.emission.insert(input.job.to_string(), mask);
         }
         Ok(model)
     }
 }
 
 impl OnnxStep {
-    /// The series' next image `x_i` for `input`, before any mask.
-    fn next_image(&mut self, iteration: usize, input: &StepInput<'_>) -> Result<Vec<f64>> {
+    /// The series' next image `x_i` for `input`, before any mask. Where an emission mask is
+    /// given (true inside), tiles with no pixel inside it are not run: the mask sets their
+    /// pixels to 0 whatever a network makes there (and those pixels come out 0).
+    fn next_image(&mut self, iteration: usize, input: &StepInput<'_>, mask: Option<&[bool]>) -> Result<Vec<f64>> {
         if iteration == 0 || iteration > self.iterations {
             return Err(Error::parameter("iteration", format!("expected 1..={}, got {iteration}", self.iterations)));
         }
@@ -608,7 +612,13 @@ impl OnnxStep {
                 // Each tile's next estimate, as the series makes it for a field of its size,
                 // blended into the image's.
                 let (mut sum, mut weights) = (vec![0.0; input.model.len()], vec![0.0; input.model.len()]);
-                for (x0, y0) in tiling.origins() {
+                let origins = tiling.origins();
+                let mut skipped = 0;
+                for &(x0, y0) in &origins {
+                    if mask.is_some_and(|mask| !tiling.any_set(mask, x0, y0)) {
+                        skipped += 1;
+                        continue;
+                    }
                     // Normalised by the whole image's mean, as without tiles: the networks are
                     // near enough homogeneous that a tile's own mean gave the same residuals.
                     let (a, b) = (tiling.extract(image, x0, y0), tiling.extract(second, x0, y0));
@@ -616,7 +626,10 @@ impl OnnxStep {
                     let x = tiling.extract(input.model, x0, y0);
                     tiling.accumulate(&next_estimate(&x, &increment, alpha), x0, y0, &mut sum, &mut weights);
                 }
-                Ok(sum.iter().zip(&weights).map(|(s, w)| s / w).collect())
+                if skipped > 0 {
+                    log::debug!("job {}: network {iteration}: {skipped} of {} tiles outside the emission mask not run", input.job, origins.len());
+                }
+                Ok(sum.iter().zip(&weights).map(|(s, w)| if *w > 0.0 { s / w } else { 0.0 }).collect())
             }
             Architecture::R3d3 => {
                 let layers = self.plan[iteration - 1].len();
@@ -820,6 +833,39 @@ pub(crate) mod tests {
         }
         // A 64 x 64 image (more than twice 16) is tiled by `auto`.
         assert!(OnnxStep::new(&test_config(series.path()), 64, 1, &ImagingSetup::default()).unwrap().tiling.is_some());
+    }
+
+    /// With an emission mask, tiles wholly outside it are not run, and the models are those
+    /// of every tile run and the mask applied after.
+    #[test]
+    fn tiles_outside_the_emission_mask_are_not_run_and_change_nothing() {
+        let psf = psf_2n();
+        // One source in a corner, over a faint deterministic noise.
+        let mut sky = vec![0.0; N * N];
+        sky[5 * N + 5] = 1.0;
+        let noise = |k: usize| 1e-3 * (((k * 7919) % 1000) as f64 / 500.0 - 1.0);
+        let dirty: Vec<f64> = direct_d(&psf, &sky).iter().enumerate().map(|(k, v)| v + noise(k)).collect();
+        let series = landweber_trained_at_16();
+        let masked = OnnxConfig { tiles: TileMode::On, auto_mask: Some(5.0), ..test_config(series.path()) };
+        let got = run_with(&mut OnnxStep::new(&masked, N, 1, &ImagingSetup::default()).unwrap(), &psf, &dirty);
+        let open = OnnxConfig { tiles: TileMode::On, auto_mask: Some(0.0), ..test_config(series.path()) };
+        let mut every_tile = OnnxStep::new(&open, N, 1, &ImagingSetup::default()).unwrap();
+        let tiling = every_tile.tiling.clone().unwrap();
+        let convolution = PsfConvolution::new(N, &psf).unwrap();
+        let psf_n = vec![0.0; N * N];
+        let mut mask = EmissionMask::new(N, main_lobe_fwhm_px(&psf_n, N), 5.0);
+        let (mut model, mut residual) = (vec![0.0; N * N], dirty.clone());
+        for (i, got) in got.iter().enumerate() {
+            let input = StepInput { job: "job", size: N, model: &model, residual: &residual, dirty: &dirty, psf: &psf_n, psf_2n: &psf, psf_convolution: &convolution, mask: None };
+            mask.grow(if i == 0 { &dirty } else { &residual });
+            let mut expected = every_tile.next_image(i + 1, &input, None).unwrap();
+            expected.iter_mut().zip(mask.inside()).filter(|(_, inside)| !**inside).for_each(|(x, _)| *x = 0.0);
+            assert!(rel(got, &expected) < 1e-12, "iteration {}: {:.2e}", i + 1, rel(got, &expected));
+            model = expected;
+            residual = self::residual(&psf, &dirty, &model);
+        }
+        let outside = tiling.origins().iter().filter(|&&(x0, y0)| !tiling.any_set(mask.inside(), x0, y0)).count();
+        assert!(outside > 0 && model.iter().any(|&v| v > 0.0), "{outside} of {} tiles outside the mask", tiling.count());
     }
 
     fn run_with(step: &mut OnnxStep, psf: &[f64], dirty: &[f64]) -> Vec<Vec<f64>> {

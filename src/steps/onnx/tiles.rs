@@ -64,6 +64,12 @@ impl Tiling {
         (0..t).flat_map(|y| image[(y0 + y) * n + x0..][..t].iter().copied()).collect()
     }
 
+    /// Whether any pixel of the T x T tile of the N x N `mask` at (`x0`, `y0`) is set.
+    pub fn any_set(&self, mask: &[bool], x0: usize, y0: usize) -> bool {
+        let (n, t) = (self.size, self.tile);
+        (0..t).any(|y| mask[(y0 + y) * n + x0..][..t].iter().any(|&inside| inside))
+    }
+
     /// Adds `tile` (at (`x0`, `y0`)) times its blending weights to `sum`, and the weights to
     /// `weights`.
     pub fn accumulate(&self, tile: &[f64], x0: usize, y0: usize, sum: &mut [f64], weights: &mut [f64]) {
