@@ -572,6 +572,9 @@ impl NetworkStep for OnnxStep {
         };
         let joined = mask.grow(if iteration == 1 { input.dirty } else { input.residual });
         log::debug!("job {}: network {iteration}: {joined} pixels joined the emission mask ({:.2} % of the image)", input.job, 100.0 * mask.fraction());
+        if iteration == 1 && joined == 0 {
+            log::warn!("job {}: nothing in the dirty image stands above auto_mask {sigmas} noise sigmas at the beam's scale or wider: the series' model stays empty until something in its residual does (auto_mask 0 turns the mask off)", input.job);
+        }
         let mut model = self.next_image(iteration, input, Some(mask.inside()))?;
         model.iter_mut().zip(mask.inside()).filter(|(_, inside)| !**inside).for_each(|(x, _)| *x = 0.0);
         if iteration < self.iterations {
@@ -597,6 +600,10 @@ impl OnnxStep {
         let first = (iteration - 1) % self.per_realisation == 0;
         match self.series.architecture {
             Architecture::R2d2 => {
+                if mask.is_some_and(|mask| !mask.contains(&true)) {
+                    // Nothing found yet: the mask would set every pixel to 0.
+                    return Ok(vec![0.0; input.model.len()]);
+                }
                 let zero;
                 let (image, second, what) = if first {
                     zero = vec![0.0; input.dirty.len()];
