@@ -260,7 +260,7 @@ pub struct StepOptions {
     /// where components were taken, down to auto-threshold, as WSClean's -auto-mask. A
     /// series: keep the model to where the residual, smoothed to the beam or wider, has risen
     /// above this many of its noise sigmas (default 5 on an image more than twice the series'
-    /// trained size across, else none; 0: none).
+    /// trained size across, else the level its manifest names, if any; 0: none).
     #[arg(long)]
     pub auto_mask: Option<f64>,
     /// A FITS mask on the image's grid (same size, pixel and centre; further axes of length
