@@ -325,10 +325,6 @@ impl CleanControls {
     }
 }
 
-/// Major cycles of `r2d2 image --step clean` when `-niter` bounds the work and no
-/// `--iterations` is given: enough for the thresholds and `-niter` to end the loop first.
-const CLEAN_MAJOR_CYCLES_WITH_NITER: usize = 20;
-
 pub use crate::steps::runtime::{BackendChoice, GraphOptimization};
 
 /// An [`ImageRequest`] resolved into what the pipeline is built from: typed choices, each
@@ -662,7 +658,7 @@ fn step_stage(params: &ImagePlan, clean_because: Option<String>) -> Result<Stage
         StepChoice::Clean => {
             let c = params.clean;
             let defaults = CleanParams::default();
-            let cycles = params.iterations.unwrap_or(if c.niter.is_some() { CLEAN_MAJOR_CYCLES_WITH_NITER } else { defaults.major_cycles });
+            let cycles = params.iterations.unwrap_or(defaults.major_cycles);
             StageSpec::typed(
                 "step",
                 &CleanParams {

@@ -236,7 +236,7 @@ pub struct StepOptions {
     /// CLEAN), or a native plugin library (`.so`, `.dylib`, `.dll`).
     #[arg(long, default_value = crate::steps::series::AUTO_SERIES)]
     pub step: String,
-    /// Iterations of the step: CLEAN major cycles (default 5), the first networks of a series
+    /// Iterations of the step: CLEAN major cycles (default 20, WSClean's -nmiter), the first networks of a series
     /// (default: all), or the steps of a native plugin (default 10).
     #[arg(long)]
     pub iterations: Option<usize>,

@@ -105,8 +105,10 @@ fn gain() -> f64 {
 fn components() -> usize {
     1000
 }
+/// WSClean's `-nmiter` default: enough major cycles for the thresholds to end the loop on
+/// most fields (it stops early where a cycle takes nothing).
 fn cycles() -> usize {
-    5
+    20
 }
 
 pub struct CleanStep {
