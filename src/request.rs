@@ -240,8 +240,7 @@ pub struct StepOptions {
     /// (default: all), or the steps of a native plugin (default 10).
     #[arg(long)]
     pub iterations: Option<usize>,
-    /// CLEAN (step clean): most components over all major cycles, as WSClean's -niter
-    /// (with it, up to 20 major cycles unless iterations says otherwise).
+    /// CLEAN (step clean): most components over all major cycles, as WSClean's -niter.
     #[arg(long)]
     pub niter: Option<usize>,
     /// CLEAN: minor-cycle loop gain, as WSClean's -gain (default 0.1).
