@@ -345,7 +345,7 @@ struct ImagePlan {
     uv: crate::weighting::UvControls,
     restoring_beam: crate::params::RestoringBeam,
     epsilon: f64,
-    oversampling: f64,
+    oversampling: Option<f64>,
     w_term: crate::operator::WTermMode,
     hold_mb: f64,
     threads: usize,

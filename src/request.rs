@@ -95,9 +95,10 @@ pub struct GridOptions {
     /// NUFFT accuracy (relative).
     #[arg(long, default_value_t = crate::nufft::DEFAULT_EPSILON)]
     pub epsilon: f64,
-    /// NUFFT oversampling factor.
-    #[arg(long, default_value_t = crate::nufft::DEFAULT_OVERSAMPLING)]
-    pub oversampling: f64,
+    /// NUFFT oversampling factor [default: 2; a residual update through the w-term operator
+    /// with its samples held takes the cheaper of 1.5 and 2 for the data].
+    #[arg(long)]
+    pub oversampling: Option<f64>,
     /// The w-term: auto (corrected by w-gridding where it turns a phase by more than the
     /// accuracy over the field), on, or off (coplanar, for comparison).
     #[arg(long, default_value = "auto", value_parser = PossibleValuesParser::new(["auto", "on", "off"]).try_map(|name| WTermMode::from_name(&name)))]
@@ -155,7 +156,7 @@ impl GridOptions {
             },
             weighting: self.weighting()?.unwrap_or(crate::weighting::DEFAULT_WEIGHTING),
             grid_factor: self.weighting_grid_factor.unwrap_or(crate::weighting::DEFAULT_GRID_FACTOR),
-            nufft: crate::nufft::NufftParams { epsilon: self.epsilon, oversampling: self.oversampling },
+            nufft: crate::nufft::NufftParams { epsilon: self.epsilon, oversampling: self.oversampling.unwrap_or(crate::nufft::DEFAULT_OVERSAMPLING) },
             w_term: self.w_term,
             threads: self.threads,
             uv: self.uv()?,
@@ -582,7 +583,7 @@ mod tests {
         let r = ImageRequest::default();
         assert_eq!(r.grid.size, DEFAULT_SIZE);
         assert_eq!(r.grid.epsilon, crate::nufft::DEFAULT_EPSILON);
-        assert_eq!(r.grid.oversampling, crate::nufft::DEFAULT_OVERSAMPLING);
+        assert_eq!(r.grid.oversampling, None);
         assert_eq!(r.grid.weighting_grid_factor, None);
         assert_eq!(r.hold_mb, crate::params::DEFAULT_HOLD_MB);
         assert_eq!((r.grid.superresolution, r.grid.weighting.as_deref(), r.name.as_deref()), (None, None, None));

@@ -46,6 +46,10 @@ pub struct PlanParams {
     /// Only the images are asked for (no stage after the gridder applies `D`): no form of `D`
     /// is planned, and the samples are gridded a chunk at a time as read.
     pub images_only: bool,
+    /// No oversampling was asked for: an operator that holds its samples and corrects the
+    /// w-term chooses its own (`nufft::wgrid::operator_oversampling`); everything else uses
+    /// `nufft`'s.
+    pub operator_oversampling_chosen: bool,
 }
 
 /// The job's samples, as far as the plan needs to know them.
@@ -268,7 +272,7 @@ mod tests {
     use super::*;
 
     fn params(w_term: WTermMode, hold_mb: f64, keep_operator: bool) -> PlanParams {
-        PlanParams { nufft: NufftParams::default(), w_term, hold_bytes: hold_mb * 1e6, chunk_rows: 1000, threads: 1, keep_operator, images_only: false }
+        PlanParams { nufft: NufftParams::default(), w_term, hold_bytes: hold_mb * 1e6, chunk_rows: 1000, threads: 1, keep_operator, images_only: false, operator_oversampling_chosen: true }
     }
 
     fn samples(count: u64, streamed: bool, in_parts: bool) -> Samples {

@@ -25,7 +25,7 @@ impl GridderStage {
     /// `keep_operator`: a stage after it runs the exact NUFFT round trip; `images_only`: no
     /// stage after it applies `D` (no residual update), so no form of `D` is made.
     pub fn new(config: GridderParams, threads: usize, keep_operator: bool, images_only: bool) -> Result<GridderStage> {
-        let nufft = NufftParams { epsilon: config.epsilon, oversampling: config.oversampling };
+        let nufft = NufftParams { epsilon: config.epsilon, oversampling: config.oversampling.unwrap_or(crate::nufft::DEFAULT_OVERSAMPLING) };
         crate::nufft::kernel::KernelShape::for_accuracy(nufft.epsilon, nufft.oversampling)?;
         if !(config.hold_mb >= 0.0) || !config.hold_mb.is_finite() {
             return Err(Error::parameter("hold_mb", format!("expected a number of megabytes >= 0, got {}", config.hold_mb)));
@@ -34,7 +34,7 @@ impl GridderStage {
         if config.chunk_rows == 0 {
             return Err(Error::parameter("chunk_rows", "expected at least 1 sample per chunk"));
         }
-        Ok(GridderStage { params: PlanParams { nufft, w_term: config.w_term, hold_bytes: config.hold_mb * 1e6, chunk_rows: config.chunk_rows, threads, keep_operator, images_only }, restoring_beam: config.restoring_beam })
+        Ok(GridderStage { params: PlanParams { nufft, w_term: config.w_term, hold_bytes: config.hold_mb * 1e6, chunk_rows: config.chunk_rows, threads, keep_operator, images_only, operator_oversampling_chosen: config.oversampling.is_none() }, restoring_beam: config.restoring_beam })
     }
 }
 

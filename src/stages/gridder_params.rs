@@ -13,8 +13,11 @@ use serde::{Deserialize, Serialize};
 pub struct GridderParams {
     /// NUFFT relative accuracy; default 1e-6.
     pub epsilon: f64,
-    /// Oversampling of the NUFFT's grid; default 2.
-    pub oversampling: f64,
+    /// Oversampling of the NUFFT's grid. Unset (the default): 2, except for an operator that
+    /// holds its samples and corrects the w-term, applied at every residual update, which
+    /// takes the cheaper of 1.5 and 2 for its data (`nufft::wgrid::operator_oversampling`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub oversampling: Option<f64>,
     /// The w-term: `auto` (default: included by w-gridding where it turns a phase by more
     /// than `epsilon` over the field), `on` or `off` (coplanar, for comparison).
     pub w_term: WTermMode,
@@ -81,8 +84,8 @@ pub const DEFAULT_CHUNK_ROWS: usize = 1 << 20;
 
 impl Default for GridderParams {
     fn default() -> Self {
-        let NufftParams { epsilon, oversampling } = NufftParams::default();
-        GridderParams { epsilon, oversampling, w_term: WTermMode::Auto, hold_mb: DEFAULT_HOLD_MB, chunk_rows: DEFAULT_CHUNK_ROWS, restoring_beam: RestoringBeam::Fit }
+        let NufftParams { epsilon, .. } = NufftParams::default();
+        GridderParams { epsilon, oversampling: None, w_term: WTermMode::Auto, hold_mb: DEFAULT_HOLD_MB, chunk_rows: DEFAULT_CHUNK_ROWS, restoring_beam: RestoringBeam::Fit }
     }
 }
 

@@ -152,7 +152,14 @@ fn held(id: &str, source: VisSource, rule: WeightRule, plan: &OperatorPlan) -> R
         vis.imaging_weight = Vec::new();
     }
     let mode = if plan.w_term { WTermMode::On } else { WTermMode::Off };
-    let operator = MeasurementOperator::for_mode(mode, geometry, &vis.u, &vis.v, &vis.w, &weight, params.nufft, params.threads)?;
+    // Applied at every update, its grids' FFTs are what the w-term costs: with few samples a
+    // smaller grid and a wider kernel are cheaper, and hold less memory.
+    let mut nufft = params.nufft;
+    if plan.w_term && params.operator_oversampling_chosen {
+        nufft.oversampling = crate::nufft::wgrid::operator_oversampling(geometry.size, geometry.pixel_rad, &vis.w, nufft.epsilon);
+        log::debug!("job {id}: the w-term operator grids at oversampling {}", nufft.oversampling);
+    }
+    let operator = MeasurementOperator::for_mode(mode, geometry, &vis.u, &vis.v, &vis.w, &weight, nufft, params.threads)?;
     let (dirty, psf) = operator.dirty_image_and_psf(&vis.vis);
     let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, operator.kappa(), params.nufft, params.threads)?;
     let mut w_taylor = None;
