@@ -153,7 +153,7 @@ fn held(id: &str, source: VisSource, rule: WeightRule, plan: &OperatorPlan) -> R
     }
     let mode = if plan.w_term { WTermMode::On } else { WTermMode::Off };
     // Applied at every update, its grids' FFTs are what the w-term costs: with few samples a
-    // smaller grid and a wider kernel are cheaper, and hold less memory.
+    // smaller grid and a wider kernel are cheaper, and take less memory.
     let mut nufft = params.nufft;
     if plan.w_term && params.operator_oversampling_chosen {
         nufft.oversampling = crate::nufft::wgrid::operator_oversampling(geometry.size, geometry.pixel_rad, &vis.w, nufft.epsilon);
@@ -161,11 +161,13 @@ fn held(id: &str, source: VisSource, rule: WeightRule, plan: &OperatorPlan) -> R
     }
     let operator = MeasurementOperator::for_mode(mode, geometry, &vis.u, &vis.v, &vis.w, &weight, nufft, params.threads)?;
     let (dirty, psf) = operator.dirty_image_and_psf(&vis.vis);
-    let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, operator.kappa(), params.nufft, params.threads)?;
+    // The doubled PSF's grid (twice the field's) is the largest the job makes: at the same
+    // oversampling.
+    let psf_2n = doubled_psf(geometry, &vis.u, &vis.v, &weight, operator.kappa(), nufft, params.threads)?;
     let mut w_taylor = None;
     if plan.taylor {
         let (u, v, w, kappa) = (&vis.u, &vis.v, &vis.w, operator.kappa());
-        let kernel = |order| doubled_psf_of(geometry, u, v, &weight, |k| kernel_factor(w[k], order), kappa, params.nufft, params.threads);
+        let kernel = |order| doubled_psf_of(geometry, u, v, &weight, |k| kernel_factor(w[k], order), kappa, nufft, params.threads);
         w_taylor = plan::taylor_series(geometry, params, &psf_2n, &dirty, || Ok(operator.apply_normal(&dirty)), kernel, |r| log_reason(id, r))?;
     }
     if !keep {
