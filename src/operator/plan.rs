@@ -49,7 +49,7 @@ pub struct PlanParams {
     /// No oversampling was asked for: an operator that holds its samples and corrects the
     /// w-term chooses its own (`nufft::wgrid::operator_oversampling`); everything else uses
     /// `nufft`'s.
-    pub operator_oversampling_chosen: bool,
+    pub operator_chooses_oversampling: bool,
 }
 
 /// The job's samples, as far as the plan needs to know them.
@@ -272,7 +272,7 @@ mod tests {
     use super::*;
 
     fn params(w_term: WTermMode, hold_mb: f64, keep_operator: bool) -> PlanParams {
-        PlanParams { nufft: NufftParams::default(), w_term, hold_bytes: hold_mb * 1e6, chunk_rows: 1000, threads: 1, keep_operator, images_only: false, operator_oversampling_chosen: true }
+        PlanParams { nufft: NufftParams::default(), w_term, hold_bytes: hold_mb * 1e6, chunk_rows: 1000, threads: 1, keep_operator, images_only: false, operator_chooses_oversampling: true }
     }
 
     fn samples(count: u64, streamed: bool, in_parts: bool) -> Samples {

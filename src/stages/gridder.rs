@@ -34,7 +34,7 @@ impl GridderStage {
         if config.chunk_rows == 0 {
             return Err(Error::parameter("chunk_rows", "expected at least 1 sample per chunk"));
         }
-        Ok(GridderStage { params: PlanParams { nufft, w_term: config.w_term, hold_bytes: config.hold_mb * 1e6, chunk_rows: config.chunk_rows, threads, keep_operator, images_only, operator_oversampling_chosen: config.oversampling.is_none() }, restoring_beam: config.restoring_beam })
+        Ok(GridderStage { params: PlanParams { nufft, w_term: config.w_term, hold_bytes: config.hold_mb * 1e6, chunk_rows: config.chunk_rows, threads, keep_operator, images_only, operator_chooses_oversampling: config.oversampling.is_none() }, restoring_beam: config.restoring_beam })
     }
 }
 

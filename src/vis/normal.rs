@@ -155,7 +155,7 @@ fn held(id: &str, source: VisSource, rule: WeightRule, plan: &OperatorPlan) -> R
     // Applied at every update, its grids' FFTs are what the w-term costs: with few samples a
     // smaller grid and a wider kernel are cheaper, and take less memory.
     let mut nufft = params.nufft;
-    if plan.w_term && params.operator_oversampling_chosen {
+    if plan.w_term && params.operator_chooses_oversampling {
         nufft.oversampling = crate::nufft::wgrid::operator_oversampling(geometry.size, geometry.pixel_rad, &vis.w, nufft.epsilon);
         log::debug!("job {id}: the w-term operator grids at oversampling {}", nufft.oversampling);
     }

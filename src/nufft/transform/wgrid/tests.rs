@@ -236,6 +236,15 @@ fn kernel_transform_interpolant_matches_quadrature() {
     }
 }
 
+/// Forward and adjoint errors of `p` on the real image `f` and the visibilities `vis`,
+/// against the direct sums (the adjoint's real part, what a real plan gives).
+fn real_errors(p: &WGridPlan, c: &Case, f: &[f64], vis: &[Complex64]) -> (f64, f64) {
+    let as_complex = |x: &[f64]| -> Vec<Complex64> { x.iter().map(|&x| Complex64::new(x, 0.0)).collect() };
+    let exact_fwd = forward_w(c.size, c.pixel, &c.u, &c.v, &c.w, &as_complex(f));
+    let exact_adj: Vec<Complex64> = adjoint_w(c.size, c.pixel, &c.u, &c.v, &c.w, vis).iter().map(|z| Complex64::new(z.re, 0.0)).collect();
+    (relative_error(&p.forward_real(f), &exact_fwd), relative_error(&as_complex(&p.adjoint_real(vis)), &exact_adj))
+}
+
 #[test]
 fn real_plan_matches_direct_sum_with_fewer_planes() {
     let c = case(20.0, 48, 400, (-1.0, 1.0), 12);
@@ -248,15 +257,9 @@ fn real_plan_matches_direct_sum_with_fewer_planes() {
     assert!(span(&real) <= span(&complex) / 2 + 1, "{} vs {} planes", real.planes(), complex.planes());
     let mut rng = ChaCha8Rng::seed_from_u64(13);
     let f: Vec<f64> = (0..c.size * c.size).map(|_| rng.gen_range(-1.0..1.0)).collect();
-    let fc: Vec<Complex64> = f.iter().map(|&x| Complex64::new(x, 0.0)).collect();
     let vis = random_complex(c.u.len(), 14);
-    let exact_fwd = forward_w(c.size, c.pixel, &c.u, &c.v, &c.w, &fc);
-    let exact_adj: Vec<Complex64> =
-        adjoint_w(c.size, c.pixel, &c.u, &c.v, &c.w, &vis).iter().map(|z| Complex64::new(z.re, 0.0)).collect();
-    let as_complex = |x: Vec<f64>| -> Vec<Complex64> { x.into_iter().map(|x| Complex64::new(x, 0.0)).collect() };
     for (name, p) in [("real", &real), ("complex", &complex)] {
-        let fwd = relative_error(&p.forward_real(&f), &exact_fwd);
-        let adj = relative_error(&as_complex(p.adjoint_real(&vis)), &exact_adj);
+        let (fwd, adj) = real_errors(p, &c, &f, &vis);
         assert!(fwd <= 2.0 * eps && adj <= 2.0 * eps, "{name} plan: forward {fwd:e}, adjoint {adj:e}");
     }
     // Adjoint for the real inner products.
@@ -297,11 +300,8 @@ fn operator_oversampling_is_the_cheaper_of_1_5_and_2_and_keeps_the_accuracy() {
     let plan = WGridPlan::new_real(c.size, c.pixel, &c.u, &c.v, &c.w, NufftParams { epsilon: eps, oversampling: 1.5 }, 2).unwrap();
     let mut rng = ChaCha8Rng::seed_from_u64(17);
     let f: Vec<f64> = (0..c.size * c.size).map(|_| rng.gen_range(-1.0..1.0)).collect();
-    let fc: Vec<Complex64> = f.iter().map(|&x| Complex64::new(x, 0.0)).collect();
     let vis = random_complex(c.u.len(), 18);
-    let fwd = relative_error(&plan.forward_real(&f), &forward_w(c.size, c.pixel, &c.u, &c.v, &c.w, &fc));
-    let exact_adj: Vec<Complex64> = adjoint_w(c.size, c.pixel, &c.u, &c.v, &c.w, &vis).iter().map(|z| Complex64::new(z.re, 0.0)).collect();
-    let adj = relative_error(&plan.adjoint_real(&vis).into_iter().map(|x| Complex64::new(x, 0.0)).collect::<Vec<_>>(), &exact_adj);
+    let (fwd, adj) = real_errors(&plan, &c, &f, &vis);
     assert!(fwd <= eps && adj <= eps, "forward {fwd:e}, adjoint {adj:e} at oversampling 1.5");
 }
 
