@@ -150,7 +150,15 @@ impl<T> Cleaning<'_, '_, T> {
             Some(mask) => self.residual.iter().zip(mask).filter(|(_, inside)| **inside).fold(0.0f64, |m, (v, _)| m.max(v.abs())),
             None => max_abs(&self.residual),
         };
-        let level = ((1.0 - c.major_gain) * peak).max(sigmas * robust_sigma(&self.residual));
+        let threshold = sigmas * robust_sigma(&self.residual);
+        // A peak this close to the threshold has reached it: the noise, measured afresh on
+        // each exact residual, falls a little with each cycle and the threshold with it, so
+        // chasing it costs a major cycle (an exact residual) for a handful of components.
+        if peak <= THRESHOLD_REACHED * threshold {
+            log::debug!("final CLEAN: {} peak {peak:.3e} Jy/beam within {THRESHOLD_REACHED} of the threshold {threshold:.3e}: reached", if mask.is_some() { "masked" } else { "open" });
+            return Ok(None);
+        }
+        let level = ((1.0 - c.major_gain) * peak).max(threshold);
         let params = HogbomParams { gain: c.gain, threshold: level, max_components: c.components_per_cycle, positive_only: false, mask: mask.map(<[bool]>::to_vec) };
         let found = hogbom(&self.residual, self.input.psf_2n, n, &params);
         log::debug!("final CLEAN: {} cycle from peak {peak:.3e} to {level:.3e} Jy/beam: {} components, stopped at {:.3e}", if mask.is_some() { "masked" } else { "open" }, found.n_components, found.last_peak);
@@ -306,6 +314,11 @@ fn compact_island_pixels(model: &[f64], n: usize, max_pixels: usize, min_flux: f
     compact
 }
 
+/// A phase's threshold counts as reached where the residual's peak is within this factor of
+/// it (WSClean ends its cycles once a minor loop reaches its threshold, without looking at the
+/// next residual at all).
+const THRESHOLD_REACHED: f64 = 1.05;
+
 /// Islands fainter than this many times the residual's noise (in Jy, the flux of a point
 /// source of that peak) are left as the step drew them: noise alone makes their fluxes
 /// uncertain by a tenth or more, and cleaning them deeper turns noise into model.
@@ -331,7 +344,8 @@ fn max_abs(v: &[f64]) -> f64 {
     v.iter().fold(0.0f64, |m, x| m.max(x.abs()))
 }
 
-/// The stages of the final CLEAN's cycles: each goes on until a cycle takes nothing.
+/// The stages of the final CLEAN's cycles: each goes on until a cycle takes nothing or its
+/// residual's peak has reached its threshold ([`THRESHOLD_REACHED`]).
 enum Phase {
     /// The whole image, down to `auto_mask` sigmas.
     Open,
@@ -370,6 +384,47 @@ mod tests {
         model[5 * n + 5] = 1.0;
         assert!(compact_island_pixels(&model, n, 9, 1.0).is_empty());
         assert_eq!(compact_island_pixels(&model, n, 10, 1.0).len(), 10);
+    }
+
+    /// Noise of robust sigma about 1 with one pixel at `peak` sigmas, a narrow Gaussian PSF,
+    /// and how many exact residuals the final CLEAN asked for.
+    fn major_cycles_for_a_peak_of(peak: f64) -> (usize, usize) {
+        use rand::SeedableRng;
+        use rand_distr::Distribution;
+        let n = 32;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let noise = rand_distr::Normal::new(0.0, 1.0).unwrap();
+        let mut dirty: Vec<f64> = (0..n * n).map(|_| noise.sample(&mut rng)).collect();
+        let sigma = crate::metrics::robust_sigma(&dirty);
+        dirty[16 * n + 16] = peak * sigma;
+        let gauss = |dx: f64, dy: f64| (-(dx * dx + dy * dy) / 2.0).exp();
+        let psf: Vec<f64> = (0..n * n).map(|k| gauss((k % n) as f64 - 16.0, (k / n) as f64 - 16.0)).collect();
+        let m = 2 * n;
+        let psf_2n: Vec<f64> = (0..m * m).map(|k| gauss((k % m) as f64 - n as f64, (k / m) as f64 - n as f64)).collect();
+        let input = CleanInput { n, dirty: &dirty, psf: &psf, psf_2n: &psf_2n, mask: None };
+        let mut residuals = 0;
+        let mut residual_of = |x: &[f64]| -> Result<Vec<f64>> {
+            residuals += 1;
+            let mut r = dirty.clone();
+            for (j, &xj) in x.iter().enumerate().filter(|(_, v)| **v != 0.0) {
+                let (sx, sy) = (j % n, j / n);
+                for (k, v) in r.iter_mut().enumerate() {
+                    *v -= xj * psf_2n[(k / n + n - sy) * m + (k % n + n - sx)];
+                }
+            }
+            Ok(r)
+        };
+        let outcome = final_clean(&FinalCleanParams::default(), &input, vec![0.0; n * n], dirty.clone(), &mut residual_of, &mut |_, _, _| ()).unwrap();
+        (outcome.cycles, residuals)
+    }
+
+    /// The open phase cleans to `auto_mask` (5) sigmas: a peak within THRESHOLD_REACHED of
+    /// that has reached it and costs no exact residual; one above it is cleaned.
+    #[test]
+    fn a_peak_within_reach_of_the_threshold_costs_no_major_cycle() {
+        assert_eq!(major_cycles_for_a_peak_of(5.0 * 1.03), (0, 0));
+        let (cycles, residuals) = major_cycles_for_a_peak_of(5.0 * 1.5);
+        assert!(cycles >= 1 && residuals >= 1, "{cycles} cycles, {residuals} residuals");
     }
 
     #[test]
