@@ -46,9 +46,9 @@ pub struct PlanParams {
     /// Only the images are asked for (no stage after the gridder applies `D`): no form of `D`
     /// is planned, and the samples are gridded a chunk at a time as read.
     pub images_only: bool,
-    /// No oversampling was asked for: an operator that holds its samples and corrects the
-    /// w-term chooses its own (`nufft::wgrid::operator_oversampling`); everything else uses
-    /// `nufft`'s.
+    /// No oversampling was asked for: an operator that corrects the w-term, its samples held
+    /// or read again at each update, chooses its own (`nufft::wgrid::operator_oversampling`);
+    /// everything else uses `nufft`'s.
     pub operator_chooses_oversampling: bool,
 }
 

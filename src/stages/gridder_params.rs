@@ -14,8 +14,8 @@ pub struct GridderParams {
     /// NUFFT relative accuracy; default 1e-6.
     pub epsilon: f64,
     /// Oversampling of the NUFFT's grid. Unset (the default): 2, except for an operator that
-    /// holds its samples and corrects the w-term, applied at every residual update, which
-    /// takes the cheaper of 1.5 and 2 for its data (`nufft::wgrid::operator_oversampling`).
+    /// corrects the w-term, applied at every residual update (its samples held or read again),
+    /// which takes the cheaper of 1.5 and 2 for its data (`nufft::wgrid::operator_oversampling`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub oversampling: Option<f64>,
     /// The w-term: `auto` (default: included by w-gridding where it turns a phase by more
@@ -74,8 +74,10 @@ impl RestoringBeam {
     }
 }
 
-/// The default of [`GridderParams::hold_mb`].
-pub const DEFAULT_HOLD_MB: f64 = 256.0;
+/// The default of [`GridderParams::hold_mb`]: a MeerKAT track averaged to a minute (about 4
+/// million samples, 400 MB) is held; read again at each update in chunks, each chunk would
+/// pay its own w-planes' FFTs.
+pub const DEFAULT_HOLD_MB: f64 = 512.0;
 
 /// The default of [`GridderParams::chunk_rows`]: large enough that a chunk's fixed cost
 /// (sorting, merging its tiles into the grids, a w-gridded chunk's plane FFTs) is small beside

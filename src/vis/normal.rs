@@ -113,7 +113,13 @@ fn streamed(id: &str, source: VisSource, rule: WeightRule, plan: &OperatorPlan, 
         VisSource::Streamed(table) => Some(table.read_by_each_pass()),
         _ => Some("the file".into()),
     };
-    let pass = pass(plan, &rule, plan.w_term, chunk_rows);
+    let mut pass = pass(plan, &rule, plan.w_term, chunk_rows);
+    if plan.w_term && plan.params.operator_chooses_oversampling {
+        // As for samples held (below), from what is known of samples not at hand.
+        let (geometry, samples) = (plan.geometry, plan.samples);
+        pass.oversampling = crate::nufft::wgrid::operator_oversampling_of(geometry.size, geometry.pixel_rad, samples.count as usize, samples.max_abs_w, pass.epsilon);
+        log::debug!("job {id}: the w-term operator grids at oversampling {}", pass.oversampling);
+    }
     let g = StreamedOperator::grid(source, rule, pass)?;
     let mut w_taylor = None;
     if plan.taylor {

@@ -96,7 +96,7 @@ pub fn max_w_phase(size: usize, pixel_rad: f64, w_max_abs: f64) -> f64 {
 /// a tie either choice is about as fast. `real`: for a [`WGridPlan::new_real`] plan.
 /// Falls back to 2 if nothing else reaches `epsilon` (or the field is not valid).
 pub fn suggested_oversampling(size: usize, pixel_rad: f64, w: &[f64], real: bool, epsilon: f64) -> f64 {
-    cheapest_oversampling(&[1.25, 1.5, 2.0], size, pixel_rad, w, real, epsilon)
+    cheapest_oversampling(&[1.25, 1.5, 2.0], size, pixel_rad, w.len(), w_span(w, real), epsilon)
 }
 
 /// The oversampling of a real-image plan applied again and again (the imaging operator's
@@ -105,15 +105,30 @@ pub fn suggested_oversampling(size: usize, pixel_rad: f64, w: &[f64], real: bool
 /// regular, and on a 2048 x 2048 field asked for 1e-6 its gridding came out at 1.6e-6
 /// (`r2d2 bench wgridder --size 2048 --fov 0.229 --epsilon 1e-6 --oversampling 1.25`).
 pub fn operator_oversampling(size: usize, pixel_rad: f64, w: &[f64], epsilon: f64) -> f64 {
-    cheapest_oversampling(&[1.5, 2.0], size, pixel_rad, w, true, epsilon)
+    cheapest_oversampling(&[1.5, 2.0], size, pixel_rad, w.len(), w_span(w, true), epsilon)
 }
 
-fn cheapest_oversampling(candidates: &[f64], size: usize, pixel_rad: f64, w: &[f64], real: bool, epsilon: f64) -> f64 {
-    let Some(t_min) = t_min(size, pixel_rad) else { return 2.0 };
-    let dt = -0.5 * t_min;
+/// [`operator_oversampling`] for samples not at hand (read from their file at each update):
+/// `points` of them, their `|w|` taken to span `0..=max_abs_w` (the shortest baselines'
+/// |w| is near 0 on any observation).
+pub fn operator_oversampling_of(size: usize, pixel_rad: f64, points: usize, max_abs_w: f64, epsilon: f64) -> f64 {
+    cheapest_oversampling(&[1.5, 2.0], size, pixel_rad, points, max_abs_w.abs(), epsilon)
+}
+
+/// The range of `w` (of `|w|` for a real-image plan, which folds the two signs together).
+fn w_span(w: &[f64], real: bool) -> f64 {
     let folded = |w: f64| if real { w.abs() } else { w };
     let (lo, hi) = w.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| (a.min(folded(x)), b.max(folded(x))));
-    let span = if w.is_empty() { 0.0 } else { hi - lo };
+    if w.is_empty() {
+        0.0
+    } else {
+        hi - lo
+    }
+}
+
+fn cheapest_oversampling(candidates: &[f64], size: usize, pixel_rad: f64, points: usize, span: f64, epsilon: f64) -> f64 {
+    let Some(t_min) = t_min(size, pixel_rad) else { return 2.0 };
+    let dt = -0.5 * t_min;
     let single = negligible_w(span, dt, epsilon);
     let cost = |sigma: f64| -> Option<f64> {
         let eps = kernel_epsilon(single, epsilon);
@@ -121,9 +136,9 @@ fn cheapest_oversampling(candidates: &[f64], size: usize, pixel_rad: f64, w: &[f
         let g = super::good_fft_size((size as f64 * sigma).ceil() as usize);
         if single {
             let g = g as f64;
-            return Some(SPREAD_COST * w.len() as f64 * (shape.support * shape.support) as f64 + FFT_COST * g * g * g.log2());
+            return Some(SPREAD_COST * points as f64 * (shape.support * shape.support) as f64 + FFT_COST * g * g * g.log2());
         }
-        w_kernel_choice(eps, span, dt, w.len(), shape.support, g).map(|c| c.cost(w.len(), shape.support, g))
+        w_kernel_choice(eps, span, dt, points, shape.support, g).map(|c| c.cost(points, shape.support, g))
     };
     candidates
         .iter()

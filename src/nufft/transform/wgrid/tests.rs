@@ -295,6 +295,13 @@ fn operator_oversampling_is_the_cheaper_of_1_5_and_2_and_keeps_the_accuracy() {
     let c = case(15.0, 512, 1000, (-1.0, 1.0), 15);
     assert_eq!(operator_oversampling(c.size, c.pixel, &c.w, 1e-5), 1.5, "1.25, the cost model's own choice here, is left out");
     assert_eq!(operator_oversampling(64, 1e-4, &vec![0.0; 2_000_000], 1e-5), 2.0);
+    // Samples not at hand (read again at each update): their number and largest |w| choose
+    // alike where their |w| reach from 0.
+    let max_abs_w = c.w.iter().fold(0.0f64, |m, w| m.max(w.abs()));
+    let from_zero: Vec<f64> = c.w.iter().map(|w| w.abs()).chain([0.0]).collect();
+    assert_eq!(operator_oversampling_of(c.size, c.pixel, from_zero.len(), max_abs_w, 1e-5), operator_oversampling(c.size, c.pixel, &from_zero, 1e-5));
+    assert_eq!(operator_oversampling_of(c.size, c.pixel, c.w.len(), max_abs_w, 1e-5), 1.5);
+    assert_eq!(operator_oversampling_of(64, 1e-4, 2_000_000, 0.0, 1e-5), 2.0);
     let c = case(20.0, 64, 400, (-1.0, 1.0), 16);
     let eps = 1e-6;
     let plan = WGridPlan::new_real(c.size, c.pixel, &c.u, &c.v, &c.w, NufftParams { epsilon: eps, oversampling: 1.5 }, 2).unwrap();
