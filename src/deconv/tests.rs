@@ -162,6 +162,46 @@ fn a_mask_keeps_every_component_inside_it() {
     assert_eq!(hogbom(&dirty, &psf2, n, &all), hogbom(&dirty, &psf2, n, &HogbomParams { mask: None, ..all.clone() }));
 }
 
+/// With a mask only its pixels are searched and updated: the components are those of a
+/// naive Högbom that subtracts the PSF over the whole image and searches inside the mask, and
+/// the residual is the same inside the mask and the dirty image's outside it.
+#[test]
+fn a_masked_clean_takes_the_components_of_a_whole_image_subtraction() {
+    let n = 64;
+    let m = 2 * n;
+    let (_, _, psf2) = real_psf(n, 1.5, 7);
+    let sources = [(12, 14, 5.0), (50, 40, -3.0), (30, 52, 0.3), (40, 20, 1.0), (44, 24, 0.5), (20, 44, 0.8)];
+    let dirty = dirty_of(&sources, &psf2, n);
+    // Two boxes and a ring's worth of scattered pixels: several runs per row.
+    let inside = |k: usize| {
+        let (x, y) = (k % n, k / n);
+        ((34..50).contains(&x) && (14..30).contains(&y)) || ((16..25).contains(&x) && (40..48).contains(&y)) || (x * 7 + y * 3) % 11 == 0
+    };
+    let mask: Vec<bool> = (0..n * n).map(inside).collect();
+    let params = HogbomParams { threshold: 1e-2, mask: Some(mask.clone()), max_components: 3000, ..Default::default() };
+    let out = hogbom(&dirty, &psf2, n, &params);
+    let (mut r, mut components, mut taken) = (dirty.clone(), vec![0.0; n * n], 0);
+    while taken < params.max_components {
+        let (k, peak) = (0..n * n).filter(|&k| mask[k]).map(|k| (k, r[k])).fold((0, 0.0f64), |b, (k, v)| if v.abs() > b.1.abs() { (k, v) } else { b });
+        if peak.abs() < params.threshold {
+            break;
+        }
+        let amount = params.gain * peak;
+        components[k] += amount;
+        taken += 1;
+        let (px, py) = (k % n, k / n);
+        r.iter_mut().enumerate().for_each(|(j, v)| *v -= amount * psf2[(j / n + n - py) * m + (j % n + n - px)]);
+    }
+    assert!(taken > 100, "{taken} components");
+    assert_eq!(out.n_components, taken);
+    let worst = (0..n * n).map(|k| (out.components[k] - components[k]).abs()).fold(0.0f64, f64::max);
+    assert!(worst < 1e-12, "components differ by {worst}");
+    for k in 0..n * n {
+        let want = if mask[k] { r[k] } else { dirty[k] };
+        assert!((out.residual[k] - want).abs() < 1e-12, "residual at {k}: {} against {want}", out.residual[k]);
+    }
+}
+
 #[test]
 fn threshold_stops_cleaning_at_the_right_component() {
     let n = 32;

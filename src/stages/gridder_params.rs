@@ -74,10 +74,8 @@ impl RestoringBeam {
     }
 }
 
-/// The default of [`GridderParams::hold_mb`]: a MeerKAT track averaged to a minute (about 4
-/// million samples, 400 MB) is held; read again at each update in chunks, each chunk would
-/// pay its own w-planes' FFTs.
-pub const DEFAULT_HOLD_MB: f64 = 512.0;
+/// The default of [`GridderParams::hold_mb`].
+pub const DEFAULT_HOLD_MB: f64 = 256.0;
 
 /// The default of [`GridderParams::chunk_rows`]: large enough that a chunk's fixed cost
 /// (sorting, merging its tiles into the grids, a w-gridded chunk's plane FFTs) is small beside
