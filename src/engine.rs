@@ -348,6 +348,7 @@ struct ImagePlan {
     oversampling: Option<f64>,
     w_term: crate::operator::WTermMode,
     hold_mb: f64,
+    kernel_mb: f64,
     threads: usize,
     step: StepChoice,
     iterations: Option<usize>,
@@ -396,6 +397,7 @@ impl ImagePlan {
             oversampling: grid.oversampling,
             w_term: grid.w_term,
             hold_mb: request.hold_mb,
+            kernel_mb: request.kernel_mb,
             threads: grid.threads,
             step: StepChoice::parse(&step.step, step.plugin_config.as_deref())?,
             iterations: step.iterations,
@@ -483,7 +485,7 @@ fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec
     }
     let (weighting, superresolution) = imaging_setting(params)?;
     let weights = WeightingParams { grid_factor: params.weighting_grid_factor, ..WeightingParams::new(weighting).with_uv(params.uv) };
-    let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling, w_term: params.w_term, hold_mb: params.hold_mb, restoring_beam: params.restoring_beam, ..GridderParams::default() };
+    let grid = GridderParams { epsilon: params.epsilon, oversampling: params.oversampling, w_term: params.w_term, hold_mb: params.hold_mb, kernel_mb: params.kernel_mb, restoring_beam: params.restoring_beam, ..GridderParams::default() };
     let mut stages = vec![read.to("weights"), StageSpec::typed("weights", &weights)?.to("grid")];
     match params.products {
         // The gridded job's images are its products: no step, and no form of D is made.

@@ -371,6 +371,11 @@ pub struct ImageRequest {
     /// and the final residual where a Taylor series in w replaces the operator).
     #[arg(long, default_value_t = crate::params::DEFAULT_HOLD_MB)]
     pub hold_mb: f64,
+    /// Most memory (MB) the kernels of the w-term's convolution forms of the residual update
+    /// may take (the w-aware Toeplitz form while gridding, unless the samples held would take
+    /// more; the Taylor series in w); beyond it the update runs through the operator.
+    #[arg(long, default_value_t = crate::params::DEFAULT_KERNEL_MB)]
+    pub kernel_mb: f64,
 }
 
 /// One observation's dirty image and PSF (what `r2d2 dirty` and
@@ -586,6 +591,7 @@ mod tests {
         assert_eq!(r.grid.oversampling, None);
         assert_eq!(r.grid.weighting_grid_factor, None);
         assert_eq!(r.hold_mb, crate::params::DEFAULT_HOLD_MB);
+        assert_eq!(r.kernel_mb, crate::params::DEFAULT_KERNEL_MB);
         assert_eq!((r.grid.superresolution, r.grid.weighting.as_deref(), r.name.as_deref()), (None, None, None));
         assert_eq!((r.step.step.as_str(), r.step.prefetch, r.step.final_clean), (crate::steps::series::AUTO_SERIES, true, true));
         assert_eq!((r.grid.w_term, r.step.backend, r.step.graph_optimization), (WTermMode::Auto, BackendChoice::Auto, GraphOptimization::Auto));

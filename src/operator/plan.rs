@@ -34,9 +34,11 @@ pub const STREAMED_BYTES_PER_SAMPLE: f64 = 150.0;
 pub struct PlanParams {
     pub nufft: NufftParams,
     pub w_term: WTermMode,
-    /// Bytes the samples, or a form's kernels, may take held; beyond them the samples are read
-    /// again at each application.
+    /// Bytes the samples may take held; beyond them they are read again at each application.
     pub hold_bytes: f64,
+    /// Bytes the kernels of a convolution form of `D` (the w-aware Toeplitz form's while
+    /// gridding, the Taylor series') may take.
+    pub kernel_bytes: f64,
     /// The fewest samples a chunk reads.
     pub chunk_rows: usize,
     pub threads: usize,
@@ -175,7 +177,7 @@ impl OperatorPlan {
 }
 
 /// The w-aware Toeplitz form's pass, or why there is none: none is accurate enough, or it
-/// would take more than `hold_bytes` and more than the samples held in the operator (reading
+/// would take more than `kernel_bytes` and more than the samples held in the operator (reading
 /// them again at every update instead being the slow alternative).
 fn toeplitz_pass(geometry: ImageGeometry, samples: Samples, params: PlanParams) -> std::result::Result<ToeplitzPass, String> {
     let (epsilon, max_abs_w) = (params.nufft.epsilon, samples.max_abs_w);
@@ -187,12 +189,12 @@ fn toeplitz_pass(geometry: ImageGeometry, samples: Samples, params: PlanParams) 
     let no_form = |e: crate::Error| format!("no w-aware Toeplitz form for the residual update: {e}");
     let bytes = WToeplitzBuilder::estimated_bytes(geometry, &plan, samples.max_uv, params.nufft).map_err(no_form)?;
     let held = OPERATOR_BYTES_PER_SAMPLE * samples.count as f64;
-    if bytes > params.hold_bytes && bytes > held {
+    if bytes > params.kernel_bytes && bytes > held {
         return Err(format!(
-            "no w-aware Toeplitz form for the residual update: its kernels ({} w-planes) would take {} while gridding, above the gridder's hold_mb {} and above the {} the samples take held",
+            "no w-aware Toeplitz form for the residual update: its kernels ({} w-planes) would take {} while gridding, above the gridder's kernel_mb {} and above the {} the samples take held",
             plan.planes,
             crate::limits::format_bytes(bytes),
-            params.hold_bytes / 1e6,
+            params.kernel_bytes / 1e6,
             crate::limits::format_bytes(held)
         ));
     }
@@ -207,7 +209,7 @@ fn toeplitz_pass(geometry: ImageGeometry, samples: Samples, params: PlanParams) 
 /// the lowest order whose `D` of the dirty image agrees with the operator's (`reference`, made
 /// once the first order fits) to [`taylor::TOLERANCE`] times the NUFFT's accuracy, with that
 /// deviation; `kernel(m)` grids `R_m` from the samples, held or read again from their file.
-/// `None` where no order up to [`taylor::MAX_ORDER`] does within `hold_bytes` (the operator
+/// `None` where no order up to [`taylor::MAX_ORDER`] does within `kernel_bytes` (the operator
 /// then runs at each update). `note` is told each order's deviation and why the search ended.
 pub fn taylor_series(
     geometry: ImageGeometry,
@@ -226,11 +228,11 @@ pub fn taylor_series(
     let mut made: Option<(WTaylor, Vec<f64>)> = None;
     let mut reference = Some(reference);
     let mut closest = None;
-    // The order whose kernels would not fit in hold_bytes, where that ended the search.
+    // The order whose kernels would not fit in kernel_bytes, where that ended the search.
     let mut capped = None;
     for order in 1..=taylor::MAX_ORDER {
         let bytes = kernel_bytes * (order + 1 + 2 * (order + 1).div_ceil(2)) as f64;
-        if bytes > params.hold_bytes {
+        if bytes > params.kernel_bytes {
             capped = Some(order);
             break;
         }
@@ -254,15 +256,15 @@ pub fn taylor_series(
         }
         closest = Some((order, deviation));
     }
-    let hold_mb = params.hold_bytes / 1e6;
+    let kernel_mb = params.kernel_bytes / 1e6;
     note(Reason::info(match (closest, capped) {
         (Some((order, deviation)), None) => format!(
             "the residual update runs through the operator: no Taylor series in w up to order {order} comes within {tolerance:.0e} of it on the dirty image ({deviation:.1e}: the w-term is too large for it here)"
         ),
         (Some((order, deviation)), Some(next)) => format!(
-            "the residual update runs through the operator: a Taylor series in w of order {order} is {deviation:.1e} from it on the dirty image (above {tolerance:.0e}), and the kernels of order {next} would take more than the gridder's hold_mb {hold_mb}"
+            "the residual update runs through the operator: a Taylor series in w of order {order} is {deviation:.1e} from it on the dirty image (above {tolerance:.0e}), and the kernels of order {next} would take more than the gridder's kernel_mb {kernel_mb}"
         ),
-        (None, _) => format!("the residual update runs through the operator: the kernels of a Taylor series in w would take more than the gridder's hold_mb {hold_mb}"),
+        (None, _) => format!("the residual update runs through the operator: the kernels of a Taylor series in w would take more than the gridder's kernel_mb {kernel_mb}"),
     }));
     Ok(None)
 }
@@ -272,7 +274,7 @@ mod tests {
     use super::*;
 
     fn params(w_term: WTermMode, hold_mb: f64, keep_operator: bool) -> PlanParams {
-        PlanParams { nufft: NufftParams::default(), w_term, hold_bytes: hold_mb * 1e6, chunk_rows: 1000, threads: 1, keep_operator, images_only: false, operator_chooses_oversampling: true }
+        PlanParams { nufft: NufftParams::default(), w_term, hold_bytes: hold_mb * 1e6, kernel_bytes: hold_mb * 1e6, chunk_rows: 1000, threads: 1, keep_operator, images_only: false, operator_chooses_oversampling: true }
     }
 
     fn samples(count: u64, streamed: bool, in_parts: bool) -> Samples {
@@ -305,7 +307,7 @@ mod tests {
         assert!(p.w_term && p.taylor && p.reasons.is_empty());
         let pass = p.w_toeplitz.as_ref().expect("a Toeplitz form");
         assert!(pass.chunk_rows >= 1000 && pass.bytes == p.bytes && p.bytes > 0.0);
-        // Its kernels take more than hold_mb 0 and than a hundred samples held: not chosen.
+        // Its kernels take more than kernel_mb 0 and than a hundred samples held: not chosen.
         let few = OperatorPlan::new(field(), samples(100, false, false), params(WTermMode::On, 0.0, false));
         assert!(few.w_toeplitz.is_none());
         assert_eq!(few.form, Form::Held);
@@ -332,12 +334,31 @@ mod tests {
     }
 
     #[test]
-    fn the_taylor_search_stops_before_kernels_beyond_hold_mb() {
+    fn the_taylor_search_stops_before_kernels_beyond_kernel_mb() {
         let mut notes = Vec::new();
         let unused = || -> Result<Vec<f64>> { panic!("no reference where no order fits") };
         let found = taylor_series(field(), params(WTermMode::On, 0.0, false), &[], &[], unused, |_| panic!("no kernel"), |r| notes.push(r)).unwrap();
         assert!(found.is_none());
         assert_eq!(notes.len(), 1);
-        assert!(notes[0].text.contains("would take more than the gridder's hold_mb 0"), "{:?}", notes);
+        assert!(notes[0].text.contains("would take more than the gridder's kernel_mb 0"), "{:?}", notes);
+    }
+
+    /// The two budgets are apart: samples held up to hold_mb do not let kernels grow past
+    /// kernel_mb (a Toeplitz form slower than the Taylor series it would displace), and a
+    /// kernel budget does not hold samples.
+    #[test]
+    fn samples_are_held_within_hold_mb_and_kernels_kept_within_kernel_mb() {
+        let (few, many) = (samples(1000, true, false), samples(1_000_000, true, false));
+        let both = |hold_mb: f64, kernel_mb: f64| PlanParams { hold_bytes: hold_mb * 1e6, kernel_bytes: kernel_mb * 1e6, ..params(WTermMode::On, 0.0, false) };
+        let toeplitz_bytes = OperatorPlan::new(field(), many, both(1e6, 1e6)).w_toeplitz.expect("a Toeplitz form within any budget").bytes;
+        // The samples fit in hold_mb; the kernels do not fit in kernel_mb: no Toeplitz form.
+        let held = OperatorPlan::new(field(), few, both(1e6, 0.5 * toeplitz_bytes / 1e6));
+        assert!(held.w_toeplitz.is_none() && held.taylor);
+        assert_eq!(held.form, Form::Held);
+        // Kernels within kernel_mb, samples above hold_mb: the Toeplitz form; were it refused,
+        // the samples would be read again.
+        let toeplitz = OperatorPlan::new(field(), many, both(1.0, 2.0 * toeplitz_bytes / 1e6));
+        assert!(toeplitz.w_toeplitz.is_some());
+        assert!(matches!(toeplitz.form, Form::Streamed { .. }));
     }
 }

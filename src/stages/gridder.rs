@@ -27,14 +27,16 @@ impl GridderStage {
     pub fn new(config: GridderParams, threads: usize, keep_operator: bool, images_only: bool) -> Result<GridderStage> {
         let nufft = NufftParams { epsilon: config.epsilon, oversampling: config.oversampling.unwrap_or(crate::nufft::DEFAULT_OVERSAMPLING) };
         crate::nufft::kernel::KernelShape::for_accuracy(nufft.epsilon, nufft.oversampling)?;
-        if !(config.hold_mb >= 0.0) || !config.hold_mb.is_finite() {
-            return Err(Error::parameter("hold_mb", format!("expected a number of megabytes >= 0, got {}", config.hold_mb)));
+        for (key, mb) in [("hold_mb", config.hold_mb), ("kernel_mb", config.kernel_mb)] {
+            if !(mb >= 0.0) || !mb.is_finite() {
+                return Err(Error::parameter(key, format!("expected a number of megabytes >= 0, got {mb}")));
+            }
         }
         config.restoring_beam.check("restoring_beam")?;
         if config.chunk_rows == 0 {
             return Err(Error::parameter("chunk_rows", "expected at least 1 sample per chunk"));
         }
-        Ok(GridderStage { params: PlanParams { nufft, w_term: config.w_term, hold_bytes: config.hold_mb * 1e6, chunk_rows: config.chunk_rows, threads, keep_operator, images_only, operator_chooses_oversampling: config.oversampling.is_none() }, restoring_beam: config.restoring_beam })
+        Ok(GridderStage { params: PlanParams { nufft, w_term: config.w_term, hold_bytes: config.hold_mb * 1e6, kernel_bytes: config.kernel_mb * 1e6, chunk_rows: config.chunk_rows, threads, keep_operator, images_only, operator_chooses_oversampling: config.oversampling.is_none() }, restoring_beam: config.restoring_beam })
     }
 }
 

@@ -25,10 +25,13 @@ pub struct GridderParams {
     /// (the residual update through the operator: `method: nufft`, or the w-term where its
     /// Toeplitz form is not built); above it they are read again from the file at every
     /// update instead (or, for the w-term's Taylor series, once per kernel and for the final
-    /// residual), in chunks as large as this allows. The Taylor series' kernels take at most
-    /// this much too. With the w-term's Toeplitz form, the
-    /// gridding pass's chunks take what this leaves beside the kernels' grids. Default 256.
+    /// residual), in chunks as large as this allows. With the w-term's Toeplitz form, the
+    /// gridding pass's chunks take what this leaves beside the kernels' grids. Default 512.
     pub hold_mb: f64,
+    /// Most memory (MB) the kernels of a convolution form of the w-term's residual update may
+    /// take: the w-aware Toeplitz form's grids while gridding (unless the samples held would
+    /// take more), the Taylor series' kernels. Default 256.
+    pub kernel_mb: f64,
     /// Samples per chunk of a pass over the data: what gridding holds beside its grids (about
     /// 100 bytes a sample). Default 1048576.
     pub chunk_rows: usize,
@@ -74,8 +77,16 @@ impl RestoringBeam {
     }
 }
 
-/// The default of [`GridderParams::hold_mb`].
-pub const DEFAULT_HOLD_MB: f64 = 256.0;
+/// The default of [`GridderParams::hold_mb`]: a MeerKAT track averaged to a minute (about 4
+/// million samples, 400 MB) is held; read again at each update, each chunk of it would pay its
+/// own w-planes' FFTs.
+pub const DEFAULT_HOLD_MB: f64 = 512.0;
+
+/// The default of [`GridderParams::kernel_mb`]: apart from the samples' budget, so that
+/// holding more samples does not let a w-aware Toeplitz form (two FFTs per w-plane at each
+/// update) displace a Taylor series of low order on a field of a few hundred pixels, where the
+/// series' updates are several times cheaper.
+pub const DEFAULT_KERNEL_MB: f64 = 256.0;
 
 /// The default of [`GridderParams::chunk_rows`]: large enough that a chunk's fixed cost
 /// (sorting, merging its tiles into the grids, a w-gridded chunk's plane FFTs) is small beside
@@ -85,7 +96,7 @@ pub const DEFAULT_CHUNK_ROWS: usize = 1 << 20;
 impl Default for GridderParams {
     fn default() -> Self {
         let NufftParams { epsilon, .. } = NufftParams::default();
-        GridderParams { epsilon, oversampling: None, w_term: WTermMode::Auto, hold_mb: DEFAULT_HOLD_MB, chunk_rows: DEFAULT_CHUNK_ROWS, restoring_beam: RestoringBeam::Fit }
+        GridderParams { epsilon, oversampling: None, w_term: WTermMode::Auto, hold_mb: DEFAULT_HOLD_MB, kernel_mb: DEFAULT_KERNEL_MB, chunk_rows: DEFAULT_CHUNK_ROWS, restoring_beam: RestoringBeam::Fit }
     }
 }
 

@@ -26,7 +26,7 @@
 pub use super::arrow_ipc::ArrowIpcParams;
 pub use super::files::Files;
 pub use super::final_clean::FinalCleanParams;
-pub use super::gridder_params::{GridderParams, RestoringBeam, DEFAULT_CHUNK_ROWS, DEFAULT_HOLD_MB};
+pub use super::gridder_params::{GridderParams, RestoringBeam, DEFAULT_CHUNK_ROWS, DEFAULT_HOLD_MB, DEFAULT_KERNEL_MB};
 pub use super::mat::MatParams;
 pub use super::memory::ArrowParams;
 #[cfg(feature = "ms")]
