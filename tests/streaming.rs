@@ -61,9 +61,9 @@ fn a_table_read_in_passes_images_as_the_same_table_held() {
     // in chunks, the samples not read again.
     let toeplitz = run(dir, "wtoeplitz", &pipeline("wtoeplitz", "", "    w_term: on\n    chunk_rows: 500\n", "briggs"));
     assert!(toeplitz.contains("the residual update convolves with the kernels of") && !toeplitz.contains("at each residual update"), "{toeplitz}");
-    // Where the kernels would take more than hold_mb and more than the samples held, the
-    // residual update runs through the operator (here reading the file again).
-    let small = run(dir, "wsmall", &pipeline("wsmall", "", "    w_term: on\n    hold_mb: 0.001\n", "briggs"));
+    // Where the kernels would take more than kernel_mb and more than the samples held, the
+    // residual update runs through the operator (here reading the file again: hold_mb).
+    let small = run(dir, "wsmall", &pipeline("wsmall", "", "    w_term: on\n    hold_mb: 0.001\n    kernel_mb: 0.001\n", "briggs"));
     assert!(small.contains("w-aware Toeplitz form") && small.contains("would take") && small.contains("at each residual update"), "{small}");
     for product in ["model", "residual"] {
         let d = relative(dir, &format!("obs-wheld-{product}.fits"), &format!("obs-wsmall-{product}.fits"));
@@ -151,7 +151,7 @@ fn dirty_reads_a_table_in_passes_as_image_does() {
 }
 
 /// A 512 x 512 field where the w-term turns phases by a tenth of a radian: with the samples held
-/// and the w-aware Toeplitz form above hold_mb, the residual update is a Taylor series in `w` of
+/// and the w-aware Toeplitz form above kernel_mb, the residual update is a Taylor series in `w` of
 /// the PSF convolution, checked against the operator on the dirty image, and the job's products
 /// are those of the exact round trip through the operator at every update.
 #[test]
@@ -160,7 +160,7 @@ fn a_small_w_term_updates_the_residual_by_a_taylor_series_as_the_operator_does()
     let dir = tmp.path();
     check(&r2d2(&["simulate", "--configs", "c", "--hours", "2", "--integration-s", "300", "--size", "512", "--seed", "5", "--out", "obs.parquet"], dir));
     let taylor = pipeline("taylor", "", "    w_term: on
-    hold_mb: 150
+    kernel_mb: 150
 ", "briggs").replace("size: 64", "size: 512");
     let log = run(dir, "taylor", &taylor);
     assert!(log.contains("a Taylor series in w of order") && log.contains("the final residual through the operator"), "{log}");
@@ -193,7 +193,7 @@ fn assert_taylor_is_the_exact_update(dir: &Path) {
 }
 
 /// The same where the samples take more than hold_mb and are read again from their file,
-/// while the series' kernels fit in it: each kernel is gridded in a pass of its own, the
+/// while the series' kernels fit in kernel_mb: each kernel is gridded in a pass of its own, the
 /// updates no longer read the file, and the products are those of the exact round trip.
 #[test]
 fn a_small_w_term_of_samples_read_from_their_file_updates_the_residual_by_a_taylor_series() {
@@ -202,7 +202,7 @@ fn a_small_w_term_of_samples_read_from_their_file_updates_the_residual_by_a_tayl
     // 4e4 samples (about 4 MB held); the kernels of order 3 at 64 x 64 take about 2 MB, and
     // the w-aware Toeplitz form (which the gridder prefers) more than the samples held.
     check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "30", "--size", "64", "--seed", "3", "--out", "obs.parquet"], dir));
-    let grid = "    w_term: on\n    hold_mb: 2.5\n    chunk_rows: 5000\n";
+    let grid = "    w_term: on\n    hold_mb: 2.5\n    kernel_mb: 2.5\n    chunk_rows: 5000\n";
     let log = run(dir, "taylor", &pipeline("taylor", "", grid, "briggs"));
     assert!(log.contains("no w-aware Toeplitz form for the residual update"), "{log}");
     assert!(log.contains("a Taylor series in w of order") && log.contains("again from") && log.contains("for the final residual"), "{log}");
@@ -221,7 +221,7 @@ fn chunk_and_hold_sizes_are_checked() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     observation(dir);
-    for (grid, expected) in [("    chunk_rows: 0\n", "chunk_rows"), ("    hold_mb: -1\n", "hold_mb")] {
+    for (grid, expected) in [("    chunk_rows: 0\n", "chunk_rows"), ("    hold_mb: -1\n", "hold_mb"), ("    kernel_mb: -1\n", "kernel_mb")] {
         std::fs::write(dir.join("bad.yaml"), pipeline("bad", "", grid, "natural")).unwrap();
         let out = r2d2(&["run", "bad.yaml"], dir);
         assert_fails_with(&out, "a bad gridder size", &[expected]);
