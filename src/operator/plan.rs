@@ -273,8 +273,9 @@ pub fn taylor_series(
 mod tests {
     use super::*;
 
-    fn params(w_term: WTermMode, hold_mb: f64, keep_operator: bool) -> PlanParams {
-        PlanParams { nufft: NufftParams::default(), w_term, hold_bytes: hold_mb * 1e6, kernel_bytes: hold_mb * 1e6, chunk_rows: 1000, threads: 1, keep_operator, images_only: false, operator_chooses_oversampling: true }
+    /// The samples' and the kernels' budgets both `budget_mb`.
+    fn params(w_term: WTermMode, budget_mb: f64, keep_operator: bool) -> PlanParams {
+        PlanParams { nufft: NufftParams::default(), w_term, hold_bytes: budget_mb * 1e6, kernel_bytes: budget_mb * 1e6, chunk_rows: 1000, threads: 1, keep_operator, images_only: false, operator_chooses_oversampling: true }
     }
 
     fn samples(count: u64, streamed: bool, in_parts: bool) -> Samples {
