@@ -81,11 +81,17 @@ pub fn hogbom(residual: &[f64], psf_2n: &[f64], size: usize, params: &HogbomPara
     if let Err(e) = params.validate() {
         panic!("{e}");
     }
-    match (params.positive_only, &params.mask) {
-        (true, None) => clean::<true, false>(residual, psf_2n, n, &[], params),
-        (false, None) => clean::<false, false>(residual, psf_2n, n, &[], params),
-        (true, Some(mask)) => clean::<true, true>(residual, psf_2n, n, mask, params),
-        (false, Some(mask)) => clean::<false, true>(residual, psf_2n, n, mask, params),
+    // The columns searched in each row, as runs: with a mask, those of its pixels (the only
+    // ones the subtraction needs to reach: a mask of compact sources is a small part of the
+    // image); without one, the whole row.
+    let runs: Vec<Vec<(usize, usize)>> = match &params.mask {
+        Some(mask) => mask.chunks(n).map(inside_runs).collect(),
+        None => vec![vec![(0, n)]; n],
+    };
+    if params.positive_only {
+        clean::<true>(residual, psf_2n, n, &runs, params)
+    } else {
+        clean::<false>(residual, psf_2n, n, &runs, params)
     }
 }
 
@@ -97,21 +103,15 @@ pub const RISE_LIMIT: f64 = 1.5;
 /// Rows handed to one rayon task: enough work (~16 K pixels at N = 512) to amortise scheduling.
 const ROWS_PER_TASK: usize = 32;
 
-/// `MASKED`: a pixel outside `mask` (N x N) scores minus infinity, so it is never a peak, even
-/// where everything inside scores below 0 (negative values in a positive-only search);
-/// without it `mask` is empty and every pixel is searched at no cost.
-fn clean<const POSITIVE: bool, const MASKED: bool>(residual: &[f64], psf_2n: &[f64], n: usize, mask: &[bool], params: &HogbomParams) -> HogbomResult {
+/// Högbom over the columns `runs` of each row (a row without runs is never searched, so a
+/// negative value in a positive-only search is never taken for a peak outside them).
+fn clean<const POSITIVE: bool>(residual: &[f64], psf_2n: &[f64], n: usize, runs: &[Vec<(usize, usize)>], params: &HogbomParams) -> HogbomResult {
     let m = 2 * n;
-    let score = |v: f64, inside: bool| if MASKED { masked_score::<POSITIVE>(v, inside) } else { score::<POSITIVE>(v) };
     let mut r = residual.to_vec();
     let mut components = vec![0.0; n * n];
-    let mask_row = |iy: usize| if MASKED { &mask[iy * n..(iy + 1) * n] } else { &[][..] };
-    // With a mask, the columns of each row's runs of pixels inside it: the only ones searched,
-    // so the only ones the subtraction needs to reach (a mask of compact sources is a small
-    // part of the image).
-    let runs: Vec<Vec<(usize, usize)>> = if MASKED { (0..n).map(|iy| inside_runs(mask_row(iy))).collect() } else { Vec::new() };
-    // Largest score of each row (|r|, or r when POSITIVE); NEG_INFINITY for a row of NaN.
-    let mut row_maxima: Vec<f64> = r.par_chunks(n).enumerate().map(|(iy, row)| row_max::<POSITIVE, MASKED>(row, mask_row(iy))).collect();
+    // Largest score of each row's runs (|r|, or r when POSITIVE); NEG_INFINITY for a row of
+    // NaN or without runs.
+    let mut row_maxima: Vec<f64> = r.par_chunks(n).zip(runs.par_iter()).map(|(row, runs)| max_over(runs, |a, b| row_max::<POSITIVE>(&row[a..b]))).collect();
     let mut n_components = 0;
     let mut start = None;
     let last_peak = loop {
@@ -121,9 +121,8 @@ fn clean<const POSITIVE: bool, const MASKED: bool>(residual: &[f64], psf_2n: &[f
             .enumerate()
             .fold((0, f64::NEG_INFINITY), |b, (iy, &s)| if s > b.1 { (iy, s) } else { b });
         let row = &r[py * n..(py + 1) * n];
-        let inside = mask_row(py);
         // Every pixel NaN, or none inside the mask: nothing can be cleaned.
-        let Some(px) = (0..n).position(|ix| score(row[ix], !MASKED || inside[ix]) == best).filter(|_| best > f64::NEG_INFINITY) else {
+        let Some(px) = runs[py].iter().flat_map(|&(a, b)| a..b).find(|&ix| score::<POSITIVE>(row[ix]) == best).filter(|_| best > f64::NEG_INFINITY) else {
             break f64::NAN;
         };
         let peak = row[px];
@@ -136,21 +135,10 @@ fn clean<const POSITIVE: bool, const MASKED: bool>(residual: &[f64], psf_2n: &[f
         components[py * n + px] += amount;
         n_components += 1;
         // PSF row for image row iy is (iy - py + N); its column for ix is (ix - px + N).
-        r.par_chunks_mut(n).zip(row_maxima.par_iter_mut()).enumerate().with_min_len(ROWS_PER_TASK).for_each(|(iy, (row, max))| {
+        r.par_chunks_mut(n).zip(row_maxima.par_iter_mut()).zip(runs.par_iter()).enumerate().with_min_len(ROWS_PER_TASK).for_each(|(iy, ((row, max), runs))| {
             let start = (iy + n - py) * m + (n - px);
             let psf_row = &psf_2n[start..start + n];
-            *max = if MASKED {
-                runs[iy].iter().fold(f64::NEG_INFINITY, |best, &(a, b)| {
-                    let s = subtract_and_max::<POSITIVE>(&mut row[a..b], &psf_row[a..b], amount);
-                    if s > best {
-                        s
-                    } else {
-                        best
-                    }
-                })
-            } else {
-                subtract_and_max::<POSITIVE>(row, psf_row, amount)
-            };
+            *max = max_over(runs, |a, b| subtract_and_max::<POSITIVE>(&mut row[a..b], &psf_row[a..b], amount));
         });
     };
     HogbomResult { components, residual: r, n_components, last_peak }
@@ -211,17 +199,19 @@ fn score<const POSITIVE: bool>(v: f64) -> f64 {
     }
 }
 
-/// [`score`] inside the mask, minus infinity (never a peak) outside.
-fn masked_score<const POSITIVE: bool>(v: f64, inside: bool) -> f64 {
-    if inside {
-        score::<POSITIVE>(v)
-    } else {
-        f64::NEG_INFINITY
-    }
+/// The largest score of a row, as [`subtract_and_max`] without the subtraction.
+fn row_max<const POSITIVE: bool>(row: &[f64]) -> f64 {
+    row.iter().fold(f64::NEG_INFINITY, |a, &v| if score::<POSITIVE>(v) > a { score::<POSITIVE>(v) } else { a })
 }
 
-/// The largest score of a row, as [`subtract_and_max`] without the subtraction.
-fn row_max<const POSITIVE: bool, const MASKED: bool>(row: &[f64], inside: &[bool]) -> f64 {
-    let scored = |ix: usize| if MASKED { masked_score::<POSITIVE>(row[ix], inside[ix]) } else { score::<POSITIVE>(row[ix]) };
-    (0..row.len()).fold(f64::NEG_INFINITY, |a, ix| if scored(ix) > a { scored(ix) } else { a })
+/// The largest of `f(start, end)` over a row's runs; NEG_INFINITY for none (NaN never wins).
+fn max_over(runs: &[(usize, usize)], mut f: impl FnMut(usize, usize) -> f64) -> f64 {
+    runs.iter().fold(f64::NEG_INFINITY, |best, &(a, b)| {
+        let s = f(a, b);
+        if s > best {
+            s
+        } else {
+            best
+        }
+    })
 }
