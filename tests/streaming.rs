@@ -199,10 +199,11 @@ fn assert_taylor_is_the_exact_update(dir: &Path) {
 fn a_small_w_term_of_samples_read_from_their_file_updates_the_residual_by_a_taylor_series() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
-    // 4e4 samples (about 4 MB held); the kernels of order 3 at 64 x 64 take about 2 MB, and
-    // the w-aware Toeplitz form (which the gridder prefers) more than the samples held.
+    // 4e4 samples (about 2.4 MB held as `D` alone); the kernels of order 3 at 64 x 64 take
+    // about 2 MB, and the w-aware Toeplitz form (which the gridder prefers) more than the
+    // samples held.
     check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "30", "--size", "64", "--seed", "3", "--out", "obs.parquet"], dir));
-    let grid = "    w_term: on\n    hold_mb: 2.5\n    kernel_mb: 2.5\n    chunk_rows: 5000\n";
+    let grid = "    w_term: on\n    hold_mb: 1.5\n    kernel_mb: 2.5\n    chunk_rows: 5000\n";
     let log = run(dir, "taylor", &pipeline("taylor", "", grid, "briggs"));
     assert!(log.contains("no w-aware Toeplitz form for the residual update"), "{log}");
     assert!(log.contains("a Taylor series in w of order") && log.contains("again from") && log.contains("for the final residual"), "{log}");

@@ -8,7 +8,7 @@
 //! operator to that accuracy, and the coplanar one is cheaper and has an exact Toeplitz form.
 
 use super::geometry::ImageGeometry;
-use crate::nufft::wgrid::{max_w_phase, WGridPlan};
+use crate::nufft::wgrid::{max_w_phase, WGridNormal, WGridPlan};
 use crate::nufft::{Nufft2d, NufftParams};
 use crate::{Error, Result};
 use num_complex::{Complex32, Complex64};
@@ -308,10 +308,53 @@ impl MeasurementOperator {
 
     /// `D x = kappa Re{Phi^H Phi x}` by a NUFFT round trip.
     pub fn apply_normal(&self, x: &[f64]) -> Vec<f64> {
-        let mut vis = self.forward_sorted(x);
         let k = self.kappa;
+        if let Plan::WGridded(plan) = &self.plan {
+            let scaled: Vec<f64> = self.install(|| self.weight.par_iter().map(|&w| w * k).collect());
+            return plan.normal_real(x, &plan.to_plan_order(&scaled));
+        }
+        let mut vis = self.forward_sorted(x);
         vis.par_iter_mut().zip(self.weight.par_iter()).for_each(|(y, &w)| *y *= w * k);
         self.back_project_sorted(&vis)
+    }
+
+    /// `D` alone, the operator's samples no longer needed otherwise: a w-gridded operator
+    /// releases what only the caller's order of its samples needs.
+    pub fn into_normal(self) -> NormalOperator {
+        match self.plan {
+            Plan::WGridded(plan) => {
+                let k = self.kappa;
+                let scaled: Vec<f64> = plan.install(|| self.weight.par_iter().map(|&w| w * k).collect());
+                NormalOperator::WGridded(plan.into_normal(&scaled))
+            }
+            plan => NormalOperator::Coplanar(MeasurementOperator { plan, ..self }),
+        }
+    }
+}
+
+/// `D = kappa Re{Phi^H Phi}` of samples held, and nothing else of their operator
+/// ([`MeasurementOperator::into_normal`]).
+pub enum NormalOperator {
+    Coplanar(MeasurementOperator),
+    /// The weights scaled by `kappa`.
+    WGridded(WGridNormal),
+}
+
+impl NormalOperator {
+    /// `D x`.
+    pub fn apply(&self, x: &[f64]) -> Vec<f64> {
+        match self {
+            NormalOperator::Coplanar(op) => op.apply_normal(x),
+            NormalOperator::WGridded(normal) => normal.apply(x),
+        }
+    }
+
+    /// The w-planes of a w-gridded operator; `None` for a coplanar one.
+    pub fn w_planes(&self) -> Option<usize> {
+        match self {
+            NormalOperator::Coplanar(_) => None,
+            NormalOperator::WGridded(normal) => Some(normal.planes()),
+        }
     }
 }
 
@@ -657,6 +700,11 @@ pub(crate) mod tests {
         let expect: Vec<f64> = back.iter().map(|c| c.re * kappa).collect();
         let err = dx.iter().zip(&expect).map(|(a, b)| (a - b).powi(2)).sum::<f64>().sqrt() / expect.iter().map(|b| b * b).sum::<f64>().sqrt();
         assert!(err < 1e-6, "D x vs the direct sums: {err:e}");
+        // D alone, the caller's order released, is the same D to the last bit.
+        let planes = op.w_planes();
+        let normal = op.into_normal();
+        assert_eq!(normal.w_planes(), planes);
+        assert_eq!(normal.apply(&x), dx);
     }
 
     #[test]

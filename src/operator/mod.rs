@@ -25,7 +25,7 @@ pub(crate) mod taylor;
 pub(crate) mod toeplitz;
 
 pub use geometry::{ImageGeometry, PixelScale, DEFAULT_SUPERRESOLUTION};
-pub use measurement::{spectral_norm, MeasurementOperator, WTermMode};
+pub use measurement::{spectral_norm, MeasurementOperator, NormalOperator, WTermMode};
 pub(crate) use measurement::predict;
 pub(crate) use measurement::check_points;
 pub use psf::PsfConvolution;

@@ -21,9 +21,23 @@ use crate::nufft::wgrid::max_w_phase;
 use crate::nufft::NufftParams;
 use crate::Result;
 
-/// What an operator holds per sample (baselines, value, weight, its plan's sorting and
-/// positions): what a streamed table costs when the residual update needs the operator.
+/// What an operator kept with its samples holds per sample (baselines, value, weight, its
+/// plan's sorting and positions): where the exact NUFFT round trip needs them later.
 pub const OPERATOR_BYTES_PER_SAMPLE: f64 = 100.0;
+
+/// What `D` alone holds per sample held (`crate::operator::NormalOperator`: grid position,
+/// first w-plane and cell, weight) and the value each application passes between its two
+/// directions.
+pub const NORMAL_BYTES_PER_SAMPLE: f64 = 56.0;
+
+/// What the samples take held: `D` alone, or the operator kept with them.
+fn held_bytes_per_sample(params: &PlanParams) -> f64 {
+    if params.keep_operator {
+        OPERATOR_BYTES_PER_SAMPLE
+    } else {
+        NORMAL_BYTES_PER_SAMPLE
+    }
+}
 
 /// What a chunk of a streamed operator costs per sample: the samples as read, their weights
 /// and the chunk's plan.
@@ -136,7 +150,7 @@ impl OperatorPlan {
         // Otherwise, and where no stage applies D (images only), the samples are gridded a chunk
         // at a time as they are read, and nothing the size of the table is ever held.
         let needs_operator = !params.images_only && (w_term || params.keep_operator);
-        let held_bytes = OPERATOR_BYTES_PER_SAMPLE * samples.count as f64;
+        let held_bytes = held_bytes_per_sample(&params) * samples.count as f64;
         let form = if needs_operator && (samples.in_parts || (samples.streamed && held_bytes > params.hold_bytes)) {
             // Chunks as large as the hold limit allows: each costs its w-planes' FFTs.
             Form::Streamed { chunk_rows: params.chunk_rows.max((params.hold_bytes / STREAMED_BYTES_PER_SAMPLE) as usize) }
@@ -188,7 +202,7 @@ fn toeplitz_pass(geometry: ImageGeometry, samples: Samples, params: PlanParams) 
     };
     let no_form = |e: crate::Error| format!("no w-aware Toeplitz form for the residual update: {e}");
     let bytes = WToeplitzBuilder::estimated_bytes(geometry, &plan, samples.max_uv, params.nufft).map_err(no_form)?;
-    let held = OPERATOR_BYTES_PER_SAMPLE * samples.count as f64;
+    let held = held_bytes_per_sample(&params) * samples.count as f64;
     if bytes > params.kernel_bytes && bytes > held {
         return Err(format!(
             "no w-aware Toeplitz form for the residual update: its kernels ({} w-planes) would take {} while gridding, above the gridder's kernel_mb {} and above the {} the samples take held",
@@ -300,6 +314,12 @@ mod tests {
         assert!(streamed.w_toeplitz.is_none() && !streamed.taylor);
         // Samples already held stay held.
         assert_eq!(OperatorPlan::new(field(), samples(1_000_000, false, false), params(WTermMode::Off, 30.0, true)).form, Form::Held);
+        // With the w-term, D alone is held (not the operator kept with its samples): fewer
+        // bytes per sample, so more samples fit in hold_mb.
+        let normal = OperatorPlan::new(field(), samples(1_000_000, true, false), params(WTermMode::On, 60.0, false));
+        assert_eq!((normal.form, normal.held_bytes), (Form::Held, 1e6 * NORMAL_BYTES_PER_SAMPLE));
+        let kept = OperatorPlan::new(field(), samples(1_000_000, true, false), params(WTermMode::On, 60.0, true));
+        assert_eq!((kept.held_bytes, matches!(kept.form, Form::Streamed { .. })), (1e6 * OPERATOR_BYTES_PER_SAMPLE, true));
     }
 
     #[test]

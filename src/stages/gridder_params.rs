@@ -77,10 +77,10 @@ impl RestoringBeam {
     }
 }
 
-/// The default of [`GridderParams::hold_mb`]: a MeerKAT track averaged to a minute (about 4
-/// million samples, 400 MB) is held; read again at each update, each chunk of it would pay its
-/// own w-planes' FFTs.
-pub const DEFAULT_HOLD_MB: f64 = 512.0;
+/// The default of [`GridderParams::hold_mb`]: an 8 h MeerKAT track of 4 channels averaged to
+/// 20 s (about 12 million samples, 650 MB as `D` alone) is held; read again at each update,
+/// each chunk of it would pay its own w-planes' FFTs and its own planning.
+pub const DEFAULT_HOLD_MB: f64 = 1024.0;
 
 /// The default of [`GridderParams::kernel_mb`]: apart from the samples' budget, so that
 /// holding more samples does not let a w-aware Toeplitz form (two FFTs per w-plane at each

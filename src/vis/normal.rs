@@ -181,5 +181,5 @@ fn held(id: &str, source: VisSource, rule: WeightRule, plan: &OperatorPlan) -> R
         vis.w = Vec::new();
     }
     let kept = keep.then_some(vis);
-    Ok((dirty, psf, psf_2n, Some(Arc::new(DataOperator::Held(operator))), kept, w_taylor))
+    Ok((dirty, psf, psf_2n, Some(Arc::new(DataOperator::Held(operator.into_normal()))), kept, w_taylor))
 }

@@ -7,7 +7,7 @@ use super::parts::{density_and_counts, no_given_weights, part_apply_normal, part
 use super::data::VisSummary;
 use super::stream::VisSource;
 use crate::nufft::NufftParams;
-use crate::operator::{ImageGeometry, MeasurementOperator};
+use crate::operator::{ImageGeometry, NormalOperator};
 use crate::weighting::{DensityGrid, UvControls, UvCounts, UvShape, WeightRule, Weighting};
 use crate::{Error, Result};
 use num_complex::Complex64;
@@ -42,7 +42,7 @@ pub(crate) fn weight_rule(vis: &VisSource, summary: &VisSummary, geometry: Image
 /// w-term), or where the exact NUFFT round trip is asked for.
 pub enum DataOperator {
     /// The samples held in memory, in one operator planned once.
-    Held(MeasurementOperator),
+    Held(NormalOperator),
     /// The samples read again from their file at each application, a chunk at a time.
     Streamed(StreamedOperator),
 }
@@ -51,7 +51,7 @@ impl DataOperator {
     /// `D x`.
     pub fn apply_normal(&self, x: &[f64]) -> Result<Vec<f64>> {
         match self {
-            DataOperator::Held(op) => Ok(op.apply_normal(x)),
+            DataOperator::Held(op) => Ok(op.apply(x)),
             DataOperator::Streamed(op) => op.apply_normal(x),
         }
     }

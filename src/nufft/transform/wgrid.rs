@@ -303,6 +303,32 @@ pub struct WGridPlan {
     w_correction: Vec<f64>,
 }
 
+/// The normal operator `Re{Phi^H diag(weight) Phi}` of a w-gridding plan's points, holding
+/// per point only its grid position, its w-planes' weights and its weight
+/// ([`WGridPlan::into_normal`]).
+pub struct WGridNormal {
+    /// Without the caller's order: only [`WGridPlan::normal_real`] is called on it.
+    plan: WGridPlan,
+    /// In the plan's order.
+    weight: Vec<f64>,
+}
+
+impl WGridNormal {
+    /// `Re{Phi^H diag(weight) Phi x}`.
+    pub fn apply(&self, x: &[f64]) -> Vec<f64> {
+        self.plan.normal_real(x, &self.weight)
+    }
+    pub fn planes(&self) -> usize {
+        self.plan.planes
+    }
+    pub fn len(&self) -> usize {
+        self.weight.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.weight.is_empty()
+    }
+}
+
 impl WGridPlan {
     /// Plan transforms between a `size x size` complex image of pixel `pixel_rad` (radians)
     /// and the visibilities at `(u[k], v[k], w[k])` (wavelengths), run on `threads` threads
@@ -472,7 +498,7 @@ impl WGridPlan {
 
     /// Number of visibilities.
     pub fn len(&self) -> usize {
-        self.order.len()
+        self.positions.len()
     }
     /// Runs `f` in the plan's thread pool.
     pub fn install<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
@@ -682,6 +708,42 @@ impl WGridPlan {
             let image: Vec<Complex64> = image.par_iter().map(|&x| Complex64::new(x, 0.0)).collect();
             self.degrid(&image)
         })
+    }
+
+    /// `Re{Phi^H diag(weight) Phi x}` of the real image `x`, `weight` given per point in
+    /// the plan's order ([`WGridPlan::to_plan_order`]). The values stay in the plan's order
+    /// between the two directions: each point's phase `exp(+-2 pi i w t0)` and its mirroring
+    /// (a conjugation) cancel there, so neither permutation is made.
+    pub fn normal_real(&self, x: &[f64], weight: &[f64]) -> Vec<f64> {
+        assert_eq!(x.len(), self.size * self.size, "image size");
+        assert_eq!(weight.len(), self.len(), "one weight per point");
+        self.engine.install(|| {
+            let image: Vec<Complex64> = x.par_iter().map(|&v| Complex64::new(v, 0.0)).collect();
+            let mut values = dispatch_support!(self.engine.shape.support, W, W2, L => self.forward_impl::<W, W2, L>(&image));
+            drop(image);
+            values.par_iter_mut().zip(weight.par_iter()).for_each(|(v, &q)| *v *= q);
+            let mut images = dispatch_support!(self.engine.shape.support, W, W2, L => self.adjoint_impl::<W, W2, L>(&[&values]));
+            drop(values);
+            images.pop().expect("one image per set of values").par_iter().map(|v| v.re).collect()
+        })
+    }
+
+    /// Per-point values from the caller's order into the plan's.
+    pub fn to_plan_order(&self, values: &[f64]) -> Vec<f64> {
+        assert_eq!(values.len(), self.len(), "one value per point");
+        self.engine.install(|| self.order.par_iter().map(|&k| values[k as usize]).collect())
+    }
+
+    /// The normal operator `Re{Phi^H diag(weight) Phi}` of these points alone (`weight` in
+    /// the caller's order): what only the caller's order needs (the order itself, the points'
+    /// `w` and mirroring) is released, about half of what the plan holds per point.
+    pub fn into_normal(mut self, weight: &[f64]) -> WGridNormal {
+        let weight = self.to_plan_order(weight);
+        self.order = Vec::new();
+        self.rank = Vec::new();
+        self.w = Vec::new();
+        self.flip = Vec::new();
+        WGridNormal { plan: self, weight }
     }
 
     /// Gridding of the visibilities (caller's order) with the per-point phase
