@@ -213,8 +213,10 @@ fn toeplitz_pass(geometry: ImageGeometry, samples: Samples, params: PlanParams) 
         ));
     }
     let builder = WToeplitzBuilder::new(geometry, plan, samples.max_uv, params.nufft, params.threads).map_err(no_form)?;
-    // The chunks take what the hold limit leaves beside the kernels' grids.
-    let room = (params.hold_bytes - builder.grid_bytes() as f64).max(0.0);
+    // The chunks take what half the hold limit leaves beside the kernels' grids: they pass
+    // (nothing of them is held after the pass), and beyond a few million samples a chunk's
+    // fixed cost (its w-planes' FFTs for the dirty image) is small beside its spreading.
+    let room = (0.5 * params.hold_bytes - builder.grid_bytes() as f64).max(0.0);
     let chunk_rows = params.chunk_rows.max((room / STREAMED_BYTES_PER_SAMPLE) as usize);
     Ok(ToeplitzPass { builder, chunk_rows, bytes })
 }
