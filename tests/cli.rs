@@ -923,3 +923,21 @@ fn auto_mask_runs_to_convergence_and_is_recorded() {
     let out = r2d2(&["image", "obs.parquet", "--size", "64", "-auto-threshold", "1", "--name", "net2"], d);
     assert!(!out.status.success() && text(&out).contains("are for the step clean"), "{}", text(&out));
 }
+
+/// `trainset --parquet` writes each sample's visibilities and sky as the sample is made (not
+/// all of them held to the end), and the set is swapped in whole: the tables are those the
+/// samples were imaged from (as many points as the set records), and no `.partial` is left.
+#[test]
+fn a_trainset_writes_each_samples_table_and_leaves_nothing_partial() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    check(&r2d2(&["trainset", "--procedural", "3", "--size", "32", "--integration-s", "600", "--threads", "2", "--parquet", "--out", "set", "-q"], dir));
+    assert!(!dir.join("set.partial").exists());
+    let records: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(dir.join("set/samples.json")).unwrap()).unwrap();
+    for k in 0..3 {
+        let (vis, _, _) = r2d2_imaging::vis::read_parquet(&dir.join(format!("set/vis/{k:05}.parquet"))).unwrap();
+        let points = records[k]["points"].as_u64().unwrap() as usize;
+        assert!(points > 0 && vis.u.len() == points, "sample {k}: {} samples read, {points} points", vis.u.len());
+        assert_eq!(read_image(&dir.join(format!("set/vis/{k:05}.sky.fits"))).unwrap().data.len(), 32 * 32);
+    }
+}

@@ -3,7 +3,7 @@
 
 use ndarray::{Array2, Array3};
 use crate::fits::{read_image, write_image, BrightnessUnit, ImageWcs};
-use crate::vis::{write_parquet, ObservationMeta};
+use crate::vis::{write_parquet, ObservationMeta, VisTable};
 use crate::nufft::NufftParams;
 use crate::simulate::trainset::{make_sample, SampleInfo, TrainSample, TrainsetParams, TruthSource};
 use crate::{Error, Result};
@@ -161,25 +161,23 @@ fn stack(samples: &[TrainSample], n: usize, pick: impl Fn(&TrainSample) -> &[f64
 /// Phase centre of the simulated observations: RA is arbitrary, Dec the drawn declination.
 const PHASE_CENTRE_RA_DEG: f64 = 180.0;
 
-fn write_visibilities(dir: &Path, samples: &[TrainSample]) -> Result<()> {
-    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-    for (k, s) in samples.iter().enumerate() {
-        let table = s.table.as_ref().expect("tables kept with --parquet");
-        let dec = s.info.observation.dec_deg;
-        let meta = ObservationMeta {
-            phase_centre_ra_deg: PHASE_CENTRE_RA_DEG,
-            phase_centre_dec_deg: dec,
-            telescope: crate::simulate::telescope::telescope(&s.info.observation.telescope)?.name.clone(),
-            noise_sigma: Some(s.info.tau),
-            dynamic_range: Some(s.info.observation.dynamic_range),
-            extra: [("simulation_seed".to_string(), s.info.seed.to_string())].into_iter().collect(),
-        };
-        write_parquet(&dir.join(format!("{k:05}.parquet")), table, &meta)?;
-        let wcs = ImageWcs { ra_deg: PHASE_CENTRE_RA_DEG, dec_deg: dec, pixel_deg: s.pixel_rad.to_degrees(), freq_hz: None, bandwidth_hz: None };
-        let n = (s.truth.len() as f64).sqrt() as usize;
-        write_image(&dir.join(format!("{k:05}.sky.fits")), &s.truth, n, n, &wcs, BrightnessUnit::JyPerPixel, None, &[])?;
-    }
-    Ok(())
+/// Write sample `k`'s visibilities and sky into `dir` (`--parquet`), as soon as it is made:
+/// held until the end, every sample's table at once (a MeerKAT sample's takes a few hundred
+/// MB) exhausted the memory of sets of a few dozen.
+fn write_visibilities(dir: &Path, k: usize, s: &TrainSample, table: &VisTable) -> Result<()> {
+    let dec = s.info.observation.dec_deg;
+    let meta = ObservationMeta {
+        phase_centre_ra_deg: PHASE_CENTRE_RA_DEG,
+        phase_centre_dec_deg: dec,
+        telescope: crate::simulate::telescope::telescope(&s.info.observation.telescope)?.name.clone(),
+        noise_sigma: Some(s.info.tau),
+        dynamic_range: Some(s.info.observation.dynamic_range),
+        extra: [("simulation_seed".to_string(), s.info.seed.to_string())].into_iter().collect(),
+    };
+    write_parquet(&dir.join(format!("{k:05}.parquet")), table, &meta)?;
+    let wcs = ImageWcs { ra_deg: PHASE_CENTRE_RA_DEG, dec_deg: dec, pixel_deg: s.pixel_rad.to_degrees(), freq_hz: None, bandwidth_hz: None };
+    let n = (s.truth.len() as f64).sqrt() as usize;
+    write_image(&dir.join(format!("{k:05}.sky.fits")), &s.truth, n, n, &wcs, BrightnessUnit::JyPerPixel, None, &[])
 }
 
 fn write_json(path: &Path, value: &impl Serialize) -> Result<()> {
@@ -239,6 +237,13 @@ pub fn run(args: Args) -> Result<()> {
     let done = AtomicUsize::new(0);
     let started = std::time::Instant::now();
     let made: Vec<std::sync::Mutex<Option<Result<TrainSample>>>> = (0..total).map(|_| std::sync::Mutex::new(None)).collect();
+    // Everything is written beside the target, then swapped in: never a half-written set.
+    let partial = args.out.with_extension("partial");
+    if partial.exists() {
+        std::fs::remove_dir_all(&partial).map_err(|e| Error::io(&partial, e))?;
+    }
+    let vis_dir = partial.join("vis");
+    std::fs::create_dir_all(if args.parquet { &vis_dir } else { &partial }).map_err(|e| Error::io(&partial, e))?;
     std::thread::scope(|scope| {
         for _ in 0..workers {
             scope.spawn(|| loop {
@@ -256,7 +261,13 @@ pub fn run(args: Args) -> Result<()> {
                     },
                 };
                 let sample = make_sample(source, &params, seed, 1, args.parquet)
-                    .map_err(|e| Error::parameter(format!("sample {k} ({})", sources[k]), e.to_string()));
+                    .map_err(|e| Error::parameter(format!("sample {k} ({})", sources[k]), e.to_string()))
+                    .and_then(|mut s| {
+                        if let Some(table) = s.table.take() {
+                            write_visibilities(&vis_dir, k, &s, &table)?;
+                        }
+                        Ok(s)
+                    });
                 let failed = sample.is_err();
                 *made[k].lock().expect("no worker panics holding a slot") = Some(sample);
                 if failed {
@@ -273,17 +284,14 @@ pub fn run(args: Args) -> Result<()> {
     });
     // Slots are taken in order, so every slot before a failed one is filled: the first
     // error is met before any slot left empty.
-    let samples: Vec<TrainSample> = made
-        .into_iter()
-        .map_while(|slot| slot.into_inner().expect("no worker panics holding a slot"))
-        .collect::<Result<_>>()?;
-
-    // Write everything beside the target, then swap it in: never a half-written set.
-    let partial = args.out.with_extension("partial");
-    if partial.exists() {
-        std::fs::remove_dir_all(&partial).map_err(|e| Error::io(&partial, e))?;
-    }
-    std::fs::create_dir_all(&partial).map_err(|e| Error::io(&partial, e))?;
+    let samples: Vec<TrainSample> = match made.into_iter().map_while(|slot| slot.into_inner().expect("no worker panics holding a slot")).collect::<Result<_>>() {
+        Ok(samples) => samples,
+        Err(e) => {
+            // The tables written so far are of no use without the set.
+            let _ = std::fs::remove_dir_all(&partial);
+            return Err(e);
+        }
+    };
     let n = args.size;
     let arrays: [(&str, Array3<f32>); 4] = [
         ("truth.npy", stack(&samples, n, |s| &s.truth)),
@@ -296,9 +304,6 @@ pub fn run(args: Args) -> Result<()> {
         let file = std::fs::File::create(&path).map_err(|e| Error::io(&path, e))?;
         ndarray_npy::WriteNpyExt::write_npy(array, std::io::BufWriter::new(file))
             .map_err(|e| Error::input(&path, format!("writing .npy: {e}")))?;
-    }
-    if args.parquet {
-        write_visibilities(&partial.join("vis"), &samples)?;
     }
     let records: Vec<SampleRecord> =
         samples.iter().enumerate().map(|(index, s)| SampleRecord { index, source: sources[index].clone(), info: &s.info }).collect();
