@@ -35,8 +35,10 @@ def main():
     cells = args.size // 512
     rng = np.random.default_rng(args.seed)
     with tempfile.TemporaryDirectory() as tmp:
+        # Only the skies are used: the observations are drawn an hour apart (few samples, fast),
+        # which leaves the skies as they are (each sky's seed is its own).
         subprocess.run([args.r2d2, "-q", "trainset", "--telescope", args.telescope, "--procedural", str(cells * cells), "--seed", str(args.seed),
-                        "--size", "512", "--parquet", "--out", tmp], check=True)
+                        "--size", "512", "--integration-s", "3600", "--parquet", "--out", tmp], check=True)
         skies = sorted(glob.glob(os.path.join(tmp, "vis", "*.sky.fits")))
         assert len(skies) == cells * cells, skies
         field = np.zeros((args.size, args.size))
