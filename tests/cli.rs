@@ -940,4 +940,14 @@ fn a_trainset_writes_each_samples_table_and_leaves_nothing_partial() {
         assert!(points > 0 && vis.u.len() == points, "sample {k}: {} samples read, {points} points", vis.u.len());
         assert_eq!(read_image(&dir.join(format!("set/vis/{k:05}.sky.fits"))).unwrap().data.len(), 32 * 32);
     }
+    // A set that fails leaves the one already there as it was; one that succeeds replaces it,
+    // leaving nothing beside it.
+    std::fs::write(dir.join("set/mine.txt"), "kept").unwrap();
+    std::fs::create_dir(dir.join("empty")).unwrap();
+    let failed = r2d2(&["trainset", "--truths", "empty", "--size", "32", "--parquet", "--out", "set", "-q"], dir);
+    assert!(!failed.status.success() && text(&failed).contains("no .npy or .fits ground truths"), "{}", text(&failed));
+    assert!(dir.join("set/mine.txt").exists() && dir.join("set/vis/00002.parquet").exists());
+    check(&r2d2(&["trainset", "--procedural", "2", "--size", "32", "--integration-s", "600", "--parquet", "--out", "set", "-q"], dir));
+    assert!(!dir.join("set/mine.txt").exists() && !dir.join("set/vis/00002.parquet").exists() && dir.join("set/vis/00001.parquet").exists());
+    assert!(!dir.join("set.partial").exists() && !dir.join("set.previous").exists());
 }

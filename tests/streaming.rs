@@ -199,7 +199,7 @@ fn assert_taylor_is_the_exact_update(dir: &Path) {
 fn a_small_w_term_of_samples_read_from_their_file_updates_the_residual_by_a_taylor_series() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
-    // 4e4 samples (about 2.4 MB held as `D` alone); the kernels of order 3 at 64 x 64 take
+    // 4e4 samples (about 2.3 MB held as `D` alone); the kernels of order 3 at 64 x 64 take
     // about 2 MB, and the w-aware Toeplitz form (which the gridder prefers) more than the
     // samples held.
     check(&r2d2(&["simulate", "--configs", "c", "--hours", "1", "--integration-s", "30", "--size", "64", "--seed", "3", "--out", "obs.parquet"], dir));

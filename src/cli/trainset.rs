@@ -180,6 +180,21 @@ fn write_visibilities(dir: &Path, k: usize, s: &TrainSample, table: &VisTable) -
     write_image(&dir.join(format!("{k:05}.sky.fits")), &s.truth, n, n, &wcs, BrightnessUnit::JyPerPixel, None, &[])
 }
 
+/// The set's `.partial` directory, removed when this is dropped unless the set was swapped in:
+/// a set that fails anywhere (a sample, a write, the swap, a panic) leaves none of what it wrote.
+struct PartialDir<'a> {
+    path: &'a Path,
+    swapped_in: bool,
+}
+
+impl Drop for PartialDir<'_> {
+    fn drop(&mut self) {
+        if !self.swapped_in {
+            let _ = std::fs::remove_dir_all(self.path);
+        }
+    }
+}
+
 fn write_json(path: &Path, value: &impl Serialize) -> Result<()> {
     let text = serde_json::to_string_pretty(value).map_err(|e| Error::parameter("json", e.to_string()))?;
     std::fs::write(path, text).map_err(|e| Error::io(path, e))
@@ -244,6 +259,7 @@ pub fn run(args: Args) -> Result<()> {
     }
     let vis_dir = partial.join("vis");
     std::fs::create_dir_all(if args.parquet { &vis_dir } else { &partial }).map_err(|e| Error::io(&partial, e))?;
+    let mut guard = PartialDir { path: &partial, swapped_in: false };
     std::thread::scope(|scope| {
         for _ in 0..workers {
             scope.spawn(|| loop {
@@ -261,13 +277,13 @@ pub fn run(args: Args) -> Result<()> {
                     },
                 };
                 let sample = make_sample(source, &params, seed, 1, args.parquet)
-                    .map_err(|e| Error::parameter(format!("sample {k} ({})", sources[k]), e.to_string()))
                     .and_then(|mut s| {
                         if let Some(table) = s.table.take() {
                             write_visibilities(&vis_dir, k, &s, &table)?;
                         }
                         Ok(s)
-                    });
+                    })
+                    .map_err(|e| Error::parameter(format!("sample {k} ({})", sources[k]), e.to_string()));
                 let failed = sample.is_err();
                 *made[k].lock().expect("no worker panics holding a slot") = Some(sample);
                 if failed {
@@ -284,14 +300,7 @@ pub fn run(args: Args) -> Result<()> {
     });
     // Slots are taken in order, so every slot before a failed one is filled: the first
     // error is met before any slot left empty.
-    let samples: Vec<TrainSample> = match made.into_iter().map_while(|slot| slot.into_inner().expect("no worker panics holding a slot")).collect::<Result<_>>() {
-        Ok(samples) => samples,
-        Err(e) => {
-            // The tables written so far are of no use without the set.
-            let _ = std::fs::remove_dir_all(&partial);
-            return Err(e);
-        }
-    };
+    let samples: Vec<TrainSample> = made.into_iter().map_while(|slot| slot.into_inner().expect("no worker panics holding a slot")).collect::<Result<_>>()?;
     let n = args.size;
     let arrays: [(&str, Array3<f32>); 4] = [
         ("truth.npy", stack(&samples, n, |s| &s.truth)),
@@ -333,10 +342,29 @@ pub fn run(args: Args) -> Result<()> {
             "r2d2_version": env!("CARGO_PKG_VERSION"),
         }),
     )?;
+    // A set already at the target is moved aside, not removed, until the new one is in its
+    // place: a failed swap puts it back.
+    let previous = PathBuf::from({
+        let mut name = args.out.clone().into_os_string();
+        name.push(".previous");
+        name
+    });
     if args.out.exists() {
-        std::fs::remove_dir_all(&args.out).map_err(|e| Error::io(&args.out, e))?;
+        if previous.exists() {
+            std::fs::remove_dir_all(&previous).map_err(|e| Error::io(&previous, e))?;
+        }
+        std::fs::rename(&args.out, &previous).map_err(|e| Error::io(&args.out, e))?;
     }
-    std::fs::rename(&partial, &args.out).map_err(|e| Error::io(&args.out, e))?;
+    if let Err(e) = std::fs::rename(&partial, &args.out) {
+        if previous.exists() {
+            let _ = std::fs::rename(&previous, &args.out);
+        }
+        return Err(Error::io(&args.out, e));
+    }
+    guard.swapped_in = true;
+    if previous.exists() {
+        std::fs::remove_dir_all(&previous).map_err(|e| Error::io(&previous, e))?;
+    }
     log::info!(
         "wrote {total} samples to {} in {:.1} s ({}..{} points each)",
         args.out.display(),

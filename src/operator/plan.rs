@@ -30,6 +30,11 @@ pub const OPERATOR_BYTES_PER_SAMPLE: f64 = 100.0;
 /// directions.
 pub const NORMAL_BYTES_PER_SAMPLE: f64 = 56.0;
 
+/// What holding the samples takes per sample while the operator is built and the dirty image
+/// and the PSF are made through it: the samples as read, their weights, the plan with its
+/// sorting, and the two sets of values spread together.
+pub const HELD_BUILD_BYTES_PER_SAMPLE: f64 = 150.0;
+
 /// What the samples take held: `D` alone, or the operator kept with them.
 fn held_bytes_per_sample(params: &PlanParams) -> f64 {
     if params.keep_operator {

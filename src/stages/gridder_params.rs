@@ -25,8 +25,11 @@ pub struct GridderParams {
     /// (the residual update through the operator: `method: nufft`, or the w-term where its
     /// Toeplitz form is not built); above it they are read again from the file at every
     /// update instead (or, for the w-term's Taylor series, once per kernel and for the final
-    /// residual), in chunks as large as this allows. With the w-term's Toeplitz form, the
-    /// gridding pass's chunks take what this leaves beside the kernels' grids. Default 512.
+    /// residual), in chunks as large as this allows. Held, `D` alone takes about 56 bytes a
+    /// sample (100 where the exact round trip keeps the operator with its samples); building
+    /// it takes about 150 a sample once, while the dirty image and the PSF are made. With the
+    /// w-term's Toeplitz form, the gridding pass's chunks take what half of this leaves beside
+    /// the kernels' grids. Default 1024.
     pub hold_mb: f64,
     /// Most memory (MB) the kernels of a convolution form of the w-term's residual update may
     /// take: the w-aware Toeplitz form's grids while gridding (unless the samples held would
