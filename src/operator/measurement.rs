@@ -308,11 +308,10 @@ impl MeasurementOperator {
 
     /// `D x = kappa Re{Phi^H Phi x}` by a NUFFT round trip.
     pub fn apply_normal(&self, x: &[f64]) -> Vec<f64> {
-        let k = self.kappa;
         if let Plan::WGridded(plan) = &self.plan {
-            let scaled: Vec<f64> = self.install(|| self.weight.par_iter().map(|&w| w * k).collect());
-            return plan.normal_real(x, &plan.to_plan_order(&scaled));
+            return plan.normal_real(x, &plan.to_plan_order(&self.kappa_weights()));
         }
+        let k = self.kappa;
         let mut vis = self.forward_sorted(x);
         vis.par_iter_mut().zip(self.weight.par_iter()).for_each(|(y, &w)| *y *= w * k);
         self.back_project_sorted(&vis)
@@ -321,14 +320,17 @@ impl MeasurementOperator {
     /// `D` alone, the operator's samples no longer needed otherwise: a w-gridded operator
     /// releases what only the caller's order of its samples needs.
     pub fn into_normal(self) -> NormalOperator {
-        match self.plan {
-            Plan::WGridded(plan) => {
-                let k = self.kappa;
-                let scaled: Vec<f64> = plan.install(|| self.weight.par_iter().map(|&w| w * k).collect());
-                NormalOperator::WGridded(plan.into_normal(&scaled))
-            }
-            plan => NormalOperator::Coplanar(MeasurementOperator { plan, ..self }),
+        let weights = matches!(self.plan, Plan::WGridded(_)).then(|| self.kappa_weights());
+        match (self.plan, weights) {
+            (Plan::WGridded(plan), Some(weights)) => NormalOperator::WGridded(plan.into_normal(&weights)),
+            (plan, _) => NormalOperator::Coplanar(MeasurementOperator { plan, ..self }),
         }
+    }
+
+    /// Each sample's weight times `kappa` (the operator's order): `D`'s weights.
+    fn kappa_weights(&self) -> Vec<f64> {
+        let k = self.kappa;
+        self.install(|| self.weight.par_iter().map(|&w| w * k).collect())
     }
 }
 

@@ -30,11 +30,6 @@ pub const OPERATOR_BYTES_PER_SAMPLE: f64 = 100.0;
 /// directions.
 pub const NORMAL_BYTES_PER_SAMPLE: f64 = 56.0;
 
-/// What holding the samples takes per sample while the operator is built and the dirty image
-/// and the PSF are made through it: the samples as read, their weights, the plan with its
-/// sorting, and the two sets of values spread together.
-pub const HELD_BUILD_BYTES_PER_SAMPLE: f64 = 150.0;
-
 /// What the samples take held: `D` alone, or the operator kept with them.
 fn held_bytes_per_sample(params: &PlanParams) -> f64 {
     if params.keep_operator {
@@ -44,9 +39,10 @@ fn held_bytes_per_sample(params: &PlanParams) -> f64 {
     }
 }
 
-/// What a chunk of a streamed operator costs per sample: the samples as read, their weights
-/// and the chunk's plan.
-pub const STREAMED_BYTES_PER_SAMPLE: f64 = 150.0;
+/// What building an operator over samples costs per sample: the samples as read, their
+/// weights, the plan with its sorting, and the values spread through it. A streamed chunk's
+/// cost, and that of samples to be held while their operator is built.
+pub const BUILD_BYTES_PER_SAMPLE: f64 = 150.0;
 
 /// What the gridder asks of `D`.
 #[derive(Clone, Copy, Debug)]
@@ -158,7 +154,7 @@ impl OperatorPlan {
         let held_bytes = held_bytes_per_sample(&params) * samples.count as f64;
         let form = if needs_operator && (samples.in_parts || (samples.streamed && held_bytes > params.hold_bytes)) {
             // Chunks as large as the hold limit allows: each costs its w-planes' FFTs.
-            Form::Streamed { chunk_rows: params.chunk_rows.max((params.hold_bytes / STREAMED_BYTES_PER_SAMPLE) as usize) }
+            Form::Streamed { chunk_rows: params.chunk_rows.max((params.hold_bytes / BUILD_BYTES_PER_SAMPLE) as usize) }
         } else if needs_operator {
             Form::Held
         } else {
@@ -175,8 +171,8 @@ impl OperatorPlan {
         let bytes = match (&w_toeplitz, form) {
             (Some(pass), _) => pass.bytes,
             (None, Form::Held) => held_bytes,
-            (None, Form::Streamed { chunk_rows }) => chunk_rows as f64 * STREAMED_BYTES_PER_SAMPLE,
-            (None, Form::Chunked) => params.chunk_rows as f64 * STREAMED_BYTES_PER_SAMPLE,
+            (None, Form::Streamed { chunk_rows }) => chunk_rows as f64 * BUILD_BYTES_PER_SAMPLE,
+            (None, Form::Chunked) => params.chunk_rows as f64 * BUILD_BYTES_PER_SAMPLE,
         };
         OperatorPlan {
             geometry,
@@ -222,7 +218,7 @@ fn toeplitz_pass(geometry: ImageGeometry, samples: Samples, params: PlanParams) 
     // (nothing of them is held after the pass), and beyond a few million samples a chunk's
     // fixed cost (its w-planes' FFTs for the dirty image) is small beside its spreading.
     let room = (0.5 * params.hold_bytes - builder.grid_bytes() as f64).max(0.0);
-    let chunk_rows = params.chunk_rows.max((room / STREAMED_BYTES_PER_SAMPLE) as usize);
+    let chunk_rows = params.chunk_rows.max((room / BUILD_BYTES_PER_SAMPLE) as usize);
     Ok(ToeplitzPass { builder, chunk_rows, bytes })
 }
 
@@ -357,7 +353,7 @@ mod tests {
             let p = OperatorPlan::new(field(), samples(1_000_000, streamed, in_parts), PlanParams { images_only: true, ..params(w_term, 0.0, false) });
             assert_eq!(p.w_term, w_term == WTermMode::On);
             assert!(p.w_toeplitz.is_none() && !p.taylor && p.reasons.is_empty(), "{w_term:?}");
-            assert_eq!((p.form, p.bytes), (Form::Chunked, 1000.0 * STREAMED_BYTES_PER_SAMPLE));
+            assert_eq!((p.form, p.bytes), (Form::Chunked, 1000.0 * BUILD_BYTES_PER_SAMPLE));
         }
     }
 

@@ -144,13 +144,14 @@ fn streamed(id: &str, source: VisSource, rule: WeightRule, plan: &OperatorPlan, 
 fn held(id: &str, source: VisSource, rule: WeightRule, plan: &OperatorPlan) -> Result<Branch> {
     let (geometry, params, samples) = (plan.geometry, plan.params, plan.samples.count);
     if plan.samples.streamed {
-        let building = samples as f64 * crate::operator::plan::HELD_BUILD_BYTES_PER_SAMPLE;
-        crate::limits::check_memory(building.max(plan.held_bytes), &format!("the {samples} samples of job '{id}' held for the operator (while it is built)"))
+        // Above what stays held (`plan.held_bytes`), for the build.
+        let building = samples as f64 * crate::operator::plan::BUILD_BYTES_PER_SAMPLE;
+        crate::limits::check_memory(building, &format!("the {samples} samples of job '{id}' held for the operator (while it is built)"))
             .map_err(|m| Error::parameter("gridder", format!("{m}: lower the gridder's hold_mb so that the samples are read from the file at each update instead")))?;
         log::info!(
             "job {id}: the operator holds the {samples} samples in memory (about {}; about {} while it is built)",
             crate::limits::format_bytes(plan.held_bytes),
-            crate::limits::format_bytes(building.max(plan.held_bytes))
+            crate::limits::format_bytes(building)
         );
     }
     let mut vis = source.into_held()?;
