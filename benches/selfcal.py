@@ -22,7 +22,7 @@ Skies: `compact` (30 point sources, 1e-3..1, and a small Gaussian) or `extended`
 simulator's procedural radio sky). The corruption: phases uniform in +-`--phase-deg`,
 amplitudes 1 +- `--amp` (uniform), seeded.
 
-Usage: python3 benches/selfcal.py [--sky compact|extended] [--rounds 3] [--size 512]
+Usage: python3 benches/selfcal.py [--sky compact|extended] [--rounds 6] [--size 512]
        [--phase-rounds 1] [--r2d2 target/release/r2d2] [--r2d2-args '--auto-mask 5'] [--out DIR] [--seed 1]
 Needs python-casacore, astropy and WSClean (`apt-get install wsclean`).
 """
@@ -168,7 +168,7 @@ def snr(model, truth):
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--sky", choices=["compact", "extended"], default="compact")
-    p.add_argument("--rounds", type=int, default=3)
+    p.add_argument("--rounds", type=int, default=6, help="rounds after the first image (6: both loops have settled on every sky measured)")
     p.add_argument("--size", type=int, default=512)
     p.add_argument("--phase-deg", type=float, default=30.0)
     p.add_argument("--amp", type=float, default=0.1)
