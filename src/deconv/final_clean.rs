@@ -438,35 +438,61 @@ mod tests {
         assert_eq!(compact_island_pixels(&model, n, 10, 1.0).len(), 10);
     }
 
-    /// Noise of robust sigma about 1 with one pixel at `peak` sigmas, a narrow Gaussian PSF,
-    /// and how many exact residuals the final CLEAN asked for.
-    fn major_cycles_for_a_peak_of(peak: f64) -> (usize, usize) {
-        use rand::SeedableRng;
-        use rand_distr::Distribution;
-        let n = 32;
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
-        let noise = rand_distr::Normal::new(0.0, 1.0).unwrap();
-        let mut dirty: Vec<f64> = (0..n * n).map(|_| noise.sample(&mut rng)).collect();
-        let sigma = crate::metrics::robust_sigma(&dirty);
-        dirty[16 * n + 16] = peak * sigma;
-        let gauss = |dx: f64, dy: f64| (-(dx * dx + dy * dy) / 2.0).exp();
-        let psf: Vec<f64> = (0..n * n).map(|k| gauss((k % n) as f64 - 16.0, (k / n) as f64 - 16.0)).collect();
-        let m = 2 * n;
-        let psf_2n: Vec<f64> = (0..m * m).map(|k| gauss((k % m) as f64 - n as f64, (k / m) as f64 - n as f64)).collect();
-        let input = CleanInput { n, dirty: &dirty, psf: &psf, psf_2n: &psf_2n, mask: None };
-        let mut residuals = 0;
-        let mut residual_of = |x: &[f64]| -> Result<Vec<f64>> {
-            residuals += 1;
-            let mut r = dirty.clone();
+    /// A 32 x 32 field of unit Gaussian noise (seeded), a narrow Gaussian PSF and its 2N
+    /// form, and the exact residual of a model on it (the dirty image minus the model
+    /// convolved with the 2N PSF).
+    struct NoiseField {
+        n: usize,
+        dirty: Vec<f64>,
+        psf: Vec<f64>,
+        psf_2n: Vec<f64>,
+    }
+
+    impl NoiseField {
+        fn new(seed: u64) -> NoiseField {
+            use rand::SeedableRng;
+            use rand_distr::Distribution;
+            let n = 32;
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+            let noise = rand_distr::Normal::new(0.0, 1.0).unwrap();
+            let dirty: Vec<f64> = (0..n * n).map(|_| noise.sample(&mut rng)).collect();
+            let gauss = |dx: f64, dy: f64| (-(dx * dx + dy * dy) / 2.0).exp();
+            let psf: Vec<f64> = (0..n * n).map(|k| gauss((k % n) as f64 - 16.0, (k / n) as f64 - 16.0)).collect();
+            let m = 2 * n;
+            let psf_2n: Vec<f64> = (0..m * m).map(|k| gauss((k % m) as f64 - n as f64, (k / m) as f64 - n as f64)).collect();
+            NoiseField { n, dirty, psf, psf_2n }
+        }
+
+        fn input(&self) -> CleanInput<'_> {
+            CleanInput { n: self.n, dirty: &self.dirty, psf: &self.psf, psf_2n: &self.psf_2n, mask: None }
+        }
+
+        fn residual_of(&self, x: &[f64]) -> Vec<f64> {
+            let (n, m) = (self.n, 2 * self.n);
+            let mut r = self.dirty.clone();
             for (j, &xj) in x.iter().enumerate().filter(|(_, v)| **v != 0.0) {
                 let (sx, sy) = (j % n, j / n);
                 for (k, v) in r.iter_mut().enumerate() {
-                    *v -= xj * psf_2n[(k / n + n - sy) * m + (k % n + n - sx)];
+                    *v -= xj * self.psf_2n[(k / n + n - sy) * m + (k % n + n - sx)];
                 }
             }
-            Ok(r)
+            r
+        }
+    }
+
+    /// Noise of robust sigma about 1 with one pixel at `peak` sigmas, and how many exact
+    /// residuals the final CLEAN asked for.
+    fn major_cycles_for_a_peak_of(peak: f64) -> (usize, usize) {
+        let mut field = NoiseField::new(5);
+        let n = field.n;
+        let sigma = crate::metrics::robust_sigma(&field.dirty);
+        field.dirty[16 * n + 16] = peak * sigma;
+        let mut residuals = 0;
+        let mut residual_of = |x: &[f64]| -> Result<Vec<f64>> {
+            residuals += 1;
+            Ok(field.residual_of(x))
         };
-        let outcome = final_clean(&FinalCleanParams::default(), &input, vec![0.0; n * n], dirty.clone(), &mut residual_of, &mut |_, _, _| ()).unwrap();
+        let outcome = final_clean(&FinalCleanParams::default(), &field.input(), vec![0.0; n * n], field.dirty.clone(), &mut residual_of, &mut |_, _, _| ()).unwrap();
         (outcome.cycles, residuals)
     }
 
@@ -506,27 +532,9 @@ mod tests {
     /// the speck stays.
     #[test]
     fn a_faint_speck_leaves_the_model_with_the_exact_residual() {
-        use rand::SeedableRng;
-        use rand_distr::Distribution;
-        let n = 32;
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
-        let noise = rand_distr::Normal::new(0.0, 1.0).unwrap();
-        let dirty: Vec<f64> = (0..n * n).map(|_| noise.sample(&mut rng)).collect();
-        let gauss = |dx: f64, dy: f64| (-(dx * dx + dy * dy) / 2.0).exp();
-        let psf: Vec<f64> = (0..n * n).map(|k| gauss((k % n) as f64 - 16.0, (k / n) as f64 - 16.0)).collect();
-        let m = 2 * n;
-        let psf_2n: Vec<f64> = (0..m * m).map(|k| gauss((k % m) as f64 - n as f64, (k / m) as f64 - n as f64)).collect();
-        let input = CleanInput { n, dirty: &dirty, psf: &psf, psf_2n: &psf_2n, mask: None };
-        let residual_of = |x: &[f64]| -> Result<Vec<f64>> {
-            let mut r = dirty.clone();
-            for (j, &xj) in x.iter().enumerate().filter(|(_, v)| **v != 0.0) {
-                let (sx, sy) = (j % n, j / n);
-                for (k, v) in r.iter_mut().enumerate() {
-                    *v -= xj * psf_2n[(k / n + n - sy) * m + (k % n + n - sx)];
-                }
-            }
-            Ok(r)
-        };
+        let field = NoiseField::new(7);
+        let (n, input) = (field.n, field.input());
+        let residual_of = |x: &[f64]| -> Result<Vec<f64>> { Ok(field.residual_of(x)) };
         let mut model = vec![0.0; n * n];
         model[10 * n + 10] = 1.0;
         let residual = residual_of(&model).unwrap();
