@@ -81,7 +81,7 @@ impl Stage<Job> for FinalCleanStage {
             job.push_iteration(figures);
         }
         if let Some(stop) = job.stop.as_mut().filter(|_| changed) {
-            // The model written is the last cycle's.
+            // The model written is the last kept step's (a cycle, or the faint islands' removal).
             stop.kept_iteration = job.iteration;
             stop.kept_residual_ratio = ratio;
         }

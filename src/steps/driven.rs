@@ -276,7 +276,14 @@ fn drive(mut step: OnnxStep, config: &DrivenConfig, dirty: Vec<f64>, psf: Vec<f6
         if params.major_cycles > 0 {
             let input = CleanInput { n, dirty: &dirty, psf: &psf, psf_2n: &psf_2n, mask: None };
             let outcome = final_clean(params, &input, model, residual, &mut |x| imager.residual_of(x), &mut |_, _, _| ())?;
-            log::info!("final CLEAN on the residual: {} major cycles kept, components at {} pixels; residual ratio {:.4e}", outcome.cycles, outcome.components, outcome.ratio);
+            log::info!(
+                "final CLEAN on the residual: {} major cycles kept, components at {} pixels; {} faint islands ({:.3e} Jy) left the model; residual ratio {:.4e}",
+                outcome.cycles,
+                outcome.components,
+                outcome.faint_islands,
+                outcome.faint_flux,
+                outcome.ratio
+            );
             (model, final_clean_cycles, ratio) = (outcome.model, outcome.cycles, outcome.ratio);
         }
     }
