@@ -209,7 +209,6 @@ def run_main(args):
     keys = [str(K) for K in counts] + (["v2"] if v2 else [])
 
     def means(recs):
-        ws = float(np.mean([r["wsclean"]["wall_s"] for r in recs]))
         rows = {}
         for key in keys:
             runs = [r["runs"][key] for r in recs]
@@ -217,14 +216,14 @@ def run_main(args):
             rows[key]["of_wsclean_time"] = float(np.mean([r["runs"][key]["wall_s"] / r["wsclean"]["wall_s"] for r in recs]))
         rows["wsclean"] = {m: float(np.mean([r["wsclean"][m] for r in recs])) for m in ("snr_db", "logsnr_db", "residual_ratio", "wall_s")}
         rows["wsclean"]["of_wsclean_time"] = 1.0
-        return rows, ws
+        return rows
 
     sets = sorted({r["set"] for r in records})
     result = {"series": os.path.basename(src), "networks": total, "threads": args.threads, "counts": counts,
               "data": [os.path.basename(os.path.abspath(d)) for d in args.data],
               "r2d2_command": "r2d2 image OBS --size N --truth SKY --threads T --robust=R --superresolution SR --step SERIES --iterations K",
               "wsclean_command": "wsclean -size N N -scale PIXEL -j T -weight briggs R " + " ".join(vw.PAPER_WSCLEAN),
-              "means": means(records)[0], "per_set": {s: means([r for r in records if r["set"] == s])[0] for s in sets},
+              "means": means(records), "per_set": {s: means([r for r in records if r["set"] == s]) for s in sets},
               "per_sky": records}
     counts_text = ", ".join(f"{s}: {sum(r['set'] == s for r in records)}" for s in sets)
     lines = [f"`{result['series']}` on {len(records)} skies ({counts_text}), "

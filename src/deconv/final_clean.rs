@@ -322,12 +322,11 @@ fn faint_islands_of(model: &[f64], n: usize, beam_pixels: f64, sigmas_flux: f64)
             let mut pixels = island(model, n, k, |v| v > 0.0, &mut seen);
             let flux: f64 = pixels.iter().map(|&j| model[j]).sum();
             if flux < sigmas_flux * (pixels.len() as f64 / beam_pixels).max(1.0).sqrt() {
-                let beside: Vec<usize> = pixels.iter().flat_map(|&j| neighbours(j, n)).filter(|&j| model[j] < 0.0).collect();
-                for j in beside {
-                    if !pixels.contains(&j) {
-                        pixels.push(j);
-                    }
-                }
+                // A negative pixel beside two of the island's is one component.
+                let mut beside: Vec<usize> = pixels.iter().flat_map(|&j| block(j, n)).filter(|&j| model[j] < 0.0).collect();
+                beside.sort_unstable();
+                beside.dedup();
+                pixels.extend(beside);
                 faint.push(pixels);
             }
         }
@@ -335,10 +334,11 @@ fn faint_islands_of(model: &[f64], n: usize, beam_pixels: f64, sigmas_flux: f64)
     faint
 }
 
-/// The up to eight pixels around pixel `k` of an `n x n` image.
-fn neighbours(k: usize, n: usize) -> impl Iterator<Item = usize> {
+/// The 3 x 3 pixels centred on pixel `k` of an `n x n` image (`k` too), fewer at its edges:
+/// an island's 8-connected reach, a component's mask, what lies beside an island.
+fn block(k: usize, n: usize) -> impl Iterator<Item = usize> {
     let (x, y) = (k % n, k / n);
-    (y.saturating_sub(1)..(y + 2).min(n)).flat_map(move |yy| (x.saturating_sub(1)..(x + 2).min(n)).map(move |xx| yy * n + xx)).filter(move |&j| j != k)
+    (y.saturating_sub(1)..(y + 2).min(n)).flat_map(move |yy| (x.saturating_sub(1)..(x + 2).min(n)).map(move |xx| yy * n + xx))
 }
 
 /// The pixels of the PSF's main lobe: those at half its peak or above, connected to it.
@@ -355,14 +355,10 @@ fn island(image: &[f64], n: usize, start: usize, inside: impl Fn(f64) -> bool, s
     while next < pixels.len() {
         let k = pixels[next];
         next += 1;
-        let (x, y) = (k % n, k / n);
-        for yy in y.saturating_sub(1)..(y + 2).min(n) {
-            for xx in x.saturating_sub(1)..(x + 2).min(n) {
-                let j = yy * n + xx;
-                if !seen[j] && inside(image[j]) {
-                    seen[j] = true;
-                    pixels.push(j);
-                }
+        for j in block(k, n) {
+            if !seen[j] && inside(image[j]) {
+                seen[j] = true;
+                pixels.push(j);
             }
         }
     }
@@ -401,11 +397,8 @@ const COMPACT_MIN_SIGMAS: f64 = 10.0;
 fn mask_of(components: &[f64], n: usize, within: Option<&[bool]>) -> Vec<bool> {
     let mut mask = vec![false; n * n];
     for (k, _) in components.iter().enumerate().filter(|(_, c)| **c != 0.0) {
-        let (x, y) = (k % n, k / n);
-        for yy in y.saturating_sub(1)..(y + 2).min(n) {
-            for xx in x.saturating_sub(1)..(x + 2).min(n) {
-                mask[yy * n + xx] = within.is_none_or(|w| w[yy * n + xx]);
-            }
+        for j in block(k, n) {
+            mask[j] = within.is_none_or(|w| w[j]);
         }
     }
     mask
@@ -569,7 +562,7 @@ mod tests {
         let outcome = final_clean(&FinalCleanParams::default(), &input, model.clone(), residual.clone(), &mut |x| residual_of(x), &mut |_, _, _| handed += 1).unwrap();
         // (The masked cycles may take some of the speck's flux first: the residual dips there.)
         assert!(outcome.faint_islands >= 1 && outcome.faint_flux > 0.0 && outcome.faint_flux <= 1.0, "{} {}", outcome.faint_islands, outcome.faint_flux);
-        assert!(neighbours(speck, n).chain([speck]).all(|k| outcome.model[k] == 0.0), "the speck and the components beside it left");
+        assert!(block(speck, n).all(|k| outcome.model[k] == 0.0), "the speck and the components beside it left");
         assert!(outcome.model[source] > 5.0, "the source stays: {}", outcome.model[source]);
         assert_eq!(outcome.residual, residual_of(&outcome.model).unwrap());
         assert_eq!(handed, outcome.cycles + 1);
