@@ -356,15 +356,45 @@ DEFAULTS = {"-mgain": ["0.8"], "-niter": ["1000000"], "-nmiter": ["200"], "-padd
 GRIDDERS = ("-use-wgridder", "-use-idg", "-gridder")
 
 
+def served_off_its_trained_size(size: int, series: Optional[list] = None) -> Optional[int]:
+    """The trained size of the series the engine's ``auto`` takes for ``size x size`` images
+    where that series serves the size without being trained at it (its domain names the size:
+    measured there on held-out data), else None. ``series``: :func:`r2d2_imaging.info`'s list,
+    in the order ``auto`` prefers them (read here when not given)."""
+    if series is None:
+        series = _native.info(None)["series"]
+    for s in series:
+        trained = list(s.get("image_sizes") or [])
+        if size in trained:
+            return None
+        if size in ((s.get("domain") or {}).get("image_sizes") or []) and trained:
+            return min(trained, key=lambda t: (abs(math.log(t / size)), -t))
+    return None
+
+
 def wsclean_command(args: list) -> list:
     """``wsclean`` with this deconvolver, :data:`DEFAULTS` where ``args`` lacks them and the
-    w-gridder unless ``args`` chooses a gridder."""
+    w-gridder unless ``args`` chooses a gridder. Where ``auto`` takes a series that serves the
+    image size off its trained size (``vla-r2d2-512`` at 128), and neither ``-super-weight``
+    nor a series in ``R2D2_WSCLEAN`` is given, ``-super-weight`` puts WSClean's weighting grid
+    on the series' trained field, as ``r2d2 image`` weighs there."""
     command = ["wsclean", "-python-deconvolution", HOOK]
     for option, values in DEFAULTS.items():
         if option not in args:
             command += [option, *values]
     if not any(g in args for g in GRIDDERS):
         command.append("-use-wgridder")
+    named = "series=" in os.environ.get("R2D2_WSCLEAN", "")
+    if "-size" in args and "-super-weight" not in args and not named:
+        job = command_line_job(args)
+        try:
+            size = int(args[args.index("-size") + 1])
+            trained = served_off_its_trained_size(size)
+        except (ValueError, IndexError, _native.R2D2Error):
+            trained = None
+        if trained is not None:
+            padding = job["padding"] if "-padding" in args else float(DEFAULTS["-padding"][0])
+            command += ["-super-weight", f"{padding * size / (2 * trained):g}"]
     return command + list(args)
 
 

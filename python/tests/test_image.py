@@ -85,11 +85,12 @@ def test_series_step_with_truth(r2d2_bin, observations, tmp_path):
     for name in ["dirty", "psf", "model", "residual", "image"]:
         np.testing.assert_array_equal(getattr(p, name), read_fits(tmp_path / f"obs-{name}.fits")[0], err_msg=name)
     snr = [m["snr"] for m in p.metrics["iterations"]]
-    # One iteration per network (8), then one per cycle of the final CLEAN on the residual, and
+    # One iteration per network (43: vla-r2d2-512 serves 128), then one per cycle of the final CLEAN on the residual, and
     # one where faint islands left its model.
     final_clean = p.metrics["settings"]["final_clean"]
     final_steps = final_clean["major_cycles"] + (final_clean["faint_islands"] > 0)
-    assert len(snr) == 8 + final_steps and snr[-1] > snr[0] > 0, snr
+    assert p.metrics["settings"]["step"]["series"] == "vla-r2d2-512"
+    assert len(snr) == 43 + final_steps and snr[-1] > snr[0] > 0, snr
 
 
 def test_tables_in_memory_image_as_the_file(observations, clean_products):
@@ -173,11 +174,12 @@ def test_the_gil_is_released_while_the_engine_works(observations):
 def test_engine_warnings_reach_pythons_warnings(observations):
     """A job outside the series' domain (Briggs +1 against a series trained at 0) is warned
     about through `warnings`, as the command line logs it, and recorded in the metrics."""
-    with pytest.warns(r2d2_imaging.R2D2Warning, match=r"Briggs robust 1 is outside the series' setting 0") as caught:
+    with pytest.warns(r2d2_imaging.R2D2Warning, match=r"Briggs robust 1 is outside the series' range -1..0") as caught:
         p = r2d2_imaging.image(observations[2], size=128, robust=1.0, threads=1)
     assert any(str(w.message) in f"job {p.id}: {m}" for w in caught for m in p.metrics["warnings"])
-    assert p.metrics["settings"]["weighting"] == {"scheme": "briggs", "robust": 1.0, "grid_factor": 2.0}
-    assert p.metrics["settings"]["step"]["series"] == "vla-r2d2-128"
+    # vla-r2d2-512 (as near to Briggs 1 as vla-r2d2-128, and first), on its trained field's grid.
+    assert p.metrics["settings"]["weighting"] == {"scheme": "briggs", "robust": 1.0, "grid_factor": 8.0}
+    assert p.metrics["settings"]["step"]["series"] == "vla-r2d2-512"
 
 
 def test_a_table_read_by_pyarrow_keeps_its_phase_centre(observations, clean_products):

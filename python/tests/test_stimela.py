@@ -58,7 +58,7 @@ def test_recipe_images_in_wsclean_with_the_r2d2_deconvolver(r2d2_bin, tmp_path):
     done = subprocess.run([str(stimela), "run", "recipe.yml", "simulate_and_image_in_wsclean"], cwd=tmp_path, env=env, capture_output=True, text=True)
     assert done.returncode == 0, done.stdout[-4000:] + done.stderr[-4000:]
     log = (tmp_path / "logs" / "log-simulate_and_image_in_wsclean.image.txt").read_text()
-    assert "r2d2: series vla-r2d2-128 (8 networks) on 128 x 128; telescope VLA, super-resolution 1.5" in log, log[-3000:]
+    assert "r2d2: series vla-r2d2-512 (43 networks) on 128 x 128; telescope VLA, super-resolution 1.5" in log, log[-3000:]
     assert "was not trained for this job" not in log, "the recipe's pixel is the series' super-resolution"
     model, header = read_fits(tmp_path / "products/ws-model.fits")
     truth, _ = read_fits(tmp_path / "obs.sky.fits")

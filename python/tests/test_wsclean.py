@@ -27,7 +27,7 @@ def run(args, cwd, env=None):
 
 @pytest.fixture(scope="module")
 def ms(r2d2_bin, tmp_path_factory):
-    """A VLA A+C track inside vla-r2d2-128's domain (6 h), as an MS; 4 channels over 20 %."""
+    """A VLA A+C track (6 h) at 128 x 128, as an MS; 4 channels over 20 %."""
     assert shutil.which("wsclean"), "WSClean is a test requirement (apt-get install wsclean; .ci/run installs it)"
     d = tmp_path_factory.mktemp("wsclean")
     run([r2d2_bin, "-q", "simulate", "--sky", "procedural:11", "--size", SIZE, "--hours", "5,1", "--integration-s", "120",
@@ -51,12 +51,17 @@ def wsclean(d, name, extra, env_words=""):
     args = ["wsclean", "-python-deconvolution", hook.HOOK, "-mgain", "0.8", "-niter", "1000000", "-nmiter", "200",
             "-size", SIZE, SIZE, "-scale", scale, "-weight", "briggs", "0", "-use-wgridder", "-wgridder-accuracy", "1e-6",
             "-padding", "2", "-no-small-inversion", "-j", "2", "-name", name, *extra, "obs.ms"]
+    # The series `auto` takes at this size weighs on its trained field's grid, as `r2d2 image`
+    # and the r2d2-wsclean command do (vla-r2d2-512 at 128: -super-weight 0.25).
+    trained = hook.served_off_its_trained_size(int(SIZE))
+    if trained:
+        args[-1:-1] = ["-super-weight", f"{2 * int(SIZE) / (2 * trained):g}"]
     return run(args, d, env)
 
 
 @pytest.fixture(scope="module")
 def engine_run(ms, r2d2_bin):
-    """`r2d2 image` on the MS's band, the series chosen for the size (vla-r2d2-128)."""
+    """`r2d2 image` on the MS's band, the series chosen for the size (vla-r2d2-512)."""
     env = dict(os.environ, ORT_DYLIB_PATH=onnx_runtime())
     log = run([r2d2_bin, "image", "obs.ms", "--size", SIZE, "--backend", "ort", "--name", "r2d2"], ms, env)
     return log
@@ -83,6 +88,15 @@ def test_the_hook_is_found_and_reads_wsclean_s_command_line():
     # The series' weighting grid (twice the image size: -padding 2) unless given.
     command = hook.wsclean_command(["-size", "512", "512", "obs.ms"])
     assert command[command.index("-padding") + 1] == "2" and "-use-wgridder" in command, command
+    # A series that serves the size off its trained size: WSClean weighs on its trained field.
+    listing = [{"name": "a", "image_sizes": [512], "domain": {"image_sizes": [128, 512]}}, {"name": "b", "image_sizes": [128], "domain": None}]
+    assert hook.served_off_its_trained_size(128, listing) == 512
+    assert hook.served_off_its_trained_size(512, listing) is None and hook.served_off_its_trained_size(256, listing) is None
+    assert hook.served_off_its_trained_size(128, listing[::-1]) is None, "the first in auto's order decides"
+    command = hook.wsclean_command(["-size", "128", "128", "obs.ms"])
+    assert command[command.index("-super-weight") + 1] == "0.25", command
+    assert hook.weighting_grid_problem(128, 2.0, 0.25, 512, "s") is None
+    assert "-super-weight" not in hook.wsclean_command(["-size", "512", "512", "obs.ms"])
     command = hook.wsclean_command(["-padding", "1.5", "-size", "512", "512", "obs.ms"])
     assert command.count("-padding") == 1 and command[command.index("-padding") + 1] == "1.5", command
 
@@ -98,8 +112,8 @@ def test_wsclean_with_the_r2d2_deconvolver_gives_r2d2_image_s_model(ms, engine_r
     env = dict(os.environ, ORT_DYLIB_PATH=onnx_runtime())
     run([r2d2_bin, "-q", "image", "obs.ms", "--size", SIZE, "--backend", "ort", "--no-final-clean", "--name", "r2d2-series"], ms, env)
     log = wsclean(ms, "ws-series", [], "final_clean=off")
-    assert "r2d2: series vla-r2d2-128 (8 networks)" in log, log[-3000:]
-    assert "8 networks, kept 8" in log, log[-3000:]
+    assert "r2d2: series vla-r2d2-512 (43 networks)" in log, log[-3000:]
+    assert "43 networks, kept 43" in log, log[-3000:]
     ours, theirs = read_fits(ms / "r2d2-series-model.fits")[0], read_fits(ms / "ws-series-model.fits")[0]
     series_difference = np.linalg.norm(theirs - ours) / np.linalg.norm(ours)
     # With the final CLEAN: its minor cycles subtract the N x N PSF WSClean gives (the

@@ -193,7 +193,10 @@ pub struct Validity {
     /// Telescopes whose observations it was trained on (`vla`, `meerkat`, ...).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub telescopes: Option<Vec<String>>,
-    /// Image sizes it was trained at (as the manifest's `image_sizes`).
+    /// Image sizes it serves: those it was trained at (the manifest's `image_sizes`) and any
+    /// other it was measured at on held-out data and found the best series for (`auto` then
+    /// chooses it there as at a trained size; off-size handling, such as the weighting on its
+    /// trained field's grid, stays as at any other size).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub image_sizes: Option<Vec<usize>>,
     /// Super-resolution factors `[min, max]`.
@@ -689,6 +692,13 @@ impl Series {
         self.image_sizes.iter().copied().min_by(|&a, &b| size_ratio_distance(a, size).total_cmp(&size_ratio_distance(b, size)).then(b.cmp(&a)))
     }
 
+    /// Whether `auto` may choose the series for `size x size` images: it was trained at that
+    /// size, or its domain names the size (measured there on held-out data).
+    pub fn serves_size(&self, size: usize) -> bool {
+        let declared = self.manifest.as_ref().and_then(|m| m.validity.as_ref()).and_then(|v| v.image_sizes.as_deref()).unwrap_or_default();
+        self.image_sizes.contains(&size) || declared.contains(&size)
+    }
+
     /// Whether the series may image `size x size` pixels; `Ok(Some(warning))` when it runs at a
     /// size nobody vouched for.
     pub fn check_size(&self, size: usize) -> Result<Option<String>> {
@@ -703,7 +713,7 @@ impl Series {
                 ));
             }
         }
-        if self.image_sizes.contains(&size) {
+        if self.serves_size(size) {
             return Ok(None);
         }
         let trained = if self.image_sizes.is_empty() {
@@ -730,11 +740,12 @@ fn size_ratio_distance(trained: usize, size: usize) -> f64 {
 /// series by the job's image size and imaging setting ([`select_for`]).
 pub const AUTO_SERIES: &str = "auto";
 
-/// The project's own series, preferred in this order when several were trained for a size.
+/// The project's own series, preferred in this order when several serve a size.
 pub const PROJECT_SERIES: [&str; 4] = ["vla-r2d2-512", "vla-r2d2-128", "vla-r2d2-512-broad", "meerkat-r2d2-512"];
 
 /// The series for `size x size` images when none is named, among the series found in
-/// [`model_dirs`]: of those whose manifest lists `size` in `image_sizes`, the first (the
+/// [`model_dirs`]: of those that serve `size` ([`Series::serves_size`]: trained at it, or
+/// measured there on held-out data), the first (the
 /// project's own first, then by name) whose declared domain holds `setup` (what the pipeline
 /// fixes: weighting, a super-resolution factor), else the one of the data's telescope whose
 /// domain comes nearest to it ([`Series::domain_distance`]), else the first of them, whose
@@ -778,7 +789,7 @@ fn ranked_series(roots: &[PathBuf]) -> Result<Vec<(PathBuf, Series)>> {
 
 fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(PathBuf, Option<String>)> {
     let found = ranked_series(roots)?;
-    let trained: Vec<&(PathBuf, Series)> = found.iter().filter(|(_, s)| s.image_sizes.contains(&size)).collect();
+    let trained: Vec<&(PathBuf, Series)> = found.iter().filter(|(_, s)| s.serves_size(size)).collect();
     // A series of the data's telescope outside its settings before one of another telescope.
     let same_telescope = |s: &Series| setup.telescope.as_deref().map_or(true, |t| s.trained_for_telescope(t));
     let fits = trained.iter().find(|(_, s)| s.validity_problems(setup).is_empty());
@@ -797,7 +808,8 @@ fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(Pa
                 first.name,
                 first.validity_problems(setup).join("; ")
             ),
-            _ => log::info!("series '{}' chosen for {size} x {size} (trained for {:?})", s.name, s.image_sizes),
+            _ if s.image_sizes.contains(&size) => log::info!("series '{}' chosen for {size} x {size} (trained for {:?})", s.name, s.image_sizes),
+            _ => log::info!("series '{}' chosen for {size} x {size} (trained for {:?}, measured at {size} x {size} on held-out data)", s.name, s.image_sizes),
         }
         return Ok((dir.clone(), None));
     }
@@ -835,7 +847,7 @@ fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(Pa
 pub fn covering_series(size: usize, setup: &ImagingSetup, except: &str) -> Option<String> {
     found_series().ok()?.into_iter().map(|(_, s)| s).find_map(|s| {
         let declares = s.manifest.as_ref().is_some_and(|m| m.validity.is_some());
-        let covers = s.name != except && declares && s.image_sizes.contains(&size) && s.validity_problems(setup).is_empty();
+        let covers = s.name != except && declares && s.serves_size(size) && s.validity_problems(setup).is_empty();
         covers.then_some(s.name)
     })
 }
@@ -1089,6 +1101,38 @@ mod tests {
         let series = Series::open(&root.path().join("two")).unwrap();
         let nearest = |size| series.nearest_trained_size(size).unwrap();
         assert_eq!((nearest(128), nearest(200), nearest(256), nearest(300), nearest(2048)), (128, 128, 512, 512, 512));
+    }
+
+    /// A size a series' domain names without its being trained there (measured on held-out
+    /// data) makes it a choice there as at a trained size, by rank, without the off-size
+    /// warning; its trained size still rules what off-size imaging needs (the weighting grid).
+    #[test]
+    fn a_size_the_domain_names_serves_as_a_trained_one() {
+        let root = tempfile::tempdir().unwrap();
+        let roots = [root.path().to_path_buf()];
+        series_dir(root.path(), "vla-r2d2-512", "[512]", true);
+        series_dir(root.path(), "vla-r2d2-128", "[128]", true);
+        let pick = |size| select_in(&roots, size, &ImagingSetup::default()).unwrap();
+        assert_eq!(pick(128), (root.path().join("vla-r2d2-128"), None));
+        let manifest = root.path().join("vla-r2d2-512/manifest.yaml");
+        let text = std::fs::read_to_string(&manifest).unwrap();
+        std::fs::write(&manifest, format!("{text}validity: {{image_sizes: [128, 512]}}\n")).unwrap();
+        assert_eq!(pick(128), (root.path().join("vla-r2d2-512"), None));
+        assert_eq!(pick(512).0, root.path().join("vla-r2d2-512"));
+        let series = Series::open(&root.path().join("vla-r2d2-512")).unwrap();
+        assert!(series.serves_size(128) && series.serves_size(512) && !series.serves_size(256));
+        assert_eq!(series.check_size(128).unwrap(), None, "no off-size warning where the domain names the size");
+        assert!(series.check_size(256).unwrap().is_some());
+        assert_eq!(series.nearest_trained_size(128), Some(512), "off-size handling goes by the trained size");
+        // Not of the job's setting there: the series trained at the size, as before.
+        std::fs::write(&manifest, format!("{text}validity: {{image_sizes: [128, 512], robust: [0.0, 0.0]}}\n")).unwrap();
+        let briggs1 = ImagingSetup { weighting: Some("briggs".into()), robust: Some(1.0), ..ImagingSetup::default() };
+        let v128 = root.path().join("vla-r2d2-128/manifest.yaml");
+        let t128 = std::fs::read_to_string(&v128).unwrap();
+        std::fs::write(&v128, format!("{t128}validity: {{robust: [0.0, 0.0]}}\n")).unwrap();
+        assert_eq!(select_in(&roots, 128, &briggs1).unwrap().0, root.path().join("vla-r2d2-512"), "neither holds it, as near: the rank");
+        std::fs::write(&v128, format!("{t128}validity: {{robust: [-1.0, 1.0]}}\n")).unwrap();
+        assert_eq!(select_in(&roots, 128, &briggs1).unwrap().0, root.path().join("vla-r2d2-128"), "the one whose domain holds the setting");
     }
 
     #[test]
