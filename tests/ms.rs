@@ -1463,9 +1463,9 @@ fn an_ms_name_too_long_for_a_model_write_is_refused_before_imaging() {
 /// carry phase errors of +-30 degrees and amplitude errors of +-10 %, imaged into MODEL_DATA,
 /// solved by StEFCal, corrected and imaged again. The gains must come closer to the truth at
 /// each round, to under a third of the uncorrected error, and stay within 1.35 times the error
-/// of WSClean's loop (measured with the bench's phase-only first round and the 128 series'
-/// emission mask: 0.079 against 0.074 at round 2; the bench's other skies and sizes are in the
-/// user guide).
+/// of WSClean's loop (measured with the bench's phase-only first round and `auto`'s series at
+/// 128, vla-r2d2-512: 0.071 against 0.074 at round 2; the bench's other skies and sizes are in
+/// the user guide).
 #[test]
 fn self_calibration_against_the_model_converges_to_the_true_gains() {
     let dir = tempfile::tempdir().unwrap();
