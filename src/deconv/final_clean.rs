@@ -291,18 +291,52 @@ pub fn final_clean<T>(
         let beam_pixels = main_lobe_pixels(input.psf, n) as f64 / std::f64::consts::LN_2;
         let faint = faint_islands_of(&run.model, n, beam_pixels, config.faint_island_sigmas * robust_sigma(&run.residual));
         if !faint.is_empty() {
-            faint_islands = faint.len();
-            for island in &faint {
-                faint_flux += island.iter().map(|&k| run.model[k]).sum::<f64>();
-                island.iter().for_each(|&k| run.model[k] = 0.0);
+            // Faint islands explain no more than noise: where their removal leaves the
+            // residual above the open cycles' threshold (and above its peak before), the
+            // islands there held what the data measure, and they stay.
+            let sigma = robust_sigma(&run.residual);
+            let peak = |r: &[f64]| r.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
+            let before = peak(&run.residual);
+            let limit = before.max(config.auto_mask * sigma);
+            let without = |islands: &[Vec<usize>]| {
+                let mut model = run.model.clone();
+                islands.iter().flatten().for_each(|&k| model[k] = 0.0);
+                model
+            };
+            let mut faint = faint;
+            let mut model = without(&faint);
+            let mut residual = (run.residual_of)(&model)?;
+            if peak(&residual) > limit {
+                // Within two pixels of where the residual rose above the limit.
+                let mut near = vec![false; n * n];
+                for k in (0..n * n).filter(|&k| residual[k].abs() > limit) {
+                    let (x, y) = (k % n, k / n);
+                    for yy in y.saturating_sub(2)..(y + 3).min(n) {
+                        near[yy * n + x.saturating_sub(2)..yy * n + (x + 3).min(n)].iter_mut().for_each(|m| *m = true);
+                    }
+                }
+                let count = faint.len();
+                faint.retain(|island| !island.iter().any(|&k| near[k]));
+                log::debug!("final CLEAN: {} of {count} faint islands stay: their removal left the residual above {:.1} sigma beside them", count - faint.len(), limit / sigma);
+                model = without(&faint);
+                residual = (run.residual_of)(&model)?;
+                if peak(&residual) > limit {
+                    faint.clear();
+                }
             }
-            run.residual = (run.residual_of)(&run.model)?;
-            crate::sanity::check_image(&run.residual, n, "residual after the faint islands left the final CLEAN's model", "the model is too large for the residual update to stay finite")?;
-            // The ratio may rise a little: the islands explained some noise.
-            ratio = residual_ratio(&run.residual, input.dirty);
-            log::debug!("final CLEAN: {faint_islands} faint islands ({faint_flux:.3e} Jy) left the model; residual ratio {ratio:.4e}");
-            let kept = (run.on_kept)(&run.model, &run.residual, began.elapsed().as_secs_f64());
-            run.kept.push(kept);
+            crate::sanity::check_image(&residual, n, "residual after the faint islands left the final CLEAN's model", "the model is too large for the residual update to stay finite")?;
+            if faint.is_empty() {
+                log::debug!("final CLEAN: the faint islands stay: their removal left the residual's peak above {:.1} sigma", limit / sigma);
+            } else {
+                let flux = faint.iter().flatten().map(|&k| run.model[k]).sum::<f64>();
+                (faint_islands, faint_flux) = (faint.len(), flux);
+                (run.model, run.residual) = (model, residual);
+                // The ratio may rise a little: the islands explained some noise.
+                ratio = residual_ratio(&run.residual, input.dirty);
+                log::debug!("final CLEAN: {faint_islands} faint islands ({faint_flux:.3e} Jy) left the model; residual ratio {ratio:.4e}");
+                let kept = (run.on_kept)(&run.model, &run.residual, began.elapsed().as_secs_f64());
+                run.kept.push(kept);
+            }
         }
     }
     Ok(CleanOutcome { model: run.model, residual: run.residual, cycles, components, ratio, kept: run.kept, faint_islands, faint_flux })
@@ -312,24 +346,31 @@ pub fn final_clean<T>(
 /// (the threshold in sigmas times the residual's noise, Jy/beam) times the square root of
 /// their area in beams of `beam_pixels`, at least one: a flux measured over an area of A
 /// beams of a map whose noise is sigma has noise sigma sqrt(A). Each with the negative
-/// pixels beside it: components the cycles took against it, which would stay as a hole
-/// where no sky is.
+/// pixels beside it and beside no island that stays: components the cycles took against it,
+/// which would stay as a hole where no sky is. A negative pixel that also touches an island
+/// that stays corrects that island too (the wing of a source the networks drew too wide), and
+/// stays with it.
 fn faint_islands_of(model: &[f64], n: usize, beam_pixels: f64, sigmas_flux: f64) -> Vec<Vec<usize>> {
     let mut seen = vec![false; n * n];
+    let mut stays = vec![false; n * n];
     let mut faint = Vec::new();
     for k in 0..n * n {
         if !seen[k] && model[k] > 0.0 {
-            let mut pixels = island(model, n, k, |v| v > 0.0, &mut seen);
+            let pixels = island(model, n, k, |v| v > 0.0, &mut seen);
             let flux: f64 = pixels.iter().map(|&j| model[j]).sum();
             if flux < sigmas_flux * (pixels.len() as f64 / beam_pixels).max(1.0).sqrt() {
-                // A negative pixel beside two of the island's is one component.
-                let mut beside: Vec<usize> = pixels.iter().flat_map(|&j| block(j, n)).filter(|&j| model[j] < 0.0).collect();
-                beside.sort_unstable();
-                beside.dedup();
-                pixels.extend(beside);
                 faint.push(pixels);
+            } else {
+                pixels.iter().for_each(|&j| stays[j] = true);
             }
         }
+    }
+    for pixels in &mut faint {
+        // A negative pixel beside two of the island's is one component.
+        let mut beside: Vec<usize> = pixels.iter().flat_map(|&j| block(j, n)).filter(|&j| model[j] < 0.0 && !block(j, n).any(|i| stays[i])).collect();
+        beside.sort_unstable();
+        beside.dedup();
+        pixels.extend(beside);
     }
     faint
 }
@@ -537,6 +578,27 @@ mod tests {
         assert_eq!(sizes, vec![1, 100]);
         assert!(faint.iter().any(|i| i == &vec![2 * n + 20]));
         assert!(faint.iter().all(|i| !i.contains(&(2 * n + 2)) && !i.contains(&(20 * n + 20))));
+    }
+
+    /// A negative pixel beside a faint island leaves with it, unless it also touches an island
+    /// that stays: then it corrects that island's wing and stays.
+    #[test]
+    fn negative_pixels_beside_a_faint_island_and_a_kept_one_stay() {
+        let n = 16;
+        let mut model = vec![0.0; n * n];
+        // A 10 Jy source at (5, 5), a 0.5 Jy speck at (8, 5): the negative pixel at (7, 5)
+        // touches only the speck, the one at (6, 6) both.
+        model[5 * n + 5] = 10.0;
+        model[5 * n + 8] = 0.5;
+        model[5 * n + 7] = -0.1;
+        model[6 * n + 6] = -0.2;
+        // The speck's island holds (7, 6) too, beside the source's negative (6, 6).
+        model[6 * n + 7] = 0.1;
+        let faint = faint_islands_of(&model, n, 4.0, 3.0);
+        assert_eq!(faint.len(), 1, "{faint:?}");
+        let mut speck = faint[0].clone();
+        speck.sort();
+        assert_eq!(speck, vec![5 * n + 7, 5 * n + 8, 6 * n + 7]);
     }
 
     /// Data of noise and a 6 sigma point source; the step's model holds the source and a
