@@ -357,10 +357,12 @@ GRIDDERS = ("-use-wgridder", "-use-idg", "-gridder")
 
 
 def served_off_its_trained_size(size: int, series: Optional[list] = None) -> Optional[int]:
-    """The trained size of the series the engine's ``auto`` takes for ``size x size`` images
-    where that series serves the size without being trained at it (its domain names the size:
+    """The trained size of the first series in ``auto``'s order that serves ``size x size``
+    images, where it serves the size without being trained at it (its domain names the size:
     measured there on held-out data), else None. ``series``: :func:`r2d2_imaging.info`'s list,
-    in the order ``auto`` prefers them (read here when not given)."""
+    in the order ``auto`` prefers them (read here when not given). The job's telescope and
+    setting are not known here: where ``auto`` then takes another series, the hook warns about
+    the weighting grid, naming what to give."""
     if series is None:
         series = _native.info(None)["series"]
     for s in series:
@@ -384,17 +386,20 @@ def wsclean_command(args: list) -> list:
             command += [option, *values]
     if not any(g in args for g in GRIDDERS):
         command.append("-use-wgridder")
-    named = "series=" in os.environ.get("R2D2_WSCLEAN", "")
+    try:
+        named = _options(os.environ.get("R2D2_WSCLEAN", "")).get("series", "auto") != "auto"
+    except ValueError:
+        named = True  # the hook says what is wrong with R2D2_WSCLEAN
     if "-size" in args and "-super-weight" not in args and not named:
-        job = command_line_job(args)
+        # Anything wrong on the command line is WSClean's to report, not this helper's.
         try:
             size = int(args[args.index("-size") + 1])
             trained = served_off_its_trained_size(size)
+            if trained is not None:
+                padding = command_line_job(args)["padding"] if "-padding" in args else float(DEFAULTS["-padding"][0])
+                command += ["-super-weight", f"{padding * size / (2 * trained):g}"]
         except (ValueError, IndexError, _native.R2D2Error):
-            trained = None
-        if trained is not None:
-            padding = job["padding"] if "-padding" in args else float(DEFAULTS["-padding"][0])
-            command += ["-super-weight", f"{padding * size / (2 * trained):g}"]
+            pass
     return command + list(args)
 
 
@@ -402,7 +407,8 @@ def main(argv: Optional[list] = None) -> int:
     """``python -m r2d2_imaging.wsclean`` (or ``r2d2-wsclean``): with no arguments (or
     ``--path``), prints the path of the script to give WSClean's ``-python-deconvolution``;
     with WSClean's arguments, runs WSClean with it (and -mgain 0.8 -niter 1000000 -nmiter 200
-    -padding 2 where not given, and -use-wgridder unless a gridder is chosen)."""
+    -padding 2 where not given, -use-wgridder unless a gridder is chosen, and -super-weight
+    where ``auto``'s series serves the size off its trained one: :func:`wsclean_command`)."""
     args = list(sys.argv[1:] if argv is None else argv)
     if not args or args == ["--path"]:
         print(HOOK)

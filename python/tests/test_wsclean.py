@@ -101,6 +101,19 @@ def test_the_hook_is_found_and_reads_wsclean_s_command_line():
     assert command.count("-padding") == 1 and command[command.index("-padding") + 1] == "1.5", command
 
 
+def test_r2d2_wsclean_adds_super_weight_unless_a_series_is_named(monkeypatch):
+    """`r2d2-wsclean` at 128 puts WSClean's weighting on the grid of `auto`'s series' trained
+    field (vla-r2d2-512's), also for `series=auto`; not for a named series, and a command line
+    it cannot read is left to WSClean to refuse."""
+    monkeypatch.setenv("R2D2_WSCLEAN", "series=auto")
+    assert "-super-weight" in hook.wsclean_command(["-size", "128", "128", "obs.ms"])
+    monkeypatch.setenv("R2D2_WSCLEAN", "series=vla-r2d2-128")
+    assert "-super-weight" not in hook.wsclean_command(["-size", "128", "128", "obs.ms"])
+    monkeypatch.setenv("R2D2_WSCLEAN", "")
+    command = hook.wsclean_command(["-size", "128", "128", "-padding", "two", "obs.ms"])
+    assert "-super-weight" not in command and command[-1] == "obs.ms", command
+
+
 def snr(truth, x):
     return 20 * np.log10(np.linalg.norm(truth) / np.linalg.norm(truth - x))
 

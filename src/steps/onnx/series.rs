@@ -841,7 +841,7 @@ fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(Pa
     }
 }
 
-/// A series found in [`model_dirs`], other than `except`, trained for `size x size` images and
+/// A series found in [`model_dirs`], other than `except`, that serves `size x size` images and
 /// declaring a domain that holds `setup`: what a warning about a job outside its series' domain
 /// can point to (the project's own first, then by name).
 pub fn covering_series(size: usize, setup: &ImagingSetup, except: &str) -> Option<String> {
