@@ -523,6 +523,15 @@ mod tests {
             NoiseField { n, dirty, psf, psf_2n }
         }
 
+        /// The noise and a point source of `flux` (sigmas) at pixel `source`.
+        fn with_source(seed: u64, source: usize, flux: f64) -> NoiseField {
+            let mut field = NoiseField::new(seed);
+            let mut negative = vec![0.0; field.n * field.n];
+            negative[source] = -flux;
+            field.dirty = field.residual_of(&negative);
+            field
+        }
+
         fn input(&self) -> CleanInput<'_> {
             CleanInput { n: self.n, dirty: &self.dirty, psf: &self.psf, psf_2n: &self.psf_2n, mask: None }
         }
@@ -615,12 +624,9 @@ mod tests {
     /// speck stays.
     #[test]
     fn a_faint_speck_leaves_the_model_with_the_exact_residual_and_a_source_stays() {
-        let mut field = NoiseField::new(7);
-        let n = field.n;
-        let (source, speck) = (20 * n + 20, 10 * n + 10);
-        let mut negative = vec![0.0; n * n];
-        negative[source] = -6.0;
-        field.dirty = field.residual_of(&negative);
+        let (n, source, speck) = (32, 20 * 32 + 20, 10 * 32 + 10);
+        let field = NoiseField::with_source(7, source, 6.0);
+        assert_eq!(field.n, n);
         let input = field.input();
         let residual_of = |x: &[f64]| -> Result<Vec<f64>> { Ok(field.residual_of(x)) };
         let mut model = vec![0.0; n * n];
@@ -647,12 +653,9 @@ mod tests {
     /// leave the residual beside it above the open cycles' threshold.
     #[test]
     fn a_faint_island_whose_removal_the_data_refuse_stays() {
-        let mut field = NoiseField::new(7);
-        let n = field.n;
-        let source = 20 * n + 20;
-        let mut negative = vec![0.0; n * n];
-        negative[source] = -6.0;
-        field.dirty = field.residual_of(&negative);
+        let (n, source) = (32, 20 * 32 + 20);
+        let field = NoiseField::with_source(7, source, 6.0);
+        assert_eq!(field.n, n);
         let input = field.input();
         let residual_of = |x: &[f64]| -> Result<Vec<f64>> { Ok(field.residual_of(x)) };
         let mut model = vec![0.0; n * n];
