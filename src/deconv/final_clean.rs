@@ -289,12 +289,12 @@ pub fn final_clean<T>(
     if config.faint_island_sigmas > 0.0 {
         let began = Instant::now();
         let beam_pixels = main_lobe_pixels(input.psf, n) as f64 / std::f64::consts::LN_2;
-        let faint = faint_islands_of(&run.model, n, beam_pixels, config.faint_island_sigmas * robust_sigma(&run.residual));
+        let sigma = robust_sigma(&run.residual);
+        let faint = faint_islands_of(&run.model, n, beam_pixels, config.faint_island_sigmas * sigma);
         if !faint.is_empty() {
             // Faint islands explain no more than noise: where their removal leaves the
             // residual above the open cycles' threshold (and above its peak before), the
             // islands there held what the data measure, and they stay.
-            let sigma = robust_sigma(&run.residual);
             let peak = |r: &[f64]| r.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
             let before = peak(&run.residual);
             let limit = before.max(config.auto_mask * sigma);
@@ -310,10 +310,7 @@ pub fn final_clean<T>(
                 // Within two pixels of where the residual rose above the limit.
                 let mut near = vec![false; n * n];
                 for k in (0..n * n).filter(|&k| residual[k].abs() > limit) {
-                    let (x, y) = (k % n, k / n);
-                    for yy in y.saturating_sub(2)..(y + 3).min(n) {
-                        near[yy * n + x.saturating_sub(2)..yy * n + (x + 3).min(n)].iter_mut().for_each(|m| *m = true);
-                    }
+                    square(k, n, 2).for_each(|j| near[j] = true);
                 }
                 let count = faint.len();
                 faint.retain(|island| !island.iter().any(|&k| near[k]));
@@ -385,8 +382,14 @@ fn faint_islands_of(model: &[f64], n: usize, beam_pixels: f64, sigmas_flux: f64)
 /// The 3 x 3 pixels centred on pixel `k` of an `n x n` image (`k` too), fewer at its edges:
 /// an island's 8-connected reach, a component's mask, what lies beside an island.
 fn block(k: usize, n: usize) -> impl Iterator<Item = usize> {
+    square(k, n, 1)
+}
+
+/// The pixels within `radius` of pixel `k` of an `n x n` image along each axis (`k` too),
+/// fewer at its edges.
+fn square(k: usize, n: usize, radius: usize) -> impl Iterator<Item = usize> {
     let (x, y) = (k % n, k / n);
-    (y.saturating_sub(1)..(y + 2).min(n)).flat_map(move |yy| (x.saturating_sub(1)..(x + 2).min(n)).map(move |xx| yy * n + xx))
+    (y.saturating_sub(radius)..(y + radius + 1).min(n)).flat_map(move |yy| (x.saturating_sub(radius)..(x + radius + 1).min(n)).map(move |xx| yy * n + xx))
 }
 
 /// The pixels of the PSF's main lobe: those at half its peak or above, connected to it.
