@@ -16,7 +16,10 @@ first `--phase-rounds` rounds (1), as self-calibration is run. Reported per roun
 rms error against the truth (after removing the phase of a reference antenna, which no solve
 can know), the same without the phase a shift of the whole sky puts on the gains (which no
 self-calibration can know either), their common amplitude scale, the model's flux over the
-true sky's and the model's SNR against the true sky. Then the floor: the same errors after one
+true sky's and the model's SNR against the true sky, and the error without the sky's shift
+and without that scale too (the gains relative to one another: self-calibration takes the
+flux scale from the model it starts from and keeps it, so pipelines take it from the flux
+calibrator and normalise the amplitude solutions). Then the floor: the same errors after one
 solve against the true sky's own model visibilities (what the noise leaves, which no model
 removes).
 
@@ -235,6 +238,7 @@ def main():
             scale = gain_scale(g, g_true, present)
             unshifted = gain_error_unshifted(g, g_true, present, positions)
             rows.append({"round": k, "gain_error": g_error, "gain_error_unshifted": unshifted, "gain_scale": scale,
+                         "gain_error_relative": gain_error_unshifted(g / scale, g_true, present, positions),
                          "model_snr_db": snr(model, truth), "model_flux_ratio": float(model.sum() / truth.sum())})
             print(f"{imager:8s} round {k}: gain rms error {g_error:.4f} ({unshifted:.4f} without a shift of the sky; common amplitude scale {scale:.4f}), "
                   f"model SNR {rows[-1]['model_snr_db']:.2f} dB, model flux / true {rows[-1]['model_flux_ratio']:.4f}", flush=True)
@@ -253,12 +257,15 @@ def main():
     g = stefcal(os.path.join(d, "truth.ms"), column="DATA")
     floor = {"gain_error": gain_error(g, g_true, present), "gain_error_unshifted": gain_error_unshifted(g, g_true, present, positions),
              "gain_scale": gain_scale(g, g_true, present)}
-    print("\nround | gain rms error r2d2 | WSClean | without a sky shift: r2d2 | WSClean | model SNR r2d2 (dB) | WSClean")
+    floor["gain_error_relative"] = gain_error_unshifted(g / floor["gain_scale"], g_true, present, positions)
+    print("\nround | gain rms error r2d2 | WSClean | without a sky shift: r2d2 | WSClean | and without the flux scale: r2d2 | WSClean | amplitude scale r2d2 | WSClean | model SNR r2d2 (dB) | WSClean")
     for k in range(a.rounds + 1):
         r, w = results["r2d2"][k], results["wsclean"][k]
-        print(f"{k} | {r['gain_error']:.4f} | {w['gain_error']:.4f} | {r['gain_error_unshifted']:.4f} | {w['gain_error_unshifted']:.4f} | {r['model_snr_db']:.2f} | {w['model_snr_db']:.2f}")
+        print(f"{k} | {r['gain_error']:.4f} | {w['gain_error']:.4f} | {r['gain_error_unshifted']:.4f} | {w['gain_error_unshifted']:.4f} | "
+              f"{r['gain_error_relative']:.4f} | {w['gain_error_relative']:.4f} | {r['gain_scale']:.4f} | {w['gain_scale']:.4f} | {r['model_snr_db']:.2f} | {w['model_snr_db']:.2f}")
     print(f"(uncorrected gains: rms error {gain_error(np.ones(nant, complex), g_true, present):.4f}; solved against the true sky: "
-          f"{floor['gain_error']:.4f}, {floor['gain_error_unshifted']:.4f} without a sky shift, amplitude scale {floor['gain_scale']:.4f})")
+          f"{floor['gain_error']:.4f}, {floor['gain_error_unshifted']:.4f} without a sky shift, {floor['gain_error_relative']:.4f} without the flux scale too, "
+          f"amplitude scale {floor['gain_scale']:.4f})")
     if a.json:
         with open(a.json, "w") as f:
             json.dump({"sky": a.sky, "size": n, "results": results, "true_sky": floor}, f, indent=1)
