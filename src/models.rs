@@ -43,6 +43,17 @@ pub fn found_series() -> Result<Vec<FoundSeries>> {
         .collect())
 }
 
+/// The series `auto` takes for `size x size` images where nothing else of the job is known
+/// (a wrapper reading a command line: no telescope, no weighting), and its trained size
+/// nearest `size` where that is not `size`: a run off its trained size weighs on that trained
+/// field's uv grid, as the weighting stage does.
+pub fn auto_series_for_size(size: usize) -> Result<(String, Option<usize>)> {
+    let (dir, _) = crate::steps::series::select_for(size, &crate::ImagingSetup::default())?;
+    let series = crate::steps::series::Series::open(&dir)?;
+    let trained = series.nearest_trained_size(size).filter(|t| *t != size);
+    Ok((series.name, trained))
+}
+
 /// What `choice` resolves to on this machine (`auto`: native ONNX Runtime where it was
 /// loaded, else tract), as the logs name it.
 pub fn backend(choice: BackendChoice, threads: usize) -> Result<String> {

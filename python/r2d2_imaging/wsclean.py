@@ -356,30 +356,21 @@ DEFAULTS = {"-mgain": ["0.8"], "-niter": ["1000000"], "-nmiter": ["200"], "-padd
 GRIDDERS = ("-use-wgridder", "-use-idg", "-gridder")
 
 
-def served_off_its_trained_size(size: int, series: Optional[list] = None) -> Optional[int]:
-    """The trained size of the first series in ``auto``'s order that serves ``size x size``
-    images, where it serves the size without being trained at it (its domain names the size:
-    measured there on held-out data), else None. ``series``: :func:`r2d2_imaging.info`'s list,
-    in the order ``auto`` prefers them (read here when not given). The job's telescope and
-    setting are not known here: where ``auto`` then takes another series, the hook warns about
-    the weighting grid, naming what to give."""
-    if series is None:
-        series = _native.info(None)["series"]
-    for s in series:
-        trained = list(s.get("image_sizes") or [])
-        if size in trained:
-            return None
-        if size in ((s.get("domain") or {}).get("image_sizes") or []) and trained:
-            return min(trained, key=lambda t: (abs(math.log(t / size)), -t))
-    return None
+def served_off_its_trained_size(size: int) -> Optional[int]:
+    """The trained size of the series ``auto`` takes for ``size x size`` images where it runs
+    off its trained size (the job then weighs on that trained field's uv grid), else None: the
+    engine's own choice, with nothing else of the job known. The job's telescope and setting
+    are not known here: where ``auto`` then takes another series, the hook warns about the
+    weighting grid, naming what to give."""
+    return _native.auto_series(size)[1]
 
 
 def wsclean_command(args: list) -> list:
     """``wsclean`` with this deconvolver, :data:`DEFAULTS` where ``args`` lacks them and the
-    w-gridder unless ``args`` chooses a gridder. Where ``auto`` takes a series that serves the
-    image size off its trained size (``vla-r2d2-512`` at 128), and neither ``-super-weight``
-    nor a series in ``R2D2_WSCLEAN`` is given, ``-super-weight`` puts WSClean's weighting grid
-    on the series' trained field, as ``r2d2 image`` weighs there."""
+    w-gridder unless ``args`` chooses a gridder. Where ``auto``'s series runs off its trained
+    size (``vla-r2d2-512`` at 128, ``vla-r2d2-128`` at 64), and neither ``-super-weight`` nor
+    a series in ``R2D2_WSCLEAN`` is given, ``-super-weight`` puts WSClean's weighting grid on
+    the series' trained field, as ``r2d2 image`` weighs there."""
     command = ["wsclean", "-python-deconvolution", HOOK]
     for option, values in DEFAULTS.items():
         if option not in args:

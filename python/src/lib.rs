@@ -242,6 +242,14 @@ fn info(py: Python<'_>, onnx_runtime: Option<std::path::PathBuf>) -> PyResult<Bo
     Ok(out)
 }
 
+/// The series `auto` takes for `size x size` images where nothing else of the job is known,
+/// as `(name, trained size)`: the trained size nearest `size` where the series runs off it
+/// (the job then weighs on that trained field's uv grid), else None.
+#[pyfunction]
+fn auto_series(size: usize) -> PyResult<(String, Option<usize>)> {
+    r2d2_imaging::models::auto_series_for_size(size).map_err(engine_error)
+}
+
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     logging::install();
@@ -257,6 +265,7 @@ fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
     m.add_function(wrap_pyfunction!(run, m)?)?;
     m.add_function(wrap_pyfunction!(split_rows, m)?)?;
     m.add_function(wrap_pyfunction!(info, m)?)?;
+    m.add_function(wrap_pyfunction!(auto_series, m)?)?;
     m.add_function(wrap_pyfunction!(add_model_dir, m)?)?;
     m.add_function(wrap_pyfunction!(image::image, m)?)?;
     m.add_function(wrap_pyfunction!(image::image_options, m)?)?;
