@@ -228,15 +228,16 @@ fn image_command_runs_the_default_pipeline() {
         &["simulate", "--configs", "c", "--hours", "1", "--integration-s", "300", "--size", "64", "--seed", "4", "--out", "obs.parquet"],
         d,
     ));
-    // The default step is the shipped series trained nearest to the size (none for 64: the 128
-    // one, with a warning saying so).
+    // The default step is the shipped series that serves the size: at 64 the 512 one, measured
+    // there on held-out skies (its domain names the size), without the off-size warning.
     let out = r2d2(&["image", "obs.parquet", "--size", "64", "--truth", "obs.sky.fits", "--name", "res/obs"], d);
     check(&out);
-    assert!(stderr(&out).contains("no series was trained for 64 x 64; using 'vla-r2d2-128'"), "{}", stderr(&out));
+    assert!(stderr(&out).contains("series 'vla-r2d2-512' chosen for 64 x 64 (trained for [512], measured at 64 x 64 on held-out data)"), "{}", stderr(&out));
+    assert!(!stderr(&out).contains("no series was trained for 64 x 64"), "{}", stderr(&out));
     for product in ["dirty", "psf", "model", "residual"] {
         assert!(d.join(format!("res/obs-{product}.fits")).exists(), "{product}");
     }
-    let series = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/vla-r2d2-128/manifest.yaml");
+    let series = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/vla-r2d2-512/manifest.yaml");
     let manifest: serde_yaml::Value = serde_yaml::from_str(&std::fs::read_to_string(series).unwrap()).unwrap();
     let networks = manifest["networks"].as_sequence().unwrap().len();
     let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("res/obs-metrics.json")).unwrap()).unwrap();

@@ -89,14 +89,14 @@ def test_the_hook_is_found_and_reads_wsclean_s_command_line():
     command = hook.wsclean_command(["-size", "512", "512", "obs.ms"])
     assert command[command.index("-padding") + 1] == "2" and "-use-wgridder" in command, command
     # Where auto's series runs off its trained size, WSClean weighs on its trained field: the
-    # engine's own choice (vla-r2d2-512 serves 128 from its 512 field; at 64, which no series
+    # engine's own choice (vla-r2d2-512 serves 128 from its 512 field; at 32, which no series
     # serves, auto takes the nearest trained size, vla-r2d2-128's, off it).
     assert hook._native.auto_series(128) == ("vla-r2d2-512", 512)
     assert hook._native.auto_series(512) == ("vla-r2d2-512", None)
-    assert hook._native.auto_series(64) == ("vla-r2d2-128", 128)
+    assert hook._native.auto_series(32) == ("vla-r2d2-128", 128)
     assert hook.served_off_its_trained_size(128) == 512 and hook.served_off_its_trained_size(512) is None
-    command = hook.wsclean_command(["-size", "64", "64", "obs.ms"])
-    assert command[command.index("-super-weight") + 1] == "0.5", command
+    command = hook.wsclean_command(["-size", "32", "32", "obs.ms"])
+    assert command[command.index("-super-weight") + 1] == "0.25", command
     command = hook.wsclean_command(["-size", "128", "128", "obs.ms"])
     assert command[command.index("-super-weight") + 1] == "0.25", command
     assert hook.weighting_grid_problem(128, 2.0, 0.25, 512, "s") is None

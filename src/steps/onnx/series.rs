@@ -800,7 +800,11 @@ fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(Pa
         .iter()
         .filter(|(_, s)| same_telescope(s))
         .min_by(|a, b| a.1.domain_distance(setup).total_cmp(&b.1.domain_distance(setup)));
-    if let Some((dir, s)) = fits.or(nearest_domain).or(trained.first()) {
+    // The data's telescope counts before the size: a series of another telescope that serves
+    // the size only where none of the data's telescope may run off its trained size.
+    let of_telescope_off_size = setup.telescope.is_some() && found.iter().any(|(_, s)| s.any_size && !s.image_sizes.is_empty() && same_telescope(s));
+    let any_serving = trained.first().filter(|_| !of_telescope_off_size);
+    if let Some((dir, s)) = fits.or(nearest_domain).or(any_serving) {
         match trained.first() {
             Some((_, first)) if first.name != s.name => log::info!(
                 "series '{}' chosen for {size} x {size}: '{}' was not trained for this setting ({})",
@@ -1133,6 +1137,18 @@ mod tests {
         assert_eq!(select_in(&roots, 128, &briggs1).unwrap().0, root.path().join("vla-r2d2-512"), "neither holds it, as near: the rank");
         std::fs::write(&v128, format!("{t128}validity: {{robust: [-1.0, 1.0]}}\n")).unwrap();
         assert_eq!(select_in(&roots, 128, &briggs1).unwrap().0, root.path().join("vla-r2d2-128"), "the one whose domain holds the setting");
+        // The data's telescope counts before the size: MeerKAT data at a size only a VLA series
+        // serves go to the MeerKAT series, off its trained size, with the warning.
+        std::fs::write(&manifest, format!("{text}validity: {{image_sizes: [128, 512], telescopes: [vla]}}\n")).unwrap();
+        std::fs::write(&v128, format!("{t128}validity: {{telescopes: [vla]}}\n")).unwrap();
+        let meerkat = ImagingSetup { telescope: Some("MeerKAT".into()), ..ImagingSetup::default() };
+        assert_eq!(select_in(&roots, 128, &meerkat).unwrap().0, root.path().join("vla-r2d2-512"), "none of the telescope: the size's");
+        series_dir(root.path(), "meerkat-r2d2-512", "[512]", true);
+        std::fs::write(root.path().join("meerkat-r2d2-512/manifest.yaml"), format!("{}validity: {{telescopes: [meerkat]}}\n", std::fs::read_to_string(root.path().join("meerkat-r2d2-512/manifest.yaml")).unwrap())).unwrap();
+        let (dir, warning) = select_in(&roots, 128, &meerkat).unwrap();
+        assert_eq!(dir, root.path().join("meerkat-r2d2-512"));
+        assert!(warning.is_some_and(|w| w.contains("no series was trained for 128 x 128")));
+        assert_eq!(select_in(&roots, 128, &ImagingSetup { telescope: Some("VLA".into()), ..ImagingSetup::default() }).unwrap().0, root.path().join("vla-r2d2-512"));
     }
 
     #[test]
