@@ -368,7 +368,7 @@ def served_off_its_trained_size(size: int) -> Optional[int]:
 def wsclean_command(args: list) -> list:
     """``wsclean`` with this deconvolver, :data:`DEFAULTS` where ``args`` lacks them and the
     w-gridder unless ``args`` chooses a gridder. Where ``auto``'s series runs off its trained
-    size (``vla-r2d2-512`` at 128, ``vla-r2d2-128`` at 64), and neither ``-super-weight`` nor
+    size (``vla-r2d2-512`` at 64, 96, 128 and 192, ``vla-r2d2-128`` at 32), and neither ``-super-weight`` nor
     a series in ``R2D2_WSCLEAN`` is given, ``-super-weight`` puts WSClean's weighting grid on
     the series' trained field, as ``r2d2 image`` weighs there."""
     command = ["wsclean", "-python-deconvolution", HOOK]
@@ -389,7 +389,7 @@ def wsclean_command(args: list) -> list:
             if trained is not None:
                 padding = command_line_job(args)["padding"] if "-padding" in args else float(DEFAULTS["-padding"][0])
                 command += ["-super-weight", f"{padding * size / (2 * trained):g}"]
-        except (ValueError, IndexError, _native.R2D2Error):
+        except (ValueError, IndexError, OverflowError, _native.R2D2Error):
             pass
     return command + list(args)
 
@@ -399,7 +399,7 @@ def main(argv: Optional[list] = None) -> int:
     ``--path``), prints the path of the script to give WSClean's ``-python-deconvolution``;
     with WSClean's arguments, runs WSClean with it (and -mgain 0.8 -niter 1000000 -nmiter 200
     -padding 2 where not given, -use-wgridder unless a gridder is chosen, and -super-weight
-    where ``auto``'s series serves the size off its trained one: :func:`wsclean_command`)."""
+    where ``auto``'s series runs off its trained size: :func:`wsclean_command`)."""
     args = list(sys.argv[1:] if argv is None else argv)
     if not args or args == ["--path"]:
         print(HOOK)

@@ -193,9 +193,10 @@ impl<T> Cleaning<'_, '_, T> {
 
     /// Major cycles over the whole image down to `auto_mask` sigmas, then inside the mask of
     /// what they took down to `auto_threshold`, then inside `compact` (a mask of the compact
-    /// islands) down to `compact_threshold`; each kept cycle handed to `on_kept`; every phase
-    /// within the user's mask where there is one. The cycles kept, the pixels they put
-    /// components at, and the residual ratio.
+    /// islands) down to `compact_threshold`, then, where the residual is left above `auto_mask`
+    /// sigmas, strict open cycles ([`STRICT_REACH`]) and the masked phases again; each kept
+    /// cycle handed to `on_kept`; every phase within the user's mask where there is one. The
+    /// cycles kept, the pixels they put components at, and the residual ratio.
     fn cycles(&mut self, compact: Option<Vec<bool>>) -> Result<(usize, usize, f64)> {
         let c = self.config;
         let user = self.input.mask;
@@ -454,8 +455,9 @@ struct Reach {
 const WITHIN_REACH: Reach = Reach { reached: 1.05, aim: 1.0 };
 
 /// Where the phases leave the residual above the open threshold, the open cycles that follow
-/// end only under it (the residual is then within `auto_mask` sigmas everywhere), and their
-/// minor cycles aim a little below it, so that one major cycle gets there.
+/// end only under it (the residual is then within `auto_mask` sigmas wherever cycles may
+/// clean, unless `major_cycles` runs out or the data undo a cycle), and their minor cycles aim
+/// a little below it, so that one major cycle gets there.
 const STRICT_REACH: Reach = Reach { reached: 1.0, aim: 0.95 };
 
 /// Islands fainter than this many times the residual's noise (in Jy, the flux of a point
@@ -489,7 +491,7 @@ fn max_abs(v: &[f64]) -> f64 {
 }
 
 /// The stages of the final CLEAN's cycles: each goes on until a cycle takes nothing or its
-/// residual's peak is at or below its threshold.
+/// residual's peak has reached its threshold ([`Reach`]).
 enum Phase {
     /// The whole image, down to `auto_mask` sigmas; `strict`: under them, not within reach.
     Open { strict: bool },

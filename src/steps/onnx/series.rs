@@ -749,7 +749,8 @@ pub const PROJECT_SERIES: [&str; 4] = ["vla-r2d2-512", "vla-r2d2-128", "vla-r2d2
 /// project's own first, then by name) whose declared domain holds `setup` (what the pipeline
 /// fixes: weighting, a super-resolution factor), else the one of the data's telescope whose
 /// domain comes nearest to it ([`Series::domain_distance`]), else the first of them, whose
-/// domain warning the job then carries (one of the data's telescope before one of another); failing any, the
+/// domain warning the job then carries, unless a series of the data's telescope may run off
+/// its trained size (the telescope counts before the size); failing any, the
 /// series that allows other sizes and was trained nearest to `size` (by ratio, the data's
 /// telescope first), with a warning that it runs at a size it was not trained for.
 pub fn select_for(size: usize, setup: &ImagingSetup) -> Result<(PathBuf, Option<String>)> {
