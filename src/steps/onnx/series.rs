@@ -802,8 +802,10 @@ fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(Pa
         .filter(|(_, s)| same_telescope(s))
         .min_by(|a, b| a.1.domain_distance(setup).total_cmp(&b.1.domain_distance(setup)));
     // The data's telescope counts before the size: a series of another telescope that serves
-    // the size only where none of the data's telescope may run off its trained size.
-    let of_telescope_off_size = setup.telescope.is_some() && found.iter().any(|(_, s)| s.any_size && !s.image_sizes.is_empty() && same_telescope(s));
+    // the size only where none trained for the data's telescope (declaring it) may run off its
+    // trained size.
+    let trained_for_it = |s: &Series| !s.telescopes().is_empty() && same_telescope(s);
+    let of_telescope_off_size = setup.telescope.is_some() && found.iter().any(|(_, s)| s.any_size && !s.image_sizes.is_empty() && trained_for_it(s));
     let any_serving = trained.first().filter(|_| !of_telescope_off_size);
     if let Some((dir, s)) = fits.or(nearest_domain).or(any_serving) {
         match trained.first() {
@@ -1150,6 +1152,11 @@ mod tests {
         assert_eq!(dir, root.path().join("meerkat-r2d2-512"));
         assert!(warning.is_some_and(|w| w.contains("no series was trained for 128 x 128")));
         assert_eq!(select_in(&roots, 128, &ImagingSetup { telescope: Some("VLA".into()), ..ImagingSetup::default() }).unwrap().0, root.path().join("vla-r2d2-512"));
+        // A series that declares no telescope is not one trained for MeerKAT's: the size's
+        // series stands before it.
+        std::fs::remove_dir_all(root.path().join("meerkat-r2d2-512")).unwrap();
+        series_dir(root.path(), "zzz-any-2048", "[2048]", true);
+        assert_eq!(select_in(&roots, 128, &meerkat).unwrap().0, root.path().join("vla-r2d2-512"));
     }
 
     #[test]
