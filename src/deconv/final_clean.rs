@@ -302,8 +302,7 @@ pub fn final_clean<T>(
             // Faint islands explain no more than noise: where their removal leaves the
             // residual above the open cycles' threshold (and above its peak before), the
             // islands there held what the data measure, and they stay.
-            let peak = |r: &[f64]| r.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
-            let before = peak(&run.residual);
+            let before = max_abs(&run.residual);
             let limit = before.max(config.auto_mask * sigma);
             let without = |islands: &[Vec<usize>]| {
                 let mut model = run.model.clone();
@@ -313,7 +312,7 @@ pub fn final_clean<T>(
             let mut faint = faint;
             let mut model = without(&faint);
             let mut residual = (run.residual_of)(&model)?;
-            if peak(&residual) > limit {
+            if max_abs(&residual) > limit {
                 // Within two pixels of where the residual rose above the limit.
                 let mut near = vec![false; n * n];
                 for k in (0..n * n).filter(|&k| residual[k].abs() > limit) {
@@ -329,7 +328,7 @@ pub fn final_clean<T>(
                 if !faint.is_empty() {
                     model = without(&faint);
                     residual = (run.residual_of)(&model)?;
-                    if peak(&residual) > limit {
+                    if max_abs(&residual) > limit {
                         faint.clear();
                     }
                 }
