@@ -801,11 +801,13 @@ fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(Pa
         .iter()
         .filter(|(_, s)| same_telescope(s))
         .min_by(|a, b| a.1.domain_distance(setup).total_cmp(&b.1.domain_distance(setup)));
+    // The series that may run off their trained sizes.
+    let resizable: Vec<&(PathBuf, Series)> = found.iter().filter(|(_, s)| s.any_size && !s.image_sizes.is_empty()).collect();
     // The data's telescope counts before the size: a series of another telescope that serves
     // the size only where none trained for the data's telescope (declaring it) may run off its
     // trained size.
     let trained_for_it = |s: &Series| !s.telescopes().is_empty() && same_telescope(s);
-    let of_telescope_off_size = setup.telescope.is_some() && found.iter().any(|(_, s)| s.any_size && !s.image_sizes.is_empty() && trained_for_it(s));
+    let of_telescope_off_size = setup.telescope.is_some() && resizable.iter().any(|(_, s)| trained_for_it(s));
     let any_serving = trained.first().filter(|_| !of_telescope_off_size);
     if let Some((dir, s)) = fits.or(nearest_domain).or(any_serving) {
         match trained.first() {
@@ -826,7 +828,6 @@ fn select_in(roots: &[PathBuf], size: usize, setup: &ImagingSetup) -> Result<(Pa
     // Among the nearest, one whose domain holds the setting, then the rank, as at the trained
     // size: weighted on its trained field's grid, `vla-r2d2-512` held at 1024 x 1024 where
     // the broad series lost a validation sky (training/README.md, "Off the trained size").
-    let resizable: Vec<&(PathBuf, Series)> = found.iter().filter(|(_, s)| s.any_size && !s.image_sizes.is_empty()).collect();
     let preference = |s: &Series| (distance(s), !s.validity_problems(setup).is_empty());
     let nearest = |of_telescope: bool| {
         resizable.iter().copied().filter(|(_, s)| !of_telescope || same_telescope(s)).min_by(|a, b| {
