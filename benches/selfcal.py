@@ -28,7 +28,7 @@ simulator's procedural radio sky). The corruption: phases uniform in +-`--phase-
 amplitudes 1 +- `--amp` (uniform), seeded.
 
 Usage: python3 benches/selfcal.py [--sky compact|extended] [--rounds 6] [--size 512]
-       [--phase-rounds 1] [--r2d2 target/release/r2d2] [--r2d2-args '--auto-mask 5'] [--out DIR] [--seed 1]
+       [--phase-rounds 1] [--r2d2 target/release/r2d2] [--r2d2-args '--auto-threshold 1'] [--out DIR] [--seed 1]
 Needs python-casacore, astropy and WSClean (`apt-get install wsclean`).
 """
 
@@ -183,7 +183,7 @@ def main():
     p.add_argument("--phase-rounds", type=int, default=1,
                    help="solve for phases only in the first this many rounds, as self-calibration is run: an amplitude solve "
                         "against the first model, made from data whose phase errors decorrelate the sources, keeps its low flux scale (0: amplitudes from the first round)")
-    p.add_argument("--r2d2-args", default="", help="further options for `r2d2 image` (e.g. '--auto-mask 5')")
+    p.add_argument("--r2d2-args", default="", help="further options for `r2d2 image` (e.g. '--auto-threshold 1', the final CLEAN as deep as WSClean's here)")
     p.add_argument("--out", default="selfcal-bench")
     p.add_argument("--json", help="write the figures here too")
     a = p.parse_args()

@@ -323,6 +323,12 @@ impl CleanControls {
     fn any(&self) -> bool {
         *self != CleanControls::default()
     }
+
+    /// The controls only the step clean takes: a network series takes `auto_mask` (its model
+    /// kept to where the data show emission) and `auto_threshold` (its final CLEAN's depth).
+    fn for_clean_only(&self) -> CleanControls {
+        CleanControls { auto_mask: None, auto_threshold: None, ..*self }
+    }
 }
 
 pub use crate::steps::runtime::{BackendChoice, GraphOptimization};
@@ -497,7 +503,7 @@ fn image_spec(obs: Observation, params: &ImagePlan) -> Result<(PipelineSpec, Vec
             // plugin's end where they end.
             if params.final_clean && matches!(params.step, StepChoice::Auto | StepChoice::Series(_)) {
                 stages.push(StageSpec::typed("update", &ResidualParams::default())?.to("step").done("final"));
-                stages.push(StageSpec::typed("final", &FinalCleanParams::default())?.to("products"));
+                stages.push(StageSpec::typed("final", &final_clean_params(params.clean.auto_threshold))?.to("products"));
             } else {
                 stages.push(StageSpec::typed("update", &ResidualParams::default())?.to("step").done("products"));
             }
@@ -606,8 +612,8 @@ const FALLBACK_CLEAN: CleanControls = CleanControls { niter: Some(1_000_000), ga
 /// the user knows how to judge).
 /// The telescope is read (`telescope()`) only when `auto` is asked for.
 fn resolve_auto(params: &ImagePlan, telescope: impl FnOnce() -> Option<String>) -> Result<(ImagePlan, Option<String>)> {
-    // CLEAN controls with `auto` are refused by the step stage, whatever the telescope.
-    if params.step != StepChoice::Auto || params.clean.any() {
+    // CLEAN's own controls with `auto` are refused by the step stage, whatever the telescope.
+    if params.step != StepChoice::Auto || params.clean.for_clean_only().any() {
         return Ok((params.clone(), None));
     }
     let Some(telescope) = telescope() else { return Ok((params.clone(), None)) };
@@ -642,16 +648,30 @@ fn fixed_setup(params: &ImagePlan, telescope: Option<&str>) -> crate::steps::ser
     }
 }
 
+/// The final CLEAN after a network series: its defaults, with `auto_threshold` (the user's
+/// `--auto-threshold`, WSClean's meaning) as the depth of its masked cycles, and the open
+/// cycles' level raised to it where it is above theirs.
+fn final_clean_params(auto_threshold: Option<f64>) -> FinalCleanParams {
+    let defaults = FinalCleanParams::default();
+    match auto_threshold {
+        Some(sigmas) => FinalCleanParams { auto_threshold: sigmas, auto_mask: defaults.auto_mask.max(sigmas), ..defaults },
+        None => defaults,
+    }
+}
+
 /// The step stage for `params.step` (`clean_because`: why CLEAN runs where `auto` was asked).
 fn step_stage(params: &ImagePlan, clean_because: Option<String>) -> Result<StageSpec> {
     // auto_mask also keeps a series' model to where the data show emission.
     let series_step = matches!(params.step, StepChoice::Auto | StepChoice::Series(_));
-    let clean_only = CleanControls { auto_mask: if series_step { None } else { params.clean.auto_mask }, ..params.clean };
+    let clean_only = if series_step { params.clean.for_clean_only() } else { params.clean };
     if clean_only.any() && params.step != StepChoice::Clean {
         return Err(Error::parameter(
             "step",
-            "the CLEAN controls (niter, gain, mgain, auto_threshold, threshold) are for the step clean (auto_mask for it and a network series); the default step is a network series, which needs none",
+            "the CLEAN controls (niter, gain, mgain, threshold) are for the step clean (auto_mask and auto_threshold for it and a network series); the default step is a network series, which needs none",
         ));
+    }
+    if series_step && params.clean.auto_threshold.is_some() && !params.final_clean {
+        return Err(Error::parameter("auto_threshold", "with a network series it is the depth of its final CLEAN, which is off (no_final_clean)"));
     }
     if params.fits_mask.is_some() && matches!(params.step, StepChoice::Native { .. }) {
         return Err(Error::parameter("fits_mask", "a mask is for the step clean and for a network series; a native plugin's model is its own"));
@@ -870,5 +890,18 @@ mod tests {
         let (spec, _, _) = image_spec(Observation::Path(table_file("a.parquet", b"PAR1")), &onnx).unwrap();
         let step = spec.stage_params::<OnnxParams>(spec.stage("step").unwrap()).unwrap();
         assert_eq!((step.networks, step.prefetch, step.backend), (Some(2), false, BackendChoice::Tract));
+        // A series' final CLEAN takes its depth from auto_threshold (and its open cycles' level
+        // rises to a depth above theirs); without it, its defaults.
+        let final_of = |auto_threshold: Option<f64>| {
+            let mut request = ImageRequest::default();
+            request.step.auto_threshold = auto_threshold;
+            let (spec, _, _) = image_spec(Observation::Path(table_file("a.parquet", b"PAR1")), &plan(request)).unwrap();
+            let params = spec.stage_params::<FinalCleanParams>(spec.stage("final").unwrap()).unwrap();
+            (params.auto_threshold, params.auto_mask)
+        };
+        let defaults = FinalCleanParams::default();
+        assert_eq!(final_of(None), (defaults.auto_threshold, defaults.auto_mask));
+        assert_eq!(final_of(Some(1.0)), (1.0, defaults.auto_mask));
+        assert_eq!(final_of(Some(7.0)), (7.0, 7.0));
     }
 }

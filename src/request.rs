@@ -250,7 +250,10 @@ pub struct StepOptions {
     /// CLEAN: the fraction of the peak each major cycle cleans away, as WSClean's -mgain (default 0.8; 1: no limit).
     #[arg(long)]
     pub mgain: Option<f64>,
-    /// CLEAN: stop at this many times the residual's noise, as WSClean's -auto-threshold (default 3; 0: none).
+    /// CLEAN: stop at this many times the residual's noise, as WSClean's -auto-threshold
+    /// (default 3; 0: none). A series: the depth of its final CLEAN's cycles inside the mask
+    /// of what it found (default 2; 1, as WSClean's self-calibration settings, gives a model
+    /// more of the data's faint and extended flux, at some cost in faint-emission precision).
     #[arg(long)]
     pub auto_threshold: Option<f64>,
     /// CLEAN: stop below this residual peak in Jy/beam, as WSClean's -threshold.

@@ -916,11 +916,14 @@ fn auto_mask_runs_to_convergence_and_is_recorded() {
     let total: f64 = model.iter().sum();
     assert!((total - 1.55).abs() < 0.05 * 1.55, "model flux {total}");
     // A network series takes it too (its model kept to where the data show emission), WSClean's
-    // spelling included; the other CLEAN controls are still for CLEAN only.
-    check(&r2d2(&["image", "obs.parquet", "--size", "64", "-auto-mask", "5", "--name", "net"], d));
+    // spelling included, and -auto-threshold (its final CLEAN's depth; not without that final
+    // CLEAN); the other CLEAN controls are still for CLEAN only.
+    check(&r2d2(&["image", "obs.parquet", "--size", "64", "-auto-mask", "5", "-auto-threshold", "1", "--name", "net"], d));
     let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("net-metrics.json")).unwrap()).unwrap();
     assert_eq!(metrics["settings"]["mask"]["auto_mask"], 5.0);
-    let out = r2d2(&["image", "obs.parquet", "--size", "64", "-auto-threshold", "1", "--name", "net2"], d);
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "-auto-threshold", "1", "--no-final-clean", "--name", "net2"], d);
+    assert!(!out.status.success() && text(&out).contains("final CLEAN, which is off"), "{}", text(&out));
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "-mgain", "0.8", "--name", "net3"], d);
     assert!(!out.status.success() && text(&out).contains("are for the step clean"), "{}", text(&out));
 }
 

@@ -203,8 +203,8 @@ fn translate(name: &str, values: &[String], rest: &mut std::iter::Peekable<std::
         },
         "name" => pair("--name", &values[0]),
         "j" => pair("--threads", &values[0]),
-        // CLEAN's controls: the same meanings, with --step clean (the engine refuses them with
-        // a network series, saying so).
+        // CLEAN's controls: the same meanings, with --step clean (the engine refuses those a
+        // network series does not take, saying so).
         name if CLEAN_OPTIONS.contains(&name) => pair(&format!("--{name}"), &values[0]),
         _ => unreachable!("every Same option is translated"),
     })
