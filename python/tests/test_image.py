@@ -58,6 +58,15 @@ def test_clean_controls_are_the_clis(r2d2_bin, observations, tmp_path):
     assert 0 < np.count_nonzero(p.model) <= 300
     with pytest.raises(r2d2_imaging.R2D2Error, match="invalid step: .* step clean"):
         r2d2_imaging.image(observations[0], size=128, threads=1, niter=300)
+    # A series takes auto_threshold: its final CLEAN's depth, as the command line's.
+    series = dict(size=128, threads=1, iterations=2, backend="tract")
+    p = r2d2_imaging.image(observations[0], auto_threshold=1.0, **series)
+    cli_image(r2d2_bin, observations[0], tmp_path / "cli/net", "--size", "128", "--threads", "1", "--iterations", "2",
+              "--backend", "tract", "--auto-threshold", "1")
+    data, _ = read_fits(tmp_path / "cli/net-model.fits")
+    np.testing.assert_array_equal(p.model, data)
+    default = r2d2_imaging.image(observations[0], **series)
+    assert not np.array_equal(default.model, p.model)
 
 
 def test_write_makes_exactly_the_cli_files(r2d2_bin, observations, clean_products, tmp_path):
