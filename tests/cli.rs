@@ -921,6 +921,7 @@ fn auto_mask_runs_to_convergence_and_is_recorded() {
     check(&r2d2(&["image", "obs.parquet", "--size", "64", "-auto-mask", "5", "-auto-threshold", "1", "--name", "net"], d));
     let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("net-metrics.json")).unwrap()).unwrap();
     assert_eq!(metrics["settings"]["mask"]["auto_mask"], 5.0);
+    assert_eq!(metrics["settings"]["final_clean"]["auto_threshold_sigmas"], 1.0, "{metrics}");
     let out = r2d2(&["image", "obs.parquet", "--size", "64", "-auto-threshold", "1", "--no-final-clean", "--name", "net2"], d);
     assert!(!out.status.success() && text(&out).contains("final CLEAN, which is off"), "{}", text(&out));
     let out = r2d2(&["image", "obs.parquet", "--size", "64", "-mgain", "0.8", "--name", "net3"], d);

@@ -101,6 +101,10 @@ impl Stage<Job> for FinalCleanStage {
                 "model_flux_after_jy": flux_after,
                 "residual_peak_sigma_before": peak_before,
                 "residual_peak_sigma_after": peak_after,
+                // The depths it cleaned to (`--auto-threshold` sets the masked one).
+                "auto_mask_sigmas": self.config.auto_mask,
+                "auto_threshold_sigmas": self.config.auto_threshold,
+                "compact_threshold_sigmas": self.config.compact_threshold,
             }),
         );
         emit(Port::Next, job)
