@@ -241,11 +241,13 @@ fn image_command_runs_the_default_pipeline() {
     let manifest: serde_yaml::Value = serde_yaml::from_str(&std::fs::read_to_string(series).unwrap()).unwrap();
     let networks = manifest["networks"].as_sequence().unwrap().len();
     let v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("res/obs-metrics.json")).unwrap()).unwrap();
-    // One iteration per network, then one per cycle of the final CLEAN on the residual, and
-    // one where faint islands left its model.
+    // One iteration per network, then one per cycle of the final CLEAN on the residual, one for
+    // its smoothed-residual steps and one where faint islands left its model.
     let final_clean = &v["settings"]["final_clean"];
-    let final_steps = final_clean["major_cycles"].as_u64().unwrap() as usize + usize::from(final_clean["faint_islands"].as_u64().unwrap() > 0);
-    assert_eq!(v["iterations"].as_array().unwrap().len(), networks + final_steps, "one iteration per network of the default series, per final cycle, and for the faint islands' removal");
+    let final_steps = final_clean["major_cycles"].as_u64().unwrap() as usize
+        + usize::from(final_clean["scale_steps"].as_u64().unwrap() > 0)
+        + usize::from(final_clean["faint_islands"].as_u64().unwrap() > 0);
+    assert_eq!(v["iterations"].as_array().unwrap().len(), networks + final_steps, "one iteration per network of the default series, per final cycle, for the smoothed-residual steps and for the faint islands' removal");
     assert!(v["iterations"][0]["logsnr"].is_number());
 
     // CLEAN on request, with its restored image.

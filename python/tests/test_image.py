@@ -94,10 +94,10 @@ def test_series_step_with_truth(r2d2_bin, observations, tmp_path):
     for name in ["dirty", "psf", "model", "residual", "image"]:
         np.testing.assert_array_equal(getattr(p, name), read_fits(tmp_path / f"obs-{name}.fits")[0], err_msg=name)
     snr = [m["snr"] for m in p.metrics["iterations"]]
-    # One iteration per network (43: vla-r2d2-512 serves 128), then one per cycle of the final CLEAN on the residual, and
-    # one where faint islands left its model.
+    # One iteration per network (43: vla-r2d2-512 serves 128), then one per cycle of the final CLEAN on the residual, one
+    # for its smoothed-residual steps and one where faint islands left its model.
     final_clean = p.metrics["settings"]["final_clean"]
-    final_steps = final_clean["major_cycles"] + (final_clean["faint_islands"] > 0)
+    final_steps = final_clean["major_cycles"] + (final_clean["scale_steps"] > 0) + (final_clean["faint_islands"] > 0)
     assert p.metrics["settings"]["step"]["series"] == "vla-r2d2-512"
     assert len(snr) == 43 + final_steps and snr[-1] > snr[0] > 0, snr
 

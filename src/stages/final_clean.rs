@@ -72,7 +72,7 @@ impl Stage<Job> for FinalCleanStage {
             crate::job::iteration_figures(model, residual, &im.dirty, truth.as_deref(), truth_dynamic_range, seconds)
         };
         let outcome = final_clean(&self.config, &input, model, residual, &mut |x| Ok(im.dirty.iter().zip(normal(im, x)?).map(|(d, v)| d - v).collect()), &mut on_kept)?;
-        let CleanOutcome { model, residual, cycles, components, ratio, kept, faint_islands, faint_flux } = outcome;
+        let CleanOutcome { model, residual, cycles, components, ratio, kept, faint_islands, faint_flux, scale_steps, scale_flux } = outcome;
         let im = job.imaging_mut("final_clean")?;
         (im.model, im.residual) = (model, residual);
         let changed = !kept.is_empty();
@@ -88,13 +88,15 @@ impl Stage<Job> for FinalCleanStage {
         let im = job.imaging_mut("final_clean")?;
         let (flux_after, peak_after) = (im.model.iter().sum::<f64>(), peak_sigmas(&im.residual));
         log::info!(
-            "job {id}: final CLEAN on the residual: components at {components} pixels in {cycles} major cycles; {faint_islands} faint islands ({faint_flux:.3e} Jy) left the model; model flux {flux_before:.4e} -> {flux_after:.4e} Jy; residual peak {peak_before:.1} -> {peak_after:.1} sigma"
+            "job {id}: final CLEAN on the residual: components at {components} pixels in {cycles} major cycles; {scale_steps} smoothed-residual steps ({scale_flux:.3e} Jy); {faint_islands} faint islands ({faint_flux:.3e} Jy) left the model; model flux {flux_before:.4e} -> {flux_after:.4e} Jy; residual peak {peak_before:.1} -> {peak_after:.1} sigma"
         );
         job.settings.insert(
             "final_clean".into(),
             serde_json::json!({
                 "major_cycles": cycles,
                 "component_pixels": components,
+                "scale_steps": scale_steps,
+                "scale_flux_jy": scale_flux,
                 "faint_islands": faint_islands,
                 "faint_flux_jy": faint_flux,
                 "model_flux_before_jy": flux_before,
