@@ -341,9 +341,10 @@ fn main_lobe_width(psf: &[f64], n: usize) -> f64 {
 
 /// The final CLEAN of `model` (with its exact residual `residual`): compact islands of the
 /// model cleaned afresh where that explains the data better, then major cycles on what is left
-/// (see [`FinalCleanParams`]), then the faint islands out. `residual_of` gives the exact
-/// residual of a model; `on_kept` is told each kept major cycle's model, residual and seconds,
-/// and the faint islands' removal's.
+/// (see [`FinalCleanParams`]), then the smoothed-residual steps, then the faint islands out.
+/// `residual_of` gives the exact residual of a model; `on_kept` is told each kept major
+/// cycle's model, residual and seconds, the smoothed-residual steps' and the faint islands'
+/// removal's.
 pub fn final_clean<T>(
     config: &FinalCleanParams,
     input: &CleanInput<'_>,
