@@ -268,9 +268,7 @@ impl<T> Cleaning<'_, '_, T> {
         }
         Ok((cycles, components, ratio))
     }
-}
 
-impl<T> Cleaning<'_, '_, T> {
     /// The smoothed-residual steps ([`FinalCleanParams::scale_steps`]), handed to `on_kept`
     /// together with the exact residual of their model; how many were kept and the flux they
     /// added. A step whose best factor is not positive (the smoothed residual explains nothing
