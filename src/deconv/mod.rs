@@ -8,12 +8,14 @@
 //! and north `+y`, so a position angle (east of north) turns from `+y` towards `-x`.
 
 mod beam;
+mod blur;
 mod emission_mask;
 pub mod final_clean;
 mod hogbom;
 mod restore;
 
 pub use beam::{restoring_beam, Beam, BeamFit};
+pub use blur::gaussian_blur;
 pub use emission_mask::{main_lobe_fwhm_px, EmissionMask, DEFAULT_AUTO_MASK};
 pub use hogbom::{hogbom, HogbomParams};
 pub use restore::restore;

@@ -524,31 +524,7 @@ fn diffuse_emission(
 /// pixels, nothing fainter than the dynamic range) with its support widened by the blur.
 pub fn smooth_to_resolution(image: Vec<f64>, n: usize, fwhm_px: f64, dynamic_range: f64) -> Vec<f64> {
     let sigma = fwhm_px / (8.0 * std::f64::consts::LN_2).sqrt();
-    let reach = ((4.0 * sigma).ceil() as usize).min(n - 1);
-    let kernel: Vec<f64> = (0..=reach).map(|k| (-0.5 * (k as f64 / sigma).powi(2)).exp()).collect();
-    let norm = kernel[0] + 2.0 * kernel[1..].iter().sum::<f64>();
-    let blur_line = |line: &[f64], out: &mut [f64]| {
-        for (i, o) in out.iter_mut().enumerate() {
-            let lo = i.saturating_sub(reach);
-            let hi = (i + reach).min(n - 1);
-            *o = (lo..=hi).map(|j| line[j] * kernel[i.abs_diff(j)]).sum::<f64>() / norm;
-        }
-    };
-    let mut rows = vec![0.0; n * n];
-    for iy in 0..n {
-        blur_line(&image[iy * n..(iy + 1) * n], &mut rows[iy * n..(iy + 1) * n]);
-    }
-    let mut out = vec![0.0; n * n];
-    let (mut column, mut blurred) = (vec![0.0; n], vec![0.0; n]);
-    for ix in 0..n {
-        for iy in 0..n {
-            column[iy] = rows[iy * n + ix];
-        }
-        blur_line(&column, &mut blurred);
-        for iy in 0..n {
-            out[iy * n + ix] = blurred[iy];
-        }
-    }
+    let mut out = crate::deconv::gaussian_blur(&image, n, sigma, 4.0);
     normalise_and_cut(&mut out, dynamic_range);
     out
 }
