@@ -159,8 +159,11 @@ fn broken_series_fail_before_imaging_and_leave_no_files() {
 
 /// A series that makes the model explain the data worse than an empty image (Landweber with a
 /// gain far above 2 / ||D||) is stopped by the residual update's divergence guard: exit status
-/// 3 (products written, model rejected), a warning with the figures, the empty model kept (residual ratio 1), and the metrics file
-/// says where and why. With the guard off, the same series runs to its end and diverges.
+/// 3 (products written, model rejected), a warning with the figures, the empty model kept
+/// (residual ratio 1), and the metrics file says where and why. The final CLEAN then images
+/// the data from that empty model, as CLEAN alone (its own warning says so; the exit status
+/// stays 3); with `--no-final-clean` the products are the empty model's. With the guard off,
+/// the same series runs to its end and diverges.
 #[test]
 fn a_diverging_series_is_stopped_and_its_best_iterate_kept() {
     let dir = tempfile::tempdir().unwrap();
@@ -168,7 +171,7 @@ fn a_diverging_series_is_stopped_and_its_best_iterate_kept() {
     observation(d);
     let reference = ReferenceOperator::new(&d.join("obs.parquet"));
     make_models(&d.join("models"), 40.0 * reference.landweber_gain());
-    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/landweber", "--name", "div"], d);
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/landweber", "--name", "div", "--no-final-clean"], d);
     assert_rejected(&out);
     let log = text(&out);
     assert!(log.contains("diverged") && log.contains("above 1") && log.contains("kept the empty model"), "{log}");
@@ -186,6 +189,43 @@ fn a_diverging_series_is_stopped_and_its_best_iterate_kept() {
     assert!(model.iter().all(|&x| x == 0.0));
     assert_eq!(read(&d.join("div-residual.fits")), read(&d.join("div-dirty.fits")));
 
+    // With the final CLEAN (the default) the data are imaged from the empty model: the same
+    // stop and status, CLEAN's model and residual, and a warning that says so.
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/landweber", "--name", "divc"], d);
+    assert_rejected(&out);
+    let log = text(&out);
+    assert!(log.contains("kept the empty model") && log.contains("imaged the data from the empty model (CLEAN alone)"), "{log}");
+    let metrics: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(d.join("divc-metrics.json")).unwrap()).unwrap();
+    assert_eq!(metrics["stop"]["reason"], "diverged", "{metrics}");
+    assert_eq!(metrics["stop"]["after_iteration"], 1, "{metrics}");
+    let ratio = metrics["final"]["residual_ratio"].as_f64().unwrap();
+    assert!(ratio < 0.5 && metrics["final"]["iteration"].as_u64().unwrap() > 1, "{metrics}");
+    assert_eq!(metrics["stop"]["kept_iteration"], metrics["final"]["iteration"], "{metrics}");
+    assert!(read(&d.join("divc-model.fits")).iter().any(|&x| x > 0.0));
+    assert_ne!(read(&d.join("divc-residual.fits")), read(&d.join("divc-dirty.fits")));
+    // A series whose first network helps and whose next ones diverge keeps network 1's model
+    // (without the final CLEAN); with it, CLEAN alone images the data all the same: the model
+    // is the one above, not built on the rejected series' iterate.
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/make_test_models.py");
+    let (good, wild) = (reference.landweber_gain(), 40.0 * reference.landweber_gain());
+    let out = std::process::Command::new("python3").arg(&script).arg(d.join("models-late")).args(["--gain", &wild.to_string(), "--first-gain", &good.to_string()]).output().unwrap();
+    assert!(out.status.success(), "{}", text(&out));
+    for (name, final_clean) in [("late", false), ("latec", true)] {
+        let mut args = vec!["image", "obs.parquet", "--size", "64", "--step", "models-late/overshoot", "--name", name];
+        if !final_clean {
+            args.push("--no-final-clean");
+        }
+        let out = r2d2(&args, d);
+        assert_rejected(&out);
+        let log = text(&out);
+        assert!(log.contains("diverged") && log.contains("kept the model of iteration 1"), "{log}");
+        let model = read(&d.join(format!("{name}-model.fits")));
+        match final_clean {
+            false => assert!(model.iter().any(|&x| x > 0.0) && model != read(&d.join("divc-model.fits"))),
+            true => assert_eq!(model, read(&d.join("divc-model.fits")), "CLEAN alone, as from the empty model"),
+        }
+    }
+
     // The same networks as a series of two realisations (whose mean would be the image): the
     // guard watches each realisation's own ratios, so the first one's divergence stops the
     // job the same way, instead of a mean of diverged models with no word said.
@@ -198,7 +238,7 @@ fn a_diverging_series_is_stopped_and_its_best_iterate_kept() {
     }
     let realisations = format!("realisations: [[{0}], [{0}]]\n", list.join(", "));
     std::fs::write(d.join("models/landweber2r/manifest.yaml"), format!("{head}{realisations}")).unwrap();
-    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/landweber2r", "--name", "div2r"], d);
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/landweber2r", "--name", "div2r", "--no-final-clean"], d);
     assert_rejected(&out);
     let log = text(&out);
     assert!(log.contains("diverged") && log.contains("kept the empty model"), "{log}");
@@ -381,7 +421,7 @@ fn a_first_overshoot_that_the_series_recovers_from_is_not_divergence() {
     assert!(read(&d.join("os-model.fits")).iter().any(|&x| x > 0.0));
 
     // Ending on the overshoot: divergence, the empty model kept.
-    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/overshoot", "--iterations", "1", "--name", "os1"], d);
+    let out = r2d2(&["image", "obs.parquet", "--size", "64", "--step", "models/overshoot", "--iterations", "1", "--name", "os1", "--no-final-clean"], d);
     assert_rejected(&out);
     let log = text(&out);
     assert!(log.contains("diverged") && log.contains("kept the empty model"), "{log}");

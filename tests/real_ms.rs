@@ -1,7 +1,8 @@
 //! MeasurementSets that other software wrote (tests/data/real: DP3's LOFAR set, OSKAR's
 //! simulation, Birli's MWA set and CASA's VLA set), imaged with the w-term: the residual the
 //! deconvolution iterates on is the dirty image of the data less the model's visibilities (an
-//! independent direct sum), and CLEAN converges on all four with its defaults.
+//! independent direct sum), CLEAN converges on all four with its defaults, and a series they
+//! are outside the domain of is rejected and CLEAN alone images them.
 
 mod common;
 use common::*;
@@ -87,6 +88,29 @@ fn clean_converges_with_the_w_term_on_real_mss() {
         // Products written, model rejected: the exit status a pipeline step can tell.
         assert_eq!(out.status.code(), Some(3), "{ms}: {log}");
         assert!(dir.path().join(format!("{old}-model.fits")).exists());
+    }
+}
+
+/// A VLA series forced onto DP3's LOFAR MS and OSKAR's simulation (outside its domain: other
+/// telescopes, tracks of minutes) diverges with the w-term on (on LOFAR's without it too: the
+/// domain, not the w-term); the guard rejects its model and the final CLEAN images the data
+/// alone, so the job's model converges as CLEAN's does, and the exit status (3) and warnings
+/// say the series was rejected.
+#[test]
+fn a_series_rejected_on_real_mss_leaves_the_model_of_clean_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    for (tgz, pixel) in [("tNDPPP-generic.MS.tgz", "5.68"), ("tOSKAR.in_MS.tgz", "220")] {
+        let ms = unpack(dir.path(), tgz);
+        let name = format!("{ms}-series");
+        let out = r2d2(&["image", &ms, "--size", "512", "--pixel-arcsec", pixel, "--step", "vla-r2d2-512", "--name", &name], dir.path());
+        let log = stderr(&out);
+        assert_eq!(out.status.code(), Some(3), "{ms}: {log}");
+        assert!(log.contains("the w-term is corrected") && log.contains("diverged") && log.contains("the final CLEAN imaged the data from the empty model"), "{ms}: {log}");
+        let m = metrics(&dir.path().join(format!("{name}-metrics.json")));
+        let ratio = m["final"]["residual_ratio"].as_f64().unwrap();
+        println!("{ms}: the series stopped after iteration {}; final residual ratio {ratio:.4}", m["stop"]["after_iteration"]);
+        assert_eq!(m["stop"]["reason"], "diverged", "{ms}: {m}");
+        assert!(ratio < 0.5, "{ms}: final residual ratio {ratio}");
     }
 }
 

@@ -53,18 +53,25 @@ fn normal(im: &Imaging, x: &[f64]) -> Result<Vec<f64>> {
 
 impl Stage<Job> for FinalCleanStage {
     fn process(&mut self, mut job: Job, emit: &mut Emit<'_>) -> Result<()> {
-        // A model the divergence guard rejected is not built on: the products say what it kept.
-        let rejected = job.stop.as_ref().is_some_and(|s| s.reason.is_rejection());
-        if self.config.major_cycles == 0 || rejected {
+        if self.config.major_cycles == 0 {
             return emit(Port::Next, job);
         }
+        // Where the divergence guard rejected the step's model, the data are imaged by CLEAN
+        // alone (the cycles from the empty model): the iterate a series kept on data outside
+        // its domain holds artefacts no cycle takes out. The job still says the step was
+        // rejected (its stop, its warning, the exit status); a pipeline that calibrates against
+        // its model is not left with an empty or spoiled one.
+        let rejected = job.stop.as_ref().is_some_and(|s| s.reason.is_rejection());
         let id = job.id.clone();
         let truth = job.truth.clone();
         let truth_dynamic_range = job.truth_dynamic_range;
         let user_mask = job.mask.clone();
         let im = job.imaging_mut("final_clean")?;
         let (flux_before, peak_before) = (im.model.iter().sum::<f64>(), peak_sigmas(&im.residual));
-        let (model, residual) = (std::mem::take(&mut im.model), std::mem::take(&mut im.residual));
+        let (model, residual) = match rejected {
+            true => (vec![0.0; im.model.len()], im.dirty.clone()),
+            false => (std::mem::take(&mut im.model), std::mem::take(&mut im.residual)),
+        };
         let im: &Imaging = im;
         let input = CleanInput { n: im.geometry.size, dirty: &im.dirty, psf: &im.psf, psf_2n: &im.psf_2n, mask: user_mask.as_deref().map(Vec::as_slice) };
         // Each kept cycle is an iteration of the job's metrics, after the loop's.
@@ -80,10 +87,14 @@ impl Stage<Job> for FinalCleanStage {
             job.iteration += 1;
             job.push_iteration(figures);
         }
-        if let Some(stop) = job.stop.as_mut().filter(|_| changed) {
-            // The model written is the last kept step's (a cycle, or the faint islands' removal).
-            stop.kept_iteration = job.iteration;
+        if let Some(stop) = job.stop.as_mut().filter(|_| changed || rejected) {
+            // The model written is the last kept step's (a cycle, or the faint islands' removal),
+            // or the empty one CLEAN alone started from.
+            stop.kept_iteration = if changed { job.iteration } else { 0 };
             stop.kept_residual_ratio = ratio;
+        }
+        if rejected {
+            job.warn(format!("the step's model being rejected, the final CLEAN imaged the data from the empty model (CLEAN alone): {cycles} major cycles, residual ratio {ratio:.4}; the products hold its model, and the exit status still says the step was rejected"));
         }
         let im = job.imaging_mut("final_clean")?;
         let (flux_after, peak_after) = (im.model.iter().sum::<f64>(), peak_sigmas(&im.residual));

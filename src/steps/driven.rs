@@ -45,7 +45,8 @@ pub enum Cycle {
 #[derive(Clone, Debug)]
 pub struct DrivenOutcome {
     pub model: Vec<f64>,
-    /// Networks run, and the iterate kept (0: the empty model).
+    /// Networks run, and the iterate kept (0: the empty model, also where the final CLEAN
+    /// imaged the data alone after the series was rejected).
     pub networks_run: usize,
     pub kept_network: usize,
     /// Why the series stopped before its last network, if it did.
@@ -272,9 +273,15 @@ fn drive(mut step: OnnxStep, config: &DrivenConfig, dirty: Vec<f64>, psf: Vec<f6
     let networks_run = ratios.len();
     let rejected = stop.is_some_and(StopReason::is_rejection);
     let (mut final_clean_cycles, mut ratio) = (0, residual_ratio(&residual, &dirty));
-    if let (Some(params), false) = (&config.final_clean, rejected) {
+    if let Some(params) = &config.final_clean {
         if params.major_cycles > 0 {
             let input = CleanInput { n, dirty: &dirty, psf: &psf, psf_2n: &psf_2n, mask: None };
+            // A rejected series' model is not built on: CLEAN alone images the data (as the
+            // engine's final CLEAN stage does).
+            if rejected {
+                (model, residual, kept_network) = (vec![0.0; n * n], dirty.clone(), 0);
+                log::warn!("the series' model being rejected, the final CLEAN images the data from the empty model (CLEAN alone)");
+            }
             let outcome = final_clean(params, &input, model, residual, &mut |x| imager.residual_of(x), &mut |_, _, _| ())?;
             log::info!(
                 "final CLEAN on the residual: {} major cycles kept, components at {} pixels; {} faint islands ({:.3e} Jy) left the model; residual ratio {:.4e}",
