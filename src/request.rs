@@ -252,8 +252,8 @@ pub struct StepOptions {
     pub mgain: Option<f64>,
     /// CLEAN: stop at this many times the residual's noise, as WSClean's -auto-threshold
     /// (default 3; 0: none). A series: the depth of its final CLEAN's cycles inside the mask
-    /// of what it found (default 2; 1, as WSClean's self-calibration settings, gives a model
-    /// more of the data's faint and extended flux, at some cost in faint-emission precision).
+    /// of what it found (default 2; 1 as WSClean's self-calibration settings: noise inside the
+    /// mask becomes model, at a cost in faint-emission precision).
     #[arg(long)]
     pub auto_threshold: Option<f64>,
     /// CLEAN: stop below this residual peak in Jy/beam, as WSClean's -threshold.

@@ -59,8 +59,8 @@ if os.path.isdir(_PACKAGE_MODELS):
 
 class R2D2Warning(UserWarning):
     """A warning the engine raised about a job (outside its series' domain, a diverging
-    series stopped and its best iterate kept), as the command line logs it: it is also in the
-    products' ``metrics["warnings"]``."""
+    series stopped and the data imaged by the final CLEAN alone), as the command line logs
+    it: it is also in the products' ``metrics["warnings"]``."""
 __all__ = [
     "R2D2Warning",
     "R2D2Error",

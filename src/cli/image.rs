@@ -13,7 +13,8 @@ pub struct Args {
 }
 
 /// Runs `r2d2 image`; true where the products were written but the divergence guard rejected
-/// the step's model (the job kept an earlier iterate or the empty model): the command then
+/// the step's model (the job kept an earlier iterate or the empty model, or after a series
+/// the final CLEAN imaged the data from the empty model): the command then
 /// exits with [`super::EXIT_MODEL_REJECTED`], so that a pipeline step can tell.
 pub fn run(args: Args) -> Result<bool> {
     let mut request = args.request;

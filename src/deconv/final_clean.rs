@@ -67,8 +67,8 @@ pub struct FinalCleanParams {
     /// sources' wings, faint sources' flux): a self-calibration takes the flux scale of a model
     /// that misses it, round after round.
     pub scale_steps: usize,
-    /// The smoothing Gaussian's sigma in the PSF main lobe's FWHM; default 0.64 (about two
-    /// pixels at superresolution 1.5: a beam's wings, not its core).
+    /// The smoothing Gaussian's sigma in the PSF main lobe's FWHM; default 0.64 (a beam's
+    /// wings, not its core).
     pub scale_beams: f64,
 }
 

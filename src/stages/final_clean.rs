@@ -67,11 +67,11 @@ impl Stage<Job> for FinalCleanStage {
         let truth_dynamic_range = job.truth_dynamic_range;
         let user_mask = job.mask.clone();
         let im = job.imaging_mut("final_clean")?;
-        let (flux_before, peak_before) = (im.model.iter().sum::<f64>(), peak_sigmas(&im.residual));
         let (model, residual) = match rejected {
             true => (vec![0.0; im.model.len()], im.dirty.clone()),
             false => (std::mem::take(&mut im.model), std::mem::take(&mut im.residual)),
         };
+        let (flux_before, peak_before) = (model.iter().sum::<f64>(), peak_sigmas(&residual));
         let im: &Imaging = im;
         let input = CleanInput { n: im.geometry.size, dirty: &im.dirty, psf: &im.psf, psf_2n: &im.psf_2n, mask: user_mask.as_deref().map(Vec::as_slice) };
         // Each kept cycle is an iteration of the job's metrics, after the loop's.
@@ -94,7 +94,8 @@ impl Stage<Job> for FinalCleanStage {
             stop.kept_residual_ratio = ratio;
         }
         if rejected {
-            job.warn(format!("the step's model being rejected, the final CLEAN imaged the data from the empty model (CLEAN alone): {cycles} major cycles, residual ratio {ratio:.4}; the products hold its model, and the exit status still says the step was rejected"));
+            let held = if changed { "its model" } else { "the empty model (no cycle was kept)" };
+            job.warn(format!("the step's model being rejected, the final CLEAN imaged the data from the empty model (CLEAN alone): {cycles} major cycles, residual ratio {ratio:.4}; the products hold {held}, and the exit status still says the step was rejected"));
         }
         let im = job.imaging_mut("final_clean")?;
         let (flux_after, peak_after) = (im.model.iter().sum::<f64>(), peak_sigmas(&im.residual));

@@ -212,7 +212,8 @@ impl Drop for DrivenSeries {
 }
 
 /// The engine's loop with the imager's residuals: networks under the stop rule, the best
-/// iterate kept against divergence, then the final CLEAN unless the model was rejected.
+/// iterate kept against divergence, then the final CLEAN (from the empty model where the
+/// series was rejected).
 fn drive(mut step: OnnxStep, config: &DrivenConfig, dirty: Vec<f64>, psf: Vec<f64>, imager: &Imager) -> Result<DrivenOutcome> {
     let n = config.size;
     let psf_2n = doubled(&psf, n);
