@@ -180,3 +180,36 @@ def test_what_the_deconvolver_cannot_do_is_said_on_wsclean_s_output(ms, engine_r
                              cwd=ms, env=env, capture_output=True, text=True)
         assert out.returncode != 0, out.stdout[-2000:]
         assert f"r2d2: ERROR:" in out.stdout and expected in out.stdout, out.stdout[-3000:]
+
+
+def test_a_series_the_guard_rejects_leaves_wsclean_the_model_of_clean_alone(ms, engine_run, r2d2_bin):
+    """A series that diverges (the test models' Landweber at a gain far above 2 / ||D||) is
+    rejected by the engine's guard inside WSClean as in `r2d2 image` (exit status 3 there):
+    the final CLEAN then images the data from the empty model, so WSClean's model is
+    `r2d2 image`'s, CLEAN alone's, not empty."""
+    models = ms / "test-models"
+    script = Path(__file__).resolve().parents[2] / "tests" / "make_test_models.py"
+    run([sys.executable, script, models, "--gain", "1e4"], ms)
+    series = models / "landweber"
+    env = dict(os.environ, ORT_DYLIB_PATH=onnx_runtime())
+    out = subprocess.run([str(r2d2_bin), "image", "obs.ms", "--size", str(SIZE), "--backend", "ort", "--step", str(series), "--name", "r2d2-rejected"],
+                         cwd=ms, env=env, capture_output=True, text=True)
+    assert out.returncode == 3, out.stderr[-3000:]
+    assert "diverged" in out.stderr and "imaged the data from the empty model" in out.stderr, out.stderr[-3000:]
+    # The test series was trained at 64 x 64: weights on its grid, as `r2d2 image` makes them.
+    log = wsclean(ms, "ws-rejected", ["-super-weight", f"{SIZE / 64:g}"], f"series={series}")
+    assert "diverged" in log and "final CLEAN images the data from the empty model" in log, log[-3000:]
+    ours, theirs = read_fits(ms / "r2d2-rejected-model.fits")[0], read_fits(ms / "ws-rejected-model.fits")[0]
+    assert np.count_nonzero(ours) > 0
+    # CLEAN's components from the N x N PSF WSClean gives and from the engine's 2N x 2N one
+    # land on neighbouring pixels of near-ties all over an extended sky: compared at about
+    # the beam's resolution (a Gaussian of 2 pixels' sigma), with the fluxes.
+    def smooth(image, sigma=2.0):
+        f = np.fft.fftfreq(image.shape[0])
+        kernel = np.exp(-2 * (np.pi * sigma) ** 2 * (f[:, None] ** 2 + f[None, :] ** 2))
+        return np.fft.ifft2(np.fft.fft2(image) * kernel).real
+    difference = np.linalg.norm(smooth(theirs) - smooth(ours)) / np.linalg.norm(smooth(ours))
+    print(f"a rejected series: WSClean + R2D2 vs r2d2 image, CLEAN alone's models within {difference:.2e} (relative L2, smoothed; "
+          f"{np.linalg.norm(theirs - ours) / np.linalg.norm(ours):.2e} pixel by pixel), fluxes {theirs.sum():.5f} / {ours.sum():.5f} Jy")
+    assert difference < 5e-3, f"WSClean's model differs from r2d2 image's by {difference:.2e}"
+    assert abs(theirs.sum() / ours.sum() - 1) < 1e-3
