@@ -172,6 +172,26 @@ fn a_small_w_term_updates_the_residual_by_a_taylor_series_as_the_operator_does()
     let coplanar = taylor.replace("prefix: \"{job}-taylor\"", "prefix: \"{job}-flat\"").replace("w_term: on", "w_term: off");
     run(dir, "flat", &coplanar);
     assert_taylor_is_the_exact_update(dir);
+    // A final CLEAN after the loop: its cycles apply the Taylor series as the updates did, and
+    // the residual it writes is the operator's; its products are those of the final CLEAN
+    // through the operator at every cycle (method: nufft). Two major cycles: this field's
+    // CLEAN does not converge in 20, and so many cycles of both signs amplify any difference
+    // (1e-8 in the flux they start from) into another path.
+    let with_final_clean = |yaml: &str, name: &str| {
+        yaml.replace("prefix: \"{job}-taylor\"", &format!("prefix: \"{{job}}-{name}\""))
+            .replace("    done: write\n", "    done: final\n  final:\n    kind: final_clean\n    major_cycles: 2\n    to: write\n")
+    };
+    let log = run(dir, "taylor-final", &with_final_clean(&taylor, "taylor-final"));
+    assert!(log.contains("the final CLEAN's residual through the operator: the Taylor series in w was"), "{log}");
+    let log = run(dir, "exact-final", &with_final_clean(&exact.replace("{job}-exact", "{job}-taylor"), "exact-final"));
+    assert!(!log.contains("the final CLEAN's residual through the operator"), "{log}");
+    let dirty_peak = max_abs(&read(&dir.join("obs-exact-dirty.fits")));
+    for product in ["model", "residual"] {
+        let d = max_diff(&read(&dir.join(format!("obs-exact-final-{product}.fits"))), &read(&dir.join(format!("obs-taylor-final-{product}.fits")))) / dirty_peak;
+        assert!(d < 1e-5, "final CLEAN's {product}: {d:e}");
+    }
+    let d = max_diff(&read(&dir.join("obs-taylor-final-model.fits")), &read(&dir.join("obs-taylor-model.fits"))) / dirty_peak;
+    assert!(d > 1e-4, "the final CLEAN changed the model: {d:e}");
 }
 
 /// `-metrics.json` `settings.w_term` of the job's `taylor` products.

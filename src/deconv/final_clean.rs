@@ -7,8 +7,10 @@
 //! PSF, each major cycle ending in the exact residual `x_d - D x`, give the model the fluxes
 //! the data measure (the paper's data-fidelity criterion: a residual compatible with the
 //! noise), while extended emission the series already explains leaves little above the
-//! threshold to take. Who computes that exact residual is the caller's: the engine's operator
-//! (`kind: final_clean`), or an outside imager's major cycle (`crate::steps::driven`).
+//! threshold to take. Who computes that exact residual is the caller's: the engine's `D` as
+//! the residual updates apply it (`kind: final_clean`; where that is the Taylor series in `w`,
+//! the residual written is the operator's), or an outside imager's major cycle
+//! (`crate::steps::driven`).
 
 use super::{hogbom, HogbomParams, DEFAULT_MAJOR_GAIN};
 use crate::metrics::{residual_ratio, robust_sigma};

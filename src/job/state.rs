@@ -56,6 +56,47 @@ pub struct Imaging {
     pub best: Option<Iterate>,
 }
 
+impl Imaging {
+    /// Whether the updates apply the Taylor series in `w` in the operator's place (the
+    /// operator kept beside it for the residual written).
+    pub fn updates_by_taylor(&self) -> bool {
+        self.w_toeplitz.is_none() && self.w_taylor.is_some() && self.operator.is_some()
+    }
+
+    /// `D x` as the updates apply it: the w-aware Toeplitz kernels, the Taylor series in `w`,
+    /// the operator (the samples), or the PSF convolution where it is exact; `who` names the
+    /// caller in the error where none of them is `D`.
+    pub fn normal_at_updates(&self, x: &[f64], who: &str) -> Result<Vec<f64>> {
+        if let Some(w_toeplitz) = &self.w_toeplitz {
+            return Ok(w_toeplitz.apply(x));
+        }
+        if let (Some(w_taylor), true) = (&self.w_taylor, self.updates_by_taylor()) {
+            return Ok(w_taylor.apply(x));
+        }
+        if let Some(op) = &self.operator {
+            return op.apply_normal(x);
+        }
+        match &self.toeplitz_inexact {
+            Some(why) => Err(Error::parameter(who, format!("the PSF convolution is not exact here ({why}) and the gridder kept no operator"))),
+            None => Ok(self.psf_convolution.apply(x)),
+        }
+    }
+
+    /// Where the updates ran by the Taylor series in `w`, the residual of the model again
+    /// through the operator (the residual written is the operator's): how far the series was
+    /// from it, relative to `D x`, and a warning where that is beyond its tolerance (`seen_by`
+    /// names what worked on the series' residuals). `None` (nothing recomputed) elsewhere.
+    pub fn residual_through_the_operator(&mut self, seen_by: &str) -> Result<Option<(f64, Option<String>)>> {
+        let Some(op) = self.operator.as_ref().filter(|_| self.updates_by_taylor()) else { return Ok(None) };
+        let exact = op.apply_normal(&self.model)?;
+        // The series' D x, as the last update left it in the residual.
+        let by_taylor: Vec<f64> = self.dirty.iter().zip(&self.residual).map(|(d, r)| d - r).collect();
+        let found = crate::operator::taylor::final_deviation(&by_taylor, &exact, self.nufft.epsilon, seen_by);
+        self.residual = self.dirty.iter().zip(&exact).map(|(d, x)| d - x).collect();
+        Ok(Some(found))
+    }
+}
+
 /// One iterate of the imaging loop, kept so that a diverging series can fall back to it.
 #[derive(Clone, Debug)]
 pub struct Iterate {

@@ -236,13 +236,14 @@ pub fn relative_deviation(ours: &[f64], reference: &[f64]) -> f64 {
 
 /// How far the form's `D x` of the final model (`by_form`) is from the operator's (`exact`),
 /// and a warning where that is ten times what the dirty image was allowed ([`TOLERANCE`] times
-/// the NUFFT's accuracy `epsilon`): the networks then saw residuals that far off.
-pub fn final_deviation(by_form: &[f64], exact: &[f64], epsilon: f64) -> (f64, Option<String>) {
+/// the NUFFT's accuracy `epsilon`): `seen_by` (the networks, the final CLEAN's cycles) then saw
+/// residuals that far off.
+pub fn final_deviation(by_form: &[f64], exact: &[f64], epsilon: f64, seen_by: &str) -> (f64, Option<String>) {
     let deviation = relative_deviation(by_form, exact);
     let limit = 10.0 * TOLERANCE * epsilon;
     let warning = (deviation > limit).then(|| {
         format!(
-            "the residual update's Taylor series in w was {deviation:.1e} of D x from the operator on the final model (above {limit:.0e}): the networks saw residuals that far off (the written residual is the operator's); the residual stage's `method: nufft` updates through the operator at every iteration"
+            "the residual update's Taylor series in w was {deviation:.1e} of D x from the operator on the final model (above {limit:.0e}): {seen_by} saw residuals that far off (the written residual is the operator's); the residual stage's `method: nufft` updates through the operator at every iteration"
         )
     });
     (deviation, warning)
@@ -316,9 +317,9 @@ mod tests {
         let norm = exact.iter().map(|x| x * x).sum::<f64>().sqrt();
         let epsilon = 1e-6;
         let limit = 10.0 * TOLERANCE * epsilon;
-        let (d, warning) = final_deviation(&off(0.5 * limit * norm), &exact, epsilon);
+        let (d, warning) = final_deviation(&off(0.5 * limit * norm), &exact, epsilon, "the networks");
         assert!((d - 0.5 * limit).abs() < 1e-12 && warning.is_none(), "{d:e}");
-        let (d, warning) = final_deviation(&off(2.0 * limit * norm), &exact, epsilon);
+        let (d, warning) = final_deviation(&off(2.0 * limit * norm), &exact, epsilon, "the networks");
         let warning = warning.expect("above the limit");
         assert!((d - 2.0 * limit).abs() < 1e-12, "{d:e}");
         assert!(warning.contains("Taylor series in w") && warning.contains("1e-4") && warning.contains("method: nufft"), "{warning}");

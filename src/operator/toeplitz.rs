@@ -75,7 +75,12 @@ impl WTaps {
 
     /// The fewest taps over the band of `sigma` whose fit is within `epsilon`, if any is.
     pub fn for_accuracy(sigma: f64, epsilon: f64) -> Option<WTaps> {
-        (1..=MAX_TAPS / 2).map(|h| 2 * h).filter_map(|taps| WTaps::new(sigma, taps).ok()).find(|w| w.error <= epsilon)
+        Self::for_accuracy_within(sigma, epsilon, MAX_TAPS)
+    }
+
+    /// As [`WTaps::for_accuracy`], trying no more than `most` taps.
+    fn for_accuracy_within(sigma: f64, epsilon: f64, most: usize) -> Option<WTaps> {
+        (1..=most.min(MAX_TAPS) / 2).map(|h| 2 * h).filter_map(|taps| WTaps::new(sigma, taps).ok()).find(|w| w.error <= epsilon)
     }
 
     pub fn sigma(&self) -> f64 {
@@ -117,15 +122,18 @@ impl WTaps {
     fn measured_error(&self) -> f64 {
         let half = 0.5 / self.sigma;
         let points = 64 * self.taps + 1;
+        let band = |i: usize| -half + 2.0 * half * i as f64 / (points - 1) as f64;
+        // The taps' phasors at each band point do not depend on the offset: made once (the
+        // trigonometry was most of a plan's making).
+        let phasors: Vec<Complex64> = (0..points).flat_map(|i| (0..self.taps).map(move |m| (i, m))).map(|(i, m)| Complex64::cis(-2.0 * PI * self.offset(m) as f64 * band(i))).collect();
         let mut worst = 0.0f64;
         // The fit at f and 1 - f are mirror images: half the offsets suffice.
         for step in 0..=40 {
             let f = (step as f64 + 0.37) / 80.0;
             let a: Vec<f64> = (0..self.taps).map(|m| self.coefficient(f, m)).collect();
-            for i in 0..points {
-                let s = -half + 2.0 * half * i as f64 / (points - 1) as f64;
-                let approx: Complex64 = a.iter().enumerate().map(|(m, &a)| a * Complex64::cis(-2.0 * PI * self.offset(m) as f64 * s)).sum();
-                worst = worst.max((approx - Complex64::cis(-2.0 * PI * f * s)).norm());
+            for (i, taps) in phasors.chunks_exact(self.taps).enumerate() {
+                let approx: Complex64 = a.iter().zip(taps).map(|(&a, &p)| a * p).sum();
+                worst = worst.max((approx - Complex64::cis(-2.0 * PI * f * band(i))).norm());
             }
         }
         worst
@@ -235,21 +243,26 @@ impl WToeplitzPlan {
         if !(max_abs_w.is_finite() && max_abs_w >= 0.0) {
             return None;
         }
-        SIGMAS
-            .iter()
-            .filter_map(|&sigma| {
-                let taps = WTaps::for_accuracy(sigma, epsilon / 2.0)?;
-                let delta = 1.0 / (2.0 * sigma * span);
-                // Beyond this many planes no plan fits in any memory (and the casts stay exact).
-                if max_abs_w / delta > MAX_PLANE_SPAN {
-                    return None;
-                }
-                let last = (max_abs_w / delta).floor() as i64 + (taps.taps() / 2) as i64;
-                let first = 1 - (taps.taps() / 2) as i64;
-                let planes = usize::try_from(last - first + 1).ok()?;
-                Some(WToeplitzPlan { taps, delta, first, planes, max_abs_w, size: geometry.size })
-            })
-            .min_by_key(|p| (p.planes, p.taps.taps()))
+        // The plan of fewest planes, then fewest taps, then the first oversampling of SIGMAS.
+        // A plan has floor(max |w| / delta) + taps planes: the oversamplings are tried from the
+        // largest (the fewest taps, the cheapest fits) and each is fitted only up to the taps
+        // that could still beat the best plan so far (the fits are most of a plan's cost).
+        let mut best: Option<((usize, usize, usize), WToeplitzPlan)> = None;
+        for (index, &sigma) in SIGMAS.iter().enumerate().rev() {
+            let delta = 1.0 / (2.0 * sigma * span);
+            // Beyond this many planes no plan fits in any memory (and the casts stay exact).
+            if max_abs_w / delta > MAX_PLANE_SPAN {
+                continue;
+            }
+            let base = (max_abs_w / delta).floor() as usize;
+            let beats = |taps: usize| best.as_ref().map_or(true, |(key, _)| (base + taps, taps, index) < *key);
+            let most = (2..=MAX_TAPS).step_by(2).take_while(|&t| beats(t)).last().unwrap_or(0);
+            let Some(taps) = WTaps::for_accuracy_within(sigma, epsilon / 2.0, most) else { continue };
+            let first = 1 - (taps.taps() / 2) as i64;
+            let planes = base + taps.taps();
+            best = Some(((planes, taps.taps(), index), WToeplitzPlan { taps, delta, first, planes, max_abs_w, size: geometry.size }));
+        }
+        best.map(|(_, plan)| plan)
     }
 
     /// What makes two plans the same (kernels of parts built in other processes are summed
@@ -673,6 +686,33 @@ mod tests {
             assert!(worst <= 1.5 * epsilon, "{sigma}: {worst:e} against {epsilon:e}");
         }
         assert!(WTaps::new(4.0, 3).is_err() && WTaps::new(1.0, 4).is_err());
+    }
+
+    #[test]
+    fn a_plan_is_the_one_of_fewest_planes_then_taps_of_every_fit_over_every_oversampling() {
+        // The plan fits each oversampling only up to the taps that could beat the best so far;
+        // it must be the plan a fit of every oversampling would choose.
+        let geometry = ImageGeometry::new(512, (1.0f64 / 3600.0 * 0.2).to_radians()).unwrap();
+        let wide = ImageGeometry::new(256, (20.0f64 / 256.0).to_radians()).unwrap();
+        let span_of = |g| max_t_difference(g).unwrap();
+        for (g, max_abs_w, epsilon) in [(geometry, 1.4e5, 1e-5), (geometry, 1.4e5, 1e-7), (wide, 0.0, 1e-5), (wide, 40.0, 1e-6), (wide, 900.0, 1e-4), (wide, 900.0, 1e-9)] {
+            let span = span_of(g);
+            let all = SIGMAS
+                .iter()
+                .filter_map(|&sigma| {
+                    let taps = WTaps::for_accuracy(sigma, epsilon / 2.0)?;
+                    let delta = 1.0 / (2.0 * sigma * span);
+                    let planes = (max_abs_w / delta).floor() as usize + taps.taps();
+                    Some((planes, taps.taps(), sigma))
+                })
+                .min_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)));
+            let plan = WToeplitzPlan::new(g, max_abs_w, epsilon);
+            assert_eq!(plan.as_ref().map(|p| (p.planes, p.taps.taps(), p.taps.sigma())), all, "|w| {max_abs_w}, epsilon {epsilon}");
+            if let Some(p) = plan {
+                assert_eq!(p.first, 1 - (p.taps.taps() / 2) as i64);
+                assert!((p.delta - 1.0 / (2.0 * p.taps.sigma() * span)).abs() <= 1e-15 * p.delta);
+            }
+        }
     }
 
     #[test]

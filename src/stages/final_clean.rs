@@ -6,7 +6,7 @@ use crate::deconv::final_clean::{final_clean, peak_sigmas, CleanInput, CleanOutc
 pub use crate::deconv::final_clean::FinalCleanParams;
 use crate::job::{Built, Emit, Imaging, Job, KindFn, Product};
 use crate::pipeline::{Port, Role, Stage, StageParams};
-use crate::{Error, Result};
+use crate::Result;
 
 impl StageParams for FinalCleanParams {
     const KIND: &'static str = "final_clean";
@@ -30,24 +30,6 @@ pub struct FinalCleanStage {
 impl FinalCleanStage {
     pub fn new(config: FinalCleanParams) -> Result<FinalCleanStage> {
         Ok(FinalCleanStage { config: config.checked()? })
-    }
-}
-
-/// `D x` by the most exact form the gridder left: the w-Toeplitz kernels, the operator (the
-/// samples), the Taylor series in `w`, or the PSF convolution where it is exact.
-fn normal(im: &Imaging, x: &[f64]) -> Result<Vec<f64>> {
-    if let Some(w_toeplitz) = &im.w_toeplitz {
-        return Ok(w_toeplitz.apply(x));
-    }
-    if let Some(op) = &im.operator {
-        return op.apply_normal(x);
-    }
-    if let Some(w_taylor) = &im.w_taylor {
-        return Ok(w_taylor.apply(x));
-    }
-    match &im.toeplitz_inexact {
-        Some(why) => Err(Error::parameter("final_clean", format!("the PSF convolution is not exact here ({why}) and the gridder kept no operator"))),
-        None => Ok(im.psf_convolution.apply(x)),
     }
 }
 
@@ -78,11 +60,30 @@ impl Stage<Job> for FinalCleanStage {
         let mut on_kept = |model: &[f64], residual: &[f64], seconds: f64| {
             crate::job::iteration_figures(model, residual, &im.dirty, truth.as_deref(), truth_dynamic_range, seconds)
         };
-        let outcome = final_clean(&self.config, &input, model, residual, &mut |x| Ok(im.dirty.iter().zip(normal(im, x)?).map(|(d, v)| d - v).collect()), &mut on_kept)?;
-        let CleanOutcome { model, residual, cycles, components, ratio, kept, faint_islands, faint_flux, scale_steps, scale_flux } = outcome;
+        // The cycles apply D as the updates did (the Taylor series in w where it stands for the
+        // operator: its D x agreed with the operator's on the dirty image, at a fraction of an
+        // application's cost); the residual written is the operator's, below.
+        let outcome = final_clean(&self.config, &input, model, residual, &mut |x| Ok(im.dirty.iter().zip(im.normal_at_updates(x, "final_clean")?).map(|(d, v)| d - v).collect()), &mut on_kept)?;
+        let CleanOutcome { model, residual, cycles, components, mut ratio, mut kept, faint_islands, faint_flux, scale_steps, scale_flux } = outcome;
         let im = job.imaging_mut("final_clean")?;
         (im.model, im.residual) = (model, residual);
+        // Nothing kept: the model and residual are the step's (exact already) or the empty
+        // model's (the dirty image).
         let changed = !kept.is_empty();
+        let mut taylor_off = None;
+        if changed {
+            if let Some((deviation, warning)) = im.residual_through_the_operator("the final CLEAN's cycles")? {
+                log::info!("job {id}: the final CLEAN's residual through the operator: the Taylor series in w was {deviation:.1e} of D x from it on its model");
+                ratio = crate::metrics::residual_ratio(&im.residual, &im.dirty);
+                if let Some(last) = kept.last_mut() {
+                    last.residual_ratio = ratio;
+                }
+                taylor_off = warning;
+            }
+        }
+        if let Some(warning) = taylor_off {
+            job.warn(warning);
+        }
         for figures in kept {
             job.iteration += 1;
             job.push_iteration(figures);

@@ -224,15 +224,11 @@ impl Stage<Job> for ResidualStage {
                 // The Taylor form agreed with the operator on the dirty image: the written
                 // residual is the operator's all the same, and the log says how far the form
                 // was from it on the final model.
-                if let (ResidualMethod::Toeplitz, None, Some(_), Some(op)) = (method, &im.w_toeplitz, &im.w_taylor, &im.operator) {
-                    let exact = op.apply_normal(&im.model)?;
-                    // The form's D x, as the last update left it in the residual.
-                    let by_taylor: Vec<f64> = im.dirty.iter().zip(&im.residual).map(|(d, r)| d - r).collect();
-                    let (deviation, warning) = crate::operator::taylor::final_deviation(&by_taylor, &exact, im.nufft.epsilon);
-                    let residual: Vec<f64> = im.dirty.iter().zip(&exact).map(|(d, x)| d - x).collect();
-                    log::info!("job {id}: the final residual through the operator: the Taylor series in w was {deviation:.1e} of D x from it on the final model");
-                    taylor_off = warning;
-                    im.residual = residual;
+                if method == ResidualMethod::Toeplitz {
+                    if let Some((deviation, warning)) = im.residual_through_the_operator("the networks")? {
+                        log::info!("job {id}: the final residual through the operator: the Taylor series in w was {deviation:.1e} of D x from it on the final model");
+                        taylor_off = warning;
+                    }
                 }
             }
         }
