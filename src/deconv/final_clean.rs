@@ -133,8 +133,8 @@ pub fn peak_sigmas(residual: &[f64]) -> f64 {
 }
 
 /// What the final CLEAN works on: the images a step's loop leaves, and the residual of any
-/// model (`x_d - D x`) from whoever owns the data: the engine's exact operator, or an outside
-/// imager's major cycle (`crate::steps::driven`).
+/// model (`x_d - D x`) from whoever owns the data: the engine's `D` (as its residual updates
+/// apply it), or an outside imager's major cycle (`crate::steps::driven`).
 pub struct CleanInput<'a> {
     pub n: usize,
     pub dirty: &'a [f64],
@@ -152,6 +152,10 @@ pub struct CleanInput<'a> {
 pub struct CleanOutcome<T> {
     pub model: Vec<f64>,
     pub residual: Vec<f64>,
+    /// Whether the model differs from the one the final CLEAN was given (a kept cycle or step,
+    /// or the compact islands' removal standing); where it does not, `residual` may still be
+    /// one `residual_of` made of it again, not the one given.
+    pub model_changed: bool,
     pub cycles: usize,
     pub components: usize,
     pub ratio: f64,
@@ -339,6 +343,7 @@ pub fn final_clean<T>(
     let compact = compact_island_pixels(&model, n, max_pixels, COMPACT_MIN_SIGMAS * robust_sigma(&residual));
     let mut run = Cleaning { config, input, model, residual, residual_of, on_kept, kept: Vec::new() };
     let (mut cycles, mut components, mut ratio) = (0, 0, step_ratio);
+    let mut compact_left = false;
     if !compact.is_empty() {
         let step = (run.model.clone(), run.residual.clone());
         // Compact islands are cleaned afresh: their model leaves, its flux goes back to the
@@ -356,6 +361,8 @@ pub fn final_clean<T>(
             (run.model, run.residual) = step;
             run.kept.clear();
             (cycles, components, ratio) = (0, 0, step_ratio);
+        } else {
+            compact_left = true;
         }
     }
     if cycles == 0 {
@@ -419,7 +426,8 @@ pub fn final_clean<T>(
             }
         }
     }
-    Ok(CleanOutcome { model: run.model, residual: run.residual, cycles, components, ratio, kept: run.kept, faint_islands, faint_flux, scale_steps, scale_flux })
+    let model_changed = compact_left || !run.kept.is_empty();
+    Ok(CleanOutcome { model: run.model, residual: run.residual, model_changed, cycles, components, ratio, kept: run.kept, faint_islands, faint_flux, scale_steps, scale_flux })
 }
 
 /// The islands of `model` (8-connected positive pixels) whose flux is below `sigmas_flux`

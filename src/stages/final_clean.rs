@@ -1,6 +1,7 @@
 //! `kind: final_clean`: CLEAN major cycles on what the imaging loop's model leaves in the
-//! residual, after the loop (`crate::deconv::final_clean`), each major cycle's residual the
-//! engine's exact `x_d - D x`.
+//! residual, after the loop (`crate::deconv::final_clean`), each major cycle's residual
+//! `x_d - D x` with `D` as the loop's residual updates applied it (where that is the Taylor
+//! series in `w`, the residual written is the operator's).
 
 use crate::deconv::final_clean::{final_clean, peak_sigmas, CleanInput, CleanOutcome};
 pub use crate::deconv::final_clean::FinalCleanParams;
@@ -55,35 +56,50 @@ impl Stage<Job> for FinalCleanStage {
         };
         let (flux_before, peak_before) = (model.iter().sum::<f64>(), peak_sigmas(&residual));
         let im: &Imaging = im;
+        // The cycles apply D as the updates did (the Taylor series in w where it stands for the
+        // operator: its D x agreed with the operator's on the dirty image, at a fraction of an
+        // application's cost), and compare residual ratios in that one form: they start from
+        // the series' residual of the step's model, not the operator's the loop ended with,
+        // which is written back where the model does not change. Otherwise the residual
+        // written is the operator's, below.
+        let by_taylor = im.updates_by_taylor();
+        let mut residual_of = |x: &[f64]| -> Result<Vec<f64>> { Ok(im.dirty.iter().zip(im.normal_at_updates(x, "final_clean")?).map(|(d, v)| d - v).collect()) };
+        let (residual, step_residual) = match (by_taylor, rejected) {
+            (true, false) => (residual_of(&model)?, Some(residual)),
+            // The empty model's residual, the dirty image, in every form of D.
+            (true, true) => (residual.clone(), Some(residual)),
+            (false, _) => (residual, None),
+        };
         let input = CleanInput { n: im.geometry.size, dirty: &im.dirty, psf: &im.psf, psf_2n: &im.psf_2n, mask: user_mask.as_deref().map(Vec::as_slice) };
         // Each kept cycle is an iteration of the job's metrics, after the loop's.
         let mut on_kept = |model: &[f64], residual: &[f64], seconds: f64| {
             crate::job::iteration_figures(model, residual, &im.dirty, truth.as_deref(), truth_dynamic_range, seconds)
         };
-        // The cycles apply D as the updates did (the Taylor series in w where it stands for the
-        // operator: its D x agreed with the operator's on the dirty image, at a fraction of an
-        // application's cost); the residual written is the operator's, below.
-        let outcome = final_clean(&self.config, &input, model, residual, &mut |x| Ok(im.dirty.iter().zip(im.normal_at_updates(x, "final_clean")?).map(|(d, v)| d - v).collect()), &mut on_kept)?;
-        let CleanOutcome { model, residual, cycles, components, mut ratio, mut kept, faint_islands, faint_flux, scale_steps, scale_flux } = outcome;
+        let outcome = final_clean(&self.config, &input, model, residual, &mut residual_of, &mut on_kept)?;
+        let CleanOutcome { model, residual, model_changed, cycles, components, mut ratio, mut kept, faint_islands, faint_flux, scale_steps, scale_flux } = outcome;
         let im = job.imaging_mut("final_clean")?;
         (im.model, im.residual) = (model, residual);
-        // Nothing kept: the model and residual are the step's (exact already) or the empty
-        // model's (the dirty image).
-        let changed = !kept.is_empty();
         let mut taylor_off = None;
-        if changed {
-            if let Some((deviation, warning)) = im.residual_through_the_operator("the final CLEAN's cycles")? {
-                log::info!("job {id}: the final CLEAN's residual through the operator: the Taylor series in w was {deviation:.1e} of D x from it on its model");
-                ratio = crate::metrics::residual_ratio(&im.residual, &im.dirty);
-                if let Some(last) = kept.last_mut() {
-                    last.residual_ratio = ratio;
+        match (model_changed, step_residual) {
+            (false, Some(step_residual)) => im.residual = step_residual,
+            (true, Some(_)) => {
+                if let Some((deviation, warning)) = im.residual_through_the_operator("the final CLEAN's cycles")? {
+                    log::info!("job {id}: the final CLEAN's residual through the operator: the Taylor series in w was {deviation:.1e} of D x from it on its model");
+                    taylor_off = warning;
                 }
-                taylor_off = warning;
+            }
+            (_, None) => {}
+        }
+        if by_taylor {
+            ratio = crate::metrics::residual_ratio(&im.residual, &im.dirty);
+            if let Some(last) = kept.last_mut() {
+                last.residual_ratio = ratio;
             }
         }
         if let Some(warning) = taylor_off {
             job.warn(warning);
         }
+        let changed = !kept.is_empty();
         for figures in kept {
             job.iteration += 1;
             job.push_iteration(figures);

@@ -218,6 +218,7 @@ impl Stage<Job> for ResidualStage {
         }
         let finished = job.series_finished || reason.is_some();
         let mut taylor_off = None;
+        let mut exact_ratio = None;
         if finished {
             if let Some(im) = job.imaging.as_mut() {
                 im.best = None;
@@ -228,8 +229,20 @@ impl Stage<Job> for ResidualStage {
                     if let Some((deviation, warning)) = im.residual_through_the_operator("the networks")? {
                         log::info!("job {id}: the final residual through the operator: the Taylor series in w was {deviation:.1e} of D x from it on the final model");
                         taylor_off = warning;
+                        exact_ratio = Some(crate::metrics::residual_ratio(&im.residual, &im.dirty));
                     }
                 }
+            }
+        }
+        if let Some(ratio) = exact_ratio {
+            // The figures of the model kept say the written residual's ratio: the stop's, and
+            // the last iteration's where that is the model kept.
+            let last_kept = job.stop.as_ref().is_none_or(|s| s.kept_iteration == s.after_iteration);
+            if let Some(stop) = job.stop.as_mut() {
+                stop.kept_residual_ratio = ratio;
+            }
+            if let Some(last) = job.metrics.last_mut().filter(|_| last_kept) {
+                last.residual_ratio = ratio;
             }
         }
         if let Some(warning) = taylor_off {
