@@ -63,9 +63,10 @@ impl Imaging {
         self.w_toeplitz.is_none() && self.w_taylor.is_some() && self.operator.is_some()
     }
 
-    /// `D x` as the updates apply it: the w-aware Toeplitz kernels, the Taylor series in `w`,
-    /// the operator (the samples), or the PSF convolution where it is exact; `who` names the
-    /// caller in the error where none of them is `D`.
+    /// `D x` as the residual updates (`method: toeplitz`) apply it: the w-aware Toeplitz
+    /// kernels, the Taylor series in `w`, the operator (the samples), or the PSF convolution
+    /// where it is exact (the operator is kept with the w-term, or for `method: nufft`, whose
+    /// updates apply it too); `who` names the caller in the error where none of them is `D`.
     pub fn normal_at_updates(&self, x: &[f64], who: &str) -> Result<Vec<f64>> {
         if let Some(w_toeplitz) = &self.w_toeplitz {
             return Ok(w_toeplitz.apply(x));

@@ -142,20 +142,14 @@ impl Stage<Job> for ResidualStage {
         let iteration = job.iteration;
         let id = job.id.clone();
         let im = job.imaging_mut("residual")?;
-        let d_x = match (method, &im.w_toeplitz, &im.w_taylor, &im.toeplitz_inexact, &im.operator) {
-            (ResidualMethod::Toeplitz, Some(w_toeplitz), _, _, _) => w_toeplitz.apply(&im.model),
-            (ResidualMethod::Toeplitz, None, Some(w_taylor), _, _) => w_taylor.apply(&im.model),
-            (ResidualMethod::Toeplitz, None, None, None, _) => im.psf_convolution.apply(&im.model),
-            (ResidualMethod::Toeplitz, None, None, Some(why), Some(op)) => {
-                if iteration == 1 {
+        let d_x = match (method, &im.operator) {
+            (ResidualMethod::Nufft, Some(op)) => op.apply_normal(&im.model)?,
+            (ResidualMethod::Nufft, None) => return Err(Error::parameter("method", "nufft needs the visibilities, which the gridder released")),
+            (ResidualMethod::Toeplitz, _) => {
+                if let (1, None, false, Some(why), Some(_)) = (iteration, &im.w_toeplitz, im.updates_by_taylor(), &im.toeplitz_inexact, &im.operator) {
                     log::info!("job {id}: the residual update runs through the operator instead of the PSF convolution: {why}");
                 }
-                op.apply_normal(&im.model)?
-            }
-            (_, _, _, _, Some(op)) => op.apply_normal(&im.model)?,
-            (ResidualMethod::Nufft, _, _, _, None) => return Err(Error::parameter("method", "nufft needs the visibilities, which the gridder released")),
-            (ResidualMethod::Toeplitz, None, None, Some(why), None) => {
-                return Err(Error::parameter("method", format!("the PSF convolution is not exact here ({why}) and the gridder kept no operator")))
+                im.normal_at_updates(&im.model, "method")?
             }
         };
         im.residual = im.dirty.iter().zip(&d_x).map(|(d, x)| d - x).collect();
